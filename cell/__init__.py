@@ -1,0 +1,1 @@
+"""Cell orchestration: config, frames, locate/approach/jog, safety, jobs, hardware factory."""

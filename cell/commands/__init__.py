@@ -1,0 +1,13 @@
+"""Subcommands of ``cell``. Each module exposes ``register(subparsers)``; heavy imports stay
+inside the command functions so ``cell --help`` is fast."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+
+from cell.commands import vision
+
+Register = Callable[["argparse._SubParsersAction[argparse.ArgumentParser]"], None]
+
+COMMANDS: list[Register] = [vision.register]

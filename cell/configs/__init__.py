@@ -1,0 +1,1 @@
+"""Packaged sample configurations (the built-in simulated cell)."""

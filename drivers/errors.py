@@ -1,0 +1,51 @@
+"""Typed hardware errors: the cell maps each to a state and an API status."""
+
+from __future__ import annotations
+
+
+class DriverError(Exception):
+    """Base class for hardware faults and refusals."""
+
+    code = "driver_error"
+
+
+class ConnectionLostError(DriverError):
+    """The device or controller is unreachable or stopped answering."""
+
+    code = "connection_lost"
+
+
+class NotReadyError(DriverError):
+    """The device is connected but not in a state that accepts the command (e.g. not in remote)."""
+
+    code = "not_ready"
+
+
+class ProtectiveStopError(DriverError):
+    """The arm is protective-stopped; motion is refused until recovered."""
+
+    code = "protective_stop"
+
+
+class EmergencyStopError(DriverError):
+    """The arm is emergency-stopped; needs a person at the cell."""
+
+    code = "emergency_stop"
+
+
+class MotionError(DriverError):
+    """A motion command was rejected or did not complete (limits, unreachable pose, aborted)."""
+
+    code = "motion_failed"
+
+
+class DeviceTimeoutError(DriverError):
+    """The device did not answer in time."""
+
+    code = "device_timeout"
+
+
+class ProtocolError(DriverError):
+    """The device answered with something that is not the expected protocol (CRC, garbage)."""
+
+    code = "protocol_error"

@@ -1,0 +1,1 @@
+"""Simulated hardware behind the same interfaces, and where possible the same wire protocols."""
