@@ -6,8 +6,15 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 
-from cell.commands import vision
+from cell.commands import bench, calibrate, camera, gripper, serve, vision
 
 Register = Callable[["argparse._SubParsersAction[argparse.ArgumentParser]"], None]
 
-COMMANDS: list[Register] = [vision.register]
+COMMANDS: list[Register] = [
+    vision.register,  # detect, estimate
+    bench.register,
+    gripper.register,
+    camera.register,
+    serve.register,
+    calibrate.register,
+]
