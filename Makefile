@@ -8,7 +8,7 @@ PACKAGES := cell drivers estimator api fakes
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-.PHONY: install lint test run bench clean
+.PHONY: install lint test run bench clean browser
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -24,8 +24,20 @@ lint: install
 	$(BIN)/ruff check $(PACKAGES) tests
 	$(BIN)/mypy
 
-test: lint
+test: lint browser
 	$(BIN)/pytest
+
+# Headless Chromium for the operator-page tests: Debian's package, never a browser download.
+# Installs only when missing and we are root; otherwise the browser tests skip with a reason.
+browser:
+	@if [ ! -x /usr/bin/chromium ]; then \
+		if [ "$$(id -u)" = 0 ]; then \
+			apt-get install -y --no-install-recommends chromium \
+			|| { apt-get update && apt-get install -y --no-install-recommends chromium; }; \
+		else \
+			echo "browser: /usr/bin/chromium missing and not root; browser tests will skip"; \
+		fi; \
+	fi
 
 run: install
 	$(BIN)/cell serve --host $(HOST) --port $(PORT)

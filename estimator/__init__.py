@@ -4,6 +4,7 @@ Imports nothing else of the project (numpy, SciPy and OpenCV only), so it can be
 tested on its own.
 """
 
+from estimator.blobs import detect_blobs
 from estimator.camera import CameraModel
 from estimator.errors import (
     BehindCameraError,
@@ -13,7 +14,10 @@ from estimator.errors import (
     NotConvergedError,
     TooFewBlobsError,
 )
+from estimator.pipeline import Estimator
+from estimator.posit import PositResult, posit
 from estimator.result import AlternativePose, Blob, PoseResult
+from estimator.solve import solve_pose
 from estimator.target import Target
 
 __all__ = [
@@ -24,9 +28,14 @@ __all__ = [
     "CorrespondenceError",
     "DegenerateGeometryError",
     "EstimationError",
+    "Estimator",
     "NotConvergedError",
     "PoseResult",
+    "PositResult",
     "Target",
     "TooFewBlobsError",
+    "detect_blobs",
+    "posit",
+    "solve_pose",
 ]
 # posit, solve_pose, detect_blobs and Estimator are added here as their modules land.

@@ -1,4 +1,4 @@
-"""``cell bench``: placeholder until its feature lands."""
+"""``cell bench``: the estimator against OpenCV pipelines on identical rendered frames."""
 
 from __future__ import annotations
 
@@ -6,4 +6,33 @@ import argparse
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    _ = sub
+    p = sub.add_parser("bench", help="benchmark the estimator against OpenCV pipelines",
+                       description="Times and pose errors on rendered 1280x800 frames "
+                                   "(see cell/bench.py for what is measured and how).")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("--frames", type=int, default=60, help="rendered frames (default 60)")
+    p.add_argument("--scenes", type=int, default=1000,
+                   help="random scenes for the 0.5 px accuracy comparison (default 1000)")
+    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("--config", metavar="CELL.toml", default=None,
+                   help="take the camera from this config (default: the simulated cell)")
+    p.set_defaults(func=_bench)
+
+
+def _bench(args: argparse.Namespace) -> int:
+    from cell.bench import format_report, run_bench
+    from cell.commands.common import fail, print_json
+    from cell.config import ConfigError, load_config
+
+    if args.frames < 1 or args.scenes < 1:
+        return fail("invalid_argument", "--frames and --scenes must be at least 1", args.json)
+    try:
+        camera = load_config(args.config).camera.model()
+    except ConfigError as err:
+        return fail(ConfigError.code, str(err), args.json)
+    report = run_bench(camera, frames=args.frames, scenes=args.scenes, seed=args.seed)
+    if args.json:
+        print_json(report)
+    else:
+        print(format_report(report))
+    return 0

@@ -1,0 +1,92 @@
+"""``create_app(cell)``: the FastAPI application around one running Cell.
+
+The app does not own the cell's lifetime unless asked (``close_cell_on_shutdown``), so tests
+can build a cell, serve it, and inspect it directly.
+"""
+
+from __future__ import annotations
+
+import importlib
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable
+from contextlib import asynccontextmanager
+
+from fastapi import Depends, FastAPI, Request, Response
+from fastapi.responses import PlainTextResponse
+
+from api import errors, metrics
+from api.auth import TokenTable, require
+from api.routes import router, sim_router
+from cell.service import Cell
+
+
+def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False) -> FastAPI:
+    """Build the API for ``cell``. Raises ConfigError when a sample token is configured on
+    hardware other than the fakes."""
+    tokens = TokenTable(list(cell.config.api.tokens), simulated=cell.hw.simulated)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        yield
+        if close_cell_on_shutdown:
+            cell.close()
+
+    app = FastAPI(
+        title="ur-vision-cell", version="0.1.0", lifespan=lifespan,
+        description="Vision-guided UR cell: locate the dot target, approach it with "
+        "look-and-move, jog, stop, grip. Poses are {position_mm, rotvec_rad}; errors are "
+        '{"error": {"code", "message"}}. Authorise with a bearer token.')
+    app.state.cell = cell
+    app.state.tokens = tokens
+    app.state.http_stats = metrics.HttpStats()
+    errors.install(app)
+    app.include_router(router)
+    if cell.sim is not None:
+        app.include_router(sim_router)
+
+    @app.middleware("http")
+    async def _count(request: Request,
+                     call_next: Callable[[Request], Awaitable[Response]]) -> Response:
+        t0 = time.perf_counter()
+        response = await call_next(request)
+        route = request.scope.get("route")
+        path = getattr(route, "path", "unmatched")
+        app.state.http_stats.observe(request.method, path, response.status_code,
+                                     time.perf_counter() - t0)
+        return response
+
+    @app.get("/metrics", response_class=PlainTextResponse, tags=["status"],
+             dependencies=[Depends(require("read"))], responses=errors.ERROR_RESPONSES)
+    def prometheus() -> str:
+        """Prometheus text format."""
+        return metrics.render(cell, app.state.http_stats)
+
+    _mount_page(app)
+    return app
+
+
+
+def _mount_page(app: FastAPI) -> None:
+    """The operator page (issue 6) lives in api.page; serve it when it is there."""
+    try:
+        page = importlib.import_module("api.page")
+    except ImportError:
+        return
+    mount = getattr(page, "mount_page", None)
+    if callable(mount):
+        mount(app)
+
+
+def app_from_environment() -> FastAPI:
+    """uvicorn factory for ``cell serve``: the config named by $CELL_CONFIG (default: the
+    built-in simulated cell), its hardware, job store and image log, started and served."""
+    import os
+
+    from cell.runtime import start_cell
+
+    cell = start_cell(os.environ.get("CELL_CONFIG") or None)
+    try:
+        return create_app(cell, close_cell_on_shutdown=True)
+    except BaseException:
+        cell.close()
+        raise

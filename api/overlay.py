@@ -1,0 +1,51 @@
+"""The live view: the camera frame with detected dots, their ids and the target's axes."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+AXIS_MM = 50.0
+
+
+def draw(image: NDArray[np.uint8], camera: Any, result: Any, error: str | None,
+         frame_age_s: float) -> NDArray[np.uint8]:
+    """Colour image with the overlay; ``result`` is an estimator PoseResult or None."""
+    out = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    scale = max(1, image.shape[1] // 640)
+    if result is not None:
+        for blob, idx in zip(result.matched_blobs, result.matched_ids, strict=False):
+            c = (round(blob.u), round(blob.v))
+            r = max(4, round(np.sqrt(blob.area / np.pi)) + 2)
+            cv2.circle(out, c, r, (0, 255, 0), scale)
+            cv2.putText(out, str(idx), (c[0] + r + 2, c[1] - r), cv2.FONT_HERSHEY_SIMPLEX,
+                        0.5 * scale, (0, 255, 0), scale)
+        T = np.asarray(result.T_camera_target, dtype=float)
+        pts = np.array([[0, 0, 0], [AXIS_MM, 0, 0], [0, AXIS_MM, 0], [0, 0, AXIS_MM]], float)
+        cam_pts = pts @ T[:3, :3].T + T[:3, 3]
+        if np.all(cam_pts[:, 2] > 1.0):
+            uv = np.round(camera.project(cam_pts)).astype(int)
+            o = (int(uv[0, 0]), int(uv[0, 1]))
+            for k, colour in zip((1, 2, 3), ((0, 0, 255), (0, 255, 0), (255, 0, 0)),
+                                 strict=True):
+                cv2.arrowedLine(out, o, (int(uv[k, 0]), int(uv[k, 1])), colour, 2 * scale,
+                                tipLength=0.15)
+        text = f"rms {result.rms_px:.3f}px  {'AMBIGUOUS  ' if result.ambiguous else ''}" \
+               f"age {frame_age_s * 1000:.0f}ms"
+        colour = (0, 255, 0)
+    else:
+        text = f"not located: {error}" if error else f"age {frame_age_s * 1000:.0f}ms"
+        colour = (0, 0, 255) if error else (255, 255, 255)
+    cv2.putText(out, text[:90], (10, 24 * scale), cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale,
+                colour, scale)
+    return np.asarray(out, dtype=np.uint8)
+
+
+def png(image: NDArray[np.uint8]) -> bytes:
+    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    return bytes(buf)

@@ -1,0 +1,212 @@
+"""Routes under ``/api/v1``. Handlers are thin: parse, authorise, call the Cell, shape JSON.
+
+Handlers are plain ``def`` so FastAPI runs them in its thread pool: cell calls block (moves,
+camera waits) and must not stall the event loop that serves /stop and /events.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Body, Depends, Query, Request, Response
+from fastapi.responses import StreamingResponse
+
+from api import overlay
+from api.auth import Caller, require
+from api.errors import ERROR_RESPONSES
+from api.schemas import (
+    ApproachRequest,
+    GripperRequest,
+    Job,
+    JobList,
+    JogContinuous,
+    JogRequest,
+    LocateRequest,
+    Me,
+    Pose,
+    StopRequest,
+)
+from cell.service import Cell
+from estimator.transforms import T_from_pose, pose_dict
+
+router = APIRouter(prefix="/api/v1", responses=ERROR_RESPONSES)
+sim_router = APIRouter(prefix="/api/v1/sim", tags=["simulation"], responses=ERROR_RESPONSES)
+
+Read = Annotated[Caller, Depends(require("read"))]
+
+
+def cell_of(request: Request) -> Cell:
+    cell: Cell = request.app.state.cell
+    return cell
+
+
+@router.get("/health", tags=["status"])
+def health(request: Request) -> dict[str, Any]:
+    """Liveness without auth: is the process up and are the devices connected."""
+    cell = cell_of(request)
+    try:
+        arm = bool(cell.hw.arm.state().connected)
+    except Exception:
+        arm = False
+    return {"status": "ok", "arm_connected": arm,
+            "camera_connected": bool(cell.hw.camera.is_connected)}
+
+
+@router.get("/me", response_model=Me, tags=["status"])
+def me(caller: Read) -> Me:
+    """Who the token belongs to, so a client can disable what its role may not use."""
+    return Me(name=caller.name, role=caller.role, permissions=sorted(caller.permissions))
+
+
+@router.get("/status", tags=["status"])
+def status(request: Request, caller: Read) -> dict[str, Any]:
+    """State, robot pose and mode, camera, gripper, current job, last locate."""
+    return cell_of(request).status()
+
+
+@router.post("/locate", tags=["vision"])
+def locate(request: Request, caller: Annotated[Caller, Depends(require("locate"))],
+           body: Annotated[LocateRequest | None, Body()] = None) -> dict[str, Any]:
+    """Locate the target now: ``T_base_target``, ``T_camera_target`` and quality."""
+    cell = cell_of(request)
+    loc = cell.locate(caller.label, (body or LocateRequest()).n_frames)
+    return loc.as_dict(time.monotonic())
+
+
+@router.post("/approach", response_model=Job, tags=["motion"])
+def approach(request: Request, caller: Annotated[Caller, Depends(require("approach"))],
+             body: Annotated[ApproachRequest | None, Body()] = None) -> dict[str, Any]:
+    """Start a look-and-move approach job (``wait=true``: answer when it has ended)."""
+    b = body or ApproachRequest()
+    T = None if b.T_target_tcp is None else T_from_pose(b.T_target_tcp.position_mm,
+                                                       b.T_target_tcp.rotvec_rad)
+    job = cell_of(request).approach(caller.label, standoff_mm=b.standoff_mm,
+                                    speed_mm_s=b.speed_mm_s, T_target_tcp=T,
+                                    use_last_locate=b.use_last_locate, wait=b.wait)
+    return job.as_dict()
+
+
+@router.get("/jobs", response_model=JobList, tags=["jobs"])
+def jobs(request: Request, caller: Read,
+         limit: Annotated[int, Query(ge=1, le=500)] = 50) -> dict[str, Any]:
+    return {"jobs": [j.as_dict() for j in cell_of(request).jobs.list_jobs(limit)]}
+
+
+@router.get("/jobs/{job_id}", response_model=Job, tags=["jobs"])
+def job(request: Request, caller: Read, job_id: str) -> dict[str, Any]:
+    return cell_of(request).job(job_id).as_dict()
+
+
+@router.get("/audit", tags=["jobs"])
+def audit(request: Request, caller: Read,
+          limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> dict[str, Any]:
+    """The newest audit entries: every command with caller, parameters, outcome, times."""
+    return {"entries": [e.as_dict() for e in cell_of(request).jobs.audit_log(limit)]}
+
+
+@router.post("/jog", tags=["motion"])
+def jog(request: Request, caller: Annotated[Caller, Depends(require("jog"))],
+        body: Annotated[JogRequest, Body()]) -> dict[str, Any]:
+    """A step (``mode: step``, returns when done) or a continuous jog (``mode: continuous``,
+    kept alive by ``/jog/heartbeat`` at least every ``deadman_timeout_s``)."""
+    cell = cell_of(request)
+    if isinstance(body, JogContinuous):
+        return cell.jog_start(caller.label, frame=body.frame, linear_mm_s=body.linear_mm_s,
+                              angular_deg_s=body.angular_deg_s)
+    T = cell.jog_step(caller.label, frame=body.frame, translation_mm=body.translation_mm,
+                      rotation_deg=body.rotation_deg, speed_mm_s=body.speed_mm_s)
+    return {"T_base_tcp": pose_dict(T)}
+
+
+@router.post("/jog/heartbeat", tags=["motion"])
+def heartbeat(request: Request,
+              caller: Annotated[Caller, Depends(require("jog"))]) -> dict[str, Any]:
+    return cell_of(request).heartbeat(caller.label)
+
+
+@router.post("/stop", tags=["motion"])
+async def stop(request: Request, caller: Annotated[Caller, Depends(require("stop"))],
+               body: Annotated[StopRequest | None, Body()] = None) -> dict[str, Any]:
+    """Always accepted: stops any motion now and cancels the running job.
+
+    Runs on the event loop itself (not the thread pool), so a pool full of waiting requests
+    can never delay it.
+    """
+    return cell_of(request).stop(caller.label, (body or StopRequest()).reason)
+
+
+@router.post("/gripper", tags=["gripper"])
+def gripper(request: Request, caller: Annotated[Caller, Depends(require("gripper"))],
+            body: GripperRequest) -> dict[str, Any]:
+    return cell_of(request).gripper(caller.label, body.action, body.position_mm,
+                                    body.speed_pct, body.force_pct, body.wait)
+
+
+@router.get("/camera/frame.png", tags=["vision"],
+            responses={200: {"content": {"image/png": {}}, "description": "PNG image"}})
+def camera_frame(request: Request, caller: Read, overlay_: Annotated[bool, Query(
+        alias="overlay", description="draw detections, ids and target axes")] = False
+                 ) -> Response:
+    frame, result, error = cell_of(request).preview(overlay_)
+    age = max(0.0, time.monotonic() - frame.timestamp_s)
+    image = overlay.draw(frame.image, frame.camera, result, error, age) if overlay_ \
+        else frame.image
+    return Response(overlay.png(image), media_type="image/png",
+                    headers={"Cache-Control": "no-store", "X-Frame-Age-S": f"{age:.3f}"})
+
+
+@router.get("/events", tags=["status"],
+            responses={200: {"content": {"text/event-stream": {}},
+                             "description": "server-sent events"}})
+async def events(request: Request, caller: Read,
+                 max_events: Annotated[int | None, Query(ge=1, le=100000)] = None
+                 ) -> StreamingResponse:
+    """Server-sent events: ``state`` (pose and mode at camera rate), ``job``, ``jog``,
+    ``locate``, ``stop``. ``max_events`` ends the stream after that many (for scripts)."""
+    cell = cell_of(request)
+    sub = cell.events.subscribe()
+
+    async def stream() -> Any:
+        sent = 0
+        idle = 0.0
+        try:
+            yield "retry: 1000\n\n"
+            while max_events is None or sent < max_events:
+                ev = sub.get(0)
+                if ev is None:
+                    if await request.is_disconnected():
+                        break
+                    await asyncio.sleep(0.02)
+                    idle += 0.02
+                    if idle >= 5.0:
+                        idle = 0.0
+                        yield ": keep-alive\n\n"
+                    continue
+                idle = 0.0
+                sent += 1
+                yield f"event: {ev['type']}\ndata: {json.dumps(ev)}\n\n"
+        finally:
+            sub.close()
+
+    return StreamingResponse(stream(), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-store"})
+
+
+@sim_router.get("/truth")
+def sim_truth(request: Request, caller: Read) -> dict[str, Any]:
+    """Ground truth of the simulated cell: where the target and the TCP really are."""
+    sim = cell_of(request).sim
+    return {"T_base_target": pose_dict(sim.true_T_base_target()),
+            "T_base_tcp": pose_dict(sim.true_T_base_tcp())}
+
+
+@sim_router.put("/target")
+def sim_target(request: Request, caller: Annotated[Caller, Depends(require("sim_write"))],
+               body: Pose) -> dict[str, Any]:
+    """Place the simulated target at a pose in the base frame."""
+    T = T_from_pose(body.position_mm, body.rotvec_rad)
+    cell_of(request).sim.set_target(T)
+    return {"T_base_target": pose_dict(T)}

@@ -1,0 +1,263 @@
+"""The hand-eye report: every method's answer, the residuals ViSP reports, and a verdict.
+
+The verdict exists because calibration data can be self-contradictory while every number still
+looks plausible. It compares three things a person can act on: how well each image alone fits
+its board pose (intrinsics and detection), how well one ``T_flange_camera`` explains all images
+together (robot poses vs images), and whether the methods agree with each other.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from estimator.calib.handeye import BoardSpread, JointResult
+from estimator.transforms import pose_dict, pose_distance
+
+# An image whose own board pose leaves more than this is not explained by the intrinsics.
+PNP_RMS_LIMIT_PX = 1.0
+# The joint fit is "consistent" when it is within this of what the images allow on their own.
+JOINT_RMS_LIMIT_PX = 0.5
+JOINT_RMS_FACTOR = 2.0
+# Closed-form methods that disagree by more than this signal weak or noisy motions.
+METHOD_SPREAD_LIMIT_MM = 2.0
+METHOD_SPREAD_LIMIT_DEG = 0.2
+# Freeing the intrinsics must cut the joint rms by this factor to blame the intrinsics.
+INTRINSICS_BLAME_FACTOR = 0.5
+
+
+@dataclass(frozen=True)
+class MethodResult:
+    """One AX = XB solution and ViSP's consistency residual for it."""
+
+    method: str
+    T_flange_camera: NDArray[np.float64]
+    spread: BoardSpread
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "T_flange_camera": pose_dict(self.T_flange_camera),
+            "T_base_board": pose_dict(self.spread.T_base_board_mean),
+            "residual": {
+                "mean_mm": self.spread.mean_mm, "mean_deg": self.spread.mean_deg,
+                "max_mm": float(self.spread.per_view_mm.max()),
+                "max_deg": float(self.spread.per_view_deg.max()),
+                "per_view_mm": [float(v) for v in self.spread.per_view_mm],
+                "per_view_deg": [float(v) for v in self.spread.per_view_deg],
+            },
+        }
+
+
+@dataclass(frozen=True)
+class Verdict:
+    consistent: bool
+    findings: tuple[str, ...]
+
+    @property
+    def text(self) -> str:
+        head = ("The data agree with themselves." if self.consistent
+                else "The data disagree with themselves.")
+        return " ".join((head, *self.findings))
+
+
+@dataclass(frozen=True)
+class HandEyeReport:
+    """Everything ``cell calibrate hand-eye`` prints; ``chosen`` names the result to use."""
+
+    view_names: tuple[str, ...]
+    skipped_views: tuple[str, ...]  # board not found
+    pnp_rms_px: tuple[float, ...]  # per used view: its board pose alone
+    methods: dict[str, MethodResult]
+    joint: JointResult | None
+    joint_spread: BoardSpread | None
+    joint_free_intrinsics: JointResult | None
+    chosen: str
+    verdict: Verdict
+
+    @property
+    def T_flange_camera(self) -> NDArray[np.float64]:
+        if self.chosen == "joint":
+            if self.joint is None:
+                raise ValueError("no joint refinement was run")
+            return self.joint.T_flange_camera
+        return self.methods[self.chosen].T_flange_camera
+
+    def as_dict(self) -> dict[str, Any]:
+        methods = {name: m.as_dict() for name, m in self.methods.items()}
+        joint: dict[str, Any] | None = None
+        if self.joint is not None:
+            joint = {
+                "T_flange_camera": pose_dict(self.joint.T_flange_camera),
+                "T_base_board": pose_dict(self.joint.T_base_board),
+                "rms_px": self.joint.rms_px,
+                "per_view_rms_px": [float(v) for v in self.joint.per_view_rms_px],
+                "std_position_mm": [float(v) for v in self.joint.std_position_mm],
+                "std_rotvec_deg": [float(v) for v in self.joint.std_rotvec_deg],
+                "converged": self.joint.converged,
+            }
+            if self.joint_spread is not None:
+                joint["residual"] = {"mean_mm": self.joint_spread.mean_mm,
+                                     "mean_deg": self.joint_spread.mean_deg}
+            if self.joint_free_intrinsics is not None:
+                c = self.joint_free_intrinsics.camera
+                joint["free_intrinsics"] = {
+                    "rms_px": self.joint_free_intrinsics.rms_px,
+                    "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
+                }
+        return {
+            "chosen": self.chosen,
+            "T_flange_camera": pose_dict(self.T_flange_camera),
+            "methods": methods,
+            "joint": joint,
+            "views": [
+                {"name": n, "pnp_rms_px": float(r)}
+                for n, r in zip(self.view_names, self.pnp_rms_px, strict=True)
+            ],
+            "skipped_views": list(self.skipped_views),
+            "verdict": {"consistent": self.verdict.consistent,
+                        "findings": list(self.verdict.findings), "text": self.verdict.text},
+        }
+
+    def summary(self) -> str:
+        """Plain-text table for people at the cell."""
+        lines = [f"views used: {len(self.view_names)}"
+                 + (f" (board not found in: {', '.join(self.skipped_views)})"
+                    if self.skipped_views else "")]
+        for name, m in self.methods.items():
+            p = pose_dict(m.T_flange_camera)
+            lines.append(
+                f"{name:>7}: position_mm {_fmt(p['position_mm'])}  rotvec_rad "
+                f"{_fmt(p['rotvec_rad'], 5)}  residual {m.spread.mean_mm:.2f} mm / "
+                f"{m.spread.mean_deg:.3f} deg"
+            )
+        if self.joint is not None:
+            p = pose_dict(self.joint.T_flange_camera)
+            lines.append(
+                f"  joint: position_mm {_fmt(p['position_mm'])}  rotvec_rad "
+                f"{_fmt(p['rotvec_rad'], 5)}  reprojection rms {self.joint.rms_px:.2f} px"
+            )
+        lines.append(f"chosen: {self.chosen}")
+        lines.append(self.verdict.text)
+        return "\n".join(lines)
+
+
+def _fmt(values: list[float], digits: int = 2) -> str:
+    return "[" + ", ".join(f"{v:.{digits}f}" for v in values) + "]"
+
+
+def judge(
+    view_names: tuple[str, ...],
+    pnp_rms_px: tuple[float, ...],
+    methods: dict[str, MethodResult],
+    joint: JointResult | None,
+    joint_free_intrinsics: JointResult | None,
+    chosen: str,
+    mean_depth_mm: float,
+    focal_px: float,
+) -> Verdict:
+    """Plain-words findings; ``consistent`` is False when any finding is a contradiction."""
+    findings: list[str] = []
+    consistent = True
+    pnp = np.asarray(pnp_rms_px, dtype=float)
+    bad = [f"{n} ({r:.2f} px)" for n, r in zip(view_names, pnp, strict=True)
+           if r > PNP_RMS_LIMIT_PX]
+    if bad:
+        consistent = False
+        findings.append(
+            f"Some images are not explained by the intrinsics even on their own: {', '.join(bad)}."
+            " Check that the camera file matches this camera and resolution and that the board"
+            " was detected correctly in those images."
+        )
+    names = list(methods)
+    worst = (0.0, 0.0, "", "")
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            d_mm, d_deg = pose_distance(methods[a].T_flange_camera, methods[b].T_flange_camera)
+            if d_mm > worst[0] or d_deg > worst[1]:
+                worst = (max(d_mm, worst[0]), max(d_deg, worst[1]), a, b)
+    if worst[0] > METHOD_SPREAD_LIMIT_MM or worst[1] > METHOD_SPREAD_LIMIT_DEG:
+        consistent = False
+        findings.append(
+            f"The AX = XB methods disagree by up to {worst[0]:.2f} mm / {worst[1]:.3f} deg: "
+            "the robot motions are too small or rotate about too few axes for a stable answer;"
+            " add views tilted by 20-40 deg about different axes."
+        )
+    elif len(names) > 1:
+        findings.append(
+            f"The AX = XB methods ({', '.join(names)}) agree within {worst[0]:.2f} mm / "
+            f"{worst[1]:.3f} deg."
+        )
+    if joint is not None:
+        findings.append(_judge_joint(pnp, methods, joint, joint_free_intrinsics, chosen,
+                                     mean_depth_mm, focal_px))
+        consistent = consistent and findings[-1].startswith("The joint refinement explains")
+    return Verdict(consistent, tuple(findings))
+
+
+def _judge_joint(
+    pnp: NDArray[np.float64],
+    methods: dict[str, MethodResult],
+    joint: JointResult,
+    free: JointResult | None,
+    chosen: str,
+    mean_depth_mm: float,
+    focal_px: float,
+) -> str:
+    """One finding about the joint fit; it starts with "The joint refinement explains" if good."""
+    reference = chosen if chosen in methods else next(iter(methods))
+    d_mm, d_deg = pose_distance(joint.T_flange_camera, methods[reference].T_flange_camera)
+    allowed = max(JOINT_RMS_LIMIT_PX, JOINT_RMS_FACTOR * float(np.median(pnp)))
+    rms_bad = joint.rms_px > allowed
+    apart = d_mm > METHOD_SPREAD_LIMIT_MM or d_deg > METHOD_SPREAD_LIMIT_DEG
+    if not rms_bad and not apart:
+        sigma = float(np.linalg.norm(joint.std_position_mm))
+        return (
+            f"The joint refinement explains all images with {joint.rms_px:.2f} px rms "
+            f"(T_flange_camera 1-sigma about {sigma:.2f} mm) and is {d_mm:.2f} mm / "
+            f"{d_deg:.3f} deg from the {reference} result."
+        )
+    if rms_bad:
+        mm_equiv = joint.rms_px * mean_depth_mm / focal_px
+        text = (
+            f"The joint refinement leaves a reprojection rms of {joint.rms_px:.2f} px, although "
+            f"each image alone fits its board pose to {float(np.median(pnp)):.2f} px (median): no "
+            "single T_flange_camera makes the robot poses agree with the images. At the board's"
+            f" distance ({mean_depth_mm:.0f} mm) that is about {mm_equiv:.1f} mm of disagreement"
+            " per view."
+        )
+    else:
+        text = (
+            f"The joint refinement fits the images ({joint.rms_px:.2f} px rms) but lands "
+            f"{d_mm:.2f} mm / {d_deg:.3f} deg away from the AX = XB answer: the two ways of "
+            "weighing the same data disagree."
+        )
+    if free is not None:
+        if free.rms_px < INTRINSICS_BLAME_FACTOR * joint.rms_px:
+            text += (
+                f" Letting fx, fy, cx, cy move lowers the rms to {free.rms_px:.2f} px (fx "
+                f"{free.camera.fx:.1f}, fy {free.camera.fy:.1f}, cx {free.camera.cx:.1f}, cy "
+                f"{free.camera.cy:.1f}): the intrinsics are the likely cause; recalibrate them "
+                "(cell calibrate intrinsics) at this resolution."
+            )
+        else:
+            text += (
+                f" Letting fx, fy, cx, cy move only lowers the rms to {free.rms_px:.2f} px, so the"
+                " intrinsics are not the main cause: the robot's reported flange poses are off by "
+                "millimetres (kinematic calibration, a pose read while moving or in another frame)."
+            )
+    if chosen == "joint":
+        text += (
+            f" The joint result differs from the {reference} result by {d_mm:.2f} mm / "
+            f"{d_deg:.3f} deg; that difference is how far either can be trusted."
+        )
+    else:
+        text += (
+            f" The AX = XB result ({chosen}) and the joint result differ by {d_mm:.2f} mm / "
+            f"{d_deg:.3f} deg; that difference is how far either can be trusted. The {chosen} "
+            "result is the chosen one (it fits the robot motions); choose --method joint to "
+            "prefer the fit to the images instead."
+        )
+    return text

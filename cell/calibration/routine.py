@@ -1,0 +1,258 @@
+"""The guided hand-eye routine: move the arm around a start pose, look, solve, judge.
+
+Works on any :class:`drivers.arm.Arm` and :class:`drivers.camera.Camera`. The poses tilt the
+camera about the target (so it stays in view) about several axes and roll it about the optical
+axis, because AX = XB is only determined by rotations about at least two different axes. The
+target's position for that pivot comes from the first view and the current (rough) hand-eye
+guess; a guess off by centimetres only shifts the target in the image.
+
+Each view is taken from a frame exposed after the arm has stopped and settled, with the flange
+pose the arm reports for that frame's timestamp, so a slow camera cannot pair an image with the
+wrong pose. Views that fail (unreachable pose, target not found) are reported and skipped.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from cell.calibration.report import HandEyeReport
+from cell.calibration.solve import Progress, solve_observations
+from drivers.arm import Arm
+from drivers.camera import Camera, Frame
+from drivers.errors import DriverError
+from estimator import CameraModel, EstimationError, Target
+from estimator.calib.board import Board, board_pose, detect_board
+from estimator.calib.handeye import HandEyeError
+from estimator.transforms import invert_T, make_T
+
+Matrix4 = NDArray[np.float64]
+
+GOLDEN_ANGLE_RAD = np.pi * (3.0 - np.sqrt(5.0))
+
+
+class RoutineError(Exception):
+    """The routine cannot go on (no target at the start pose, too few good views)."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+        self.message = message
+
+
+@dataclass(frozen=True)
+class Observation:
+    """The target in one image: matched points and the pose they give on their own."""
+
+    object_points_mm: NDArray[np.float64]  # (N, 3) in the target frame
+    image_points_px: NDArray[np.float64]  # (N, 2)
+    T_camera_board: Matrix4
+    rms_px: float
+
+
+Observer = Callable[[NDArray[np.uint8], CameraModel], Observation]
+
+
+class ObservationError(Exception):
+    """The target was not found in the image; the message says why."""
+
+
+def board_observer(board: Board) -> Observer:
+    """Observe a chessboard or circle grid."""
+
+    def observe(image: NDArray[np.uint8], camera: CameraModel) -> Observation:
+        pts = detect_board(board, image)
+        if pts is None:
+            raise ObservationError(f"no complete {board.cols}x{board.rows} {board.kind} in view")
+        pose = board_pose(board, pts, camera)
+        return Observation(board.object_points_mm(), pts, pose.T_camera_board, pose.rms_px)
+
+    return observe
+
+
+def dot_target_observer(target: Target, min_dots: int | None = None) -> Observer:
+    """Observe the cell's dot target with the estimator (blobs, matching, bias-corrected pose).
+
+    All dots are required by default: a missing dot is usually a dot at the image border,
+    where its centre is the least trustworthy.
+    """
+    from estimator.blobs import detect_blobs
+    from estimator.correspondence import match_blobs
+
+    needed = target.n_points if min_dots is None else min_dots
+
+    def observe(image: NDArray[np.uint8], camera: CameraModel) -> Observation:
+        blobs = detect_blobs(image, target.polarity)
+        try:
+            match = match_blobs([(b.u, b.v) for b in blobs], target, camera, max_missing=0
+                                if needed >= target.n_points else target.n_points - needed)
+        except EstimationError as err:
+            raise ObservationError(err.message) from err
+        pose = match.pose
+        pts = pose.image_points_px
+        if pts is None:
+            raise ObservationError("the estimator returned no image points")
+        ids = np.asarray(match.model_ids, dtype=int)
+        return Observation(target.points_mm[ids], np.asarray(pts, dtype=float).reshape(-1, 2),
+                           pose.T_camera_target, float(pose.rms_px))
+
+    return observe
+
+
+@dataclass(frozen=True)
+class RoutineSettings:
+    n_views: int = 14  # including the start pose
+    tilt_deg: float = 18.0  # camera tilt about the target, alternating with half of it
+    roll_deg: float = 35.0  # largest roll about the optical axis
+    speed_mm_s: float = 200.0
+    accel_mm_s2: float = 800.0
+    settle_s: float = 0.15  # after the arm stops, before a frame counts
+    frame_timeout_s: float = 2.0
+    min_views: int = 6
+    chosen: str = "joint"  # the pose-set is rich and the robot exact enough on a calibrated cell
+    return_to_start: bool = True
+
+    def __post_init__(self) -> None:
+        if self.n_views < 3 or self.min_views < 3:
+            raise ValueError("a hand-eye routine needs at least 3 views")
+        if not 0 < self.tilt_deg <= 45 or not 0 <= self.roll_deg <= 90:
+            raise ValueError("tilt_deg must be in (0, 45] and roll_deg in [0, 90]")
+        if self.speed_mm_s <= 0 or self.accel_mm_s2 <= 0:
+            raise ValueError("speed and acceleration must be positive")
+
+
+@dataclass(frozen=True)
+class RoutineResult:
+    report: HandEyeReport
+    T_base_flange: tuple[Matrix4, ...]  # of the views used
+    observations: tuple[Observation, ...]
+    failed: tuple[tuple[int, str], ...] = field(default_factory=tuple)  # (view, reason)
+
+
+def plan_poses(
+    T_base_flange_start: Matrix4,
+    T_flange_camera_guess: Matrix4,
+    pivot_camera_mm: NDArray[np.float64],
+    settings: RoutineSettings,
+) -> list[Matrix4]:
+    """Flange poses that turn the camera about the target point, starting with the start pose.
+
+    Tilt axes lie in the image plane at golden-angle steps, so any few views already rotate
+    about different axes; the roll about the optical axis alternates in sign and size.
+    """
+    T_base_camera0 = T_base_flange_start @ T_flange_camera_guess
+    pivot = T_base_camera0[:3, :3] @ pivot_camera_mm + T_base_camera0[:3, 3]
+    X_inv = invert_T(T_flange_camera_guess)
+    poses = [np.asarray(T_base_flange_start, dtype=float)]
+    for k in range(1, settings.n_views):
+        azimuth = k * GOLDEN_ANGLE_RAD
+        tilt = np.radians(settings.tilt_deg) * (1.0 if k % 2 else 0.6)
+        roll = np.radians(settings.roll_deg) * np.sin(1.7 * k)
+        axis = np.array([np.cos(azimuth), np.sin(azimuth), 0.0])
+        R_cam = (Rotation.from_rotvec(axis * tilt) * Rotation.from_rotvec([0, 0, roll]))
+        R_base = T_base_camera0[:3, :3] @ R_cam.as_matrix() @ T_base_camera0[:3, :3].T
+        turn = make_T(R_base, pivot - R_base @ pivot)  # rotation about the pivot point
+        poses.append(turn @ T_base_camera0 @ X_inv)
+    return poses
+
+
+def run_hand_eye_routine(
+    arm: Arm,
+    camera: Camera,
+    observer: Observer,
+    T_flange_tcp: Matrix4,
+    T_flange_camera_guess: Matrix4,
+    settings: RoutineSettings | None = None,
+    progress: Progress | None = None,
+) -> RoutineResult:
+    """Collect views around the arm's current pose and solve; the arm ends where it started.
+
+    ``T_flange_tcp`` must be the TCP the arm is configured with (poses are commanded as TCP
+    poses); ``T_flange_camera_guess`` only aims the views. Raises RoutineError when the target
+    is not visible at the start or fewer than ``min_views`` views succeed, and lets
+    ``drivers.errors`` through when the arm faults (protective stop, connection lost).
+    """
+    s = settings or RoutineSettings()
+    report = progress or (lambda stage, done, total: None)
+    tcp_inv = invert_T(T_flange_tcp)
+    T_start_tcp = arm.tcp_pose()
+    flange0, obs0, intrinsics = _capture(arm, camera, observer, tcp_inv, s)
+    if isinstance(obs0, str):
+        raise RoutineError("target_not_visible", f"at the start pose: {obs0}")
+    centre = obs0.object_points_mm.mean(axis=0)
+    pivot = obs0.T_camera_board[:3, :3] @ centre + obs0.T_camera_board[:3, 3]
+    plan = plan_poses(flange0, T_flange_camera_guess, pivot, s)
+    flanges, observations, failed = [flange0], [obs0], []
+    report("views", 1, len(plan))
+    try:
+        for k, T_base_flange in enumerate(plan[1:], start=1):
+            try:
+                arm.move_linear(T_base_flange @ T_flange_tcp, s.speed_mm_s, s.accel_mm_s2)
+            except DriverError as err:
+                if not arm.state().ready:
+                    raise
+                failed.append((k, f"move refused: {err}"))
+                report("views", k + 1, len(plan))
+                continue
+            flange, obs, _ = _capture(arm, camera, observer, tcp_inv, s)
+            if isinstance(obs, str):
+                failed.append((k, obs))
+            else:
+                flanges.append(flange)
+                observations.append(obs)
+            report("views", k + 1, len(plan))
+    finally:
+        if s.return_to_start and arm.state().ready:
+            arm.move_linear(T_start_tcp, s.speed_mm_s, s.accel_mm_s2)
+    if len(observations) < s.min_views:
+        reasons = "; ".join(f"view {k}: {r}" for k, r in failed)
+        raise RoutineError(
+            "too_few_views",
+            f"only {len(observations)} of {len(plan)} views succeeded (need {s.min_views}): "
+            f"{reasons}",
+        )
+    try:
+        result = solve_observations(
+            intrinsics,
+            [f"view-{k:02d}" for k in range(len(observations))], flanges,
+            [o.object_points_mm for o in observations], [o.image_points_px for o in observations],
+            [o.T_camera_board for o in observations], [o.rms_px for o in observations],
+            chosen=s.chosen, progress=report,
+        )
+    except HandEyeError as err:
+        raise RoutineError(err.code, str(err)) from err
+    return RoutineResult(result, tuple(flanges), tuple(observations), tuple(failed))
+
+
+def _capture(
+    arm: Arm, camera: Camera, observer: Observer, tcp_inv: Matrix4, s: RoutineSettings
+) -> tuple[Matrix4, Observation | str, CameraModel]:
+    """A frame exposed after the arm settled, its flange pose, and what it shows."""
+    stopped = time.monotonic()
+    time.sleep(s.settle_s)
+    frame = _frame_after(camera, stopped + s.settle_s, s.frame_timeout_s)
+    try:
+        T_base_tcp = arm.pose_at(frame.timestamp_s)
+    except LookupError:
+        T_base_tcp = arm.tcp_pose()
+    flange = T_base_tcp @ tcp_inv
+    try:
+        return flange, observer(frame.image, frame.camera), frame.camera
+    except ObservationError as err:
+        return flange, str(err), frame.camera
+
+
+def _frame_after(camera: Camera, t_s: float, timeout_s: float) -> Frame:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        frame = camera.latest_frame(timeout_s=max(0.05, deadline - time.monotonic()))
+        if frame.timestamp_s >= t_s:
+            return frame
+        if time.monotonic() > deadline:
+            raise RoutineError("camera_stale", f"no frame exposed after the arm stopped within "
+                               f"{timeout_s} s")

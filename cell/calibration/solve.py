@@ -1,0 +1,121 @@
+"""From images and robot poses to a judged hand-eye result (used by the CLI and the routine).
+
+Steps: detect the board in every image (views without it are skipped, not fatal), board pose
+per view with the given intrinsics, every AX = XB method, the joint refinement seeded by the
+chosen method, a diagnostic refinement with free intrinsics, and the verdict.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cell.calibration.dataset import HandEyeDataset
+from cell.calibration.report import HandEyeReport, MethodResult, judge
+from estimator import CameraModel
+from estimator.calib.board import Board, board_pose, detect_board
+from estimator.calib.handeye import SOLVERS, HandEyeError, board_spread, refine_joint
+
+Progress = Callable[[str, int, int], None]  # (stage, done, total)
+
+METHODS: tuple[str, ...] = tuple(SOLVERS)
+CHOICES: tuple[str, ...] = (*METHODS, "joint")
+
+
+def _quiet(stage: str, done: int, total: int) -> None:
+    _ = (stage, done, total)
+
+
+def solve_dataset(
+    dataset: HandEyeDataset,
+    chosen: str = "tsai",
+    refine: bool = True,
+    progress: Progress | None = None,
+) -> HandEyeReport:
+    """Detect the board in every view's image, then :func:`solve_views`."""
+    report = progress or _quiet
+    names, flanges, points, skipped = [], [], [], []
+    total = len(dataset.views)
+    for k, view in enumerate(dataset.views):
+        corners = detect_board(dataset.board, view.load_image())
+        if corners is None:
+            skipped.append(view.name)
+        else:
+            names.append(view.name)
+            flanges.append(view.T_base_flange)
+            points.append(corners)
+        report("detect", k + 1, total)
+    return solve_views(dataset.camera, dataset.board, names, flanges, points, chosen, refine,
+                       tuple(skipped), report)
+
+
+def solve_views(
+    camera: CameraModel,
+    board: Board,
+    names: Sequence[str],
+    T_base_flange: Sequence[NDArray[np.float64]],
+    image_points_px: Sequence[NDArray[np.float64]],
+    chosen: str = "tsai",
+    refine: bool = True,
+    skipped: tuple[str, ...] = (),
+    progress: Progress | None = None,
+) -> HandEyeReport:
+    """Solve and judge from detected board features (one (N, 2) array per view)."""
+    poses = [board_pose(board, pts, camera) for pts in image_points_px]
+    obj = board.object_points_mm()
+    return solve_observations(
+        camera, names, T_base_flange, [obj] * len(poses), image_points_px,
+        [p.T_camera_board for p in poses], [p.rms_px for p in poses], chosen, refine, skipped,
+        progress,
+    )
+
+
+def solve_observations(
+    camera: CameraModel,
+    names: Sequence[str],
+    T_base_flange: Sequence[NDArray[np.float64]],
+    object_points_mm: Sequence[NDArray[np.float64]],
+    image_points_px: Sequence[NDArray[np.float64]],
+    T_camera_board: Sequence[NDArray[np.float64]],
+    pnp_rms_px: Sequence[float],
+    chosen: str = "tsai",
+    refine: bool = True,
+    skipped: tuple[str, ...] = (),
+    progress: Progress | None = None,
+) -> HandEyeReport:
+    """Solve and judge from per-view observations of any rigid target (board or dot plate).
+
+    ``T_camera_board`` is each view's own pose of the target and ``pnp_rms_px`` how well that
+    pose explains the view's image points.
+    """
+    if chosen not in CHOICES:
+        raise HandEyeError(f"unknown method {chosen!r}; choose one of {', '.join(CHOICES)}")
+    if chosen == "joint" and not refine:
+        raise HandEyeError("--method joint needs the joint refinement")
+    report = progress or _quiet
+    methods: dict[str, MethodResult] = {}
+    for k, name in enumerate(METHODS):
+        X = SOLVERS[name](T_base_flange, T_camera_board)
+        methods[name] = MethodResult(name, X, board_spread(T_base_flange, T_camera_board, X))
+        report("solve", k + 1, len(METHODS))
+    seed = methods["tsai" if chosen == "joint" else chosen]
+    joint = joint_spread = free = None
+    pnp = tuple(float(r) for r in pnp_rms_px)
+    if refine:
+        joint = refine_joint(T_base_flange, image_points_px, object_points_mm, camera,
+                             seed.T_flange_camera, seed.spread.T_base_board_mean)
+        joint_spread = board_spread(T_base_flange, T_camera_board, joint.T_flange_camera)
+        # Diagnostic only: if freeing the intrinsics cuts the rms, they are what is wrong.
+        free = refine_joint(T_base_flange, image_points_px, object_points_mm, camera,
+                            joint.T_flange_camera, joint.T_base_board, free_intrinsics=True)
+        report("refine", 1, 1)
+    depth = float(np.mean([T[2, 3] for T in T_camera_board]))
+    verdict = judge(tuple(names), pnp, methods, joint, free, chosen, depth,
+                    0.5 * (camera.fx + camera.fy))
+    return HandEyeReport(
+        view_names=tuple(names), skipped_views=skipped, pnp_rms_px=pnp, methods=methods,
+        joint=joint, joint_spread=joint_spread, joint_free_intrinsics=free, chosen=chosen,
+        verdict=verdict,
+    )

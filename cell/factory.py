@@ -1,0 +1,161 @@
+"""THE one place that builds real or simulated hardware from the config.
+
+Everything else in the cell works on the interfaces in ``drivers`` and never asks which
+implementation it has. Choices:
+- ``[robot] kind="sim"``: the simulated arm in-process (fast tests);
+  ``kind="ur"``: the real UR adapter (ur_rtde) at ``robot.host``; with ``[sim] ur_controller``
+  the simulated UR controller is started on that (loopback) address first, so the real adapter
+  and the real client drive the simulated arm over the wire.
+- ``[camera] kind="sim"``: the simulated eye-in-hand camera, which renders what the simulated
+  arm's camera sees; ``"oak"``: a Luxonis OAK.
+- ``[gripper] kind="sim"``: the fake gripper on a pseudo-terminal, driven through the real
+  Modbus RTU adapter; ``"robotiq"``: the adapter on ``gripper.port``; ``"none"``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cell.config import CellConfig, ConfigError
+from cell.hardware import Hardware
+from drivers.arm import Arm
+from drivers.camera import Camera
+from drivers.gripper import Gripper
+from drivers.robotiq import RobotiqGripper
+from estimator.transforms import T_from_ur_pose, invert_T
+from fakes.gripper import FakeGripper
+from fakes.sim_arm import SimArm
+from fakes.sim_camera import SimCamera
+from fakes.ur_sim.engine import MotionEngine
+
+Matrix4 = NDArray[np.float64]
+PoseSource = Callable[[], tuple[Matrix4, float]]
+
+
+class _SimWorld:
+    """Ground truth and fault switches over the simulated engine and camera."""
+
+    def __init__(self, engine: MotionEngine, camera: SimCamera) -> None:
+        self._engine = engine
+        self._camera = camera
+
+    def true_T_base_target(self) -> Matrix4:
+        return self._camera.T_base_target
+
+    def true_T_base_tcp(self) -> Matrix4:
+        return T_from_ur_pose(self._engine.snapshot().tcp_pose)
+
+    def set_target(self, T_base_target: Matrix4) -> None:
+        self._camera.set_target_pose(T_base_target)
+
+    def trigger_protective_stop(self, reason: str = "test") -> None:
+        self._engine.trigger_protective_stop(reason)
+
+    def set_camera_lost(self, lost: bool) -> None:
+        self._camera.set_lost(lost)
+
+
+def _engine_pose_source(engine: MotionEngine) -> PoseSource:
+    """``(T_base_flange, time.monotonic())`` from the engine: where the camera really is."""
+
+    def source() -> tuple[Matrix4, float]:
+        snap = engine.snapshot()
+        T_base_flange = T_from_ur_pose(snap.tcp_pose) @ invert_T(T_from_ur_pose(snap.tcp_offset))
+        return T_base_flange, float(snap.host_monotonic_s)
+
+    return source
+
+
+def all_simulated(config: CellConfig) -> bool:
+    """True when the config builds only fakes (then the sample API tokens are allowed)."""
+    return ((config.robot.kind == "sim" or config.sim.ur_controller)
+            and config.camera.kind == "sim" and config.gripper.kind in ("sim", "none"))
+
+
+def build_hardware(config: CellConfig) -> Hardware:
+    """Create (not connect) the devices the config names; Cell.start connects them."""
+    closers: list[Callable[[], None]] = []
+    try:
+        return _build(config, closers)
+    except BaseException:
+        for close in reversed(closers):
+            with contextlib.suppress(Exception):  # cleaning up after a failed build
+                close()
+        raise
+
+
+def _build(config: CellConfig, closers: list[Callable[[], None]]) -> Hardware:
+    rc, sim = config.robot, config.sim
+    engine: MotionEngine | None = None
+    simulated = True
+    if rc.kind == "sim" or sim.ur_controller:
+        engine = MotionEngine(q_rad=[float(v) for v in np.radians(rc.home_joints_deg)])
+        closers.append(engine.close)
+
+    arm: Arm
+    if rc.kind == "sim":
+        assert engine is not None
+        arm = SimArm(engine)
+        closers.append(arm.disconnect)
+    else:
+        if sim.ur_controller:
+            from fakes.ur_controller.server import URController
+
+            assert engine is not None
+            controller = URController(rc.host, engine=engine)
+            closers.append(controller.close)
+        else:
+            simulated = False
+        from drivers.ur import URArm
+
+        arm = URArm(rc.host, connect_timeout_s=rc.connect_timeout_s)
+        closers.append(arm.disconnect)
+
+    camera: Camera
+    sim_camera = None
+    cc = config.camera
+    if cc.kind == "sim":
+        if engine is None:
+            raise ConfigError("camera.kind = \"sim\" needs a simulated robot (robot.kind = "
+                              "\"sim\" or sim.ur_controller = true)")
+        T_flange_camera = (sim.T_flange_camera or config.hand_eye.T_flange_camera).T()
+        sim_camera = SimCamera(
+            cc.model(), config.target.model(), sim.T_base_target.T(), T_flange_camera,
+            _engine_pose_source(engine), fps=cc.fps, noise_std=sim.noise_std,
+            blur_sigma_px=sim.blur_sigma_px)
+        camera = sim_camera
+    else:
+        from drivers.oak import OakCamera, OakSettings
+
+        simulated = False
+        camera = OakCamera(OakSettings(width=cc.width, height=cc.height, fps=cc.fps))
+    closers.append(camera.disconnect)
+
+    gripper: Gripper | None = None
+    gc = config.gripper
+    if gc.kind == "sim":
+        fake = FakeGripper(slave_id=gc.slave_id, object_width_mm=sim.gripper_object_width_mm,
+                           activation_time_s=0.2)
+        fake.start()
+        closers.append(fake.stop)
+        gripper = RobotiqGripper(fake.port, slave_id=gc.slave_id)
+        closers.append(gripper.disconnect)
+    elif gc.kind == "robotiq":
+        if not gc.port:
+            raise ConfigError("gripper.port: a serial device is needed for kind = \"robotiq\"")
+        simulated = False
+        gripper = RobotiqGripper(gc.port, slave_id=gc.slave_id)
+        closers.append(gripper.disconnect)
+
+    world = None
+    if simulated and engine is not None and sim_camera is not None:
+        world = _SimWorld(engine, sim_camera)
+    hw = Hardware(arm=arm, camera=camera, gripper=gripper, simulated=simulated, sim=world,
+                  closers=list(closers))
+    closers.clear()
+    return hw
+

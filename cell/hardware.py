@@ -1,0 +1,53 @@
+"""What the hardware factory hands to the cell: the devices behind their interfaces.
+
+The cell's business code sees only these interfaces, never which implementation is behind
+them. ``sim`` is the one exception by design: on simulated hardware it gives the API its
+``/sim`` routes (ground truth, placing the target) and tests their fault switches; on real
+hardware it is None and those routes do not exist.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.arm import Arm
+from drivers.camera import Camera
+from drivers.gripper import Gripper
+
+
+class SimWorld(Protocol):
+    """Ground truth and fault switches of a simulated cell."""
+
+    def true_T_base_target(self) -> NDArray[np.float64]: ...
+
+    def true_T_base_tcp(self) -> NDArray[np.float64]: ...
+
+    def set_target(self, T_base_target: NDArray[np.float64]) -> None: ...
+
+    def trigger_protective_stop(self, reason: str = "test") -> None: ...
+
+    def set_camera_lost(self, lost: bool) -> None: ...
+
+
+@dataclass
+class Hardware:
+    arm: Arm
+    camera: Camera
+    gripper: Gripper | None
+    simulated: bool  # every device is a fake (sample API tokens are allowed)
+    sim: SimWorld | None = None
+    closers: list[Callable[[], None]] = field(default_factory=list)
+
+    def close(self) -> None:
+        """Release devices in reverse order of creation; never raises."""
+        for close in reversed(self.closers):
+            # shutdown must go on whatever one device does
+            with contextlib.suppress(Exception):
+                close()
+        self.closers.clear()

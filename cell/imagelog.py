@@ -1,0 +1,48 @@
+"""Optional bounded ring on disk of frames whose locate failed, with what was detected.
+
+Why: a failed locate in production is usually lighting, dirt or a moved target; the frame
+plus the detections is what a person needs to tell which. The ring keeps the newest
+``max_entries`` so the disk never fills.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+
+class ImageLog:
+    """``<dir>/<stamp>.png`` + ``<stamp>.json`` pairs, oldest deleted beyond ``max_entries``."""
+
+    def __init__(self, directory: str | Path, max_entries: int = 50) -> None:
+        self.directory = Path(directory)
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self.max_entries = max_entries
+        self._lock = threading.Lock()
+        self._counter = 0
+
+    def save(self, image: NDArray[np.uint8], info: dict[str, Any]) -> Path:
+        with self._lock:
+            self._counter += 1
+            stem = f"{time.strftime('%Y%m%dT%H%M%S')}_{time.time_ns() % 10**9:09d}_{self._counter}"
+            png = self.directory / f"{stem}.png"
+            cv2.imwrite(str(png), image)
+            (self.directory / f"{stem}.json").write_text(json.dumps(info, default=str, indent=1))
+            self._trim()
+            return png
+
+    def entries(self) -> list[Path]:
+        return sorted(self.directory.glob("*.png"), key=lambda p: p.stat().st_mtime_ns)
+
+    def _trim(self) -> None:
+        pngs = self.entries()
+        for old in pngs[: max(0, len(pngs) - self.max_entries)]:
+            old.unlink(missing_ok=True)
+            old.with_suffix(".json").unlink(missing_ok=True)

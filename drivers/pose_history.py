@@ -1,0 +1,69 @@
+"""A ring buffer of timestamped arm poses, so a camera frame can be paired with the pose the arm
+had when the frame was exposed (both stamped with ``time.monotonic()`` on this host)."""
+
+from __future__ import annotations
+
+import bisect
+import threading
+from collections import deque
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation, Slerp
+
+# A query this far past the newest sample still gets the newest pose: the arm is sampled every
+# few ms, so a frame stamped "just now" must not fail for lack of a newer sample.
+NEWEST_TOLERANCE_S = 0.05
+
+
+class PoseHistory:
+    """Thread-safe: one receive thread appends, any thread queries."""
+
+    def __init__(self, max_samples: int = 5000) -> None:
+        if max_samples < 2:
+            raise ValueError("a pose history needs room for at least 2 samples")
+        self._times: deque[float] = deque(maxlen=max_samples)
+        self._poses: deque[NDArray[np.float64]] = deque(maxlen=max_samples)
+        self._lock = threading.Lock()
+
+    def __len__(self) -> int:
+        return len(self._times)
+
+    def add(self, timestamp_s: float, T: NDArray[np.float64]) -> None:
+        """Append a sample; samples must arrive in time order (older ones are ignored)."""
+        with self._lock:
+            if self._times and timestamp_s <= self._times[-1]:
+                return
+            self._times.append(timestamp_s)
+            self._poses.append(np.array(T, dtype=float))
+
+    def span(self) -> tuple[float, float] | None:
+        """(oldest, newest) sample time, or None when empty."""
+        with self._lock:
+            return (self._times[0], self._times[-1]) if self._times else None
+
+    def at(self, timestamp_s: float) -> NDArray[np.float64]:
+        """Pose at ``timestamp_s``: linear in position, slerp in rotation between samples.
+
+        LookupError when the instant is before the oldest sample or more than
+        ``NEWEST_TOLERANCE_S`` after the newest.
+        """
+        with self._lock:
+            times = list(self._times)
+            poses = list(self._poses)
+        if not times or timestamp_s < times[0] or timestamp_s > times[-1] + NEWEST_TOLERANCE_S:
+            span = f"[{times[0]:.3f}, {times[-1]:.3f}]" if times else "empty"
+            raise LookupError(f"t={timestamp_s:.3f} s is outside the pose history {span}")
+        if timestamp_s >= times[-1]:
+            return poses[-1].copy()
+        i = bisect.bisect_right(times, timestamp_s)
+        if i == 0:
+            return poses[0].copy()
+        t0, t1 = times[i - 1], times[i]
+        A, B = poses[i - 1], poses[i]
+        w = (timestamp_s - t0) / (t1 - t0)
+        out = np.eye(4)
+        out[:3, 3] = (1.0 - w) * A[:3, 3] + w * B[:3, 3]
+        slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([A[:3, :3], B[:3, :3]])))
+        out[:3, :3] = slerp([w]).as_matrix()[0]
+        return out

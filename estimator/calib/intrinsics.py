@@ -1,0 +1,107 @@
+"""Camera intrinsics from several images of a board (OpenCV's calibrateCamera).
+
+The per-image reprojection errors matter as much as the overall rms: one blurred or mis-detected
+image inflates the rms, and the per-image list says which one to drop.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from estimator.calib.board import Board, detect_board
+from estimator.camera import CameraModel
+
+# Fewer views than this leave focal length and principal point poorly separated.
+MIN_VIEWS = 3
+
+
+class IntrinsicsError(ValueError):
+    """Not enough usable images (or inconsistent sizes) to calibrate."""
+
+    code = "intrinsics_failed"
+
+
+@dataclass(frozen=True)
+class IntrinsicsResult:
+    """The calibrated camera and how well it explains each image it was computed from."""
+
+    camera: CameraModel
+    rms_px: float
+    per_image_rms_px: tuple[float, ...]  # in the order of ``used``
+    used: tuple[int, ...]  # indices of the input images the board was found in
+    rejected: tuple[int, ...]  # indices where it was not found
+    T_camera_board: tuple[NDArray[np.float64], ...]  # board pose in each used image (mm)
+
+
+def calibrate_from_points(
+    board: Board,
+    image_points_px: Sequence[NDArray[np.float64]],
+    image_size: tuple[int, int],
+    distortion: bool = True,
+) -> tuple[CameraModel, float, list[float], list[NDArray[np.float64]]]:
+    """Calibrate from already detected features; ``image_size`` is (width, height).
+
+    With ``distortion`` False the lens is modelled as an ideal pinhole (all coefficients fixed
+    at zero), which suits rendered images and rectified streams.
+    """
+    if len(image_points_px) < MIN_VIEWS:
+        raise IntrinsicsError(
+            f"the board was found in {len(image_points_px)} image(s); need at least {MIN_VIEWS} "
+            "views at different tilts"
+        )
+    obj = board.object_points_mm().astype(np.float32)
+    objs = [obj] * len(image_points_px)
+    imgs = [np.asarray(p, dtype=np.float32).reshape(-1, 1, 2) for p in image_points_px]
+    flags = cv2.CALIB_FIX_K3
+    if not distortion:
+        flags |= cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_ZERO_TANGENT_DIST
+    w, h = image_size
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-12)
+    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
+        objs, imgs, (w, h), None, None, flags=flags, criteria=criteria
+    )
+    dist = np.asarray(dist, dtype=float).ravel()[:5]
+    camera = CameraModel(
+        float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
+        tuple(dist) if distortion else (), w, h,
+    )
+    per_image, poses = [], []
+    for img, rvec, tvec in zip(imgs, rvecs, tvecs, strict=True):
+        proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
+        err = np.linalg.norm(proj.reshape(-1, 2) - img.reshape(-1, 2), axis=1)
+        per_image.append(float(np.sqrt(np.mean(err**2))))
+        T = np.eye(4)
+        T[:3, :3] = cv2.Rodrigues(rvec)[0]
+        T[:3, 3] = np.asarray(tvec, dtype=float).ravel()
+        poses.append(T)
+    return camera, float(rms), per_image, poses
+
+
+def calibrate_intrinsics(
+    board: Board, images: Sequence[NDArray[np.uint8]], distortion: bool = True
+) -> IntrinsicsResult:
+    """Detect the board in every image and calibrate from those where it was found."""
+    if not images:
+        raise IntrinsicsError("no images given")
+    sizes = {im.shape[:2] for im in images}
+    if len(sizes) != 1:
+        raise IntrinsicsError(f"images differ in size: {sorted(sizes)}")
+    h, w = images[0].shape[:2]
+    used, rejected, points = [], [], []
+    for i, im in enumerate(images):
+        pts = detect_board(board, im)
+        if pts is None:
+            rejected.append(i)
+        else:
+            used.append(i)
+            points.append(pts)
+    camera, rms, per_image, poses = calibrate_from_points(board, points, (w, h), distortion)
+    return IntrinsicsResult(
+        camera=camera, rms_px=rms, per_image_rms_px=tuple(per_image), used=tuple(used),
+        rejected=tuple(rejected), T_camera_board=tuple(poses),
+    )

@@ -1,0 +1,361 @@
+"""Which blob is which dot: hypothesise a matching, predict the other dots, verify with a pose.
+
+Planar targets (the common case) are matched in two steps. The fast one uses the fact that a
+front-facing perspective view keeps the convex hull of the dots and its cyclic order, so when
+the blobs' hull has as many corners as the model's, only one hypothesis per rotation of the
+hull needs testing. If that does not explain every dot (clutter outside the target, a missing
+hull dot), the general search tries every convex quadruple of blobs against a few 4-dot bases
+of the model, each basis giving a plane homography that predicts the remaining dots. Non-planar
+targets use ordered blob triples and the P3P poses of a model triangle instead.
+Hypotheses are ranked by how many dots they explain; the best few distinct matchings are then
+solved with the real pose solver and judged by reprojection error, so a matching only wins if
+a rigid pose explains it. If a second, different matching fits about as well (a symmetric
+model), the result says ``ambiguous`` rather than guessing.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from itertools import combinations, permutations
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from estimator.camera import CameraModel
+from estimator.errors import CorrespondenceError, EstimationError, TooFewBlobsError
+from estimator.result import PoseResult
+from estimator.solve import solve_pose
+from estimator.target import Target
+
+PoseSolver = Callable[[NDArray[np.float64], NDArray[np.float64]], PoseResult]
+
+_MAX_VERIFIED = 8  # distinct matchings checked with the full pose solver
+_ACCEPT_RMS_PX = 2.0  # a right matching reprojects far better than this on a calibrated camera
+
+
+@dataclass(frozen=True)
+class Correspondence:
+    """The chosen matching: blob ``blob_indices[k]`` is model dot ``model_ids[k]``."""
+
+    model_ids: tuple[int, ...]
+    blob_indices: tuple[int, ...]
+    pose: PoseResult
+    ambiguous: bool
+    n_equivalent: int  # matchings (including this one) that fit as well
+
+
+@dataclass(frozen=True)
+class _Model:
+    """Per-target data computed once: plane coordinates, hull order, hypothesis bases."""
+
+    planar: bool
+    plane_xy: NDArray[np.float64]  # (N,2) in-plane coordinates, front-facing orientation
+    hull: tuple[int, ...]  # model indices of the convex hull, counter-clockwise
+    bases: tuple[tuple[int, ...], ...]  # 4-dot bases; each dot is missing from at least one
+
+
+def _ccw_hull(points: NDArray[np.float64]) -> tuple[int, ...]:
+    """Indices of the convex hull corners in counter-clockwise order (x right, y down frame)."""
+    idx = cv2.convexHull(points.astype(np.float32), clockwise=False, returnPoints=False)
+    return tuple(int(i) for i in np.asarray(idx).ravel())
+
+
+def _plane_coordinates(points_mm: NDArray[np.float64]) -> NDArray[np.float64]:
+    """2-D coordinates in the target plane, oriented so a front view keeps the handedness."""
+    centred = points_mm - points_mm.mean(axis=0)
+    _, _, vt = np.linalg.svd(centred)
+    e1, e2 = vt[0], vt[1]
+    if np.cross(e1, e2)[2] < 0:  # normal must point along +z (into the plate, away from camera)
+        e2 = -e2
+    return np.column_stack((centred @ e1, centred @ e2))
+
+
+def _quad_quality(pts: NDArray[np.float64]) -> float:
+    """Smallest triangle area of a 4-point set: small means near-degenerate for a homography."""
+    areas = []
+    for a, b, c in combinations(range(len(pts)), 3):
+        u, v = pts[b] - pts[a], pts[c] - pts[a]
+        areas.append(abs(u[0] * v[1] - u[1] * v[0]) / 2.0)
+    return float(min(areas))
+
+
+def _triangle_quality(pts: NDArray[np.float64]) -> float:
+    """Area of a 3-D triangle: a large triangle gives a well-conditioned P3P."""
+    return float(np.linalg.norm(np.cross(pts[1] - pts[0], pts[2] - pts[0])) / 2.0)
+
+
+def _choose_bases(points: NDArray[np.float64], planar: bool) -> tuple[tuple[int, ...], ...]:
+    """Well-conditioned bases (4 dots for a homography, 3 for P3P) such that every dot is
+    absent from at least one of them, so one missing dot cannot defeat the search."""
+    n = len(points)
+    scored = []
+    for quad in combinations(range(n), 4 if planar else 3):
+        if planar and len(_ccw_hull(points[list(quad)])) != 4:
+            continue
+        q = _quad_quality(points[list(quad)]) if planar else _triangle_quality(points[list(quad)])
+        scored.append((q, quad))
+    scored.sort(reverse=True)
+    if not scored:
+        return ()
+    chosen = [scored[0][1]]
+    for dot in range(n):
+        if all(dot in b for b in chosen):
+            for _q, quad in scored:
+                if dot not in quad:
+                    chosen.append(quad)
+                    break
+    return tuple(chosen)
+
+
+def _model_for(target: Target) -> _Model:
+    planar = target.is_planar
+    pts = target.points_mm
+    if planar:
+        xy = _plane_coordinates(pts)
+        return _Model(True, xy, _ccw_hull(xy), _choose_bases(xy, True))
+    return _Model(False, np.zeros((0, 2)), (), _choose_bases(pts, False))
+
+
+_MODELS: dict[int, tuple[Target, _Model]] = {}
+
+
+def _cached_model(target: Target) -> _Model:
+    """Model data is computed once per Target object (Targets are immutable)."""
+    hit = _MODELS.get(id(target))
+    if hit is None or hit[0] is not target:
+        hit = (target, _model_for(target))
+        _MODELS[id(target)] = hit
+    return hit[1]
+
+
+def _assign(
+    preds: NDArray[np.float64], obs: NDArray[np.float64], tol: float, min_count: int
+) -> list[dict[int, int]]:
+    """For each hypothesis (K,N,2 predictions): model dot -> nearest blob within ``tol``.
+
+    Blobs claimed by two dots go to neither. Hypotheses explaining fewer than ``min_count``
+    dots are dropped here, vectorised, before any per-hypothesis Python work.
+    """
+    d = np.linalg.norm(preds[:, :, None, :] - obs[None, None, :, :], axis=3)
+    nearest = d.argmin(axis=2)
+    ok = np.take_along_axis(d, nearest[:, :, None], axis=2)[:, :, 0] < tol
+    out: list[dict[int, int]] = []
+    for k in np.flatnonzero(ok.sum(axis=1) >= min_count):
+        near_k = nearest[k][ok[k]]
+        counts = np.bincount(near_k, minlength=len(obs))
+        hyp = {int(m): int(nearest[k, m]) for m in np.flatnonzero(ok[k])
+               if counts[nearest[k, m]] == 1}
+        if len(hyp) >= min_count:
+            out.append(hyp)
+    return out
+
+
+def _homography_predictions(
+    model: _Model, srcs: list[NDArray[np.float32]], dsts: list[NDArray[np.float32]]
+) -> NDArray[np.float64]:
+    """Model dots mapped through the homography of each (src, dst) quadruple: (K,N,2)."""
+    Hs = np.array([cv2.getPerspectiveTransform(a, b) for a, b in zip(srcs, dsts, strict=True)])
+    pts = np.column_stack((model.plane_xy, np.ones(len(model.plane_xy))))
+    proj = np.einsum("kij,nj->kni", Hs, pts)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.asarray(proj[:, :, :2] / proj[:, :, 2:3], dtype=float)
+
+
+def _hull_hypotheses(
+    model: _Model, ideal: NDArray[np.float64], tol: float, min_count: int
+) -> list[dict[int, int]]:
+    """Fast path: match hull corners by rotation only."""
+    blob_hull = _ccw_hull(ideal)
+    h = len(model.hull)
+    if h < 4 or len(blob_hull) != h:
+        return []
+    pick = [0, h // 4, h // 2, (3 * h) // 4]
+    src = model.plane_xy[[model.hull[i] for i in pick]].astype(np.float32)
+    dsts = [ideal[[blob_hull[(i + shift) % h] for i in pick]].astype(np.float32)
+            for shift in range(h)]
+    return _assign(_homography_predictions(model, [src] * h, dsts), ideal, tol, min_count)
+
+
+def _planar_hypotheses(
+    model: _Model, ideal: NDArray[np.float64], tol: float, min_count: int, n_wanted: int
+) -> list[dict[int, int]]:
+    """General planar search: every convex blob quadruple against every model basis."""
+    out: list[dict[int, int]] = []
+    quads = []
+    for quad in combinations(range(len(ideal)), 4):
+        hull = _ccw_hull(ideal[list(quad)])
+        if len(hull) == 4:
+            quads.append([quad[i] for i in hull])
+    if not quads:
+        return out
+    for basis in model.bases:
+        order = _ccw_hull(model.plane_xy[list(basis)])
+        src = model.plane_xy[[basis[i] for i in order]].astype(np.float32)
+        dsts = [ideal[[quad[(i + shift) % 4] for i in range(4)]].astype(np.float32)
+                for quad in quads for shift in range(4)]
+        preds = _homography_predictions(model, [src] * len(dsts), dsts)
+        out += _assign(preds, ideal, tol, min_count)
+        if any(len(h) == n_wanted for h in out):
+            break  # every full matching shows up from any basis: the others add nothing
+    return out
+
+
+def _general_hypotheses(
+    target: Target, model: _Model, ideal: NDArray[np.float64], K: NDArray[np.float64],
+    tol: float, min_count: int, n_wanted: int,
+) -> list[dict[int, int]]:
+    """Non-planar search: ordered blob triples against model triangles, P3P poses each."""
+    out = []
+    zero = np.zeros(5)
+    for basis in model.bases:
+        obj = np.ascontiguousarray(target.points_mm[list(basis)])
+        for triple in permutations(range(len(ideal)), 3):
+            img = np.ascontiguousarray(ideal[list(triple)])
+            n_sol, rvecs, tvecs = cv2.solveP3P(obj, img, K, zero, flags=cv2.SOLVEPNP_P3P)
+            preds = [
+                cv2.projectPoints(target.points_mm, rvecs[k], tvecs[k], K, zero)[0]
+                for k in range(int(n_sol)) if tvecs[k][2, 0] > 0
+            ]
+            if preds:
+                stacked = np.asarray(preds, dtype=float).reshape(len(preds), -1, 2)
+                out += _assign(stacked, ideal, tol, min_count)
+        if any(len(h) == n_wanted for h in out):
+            break  # every full matching shows up from any basis: the others add nothing
+    return out
+
+
+def _rank(hypotheses: list[dict[int, int]], min_matched: int) -> list[dict[int, int]]:
+    """Distinct matchings with the most dots explained, best first."""
+    seen: set[tuple[tuple[int, int], ...]] = set()
+    best: list[dict[int, int]] = []
+    for hyp in hypotheses:
+        if len(hyp) < min_matched:
+            continue
+        key = tuple(sorted(hyp.items()))
+        if key not in seen:
+            seen.add(key)
+            best.append(hyp)
+    if not best:
+        return []
+    top = max(len(h) for h in best)
+    return [h for h in best if len(h) == top]
+
+
+def _default_tolerance(ideal: NDArray[np.float64]) -> float:
+    d = np.linalg.norm(ideal[:, None, :] - ideal[None, :, :], axis=2)
+    d[np.diag_indices(len(ideal))] = np.inf
+    return float(np.clip(0.25 * d.min(), 1.5, 8.0))
+
+
+def _drop_outlier(
+    matching: dict[int, int], pose: PoseResult, min_matched: int, obs_px: NDArray[np.float64],
+    solve: Callable[[NDArray[np.intp], NDArray[np.float64]], PoseResult],
+) -> tuple[dict[int, int], PoseResult]:
+    """Drop one blob whose residual stands out (a dot merged with clutter or another dot),
+    if the rest still determine the pose and fit clearly better without it."""
+    res = np.asarray(pose.residuals_px, dtype=float)
+    if len(matching) <= min_matched or len(res) != len(matching):
+        return matching, pose
+    worst = int(res.argmax())
+    if res[worst] < max(1.0, 4.0 * float(np.median(res))):
+        return matching, pose
+    ids = sorted(matching)
+    kept = {i: matching[i] for k, i in enumerate(ids) if k != worst}
+    kept_ids = np.array(sorted(kept), dtype=np.intp)
+    try:
+        pose2 = solve(kept_ids, obs_px[[kept[i] for i in kept_ids]])
+    except EstimationError:
+        return matching, pose
+    if pose2.rms_px < 0.5 * pose.rms_px:
+        note = f"dot {ids[worst]} dropped: its blob was {res[worst]:.2f} px off the pose"
+        return kept, replace(pose2, notes=(*pose2.notes, note))
+    return matching, pose
+
+
+def match_blobs(
+    points_px: ArrayLike,
+    target: Target,
+    camera: CameraModel,
+    *,
+    tolerance_px: float | None = None,
+    max_missing: int = 1,
+    correct_bias: bool = True,
+    solver: PoseSolver | None = None,
+) -> Correspondence:
+    """Match detected blob centres (M,2 px) to the target's dots and solve the pose.
+
+    Tolerates extra blobs and up to ``max_missing`` missing dots as long as 4 or more dots
+    remain. Raises TooFewBlobsError when there are not enough blobs to try, and
+    CorrespondenceError when no matching is explained by a rigid pose.
+    """
+    obs_px = np.asarray(points_px, dtype=float).reshape(-1, 2)
+    n = target.n_points
+    min_matched = max(4, n - max_missing)
+    if len(obs_px) < min_matched:
+        raise TooFewBlobsError(len(obs_px), min_matched, f"the target has {n} dots")
+    model = _cached_model(target)
+    # Matching happens in ideal (undistorted) pixels, where straight lines stay straight.
+    ideal = camera.undistort_points(obs_px) * [camera.fx, camera.fy] + [camera.cx, camera.cy]
+    tol = tolerance_px if tolerance_px is not None else _default_tolerance(ideal)
+
+    def solve(ids: NDArray[np.intp], pts: NDArray[np.float64]) -> PoseResult:
+        if solver is not None:
+            return solver(target.points_mm[ids], pts)
+        return solve_pose(target.points_mm[ids], pts, camera,
+                          dot_diameter_mm=target.dot_diameter_mm, correct_bias=correct_bias)
+
+    ranked: list[dict[int, int]] = []
+    if model.planar:
+        ranked = _rank(_hull_hypotheses(model, ideal, tol, min_matched), min_matched)
+        if not ranked or len(ranked[0]) < n:
+            ranked = _rank(
+                _planar_hypotheses(model, ideal, tol, min_matched, n), min_matched
+            )
+    else:
+        ranked = _rank(
+            _general_hypotheses(target, model, ideal, camera.K, tol, min_matched, n),
+            min_matched,
+        )
+    if not ranked:
+        raise CorrespondenceError(
+            f"no assignment of the {len(obs_px)} blob(s) to the {n} target dots is consistent "
+            "with the target geometry: check that the configured target matches the plate and "
+            "that clutter does not hide dots"
+        )
+
+    scored: list[tuple[float, dict[int, int], PoseResult]] = []
+    for hyp in ranked[:_MAX_VERIFIED]:
+        ids = np.array(sorted(hyp), dtype=np.intp)
+        blobs = np.array([hyp[i] for i in ids], dtype=np.intp)
+        try:
+            pose = solve(ids, obs_px[blobs])
+        except EstimationError:
+            continue
+        scored.append((float(pose.rms_px), hyp, pose))
+    scored.sort(key=lambda s: s[0])
+    if not scored or scored[0][0] > _ACCEPT_RMS_PX:
+        best_rms = scored[0][0] if scored else float("inf")
+        raise CorrespondenceError(
+            f"the best matching reprojects with {best_rms:.2f} px rms (limit "
+            f"{_ACCEPT_RMS_PX} px): the camera calibration or the target model does not fit "
+            "what is seen"
+        )
+    best_rms, best, pose = scored[0]
+    equal_limit = max(2.0 * best_rms, best_rms + 0.5)
+    n_equivalent = sum(1 for s in scored if s[0] <= equal_limit)
+    best, pose = _drop_outlier(best, pose, min_matched, obs_px, solve)
+    ids_sorted = tuple(sorted(best))
+    if n_equivalent > 1:
+        pose = replace(pose, ambiguous=True, notes=(*pose.notes, (
+            f"correspondence ambiguous: {n_equivalent} matchings of blobs to dots fit equally "
+            "well (the target is symmetric); use an asymmetric dot layout"
+        )))
+    return Correspondence(
+        model_ids=ids_sorted,
+        blob_indices=tuple(best[i] for i in ids_sorted),
+        pose=pose,
+        ambiguous=n_equivalent > 1,
+        n_equivalent=n_equivalent,
+    )

@@ -1,0 +1,135 @@
+"""Frame -> target pose: detect blobs, match them to the dots, solve, then track.
+
+The first frame (and any frame after the track is lost) gets the full search: threshold the
+whole frame, match blobs to dots by hypothesise-and-verify, solve. While the pose keeps
+fitting, later frames only look in windows around the dots' predicted positions, which skips
+both the full-frame threshold and the correspondence search.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from estimator.blobs import BlobFilter, Polarity, ThresholdSpec, detect_blobs_thresholded
+from estimator.camera import CameraModel
+from estimator.correspondence import match_blobs
+from estimator.errors import EstimationError, TooFewBlobsError
+from estimator.result import Blob, PoseResult
+from estimator.solve import solve_pose
+from estimator.target import Target
+from estimator.tracking import BlobTracker
+
+_TRACK_MAX_RMS_PX = 1.0  # a tracked pose fitting worse than this triggers a full search
+
+
+def _threshold_spec(value: object) -> ThresholdSpec:
+    if value is None or value in ("otsu", "adaptive"):
+        return value
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    raise ValueError(f'threshold must be a grey level, "otsu" or "adaptive", got {value!r}')
+
+
+class Estimator:
+    """Pose of one target in frames of one camera, with tracking between calls.
+
+    ``detector_options`` are those of :func:`estimator.detect_blobs` (``min_area_px``,
+    ``max_area_px``, ``min_circularity``, ``min_inertia_ratio``, ``min_fill_ratio``,
+    ``threshold``); the polarity comes from the target.
+    """
+
+    def __init__(
+        self,
+        camera: CameraModel,
+        target: Target,
+        *,
+        tracking: bool = True,
+        max_missing: int = 1,
+        correct_bias: bool = True,
+        track_margin_px: float = 12.0,
+        **detector_options: float | str | None,
+    ) -> None:
+        self.camera = camera
+        self.target = target
+        self.tracking = tracking
+        self.max_missing = int(max_missing)
+        self.correct_bias = correct_bias
+        opts = dict(detector_options)
+        self._threshold = _threshold_spec(opts.pop("threshold", None))
+        try:
+            self.filter = BlobFilter(**{k: float(v) for k, v in opts.items()})  # type: ignore[arg-type]
+        except TypeError as err:
+            raise ValueError(f"unknown detector option: {err}") from err
+        self.polarity: Polarity = target.polarity
+        self._tracker = BlobTracker(self.polarity, self.filter, track_margin_px)
+        self.last_mode = "none"  # "full" or "tracking": how the last estimate was found
+
+    def reset(self) -> None:
+        """Forget the track: the next frame gets a full search."""
+        self._tracker.reset()
+
+    @property
+    def min_blobs(self) -> int:
+        return max(4, self.target.n_points - self.max_missing)
+
+    def estimate(self, frame_u8: NDArray[np.uint8]) -> PoseResult:
+        """Pose of the target in this frame; raises a typed EstimationError when it cannot."""
+        img = np.asarray(frame_u8)
+        if img.dtype != np.uint8 or img.ndim != 2:
+            raise ValueError(f"expected an 8-bit grey frame (HxW uint8), got {img.dtype} "
+                             f"{img.shape}")
+        if self._tracker.active:
+            tracked = self._track(img)
+            if tracked is not None:
+                return tracked
+            self._tracker.reset()
+        return self._full_search(img)
+
+    def _track(self, img: NDArray[np.uint8]) -> PoseResult | None:
+        blobs = self._tracker.track(img)
+        if blobs is None:
+            return None
+        ids = self._tracker.model_ids
+        pts = np.array([[b.u, b.v] for b in blobs])
+        try:
+            pose = self._solve(ids, pts)
+        except EstimationError:
+            return None
+        if pose.rms_px > _TRACK_MAX_RMS_PX:
+            return None
+        self.last_mode = "tracking"
+        return self._finish(pose, blobs, ids, pts)
+
+    def _full_search(self, img: NDArray[np.uint8]) -> PoseResult:
+        blobs, threshold = detect_blobs_thresholded(
+            img, self.polarity, self.filter, self._threshold
+        )
+        if len(blobs) < self.min_blobs:
+            raise TooFewBlobsError(
+                len(blobs), self.min_blobs,
+                f"the target has {self.target.n_points} {self.polarity} dots",
+            )
+        pts = np.array([[b.u, b.v] for b in blobs])
+        corr = match_blobs(pts, self.target, self.camera, max_missing=self.max_missing,
+                           correct_bias=self.correct_bias)
+        matched = [blobs[i] for i in corr.blob_indices]
+        if self.tracking and threshold is not None and not corr.ambiguous:
+            self._tracker.start(matched, corr.model_ids, threshold)
+        self.last_mode = "full"
+        return self._finish(corr.pose, matched, corr.model_ids, pts[list(corr.blob_indices)])
+
+    def _solve(self, ids: tuple[int, ...], pts: NDArray[np.float64]) -> PoseResult:
+        return solve_pose(self.target.points_mm[list(ids)], pts, self.camera,
+                          dot_diameter_mm=self.target.dot_diameter_mm,
+                          correct_bias=self.correct_bias)
+
+    @staticmethod
+    def _finish(
+        pose: PoseResult, blobs: list[Blob], ids: tuple[int, ...], pts: NDArray[np.float64]
+    ) -> PoseResult:
+        return replace(pose, matched_blobs=tuple(blobs), matched_ids=tuple(ids),
+                       image_points_px=pose.image_points_px if pose.image_points_px is not None
+                       else pts)

@@ -1,0 +1,261 @@
+"""POSIT (DeMenthon & Davis 1995): the pose seed from one image of a known 3-D point set.
+
+POSIT needs no initial guess, which is why it seeds the refinement: it approximates the
+perspective image by a scaled orthographic one, solves that linearly with the *object matrix*
+(the pseudo-inverse of the model's vectors from the reference point P0), and then corrects the
+image points for the perspective it ignored (the epsilons) until they stop changing.
+
+The object matrix depends only on the model, so :func:`object_model` computes it once per model
+and caches it; each frame then costs a handful of small matrix products per iteration. Planar
+models make that matrix singular and are handled by :mod:`estimator.coplanar`.
+
+Everything runs in undistorted normalised image coordinates, so the focal length is 1.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from estimator.camera import CameraModel
+from estimator.errors import BehindCameraError, DegenerateGeometryError, TooFewBlobsError
+
+MIN_POINTS = 4
+PLANAR_RATIO = 1e-6  # smallest/largest singular value of the centred model below this: planar
+COLLINEAR_RATIO = 1e-6  # second/largest singular value below this: collinear (model or image)
+_CACHE_SIZE = 64
+
+
+@dataclass(frozen=True)
+class PositResult:
+    """Raw POSIT output: the pose, how the iteration went, and for planar models the other branch.
+
+    ``alternative`` is ``(T_camera_target, rms_px)`` of the losing coplanar branch, or None (for
+    non-planar models, or when the other branch put the target behind the camera).
+    """
+
+    T_camera_target: NDArray[np.float64]  # 4x4, mm
+    iterations: int
+    converged: bool
+    rms_px: float
+    alternative: tuple[NDArray[np.float64], float] | None = None
+
+
+class ObjectModel:
+    """Per-model constants of POSIT, computed once: vectors P0Pi, object matrix, plane normal."""
+
+    def __init__(self, points_mm: NDArray[np.float64]) -> None:
+        if len(points_mm) < MIN_POINTS:
+            raise TooFewBlobsError(len(points_mm), MIN_POINTS, "POSIT needs 4 model points")
+        if not np.all(np.isfinite(points_mm)):
+            raise ValueError("object points must be finite")
+        self.points_mm = points_mm
+        self.n_points = len(points_mm)
+        # Vectors from the reference point P0 to every point (row 0 is zero), so that one matrix
+        # product gives the depth offsets of all points at once.
+        self.vectors_mm = points_mm - points_mm[0]
+        s = np.linalg.svd(points_mm - points_mm.mean(axis=0), compute_uv=False)
+        if s[0] <= 0.0 or s[1] <= COLLINEAR_RATIO * s[0]:
+            raise DegenerateGeometryError(
+                "the model points are collinear or coincident, so the pose is undetermined: "
+                "use a target with at least 4 dots not on one line"
+            )
+        self.planar = bool(s[2] <= PLANAR_RATIO * s[0])
+        A = self.vectors_mm[1:]
+        # Object matrix B: pseudo-inverse of the (N-1)x3 matrix of P0Pi. For a planar model
+        # the cut-off drops the (numerically zero) normal direction, which coplanar POSIT
+        # then recovers from the orthonormality constraints.
+        self.object_matrix = np.linalg.pinv(A, rcond=PLANAR_RATIO * 10)
+        _, _, vt = np.linalg.svd(A)
+        self.normal = vt[2].copy()  # unit normal of the model plane (only meaningful if planar)
+        self.normal_tuple = (float(vt[2, 0]), float(vt[2, 1]), float(vt[2, 2]))
+
+
+_MODELS: dict[bytes, ObjectModel] = {}
+
+
+def object_model(object_points_mm: ArrayLike) -> ObjectModel:
+    """The cached :class:`ObjectModel` of these points (keyed by their exact values)."""
+    pts = np.ascontiguousarray(object_points_mm, dtype=float)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"object points must have shape (N, 3), got {pts.shape}")
+    key = pts.tobytes()
+    model = _MODELS.get(key)
+    if model is None:
+        model = ObjectModel(pts.copy())
+        if len(_MODELS) >= _CACHE_SIZE:
+            _MODELS.pop(next(iter(_MODELS)))
+        _MODELS[key] = model
+    return model
+
+
+def normalised_image_points(
+    image_points_px: ArrayLike, camera: CameraModel, n_expected: int
+) -> NDArray[np.float64]:
+    """Undistorted normalised coordinates of the image points, after validating them."""
+    img = np.asarray(image_points_px, dtype=float)
+    if img.ndim != 2 or img.shape[1] != 2:
+        raise ValueError(f"image points must have shape (N, 2), got {img.shape}")
+    if len(img) != n_expected:
+        raise ValueError(f"{len(img)} image points for {n_expected} object points")
+    if not np.all(np.isfinite(img)):
+        raise ValueError("image points must be finite")
+    xy = camera.undistort_points(img)
+    centred = xy - xy.mean(axis=0)
+    s = np.linalg.svd(centred, compute_uv=False)
+    if s[0] <= 0.0 or s[1] <= COLLINEAR_RATIO * s[0]:
+        raise DegenerateGeometryError(
+            "the image points are collinear or coincident (target seen edge-on?): tilt the "
+            "target towards the camera"
+        )
+    return xy
+
+
+def pose_from_rows(
+    R_rows: NDArray[np.float64], scale: float, xy0: NDArray[np.float64], P0: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """4x4 T_camera_target from POSIT's (I/|I|, J/|J|, R1xR2) rows, the scale and P0's image.
+
+    The rows are only approximately orthonormal (I and J come from a least-squares solve), so the
+    rotation is projected onto SO(3) with an SVD; P0 sits at depth Tz = 1/s on its image ray.
+    """
+    U, _, Vt = np.linalg.svd(R_rows)
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
+    Tz = 1.0 / scale
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.array([xy0[0] * Tz, xy0[1] * Tz, Tz]) - R @ P0
+    return T
+
+
+def reprojection_rms_px(
+    T: NDArray[np.float64], points_mm: NDArray[np.float64], image_points_px: ArrayLike,
+    camera: CameraModel,
+) -> float:
+    """Root-mean-square pixel distance between the points' projections and the image points."""
+    P = points_mm @ T[:3, :3].T + T[:3, 3]
+    if np.any(P[:, 2] <= 0.0):
+        return math.inf
+    d = camera.project(P) - np.asarray(image_points_px, dtype=float)
+    return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
+
+
+def all_in_front(T: NDArray[np.float64], points_mm: NDArray[np.float64]) -> bool:
+    """True when every model point has positive depth in the camera frame."""
+    return bool(np.all(points_mm @ T[2, :3] + T[2, 3] > 0.0))
+
+
+class FrameSystem:
+    """Per-frame constants of the POSIT linear system, so each iteration is two small products.
+
+    With corrected image points x_i(1 + eps_i) - x0, the scaled-orthographic solution is
+    I = B (x - x0) + (B diag(x)) eps, and likewise for J; both are stacked into one 6-vector
+    ``offset + gain @ eps``.
+    """
+
+    def __init__(self, model: ObjectModel, xy: NDArray[np.float64]) -> None:
+        B = model.object_matrix
+        pts = xy[1:]
+        self.x0, self.y0 = float(xy[0, 0]), float(xy[0, 1])
+        self.pts = pts
+        self.offset = np.concatenate((B @ (pts[:, 0] - self.x0), B @ (pts[:, 1] - self.y0)))
+        self.gain = np.vstack((B * pts[:, 0], B * pts[:, 1]))
+        # How far (normalised units) a corrected point moves per unit change of its epsilon.
+        self.radius = np.sqrt(np.sum(pts * pts, axis=1))
+
+    def IJ(self, eps: NDArray[np.float64]) -> list[float]:
+        """I and J (6 floats) of the scaled-orthographic system for these epsilons."""
+        out: list[float] = (self.offset + self.gain @ eps).tolist()
+        return out
+
+
+def rotation_rows(
+    I: tuple[float, float, float], J: tuple[float, float, float]
+) -> tuple[NDArray[np.float64], float] | None:
+    """POSIT's rows R1 = I/|I|, R2 = J/|J|, R3 = R1 x R2 and the scale s = sqrt(|I||J|).
+
+    Scalar arithmetic on purpose: for 3-vectors it is several times faster than numpy calls.
+    None when I or J vanishes.
+    """
+    nI = math.sqrt(I[0] * I[0] + I[1] * I[1] + I[2] * I[2])
+    nJ = math.sqrt(J[0] * J[0] + J[1] * J[1] + J[2] * J[2])
+    if nI == 0.0 or nJ == 0.0:
+        return None
+    a0, a1, a2 = I[0] / nI, I[1] / nI, I[2] / nI
+    b0, b1, b2 = J[0] / nJ, J[1] / nJ, J[2] / nJ
+    rows = np.array(
+        [[a0, a1, a2], [b0, b1, b2], [a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0]]
+    )
+    return rows, math.sqrt(nI * nJ)
+
+
+def posit_general(
+    model: ObjectModel, xy: NDArray[np.float64], max_iterations: int, tolerance: float
+) -> tuple[NDArray[np.float64], int, bool]:
+    """The POSIT iteration for a non-planar model on normalised points -> (T, iterations, ok).
+
+    ``tolerance`` is in normalised units: iteration stops when no perspective-corrected image
+    point x_i(1 + eps_i) moves by more than it.
+    """
+    system = FrameSystem(model, xy)
+    V = model.vectors_mm[1:]
+    eps = np.zeros(len(V))
+    R_rows = np.eye(3)
+    scale = 1.0
+    converged = False
+    iterations = 0
+    for iterations in range(1, max_iterations + 1):  # noqa: B007 - reported after the loop
+        ij = system.IJ(eps)
+        solved = rotation_rows((ij[0], ij[1], ij[2]), (ij[3], ij[4], ij[5]))
+        if solved is None:
+            raise DegenerateGeometryError("POSIT found no scaled-orthographic solution")
+        R_rows, scale = solved
+        new_eps = (V @ R_rows[2]) * scale  # (P0Pi . R3) / Tz with Tz = f/s, f = 1
+        step = float(np.max(np.abs(new_eps - eps) * system.radius))
+        eps = new_eps
+        if step < tolerance:
+            converged = True
+            break
+    T = pose_from_rows(R_rows, scale, xy[0], model.points_mm[0])
+    return T, iterations, converged
+
+
+def posit(
+    object_points_mm: ArrayLike,
+    image_points_px: ArrayLike,
+    camera: CameraModel,
+    *,
+    max_iterations: int = 100,
+    tolerance_px: float = 1e-4,
+) -> PositResult:
+    """POSIT seed pose from matched points, no refinement (DeMenthon & Davis 1995).
+
+    The first point is the reference point P0. Iteration stops when no perspective-corrected
+    image point moves by more than ``tolerance_px`` (converted to normalised units with the mean
+    focal length) or after ``max_iterations``. The final rotation is orthonormalised with an
+    SVD, because POSIT's rows I/|I| and J/|J| are not exactly orthogonal. Planar models
+    (singular object matrix) go to coplanar POSIT, which also returns the other branch.
+
+    Raises TooFewBlobsError (< 4 points), DegenerateGeometryError (collinear model or image) and
+    BehindCameraError (the best solution puts part of the target behind the camera).
+    """
+    model = object_model(object_points_mm)
+    xy = normalised_image_points(image_points_px, camera, model.n_points)
+    tolerance = tolerance_px / (0.5 * (camera.fx + camera.fy))
+    if model.planar:
+        from estimator.coplanar import posit_coplanar
+
+        return posit_coplanar(model, xy, image_points_px, camera, max_iterations, tolerance)
+    T, iterations, converged = posit_general(model, xy, max_iterations, tolerance)
+    if not all_in_front(T, model.points_mm):
+        raise BehindCameraError(
+            "POSIT put part of the target behind the camera: the image points probably do not "
+            "match the model (check the correspondence)"
+        )
+    rms = reprojection_rms_px(T, model.points_mm, image_points_px, camera)
+    return PositResult(T, iterations, converged, rms)

@@ -1,0 +1,303 @@
+"""solve_pose: POSIT / coplanar POSIT seeds, LM refinement, optional perspective-bias correction.
+
+POSIT needs no initial guess but is only a seed: at close range it can stop at a wrong fixed
+point, and coplanar POSIT's iteration can drift away from the true pose. So the seed is refined
+to the maximum-likelihood pose; for planar models the mirrored pose (depth reversed about the
+line of sight) is refined too, so both local minima are found even when both coplanar branches
+fell into one basin; and when the best refined pose still reprojects badly (> RETRY_RMS_PX) the
+seeds are recomputed with each other point as POSIT's reference point (which changes the
+fixed-point iteration). The refined pose with the lowest rms wins.
+
+Ambiguity rule (planar targets): the best pose B and the best *distinct* other pose A (rotation
+differing by more than ~0.06 deg or translation by more than 0.1 % of the range) are both local
+minima of the reprojection error. They are called ambiguous when
+``rms_A < AMBIGUITY_RATIO * max(rms_B, NOISE_FLOOR_PX)`` and ``rms_A < AMBIGUITY_MAX_RMS_PX``:
+the alternative explains the points within 1.5x as well as the winner (with a floor of typical
+centroid noise, so that noise-free data does not make every tiny difference decisive), and it
+is a good fit at all. For planar targets ``alternative`` is always filled: the refined other
+minimum, or -- when there is no second minimum -- the unrefined losing coplanar branch (or the
+mirrored pose), and the same rule applies to it: a pose that fits nearly as well is ambiguous
+whether or not it is a local minimum.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from estimator.bias import centroid_bias_px
+from estimator.camera import CameraModel
+from estimator.coplanar import posit_coplanar
+from estimator.errors import BehindCameraError, EstimationError, NotConvergedError
+from estimator.posit import (
+    ObjectModel,
+    all_in_front,
+    normalised_image_points,
+    object_model,
+    posit_general,
+    reprojection_rms_px,
+)
+from estimator.refine import covariance_from, refine_arrays
+from estimator.result import AlternativePose, PoseResult
+
+AMBIGUITY_RATIO = 1.5
+NOISE_FLOOR_PX = 0.1
+AMBIGUITY_MAX_RMS_PX = 2.0
+RETRY_RMS_PX = 1.0  # best refined rms above this: try the other reference points too
+BAD_RMS_PX = 2.0  # an unconverged seed whose refined rms is above this is a failure
+SEED_MAX_ITERATIONS = 100
+SEED_TOLERANCE_PX = 0.05  # the seed only has to land in the right basin; LM does the rest
+_SAME_ANGLE_RAD = 1e-3
+_SAME_RANGE_FRACTION = 1e-3
+
+
+@dataclass(frozen=True)
+class _Seed:
+    T: NDArray[np.float64]
+    iterations: int
+    converged: bool
+    reference: int  # index of the model point used as POSIT's P0
+
+
+@dataclass(frozen=True)
+class _Solution:
+    T: NDArray[np.float64]
+    residuals: NDArray[np.float64]  # (N,2) px
+    jacobian: NDArray[np.float64]  # (2N,6)
+    rms: float
+    seed: _Seed
+
+
+def _rms(residuals: NDArray[np.float64]) -> float:
+    return math.sqrt(float(np.sum(residuals * residuals)) / len(residuals))
+
+
+def _same_pose(A: NDArray[np.float64], B: NDArray[np.float64]) -> bool:
+    cos_angle = 0.5 * (float(np.sum(A[:3, :3] * B[:3, :3])) - 1.0)
+    if cos_angle < math.cos(_SAME_ANGLE_RAD):
+        return False
+    distance = float(np.linalg.norm(A[:3, 3] - B[:3, 3]))
+    return distance <= _SAME_RANGE_FRACTION * float(np.linalg.norm(A[:3, 3]))
+
+
+class _Problem:
+    """One solve: validated inputs and the arrays OpenCV wants, prepared once."""
+
+    def __init__(
+        self, object_points_mm: ArrayLike, image_points_px: ArrayLike, camera: CameraModel
+    ) -> None:
+        self.model = object_model(object_points_mm)
+        self.xy = normalised_image_points(image_points_px, camera, self.model.n_points)
+        self.obj = self.model.points_mm
+        self.img = np.ascontiguousarray(image_points_px, dtype=float).reshape(-1, 2)
+        self.camera = camera
+        self.K = camera.K
+        self.dist = camera.dist_coeffs
+        self.tolerance = SEED_TOLERANCE_PX / (0.5 * (camera.fx + camera.fy))
+        self.raw_alternative: tuple[NDArray[np.float64], float] | None = None
+
+    def seeds(self, reference: int) -> list[_Seed]:
+        """POSIT seeds with model point ``reference`` as P0 (both branches if planar)."""
+        model: ObjectModel = self.model
+        xy = self.xy
+        if reference:
+            model = object_model(np.roll(self.obj, -reference, axis=0))
+            xy = np.roll(xy, -reference, axis=0)
+        if model.planar:
+            img = np.roll(self.img, -reference, axis=0)
+            result = posit_coplanar(
+                model, xy, img, self.camera, SEED_MAX_ITERATIONS, self.tolerance
+            )
+            seeds = [_Seed(result.T_camera_target, result.iterations, result.converged, reference)]
+            if result.alternative is not None:
+                if self.raw_alternative is None:
+                    self.raw_alternative = result.alternative
+                seeds.append(
+                    _Seed(result.alternative[0], result.iterations, result.converged, reference)
+                )
+            return seeds
+        T, iterations, converged = posit_general(model, xy, SEED_MAX_ITERATIONS, self.tolerance)
+        if not all_in_front(T, model.points_mm):
+            raise BehindCameraError(
+                "POSIT put part of the target behind the camera: the image points probably do "
+                "not match the model (check the correspondence)"
+            )
+        return [_Seed(T, iterations, converged, reference)]
+
+    def refine(self, seed: _Seed, img: NDArray[np.float64] | None = None) -> _Solution | None:
+        """LM from the seed on ``img`` (default: the measured points); None if behind camera."""
+        points = self.img if img is None else img
+        T, residuals, J = refine_arrays(self.obj, points, self.K, self.dist, seed.T)
+        if not all_in_front(T, self.obj):
+            return None
+        return _Solution(T, residuals, J, _rms(residuals), seed)
+
+    def candidates(self, reference: int) -> list[_Solution]:
+        """Refined poses from the seeds with model point ``reference`` as POSIT's P0.
+
+        Planar models yield two local minima: the refined better coplanar branch and the refined
+        mirror of it (more reliable than the other branch, which often drifts into the same
+        basin); the other branch is refined only when the mirror finds no second minimum.
+        """
+        seeds = self.seeds(reference)
+        first = self.refine(seeds[0])
+        out = [] if first is None else [first]
+        if not self.model.planar:
+            return out
+        base = seeds[0] if first is None else _Seed(first.T, *astuple_seed(seeds[0]))
+        mirror_T = mirrored_pose(base.T, self.obj, self.model.normal)
+        mirror = self.refine(_Seed(mirror_T, *astuple_seed(seeds[0])))
+        if mirror is not None:
+            out.append(mirror)
+        if len(_distinct(out)) < 2 and len(seeds) > 1:
+            other = self.refine(seeds[1])
+            if other is not None:
+                out.append(other)
+        return out
+
+    def solutions(self, references: range) -> tuple[list[_Solution], EstimationError | None]:
+        """All refined candidates over these reference points, and the last seed failure."""
+        out: list[_Solution] = []
+        error: EstimationError | None = None
+        for reference in references:
+            try:
+                out += self.candidates(reference)
+            except EstimationError as exc:  # try the other seeds before giving up
+                error = exc
+        return out, error
+
+
+def astuple_seed(seed: _Seed) -> tuple[int, bool, int]:
+    """A seed's bookkeeping (iterations, converged, reference), for seeds derived from it."""
+    return seed.iterations, seed.converged, seed.reference
+
+
+def mirrored_pose(
+    T: NDArray[np.float64], points_mm: NDArray[np.float64], normal: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """The other planar pose with (almost) the same image: the target's depth reversed.
+
+    Mirroring the target through the plane perpendicular to the line of sight v at its centre
+    leaves the orthographic image unchanged; composing with the mirror through the model's own
+    plane (normal n, which fixes every model point) makes it a rotation again:
+    R' = (I - 2 v v^T) R (I - 2 n n^T). Under perspective this lands in the second local
+    minimum's basin -- the seed coplanar POSIT misses when both its branches fall into one.
+    """
+    R = T[:3, :3]
+    centre_mm = points_mm.mean(axis=0)
+    centre_cam = R @ centre_mm + T[:3, 3]
+    v = centre_cam / np.linalg.norm(centre_cam)
+    R2 = (np.eye(3) - 2.0 * np.outer(v, v)) @ R @ (np.eye(3) - 2.0 * np.outer(normal, normal))
+    out = np.eye(4)
+    out[:3, :3] = R2
+    out[:3, 3] = centre_cam - R2 @ centre_mm
+    return out
+
+
+def _distinct(solutions: list[_Solution]) -> list[_Solution]:
+    """Solutions sorted by rms, with duplicates of a better pose removed."""
+    kept: list[_Solution] = []
+    for s in sorted(solutions, key=lambda s: s.rms):
+        if not any(_same_pose(s.T, k.T) for k in kept):
+            kept.append(s)
+    return kept
+
+
+def _unrefined_alternative(
+    problem: _Problem, T_best: NDArray[np.float64], image_points: NDArray[np.float64]
+) -> AlternativePose:
+    """The other coplanar branch as POSIT left it, or else the mirrored pose, with its rms."""
+    if problem.raw_alternative is not None:
+        return AlternativePose(*problem.raw_alternative)
+    T = mirrored_pose(T_best, problem.obj, problem.model.normal)
+    return AlternativePose(T, reprojection_rms_px(T, problem.obj, image_points, problem.camera))
+
+
+def solve_pose(
+    object_points_mm: ArrayLike,
+    image_points_px: ArrayLike,
+    camera: CameraModel,
+    *,
+    dot_diameter_mm: float | None = None,
+    correct_bias: bool = True,
+) -> PoseResult:
+    """Pose of the target in the camera frame from matched image points (px).
+
+    POSIT (coplanar POSIT for planar models) seeds LM refinement; see the module docstring for
+    how wrong fixed points are escaped and when a planar pose is flagged ``ambiguous``. When
+    ``dot_diameter_mm`` is given and ``correct_bias`` is true, the measured centroids are
+    corrected for perspective bias at the solved pose and the pose is refined again; the
+    corrected points are returned as ``image_points_px``.
+
+    Raises TooFewBlobsError, DegenerateGeometryError, BehindCameraError (no seed or refined
+    pose has the whole target in front of the camera) and NotConvergedError (the seed did not
+    converge and the refined pose is still bad, rms > BAD_RMS_PX).
+    """
+    problem = _Problem(object_points_mm, image_points_px, camera)
+    n = problem.model.n_points
+    solutions, error = problem.solutions(range(1))
+    if not solutions or min(s.rms for s in solutions) > RETRY_RMS_PX:
+        more, error2 = problem.solutions(range(1, n))
+        solutions += more
+        error = error or error2
+    if not solutions:
+        if error is not None:
+            raise error
+        raise BehindCameraError(
+            "every refined pose puts part of the target behind the camera: the image points "
+            "probably do not match the model (check the correspondence)"
+        )
+    ranked = _distinct(solutions)
+    planar = problem.model.planar
+    best = ranked[0]
+    alternative = ranked[1] if planar and len(ranked) > 1 else None
+    notes: list[str] = []
+    if best.seed.reference:
+        notes.append(f"seeded with point {best.seed.reference} as POSIT reference")
+    image_points = problem.img
+    if dot_diameter_mm is not None and correct_bias:
+        bias = centroid_bias_px(best.T, problem.obj, dot_diameter_mm, camera)
+        image_points = problem.img - bias
+        refined = problem.refine(_Seed(best.T, 0, True, 0), image_points)
+        if refined is not None:
+            best = _Solution(refined.T, refined.residuals, refined.jacobian, refined.rms, best.seed)
+        notes.append(
+            f"perspective bias corrected (max {float(np.max(np.abs(bias))):.3f} px)"
+        )
+        if alternative is not None and alternative.rms < 2.0 * AMBIGUITY_RATIO * max(
+            best.rms, NOISE_FLOOR_PX
+        ):  # only an alternative that may be ambiguous is worth another refinement
+            alt_bias = centroid_bias_px(alternative.T, problem.obj, dot_diameter_mm, camera)
+            alt = problem.refine(alternative.seed, problem.img - alt_bias)
+            if alt is not None and not _same_pose(alt.T, best.T):
+                alternative = alt
+    if not best.seed.converged and best.rms > BAD_RMS_PX:
+        raise NotConvergedError(
+            f"POSIT did not converge in {SEED_MAX_ITERATIONS} iterations and the refined pose "
+            f"reprojects with {best.rms:.2f} px rms: check the correspondence and the intrinsics"
+        )
+    alt_pose: AlternativePose | None = None
+    if alternative is not None:
+        alt_pose = AlternativePose(alternative.T, alternative.rms)
+    elif planar:
+        alt_pose = _unrefined_alternative(problem, best.T, image_points)
+        notes.append("no second local minimum: the alternative is the unrefined other branch")
+    ambiguous = alt_pose is not None and (
+        alt_pose.rms_px < AMBIGUITY_RATIO * max(best.rms, NOISE_FLOOR_PX)
+        and alt_pose.rms_px < AMBIGUITY_MAX_RMS_PX
+    )
+    return PoseResult(
+        T_camera_target=best.T,
+        rms_px=best.rms,
+        residuals_px=np.sqrt(np.sum(best.residuals * best.residuals, axis=1)),
+        iterations=best.seed.iterations,
+        converged=best.seed.converged,
+        ambiguous=ambiguous,
+        alternative=alt_pose,
+        covariance=covariance_from(best.residuals, best.jacobian),
+        image_points_px=image_points,
+        notes=tuple(notes),
+    )

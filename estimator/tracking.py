@@ -1,0 +1,88 @@
+"""Tracking mode: look for each dot only in a small window around where it should be now.
+
+Between consecutive frames a dot moves a few pixels, so thresholding and tracing a window of
+a few dot diameters per dot is far cheaper than the full frame. The windows reuse the global
+threshold of the last full search, so a dot found in its window has exactly the outline, and
+hence exactly the centre, the full search would give. Any doubt (a dot not found, two windows
+claiming one blob, a shape that changed) reports the track lost, and the caller falls back to
+a full search, which also re-estimates the threshold.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from estimator.blobs import BlobFilter, Polarity, binarize, blobs_from_mask
+from estimator.result import Blob
+
+
+class BlobTracker:
+    """Follows a set of already identified blobs from frame to frame."""
+
+    def __init__(
+        self, polarity: Polarity, filt: BlobFilter | None = None, margin_px: float = 12.0
+    ) -> None:
+        """``margin_px``: how far (px) beyond the constant-velocity prediction a dot may be."""
+        self.polarity: Polarity = polarity
+        self.filt = filt if filt is not None else BlobFilter()
+        self.margin_px = float(margin_px)
+        self._blobs: tuple[Blob, ...] = ()
+        self._velocity = np.zeros((0, 2))
+        self._threshold = 0.0
+        self.model_ids: tuple[int, ...] = ()
+
+    @property
+    def active(self) -> bool:
+        return bool(self._blobs)
+
+    def start(self, blobs: Sequence[Blob], model_ids: Sequence[int], threshold: float) -> None:
+        """Begin tracking identified blobs found with a global ``threshold``."""
+        if len(blobs) != len(model_ids):
+            raise ValueError("need one model id per blob")
+        self._blobs = tuple(blobs)
+        self.model_ids = tuple(int(i) for i in model_ids)
+        self._velocity = np.zeros((len(blobs), 2))
+        self._threshold = float(threshold)
+
+    def reset(self) -> None:
+        self._blobs = ()
+        self.model_ids = ()
+        self._velocity = np.zeros((0, 2))
+
+    def predicted_px(self) -> NDArray[np.float64]:
+        """Where each tracked dot should be in the next frame (constant velocity)."""
+        last = np.array([[b.u, b.v] for b in self._blobs], dtype=float).reshape(-1, 2)
+        return last + self._velocity
+
+    def track(self, image_u8: NDArray[np.uint8]) -> list[Blob] | None:
+        """The tracked blobs in the new frame (same order as started), or None when lost."""
+        if not self._blobs:
+            return None
+        h, w = image_u8.shape
+        found: list[Blob] = []
+        for blob, (pu, pv) in zip(self._blobs, self.predicted_px(), strict=True):
+            half = 0.5 * max(blob.major_axis_px, 4.0) + 4.0 + self.margin_px
+            x0, y0 = max(int(pu - half), 0), max(int(pv - half), 0)
+            x1, y1 = min(int(pu + half) + 2, w), min(int(pv + half) + 2, h)
+            if x1 - x0 < 4 or y1 - y0 < 4:
+                return None
+            window = image_u8[y0:y1, x0:x1]
+            mask = binarize(window, self.polarity, self._threshold)
+            cands = blobs_from_mask(window, mask, self.polarity, self.filt, offset=(x0, y0))
+            if not cands:
+                return None
+            best = min(cands, key=lambda c: (c.u - pu) ** 2 + (c.v - pv) ** 2)
+            if not 0.5 <= best.area / max(blob.area, 1e-9) <= 2.0:
+                return None  # a different object wandered into the window
+            found.append(best)
+        pts = np.array([[b.u, b.v] for b in found])
+        gaps = np.linalg.norm(pts[:, None] - pts[None], axis=2) + np.eye(len(pts)) * 1e9
+        if gaps.min() < 1.0:
+            return None  # two windows locked onto the same blob
+        last = np.array([[b.u, b.v] for b in self._blobs])
+        self._velocity = pts - last
+        self._blobs = tuple(found)
+        return found

@@ -1,0 +1,344 @@
+"""A simulated Robotiq 2F-85 answering Modbus RTU on a pseudo-terminal.
+
+The real adapter (:class:`drivers.robotiq.RobotiqGripper`) talks to it through a real serial
+device, so the framing, timing and error paths under test are the ones a cell sees. pymodbus
+decodes requests and encodes answers (framing, CRC); this module holds the gripper's behaviour:
+activation takes time, the fingers move at the speed ``rSP`` asks for in real time, an object
+of a configurable width stops them and sets ``gOBJ``, and faults can be injected (garbage or a
+wrong CRC instead of an answer, silence, a device fault code).
+
+``python -m fakes.gripper --link PATH`` serves until killed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import select
+import signal
+import sys
+import threading
+import time
+import tty
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from pymodbus.framer import FramerRTU
+from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
+from pymodbus.pdu.register_message import (
+    ReadHoldingRegistersResponse,
+    ReadInputRegistersResponse,
+    WriteMultipleRegistersResponse,
+)
+
+from drivers.robotiq import (
+    ACTION_REQUEST_ADDR,
+    DEFAULT_SLAVE_ID,
+    GOBJ_AT_REQUEST,
+    GOBJ_CONTACT_CLOSING,
+    GOBJ_MOVING,
+    GRIPPER_STATUS_ADDR,
+    GSTA_ACTIVATED,
+    GSTA_ACTIVATING,
+    GSTA_RESET,
+    N_REGISTERS,
+    RACT,
+    RGTO,
+    STROKE_MM,
+    mm_to_position,
+)
+
+LineFault = Literal["garbage", "bad_crc", "no_answer"]
+
+MIN_SPEED_MM_S = 20.0  # 2F-85 datasheet: 20..150 mm/s finger speed
+MAX_SPEED_MM_S = 150.0
+ILLEGAL_FUNCTION = 0x01
+ILLEGAL_ADDRESS = 0x02
+FRAME_GAP_S = 0.05  # silence that drops a half-received frame (RTU's 3.5 chars, lenient)
+
+
+def speed_units_per_s(rsp: int) -> float:
+    """Finger speed for an ``rSP`` byte, in position units (1/255 of the stroke) per second."""
+    mm_s = MIN_SPEED_MM_S + (MAX_SPEED_MM_S - MIN_SPEED_MM_S) * rsp / 255.0
+    return mm_s * 255.0 / STROKE_MM
+
+
+@dataclass
+class _Motion:
+    start_pos: float
+    target: int
+    units_s: float
+    start_s: float
+    stop_at: float | None  # position where an object stops the fingers
+
+
+class GripperModel:
+    """The register-level behaviour, independent of the wire; time comes from ``clock``."""
+
+    def __init__(
+        self, activation_time_s: float = 0.5, object_width_mm: float | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.activation_time_s = activation_time_s
+        self.object_width_mm = object_width_mm
+        self._clock = clock
+        self.request = [0, 0, 0, 0, 0, 0]  # the six action-request bytes
+        self._activate_started: float | None = None
+        self._pos = 0.0
+        self._motion: _Motion | None = None
+        self._gobj = GOBJ_AT_REQUEST
+        self.fault = 0
+        self.lock = threading.RLock()
+
+    def now(self) -> float:
+        return self._clock()
+
+    def set_object(self, width_mm: float | None) -> None:
+        """Put an object of this width between the fingers (None removes it)."""
+        with self.lock:
+            self.object_width_mm = width_mm
+
+    def inject_fault(self, gflt: int) -> None:
+        """Raise a device fault (e.g. 0x0E overcurrent): motion stops until a reset."""
+        with self.lock:
+            self._update()
+            self._motion = None
+            self.fault = gflt
+
+    # -- time evolution --------------------------------------------------------------------
+    def _gsta(self) -> int:
+        if not self.request[0] & RACT or self._activate_started is None:
+            return GSTA_RESET
+        if self.now() - self._activate_started < self.activation_time_s:
+            return GSTA_ACTIVATING
+        return GSTA_ACTIVATED
+
+    def _update(self) -> None:
+        m = self._motion
+        if m is None:
+            return
+        direction = 1.0 if m.target >= m.start_pos else -1.0
+        travelled = (self.now() - m.start_s) * m.units_s
+        pos = m.start_pos + direction * travelled
+        if m.stop_at is not None and pos >= m.stop_at:
+            self._pos, self._gobj, self._motion = m.stop_at, GOBJ_CONTACT_CLOSING, None
+        elif (pos - m.target) * direction >= 0:
+            self._pos, self._gobj, self._motion = float(m.target), GOBJ_AT_REQUEST, None
+        else:
+            self._pos, self._gobj = pos, GOBJ_MOVING
+
+    def _start_motion(self) -> None:
+        target, rsp = self.request[3], self.request[4]
+        stop_at = None
+        if self.object_width_mm is not None:
+            contact = float(mm_to_position(self.object_width_mm))
+            if self._pos <= contact < target:
+                stop_at = contact
+        self._motion = _Motion(self._pos, target, speed_units_per_s(rsp), self.now(), stop_at)
+        self._gobj = GOBJ_MOVING
+
+    # -- registers -------------------------------------------------------------------------
+    def write_request(self, offset: int, registers: list[int]) -> None:
+        with self.lock:
+            self._update()
+            new = list(self.request)
+            for i, r in enumerate(registers):
+                new[2 * (offset + i)] = (r >> 8) & 0xFF
+                new[2 * (offset + i) + 1] = r & 0xFF
+            was_active = bool(self.request[0] & RACT)
+            self.request = new
+            if not new[0] & RACT:  # reset: clears faults, the fingers stay where they are
+                self._activate_started, self._motion, self.fault = None, None, 0
+                self._gobj = GOBJ_AT_REQUEST
+                if new[0] & RGTO:
+                    self.fault = 0x07
+                return
+            if not was_active:
+                self._activate_started = self.now()
+                self._pos = 0.0  # activation runs a full stroke and ends open
+            if not new[0] & RGTO:
+                self._motion = None
+                return
+            gsta = self._gsta()
+            if gsta != GSTA_ACTIVATED:
+                self.fault = 0x05 if gsta == GSTA_ACTIVATING else 0x07
+                return
+            if self.fault in (0x05, 0x07):
+                self.fault = 0
+            if self.fault == 0:
+                self._start_motion()
+
+    def status_bytes(self) -> list[int]:
+        with self.lock:
+            self._update()
+            gsta = self._gsta()
+            if self.fault == 0x05 and gsta == GSTA_ACTIVATED and self.request[0] & RGTO:
+                self.fault = 0  # the delayed action now runs, as on the real gripper
+                self._start_motion()
+                self._update()
+            act = self.request[0] & RACT
+            gto = 1 if self.request[0] & RGTO else 0
+            gobj = self._gobj if gsta == GSTA_ACTIVATED else GOBJ_MOVING
+            moving = self._motion is not None
+            current = 0x0A if moving else (self.request[5] // 4 if gobj == 2 else 0)
+            status = act | (gto << 3) | (gsta << 4) | (gobj << 6)
+            return [status, 0, self.fault, self.request[3], round(self._pos), current]
+
+    def read_registers(self, address: int, count: int) -> list[int] | None:
+        """Status (0x07D0) or action-request read-back (0x03E8); None for other addresses."""
+        def inside(base: int) -> bool:
+            return base <= address and address + count <= base + N_REGISTERS
+
+        if inside(GRIPPER_STATUS_ADDR):
+            data, offset = self.status_bytes(), address - GRIPPER_STATUS_ADDR
+        elif inside(ACTION_REQUEST_ADDR):
+            with self.lock:
+                data, offset = list(self.request), address - ACTION_REQUEST_ADDR
+        else:
+            return None
+        return [(data[2 * i] << 8) | data[2 * i + 1] for i in range(offset, offset + count)]
+
+
+class FakeGripper:
+    """Serves a :class:`GripperModel` as Modbus RTU slave ``slave_id`` on a pseudo-terminal.
+
+    ``port`` is the path a client opens (``link`` when given, else the pty's own name).
+    """
+
+    def __init__(
+        self, link: str | Path | None = None, slave_id: int = DEFAULT_SLAVE_ID,
+        activation_time_s: float = 0.5, object_width_mm: float | None = None,
+    ) -> None:
+        self.link = Path(link) if link is not None else None
+        self.slave_id = slave_id
+        self.model = GripperModel(activation_time_s, object_width_mm)
+        self._framer = FramerRTU(DecodePDU(is_server=True))
+        self._line_faults: list[LineFault] = []
+        self._master = self._slave = -1
+        self._slave_name = ""
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self.requests_seen = 0
+
+    @property
+    def port(self) -> str:
+        return str(self.link) if self.link is not None else self._slave_name
+
+    def start(self) -> FakeGripper:
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)  # no echo, no line discipline: a plain 8-bit line
+        self._slave_name = os.ttyname(self._slave)
+        if self.link is not None:
+            with contextlib.suppress(FileNotFoundError):
+                self.link.unlink()
+            self.link.symlink_to(self._slave_name)
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._serve, name="fake-gripper", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+        for fd in (self._master, self._slave):
+            if fd >= 0:
+                os.close(fd)
+        self._master = self._slave = -1
+        if self.link is not None and self.link.is_symlink():
+            self.link.unlink()
+
+    def __enter__(self) -> FakeGripper:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def inject_line_fault(self, fault: LineFault, count: int = 1) -> None:
+        """Answer the next ``count`` requests with ``fault`` instead of a proper reply."""
+        self._line_faults.extend([fault] * count)
+
+    # -- serving ---------------------------------------------------------------------------
+    def _serve(self) -> None:
+        buf = b""
+        last_rx = time.monotonic()
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self._master], [], [], 0.05)
+            if not ready:
+                if buf and time.monotonic() - last_rx > FRAME_GAP_S:
+                    buf = b""
+                continue
+            try:
+                buf += os.read(self._master, 512)
+            except OSError:
+                continue
+            last_rx = time.monotonic()
+            while buf:
+                used, pdu = self._framer.handleFrame(buf, self.slave_id, 0)
+                buf = buf[used:]
+                if pdu is None:
+                    break
+                self.requests_seen += 1
+                self._reply(self._handle(pdu))
+
+    def _handle(self, pdu: ModbusPDU) -> ModbusPDU:
+        fc = pdu.function_code
+        if fc in (0x03, 0x04):
+            regs = self.model.read_registers(pdu.address, pdu.count)
+            if regs is None:
+                return ExceptionResponse(fc, ILLEGAL_ADDRESS, self.slave_id)
+            cls = ReadInputRegistersResponse if fc == 0x04 else ReadHoldingRegistersResponse
+            return cls(registers=regs, dev_id=self.slave_id)
+        if fc == 0x10:
+            offset = pdu.address - ACTION_REQUEST_ADDR
+            if offset < 0 or offset + len(pdu.registers) > N_REGISTERS or not pdu.registers:
+                return ExceptionResponse(fc, ILLEGAL_ADDRESS, self.slave_id)
+            self.model.write_request(offset, list(pdu.registers))
+            return WriteMultipleRegistersResponse(
+                address=pdu.address, count=len(pdu.registers), dev_id=self.slave_id
+            )
+        return ExceptionResponse(fc, ILLEGAL_FUNCTION, self.slave_id)
+
+    def _reply(self, response: ModbusPDU) -> None:
+        frame = self._framer.buildFrame(response)
+        fault = self._line_faults.pop(0) if self._line_faults else None
+        if fault == "no_answer":
+            return
+        if fault == "bad_crc":
+            frame = frame[:-1] + bytes([frame[-1] ^ 0x5A])
+        elif fault == "garbage":
+            frame = bytes((0xA5 ^ (7 * i)) & 0xFF for i in range(len(frame) + 3))
+        with contextlib.suppress(OSError):
+            os.write(self._master, frame)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m fakes.gripper", description="Fake Robotiq 2F-85 on a pseudo-terminal."
+    )
+    parser.add_argument("--link", required=True, help="symlink to create for the serial device")
+    parser.add_argument("--slave-id", type=int, default=DEFAULT_SLAVE_ID)
+    parser.add_argument("--object-mm", type=float, default=None,
+                        help="width of an object between the fingers (none by default)")
+    parser.add_argument("--activation-s", type=float, default=0.5)
+    args = parser.parse_args(argv)
+    fake = FakeGripper(args.link, args.slave_id, args.activation_s, args.object_mm).start()
+    stopped = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stopped.set())
+    print(f"fake gripper ready on {fake.port} -> {fake._slave_name} (slave {fake.slave_id})",
+          flush=True)
+    try:
+        stopped.wait()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        fake.stop()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,338 @@
+"""Synthetic camera images of the dot target, exact enough to test sub-pixel detection.
+
+Dots are rasterised by sending every supersample of a pixel back through the lens (undistort)
+to a ray and intersecting it with the dot's plane, so each dot has the true perspective shape of
+a circle, including the offset between the imaged centroid and the image of the circle centre
+that the perspective-bias correction has to remove. Drawing circles at projected centres would
+hide exactly the errors the estimator must handle. The plate and the optional frame are flat
+polygons, drawn anti-aliased by OpenCV from densely sampled (and distorted) edges: their exact
+shape matters less than speed, since the simulated camera renders several frames per second.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from estimator.camera import CameraModel
+from estimator.target import Target
+from estimator.transforms import make_T
+
+_AA_SHIFT = 4  # fixed-point bits for cv2.fillPoly sub-pixel vertices
+_EDGE_SAMPLES = 48  # points per straight edge, so distortion bends edges smoothly
+
+
+def _plane_hits(
+    rays: NDArray[np.float64], R: NDArray[np.float64], origin_cam: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """Intersect rays (x, y, 1) with the plane through ``origin_cam`` spanned by R's x and y.
+
+    Returns the in-plane coordinates (a, b) in mm, measured along R's x and y axes from the
+    origin, and a mask of rays that hit the plane in front of the camera.
+    """
+    n = R[:, 2]
+    denom = rays @ n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (origin_cam @ n) / denom
+    P = rays * t[:, None] - origin_cam
+    a = P @ R[:, 0]
+    b = P @ R[:, 1]
+    return a, b, np.isfinite(t) & (t > 0)
+
+
+def _fill_polygons(
+    shape: tuple[int, int], polys_px: list[NDArray[np.float64]]
+) -> NDArray[np.float32]:
+    """Anti-aliased coverage (0..1) of filled polygons given in pixel coordinates."""
+    canvas = np.zeros(shape, np.uint8)
+    pts = [np.round(p * (1 << _AA_SHIFT)).astype(np.int32).reshape(-1, 1, 2) for p in polys_px]
+    cv2.fillPoly(canvas, pts, 255, cv2.LINE_AA, _AA_SHIFT)
+    return canvas.astype(np.float32) * np.float32(1.0 / 255.0)
+
+
+def _rect_outline(x0: float, y0: float, x1: float, y1: float) -> NDArray[np.float64]:
+    """Densely sampled closed rectangle in plane coordinates (mm), counter-clockwise."""
+    s = np.linspace(0.0, 1.0, _EDGE_SAMPLES, endpoint=False)
+    edges = [
+        np.column_stack((x0 + (x1 - x0) * s, np.full_like(s, y0))),
+        np.column_stack((np.full_like(s, x1), y0 + (y1 - y0) * s)),
+        np.column_stack((x1 - (x1 - x0) * s, np.full_like(s, y1))),
+        np.column_stack((np.full_like(s, x0), y1 - (y1 - y0) * s)),
+    ]
+    return np.vstack(edges)
+
+
+@dataclass(frozen=True)
+class _Disc:
+    """A circle on a plane parallel to the target plane: centre (target frame, mm), radius."""
+
+    centre_mm: NDArray[np.float64]
+    radius_mm: float
+
+
+class _Scene:
+    """Geometry shared by the drawing steps of one render call."""
+
+    def __init__(self, camera: CameraModel, T_camera_target: NDArray[np.float64], distort: bool):
+        self.camera = camera if distort else CameraModel(
+            camera.fx, camera.fy, camera.cx, camera.cy, (), camera.width, camera.height
+        )
+        self.R = np.asarray(T_camera_target, dtype=float)[:3, :3]
+        self.T = np.asarray(T_camera_target, dtype=float)
+
+    def to_camera(self, pts_target_mm: NDArray[np.float64]) -> NDArray[np.float64]:
+        pts = np.asarray(pts_target_mm, dtype=float).reshape(-1, 3)
+        return np.asarray(pts @ self.R.T + self.T[:3, 3], dtype=float)
+
+    def project_plane(self, ab_mm: NDArray[np.float64], z_mm: float) -> NDArray[np.float64] | None:
+        """Pixels of plane points, or None when part of the outline is behind the camera
+        (such a shape is not drawn: a real camera would not see it whole either)."""
+        pts = np.column_stack((ab_mm, np.full(len(ab_mm), z_mm)))
+        cam = self.to_camera(pts)
+        if np.any(cam[:, 2] <= 1e-6):
+            return None
+        return self.camera.project(cam)
+
+    def disc_coverage(
+        self, disc: _Disc, supersample: int
+    ) -> tuple[int, int, NDArray[np.float32]] | None:
+        """Exact-perspective coverage of one disc in its pixel bounding box: (x0, y0, patch)."""
+        ang = np.linspace(0.0, 2.0 * np.pi, 64, endpoint=False)
+        rim = np.column_stack((np.cos(ang), np.sin(ang))) * disc.radius_mm + disc.centre_mm[:2]
+        rim_px = self.project_plane(rim, float(disc.centre_mm[2]))
+        if rim_px is None:
+            return None
+        x0 = max(int(np.floor(rim_px[:, 0].min())) - 2, 0)
+        y0 = max(int(np.floor(rim_px[:, 1].min())) - 2, 0)
+        x1 = min(int(np.ceil(rim_px[:, 0].max())) + 3, self.camera.width)
+        y1 = min(int(np.ceil(rim_px[:, 1].max())) + 3, self.camera.height)
+        if x1 <= x0 or y1 <= y0:
+            return None
+        # Supersample positions: pixel centres are integers, samples spread over [-0.5, 0.5).
+        off = (np.arange(supersample) + 0.5) / supersample - 0.5
+        xs = (np.arange(x0, x1)[:, None] + off[None, :]).ravel()
+        ys = (np.arange(y0, y1)[:, None] + off[None, :]).ravel()
+        gx, gy = np.meshgrid(xs, ys)
+        norm = self.camera.undistort_points(np.column_stack((gx.ravel(), gy.ravel())))
+        rays = np.column_stack((norm, np.ones(len(norm))))
+        origin = self.to_camera(disc.centre_mm)[0]
+        a, b, ok = _plane_hits(rays, self.R, origin)
+        inside = ok & (a * a + b * b <= disc.radius_mm**2)
+        h, w = y1 - y0, x1 - x0
+        cov = inside.reshape(h, supersample, w, supersample).mean(axis=(1, 3))
+        return x0, y0, cov.astype(np.float32)
+
+
+def default_levels(polarity: str) -> tuple[float, float]:
+    """(plate, dot) grey levels for a polarity: strong but not saturated contrast."""
+    return (205.0, 40.0) if polarity == "dark" else (50.0, 215.0)
+
+
+def _clutter_discs(
+    rng: np.random.Generator, target: Target, z_mm: float, count: int
+) -> list[_Disc]:
+    """Dot-like distractors among the real dots (inside any frame), apart from each other."""
+    r = target.dot_diameter_mm / 2.0
+    taken = [p[:2] for p in target.points_mm]
+    out: list[_Disc] = []
+    lo = target.points_mm[:, :2].min(axis=0) - 0.4 * r
+    hi = target.points_mm[:, :2].max(axis=0) + 0.4 * r
+    for _ in range(400 * max(count, 1)):
+        if len(out) == count:
+            break
+        rad = r * rng.uniform(0.7, 1.2)
+        c = rng.uniform(lo, hi)
+        if all(np.hypot(*(c - t)) > 3.2 * r for t in taken):
+            taken.append(c)
+            out.append(_Disc(np.array([c[0], c[1], z_mm]), rad))
+    return out
+
+
+def render_target(
+    camera: CameraModel,
+    target: Target,
+    T_camera_target: NDArray[np.float64],
+    *,
+    plate_size_mm: tuple[float, float] | None = None,
+    plate_margin_mm: float | None = None,
+    blur_sigma_px: float = 0.7,
+    noise_std: float = 1.5,
+    lighting_gradient: float = 0.15,
+    distort: bool = True,
+    clutter: int = 0,
+    rng: np.random.Generator | None = None,
+    background: float = 110.0,
+    frame: bool = False,
+    supersample: int = 4,
+) -> NDArray[np.uint8]:
+    """Grey image (height x width, uint8) of the target seen from ``T_camera_target``.
+
+    The plate is centred on the dots' bounding box, ``plate_margin_mm`` (default 2 dot
+    diameters, 2.6 with ``frame``, plus 1.5x the dots' z range) beyond it, unless
+    ``plate_size_mm`` (w, h) is given; it lies in the target plane at the largest dot z, so
+    dots with smaller z stand out of it towards the camera. ``lighting_gradient`` scales
+    brightness by up to +-that fraction across the frame; ``clutter`` adds that many dot-like
+    blobs among the dots; ``frame`` adds a dark rectangular frame around the dots (a classic
+    false detection). ``distort`` applies the camera's lens distortion.
+    """
+    rng = rng if rng is not None else np.random.default_rng()
+    scene = _Scene(camera, np.asarray(T_camera_target, dtype=float), distort)
+    h, w = camera.height, camera.width
+    plate_level, dot_level = default_levels(target.polarity)
+    d = target.dot_diameter_mm
+    pts = target.points_mm
+    z_plate = float(pts[:, 2].max())
+    z_extent = float(np.ptp(pts[:, 2]))  # so dots on posts still appear over the plate
+    margin = (
+        plate_margin_mm if plate_margin_mm is not None
+        else (2.6 if frame else 2.0) * d + 1.5 * z_extent
+    )
+    lo, hi = pts[:, :2].min(axis=0), pts[:, :2].max(axis=0)
+    if plate_size_mm is not None:
+        c = (lo + hi) / 2.0
+        half = np.asarray(plate_size_mm, dtype=float) / 2.0
+        plate = (c[0] - half[0], c[1] - half[1], c[0] + half[0], c[1] + half[1])
+    else:
+        plate = (lo[0] - margin, lo[1] - margin, hi[0] + margin, hi[1] + margin)
+
+    img = np.full((h, w), background, np.float32)
+    plate_px = scene.project_plane(_rect_outline(*plate), z_plate)
+    if plate_px is not None:
+        img += (plate_level - background) * _fill_polygons((h, w), [plate_px])
+
+    if frame:
+        inner_gap, width_mm = 0.9 * d, 0.45 * d
+        fx0, fy0 = lo[0] - inner_gap - width_mm, lo[1] - inner_gap - width_mm
+        fx1, fy1 = hi[0] + inner_gap + width_mm, hi[1] + inner_gap + width_mm
+        sides = [
+            (fx0, fy0, fx1, fy0 + width_mm), (fx0, fy1 - width_mm, fx1, fy1),
+            (fx0, fy0, fx0 + width_mm, fy1), (fx1 - width_mm, fy0, fx1, fy1),
+        ]
+        projected = [scene.project_plane(_rect_outline(*s), z_plate) for s in sides]
+        polys = [p for p in projected if p is not None]
+        if polys:
+            frame_cov = np.minimum(sum(_fill_polygons((h, w), [p]) for p in polys), 1.0)
+            img += (dot_level - img) * frame_cov
+
+    discs = [_Disc(p, d / 2.0) for p in pts]
+    discs += _clutter_discs(rng, target, z_plate, clutter)
+    # Far discs first, so a dot standing out towards the camera covers one behind it.
+    depth = [float(scene.to_camera(disc.centre_mm)[0, 2]) for disc in discs]
+    for i in np.argsort(depth)[::-1]:
+        got = scene.disc_coverage(discs[i], supersample)
+        if got is None:
+            continue
+        x0, y0, cov = got
+        patch = img[y0 : y0 + cov.shape[0], x0 : x0 + cov.shape[1]]
+        patch += (dot_level - patch) * cov
+
+    if lighting_gradient:
+        direction = rng.uniform(0.0, 2.0 * np.pi)
+        gx = np.linspace(-1.0, 1.0, w, dtype=np.float32) * np.float32(np.cos(direction))
+        gy = np.linspace(-1.0, 1.0, h, dtype=np.float32) * np.float32(np.sin(direction))
+        img *= 1.0 + np.float32(lighting_gradient) * (gy[:, None] + gx[None, :]) / np.float32(
+            np.sqrt(2.0)
+        )
+    if blur_sigma_px > 0:
+        img = np.asarray(cv2.GaussianBlur(img, (0, 0), blur_sigma_px), dtype=np.float32)
+    if noise_std > 0:
+        noise = np.empty((h, w), np.float32)
+        cv2.setRNGSeed(int(rng.integers(0, 2**31 - 1)))
+        cv2.randn(noise, np.zeros(1), np.full(1, float(noise_std)))
+        img += noise
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+
+
+def ellipse_centre_px(
+    camera: CameraModel, T_camera_target: NDArray[np.float64], centre_mm: NDArray[np.float64],
+    radius_mm: float,
+) -> NDArray[np.float64]:
+    """Centre of the image of a circle (pinhole, no distortion): the centroid a perfect
+    detector should return, which differs from the projected circle centre under perspective.
+
+    Computed from the conic of the imaged circle, so tests have an analytic reference.
+    """
+    T = np.asarray(T_camera_target, dtype=float)
+    R = T[:3, :3]
+    c = R @ np.asarray(centre_mm, dtype=float) + T[:3, 3]
+    # Plane homography: (a, b, 1) on the dot plane -> homogeneous normalised image point.
+    H = np.column_stack((R[:, 0], R[:, 1], c))
+    C_plane = np.diag([1.0, 1.0, -radius_mm**2])
+    Hinv = np.linalg.inv(H)
+    C = Hinv.T @ C_plane @ Hinv  # conic of the image ellipse in normalised coordinates
+    centre_norm = np.linalg.solve(C[:2, :2], -C[:2, 2])
+    return np.array(
+        [camera.fx * centre_norm[0] + camera.cx, camera.fy * centre_norm[1] + camera.cy]
+    )
+
+
+def random_pose(
+    rng: np.random.Generator, camera: CameraModel, target: Target, *,
+    distance_mm: tuple[float, float] = (350.0, 700.0), max_tilt_deg: float = 40.0,
+    border_px: float = 40.0,
+) -> NDArray[np.float64]:
+    """A random front-facing pose that keeps every dot at least ``border_px`` inside the image."""
+    centre = target.points_mm.mean(axis=0)
+    for _ in range(1000):
+        axis = rng.normal(size=3)
+        axis[2] = 0.0
+        axis /= np.linalg.norm(axis)
+        tilt = Rotation.from_rotvec(axis * np.radians(rng.uniform(0.0, max_tilt_deg)))
+        spin = Rotation.from_rotvec([0.0, 0.0, rng.uniform(-np.pi, np.pi)])
+        R = (tilt * spin).as_matrix()
+        z = rng.uniform(*distance_mm)
+        xy = rng.uniform(-0.25, 0.25, 2) * np.array([camera.width / camera.fx,
+                                                     camera.height / camera.fy]) * z
+        T = make_T(R, np.array([xy[0], xy[1], z]) - R @ centre)
+        cam = target.points_mm @ R.T + T[:3, 3]
+        if np.any(cam[:, 2] <= 0):
+            continue
+        px = camera.project(cam)
+        inside = (
+            (px[:, 0] >= border_px) & (px[:, 0] <= camera.width - 1 - border_px)
+            & (px[:, 1] >= border_px) & (px[:, 1] <= camera.height - 1 - border_px)
+        )
+        # Dots on posts can hide each other; keep them clearly apart in the image.
+        gap = np.linalg.norm(px[:, None] - px[None], axis=2) + np.eye(len(px)) * 1e9
+        dot_px = camera.fx * target.dot_diameter_mm / cam[:, 2].min()
+        if inside.all() and gap.min() > 2.5 * dot_px:
+            return T
+    raise RuntimeError("could not find a pose that keeps the target in view")
+
+
+def random_target(rng: np.random.Generator, n_dots: int, *, planar: bool = True,
+                  dot_diameter_mm: float = 8.0, polarity: str = "dark") -> Target:
+    """An asymmetric random target: dots at least 3 diameters apart in a ~120 x 90 mm area."""
+    pts: list[NDArray[np.float64]] = []
+    while len(pts) < n_dots:
+        p = rng.uniform([0.0, 0.0], [120.0, 90.0])
+        if all(np.hypot(*(p - q)) > 3.0 * dot_diameter_mm for q in pts):
+            pts.append(p)
+    z = rng.uniform(-20.0, 0.0, n_dots) if not planar else np.zeros(n_dots)
+    return Target(np.column_stack((np.array(pts), z)), dot_diameter_mm,
+                  "dark" if polarity == "dark" else "light")
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A rendered test scene with its ground truth."""
+
+    image: NDArray[np.uint8]
+    T_camera_target: NDArray[np.float64]
+    target: Target
+    camera: CameraModel
+
+
+def random_scene(
+    rng: np.random.Generator, camera: CameraModel, target: Target | None = None, *,
+    n_dots: int = 6, planar: bool = True, **render_options: object,
+) -> Scene:
+    """Random target (unless given) at a random in-view pose, rendered with ``render_options``."""
+    tgt = target if target is not None else random_target(rng, n_dots, planar=planar)
+    T = random_pose(rng, camera, tgt)
+    image = render_target(camera, tgt, T, rng=rng, **render_options)  # type: ignore[arg-type]
+    return Scene(image, T, tgt, camera)

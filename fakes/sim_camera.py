@@ -1,0 +1,235 @@
+"""A simulated eye-in-hand camera behind :class:`drivers.camera.Camera`.
+
+A background thread "exposes" a frame every 1/fps seconds: it samples the arm's flange pose at
+mid-exposure from ``pose_source`` (the simulated controller's engine), so a moving arm changes
+what the camera sees exactly as on a real cell. The image itself is rendered only when someone
+asks for the frame (:func:`fakes.render.render_target`, ~40 ms at 1280x800): the scene at that
+instant is kept, so the result is the same as rendering eagerly but the idle cell burns no CPU.
+
+Faults as an integrator meets them: dropped frames (sequence gaps), a lost device
+(``latest_frame`` raises ConnectionLostError until restored) and a blocked view (a dark,
+featureless image, e.g. a hand or a cover in front of the lens).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.camera import Frame
+from drivers.errors import ConnectionLostError, DeviceTimeoutError
+from estimator import CameraModel, Target
+from estimator.transforms import invert_T
+from fakes.render import render_target
+
+Matrix4 = NDArray[np.float64]
+PoseSource = Callable[[], tuple[Matrix4, float]]  # () -> (T_base_flange mm, time.monotonic())
+
+BLOCKED_LEVEL = 12.0  # grey level of a covered lens
+
+
+@dataclass(frozen=True)
+class _Exposure:
+    """What the sensor saw at one instant: enough to render the image later."""
+
+    sequence: int
+    timestamp_s: float
+    T_camera_target: Matrix4
+    gain: float
+    blocked: bool
+
+
+class SimCamera:
+    """Renders the target as seen from ``T_base_flange @ T_flange_camera`` at each frame."""
+
+    def __init__(
+        self, camera: CameraModel, target: Target, T_base_target: Matrix4,
+        T_flange_camera: Matrix4, pose_source: PoseSource, *, fps: float = 15.0,
+        exposure_s: float = 0.004, noise_std: float = 1.5, blur_sigma_px: float = 0.7,
+        lighting_gradient: float = 0.1, exposure_jitter: float = 0.03, seed: int | None = None,
+    ) -> None:
+        if not 0 < fps <= 120:
+            raise ValueError(f"fps must be within (0, 120], got {fps}")
+        if not 0 < exposure_s < 1.0 / fps:
+            raise ValueError(f"exposure_s must be positive and shorter than a frame, got "
+                             f"{exposure_s}")
+        self.camera = camera
+        self.target = target
+        self.T_flange_camera = np.array(T_flange_camera, dtype=float)
+        self._T_base_target = np.array(T_base_target, dtype=float)
+        self.pose_source = pose_source
+        self.fps = fps
+        self.exposure_s = exposure_s
+        self.noise_std = noise_std
+        self.blur_sigma_px = blur_sigma_px
+        self.lighting_gradient = lighting_gradient
+        self.exposure_jitter = exposure_jitter
+        self._rng = np.random.default_rng(seed)
+        self._cond = threading.Condition()
+        self._latest: _Exposure | None = None
+        self._handed_out = -1
+        self._rendered: tuple[int, NDArray[np.uint8]] | None = None
+        self._sequence = 0
+        self._drop_next = 0
+        self._drop_probability = 0.0
+        self._lost = False
+        self._blocked = False
+        self._error: str | None = None
+        self.frames_dropped = 0
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+
+    # -- scene and faults --------------------------------------------------------------------
+    @property
+    def T_base_target(self) -> Matrix4:
+        """The true target pose (ground truth for tests)."""
+        with self._cond:
+            return self._T_base_target.copy()
+
+    def set_target_pose(self, T_base_target: Matrix4) -> None:
+        T = np.array(T_base_target, dtype=float)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise ValueError("T_base_target must be a finite 4x4 transform")
+        with self._cond:
+            self._T_base_target = T
+
+    def drop_frames(self, count: int = 1, probability: float | None = None) -> None:
+        """Skip the next ``count`` exposures; with ``probability``, drop that share from now on."""
+        with self._cond:
+            self._drop_next += count
+            if probability is not None:
+                self._drop_probability = float(probability)
+
+    def set_lost(self, lost: bool) -> None:
+        """Unplug (True) or re-plug (False) the simulated device."""
+        with self._cond:
+            self._lost = lost
+            self._cond.notify_all()
+
+    def set_blocked(self, blocked: bool) -> None:
+        with self._cond:
+            self._blocked = blocked
+
+    # -- Camera interface --------------------------------------------------------------------
+    @property
+    def is_connected(self) -> bool:
+        with self._cond:
+            return self._thread is not None and not self._lost and self._error is None
+
+    def connect(self) -> None:
+        with self._cond:
+            if self._lost:
+                raise ConnectionLostError("simulated camera is unplugged")
+            if self._thread is not None:
+                return
+            self._stop.clear()
+            self._error = None
+            self._thread = threading.Thread(target=self._run, name="sim-camera", daemon=True)
+            self._thread.start()
+
+    def disconnect(self) -> None:
+        self._stop.set()
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.join(timeout=2.0)
+        with self._cond:
+            self._latest = None
+            self._cond.notify_all()
+
+    def latest_frame(self, timeout_s: float = 1.0) -> Frame:
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while True:
+                if self._thread is None:
+                    raise ConnectionLostError("simulated camera is not connected")
+                if self._lost:
+                    raise ConnectionLostError("simulated camera lost (device unplugged)")
+                if self._error is not None:
+                    raise ConnectionLostError(f"simulated camera stopped: {self._error}")
+                exp = self._latest
+                if exp is not None and exp.sequence != self._handed_out:
+                    self._handed_out = exp.sequence
+                    break
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise DeviceTimeoutError(
+                        f"no frame from the simulated camera within {timeout_s} s")
+                self._cond.wait(remaining)
+        return Frame(self._render(exp), exp.timestamp_s, exp.sequence, self.camera)
+
+    # -- internals ---------------------------------------------------------------------------
+    def _render(self, exp: _Exposure) -> NDArray[np.uint8]:
+        cached = self._rendered
+        if cached is not None and cached[0] == exp.sequence:
+            return cached[1]
+        with self._cond:  # the generator is shared with the exposure thread
+            rng = np.random.default_rng(self._rng.integers(0, 2**63 - 1))
+        h, w = self.camera.height, self.camera.width
+        if exp.blocked:
+            img = np.full((h, w), BLOCKED_LEVEL) + rng.normal(0.0, self.noise_std, (h, w))
+            image = np.clip(img, 0, 255).astype(np.uint8)
+        elif exp.T_camera_target[2, 3] <= 0:  # target behind the camera: only the background
+            image = render_target(self.camera, self.target, _far_away(),
+                                  blur_sigma_px=self.blur_sigma_px, noise_std=self.noise_std,
+                                  lighting_gradient=0.0, rng=rng)
+        else:
+            image = render_target(
+                self.camera, self.target, exp.T_camera_target, blur_sigma_px=self.blur_sigma_px,
+                noise_std=self.noise_std, lighting_gradient=self.lighting_gradient, rng=rng,
+            )
+        if exp.gain != 1.0:
+            image = np.clip(image.astype(np.float32) * exp.gain, 0, 255).astype(np.uint8)
+        self._rendered = (exp.sequence, image)
+        return image
+
+    def _expose(self) -> None:
+        """Take one exposure: sample the pose at mid-exposure and keep the scene."""
+        T_base_flange, t_s = self.pose_source()
+        T_base_camera = np.asarray(T_base_flange, dtype=float) @ self.T_flange_camera
+        with self._cond:
+            self._sequence += 1
+            drop = self._drop_next > 0 or (
+                self._drop_probability > 0 and self._rng.random() < self._drop_probability)
+            if drop:
+                self._drop_next = max(0, self._drop_next - 1)
+                self.frames_dropped += 1
+                return
+            gain = 1.0 + float(self._rng.normal(0.0, self.exposure_jitter))
+            self._latest = _Exposure(
+                self._sequence, float(t_s), invert_T(T_base_camera) @ self._T_base_target,
+                gain, self._blocked,
+            )
+            self._cond.notify_all()
+
+    def _run(self) -> None:
+        period = 1.0 / self.fps
+        next_start = time.monotonic()
+        while not self._stop.is_set():
+            mid = next_start + self.exposure_s / 2.0
+            if self._stop.wait(max(0.0, mid - time.monotonic())):
+                break
+            with self._cond:
+                lost = self._lost
+            if not lost:
+                try:
+                    self._expose()
+                except Exception as err:  # the pose source (arm simulation) went away
+                    with self._cond:
+                        self._error = f"pose source failed: {err}"
+                        self._cond.notify_all()
+                    return
+            next_start += period
+            if next_start < time.monotonic() - period:  # fell behind (loaded host): skip ahead
+                next_start = time.monotonic()
+
+
+def _far_away() -> Matrix4:
+    """A pose that puts the target far outside the view, for an empty scene."""
+    T = np.eye(4)
+    T[:3, 3] = (1e6, 1e6, 1e3)
+    return T

@@ -1,0 +1,54 @@
+"""``python -m fakes.ur_controller --host 127.0.0.2``: serve one simulated controller."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+
+from fakes.ur_controller.control import serve
+from fakes.ur_controller.server import URController
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m fakes.ur_controller", description=__doc__)
+    parser.add_argument("--host", default="127.0.0.2",
+                        help="loopback address to serve (the ports are fixed by ur_rtde)")
+    parser.add_argument("--local-control", action="store_true",
+                        help="report the pendant in local control (ur_rtde then refuses)")
+    parser.add_argument("--powered", action="store_true",
+                        help="start powered on with brakes released (RUNNING)")
+    parser.add_argument("--protective-stop-after", type=float, metavar="S",
+                        help="fault injection: raise a protective stop S seconds after start")
+    parser.add_argument("--control", action="store_true",
+                        help="accept control commands on stdin (see fakes.ur_controller.control)")
+    parser.add_argument("-v", "--verbose", action="store_true")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        stream=sys.stderr)
+
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    with URController(args.host, remote_control=not args.local_control) as ctl:
+        if args.powered:
+            ctl.engine.brake_release()
+        if args.protective_stop_after is not None:
+            ctl.faults.protective_stop(args.protective_stop_after)
+        print(f"UR controller simulator ready on {args.host} "
+              "(dashboard 29999, script 30003, RTDE 30004)", flush=True)
+        if args.control:
+            threading.Thread(target=_control, args=(ctl, stop), daemon=True).start()
+        stop.wait()
+    return 0
+
+
+def _control(ctl: URController, stop: threading.Event) -> None:
+    serve(ctl, sys.stdin, sys.stdout)
+    stop.set()  # stdin closed: the parent is gone
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,109 @@
+"""Run a simulated controller in a child process and steer it (see :mod:`.control`)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import threading
+from typing import Any
+
+READY_TIMEOUT_S = 20.0
+
+
+class ControllerProcess:
+    """``python -m fakes.ur_controller --control --host HOST`` with a typed control API."""
+
+    def __init__(self, host: str, *, powered: bool = False, remote_control: bool = True) -> None:
+        self.host = host
+        argv = [sys.executable, "-m", "fakes.ur_controller", "--host", host, "--control"]
+        if powered:
+            argv.append("--powered")
+        if not remote_control:
+            argv.append("--local-control")
+        self._proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                      text=True, bufsize=1)
+        self._lock = threading.Lock()
+        ready = self._readline(READY_TIMEOUT_S)
+        if "ready" not in ready:
+            self.close()
+            raise RuntimeError(f"controller on {host} did not start: {ready!r}")
+
+    def _readline(self, timeout_s: float) -> str:
+        box: list[str] = []
+        reader = threading.Thread(target=lambda: box.append(self._stdout.readline()),
+                                  daemon=True)
+        reader.start()
+        reader.join(timeout_s)
+        if not box:
+            raise TimeoutError(f"controller on {self.host} did not answer")
+        return box[0]
+
+    @property
+    def _stdout(self) -> Any:
+        return self._proc.stdout
+
+    def command(self, line: str, timeout_s: float = 5.0) -> dict[str, Any]:
+        with self._lock:
+            assert self._proc.stdin is not None
+            self._proc.stdin.write(line + "\n")
+            self._proc.stdin.flush()
+            reply: dict[str, Any] = json.loads(self._readline(timeout_s))
+        if not reply.get("ok"):
+            raise RuntimeError(reply.get("error", "control command failed"))
+        return reply
+
+    # -- the steering API ----------------------------------------------------------------------
+    def state(self) -> dict[str, Any]:
+        return self.command("state")
+
+    def power(self) -> None:
+        self.command("power")
+
+    def protective_stop(self, after_s: float = 0.0) -> None:
+        self.command(f"pstop {after_s}")
+
+    def emergency_stop(self, after_s: float = 0.0) -> None:
+        self.command(f"estop {after_s}")
+
+    def release_emergency_stop(self) -> None:
+        self.command("estop-release")
+
+    def drop_connections(self, reset: bool = False) -> None:
+        self.command("drop reset" if reset else "drop")
+
+    def stall_stream(self, duration_s: float) -> None:
+        self.command(f"stall {duration_s}")
+
+    def freeze(self) -> None:
+        self.command("freeze")
+
+    def set_remote_control(self, on: bool) -> None:
+        self.command("remote on" if on else "remote off")
+
+    def kill(self) -> None:
+        """SIGKILL: the controller dies; the kernel closes its sockets."""
+        self._proc.kill()
+        self._proc.wait(timeout=5.0)
+
+    @property
+    def alive(self) -> bool:
+        return self._proc.poll() is None
+
+    def close(self) -> None:
+        if self._proc.poll() is None:
+            self._proc.terminate()
+            try:
+                self._proc.wait(timeout=5.0)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                self._proc.wait(timeout=5.0)
+        for stream in (self._proc.stdin, self._proc.stdout):
+            if stream is not None:
+                stream.close()
+
+    def __enter__(self) -> ControllerProcess:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,376 @@
+"""Port 30003: receives URScript programs, and the interpreter of ur_rtde's register mailbox.
+
+The simulator does not execute URScript. It recognises the control script ur_rtde uploads
+(``rtde_control.script``), takes from it the two things the client injects (the register offset
+and a move path), and then behaves as that script does, cycle by cycle: it reads the command
+id from ``input_int_register_0`` and the arguments from the input registers, drives the motion
+engine, reports ready (1) / done (2) in ``output_int_register_0``, results in the output
+registers and async progress in ``output_int_register_2``. Runtime errors (an unreachable target,
+a refused command) stop the program with a text message, as on the real controller.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from fakes.ur_controller.registers import RegisterFile
+from fakes.ur_controller.tcp import TcpService
+from fakes.ur_sim import EngineError, EngineSnapshot, MotionEngine, RobotMode, SafetyMode
+from fakes.ur_sim.engine import CommandOutcome, CommandRejectedError, PathEntry
+
+log = logging.getLogger(__name__)
+
+SCRIPT_PORT = 30003
+READY, DONE = 1, 2
+RUNTIME_STOPPED, RUNTIME_PLAYING = 1, 2
+CONTROL_SCRIPT_MARK = "RTDE Control Script"
+# commands the script treats as real-time: processed every cycle, answered with "ready"
+REALTIME_CMDS = {24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71}
+STOP_SCRIPT = 255
+_MOVE = re.compile(
+    r"^\s*(movej|movel|movep)\((p?)\[([^\]]*)\],a=([^,]+),v=([^,]+),r=([^)]+)\)\s*$")
+_PROGRAM_END = re.compile(r"^end\s*$", re.MULTILINE)
+
+
+class ScriptError(Exception):
+    """A program the simulator cannot run (unsupported motion in an injected path, ...)."""
+
+
+@dataclass
+class ControlProgram:
+    """What the simulator needs of an uploaded rtde_control script."""
+
+    int_offset: int = 0
+    float_offset: int = 0
+    path: list[PathEntry] = field(default_factory=list)
+
+
+def parse_program(text: str) -> ControlProgram | None:
+    """The control program's settings, or None when the text is some other program."""
+    if CONTROL_SCRIPT_MARK not in text:
+        return None
+    prog = ControlProgram()
+    m = re.search(r"# int register offset\n\s*(\d+)", text)
+    prog.int_offset = int(m[1]) if m else 0
+    m = re.search(r"# float register offset\n\s*(\d+)", text)
+    prog.float_offset = int(m[1]) if m else 0
+    start = text.find("# inject move path\n")
+    if start >= 0:
+        for line in text[start:].splitlines()[1:]:
+            if line.strip() == "end":
+                break
+            if line.strip().startswith("signal_async_progress"):
+                continue
+            m = _MOVE.match(line)
+            if m is None:
+                continue
+            if m[1] == "movep":
+                raise ScriptError("movep in a path is not supported by the simulator")
+            target = [float(v) for v in m[3].split(",")]
+            kind = "movel" if m[1] == "movel" else "movej"
+            prog.path.append((kind, target, float(m[5]), float(m[4]), float(m[6])))  # type: ignore[arg-type]
+    return prog
+
+
+def split_programs(buffer: str) -> tuple[list[str], str]:
+    """Complete ``def ...: ... end`` programs in the buffer, and the incomplete rest."""
+    programs: list[str] = []
+    while True:
+        m = _PROGRAM_END.search(buffer)
+        if m is None:
+            return programs, buffer
+        programs.append(buffer[:m.end()])
+        buffer = buffer[m.end():].lstrip("\n")
+
+
+def _pose_T(pose6: list[float]) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(pose6[3:6]).as_matrix()
+    T[:3, 3] = pose6[:3]
+    return T
+
+
+def _T_pose(T: np.ndarray) -> list[float]:
+    return [float(v) for v in T[:3, 3]] + [float(v) for v in
+                                            Rotation.from_matrix(T[:3, :3]).as_rotvec()]
+
+
+class MailboxInterpreter:
+    """ur_rtde's control script, as a state machine stepped once per controller cycle."""
+
+    def __init__(self, engine: MotionEngine, regs: RegisterFile,
+                 on_message: Callable[[str], None]) -> None:
+        self.engine = engine
+        self.regs = regs
+        self._message = on_message
+        self.running = False
+        self.last_error = ""
+        self._prog = ControlProgram()
+        self._executing = False
+        # engine command id a synchronous mailbox command waits for (0: for the arm to rest)
+        self._pending_id: int | None = None
+        self._async_id: int | None = None  # an async operation whose end must be signalled
+        self._async_is_path = False
+        self._async_progress = -1
+        self._async_wr_count = 0
+        self._async_op_id = 0
+        self._speed_args: tuple[float, ...] | None = None
+
+    # -- program lifecycle ---------------------------------------------------------------------
+    def start(self, prog: ControlProgram) -> None:
+        snap = self.engine.snapshot()
+        if snap.robot_mode != RobotMode.RUNNING or snap.safety_mode != SafetyMode.NORMAL:
+            self._message("Program not started: the robot is not running (power on, release "
+                          "the brakes and clear safety stops first)")
+            self.running = False
+            return
+        self._prog = prog
+        self._executing = False
+        self._pending_id = None
+        self._async_id = None
+        self._speed_args = None
+        self.running = True
+        self.engine.set_program_running(True)
+        self._write_async(-1)
+        self._write_int(0, READY)
+
+    def stop(self, reason: str, brake: bool = True) -> None:
+        if not self.running:
+            return
+        self.running = False
+        self.engine.set_program_running(False)
+        self._pending_id = None
+        self._async_id = None
+        self._speed_args = None
+        if brake:
+            self.engine.stop_j(10.0)
+        if reason:
+            self._message(reason)
+
+    def runtime_error(self, exc: Exception | str) -> None:
+        self.last_error = str(exc)
+        self.stop(f"Runtime error: {exc}")
+
+    # -- registers -----------------------------------------------------------------------------
+    def _int(self, i: int) -> int:
+        return self.regs.in_int[i + self._prog.int_offset]
+
+    def _float(self, i: int) -> float:
+        return self.regs.in_double[i + self._prog.float_offset]
+
+    def _floats(self, i: int, n: int = 6) -> list[float]:
+        o = i + self._prog.float_offset
+        return list(self.regs.in_double[o:o + n])
+
+    def _write_int(self, i: int, value: int) -> None:
+        self.regs.out_int[i + self._prog.int_offset] = value
+
+    def _write_floats(self, i: int, values: list[float]) -> None:
+        o = i + self._prog.float_offset
+        self.regs.out_double[o:o + len(values)] = [float(v) for v in values]
+
+    def _write_async(self, value: int) -> None:
+        """The script's progress word: op id, change count, running bit and progress."""
+        self._async_wr_count = (self._async_wr_count + 1) % 128
+        if value == 0:
+            self._async_op_id = (self._async_op_id + 1) % 128
+        word = self._async_wr_count * 65536 + self._async_op_id * 16777216
+        if value >= 0:
+            word += min(value, 32767) + 32768
+        self._write_int(2, word)
+
+    # -- the cycle -----------------------------------------------------------------------------
+    def step(self, snap: EngineSnapshot) -> None:
+        if not self.running:
+            return
+        if snap.safety_mode != SafetyMode.NORMAL or snap.robot_mode != RobotMode.RUNNING:
+            self.stop(f"Program stopped: {snap.safety_mode.name} / {snap.robot_mode.name}"
+                      + (f" ({snap.last_stop_reason})" if snap.last_stop_reason else ""),
+                      brake=False)
+            return
+        with self.regs.lock:
+            self._track_async(snap)
+            if self._pending_id is not None:
+                if self._finished(self._pending_id, snap):
+                    self._pending_id = None
+                    self._write_int(0, DONE)
+                return
+            cmd = self._int(0)
+            try:
+                if cmd in REALTIME_CMDS:
+                    self._process(cmd, snap)
+                    self._write_int(0, READY)
+                elif cmd == 0:
+                    self._executing = False
+                    self._write_int(0, READY)
+                elif not self._executing:
+                    self._executing = True
+                    if self._process(cmd, snap) and self._pending_id is None:
+                        self._write_int(0, DONE)
+            except EngineError as exc:
+                self.runtime_error(exc)
+
+    def _finished(self, command_id: int, snap: EngineSnapshot) -> bool:
+        """Has the motion a command started come to an end? Id 0: wait for the arm to rest."""
+        if command_id == 0:
+            return snap.active_command is None
+        return self.engine.outcome(command_id) != CommandOutcome.RUNNING
+
+    def _track_async(self, snap: EngineSnapshot) -> None:
+        if self._async_id is None:
+            return
+        if self._finished(self._async_id, snap):
+            self._async_id = None
+            self._write_async(-1)
+        elif self._async_is_path and snap.async_progress > self._async_progress:
+            self._async_progress = snap.async_progress
+            self._write_async(snap.async_progress)
+
+    def _begin_async(self, command_id: int, path: bool = False) -> None:
+        self._async_id = command_id
+        self._async_is_path = path
+        self._async_progress = 0
+        self._write_async(0)
+
+    def _end_async(self) -> None:
+        if self._async_id is not None:
+            self._async_id = None
+            self._write_async(-1)
+
+    def _process(self, cmd: int, snap: EngineSnapshot) -> bool:
+        """Run one command; False when the program ended (stop script)."""
+        e = self.engine
+        if cmd in (1, 2, 3, 4, 45):
+            self._end_async()  # stop_async_move: a new move replaces a running async one
+            self._speed_args = None
+            asynchronous = self._int(1) == 1
+            v, a = self._float(6), self._float(7)
+            if cmd == 1:
+                cid = e.move_j(self._floats(0), v, a)
+            elif cmd == 2:
+                cid = e.move_j_ik(self._floats(0), v, a)
+            elif cmd == 3:
+                cid = e.move_l(self._floats(0), v, a)
+            elif cmd == 4:
+                cid = e.move_l(e.fk(self._floats(0)), v, a)
+            else:
+                if not self._prog.path:
+                    raise CommandRejectedError("move_path: no path was injected")
+                cid = e.move_path(list(self._prog.path))
+            if asynchronous:
+                self._begin_async(cid, path=cmd == 45)
+            else:
+                self._pending_id = cid
+        elif cmd in (9, 10):
+            args = (cmd, *self._floats(0, 8))
+            if args != self._speed_args or snap.active_command not in ("speedj", "speedl"):
+                self._speed_args = args
+                if cmd == 9:
+                    e.speed_j(self._floats(0), self._float(6), 0.0)
+                else:
+                    e.speed_l(self._floats(0), self._float(6), 0.0)
+        elif cmd == 11:
+            e.servo_j(self._floats(0), self._float(8), self._float(9), self._float(10))
+        elif cmd == 24:
+            e.servo_l(self._floats(0), self._float(8), self._float(9), self._float(10))
+        elif cmd in (15, 16):
+            self._speed_args = None
+            (e.speed_stop if cmd == 15 else e.servo_stop)(self._float(0))
+            self._pending_id = 0
+        elif cmd in (33, 34):
+            self._end_async()
+            self._speed_args = None
+            decel = self._float(0)
+            (e.stop_l if cmd == 33 else e.stop_j)(decel)
+            if self._int(1) == 1:
+                self._begin_async(0)
+            else:
+                self._pending_id = 0
+        elif cmd == 41:
+            speeds = self._floats(0)
+            feature = "tool" if round(self._float(6)) == 1 else "base"
+            e.jog_start(speeds, feature, self._float(7))  # type: ignore[arg-type]
+        elif cmd == 42:
+            e.jog_stop(1.2)
+            self._pending_id = 0
+        elif cmd == 43:
+            self._write_floats(0, list(snap.tcp_pose))
+        elif cmd == 44:
+            self._write_floats(0, self._fk_with_tcp(self._floats(0), self._floats(6)))
+        elif cmd == 58:
+            self._write_floats(0, self._fk_with_tcp(list(snap.q), [0.0] * 6))
+        elif cmd == 46:
+            self._write_floats(0, e.ik(self._floats(0)))
+        elif cmd == 30:
+            self._write_floats(0, e.ik(self._floats(0), self._floats(6)))
+        elif cmd in (60, 61):
+            q_near = self._floats(6) if cmd == 61 else None
+            try:
+                e.ik(self._floats(0), q_near)
+                self._write_int(1, 1)
+            except EngineError:
+                self._write_int(1, 0)
+        elif cmd == 29:
+            e.set_tcp(self._floats(0))
+        elif cmd == 40:
+            self._write_floats(0, list(snap.tcp_offset))
+        elif cmd == 47:
+            self._write_int(1, 0 if snap.moving else 1)
+        elif cmd == 26:
+            self._write_floats(0, [0.002])
+        elif cmd == 27:
+            self._write_floats(0, list(snap.q))
+        elif cmd == 31:
+            e.trigger_protective_stop("protective_stop() called by the program")
+        elif cmd == 39:
+            T = _pose_T(self._floats(0)) @ _pose_T(self._floats(6))
+            self._write_floats(0, _T_pose(T))
+        elif cmd == 17:
+            self.regs.payload_kg = self._float(0)
+            self.regs.payload_cog_m = tuple(self._floats(1, 3))  # type: ignore[assignment]
+        elif cmd == STOP_SCRIPT:
+            self.stop("Received stop script!", brake=True)
+            return False
+        else:
+            self._message(f"ur_rtde command {cmd} is not simulated; ignored")
+        return True
+
+    def _fk_with_tcp(self, q: list[float], tcp6: list[float]) -> list[float]:
+        """get_forward_kin(q, tcp): the engine's fk uses its own TCP, so swap it for ``tcp6``."""
+        T_base_tcp = _pose_T(self.engine.fk(q))
+        T_flange_tcp_current = _pose_T(list(self.engine.snapshot().tcp_offset))
+        T_base_flange = T_base_tcp @ np.linalg.inv(T_flange_tcp_current)
+        return _T_pose(T_base_flange @ _pose_T(tcp6))
+
+
+class ScriptSession:
+    """One client of port 30003: accumulates text and hands on each complete program."""
+
+    def __init__(self, on_program: Callable[[str], None]) -> None:
+        self._on_program = on_program
+        self._buffer = ""
+
+    def on_open(self) -> None:
+        pass
+
+    def feed(self, data: bytes) -> bool:
+        self._buffer += data.decode(errors="replace")
+        programs, self._buffer = split_programs(self._buffer)
+        for program in programs:
+            self._on_program(program)
+        return True
+
+    def on_close(self) -> None:
+        pass
+
+
+def script_service(host: str, on_program: Callable[[str], None],
+                   port: int = SCRIPT_PORT) -> TcpService:
+    """The script receiver on ``host:30003``."""
+    return TcpService(host, port, "script", lambda sock: ScriptSession(on_program))

@@ -1,0 +1,200 @@
+"""UR5e forward and analytic inverse kinematics from the published DH parameters.
+
+The simulated controller must report joint and TCP values that agree with each other and with
+what a real UR5e would report, so both directions come from the same DH table (standard DH:
+``T_i = Rz(theta_i) Tz(d_i) Tx(a_i) Rx(alpha_i)``). Transforms are 4x4 in mm like the rest of
+the project. The inverse is the closed form for UR's geometry (three parallel shoulder/elbow/
+wrist-1 axes plus a spherical-ish wrist): up to 8 solutions, from which the one nearest a seed
+is taken, so continuous motion never jumps between configurations.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from estimator.transforms import invert_T
+
+TWO_PI = 2.0 * math.pi
+_EPS = 1e-9
+
+
+class UnreachableError(ValueError):
+    """No joint solution reaches the pose (out of reach, or none inside the joint limits)."""
+
+
+@dataclass(frozen=True)
+class DH:
+    """Standard DH table, lengths in mm."""
+
+    d_mm: tuple[float, ...]
+    a_mm: tuple[float, ...]
+    alpha_rad: tuple[float, ...]
+
+
+# Universal Robots' published UR5e parameters (m -> mm).
+UR5E = DH(
+    d_mm=(162.5, 0.0, 0.0, 133.3, 99.7, 99.6),
+    a_mm=(0.0, -425.0, -392.2, 0.0, 0.0, 0.0),
+    alpha_rad=(math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0),
+)
+
+
+def _dh_T(theta: float, d: float, a: float, alpha: float) -> NDArray[np.float64]:
+    ct, st = math.cos(theta), math.sin(theta)
+    ca, sa = math.cos(alpha), math.sin(alpha)
+    return np.array([
+        [ct, -st * ca, st * sa, a * ct],
+        [st, ct * ca, -ct * sa, a * st],
+        [0.0, sa, ca, d],
+        [0.0, 0.0, 0.0, 1.0],
+    ])
+
+
+class UR5eKinematics:
+    """FK/IK of one arm with a configurable TCP (``T_flange_tcp``, mm)."""
+
+    def __init__(
+        self, dh: DH = UR5E, joint_min_rad: float = -TWO_PI, joint_max_rad: float = TWO_PI,
+    ) -> None:
+        self.dh = dh
+        self.joint_min_rad = joint_min_rad
+        self.joint_max_rad = joint_max_rad
+        self.T_flange_tcp: NDArray[np.float64] = np.eye(4)
+        self._T_tcp_flange: NDArray[np.float64] = np.eye(4)
+
+    def set_tcp(self, T_flange_tcp: ArrayLike) -> None:
+        T = np.asarray(T_flange_tcp, dtype=float).reshape(4, 4)
+        self.T_flange_tcp = T.copy()
+        self._T_tcp_flange = invert_T(T)
+
+    # -- forward ----------------------------------------------------------------------------
+    def link_frames(self, q_rad: ArrayLike) -> list[NDArray[np.float64]]:
+        """``T_base_i`` for i = 0..6 (frame 0 is the base, frame 6 the flange)."""
+        q = np.asarray(q_rad, dtype=float).reshape(6)
+        frames = [np.eye(4)]
+        for i in range(6):
+            Ti = _dh_T(float(q[i]), self.dh.d_mm[i], self.dh.a_mm[i], self.dh.alpha_rad[i])
+            frames.append(frames[-1] @ Ti)
+        return frames
+
+    def forward(self, q_rad: ArrayLike) -> NDArray[np.float64]:
+        """``T_base_flange`` (mm)."""
+        return self.link_frames(q_rad)[-1]
+
+    def forward_tcp(self, q_rad: ArrayLike) -> NDArray[np.float64]:
+        """``T_base_tcp`` (mm) with the configured TCP."""
+        return self.forward(q_rad) @ self.T_flange_tcp
+
+    def jacobian_tcp(self, q_rad: ArrayLike) -> NDArray[np.float64]:
+        """Geometric Jacobian (6x6) of the TCP: ``[v (mm/s); w (rad/s)] = J @ qd`` in base."""
+        frames = self.link_frames(q_rad)
+        p_tcp = (frames[-1] @ self.T_flange_tcp)[:3, 3]
+        J = np.zeros((6, 6))
+        for i in range(6):
+            z = frames[i][:3, 2]
+            J[:3, i] = np.cross(z, p_tcp - frames[i][:3, 3])
+            J[3:, i] = z
+        return J
+
+    # -- inverse ----------------------------------------------------------------------------
+    def inverse_all(self, T_base_flange: ArrayLike, q6_hint_rad: float = 0.0
+                    ) -> list[NDArray[np.float64]]:
+        """Every closed-form solution with angles in (-pi, pi] (up to 8), unverified limits.
+
+        At the wrist singularity (q5 = 0 or pi) only q4 +- q6 is determined: q6 is then set to
+        ``q6_hint_rad`` and q4 takes up the rest.
+        """
+        T = np.asarray(T_base_flange, dtype=float).reshape(4, 4)
+        d1, _, _, d4, d5, d6 = self.dh.d_mm
+        a2, a3 = self.dh.a_mm[1], self.dh.a_mm[2]
+        p06 = T[:3, 3]
+        x6, y6, z6 = T[:3, 0], T[:3, 1], T[:3, 2]
+        p05 = p06 - d6 * z6
+        r = math.hypot(p05[0], p05[1])
+        if r < abs(d4) - _EPS:
+            return []
+        psi = math.atan2(p05[1], p05[0])
+        phi = math.asin(min(1.0, d4 / r))
+        out: list[NDArray[np.float64]] = []
+        for t1 in (psi + phi, psi + math.pi - phi):
+            z1 = np.array([math.sin(t1), -math.cos(t1), 0.0])
+            c5 = (float(p06 @ z1) - d4) / d6
+            if abs(c5) > 1.0 + 1e-9:
+                continue
+            c5 = max(-1.0, min(1.0, c5))
+            for t5 in (math.acos(c5), -math.acos(c5)):
+                s5 = math.sin(t5)
+                if abs(s5) < 1e-7:
+                    t6 = q6_hint_rad
+                else:
+                    t6 = math.atan2(-float(y6 @ z1) / s5, float(x6 @ z1) / s5)
+                T01 = _dh_T(t1, d1, 0.0, self.dh.alpha_rad[0])
+                T45 = _dh_T(t5, d5, 0.0, self.dh.alpha_rad[4])
+                T56 = _dh_T(t6, d6, 0.0, self.dh.alpha_rad[5])
+                T14 = invert_T(T01) @ T @ invert_T(T45 @ T56)
+                p13 = T14 @ np.array([0.0, -d4, 0.0, 1.0])
+                px, py = float(p13[0]), float(p13[1])
+                c3 = (px * px + py * py - a2 * a2 - a3 * a3) / (2.0 * a2 * a3)
+                if abs(c3) > 1.0 + 1e-9:
+                    continue
+                c3 = max(-1.0, min(1.0, c3))
+                for t3 in (math.acos(c3), -math.acos(c3)):
+                    t2 = math.atan2(py, px) - math.atan2(
+                        a3 * math.sin(t3), a2 + a3 * math.cos(t3))
+                    T13 = _dh_T(t2, 0.0, a2, 0.0) @ _dh_T(t3, 0.0, a3, 0.0)
+                    T34 = invert_T(T13) @ T14
+                    t4 = math.atan2(T34[1, 0], T34[0, 0])
+                    q = np.array([t1, t2, t3, t4, t5, t6])
+                    out.append(np.arctan2(np.sin(q), np.cos(q)))
+        return out
+
+    def _wrap_near(self, q: NDArray[np.float64], q_near: NDArray[np.float64]) -> (
+            NDArray[np.float64] | None):
+        """Per joint, the 2*pi-equivalent angle nearest the seed inside the limits."""
+        out = np.empty(6)
+        for i in range(6):
+            k = np.round((q_near[i] - q[i]) / TWO_PI)
+            best = None
+            for kk in (k - 1, k, k + 1):
+                v = q[i] + kk * TWO_PI
+                if self.joint_min_rad - 1e-9 <= v <= self.joint_max_rad + 1e-9 and (
+                        best is None or abs(v - q_near[i]) < abs(best - q_near[i])):
+                    best = v
+            if best is None:
+                return None
+            out[i] = best
+        return out
+
+    def inverse(self, T_base_flange: ArrayLike, q_near: ArrayLike) -> NDArray[np.float64]:
+        """The solution nearest ``q_near`` (max joint difference), within the joint limits.
+
+        Raises :class:`UnreachableError` when no solution exists or none is inside the limits.
+        """
+        T = np.asarray(T_base_flange, dtype=float).reshape(4, 4)
+        seed = np.asarray(q_near, dtype=float).reshape(6)
+        candidates: list[tuple[float, NDArray[np.float64]]] = []
+        for q in self.inverse_all(T, float(seed[5])):
+            qw = self._wrap_near(q, seed)
+            if qw is not None:
+                candidates.append((float(np.max(np.abs(qw - seed))), qw))
+        # Verify in order of preference: clamped acos at the reach boundary can yield a
+        # near-miss, and forward kinematics is the arbiter.
+        for _, qw in sorted(candidates, key=lambda c: c[0]):
+            if _pose_error(self.forward(qw), T) <= 1e-6:
+                return qw
+        raise UnreachableError("no joint solution within the joint limits reaches the pose")
+
+    def inverse_tcp(self, T_base_tcp: ArrayLike, q_near: ArrayLike) -> NDArray[np.float64]:
+        """Joints putting the configured TCP at ``T_base_tcp`` (mm), nearest ``q_near``."""
+        T = np.asarray(T_base_tcp, dtype=float).reshape(4, 4)
+        return self.inverse(T @ self._T_tcp_flange, q_near)
+
+
+def _pose_error(A: NDArray[np.float64], B: NDArray[np.float64]) -> float:
+    """A cheap combined error (mm + rotation-matrix units) for verifying solutions."""
+    dp_m = float(np.max(np.abs(A[:3, 3] - B[:3, 3]))) / 1000.0
+    return dp_m + float(np.max(np.abs(A[:3, :3] - B[:3, :3])))

@@ -1,0 +1,127 @@
+"""Blob detection: sub-pixel centres against the analytic ellipse centre, and rejection of
+everything that is not a dot (frames, lines, text, specks)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from estimator import CameraModel, Target, detect_blobs
+from estimator.blobs import BlobFilter, detect_blobs_thresholded
+from fakes.render import ellipse_centre_px, random_pose, random_target, render_target
+
+CAM = CameraModel(800.0, 800.0, 639.5, 399.5, (), 1280, 800)
+
+
+def _truth(target: Target, T: np.ndarray) -> np.ndarray:
+    r = target.dot_diameter_mm / 2.0
+    return np.array([ellipse_centre_px(CAM, T, p, r) for p in target.points_mm])
+
+
+def _nearest_errors(blobs: list, truth: np.ndarray) -> np.ndarray:
+    found = np.array([[b.u, b.v] for b in blobs])
+    return np.linalg.norm(truth[:, None] - found[None], axis=2).min(axis=1)
+
+
+def test_subpixel_centres_match_the_analytic_ellipse_centre() -> None:
+    rng = np.random.default_rng(10)
+    errors = []
+    for _ in range(25):
+        target = random_target(rng, 7)
+        T = random_pose(rng, CAM, target, max_tilt_deg=55.0)
+        img = render_target(CAM, target, T, rng=rng, distort=False, noise_std=1.0)
+        blobs = detect_blobs(img)
+        assert len(blobs) == 7
+        errors.extend(_nearest_errors(blobs, _truth(target, T)))
+    errors = np.asarray(errors)
+    # Noise 1 grey level on ~165 contrast, dots of 8 mm at 350-700 mm (~9-18 px).
+    assert errors.mean() < 0.04, errors.mean()
+    assert errors.max() < 0.15, errors.max()
+
+
+def test_weighted_centre_beats_the_binary_mask_centroid() -> None:
+    """The grey-level centre uses the anti-aliased rim; the mask centroid quantises it."""
+    rng = np.random.default_rng(4)
+    ours, mask_only = [], []
+    for _ in range(10):
+        target = random_target(rng, 6)
+        T = random_pose(rng, CAM, target)
+        img = render_target(CAM, target, T, rng=rng, noise_std=0.5, distort=False)
+        truth = _truth(target, T)
+        ours.extend(_nearest_errors(detect_blobs(img), truth))
+        _, mask = cv2.threshold(img, 0, 255, cv2.THRESH_BINARY_INV | cv2.THRESH_OTSU)
+        n, _, stats, cents = cv2.connectedComponentsWithStats(mask)
+        keep = (stats[1:, cv2.CC_STAT_AREA] > 12) & (stats[1:, cv2.CC_STAT_AREA] < 5000)
+        d = np.linalg.norm(truth[:, None] - cents[1:][keep][None], axis=2).min(axis=1)
+        mask_only.extend(d)
+    assert np.mean(ours) < 0.5 * np.mean(mask_only)
+
+
+def test_rejects_frame_lines_text_and_specks() -> None:
+    rng = np.random.default_rng(1)
+    target = Target([[0, 0, 0], [60, 0, 0], [100, 10, 0], [0, 50, 0], [40, 70, 0],
+                     [90, 60, 0]], 10.0)
+    T = random_pose(rng, CAM, target, distance_mm=(380.0, 420.0), max_tilt_deg=20.0)
+    img = render_target(CAM, target, T, rng=rng, frame=True, plate_margin_mm=60.0)
+    truth = _truth(target, T)
+    lo, hi = truth.min(axis=0), truth.max(axis=0)
+    # Clutter on the plate beyond the frame: a line, a thin diagonal line, text, specks.
+    y_text = int(hi[1] + 55)
+    x0 = int(lo[0])
+    cv2.line(img, (x0, int(lo[1]) - 60), (x0 + 150, int(lo[1]) - 60), 40, 3)
+    cv2.line(img, (x0 - 70, int(lo[1])), (x0 - 40, int(hi[1])), 40, 2)
+    cv2.putText(img, "LOT 42 AB", (x0, y_text), cv2.FONT_HERSHEY_SIMPLEX, 0.8, 40, 2)
+    for k in range(6):
+        cv2.circle(img, (x0 + 20 * k, int(lo[1]) - 35), 1, 40, -1)
+    blobs = detect_blobs(img)
+    assert len(blobs) == 6, [(round(b.u), round(b.v), round(b.area)) for b in blobs]
+    assert _nearest_errors(blobs, truth).max() < 0.2
+    # Without the shape filters the same frame yields many more regions.
+    loose = detect_blobs(img, min_circularity=0.0, min_inertia_ratio=0.0, min_fill_ratio=0.0,
+                         min_area_px=1.0, max_area_px=1e6)
+    assert len(loose) > 12
+
+
+def test_light_dots_and_per_blob_shape() -> None:
+    rng = np.random.default_rng(3)
+    target = random_target(rng, 5, polarity="light")
+    T = random_pose(rng, CAM, target)
+    img = render_target(CAM, target, T, rng=rng)
+    blobs = detect_blobs(img, "light")
+    assert len(blobs) == 5
+    assert _nearest_errors(blobs, _truth(target, T)).max() < 0.15
+    for b in blobs:
+        assert b.area > 12 and 0.6 < b.circularity <= 1.0 and b.fill_ratio > 0.85
+        assert b.minor_axis_px <= b.major_axis_px and b.inertia_ratio > 0.3
+
+
+def test_adaptive_threshold_survives_strongly_uneven_light() -> None:
+    rng = np.random.default_rng(8)
+    target = random_target(rng, 6)
+    T = random_pose(rng, CAM, target)
+    img = render_target(CAM, target, T, rng=rng, lighting_gradient=0.6, background=200.0)
+    blobs = detect_blobs(img, threshold="adaptive")
+    assert len(blobs) == 6
+    assert _nearest_errors(blobs, _truth(target, T)).max() < 0.2
+
+
+def test_fixed_threshold_is_reported_back() -> None:
+    rng = np.random.default_rng(9)
+    target = random_target(rng, 6)
+    img = render_target(CAM, target, random_pose(rng, CAM, target), rng=rng)
+    blobs, thr = detect_blobs_thresholded(img, "dark", BlobFilter(), 120.0)
+    assert thr == 120.0 and len(blobs) == 6
+    assert detect_blobs_thresholded(img, "dark", BlobFilter(), "adaptive")[1] is None
+
+
+def test_bad_input_is_a_clear_error() -> None:
+    with pytest.raises(ValueError, match="8-bit grey"):
+        detect_blobs(np.zeros((10, 10, 3), np.uint8))
+    with pytest.raises(ValueError, match="8-bit grey"):
+        detect_blobs(np.zeros((10, 10), np.float32))  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="polarity"):
+        detect_blobs(np.zeros((10, 10), np.uint8), "grey")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="min_area_px"):
+        detect_blobs(np.zeros((10, 10), np.uint8), min_area_px=50, max_area_px=10)
+    assert detect_blobs(np.full((100, 100), 128, np.uint8)) == []

@@ -1,0 +1,168 @@
+"""``cell calibrate``: JSON output on ViSP's folder and the project's format, errors, config."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+
+from cell.calibration.dataset import load_dataset, save_project_dataset
+from cell.cli import main
+from cell.config import load_config
+from estimator import CameraModel
+from estimator.calib.board import chessboard
+from estimator.calib.synthetic import render_board
+from estimator.transforms import T_from_pose, T_from_pose_dict, make_T, pose_distance
+
+REPO = Path(__file__).resolve().parents[1]
+VISP_T_FLANGE_CAMERA = T_from_pose(
+    np.array([0.05771519632, -0.03392488515, -0.04227690244]) * 1000.0,
+    [0.001783530191, 0.009173747947, 1.581782359],
+)
+
+
+def run_json(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, Any]:
+    code = main([*argv, "--json"])
+    return code, json.loads(capsys.readouterr().out)
+
+
+def test_hand_eye_json_on_visp_folder(visp_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out = run_json(capsys, "calibrate", "hand-eye", str(visp_dir))
+    assert code == 0
+    assert out["dataset"]["format"] == "visp"
+    assert set(out["methods"]) == {"tsai", "park", "horaud"}
+    for name, m in out["methods"].items():
+        assert set(m["T_flange_camera"]) == {"position_mm", "rotvec_rad"}
+        d_mm, d_deg = pose_distance(T_from_pose_dict(m["T_flange_camera"]), VISP_T_FLANGE_CAMERA)
+        assert d_mm < 1.0 and d_deg < 0.1, name
+        assert m["residual"]["mean_mm"] <= 5.41 and m["residual"]["mean_deg"] <= 0.456
+        assert len(m["residual"]["per_view_mm"]) == 8
+    assert out["chosen"] == "tsai"
+    assert out["joint"]["rms_px"] > 2.0 and len(out["joint"]["per_view_rms_px"]) == 8
+    assert out["verdict"]["consistent"] is False and "px" in out["verdict"]["text"]
+    assert [v["name"] for v in out["views"]] == [f"franka_image-{i}" for i in range(1, 9)]
+
+
+def test_project_format_gives_the_same_answer(
+    visp_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    visp = load_dataset(visp_dir)
+    folder = tmp_path / "own"
+    folder.mkdir()
+    for v in visp.views:
+        shutil.copy(v.image_path, folder / v.image_path.name)
+    save_project_dataset(folder, visp.camera, visp.board,
+                         [(v.image_path.name, v.T_base_flange) for v in visp.views])
+    code, out = run_json(capsys, "calibrate", "hand-eye", str(folder), "--method", "park")
+    assert code == 0 and out["dataset"]["format"] == "project" and out["chosen"] == "park"
+    code, ref = run_json(capsys, "calibrate", "hand-eye", str(visp_dir), "--method", "park")
+    got = T_from_pose_dict(out["T_flange_camera"])
+    assert pose_distance(got, T_from_pose_dict(ref["T_flange_camera"]))[0] < 1e-6
+
+
+def test_missing_folder_is_a_json_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out = run_json(capsys, "calibrate", "hand-eye", str(tmp_path / "nope"))
+    assert code == 2 and out["error"]["code"] == "dataset_not_found"
+    code, out = run_json(capsys, "calibrate", "hand-eye", str(tmp_path))  # empty folder
+    assert code == 2 and out["error"]["code"] == "dataset_not_found"
+    assert "dataset.json" in out["error"]["message"]
+
+
+def test_unreadable_pose_file_is_a_json_error(
+    visp_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    folder = tmp_path / "visp"
+    shutil.copytree(visp_dir, folder)
+    bad = folder / "franka_pose_rPe_3.yaml"
+    bad.chmod(0o644)
+    bad.write_text("rows: 6\ncols: 1\ndata:\n  - [0.1]\n  - [oops\n")
+    code, out = run_json(capsys, "calibrate", "hand-eye", str(folder))
+    assert code == 2
+    assert out["error"]["code"] == "pose_unreadable"
+    assert "franka_pose_rPe_3.yaml" in out["error"]["message"]
+
+
+def test_project_format_bad_pose_is_a_json_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = {
+        "format": "ur-vision-cell/hand-eye-dataset", "version": 1,
+        "camera": {"fx": 800, "fy": 800, "cx": 640, "cy": 400, "width": 1280, "height": 800},
+        "board": {"kind": "chessboard", "cols": 9, "rows": 6, "pitch_mm": 25.0},
+        "views": [{"image": "a.png", "T_base_flange": {"position_mm": [1, 2]}}],
+    }
+    (tmp_path / "dataset.json").write_text(json.dumps(data))
+    code, out = run_json(capsys, "calibrate", "hand-eye", str(tmp_path))
+    assert code == 2 and out["error"]["code"] == "pose_unreadable"
+    (tmp_path / "dataset.json").write_text("{not json")
+    code, out = run_json(capsys, "calibrate", "hand-eye", str(tmp_path))
+    assert code == 2 and out["error"]["code"] == "dataset_invalid"
+
+
+def test_write_config_updates_only_hand_eye(
+    visp_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg = tmp_path / "cell.toml"
+    original = (REPO / "cell" / "configs" / "sim.toml").read_text()
+    cfg.write_text(original)
+    before = load_config(cfg)
+    code, out = run_json(capsys, "calibrate", "hand-eye", str(visp_dir), "--write-config", str(cfg))
+    assert code == 0 and out["written_config"] == str(cfg)
+    after = load_config(cfg)
+    written = after.hand_eye.T_flange_camera.T()
+    assert pose_distance(written, T_from_pose_dict(out["T_flange_camera"]))[0] < 1e-9
+    assert after.model_dump(exclude={"hand_eye"}) == before.model_dump(exclude={"hand_eye"})
+    # every line outside [hand_eye] is kept byte for byte, comments included
+    def outside(text: str) -> list[str]:
+        lines, inside = [], False
+        for line in text.splitlines():
+            if line.startswith("["):
+                inside = line.strip() == "[hand_eye]"
+            if not inside:
+                lines.append(line)
+        return lines
+    assert outside(cfg.read_text()) == outside(original)
+    # a second write replaces the table instead of adding another one
+    assert main(["calibrate", "hand-eye", str(visp_dir), "--method", "park", "--no-refine",
+                 "--write-config", str(cfg)]) == 0
+    capsys.readouterr()
+    assert cfg.read_text().count("[hand_eye]") == 1
+    # a broken config is refused and left as it was
+    cfg.write_text("[camera\n")
+    code, out = run_json(capsys, "calibrate", "hand-eye", str(visp_dir), "--write-config", str(cfg))
+    assert code == 2 and out["error"]["code"] == "config_write_failed"
+    assert cfg.read_text() == "[camera\n"
+
+
+def test_intrinsics_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from scipy.spatial.transform import Rotation
+
+    camera = CameraModel(700.0, 700.0, 330.0, 235.0, (), 640, 480)
+    board = chessboard(7, 5, 30.0)
+    rng = np.random.default_rng(5)
+    centre = board.object_points_mm().mean(axis=0)
+    for k in range(8):
+        R = Rotation.from_rotvec(np.r_[rng.uniform(-0.5, 0.5, 2), rng.uniform(-0.3, 0.3)])
+        T = make_T(R.as_matrix(), np.r_[rng.uniform(-30, 30, 2), rng.uniform(550, 750)]
+                   - R.as_matrix() @ centre)
+        image = render_board(board, camera, T, noise_sigma=1.0, seed=k)
+        cv2.imwrite(str(tmp_path / f"img-{k}.png"), image)
+    cv2.imwrite(str(tmp_path / "empty.png"), np.full((480, 640), 200, np.uint8))
+    code, out = run_json(capsys, "calibrate", "intrinsics", str(tmp_path), "--board", "chessboard",
+                         "--cols", "7", "--rows", "5", "--square-mm", "30", "--no-distortion")
+    assert code == 0
+    for key in ("fx", "fy", "cx", "cy"):
+        assert out["camera"][key] == pytest.approx(getattr(camera, key), rel=0.01)
+    assert out["rejected"] == ["empty.png"] and len(out["per_image_rms_px"]) == 8
+    assert out["rms_px"] < 0.3
+    code, out = run_json(capsys, "calibrate", "intrinsics", str(tmp_path / "none"),
+                         "--cols", "7", "--rows", "5", "--square-mm", "30")
+    assert code == 2 and out["error"]["code"] == "dataset_not_found"
+    code, out = run_json(capsys, "calibrate", "intrinsics", str(tmp_path),
+                         "--cols", "7", "--rows", "5", "--square-mm", "-1")
+    assert code == 2 and out["error"]["code"] == "invalid_argument"

@@ -1,0 +1,128 @@
+"""Matching blobs to dots: clutter, a missing dot, symmetric targets, and honest failures."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from estimator import CameraModel, CorrespondenceError, Target, TooFewBlobsError
+from estimator.correspondence import match_blobs
+from estimator.transforms import pose_distance
+from fakes.render import random_pose, random_target
+
+CAM = CameraModel(800.0, 800.0, 639.5, 399.5, (), 1280, 800)
+SIM_TARGET = Target([[0, 0, 0], [60, 0, 0], [100, 10, 0], [0, 50, 0], [40, 70, 0],
+                     [90, 60, 0]], 10.0)
+
+
+def _image_points(target: Target, T: np.ndarray, rng: np.random.Generator,
+                  noise_px: float = 0.1) -> np.ndarray:
+    px = CAM.project(target.points_mm @ T[:3, :3].T + T[:3, 3])
+    return px + rng.normal(0.0, noise_px, px.shape)
+
+
+def _clutter_near(px: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+    """Dot-like extra blobs inside the target's image region, away from the real dots."""
+    lo, hi = px.min(axis=0) - 20, px.max(axis=0) + 20
+    out: list[np.ndarray] = []
+    while len(out) < count:
+        c = rng.uniform(lo, hi)
+        if np.linalg.norm(px - c, axis=1).min() > 25 and all(
+                np.linalg.norm(c - o) > 25 for o in out):
+            out.append(c)
+    return np.array(out)
+
+
+def _check(target: Target, T: np.ndarray, result, blobs_px: np.ndarray,
+           order: np.ndarray) -> None:
+    """Every matched blob is the right dot and the pose is right."""
+    for mid, bi in zip(result.model_ids, result.blob_indices, strict=True):
+        assert order[bi] == mid
+    dt, dr = pose_distance(result.pose.T_camera_target, T)
+    assert dt < 2.0 and dr < 0.5
+
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_exact_and_shuffled(planar: bool) -> None:
+    rng = np.random.default_rng(0)
+    for _ in range(15):
+        target = random_target(rng, int(rng.integers(4, 13)), planar=planar)
+        T = random_pose(rng, CAM, target)
+        px = _image_points(target, T, rng)
+        perm = rng.permutation(len(px))
+        result = match_blobs(px[perm], target, CAM)
+        assert len(result.model_ids) == target.n_points and not result.ambiguous
+        _check(target, T, result, px[perm], perm)
+
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_three_clutter_blobs_and_one_missing_dot(planar: bool) -> None:
+    rng = np.random.default_rng(1)
+    for trial in range(12):
+        target = random_target(rng, int(rng.integers(5, 9)), planar=planar)
+        T = random_pose(rng, CAM, target)
+        px = _image_points(target, T, rng)
+        order = np.arange(len(px))
+        missing = trial % 2 == 1
+        if missing:
+            drop = int(rng.integers(len(px)))
+            px, order = np.delete(px, drop, axis=0), np.delete(order, drop)
+        blobs = np.vstack((px, _clutter_near(px, 3, rng)))
+        order = np.concatenate((order, [-1, -1, -1]))
+        perm = rng.permutation(len(blobs))
+        result = match_blobs(blobs[perm], target, CAM)
+        assert len(result.model_ids) == target.n_points - missing
+        assert not result.ambiguous
+        _check(target, T, result, blobs[perm], order[perm])
+
+
+@pytest.mark.parametrize("points", [
+    [[0, 0, 0], [50, 0, 0], [50, 50, 0], [0, 50, 0]],  # square: 4-fold
+    [[0, 0, 0], [40, 0, 0], [80, 0, 0], [0, 40, 0], [40, 40, 0], [80, 40, 0]],  # 2x3 grid
+])
+def test_symmetric_target_is_reported_ambiguous(points: list[list[float]]) -> None:
+    rng = np.random.default_rng(2)
+    target = Target(points, 8.0)
+    T = random_pose(rng, CAM, target, max_tilt_deg=10.0)
+    result = match_blobs(_image_points(target, T, rng, 0.05), target, CAM)
+    assert result.ambiguous and result.n_equivalent >= 2
+    assert result.pose.ambiguous
+    assert any("symmetric" in note for note in result.pose.notes)
+
+
+def test_inconsistent_blobs_raise_correspondence_error() -> None:
+    rng = np.random.default_rng(3)
+    T = random_pose(rng, CAM, SIM_TARGET)
+    # Right number of blobs, wrong geometry: a different target's dots.
+    other = random_target(rng, 6)
+    px = _image_points(other, random_pose(rng, CAM, other), rng)
+    with pytest.raises(CorrespondenceError, match="target"):
+        match_blobs(px, SIM_TARGET, CAM)
+    # Collinear blobs cannot be the dots of a plate either.
+    line = np.column_stack((np.linspace(100, 900, 6), np.full(6, 400.0)))
+    with pytest.raises(CorrespondenceError):
+        match_blobs(line, SIM_TARGET, CAM)
+    assert T is not None
+
+
+def test_too_few_blobs_says_how_many() -> None:
+    with pytest.raises(TooFewBlobsError) as err:
+        match_blobs(np.zeros((3, 2)) + [[1, 2], [300, 5], [40, 90]], SIM_TARGET, CAM)
+    assert err.value.found == 3 and err.value.needed == 5
+    assert "found 3 blob(s)" in err.value.message
+    with pytest.raises(TooFewBlobsError):
+        match_blobs(np.zeros((5, 2)), SIM_TARGET, CAM, max_missing=0)
+
+
+def test_hull_fast_path_is_fast_on_a_clean_view() -> None:
+    """Benchmark-style print, not a timing assertion: see `cell bench` for the numbers."""
+    rng = np.random.default_rng(4)
+    target = random_target(rng, 8)
+    px = _image_points(target, random_pose(rng, CAM, target), rng)
+    match_blobs(px, target, CAM)
+    t0 = time.perf_counter()
+    for _ in range(20):
+        match_blobs(px, target, CAM)
+    print(f"match_blobs (8 dots, incl. solve_pose): {(time.perf_counter() - t0) / 20 * 1e3:.2f} ms")

@@ -1,0 +1,328 @@
+"""The operator page in headless Chromium.
+
+Two layers: against a recording API (exact requests the page sends: heartbeats while held, stop
+on release / blur / lost connection, role gating, error words), and end to end against the
+simulated cell started with ``cell serve`` (the arm really rises while jog-z-plus is held and
+STOP halts an approach).
+"""
+
+from __future__ import annotations
+
+import re
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+
+from tests.browser import (
+    RecordingApi,
+    browser_context,
+    login,
+    recording_app,
+    require_chromium,
+    screenshot,
+    serve_app,
+    serve_sim_cell,
+    stub_permissions,
+)
+
+pytestmark = pytest.mark.timeout(120)
+
+JOG_BUTTONS = [f"jog-{a}-{d}" for a in ("x", "y", "z", "rx", "ry", "rz") for d in ("plus", "minus")]
+
+
+@pytest.fixture(scope="module")
+def ctx() -> Iterator[Any]:
+    require_chromium()
+    with browser_context() as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def stub() -> Iterator[tuple[str, RecordingApi]]:
+    rec = RecordingApi()
+    with serve_app(recording_app(rec)) as url:
+        yield url, rec
+
+
+@pytest.fixture
+def page(ctx: Any) -> Iterator[Any]:
+    p = ctx.new_page()
+    yield p
+    p.close()
+
+
+@pytest.fixture
+def rec(stub: tuple[str, RecordingApi]) -> RecordingApi:
+    _, r = stub
+    with r.lock:
+        r.calls.clear()
+    r.failures.clear()
+    return r
+
+
+def _wait_for(pred: Any, timeout_s: float = 5.0, what: str = "condition") -> None:
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.05)
+
+
+def _hold_start(page: Any, testid: str) -> None:
+    page.get_by_test_id(testid).hover()
+    page.mouse.down()
+
+
+# ------------------------------------------------------------------------------------------
+# Against the recording API
+
+
+NEEDS = {  # control -> the API permission it uses (api.auth)
+    "locate": "locate", "approach": "approach", "standoff": "approach",
+    "gripper-open": "gripper", "gripper-close": "gripper", **dict.fromkeys(JOG_BUTTONS, "jog"),
+}
+
+
+@pytest.mark.parametrize("role", ["viewer", "operator", "plc"])
+def test_role_enables_only_its_controls(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi, role: str
+) -> None:
+    url, _ = stub
+    login(page, url, f"tok-{role}")
+    granted = stub_permissions(role)
+    for testid, permission in sorted(NEEDS.items()):
+        assert page.get_by_test_id(testid).is_enabled() == (permission in granted), testid
+    assert page.get_by_test_id("stop").is_enabled()
+    assert page.evaluate("sessionStorage.getItem('cell.token')") == f"tok-{role}"
+    if role == "viewer":
+        assert not any(NEEDS[t] in granted for t in NEEDS)  # reads only
+
+
+def test_bad_token_is_refused_in_words(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    url, _ = stub
+    page.goto(url + "/")
+    page.get_by_test_id("token").fill("not-a-token")
+    page.get_by_test_id("login").click()
+    msg = page.get_by_test_id("message")
+    msg.wait_for()
+    assert "token" in msg.inner_text().lower()
+    assert not re.search(r"\b\d{3}\b", msg.inner_text())
+    assert page.get_by_test_id("jog-z-plus").is_disabled()
+    assert page.evaluate("sessionStorage.getItem('cell.token')") is None
+
+
+def test_camera_view_refreshes_with_overlay(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    url, _ = stub
+    login(page, url, "tok-viewer")
+    cam = page.get_by_test_id("camera")
+    _wait_for(lambda: int(cam.get_attribute("data-frames")) >= 1, what="first frame")
+    n0, t0 = int(cam.get_attribute("data-frames")), time.monotonic()
+    time.sleep(2.0)
+    rate = (int(cam.get_attribute("data-frames")) - n0) / (time.monotonic() - t0)
+    print(f"camera view: {rate:.1f} frames/s")
+    assert rate >= 2.0  # "several fps"; the page caps itself at ~6.7
+    assert page.evaluate("document.querySelector('[data-testid=camera]').naturalWidth") == 320
+    frames = rec.of("/api/v1/camera/frame.png")
+    assert frames and all("overlay=true" in c.query for c in frames)
+    assert page.get_by_test_id("quality-rms").inner_text() == "0.21 px"
+
+
+def test_held_jog_heartbeats_then_stops_on_release(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    url, _ = stub
+    login(page, url, "tok-operator")
+    page.get_by_test_id("jog-speed").select_option("50")
+    page.get_by_test_id("jog-frame").select_option("tool")
+    _hold_start(page, "jog-z-plus")
+    time.sleep(1.0)
+    page.mouse.up()
+    _wait_for(lambda: rec.of("/api/v1/stop"), what="stop after release")
+    released = rec.of("/api/v1/stop")[0].t_s
+
+    (start,) = rec.of("/api/v1/jog")
+    assert start.body == {"mode": "continuous", "frame": "tool", "linear_mm_s": [0, 0, 50],
+                          "angular_deg_s": [0, 0, 0]}
+    beats = [c.t_s for c in rec.of("/api/v1/jog/heartbeat")]
+    gaps = [b - a for a, b in zip([start.t_s, *beats], beats, strict=False)]
+    print(f"heartbeats: {len(beats)}, median gap {statistics.median(gaps) * 1000:.0f} ms, "
+          f"max gap {max(gaps) * 1000:.0f} ms")
+    assert 5 <= len(beats) <= 14
+    assert 0.07 <= statistics.median(gaps) <= 0.16
+    time.sleep(0.5)
+    assert all(b <= released + 0.05 for b in (c.t_s for c in rec.of("/api/v1/jog/heartbeat")))
+    assert "held" not in (page.get_by_test_id("jog-z-plus").get_attribute("class") or "")
+
+
+def test_jog_stops_when_the_page_loses_focus(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    url, _ = stub
+    login(page, url, "tok-operator")
+    _hold_start(page, "jog-rx-minus")
+    _wait_for(lambda: len(rec.of("/api/v1/jog/heartbeat")) >= 2, what="heartbeats")
+    page.evaluate("window.dispatchEvent(new Event('blur'))")  # button still held
+    _wait_for(lambda: rec.of("/api/v1/stop"), what="stop on blur")
+    n = len(rec.of("/api/v1/jog/heartbeat"))
+    time.sleep(0.5)
+    page.mouse.up()
+    assert len(rec.of("/api/v1/jog/heartbeat")) <= n + 1  # at most one already in flight
+    (start,) = rec.of("/api/v1/jog")
+    assert start.body["angular_deg_s"][0] < 0 and start.body["linear_mm_s"] == [0, 0, 0]
+    assert "lost focus" in page.get_by_test_id("message").inner_text()
+
+
+def test_jog_stops_when_the_connection_drops(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    url, _ = stub
+    login(page, url, "tok-operator")
+    _hold_start(page, "jog-y-plus")
+    _wait_for(lambda: len(rec.of("/api/v1/jog/heartbeat")) >= 2, what="heartbeats")
+    page.route("**/api/v1/**", lambda route: route.abort("internetdisconnected"))
+    btn = page.get_by_test_id("jog-y-plus")
+    _wait_for(lambda: "held" not in (btn.get_attribute("class") or ""), what="jog released")
+    assert re.search("connection|cannot be reached", page.get_by_test_id("message").inner_text())
+    _wait_for(lambda: page.get_by_test_id("connection").inner_text() == "offline",
+              what="offline indicator")
+    page.unroute("**/api/v1/**")
+    n = len(rec.of("/api/v1/jog/heartbeat"))
+    time.sleep(0.6)  # connection back, button still physically down: no silent restart
+    assert len(rec.of("/api/v1/jog/heartbeat")) == n
+    assert len(rec.of("/api/v1/jog")) == 1
+    page.mouse.up()
+
+
+def test_api_refusals_are_shown_in_words(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    url, r = stub
+    r.failures["/api/v1/approach"] = (
+        409, "camera_lost", "No approach while the camera cannot see the target.")
+    login(page, url, "tok-operator")
+    page.get_by_test_id("standoff").fill("40")
+    page.get_by_test_id("approach").click()
+    msg = page.get_by_test_id("message")
+    _wait_for(lambda: "camera cannot see" in msg.inner_text(), what="refusal message")
+    text = msg.inner_text()
+    assert "409" not in text and "camera_lost" not in text
+    assert rec.of("/api/v1/approach")[0].body == {"standoff_mm": 40, "wait": False}
+
+    page.get_by_test_id("standoff").fill("-5")
+    page.get_by_test_id("approach").click()
+    _wait_for(lambda: "standoff" in msg.inner_text(), what="input message")
+    assert len(rec.of("/api/v1/approach")) == 1  # refused before anything was sent
+
+
+def test_stop_works_for_every_role(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    url, _ = stub
+    login(page, url, "tok-viewer")
+    page.get_by_test_id("stop").click()
+    _wait_for(lambda: rec.of("/api/v1/stop"), what="stop request")
+    _wait_for(lambda: "Stopped" in page.get_by_test_id("message").inner_text(), what="ack")
+
+
+def test_tablet_portrait_keeps_stop_in_view(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    url, _ = stub
+    page.set_viewport_size({"width": 800, "height": 1280})
+    login(page, url, "tok-operator")
+    page.mouse.wheel(0, 3000)
+    stop = page.get_by_test_id("stop").bounding_box()
+    assert stop is not None and stop["y"] + stop["height"] <= 1280 and stop["width"] >= 100
+    for testid in JOG_BUTTONS:
+        box = page.get_by_test_id(testid).bounding_box()
+        assert box is not None and box["height"] >= 48 and box["width"] >= 48
+    screenshot(page, "operator-page-tablet")
+
+
+# ------------------------------------------------------------------------------------------
+# End to end against the simulated cell (``cell serve``)
+
+SIM_OPERATOR = "sim-operator"
+
+
+@pytest.fixture(scope="module")
+def sim_cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    require_chromium()
+    probe = subprocess.run([sys.executable, "-m", "cell", "serve", "--help"],
+                           capture_output=True, text=True, timeout=60)
+    if probe.returncode != 0:
+        pytest.skip("`cell serve` is not available yet (issue 5)")
+    with serve_sim_cell(tmp_path_factory.mktemp("cell")) as url:
+        yield url
+
+
+def _tcp_mm(url: str) -> np.ndarray:
+    """True TCP position of the simulated arm (not what the page shows)."""
+    r = httpx.get(f"{url}/api/v1/sim/truth", timeout=5.0,
+                  headers={"Authorization": f"Bearer {SIM_OPERATOR}"})
+    r.raise_for_status()
+    return np.asarray(r.json()["T_base_tcp"]["position_mm"], dtype=float)
+
+
+def _settled_tcp_mm(url: str, timeout_s: float = 5.0) -> np.ndarray:
+    """TCP position once it has stopped changing (moved < 0.05 mm in 0.2 s)."""
+    deadline = time.monotonic() + timeout_s
+    last = _tcp_mm(url)
+    while True:
+        time.sleep(0.2)
+        now = _tcp_mm(url)
+        if np.linalg.norm(now - last) < 0.05:
+            return now
+        if time.monotonic() > deadline:
+            raise AssertionError(f"the arm is still moving: {last} -> {now}")
+        last = now
+
+
+def test_sim_cell_live_view_jog_approach_and_stop(page: Any, sim_cell: str) -> None:
+    url = sim_cell
+    login(page, url, SIM_OPERATOR)
+    cam = page.get_by_test_id("camera")
+    _wait_for(lambda: int(cam.get_attribute("data-frames")) >= 3, 10, "live camera frames")
+    _wait_for(lambda: "mm" in page.get_by_test_id("tcp-pose").inner_text(), 5, "TCP pose")
+
+    # Hold jog-z-plus for one second at 20 mm/s in the base frame.
+    page.get_by_test_id("jog-frame").select_option("base")
+    page.get_by_test_id("jog-speed").select_option("20")
+    start = _settled_tcp_mm(url)
+    _hold_start(page, "jog-z-plus")
+    t0 = time.monotonic()
+    time.sleep(1.0)
+    page.mouse.up()
+    held_s = time.monotonic() - t0
+    end = _settled_tcp_mm(url)
+    rise = end - start
+    expected = 20.0 * held_s
+    print(f"jog z+ held {held_s:.2f} s: rose {rise[2]:.1f} mm (expected about {expected:.1f}), "
+          f"sideways {np.linalg.norm(rise[:2]):.2f} mm")
+    assert abs(rise[2] - expected) <= 0.3 * expected + 3.0
+    assert np.linalg.norm(rise[:2]) < 1.0
+    screenshot(page, "operator-page-sim-after-jog")
+
+    # Approach, then STOP while the arm is on its way.
+    page.get_by_test_id("standoff").fill("50")
+    before = _tcp_mm(url)
+    page.get_by_test_id("approach").click()
+    _wait_for(lambda: np.linalg.norm(_tcp_mm(url) - before) > 5.0, 15, "approach motion")
+    page.get_by_test_id("stop").click()
+    stopped = _settled_tcp_mm(url, timeout_s=3.0)
+    time.sleep(0.5)
+    assert np.linalg.norm(_tcp_mm(url) - stopped) < 0.1  # still standing
+    _wait_for(lambda: re.search("cancel|stop|fail", page.get_by_test_id("job").inner_text()),
+              5, "job shown as ended")
+    screenshot(page, "operator-page-sim-after-stop")
