@@ -54,6 +54,7 @@ SAFETY_MODES = {1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY",
                 8: "VIOLATION", 9: "FAULT", 10: "VALIDATE_JOINT_ID", 11: "UNDEFINED_SAFETY_MODE",
                 12: "AUTOMATIC_MODE_SAFEGUARD_STOP", 13: "SYSTEM_THREE_POSITION_ENABLING_STOP"}
 RUNNING_MODE = 7
+MOVING_QD_RAD_S = 5e-3  # below this the arm counts as standing (controllers report jitter)
 RUNTIME_PLAYING = 2
 _PSTOP_BIT, _ESTOP_BITS = 1 << 2, (1 << 5) | (1 << 6) | (1 << 7)
 
@@ -321,7 +322,7 @@ class URArm:
         ctrl = self._ctrl
         if ctrl is not None and ctrl.getAsyncOperationProgressEx().isAsyncOperationRunning():
             return True
-        return bool(np.max(np.abs(self._recv.getActualQd())) > 1e-4)
+        return bool(np.max(np.abs(self._recv.getActualQd())) > MOVING_QD_RAD_S)
 
     def _safety_bits(self) -> int:
         return int(self._recv.getSafetyStatusBits())

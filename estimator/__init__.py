@@ -38,4 +38,3 @@ __all__ = [
     "posit",
     "solve_pose",
 ]
-# posit, solve_pose, detect_blobs and Estimator are added here as their modules land.

@@ -4,13 +4,16 @@ Planar targets (the common case) are matched in two steps. The fast one uses the
 front-facing perspective view keeps the convex hull of the dots and its cyclic order, so when
 the blobs' hull has as many corners as the model's, only one hypothesis per rotation of the
 hull needs testing. If that does not explain every dot (clutter outside the target, a missing
-hull dot), the general search tries every convex quadruple of blobs against a few 4-dot bases
-of the model, each basis giving a plane homography that predicts the remaining dots. Non-planar
-targets use ordered blob triples and the P3P poses of a model triangle instead.
-Hypotheses are ranked by how many dots they explain; the best few distinct matchings are then
-solved with the real pose solver and judged by reprojection error, so a matching only wins if
-a rigid pose explains it. If a second, different matching fits about as well (a symmetric
-model), the result says ``ambiguous`` rather than guessing.
+hull dot), the general search tries every quadruple of blobs against a few 4-dot bases of the
+model of the same kind (convex, or a triangle around a point), each giving a plane homography
+that predicts the remaining dots. Non-planar targets use ordered blob triples and the P3P poses
+of a model triangle instead.
+
+Hypotheses are ranked by how many dots they explain, then by how close their homography is to
+a rigid view; the best few distinct matchings are then solved with the real pose solver and
+judged by reprojection error, so a matching only wins if a rigid pose explains it. If a second,
+different matching fits about as well (a symmetric model, or too few dots among clutter), the
+result says ``ambiguous`` rather than guessing.
 """
 
 from __future__ import annotations
@@ -53,7 +56,7 @@ class _Model:
     planar: bool
     plane_xy: NDArray[np.float64]  # (N,2) in-plane coordinates, front-facing orientation
     hull: tuple[int, ...]  # model indices of the convex hull, counter-clockwise
-    bases: tuple[tuple[int, ...], ...]  # 4-dot bases; each dot is missing from at least one
+    bases: tuple[tuple[int, ...], ...]  # 4 (planar) or 3 dots; each dot misses from one
 
 
 def _ccw_hull(points: NDArray[np.float64]) -> tuple[int, ...]:
@@ -92,8 +95,6 @@ def _choose_bases(points: NDArray[np.float64], planar: bool) -> tuple[tuple[int,
     n = len(points)
     scored = []
     for quad in combinations(range(n), 4 if planar else 3):
-        if planar and len(_ccw_hull(points[list(quad)])) != 4:
-            continue
         q = _quad_quality(points[list(quad)]) if planar else _triangle_quality(points[list(quad)])
         scored.append((q, quad))
     scored.sort(reverse=True)
@@ -138,9 +139,11 @@ def _assign(
     Blobs claimed by two dots go to neither. Hypotheses explaining fewer than ``min_count``
     dots are dropped here, vectorised, before any per-hypothesis Python work.
     """
-    d = np.linalg.norm(preds[:, :, None, :] - obs[None, None, :, :], axis=3)
-    nearest = d.argmin(axis=2)
-    ok = np.take_along_axis(d, nearest[:, :, None], axis=2)[:, :, 0] < tol
+    dx = preds[:, :, None, 0] - obs[None, None, :, 0]
+    dy = preds[:, :, None, 1] - obs[None, None, :, 1]
+    d2 = dx * dx + dy * dy  # squared: no sqrt over (K,N,M)
+    nearest = d2.argmin(axis=2)
+    ok = np.take_along_axis(d2, nearest[:, :, None], axis=2)[:, :, 0] < tol * tol
     out: list[dict[int, int]] = []
     for k in np.flatnonzero(ok.sum(axis=1) >= min_count):
         near_k = nearest[k][ok[k]]
@@ -178,23 +181,38 @@ def _hull_hypotheses(
     return _assign(_homography_predictions(model, [src] * h, dsts), ideal, tol, min_count)
 
 
+def _quad_orders(pts4: NDArray[np.float64], idx: list[int]) -> tuple[int, list[list[int]]]:
+    """Orderings of a 4-point set that a front view can map onto each other.
+
+    Convex quadruples: the 4 rotations of the counter-clockwise hull. A triangle with a point
+    inside: the 3 rotations of the triangle, inner point last. (A perspective view of a plane
+    in front of the camera keeps both the type and the orientation.)
+    """
+    hull = _ccw_hull(pts4)
+    if len(hull) == 4:
+        return 4, [[idx[hull[(i + s) % 4]] for i in range(4)] for s in range(4)]
+    if len(hull) == 3:
+        inner = next(i for i in range(4) if i not in hull)
+        return 3, [[idx[hull[(i + s) % 3]] for i in range(3)] + [idx[inner]] for s in range(3)]
+    return len(hull), []
+
+
 def _planar_hypotheses(
     model: _Model, ideal: NDArray[np.float64], tol: float, min_count: int, n_wanted: int
 ) -> list[dict[int, int]]:
-    """General planar search: every convex blob quadruple against every model basis."""
+    """General planar search: every blob quadruple against every model basis of its kind."""
     out: list[dict[int, int]] = []
-    quads = []
+    by_kind: dict[int, list[list[int]]] = {3: [], 4: []}
     for quad in combinations(range(len(ideal)), 4):
-        hull = _ccw_hull(ideal[list(quad)])
-        if len(hull) == 4:
-            quads.append([quad[i] for i in hull])
-    if not quads:
-        return out
+        kind, orders = _quad_orders(ideal[list(quad)], list(quad))
+        if orders:
+            by_kind[kind] += orders
     for basis in model.bases:
-        order = _ccw_hull(model.plane_xy[list(basis)])
-        src = model.plane_xy[[basis[i] for i in order]].astype(np.float32)
-        dsts = [ideal[[quad[(i + shift) % 4] for i in range(4)]].astype(np.float32)
-                for quad in quads for shift in range(4)]
+        kind, orders = _quad_orders(model.plane_xy[list(basis)], list(basis))
+        if not orders or not by_kind[kind]:
+            continue
+        src = model.plane_xy[orders[0]].astype(np.float32)
+        dsts = [ideal[o].astype(np.float32) for o in by_kind[kind]]
         preds = _homography_predictions(model, [src] * len(dsts), dsts)
         out += _assign(preds, ideal, tol, min_count)
         if any(len(h) == n_wanted for h in out):
@@ -243,6 +261,42 @@ def _rank(hypotheses: list[dict[int, int]], min_matched: int) -> list[dict[int, 
     return [h for h in best if len(h) == top]
 
 
+def _planar_score(
+    model: _Model, hyp: dict[int, int], ideal: NDArray[np.float64], K_inv: NDArray[np.float64]
+) -> float:
+    """How far a matching is from a rigid view of the plane: the least-squares homography's
+    transfer error (px) plus a penalty when its first two columns, with the intrinsics
+    removed, are not orthogonal and of equal length, as a rotation's must be."""
+    ids = sorted(hyp)
+    src = model.plane_xy[ids]
+    dst = ideal[[hyp[i] for i in ids]]
+    H, _ = cv2.findHomography(src, dst, 0)
+    if H is None:
+        return float("inf")
+    pred = cv2.perspectiveTransform(src.reshape(-1, 1, 2), H).reshape(-1, 2)
+    transfer = float(np.sqrt(np.mean(np.sum((pred - dst) ** 2, axis=1))))
+    M = K_inv @ H
+    n1, n2 = float(np.linalg.norm(M[:, 0])), float(np.linalg.norm(M[:, 1]))
+    if n1 <= 0 or n2 <= 0:
+        return float("inf")
+    rigidity = abs(float(M[:, 0] @ M[:, 1])) / (n1 * n2) + abs(float(np.log(n1 / n2)))
+    return transfer + 50.0 * rigidity
+
+
+def _pnp_score(
+    target: Target, hyp: dict[int, int], ideal: NDArray[np.float64], K: NDArray[np.float64]
+) -> float:
+    """Reprojection rms (px) of a quick SQPnP pose of a matching (non-planar targets)."""
+    ids = sorted(hyp)
+    obj = target.points_mm[ids]
+    img = ideal[[hyp[i] for i in ids]]
+    ok, rvec, tvec = cv2.solvePnP(obj, img, K, np.zeros(5), flags=cv2.SOLVEPNP_SQPNP)
+    if not ok:
+        return float("inf")
+    pred, _ = cv2.projectPoints(obj, rvec, tvec, K, np.zeros(5))
+    return float(np.sqrt(np.mean(np.sum((pred.reshape(-1, 2) - img) ** 2, axis=1))))
+
+
 def _default_tolerance(ideal: NDArray[np.float64]) -> float:
     d = np.linalg.norm(ideal[:, None, :] - ideal[None, :, :], axis=2)
     d[np.diag_indices(len(ideal))] = np.inf
@@ -274,6 +328,41 @@ def _drop_outlier(
     return matching, pose
 
 
+def _verify(
+    ranked: list[dict[int, int]], n: int, model: _Model, target: Target,
+    ideal: NDArray[np.float64], camera: CameraModel, obs_px: NDArray[np.float64],
+    solve: Callable[..., PoseResult],
+) -> list[tuple[float, dict[int, int], PoseResult]]:
+    """(rms px, matching, pose) of the most plausible distinct matchings, best first.
+
+    With several candidates, a cheap geometric score picks the ones worth solving, and they are
+    solved without the perspective-bias step (which moves points by hundredths of a pixel and
+    cannot change which matching wins); the winner is re-solved with it by the caller.
+    """
+    if not ranked:
+        return []
+    if len(ranked) > 1:
+        K_inv = np.asarray(np.linalg.inv(camera.K), dtype=np.float64)
+        quick = [
+            _planar_score(model, h, ideal, K_inv) if model.planar
+            else _pnp_score(target, h, ideal, camera.K)
+            for h in ranked
+        ]
+        ranked = [ranked[i] for i in np.argsort(quick, kind="stable")]
+    scored: list[tuple[float, dict[int, int], PoseResult]] = []
+    for hyp in ranked[:_MAX_VERIFIED]:
+        ids = np.array(sorted(hyp), dtype=np.intp)
+        blobs = np.array([hyp[i] for i in ids], dtype=np.intp)
+        try:
+            pose = solve(ids, obs_px[blobs], False) if len(ranked) > 1 else solve(
+                ids, obs_px[blobs])
+        except EstimationError:
+            continue
+        scored.append((float(pose.rms_px), hyp, pose))
+    scored.sort(key=lambda s: s[0])
+    return scored
+
+
 def match_blobs(
     points_px: ArrayLike,
     target: Target,
@@ -300,57 +389,51 @@ def match_blobs(
     ideal = camera.undistort_points(obs_px) * [camera.fx, camera.fy] + [camera.cx, camera.cy]
     tol = tolerance_px if tolerance_px is not None else _default_tolerance(ideal)
 
-    def solve(ids: NDArray[np.intp], pts: NDArray[np.float64]) -> PoseResult:
+    def solve(ids: NDArray[np.intp], pts: NDArray[np.float64], bias: bool = correct_bias
+              ) -> PoseResult:
         if solver is not None:
             return solver(target.points_mm[ids], pts)
         return solve_pose(target.points_mm[ids], pts, camera,
-                          dot_diameter_mm=target.dot_diameter_mm, correct_bias=correct_bias)
+                          dot_diameter_mm=target.dot_diameter_mm, correct_bias=bias)
 
-    ranked: list[dict[int, int]] = []
+    scored: list[tuple[float, dict[int, int], PoseResult]] = []
     if model.planar:
-        ranked = _rank(_hull_hypotheses(model, ideal, tol, min_matched), min_matched)
-        if not ranked or len(ranked[0]) < n:
-            ranked = _rank(
-                _planar_hypotheses(model, ideal, tol, min_matched, n), min_matched
-            )
+        scored = _verify(_rank(_hull_hypotheses(model, ideal, tol, min_matched), min_matched),
+                         n, model, target, ideal, camera, obs_px, solve)
+        if not scored or len(scored[0][1]) < n or scored[0][0] > _ACCEPT_RMS_PX:
+            general = _rank(_planar_hypotheses(model, ideal, tol, min_matched, n), min_matched)
+            scored = _verify(general, n, model, target, ideal, camera, obs_px, solve)
     else:
-        ranked = _rank(
+        general = _rank(
             _general_hypotheses(target, model, ideal, camera.K, tol, min_matched, n),
             min_matched,
         )
-    if not ranked:
+        scored = _verify(general, n, model, target, ideal, camera, obs_px, solve)
+    if not scored:
         raise CorrespondenceError(
             f"no assignment of the {len(obs_px)} blob(s) to the {n} target dots is consistent "
             "with the target geometry: check that the configured target matches the plate and "
             "that clutter does not hide dots"
         )
-
-    scored: list[tuple[float, dict[int, int], PoseResult]] = []
-    for hyp in ranked[:_MAX_VERIFIED]:
-        ids = np.array(sorted(hyp), dtype=np.intp)
-        blobs = np.array([hyp[i] for i in ids], dtype=np.intp)
-        try:
-            pose = solve(ids, obs_px[blobs])
-        except EstimationError:
-            continue
-        scored.append((float(pose.rms_px), hyp, pose))
-    scored.sort(key=lambda s: s[0])
-    if not scored or scored[0][0] > _ACCEPT_RMS_PX:
-        best_rms = scored[0][0] if scored else float("inf")
+    if scored[0][0] > _ACCEPT_RMS_PX:
         raise CorrespondenceError(
-            f"the best matching reprojects with {best_rms:.2f} px rms (limit "
+            f"the best matching reprojects with {scored[0][0]:.2f} px rms (limit "
             f"{_ACCEPT_RMS_PX} px): the camera calibration or the target model does not fit "
             "what is seen"
         )
     best_rms, best, pose = scored[0]
     equal_limit = max(2.0 * best_rms, best_rms + 0.5)
     n_equivalent = sum(1 for s in scored if s[0] <= equal_limit)
+    if len(scored) > 1 and correct_bias and solver is None:  # ranked without bias correction
+        ids = np.array(sorted(best), dtype=np.intp)
+        pose = solve(ids, obs_px[[best[i] for i in ids]])
     best, pose = _drop_outlier(best, pose, min_matched, obs_px, solve)
     ids_sorted = tuple(sorted(best))
     if n_equivalent > 1:
         pose = replace(pose, ambiguous=True, notes=(*pose.notes, (
             f"correspondence ambiguous: {n_equivalent} matchings of blobs to dots fit equally "
-            "well (the target is symmetric); use an asymmetric dot layout"
+            "well (a symmetric dot layout, or too few dots visible among clutter); use an "
+            "asymmetric layout and keep all dots in view"
         )))
     return Correspondence(
         model_ids=ids_sorted,

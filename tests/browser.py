@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -95,6 +96,7 @@ def screenshot(page: Any, name: str) -> Path:
     """Keep a picture of the page as a test artefact (test-artifacts/ is gitignored)."""
     ARTIFACTS.mkdir(exist_ok=True)
     path = ARTIFACTS / f"{name}.png"
+    page.evaluate("window.scrollTo(0, 0)")  # else the sticky header lands mid-picture
     page.screenshot(path=str(path), full_page=True)
     return path
 
@@ -127,16 +129,34 @@ def serve_app(app: FastAPI) -> Iterator[str]:
         sock.close()
 
 
+def sim_config(workdir: Path) -> Path:
+    """The built-in simulated cell's config with the in-process simulated arm (the same motion
+    engine as the simulated UR controller, but no listening sockets: the controller's ports are
+    the fixed UR ones, which parallel test runs would fight over) and the job database inside
+    ``workdir``. The UR wire path is tested by the service's own tests."""
+    text = (REPO / "cell" / "configs" / "sim.toml").read_text()
+    robot_table = text.index("[robot]")
+    head, tail = text[:robot_table], text[robot_table:]
+    tail, n_kind = re.subn(r'^kind = ".*"$', 'kind = "sim"', tail, count=1, flags=re.M)
+    tail, n_db = re.subn(r'^job_db = ".*"$', f'job_db = "{workdir / "jobs.db"}"', tail,
+                         flags=re.M)
+    assert n_kind == 1 and n_db == 1, "sim.toml no longer has [robot] kind / [api] job_db"
+    path = workdir / "sim-page-test.toml"
+    path.write_text(head + tail)
+    return path
+
+
 @contextmanager
 def serve_sim_cell(workdir: Path, startup_s: float = 90.0) -> Iterator[str]:
-    """``cell serve --port N`` on the built-in simulated cell, as the operator would start it.
+    """``cell serve --config FILE --port N`` on the simulated cell, as an operator starts it.
 
-    Runs in ``workdir`` so its job database and logs stay out of the checkout.
+    Runs in ``workdir`` so its logs stay out of the checkout.
     """
     port = free_port()
     log = (workdir / "cell-serve.log").open("w")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "cell", "serve", "--host", "127.0.0.1", "--port", str(port)],
+        [sys.executable, "-m", "cell", "serve", "--config", str(sim_config(workdir)),
+         "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning"],
         cwd=workdir, stdout=log, stderr=subprocess.STDOUT,
         env={**os.environ, "PYTHONPATH": str(REPO)},
     )
@@ -153,6 +173,10 @@ def serve_sim_cell(workdir: Path, startup_s: float = 90.0) -> Iterator[str]:
                     break
             except httpx.HTTPError:
                 pass
+            if "Traceback" in (workdir / "cell-serve.log").read_text():
+                time.sleep(0.5)  # let the rest of the traceback reach the log
+                raise RuntimeError("cell serve failed to start:\n"
+                                   + (workdir / "cell-serve.log").read_text()[-3000:])
             if time.monotonic() > deadline:
                 raise RuntimeError("cell serve did not become healthy in time")
             time.sleep(0.25)

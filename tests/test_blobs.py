@@ -51,7 +51,7 @@ def test_weighted_centre_beats_the_binary_mask_centroid() -> None:
         truth = _truth(target, T)
         ours.extend(_nearest_errors(detect_blobs(img), truth))
         _, mask = cv2.threshold(img, 0, 255, cv2.THRESH_BINARY_INV | cv2.THRESH_OTSU)
-        n, _, stats, cents = cv2.connectedComponentsWithStats(mask)
+        _, _, stats, cents = cv2.connectedComponentsWithStats(mask)
         keep = (stats[1:, cv2.CC_STAT_AREA] > 12) & (stats[1:, cv2.CC_STAT_AREA] < 5000)
         d = np.linalg.norm(truth[:, None] - cents[1:][keep][None], axis=2).min(axis=1)
         mask_only.extend(d)

@@ -294,6 +294,12 @@ def test_sim_cell_live_view_jog_approach_and_stop(page: Any, sim_cell: str) -> N
     login(page, url, SIM_OPERATOR)
     cam = page.get_by_test_id("camera")
     _wait_for(lambda: int(cam.get_attribute("data-frames")) >= 3, 10, "live camera frames")
+    n0, t0 = int(cam.get_attribute("data-frames")), time.monotonic()
+    time.sleep(1.5)
+    rate = (int(cam.get_attribute("data-frames")) - n0) / (time.monotonic() - t0)
+    print(f"sim cell live view: {rate:.1f} frames/s")
+    assert rate >= 2.0
+    assert page.get_by_test_id("quality-age").inner_text().endswith("ms")
     _wait_for(lambda: "mm" in page.get_by_test_id("tcp-pose").inner_text(), 5, "TCP pose")
 
     # Hold jog-z-plus for one second at 20 mm/s in the base frame.

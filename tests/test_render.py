@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from estimator import CameraModel, Target
 from estimator.transforms import make_T
 from fakes.render import ellipse_centre_px, random_pose, random_scene, random_target, render_target
-from scipy.spatial.transform import Rotation
 
 CAM = CameraModel(800.0, 800.0, 639.5, 399.5, (), 1280, 800)
 ONE_DOT_SET = Target([[0, 0, 0], [60, 0, 0], [0, 40, 0], [70, 50, 0]], 20.0)

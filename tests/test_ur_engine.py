@@ -12,6 +12,7 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from fakes.ur_sim.engine import (
     CYCLE_S,
@@ -218,9 +219,10 @@ def test_tool_speed_limit_trips_protective_stop(eng: MotionEngine) -> None:
 
 
 def test_fast_joint_move_exceeding_tool_speed_stops_mid_move(eng: MotionEngine) -> None:
-    # Stretched arm swinging about the base at pi rad/s: the TCP would exceed 1.5 m/s.
-    q = [0.0, -1.571, 0.0, -1.571, 0.0, 0.0]
-    eng.move_j(q, 2.0, 4.0)
+    # Arm stretched out horizontally swinging about the base at 3.1 rad/s: the TCP would
+    # exceed 1.5 m/s.
+    q = [0.0, 0.0, 0.0, -1.571, 0.0, 0.0]
+    eng.move_j(q, 1.0, 4.0)
     assert eng.wait_until_idle(10)
     q2 = q.copy()
     q2[0] = 3.0
@@ -348,12 +350,16 @@ def test_speed_l_moves_along_base_twist(eng: MotionEngine) -> None:
 
 def test_jog_in_tool_frame_follows_tool_axes(eng: MotionEngine) -> None:
     p0 = np.array(eng.snapshot().tcp_pose)
-    eng.jog_start([0.0, 0.0, 0.05, 0.0, 0.0, 0.0], "tool", 0.5)  # tool z points down at home
+    tool_z = Rotation.from_rotvec(p0[3:]).as_matrix()[:, 2]
+    assert tool_z[2] < -0.999  # about straight down at home
+    eng.jog_start([0.0, 0.0, 0.05, 0.0, 0.0, 0.0], "tool", 0.5)
     time.sleep(0.3)
     eng.jog_stop()
     s = _wait(eng, lambda s: not s.moving, 2.0)
     d = np.array(s.tcp_pose) - p0
-    assert d[2] < -0.005 and np.allclose(d[:2], 0.0, atol=1e-6)
+    assert np.linalg.norm(d[:3]) > 0.005
+    assert np.allclose(d[:3] / np.linalg.norm(d[:3]), tool_z, atol=1e-6)
+    assert np.allclose(d[3:], 0.0, atol=1e-6)
     # a jog with a client watchdog stops on its own
     eng.jog_start([0.03, 0.0, 0.0, 0.0, 0.0, 0.0], "base", 0.5, time_s=0.1)
     s = _wait(eng, lambda s: not s.moving and s.tcp_pose[0] > p0[0], 2.0)

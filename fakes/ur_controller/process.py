@@ -3,18 +3,43 @@
 from __future__ import annotations
 
 import json
+import os
+import random
+import socket
 import subprocess
 import sys
 import threading
 from typing import Any
 
 READY_TIMEOUT_S = 20.0
+_PORTS = (29999, 30003, 30004)
+
+
+def free_loopback_host() -> str:
+    """A loopback address on which the controller's fixed ports are all free.
+
+    Tests of several engineers run at once on one machine, so addresses are drawn at random
+    from 127.16.0.0/12 rather than counted from 127.0.0.2.
+    """
+    rng = random.Random(os.getpid() ^ int.from_bytes(os.urandom(4), "little"))
+    for _ in range(50):
+        host = f"127.{rng.randint(16, 31)}.{rng.randint(0, 255)}.{rng.randint(2, 254)}"
+        try:
+            for port in _PORTS:
+                with socket.create_server((host, port)):
+                    pass
+        except OSError:
+            continue
+        return host
+    raise RuntimeError("no free loopback address for a simulated controller")
 
 
 class ControllerProcess:
     """``python -m fakes.ur_controller --control --host HOST`` with a typed control API."""
 
-    def __init__(self, host: str, *, powered: bool = False, remote_control: bool = True) -> None:
+    def __init__(self, host: str | None = None, *, powered: bool = False,
+                 remote_control: bool = True) -> None:
+        host = host or free_loopback_host()
         self.host = host
         argv = [sys.executable, "-m", "fakes.ur_controller", "--host", host, "--control"]
         if powered:

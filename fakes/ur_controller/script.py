@@ -244,7 +244,7 @@ class MailboxInterpreter:
             self._write_async(-1)
 
     def _process(self, cmd: int, snap: EngineSnapshot) -> bool:
-        """Run one command; False when the program ended (stop script)."""
+        """Run one command; False when the program ended (stop script, protective stop)."""
         e = self.engine
         if cmd in (1, 2, 3, 4, 45):
             self._end_async()  # stop_async_move: a new move replaces a running async one
@@ -327,7 +327,10 @@ class MailboxInterpreter:
         elif cmd == 27:
             self._write_floats(0, list(snap.q))
         elif cmd == 31:
+            # protective_stop() halts the program at once: "done" is never signalled
             e.trigger_protective_stop("protective_stop() called by the program")
+            self.stop("Protective stop requested by the program", brake=False)
+            return False
         elif cmd == 39:
             T = _pose_T(self._floats(0)) @ _pose_T(self._floats(6))
             self._write_floats(0, _T_pose(T))

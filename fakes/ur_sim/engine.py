@@ -598,6 +598,10 @@ class MotionEngine:
         self._q, self._qd, self._qdd = out.q, out.qd, out.qdd
         self._history.append((now, self._q.copy()))
         if out.done:
+            # Every command ends at rest; finite-difference velocities of the last cycle aren't.
+            self._qd, self._qdd = np.zeros(6), np.zeros(6)
+            if cmd.name == "emergency_stop":  # category 1: power goes once the arm is at rest
+                self._robot_mode = RobotMode.POWER_OFF
             self._finish(CommandOutcome.SUCCEEDED)
 
     def _violation(self, q: Vec, qd: Vec) -> str:
@@ -660,7 +664,8 @@ class MotionEngine:
             return self._snapshot_locked()
 
     def _snapshot_locked(self) -> EngineSnapshot:
-        now = time.monotonic()
+        # While moving, the state belongs to the last control cycle, not to the reading instant.
+        now = time.monotonic() if self._cmd is None else self._last_step
         q, qd = self._q, self._qd
         pose = tuple(ur_pose_from_T(self._kin.forward_tcp(q)))
         twist = self._kin.jacobian_tcp(q) @ qd
@@ -885,9 +890,9 @@ class MotionEngine:
         raise ProtectiveStopActiveError(f"protective stop: {reason}")
 
     def _new_id(self) -> int:
-        cid = self._next_id
-        self._next_id += 1
-        return cid
+        """The id the next installed command gets; consumed only by :meth:`_install`, so a
+        rejected command leaves no trace."""
+        return self._next_id
 
     def _rest_start(self, accel: float) -> tuple[Vec, _Brake | None]:
         """Where a profiled move will start: here, or where the present motion brakes to."""
@@ -898,6 +903,7 @@ class MotionEngine:
 
     def _install(self, cmd: _Command, brake: _Brake | None = None) -> int:
         self._finish(CommandOutcome.PREEMPTED)
+        self._next_id = cmd.id + 1
         self._outcomes[cmd.id] = CommandOutcome.RUNNING
         if len(self._outcomes) > 1000:
             for old in sorted(self._outcomes)[:500]:

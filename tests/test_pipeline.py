@@ -1,0 +1,128 @@
+"""The full image -> pose pipeline on rendered frames: accuracy, tracking, typed failures."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from estimator import (
+    CameraModel,
+    CorrespondenceError,
+    Estimator,
+    Target,
+    TooFewBlobsError,
+)
+from estimator.transforms import make_T, pose_distance
+from fakes.render import random_pose, random_scene, random_target, render_target
+
+CAM = CameraModel(800.0, 800.0, 639.5, 399.5, (), 1280, 800)
+CAM_DIST = CameraModel(800.0, 800.0, 639.5, 399.5, (-0.12, 0.05, 0.0, 0.0, 0.0), 1280, 800)
+
+
+@pytest.mark.parametrize(("camera", "planar", "clutter"), [
+    (CAM, True, 0), (CAM_DIST, True, 0), (CAM, True, 3), (CAM, False, 0),
+])
+def test_pose_matches_ground_truth_on_rendered_frames(
+    camera: CameraModel, planar: bool, clutter: int
+) -> None:
+    rng = np.random.default_rng(20 + clutter + 2 * planar)
+    t_err, r_err = [], []
+    for _ in range(10):
+        s = random_scene(rng, camera, n_dots=int(rng.integers(6, 9)), planar=planar,
+                         clutter=clutter)
+        result = Estimator(camera, s.target).estimate(s.image)
+        assert len(result.matched_ids) == s.target.n_points and not result.ambiguous
+        assert len(result.matched_blobs) == len(result.matched_ids)
+        assert result.image_points_px is not None and len(result.image_points_px) == len(
+            result.matched_ids)
+        dt, dr = pose_distance(result.T_camera_target, s.T_camera_target)
+        t_err.append(dt)
+        r_err.append(dr)
+        assert result.rms_px < 0.3
+    # 8 mm dots at 350-700 mm, 1.5 grey levels of noise: tenths of a mm, hundredths of a deg.
+    assert np.median(t_err) < 0.3 and max(t_err) < 1.5, t_err
+    assert np.median(r_err) < 0.1 and max(r_err) < 0.5, r_err
+
+
+def test_frame_around_the_dots_does_not_disturb_the_pose() -> None:
+    rng = np.random.default_rng(30)
+    s = random_scene(rng, CAM, n_dots=6, frame=True)
+    result = Estimator(CAM, s.target).estimate(s.image)
+    assert pose_distance(result.T_camera_target, s.T_camera_target)[0] < 1.0
+
+
+@pytest.mark.parametrize("threshold", [120.0, None])
+def test_tracking_gives_the_full_search_result_and_follows_motion(
+    threshold: float | None,
+) -> None:
+    """With one fixed threshold the windows see exactly the full search's regions, so the
+    results are identical; with Otsu, the full search re-thresholds every frame and the
+    centres move by a few thousandths of a pixel at most."""
+    rng = np.random.default_rng(31)
+    target = random_target(rng, 7)
+    T = random_pose(rng, CAM, target, distance_mm=(400.0, 500.0))
+    tracker = Estimator(CAM, target, threshold=threshold)
+    full = Estimator(CAM, target, tracking=False, threshold=threshold)
+    atol_px = 1e-9 if threshold is not None else 0.01
+    tol_mm, tol_deg = (1e-6, 1e-6) if threshold is not None else (0.02, 0.01)
+    for k in range(6):
+        step = make_T(Rotation.from_rotvec([0.0, 0.003 * k, 0.0]).as_matrix(), [1.5 * k, 0, 0])
+        image = render_target(CAM, target, T @ step, rng=rng)
+        a, b = tracker.estimate(image), full.estimate(image)
+        assert tracker.last_mode == ("full" if k == 0 else "tracking")
+        assert full.last_mode == "full"
+        assert a.matched_ids == b.matched_ids
+        assert np.allclose([(x.u, x.v) for x in a.matched_blobs],
+                           [(x.u, x.v) for x in b.matched_blobs], atol=atol_px, rtol=0.0)
+        dt, dr = pose_distance(a.T_camera_target, b.T_camera_target)
+        assert dt < tol_mm and dr < tol_deg
+        assert pose_distance(a.T_camera_target, T @ step)[0] < 1.0
+
+
+def test_tracking_falls_back_to_full_search_when_the_target_jumps() -> None:
+    rng = np.random.default_rng(32)
+    target = random_target(rng, 6)
+    est = Estimator(CAM, target)
+    s1 = render_target(CAM, target, random_pose(rng, CAM, target), rng=rng)
+    est.estimate(s1)
+    T2 = random_pose(rng, CAM, target)
+    result = est.estimate(render_target(CAM, target, T2, rng=rng))
+    assert est.last_mode == "full"
+    assert pose_distance(result.T_camera_target, T2)[0] < 1.0
+    est.reset()
+    est.estimate(render_target(CAM, target, T2, rng=rng))
+    assert est.last_mode == "full"
+
+
+def test_empty_frame_says_how_many_blobs_were_found() -> None:
+    target = Target([[0, 0, 0], [60, 0, 0], [100, 10, 0], [0, 50, 0], [40, 70, 0],
+                     [90, 60, 0]], 10.0)
+    blank = np.full((800, 1280), 180, np.uint8)
+    with pytest.raises(TooFewBlobsError) as err:
+        Estimator(CAM, target).estimate(blank)
+    assert err.value.found == 0 and err.value.needed == 5
+    assert err.value.code == "too_few_blobs" and "in view" in err.value.message
+
+
+def test_wrong_target_model_is_a_correspondence_error() -> None:
+    rng = np.random.default_rng(33)
+    s = random_scene(rng, CAM, n_dots=6)
+    other = random_target(np.random.default_rng(99), 6)
+    with pytest.raises(CorrespondenceError) as err:
+        Estimator(CAM, other).estimate(s.image)
+    assert err.value.code == "no_correspondence"
+
+
+def test_light_dots_and_bad_arguments() -> None:
+    rng = np.random.default_rng(34)
+    target = random_target(rng, 6, polarity="light")
+    T = random_pose(rng, CAM, target)
+    result = Estimator(CAM, target).estimate(render_target(CAM, target, T, rng=rng))
+    assert pose_distance(result.T_camera_target, T)[0] < 1.0
+    with pytest.raises(ValueError, match="8-bit grey"):
+        Estimator(CAM, target).estimate(np.zeros((800, 1280), np.float64))  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="unknown detector option"):
+        Estimator(CAM, target, min_aera_px=3)
+    with pytest.raises(ValueError, match="threshold"):
+        Estimator(CAM, target, threshold="magic")
