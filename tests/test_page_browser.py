@@ -204,6 +204,22 @@ def test_jog_stops_when_the_connection_drops(
     page.mouse.up()
 
 
+def test_keyboard_hold_jogs_and_reload_keeps_the_session(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    url, _ = stub
+    login(page, url, "tok-operator")
+    page.reload()  # the token lives in sessionStorage: still logged in, controls still enabled
+    page.get_by_test_id("role").filter(has_text="operator").wait_for()
+    page.get_by_test_id("jog-x-minus").focus()
+    page.keyboard.down(" ")
+    _wait_for(lambda: len(rec.of("/api/v1/jog/heartbeat")) >= 3, what="heartbeats")
+    page.keyboard.up(" ")
+    _wait_for(lambda: rec.of("/api/v1/stop"), what="stop on key release")
+    (start,) = rec.of("/api/v1/jog")
+    assert start.body["linear_mm_s"][0] < 0
+
+
 def test_api_refusals_are_shown_in_words(
     page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
 ) -> None:

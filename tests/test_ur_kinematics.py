@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import Rotation, Slerp
 
 from estimator.transforms import T_from_pose, invert_T, pose_distance
 from fakes.ur_sim.kinematics import UnreachableError, UR5eKinematics
@@ -163,6 +163,9 @@ def test_linear_profile_stays_on_line_and_slerps() -> None:
         assert np.linalg.norm(off - (off @ unit) * unit) < 1e-9
         assert np.linalg.norm(twist[:3]) <= 250.0 + 1e-6
         assert np.linalg.norm(twist[3:]) <= 0.25 + 1e-9
+        u, _ = prof.progress(t)
+        ref = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([T0[:3, :3], T1[:3, :3]])))
+        assert np.allclose(T[:3, :3], ref([u]).as_matrix()[0], atol=1e-12)
         angle = pose_distance(T0, T)[1]
         assert angle >= last_angle - 1e-9
         last_angle = angle

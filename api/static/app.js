@@ -33,8 +33,7 @@ const state = {
   permissions: null, // from GET /me
   lastOk: 0, // time of the last successful response (connection watchdog)
   online: false,
-  jog: null, // {btn, generation, timer} while a jog button is held
-  jogGeneration: 0,
+  jog: null, // {btn, timer} while a jog button is held
   frames: 0,
   frameTimes: [],
   frameUrl: "",
@@ -362,8 +361,7 @@ function jogRequest(axis, dir) {
 
 async function pressJog(btn) {
   if (state.jog || btn.disabled) return;
-  const generation = ++state.jogGeneration;
-  const jog = { btn, generation, timer: 0 };
+  const jog = { btn, timer: 0 };
   state.jog = jog;
   btn.classList.add("held");
   try {

@@ -310,12 +310,15 @@ class _MoveL(_Command):
         self.tau += dt * eng._speed_fraction
         u, _ = self.profile.progress(self.tau)
         try:
-            q = eng._kin.inverse_tcp(self.profile.pose_at_progress(u), eng._q)
+            T = self.profile.pose_at_progress(u)
+            done = self.tau >= self.profile.duration_s
+            # the closed form lands the final pose exactly; Newton is plenty in between
+            q = (eng._kin.inverse_tcp(T, eng._q) if done
+                 else eng._kin.inverse_tcp_local(T, eng._q, eng._q + eng._qd * dt))
         except UnreachableError as err:
             raise _SafetyTrip("linear move lost its inverse kinematics") from err
         qd = (q - eng._q) / dt if dt > 0 else np.zeros(6)
-        return _Step(q, qd, (qd - eng._qd) / dt if dt > 0 else np.zeros(6),
-                     self.tau >= self.profile.duration_s)
+        return _Step(q, qd, (qd - eng._qd) / dt if dt > 0 else np.zeros(6), done)
 
 
 class _Path(_Command):
@@ -392,7 +395,7 @@ class _SpeedL(_Command):
         T[:3, :3] = (Rotation.from_rotvec(mean[3:] * dt) * Rotation.from_matrix(T[:3, :3])
                      ).as_matrix()
         try:
-            q = eng._kin.inverse_tcp(T, eng._q)
+            q = eng._kin.inverse_tcp_local(T, eng._q, eng._q + eng._qd * dt)
         except UnreachableError as err:
             raise _SafetyTrip("Cartesian speed command left the reachable workspace") from err
         self.T, self.twist = T, new
@@ -610,17 +613,18 @@ class MotionEngine:
             return "joint position limit"
         if float(np.max(np.abs(qd))) > lim.max_joint_speed_rad_s * _LIMIT_MARGIN:
             return "joint speed limit"
-        tcp_speed = float(np.linalg.norm((self._kin.jacobian_tcp(q) @ qd)[:3])) / 1000.0
+        T_tcp, J = self._kin.tcp_and_jacobian(q)
+        tcp_speed = float(np.linalg.norm((J @ qd)[:3])) / 1000.0
         if tcp_speed > lim.max_tcp_speed_m_s * _LIMIT_MARGIN:
             return f"tool speed limit ({tcp_speed:.2f} m/s)"
-        outside = self._workspace_excess_m(q)
-        if outside > 0 and outside > self._workspace_excess_m(self._q):
-            return "TCP left the workspace"
+        outside = self._workspace_excess_m(T_tcp)
+        if outside > 0 and outside > self._workspace_excess_m(self._kin.forward_tcp(self._q)):
+            return "TCP left the workspace"  # (moving back in from outside is allowed)
         return ""
 
-    def _workspace_excess_m(self, q: Vec) -> float:
+    def _workspace_excess_m(self, T_base_tcp: Vec) -> float:
         """How far (m) the TCP is outside the workspace box or sphere (<= 0: inside)."""
-        p = self._kin.forward_tcp(q)[:3, 3] / 1000.0
+        p = T_base_tcp[:3, 3] / 1000.0
         lo = np.asarray(self.limits.workspace_min_m)
         hi = np.asarray(self.limits.workspace_max_m)
         box = float(np.max(np.concatenate([lo - p, p - hi])))
@@ -932,7 +936,7 @@ class MotionEngine:
         q = q0
         for u in np.linspace(0.0, 1.0, n + 1)[1:]:
             try:
-                q_next = self._kin.inverse_tcp(prof.pose_at_progress(float(u)), q)
+                q_next = self._kin.inverse_tcp_local(prof.pose_at_progress(float(u)), q)
             except UnreachableError as err:
                 raise UnreachablePoseError(
                     f"linear path to {list(pose6)} leaves the reachable workspace or the "

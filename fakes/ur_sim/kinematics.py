@@ -65,11 +65,15 @@ class UR5eKinematics:
         self.joint_max_rad = joint_max_rad
         self.T_flange_tcp: NDArray[np.float64] = np.eye(4)
         self._T_tcp_flange: NDArray[np.float64] = np.eye(4)
+        # the last (q, T_base_tcp, J): IK's final check and the safety check ask for the same q
+        self._memo: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None = (
+            None)
 
     def set_tcp(self, T_flange_tcp: ArrayLike) -> None:
         T = np.asarray(T_flange_tcp, dtype=float).reshape(4, 4)
         self.T_flange_tcp = T.copy()
         self._T_tcp_flange = invert_T(T)
+        self._memo = None
 
     # -- forward ----------------------------------------------------------------------------
     def link_frames(self, q_rad: ArrayLike) -> list[NDArray[np.float64]]:
@@ -91,14 +95,52 @@ class UR5eKinematics:
 
     def jacobian_tcp(self, q_rad: ArrayLike) -> NDArray[np.float64]:
         """Geometric Jacobian (6x6) of the TCP: ``[v (mm/s); w (rad/s)] = J @ qd`` in base."""
-        frames = self.link_frames(q_rad)
-        p_tcp = (frames[-1] @ self.T_flange_tcp)[:3, 3]
-        J = np.zeros((6, 6))
-        for i in range(6):
-            z = frames[i][:3, 2]
-            J[:3, i] = np.cross(z, p_tcp - frames[i][:3, 3])
-            J[3:, i] = z
-        return J
+        return self.tcp_and_jacobian(q_rad)[1]
+
+    def tcp_and_jacobian(self, q_rad: ArrayLike) -> tuple[NDArray[np.float64],
+                                                          NDArray[np.float64]]:
+        """``T_base_tcp`` and its Jacobian from one pass over the links (the engine needs
+        both every control cycle)."""
+        q = np.asarray(q_rad, dtype=float).reshape(6)
+        memo = self._memo
+        if memo is not None and np.array_equal(memo[0], q):
+            return memo[1], memo[2]
+        frames = self.link_frames(q)
+        T_tcp = frames[-1] @ self.T_flange_tcp
+        Z = np.array([f[:3, 2] for f in frames[:6]])
+        D = T_tcp[:3, 3] - np.array([f[:3, 3] for f in frames[:6]])
+        J = np.empty((6, 6))
+        # row-wise cross products z_i x (p_tcp - o_i), written out: np.cross is slow on
+        # small arrays and this runs at 500 Hz
+        J[:3] = (Z[:, [1, 2, 0]] * D[:, [2, 0, 1]] - Z[:, [2, 0, 1]] * D[:, [1, 2, 0]]).T
+        J[3:] = Z.T
+        self._memo = (q.copy(), T_tcp, J)
+        return T_tcp, J
+
+    def inverse_tcp_local(self, T_base_tcp: ArrayLike, q_seed: ArrayLike,
+                          q_guess: ArrayLike | None = None, tol_mm: float = 1e-6
+                          ) -> NDArray[np.float64]:
+        """Newton steps from a nearby guess (default: the seed): the cheap IK for continuous
+        motion, where each control cycle moves the TCP by well under a millimetre. Falls back
+        to the closed form nearest ``q_seed`` when it does not converge (singularity)."""
+        T = np.asarray(T_base_tcp, dtype=float).reshape(4, 4)
+        q = np.asarray(q_seed if q_guess is None else q_guess, dtype=float).reshape(6).copy()
+        for _ in range(4):
+            T_now, J = self.tcp_and_jacobian(q)
+            dp = T[:3, 3] - T_now[:3, 3]
+            R_err = T[:3, :3] @ T_now[:3, :3].T
+            # small-angle rotation vector of the residual (exact enough near convergence)
+            dw = 0.5 * np.array([R_err[2, 1] - R_err[1, 2], R_err[0, 2] - R_err[2, 0],
+                                 R_err[1, 0] - R_err[0, 1]])
+            if float(np.max(np.abs(dp))) < tol_mm and float(np.max(np.abs(dw))) < 1e-9:
+                if np.all(q >= self.joint_min_rad) and np.all(q <= self.joint_max_rad):
+                    return q
+                break
+            try:
+                q = q + np.linalg.solve(J, np.concatenate([dp, dw]))
+            except np.linalg.LinAlgError:
+                break
+        return self.inverse_tcp(T, q_seed)
 
     # -- inverse ----------------------------------------------------------------------------
     def inverse_all(self, T_base_flange: ArrayLike, q6_hint_rad: float = 0.0
