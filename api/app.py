@@ -81,10 +81,16 @@ def app_from_environment() -> FastAPI:
     """uvicorn factory for ``cell serve``: the config named by $CELL_CONFIG (default: the
     built-in simulated cell), its hardware, job store and image log, started and served."""
     import os
+    import sys
 
     from cell.runtime import start_cell
 
-    cell = start_cell(os.environ.get("CELL_CONFIG") or None)
+    try:
+        cell = start_cell(os.environ.get("CELL_CONFIG") or None)
+    except Exception as err:  # a clear line instead of a traceback from inside uvicorn
+        code = getattr(err, "code", "startup_failed")
+        print(f"error ({code}): the cell could not start: {err}", file=sys.stderr)
+        raise SystemExit(2) from err
     try:
         return create_app(cell, close_cell_on_shutdown=True)
     except BaseException:

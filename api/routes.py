@@ -132,10 +132,12 @@ async def stop(request: Request, caller: Annotated[Caller, Depends(require("stop
                body: Annotated[StopRequest | None, Body()] = None) -> dict[str, Any]:
     """Always accepted: stops any motion now and cancels the running job.
 
-    Runs on the event loop itself (not the thread pool), so a pool full of waiting requests
-    can never delay it.
+    Runs on asyncio's own executor, not the request thread pool, so a pool full of waiting
+    requests (``wait=true`` approaches) can never delay it.
     """
-    return cell_of(request).stop(caller.label, (body or StopRequest()).reason)
+    reason = (body or StopRequest()).reason
+    return await asyncio.get_running_loop().run_in_executor(
+        None, cell_of(request).stop, caller.label, reason)
 
 
 @router.post("/gripper", tags=["gripper"])

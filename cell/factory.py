@@ -4,7 +4,8 @@ Everything else in the cell works on the interfaces in ``drivers`` and never ask
 implementation it has. Choices:
 - ``[robot] kind="sim"``: the simulated arm in-process (fast tests);
   ``kind="ur"``: the real UR adapter (ur_rtde) at ``robot.host``; with ``[sim] ur_controller``
-  the simulated UR controller is started on that (loopback) address first, so the real adapter
+  the simulated UR controller is started on that (loopback) address first, in its own process
+  (see fakes.ur_controller.process), so the real adapter
   and the real client drive the simulated arm over the wire.
 - ``[camera] kind="sim"``: the simulated eye-in-hand camera, which renders what the simulated
   arm's camera sees; ``"oak"``: a Luxonis OAK.
@@ -30,42 +31,78 @@ from estimator.transforms import T_from_ur_pose, invert_T
 from fakes.gripper import FakeGripper
 from fakes.sim_arm import SimArm
 from fakes.sim_camera import SimCamera
+from fakes.ur_controller.process import ControllerProcess
 from fakes.ur_sim.engine import MotionEngine
 
 Matrix4 = NDArray[np.float64]
 PoseSource = Callable[[], tuple[Matrix4, float]]
 
 
-class _SimWorld:
-    """Ground truth and fault switches over the simulated engine and camera."""
+class _EngineTruth:
+    """The simulated arm's true state, read from an in-process engine."""
 
-    def __init__(self, engine: MotionEngine, camera: SimCamera) -> None:
-        self._engine = engine
+    def __init__(self, engine: MotionEngine) -> None:
+        self.engine = engine
+
+    def flange_and_tcp(self) -> tuple[Matrix4, Matrix4, float]:
+        snap = self.engine.snapshot()
+        T_tcp = T_from_ur_pose(snap.tcp_pose)
+        return T_tcp @ invert_T(T_from_ur_pose(snap.tcp_offset)), T_tcp, snap.host_monotonic_s
+
+    def protective_stop(self, reason: str) -> None:
+        self.engine.trigger_protective_stop(reason)
+
+
+class _ProcessTruth:
+    """The same, from a simulated controller in its own process (over its control channel).
+
+    ur_rtde's constructors hold the GIL while talking to the controller, so a controller in
+    the client's process would deadlock; time.monotonic is system-wide, so its timestamps
+    compare with ours.
+    """
+
+    def __init__(self, ctl: ControllerProcess) -> None:
+        self.ctl = ctl
+
+    def flange_and_tcp(self) -> tuple[Matrix4, Matrix4, float]:
+        st = self.ctl.state()
+        T_tcp = T_from_ur_pose(st["tcp_pose"])
+        return (T_tcp @ invert_T(T_from_ur_pose(st["tcp_offset"])), T_tcp,
+                float(st["host_monotonic_s"]))
+
+    def protective_stop(self, reason: str) -> None:
+        self.ctl.protective_stop()
+
+
+class _SimWorld:
+    """Ground truth and fault switches over the simulated arm and camera."""
+
+    def __init__(self, truth: _EngineTruth | _ProcessTruth, camera: SimCamera) -> None:
+        self._truth = truth
         self._camera = camera
 
     def true_T_base_target(self) -> Matrix4:
         return self._camera.T_base_target
 
     def true_T_base_tcp(self) -> Matrix4:
-        return T_from_ur_pose(self._engine.snapshot().tcp_pose)
+        return self._truth.flange_and_tcp()[1]
 
     def set_target(self, T_base_target: Matrix4) -> None:
         self._camera.set_target_pose(T_base_target)
 
     def trigger_protective_stop(self, reason: str = "test") -> None:
-        self._engine.trigger_protective_stop(reason)
+        self._truth.protective_stop(reason)
 
     def set_camera_lost(self, lost: bool) -> None:
         self._camera.set_lost(lost)
 
 
-def _engine_pose_source(engine: MotionEngine) -> PoseSource:
-    """``(T_base_flange, time.monotonic())`` from the engine: where the camera really is."""
+def _pose_source(truth: _EngineTruth | _ProcessTruth) -> PoseSource:
+    """``(T_base_flange, time.monotonic())`` of the simulated arm: where the camera really is."""
 
     def source() -> tuple[Matrix4, float]:
-        snap = engine.snapshot()
-        T_base_flange = T_from_ur_pose(snap.tcp_pose) @ invert_T(T_from_ur_pose(snap.tcp_offset))
-        return T_base_flange, float(snap.host_monotonic_s)
+        T_flange, _, t = truth.flange_and_tcp()
+        return T_flange, t
 
     return source
 
@@ -90,24 +127,20 @@ def build_hardware(config: CellConfig) -> Hardware:
 
 def _build(config: CellConfig, closers: list[Callable[[], None]]) -> Hardware:
     rc, sim = config.robot, config.sim
-    engine: MotionEngine | None = None
     simulated = True
-    if rc.kind == "sim" or sim.ur_controller:
-        engine = MotionEngine(q_rad=[float(v) for v in np.radians(rc.home_joints_deg)])
-        closers.append(engine.close)
-
+    truth: _EngineTruth | _ProcessTruth | None = None
     arm: Arm
     if rc.kind == "sim":
-        assert engine is not None
+        engine = MotionEngine(q_rad=[float(v) for v in np.radians(rc.home_joints_deg)])
+        closers.append(engine.close)
+        truth = _EngineTruth(engine)
         arm = SimArm(engine)
         closers.append(arm.disconnect)
     else:
         if sim.ur_controller:
-            from fakes.ur_controller.server import URController
-
-            assert engine is not None
-            controller = URController(rc.host, engine=engine)
-            closers.append(controller.close)
+            ctl = ControllerProcess(rc.host)
+            closers.append(ctl.close)
+            truth = _ProcessTruth(ctl)
         else:
             simulated = False
         from drivers.ur import URArm
@@ -119,13 +152,13 @@ def _build(config: CellConfig, closers: list[Callable[[], None]]) -> Hardware:
     sim_camera = None
     cc = config.camera
     if cc.kind == "sim":
-        if engine is None:
+        if truth is None:
             raise ConfigError("camera.kind = \"sim\" needs a simulated robot (robot.kind = "
                               "\"sim\" or sim.ur_controller = true)")
         T_flange_camera = (sim.T_flange_camera or config.hand_eye.T_flange_camera).T()
         sim_camera = SimCamera(
             cc.model(), config.target.model(), sim.T_base_target.T(), T_flange_camera,
-            _engine_pose_source(engine), fps=cc.fps, noise_std=sim.noise_std,
+            _pose_source(truth), fps=cc.fps, noise_std=sim.noise_std,
             blur_sigma_px=sim.blur_sigma_px)
         camera = sim_camera
     else:
@@ -152,8 +185,8 @@ def _build(config: CellConfig, closers: list[Callable[[], None]]) -> Hardware:
         closers.append(gripper.disconnect)
 
     world = None
-    if simulated and engine is not None and sim_camera is not None:
-        world = _SimWorld(engine, sim_camera)
+    if simulated and truth is not None and sim_camera is not None:
+        world = _SimWorld(truth, sim_camera)
     hw = Hardware(arm=arm, camera=camera, gripper=gripper, simulated=simulated, sim=world,
                   closers=list(closers))
     closers.clear()

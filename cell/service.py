@@ -46,6 +46,7 @@ from drivers.errors import (
     NotReadyError,
     ProtectiveStopError,
 )
+from drivers.gripper import Gripper
 from estimator import EstimationError, PoseResult
 from estimator.pipeline import Estimator
 from estimator.transforms import make_T, pose_dict, pose_distance
@@ -153,6 +154,8 @@ class Cell:
         self._estimator_lock = threading.Lock()
         self._preview_estimator = Estimator(config.camera.model(), self.target)
         self._preview_lock = threading.Lock()
+        self._gripper_lock = threading.Lock()  # one Modbus transaction at a time
+        self._gripper_last: dict[str, Any] = {}
         self._lock = threading.RLock()
         self._motion: _Motion | None = None
         self._jog: _Jog | None = None
@@ -247,12 +250,19 @@ class Cell:
         return out
 
     def _gripper_status(self) -> dict[str, Any] | None:
+        """The gripper's status; while a gripper command holds the serial line, the last one
+        read (marked ``stale``) rather than waiting for it."""
         if self.hw.gripper is None:
             return None
+        if not self._gripper_lock.acquire(timeout=0.05):
+            return {**self._gripper_last, "stale": True}
         try:
-            return self.hw.gripper.status().as_dict()
+            self._gripper_last = self.hw.gripper.status().as_dict()
+            return self._gripper_last
         except DriverError as err:
             return {"error": str(err)}
+        finally:
+            self._gripper_lock.release()
 
     def job(self, job_id: str) -> Job:
         job = self.jobs.get(job_id)
@@ -730,22 +740,28 @@ class Cell:
             g = self.hw.gripper
             if g is None:
                 raise UnavailableError("gripper_unavailable", "this cell has no gripper")
-            try:
-                if action == "open":
-                    st = g.open(wait=wait)
-                elif action == "close":
-                    st = g.close(wait=wait)
-                elif action == "activate":
-                    st = g.activate()
-                elif action == "move":
-                    if position_mm is None:
-                        raise LimitError("invalid_request", "move needs position_mm")
-                    st = g.move(position_mm, speed_pct, force_pct, wait=wait)
-                else:
-                    raise LimitError("invalid_request", f"unknown gripper action {action!r}")
-            except DriverError as err:
-                raise driver_error(err, f"gripper {action}") from err
-            return st.as_dict()
+            with self._gripper_lock:
+                return self._gripper_command(g, action, position_mm, speed_pct, force_pct, wait)
+
+    @staticmethod
+    def _gripper_command(g: Gripper, action: str, position_mm: float | None, speed_pct: float,
+                         force_pct: float, wait: bool) -> dict[str, Any]:
+        try:
+            if action == "open":
+                st = g.open(wait=wait)
+            elif action == "close":
+                st = g.close(wait=wait)
+            elif action == "activate":
+                st = g.activate()
+            elif action == "move":
+                if position_mm is None:
+                    raise LimitError("invalid_request", "move needs position_mm")
+                st = g.move(position_mm, speed_pct, force_pct, wait=wait)
+            else:
+                raise LimitError("invalid_request", f"unknown gripper action {action!r}")
+        except DriverError as err:
+            raise driver_error(err, f"gripper {action}") from err
+        return st.as_dict()
 
     # -- events ------------------------------------------------------------------------------
     def _monitor_loop(self) -> None:

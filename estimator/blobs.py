@@ -13,6 +13,7 @@ opt-in.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -97,24 +98,32 @@ def _region_area(contours: list[Contour], hierarchy: NDArray[Any], i: int) -> fl
 
 
 def _weighted_centre(
-    image_u8: NDArray[np.uint8], contour: Contour, polarity: Polarity
+    image_u8: NDArray[np.uint8], contour: Contour, rect: tuple[int, int, int, int],
+    polarity: Polarity,
 ) -> tuple[float, float] | None:
-    """Contrast-weighted centre of gravity over the padded bounding box of one region."""
+    """Contrast-weighted centre of gravity over the padded bounding box of one region.
+
+    ``contour`` and ``rect`` (its bounding box) are in frame coordinates, so a region found in
+    a tracking window gets exactly the centre the full search gives it. OpenCV calls only: at
+    this patch size (~20x20 px) each numpy call would cost as much as the arithmetic.
+    """
     h_img, w_img = image_u8.shape
-    x, y, w, h = cv2.boundingRect(contour)
+    x, y, w, h = rect
     x0, y0 = max(x - _RIM_PX - 1, 0), max(y - _RIM_PX - 1, 0)
     x1, y1 = min(x + w + _RIM_PX + 1, w_img), min(y + h + _RIM_PX + 1, h_img)
     window = image_u8[y0:y1, x0:x1]
     region = np.zeros(window.shape, np.uint8)
-    cv2.drawContours(region, [contour], 0, 1, -1, offset=(-x0, -y0))
+    cv2.drawContours(region, [contour], 0, 255, -1, offset=(-x0, -y0))
     near = cv2.dilate(region, _DILATE)
     # Mean rather than median of the surrounding ring: 10x cheaper, and a neighbour
     # intruding into the ring only scales the weights, it does not move the centre much.
-    ring = (1 - near).astype(np.uint8)
-    background = cv2.mean(window, mask=ring)[0]
-    patch = window.astype(np.float32)
-    contrast = background - patch if polarity == "dark" else patch - background
-    weights = np.maximum(contrast, 0.0) * near
+    background = cv2.mean(window, mask=cv2.bitwise_not(near))[0]
+    weights = np.zeros(window.shape, np.float32)
+    if polarity == "dark":  # contrast against the background, only near the region
+        cv2.subtract((background, 0.0, 0.0, 0.0), window, weights, near, cv2.CV_32F)
+    else:
+        cv2.subtract(window, (background, 0.0, 0.0, 0.0), weights, near, cv2.CV_32F)
+    cv2.threshold(weights, 0.0, 0.0, cv2.THRESH_TOZERO, weights)  # negative contrast: no weight
     m = cv2.moments(weights)
     if m["m00"] <= 0.0:
         return None
@@ -128,56 +137,63 @@ def blobs_from_mask(
     filt: BlobFilter,
     offset: tuple[int, int] = (0, 0),
 ) -> list[Blob]:
-    """Dots among the regions of a binary mask; ``image_u8`` is the same window as the mask.
+    """Dots among the regions of a binary mask of the window of ``image_u8`` at ``offset``.
 
-    ``offset`` (x, y) is added to the centres, so a window can report frame coordinates.
-    Regions touching the window border are dropped: a cut dot has a biased centre.
+    ``image_u8`` is the whole frame; ``mask_u8`` covers ``image_u8[y:y+h, x:x+w]`` with
+    ``offset`` = (x, y), so a tracking window reports frame coordinates and the same centres
+    as the full search. Regions touching the window border are dropped: a cut dot has a
+    biased centre. The filters run cheapest first (outline length, area, bounding box, then
+    convex hull, perimeter, moments), so clutter costs little Python work.
     """
-    contours, hierarchy = cv2.findContours(mask_u8, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
+    contours, hierarchy = cv2.findContours(
+        mask_u8, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE, offset=offset
+    )
     if hierarchy is None:
         return []
-    hier = hierarchy[0]
+    hier = hierarchy[0].tolist()
     h_img, w_img = mask_u8.shape
+    ox, oy = offset
+    x_end, y_end = ox + w_img, oy + h_img
+    min_area, max_area = filt.min_area_px, filt.max_area_px
     out: list[Blob] = []
     for i, c in enumerate(contours):
         if hier[i][3] >= 0 or len(c) < 3:  # holes are not dots; specks have no outline
             continue
+        x, y, w, h = rect = cv2.boundingRect(c)
+        if w * h < min_area or x <= ox or y <= oy or x + w >= x_end or y + h >= y_end:
+            continue  # a speck (the region fits in its box), or cut by the window border
         outer = cv2.contourArea(c)
-        if not filt.min_area_px <= outer <= 2.0 * filt.max_area_px:
+        if not min_area <= outer <= 2.0 * max_area:
             continue
-        x, y, w, h = cv2.boundingRect(c)
-        if x == 0 or y == 0 or x + w >= w_img or y + h >= h_img:
-            continue
-        area = _region_area(list(contours), hier, i) if hier[i][2] >= 0 else outer
-        if not filt.min_area_px <= area <= filt.max_area_px:
+        area = _region_area(contours, hier, i) if hier[i][2] >= 0 else outer
+        if not min_area <= area <= max_area:
             continue
         hull_area = cv2.contourArea(cv2.convexHull(c))
         fill = area / hull_area if hull_area > 0 else 0.0
         if fill < filt.min_fill_ratio:
             continue
         perimeter = cv2.arcLength(c, True)
-        circularity = 4.0 * np.pi * area / (perimeter * perimeter) if perimeter > 0 else 0.0
+        circularity = 4.0 * math.pi * area / (perimeter * perimeter) if perimeter > 0 else 0.0
         if circularity < filt.min_circularity:
             continue
         m = cv2.moments(c)
         if m["m00"] <= 0:
             continue
         mu20, mu02, mu11 = m["mu20"] / m["m00"], m["mu02"] / m["m00"], m["mu11"] / m["m00"]
-        half_diff = np.hypot((mu20 - mu02) / 2.0, mu11)
+        half_diff = math.hypot((mu20 - mu02) / 2.0, mu11)
         lam_major = (mu20 + mu02) / 2.0 + half_diff
         lam_minor = max((mu20 + mu02) / 2.0 - half_diff, 0.0)
-        inertia = float(np.sqrt(lam_minor / lam_major)) if lam_major > 0 else 0.0
+        inertia = math.sqrt(lam_minor / lam_major) if lam_major > 0 else 0.0
         if inertia < filt.min_inertia_ratio:
             continue
-        centre = _weighted_centre(image_u8, c, polarity)
+        centre = _weighted_centre(image_u8, c, rect, polarity)
         if centre is None:
             continue
         out.append(Blob(
-            u=centre[0] + offset[0], v=centre[1] + offset[1], area=area,
-            circularity=float(min(circularity, 1.0)), inertia_ratio=inertia, fill_ratio=float(fill),
-            major_axis_px=float(4.0 * np.sqrt(lam_major)),
-            minor_axis_px=float(4.0 * np.sqrt(lam_minor)),
-            angle_rad=float(0.5 * np.arctan2(2.0 * mu11, mu20 - mu02)),
+            u=centre[0], v=centre[1], area=area,
+            circularity=min(circularity, 1.0), inertia_ratio=inertia, fill_ratio=fill,
+            major_axis_px=4.0 * math.sqrt(lam_major), minor_axis_px=4.0 * math.sqrt(lam_minor),
+            angle_rad=0.5 * math.atan2(2.0 * mu11, mu20 - mu02),
         ))
     return out
 

@@ -2,8 +2,10 @@
 
 The first frame (and any frame after the track is lost) gets the full search: threshold the
 whole frame, match blobs to dots by hypothesise-and-verify, solve. While the pose keeps
-fitting, later frames only look in windows around the dots' predicted positions, which skips
-both the full-frame threshold and the correspondence search.
+fitting, later frames skip all of that: the model is projected with the pose extrapolated from
+the last two frames, each dot is looked for only in a small window around its prediction (the
+ids come from the track, so there is no correspondence step), and the pose is refined from the
+prediction (:func:`estimator.solve.solve_pose_near`) instead of seeded by POSIT.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from estimator.camera import CameraModel
 from estimator.correspondence import match_blobs
 from estimator.errors import EstimationError, TooFewBlobsError
 from estimator.result import Blob, PoseResult
-from estimator.solve import solve_pose
+from estimator.solve import solve_pose_near
 from estimator.target import Target
 from estimator.tracking import BlobTracker
 
@@ -66,6 +68,8 @@ class Estimator:
         self.polarity: Polarity = target.polarity
         self._tracker = BlobTracker(self.polarity, self.filter, track_margin_px)
         self.last_mode = "none"  # "full" or "tracking": how the last estimate was found
+        self._T_last: NDArray[np.float64] | None = None  # poses of the last two tracked frames
+        self._T_prev: NDArray[np.float64] | None = None
 
     def reset(self) -> None:
         """Forget the track: the next frame gets a full search."""
@@ -88,19 +92,33 @@ class Estimator:
             self._tracker.reset()
         return self._full_search(img)
 
+    def _predicted_pose(self) -> NDArray[np.float64]:
+        """The last pose moved on by the last frame-to-frame motion (constant velocity)."""
+        assert self._T_last is not None and self._T_prev is not None
+        step = np.linalg.solve(self._T_prev, self._T_last)  # T_prev^-1 T_last, target frame
+        return np.asarray(self._T_last @ step, dtype=np.float64)
+
     def _track(self, img: NDArray[np.uint8]) -> PoseResult | None:
-        blobs = self._tracker.track(img)
+        ids = self._tracker.model_ids
+        T_pred = self._predicted_pose()
+        obj = self.target.points_mm[list(ids)]
+        P = obj @ T_pred[:3, :3].T + T_pred[:3, 3]
+        if np.any(P[:, 2] <= 0.0):
+            return None
+        blobs = self._tracker.track(img, self.camera.project(P))
         if blobs is None:
             return None
-        ids = self._tracker.model_ids
         pts = np.array([[b.u, b.v] for b in blobs])
         try:
-            pose = self._solve(ids, pts)
+            pose = solve_pose_near(obj, pts, self.camera, T_pred,
+                                   dot_diameter_mm=self.target.dot_diameter_mm,
+                                   correct_bias=self.correct_bias)
         except EstimationError:
             return None
         if pose.rms_px > _TRACK_MAX_RMS_PX:
             return None
         self.last_mode = "tracking"
+        self._T_prev, self._T_last = self._T_last, pose.T_camera_target
         return self._finish(pose, blobs, ids, pts)
 
     def _full_search(self, img: NDArray[np.uint8]) -> PoseResult:
@@ -118,13 +136,9 @@ class Estimator:
         matched = [blobs[i] for i in corr.blob_indices]
         if self.tracking and threshold is not None and not corr.ambiguous:
             self._tracker.start(matched, corr.model_ids, threshold)
+            self._T_last = self._T_prev = corr.pose.T_camera_target
         self.last_mode = "full"
         return self._finish(corr.pose, matched, corr.model_ids, pts[list(corr.blob_indices)])
-
-    def _solve(self, ids: tuple[int, ...], pts: NDArray[np.float64]) -> PoseResult:
-        return solve_pose(self.target.points_mm[list(ids)], pts, self.camera,
-                          dot_diameter_mm=self.target.dot_diameter_mm,
-                          correct_bias=self.correct_bias)
 
     @staticmethod
     def _finish(

@@ -155,7 +155,7 @@ class FrameSystem:
 
     With corrected image points x_i(1 + eps_i) - x0, the scaled-orthographic solution is
     I = B (x - x0) + (B diag(x)) eps, and likewise for J; both are stacked into one 6-vector
-    ``offset + gain @ eps``.
+    ``offset + gain @ eps`` (``eps @ gain_t`` for several branches at once).
     """
 
     def __init__(self, model: ObjectModel, xy: NDArray[np.float64]) -> None:
@@ -163,8 +163,13 @@ class FrameSystem:
         pts = xy[1:]
         self.x0, self.y0 = float(xy[0, 0]), float(xy[0, 1])
         self.pts = pts
+        self.px = np.ascontiguousarray(pts[:, :1])  # (N-1,1) columns, broadcast over candidates
+        self.py = np.ascontiguousarray(pts[:, 1:])
+        self.xy0 = xy[0].copy()
+        self.pts3 = pts[:, None, :]  # (N-1,1,2), broadcast over candidates
         self.offset = np.concatenate((B @ (pts[:, 0] - self.x0), B @ (pts[:, 1] - self.y0)))
         self.gain = np.vstack((B * pts[:, 0], B * pts[:, 1]))
+        self.gain_t = np.ascontiguousarray(self.gain.T)
         # How far (normalised units) a corrected point moves per unit change of its epsilon.
         self.radius = np.sqrt(np.sum(pts * pts, axis=1))
 
@@ -174,9 +179,10 @@ class FrameSystem:
         return out
 
 
-def rotation_rows(
-    I: tuple[float, float, float], J: tuple[float, float, float]
-) -> tuple[NDArray[np.float64], float] | None:
+Vec3 = tuple[float, float, float]
+
+
+def unit_rows(I: Vec3, J: Vec3) -> tuple[Vec3, Vec3, Vec3, float] | None:
     """POSIT's rows R1 = I/|I|, R2 = J/|J|, R3 = R1 x R2 and the scale s = sqrt(|I||J|).
 
     Scalar arithmetic on purpose: for 3-vectors it is several times faster than numpy calls.
@@ -188,10 +194,18 @@ def rotation_rows(
         return None
     a0, a1, a2 = I[0] / nI, I[1] / nI, I[2] / nI
     b0, b1, b2 = J[0] / nJ, J[1] / nJ, J[2] / nJ
-    rows = np.array(
-        [[a0, a1, a2], [b0, b1, b2], [a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0]]
-    )
-    return rows, math.sqrt(nI * nJ)
+    r3 = (a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0)
+    return (a0, a1, a2), (b0, b1, b2), r3, math.sqrt(nI * nJ)
+
+
+def rotation_rows(
+    I: tuple[float, float, float], J: tuple[float, float, float]
+) -> tuple[NDArray[np.float64], float] | None:
+    """:func:`unit_rows` as a 3x3 array of rows and the scale; None when I or J vanishes."""
+    solved = unit_rows(I, J)
+    if solved is None:
+        return None
+    return np.array(solved[:3]), solved[3]
 
 
 def posit_general(
@@ -200,28 +214,32 @@ def posit_general(
     """The POSIT iteration for a non-planar model on normalised points -> (T, iterations, ok).
 
     ``tolerance`` is in normalised units: iteration stops when no perspective-corrected image
-    point x_i(1 + eps_i) moves by more than it.
+    point x_i(1 + eps_i) moves by more than it. One iteration is a (6,N-1) matrix-vector
+    product for I and J, scalar arithmetic for the rows, and a (N-1,3) product for the new
+    epsilons; everything per frame is prepared once in :class:`FrameSystem`.
     """
     system = FrameSystem(model, xy)
     V = model.vectors_mm[1:]
+    offset, gain, radius = system.offset, system.gain, system.radius
     eps = np.zeros(len(V))
-    R_rows = np.eye(3)
-    scale = 1.0
+    rows: tuple[Vec3, Vec3, Vec3, float] | None = None
     converged = False
     iterations = 0
     for iterations in range(1, max_iterations + 1):  # noqa: B007 - reported after the loop
-        ij = system.IJ(eps)
-        solved = rotation_rows((ij[0], ij[1], ij[2]), (ij[3], ij[4], ij[5]))
-        if solved is None:
+        i0, i1, i2, j0, j1, j2 = (offset + gain @ eps).tolist()
+        rows = unit_rows((i0, i1, i2), (j0, j1, j2))
+        if rows is None:
             raise DegenerateGeometryError("POSIT found no scaled-orthographic solution")
-        R_rows, scale = solved
-        new_eps = (V @ R_rows[2]) * scale  # (P0Pi . R3) / Tz with Tz = f/s, f = 1
-        step = float(np.max(np.abs(new_eps - eps) * system.radius))
+        r3, scale = rows[2], rows[3]
+        # eps_i = (P0Pi . R3) / Tz with Tz = f/s, f = 1
+        new_eps = V @ np.array((r3[0] * scale, r3[1] * scale, r3[2] * scale))
+        step = float((np.abs(new_eps - eps) * radius).max())
         eps = new_eps
         if step < tolerance:
             converged = True
             break
-    T = pose_from_rows(R_rows, scale, xy[0], model.points_mm[0])
+    assert rows is not None  # max_iterations >= 1
+    T = pose_from_rows(np.array(rows[:3]), rows[3], xy[0], model.points_mm[0])
     return T, iterations, converged
 
 

@@ -50,6 +50,11 @@ RETRY_RMS_PX = 1.0  # best refined rms above this: try the other reference point
 BAD_RMS_PX = 2.0  # an unconverged seed whose refined rms is above this is a failure
 SEED_MAX_ITERATIONS = 100
 SEED_TOLERANCE_PX = 0.05  # the seed only has to land in the right basin; LM does the rest
+# Coplanar POSIT converges more slowly (error ratio ~0.45 per iteration) and each iteration
+# costs more (two branches, four candidates), while LM takes a 1 px seed in its stride.
+PLANAR_SEED_TOLERANCE_PX = 1.0
+CONTENDER_RAW_RMS_PX = 8.0  # an unrefined alternative above this cannot refine to < 2 px rms
+CONTENDER_RATIO = 3.0  # ... unless the winner itself fits badly (a wrong basin)
 _SAME_ANGLE_RAD = 1e-3
 _SAME_RANGE_FRACTION = 1e-3
 
@@ -96,8 +101,10 @@ class _Problem:
         self.camera = camera
         self.K = camera.K
         self.dist = camera.dist_coeffs
-        self.tolerance = SEED_TOLERANCE_PX / (0.5 * (camera.fx + camera.fy))
+        tolerance_px = PLANAR_SEED_TOLERANCE_PX if self.model.planar else SEED_TOLERANCE_PX
+        self.tolerance = tolerance_px / (0.5 * (camera.fx + camera.fy))
         self.raw_alternative: tuple[NDArray[np.float64], float] | None = None
+        self.branch_rms: float | None = None  # raw rms of the losing coplanar branch
 
     def seeds(self, reference: int) -> list[_Seed]:
         """POSIT seeds with model point ``reference`` as P0 (both branches if planar)."""
@@ -112,7 +119,9 @@ class _Problem:
                 model, xy, img, self.camera, SEED_MAX_ITERATIONS, self.tolerance
             )
             seeds = [_Seed(result.T_camera_target, result.iterations, result.converged, reference)]
+            self.branch_rms = None
             if result.alternative is not None:
+                self.branch_rms = result.alternative[1]
                 if self.raw_alternative is None:
                     self.raw_alternative = result.alternative
                 seeds.append(
@@ -138,24 +147,36 @@ class _Problem:
     def candidates(self, reference: int) -> list[_Solution]:
         """Refined poses from the seeds with model point ``reference`` as POSIT's P0.
 
-        Planar models yield two local minima: the refined better coplanar branch and the refined
-        mirror of it (more reliable than the other branch, which often drifts into the same
-        basin); the other branch is refined only when the mirror finds no second minimum.
+        Planar models have two local minima. Besides the better coplanar branch, the other
+        branch and the mirror of the refined pose (more reliable than the other branch, which
+        often drifts into the same basin) are candidates for the second one; each costs a
+        projection to score raw, and only one whose raw rms makes it a contender (below
+        CONTENDER_RAW_RMS_PX, or within CONTENDER_RATIO of the refined winner) is refined --
+        the better one first, the other only if that one fell into the winner's basin.
         """
         seeds = self.seeds(reference)
         first = self.refine(seeds[0])
         out = [] if first is None else [first]
         if not self.model.planar:
             return out
-        base = seeds[0] if first is None else _Seed(first.T, *astuple_seed(seeds[0]))
-        mirror_T = mirrored_pose(base.T, self.obj, self.model.normal)
-        mirror = self.refine(_Seed(mirror_T, *astuple_seed(seeds[0])))
-        if mirror is not None:
-            out.append(mirror)
-        if len(_distinct(out)) < 2 and len(seeds) > 1:
-            other = self.refine(seeds[1])
-            if other is not None:
-                out.append(other)
+        base_T = seeds[0].T if first is None else first.T
+        mirror_T = mirrored_pose(base_T, self.obj, self.model.normal)
+        options = [(reprojection_rms_px(mirror_T, self.obj, self.img, self.camera), mirror_T)]
+        if len(seeds) > 1 and self.branch_rms is not None:
+            options.append((self.branch_rms, seeds[1].T))
+        options.sort(key=lambda o: o[0])
+        limit = CONTENDER_RAW_RMS_PX if first is None else max(
+            CONTENDER_RAW_RMS_PX, CONTENDER_RATIO * first.rms)
+        bookkeeping = astuple_seed(seeds[0])
+        for raw_rms, T in options:
+            if raw_rms > limit:
+                break
+            solution = self.refine(_Seed(T, *bookkeeping))
+            if solution is None:
+                continue
+            out.append(solution)
+            if first is None or not _same_pose(solution.T, first.T):
+                break
         return out
 
     def solutions(self, references: range) -> tuple[list[_Solution], EstimationError | None]:
@@ -209,11 +230,20 @@ def _distinct(solutions: list[_Solution]) -> list[_Solution]:
 def _unrefined_alternative(
     problem: _Problem, T_best: NDArray[np.float64], image_points: NDArray[np.float64]
 ) -> AlternativePose:
-    """The other coplanar branch as POSIT left it, or else the mirrored pose, with its rms."""
-    if problem.raw_alternative is not None:
-        return AlternativePose(*problem.raw_alternative)
+    """The better fitting of the other coplanar branch as POSIT left it (if it is not the
+    winner's pose) and the mirrored pose, with its rms."""
     T = mirrored_pose(T_best, problem.obj, problem.model.normal)
-    return AlternativePose(T, reprojection_rms_px(T, problem.obj, image_points, problem.camera))
+    mirror = AlternativePose(
+        T, reprojection_rms_px(T, problem.obj, image_points, problem.camera))
+    branch = problem.raw_alternative
+    if branch is None or branch[1] >= mirror.rms_px or _same_pose_loose(branch[0], T_best):
+        return mirror
+    return AlternativePose(*branch)
+
+
+def _same_pose_loose(A: NDArray[np.float64], B: NDArray[np.float64]) -> bool:
+    """Rotations within ~1 deg: an unrefined seed of the winner's own basin."""
+    return 0.5 * (float(np.sum(A[:3, :3] * B[:3, :3])) - 1.0) > math.cos(math.radians(1.0))
 
 
 def solve_pose(
@@ -259,6 +289,10 @@ def solve_pose(
         notes.append(f"seeded with point {best.seed.reference} as POSIT reference")
     image_points = problem.img
     if dot_diameter_mm is not None and correct_bias:
+        # One more LM from the solved pose on the corrected points, not a re-run: the bias is
+        # hundredths of a pixel, so the pose moves by far less than the basin. The alternative
+        # keeps its rms on the measured points; the correction cannot change the ambiguity
+        # verdict, whose margin (1.5x) is far larger.
         bias = centroid_bias_px(best.T, problem.obj, dot_diameter_mm, camera)
         image_points = problem.img - bias
         refined = problem.refine(_Seed(best.T, 0, True, 0), image_points)
@@ -267,13 +301,6 @@ def solve_pose(
         notes.append(
             f"perspective bias corrected (max {float(np.max(np.abs(bias))):.3f} px)"
         )
-        if alternative is not None and alternative.rms < 2.0 * AMBIGUITY_RATIO * max(
-            best.rms, NOISE_FLOOR_PX
-        ):  # only an alternative that may be ambiguous is worth another refinement
-            alt_bias = centroid_bias_px(alternative.T, problem.obj, dot_diameter_mm, camera)
-            alt = problem.refine(alternative.seed, problem.img - alt_bias)
-            if alt is not None and not _same_pose(alt.T, best.T):
-                alternative = alt
     if not best.seed.converged and best.rms > BAD_RMS_PX:
         raise NotConvergedError(
             f"POSIT did not converge in {SEED_MAX_ITERATIONS} iterations and the refined pose "
@@ -298,6 +325,55 @@ def solve_pose(
         ambiguous=ambiguous,
         alternative=alt_pose,
         covariance=covariance_from(best.residuals, best.jacobian),
+        image_points_px=image_points,
+        notes=tuple(notes),
+    )
+
+
+def solve_pose_near(
+    object_points_mm: ArrayLike,
+    image_points_px: ArrayLike,
+    camera: CameraModel,
+    T_init: ArrayLike,
+    *,
+    dot_diameter_mm: float | None = None,
+    correct_bias: bool = True,
+) -> PoseResult:
+    """Pose from matched points when a nearby pose is already known (tracking), no POSIT.
+
+    The same two LM refinements that end :func:`solve_pose` -- on the measured points, then
+    on the bias-corrected ones -- but started from ``T_init``, so a tracked frame gets the very
+    pose a full solve would give. No alternative is searched (the track only starts from an
+    unambiguous pose): ``alternative`` is None and ``ambiguous`` False. Raises
+    BehindCameraError when the refined pose puts part of the target behind the camera.
+    """
+    obj = np.ascontiguousarray(object_points_mm, dtype=float).reshape(-1, 3)
+    img = np.ascontiguousarray(image_points_px, dtype=float).reshape(-1, 2)
+    if len(obj) != len(img) or len(obj) < 4:
+        raise ValueError(f"need 4 or more matched points, got {len(obj)} and {len(img)}")
+    K, dist = camera.K, camera.dist_coeffs
+    T, residuals, J = refine_arrays(obj, img, K, dist, np.asarray(T_init, dtype=float))
+    notes = ["refined from the tracked pose"]
+    image_points = img
+    if dot_diameter_mm is not None and correct_bias and all_in_front(T, obj):
+        bias = centroid_bias_px(T, obj, dot_diameter_mm, camera)
+        image_points = img - bias
+        T, residuals, J = refine_arrays(obj, image_points, K, dist, T)
+        notes.append(f"perspective bias corrected (max {float(np.max(np.abs(bias))):.3f} px)")
+    if not all_in_front(T, obj):
+        raise BehindCameraError(
+            "the refined pose puts part of the target behind the camera: the tracked points "
+            "no longer match the model"
+        )
+    return PoseResult(
+        T_camera_target=T,
+        rms_px=_rms(residuals),
+        residuals_px=np.sqrt(np.sum(residuals * residuals, axis=1)),
+        iterations=0,
+        converged=True,
+        ambiguous=False,
+        alternative=None,
+        covariance=covariance_from(residuals, J),
         image_points_px=image_points,
         notes=tuple(notes),
     )

@@ -1,21 +1,25 @@
 """Tracking mode: look for each dot only in a small window around where it should be now.
 
 Between consecutive frames a dot moves a few pixels, so thresholding and tracing a window of
-a few dot diameters per dot is far cheaper than the full frame. The windows reuse the global
-threshold of the last full search, so a dot found in its window has exactly the outline, and
-hence exactly the centre, the full search would give. Any doubt (a dot not found, two windows
-claiming one blob, a shape that changed) reports the track lost, and the caller falls back to
-a full search, which also re-estimates the threshold.
+a few dot diameters per dot is far cheaper than the full frame (no full-frame pass at all).
+The caller predicts where the dots are (the pipeline projects the model with the pose
+extrapolated from the last two frames); without a prediction the last centres plus their
+last pixel velocity are used. The windows reuse the global threshold of the last full search,
+so a dot found in its window has exactly the outline, and hence exactly the centre, the full
+search would give. Any doubt (a dot not found, two windows claiming one blob, a shape that
+changed) reports the track lost, and the caller falls back to a full search, which also
+re-estimates the threshold.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator.blobs import BlobFilter, Polarity, binarize, blobs_from_mask
+from estimator.blobs import BlobFilter, Polarity, blobs_from_mask
 from estimator.result import Blob
 
 
@@ -25,13 +29,14 @@ class BlobTracker:
     def __init__(
         self, polarity: Polarity, filt: BlobFilter | None = None, margin_px: float = 12.0
     ) -> None:
-        """``margin_px``: how far (px) beyond the constant-velocity prediction a dot may be."""
+        """``margin_px``: how far (px) beyond the prediction a dot may be."""
         self.polarity: Polarity = polarity
         self.filt = filt if filt is not None else BlobFilter()
         self.margin_px = float(margin_px)
         self._blobs: tuple[Blob, ...] = ()
         self._velocity = np.zeros((0, 2))
         self._threshold = 0.0
+        self._kind = cv2.THRESH_BINARY_INV if polarity == "dark" else cv2.THRESH_BINARY
         self.model_ids: tuple[int, ...] = ()
 
     @property
@@ -53,25 +58,33 @@ class BlobTracker:
         self._velocity = np.zeros((0, 2))
 
     def predicted_px(self) -> NDArray[np.float64]:
-        """Where each tracked dot should be in the next frame (constant velocity)."""
+        """Where each tracked dot should be in the next frame (constant pixel velocity)."""
         last = np.array([[b.u, b.v] for b in self._blobs], dtype=float).reshape(-1, 2)
         return last + self._velocity
 
-    def track(self, image_u8: NDArray[np.uint8]) -> list[Blob] | None:
-        """The tracked blobs in the new frame (same order as started), or None when lost."""
+    def track(
+        self, image_u8: NDArray[np.uint8], predicted_px: NDArray[np.float64] | None = None
+    ) -> list[Blob] | None:
+        """The tracked blobs in the new frame (same order as started), or None when lost.
+
+        ``predicted_px`` (N,2): where the caller expects each dot; default
+        :meth:`predicted_px`.
+        """
         if not self._blobs:
+            return None
+        pred = self.predicted_px() if predicted_px is None else np.asarray(predicted_px, float)
+        if pred.shape != (len(self._blobs), 2) or not np.all(np.isfinite(pred)):
             return None
         h, w = image_u8.shape
         found: list[Blob] = []
-        for blob, (pu, pv) in zip(self._blobs, self.predicted_px(), strict=True):
+        for blob, (pu, pv) in zip(self._blobs, pred.tolist(), strict=True):
             half = 0.5 * max(blob.major_axis_px, 4.0) + 4.0 + self.margin_px
             x0, y0 = max(int(pu - half), 0), max(int(pv - half), 0)
             x1, y1 = min(int(pu + half) + 2, w), min(int(pv + half) + 2, h)
             if x1 - x0 < 4 or y1 - y0 < 4:
                 return None
-            window = image_u8[y0:y1, x0:x1]
-            mask = binarize(window, self.polarity, self._threshold)
-            cands = blobs_from_mask(window, mask, self.polarity, self.filt, offset=(x0, y0))
+            _, mask = cv2.threshold(image_u8[y0:y1, x0:x1], self._threshold, 255, self._kind)
+            cands = blobs_from_mask(image_u8, mask, self.polarity, self.filt, offset=(x0, y0))
             if not cands:
                 return None
             best = min(cands, key=lambda c: (c.u - pu) ** 2 + (c.v - pv) ** 2)

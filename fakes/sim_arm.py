@@ -173,6 +173,7 @@ class SimArm:
         outcome = self.engine.wait_for(cid, _MOVE_TIMEOUT_S)
         if outcome == CommandOutcome.SUCCEEDED:
             return
+        self.engine.wait_until_idle(5.0)  # report once the safety stop has braked to rest
         s = self.engine.snapshot()
         if s.safety_mode == SafetyMode.PROTECTIVE_STOP:
             raise ProtectiveStopError(f"move ended by a protective stop: {s.last_stop_reason}")

@@ -29,7 +29,8 @@ HOME_TARGET = (-480.0, -100.0, 0.0)
 @pytest.fixture
 def client(tmp_path: Path) -> Iterator[TestClient]:
     config = sim_config(tmp_path, limits={"max_pose_age_s": 1.0},
-                        approach={"speed_mm_s": 250.0, "accel_mm_s2": 1200.0})
+                        approach={"speed_mm_s": 250.0, "accel_mm_s2": 1200.0},
+                        api={"image_log_dir": str(tmp_path / "imagelog"), "image_log_max": 2})
     with running_cell(config) as cell, TestClient(create_app(cell)) as c:
         yield c
 
@@ -271,12 +272,13 @@ def test_events_frame_metrics_health_and_roles(client: TestClient) -> None:
     r = client.get("/api/v1/camera/frame.png?overlay=true", headers=VIEW)
     assert r.status_code == 200 and r.headers["content-type"] == "image/png"
     img = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_COLOR)
-    assert img.shape == (800, 1280, 3)
+    assert img is not None and img.shape == (800, 1280, 3)
     green = (img[:, :, 1] > 200) & (img[:, :, 0] < 80) & (img[:, :, 2] < 80)
     assert green.sum() > 200  # detections drawn
     r = client.get("/api/v1/camera/frame.png", params={"token": "sim-viewer"})
     assert r.status_code == 200
-    assert cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_UNCHANGED).ndim == 2
+    grey = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert grey is not None and grey.ndim == 2
     truth = client.get("/api/v1/sim/truth", headers=VIEW).json()
     assert np.allclose(truth["T_base_target"]["position_mm"], HOME_TARGET)
     assert client.put("/api/v1/sim/target", json=truth["T_base_target"],
@@ -286,3 +288,22 @@ def test_events_frame_metrics_health_and_roles(client: TestClient) -> None:
         in metrics
     assert "cell_arm_connected 1" in metrics
     assert client.get("/metrics").status_code == 401
+
+
+def test_failed_locates_go_to_the_image_log(client: TestClient) -> None:
+    cell = cell_of(client)
+    place(client, T_from_pose([-480, 300, 0], [np.pi, 0, 0]))  # out of view
+    time.sleep(0.15)
+    for _ in range(3):
+        r = client.post("/api/v1/locate", headers=PLC)
+        assert r.status_code == 409, r.text
+        assert error_code(r) in ("too_few_blobs", "no_correspondence")
+        assert "target not located" in r.json()["error"]["message"]
+    assert cell.image_log is not None
+    entries = cell.image_log.entries()
+    assert len(entries) == 2  # a bounded ring
+    img = cv2.imread(str(entries[-1]), cv2.IMREAD_UNCHANGED)
+    assert img is not None and img.shape == (800, 1280)
+    assert "code" in entries[-1].with_suffix(".json").read_text()
+    metrics = client.get("/metrics", headers=VIEW).text
+    assert 'cell_locate_total{outcome="failed"} 3' in metrics

@@ -166,3 +166,72 @@ def test_intrinsics_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
     code, out = run_json(capsys, "calibrate", "intrinsics", str(tmp_path),
                          "--cols", "7", "--rows", "5", "--square-mm", "-1")
     assert code == 2 and out["error"]["code"] == "invalid_argument"
+
+
+# --- the guided routine on the simulated cell ------------------------------------------------
+
+TRUE_T_FLANGE_CAMERA = {"position_mm": [3.0, 57.5, 34.0], "rotvec_rad": [0.012, -0.02, 0.03]}
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int | float):
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + " }"
+    raise TypeError(v)
+
+
+def sim_cell_config(path: Path, **sim: Any) -> Path:
+    """The built-in simulated cell, in-process arm, camera mount off the [hand_eye] guess."""
+    import tomllib
+
+    data = tomllib.loads((REPO / "cell" / "configs" / "sim.toml").read_text())
+    tables = {k: data[k] for k in ("camera", "target", "hand_eye", "tool") if k in data}
+    tables["robot"] = {**data.get("robot", {}), "kind": "sim"}
+    tables["sim"] = {k: v for k, v in data.get("sim", {}).items()
+                     if k in ("T_base_target", "noise_std", "blur_sigma_px")}
+    tables["sim"].update({"T_flange_camera": TRUE_T_FLANGE_CAMERA, **sim})
+    text = "".join(
+        f"[{name}]\n" + "".join(f"{k} = {_toml_value(v)}\n" for k, v in t.items()) + "\n"
+        for name, t in tables.items()
+    )
+    path.write_text(text)
+    cfg = load_config(path)
+    assert cfg.robot.kind == "sim" and cfg.sim.T_flange_camera is not None
+    # the routine only aims its views with the [hand_eye] guess, which is millimetres off
+    guess = cfg.hand_eye.T_flange_camera.T()
+    assert pose_distance(guess, T_from_pose_dict(TRUE_T_FLANGE_CAMERA))[0] > 3.0
+    return path
+
+
+@pytest.mark.slow
+def test_routine_recovers_the_simulated_hand_eye(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg = sim_cell_config(tmp_path / "cell.toml")
+    code, out = run_json(capsys, "calibrate", "routine", "--config", str(cfg), "--views", "8",
+                         "--write-config", str(cfg))
+    assert code == 0, out
+    truth = T_from_pose_dict(TRUE_T_FLANGE_CAMERA)
+    d_mm, d_deg = pose_distance(T_from_pose_dict(out["T_flange_camera"]), truth)
+    assert out["chosen"] == "joint"
+    assert d_mm < 0.2 and d_deg < 0.05, (d_mm, d_deg)
+    assert out["verdict"]["consistent"] is True
+    assert out["joint"]["rms_px"] < 0.5 and len(out["views"]) + len(out["failed_views"]) == 8
+    written = load_config(cfg).hand_eye.T_flange_camera.T()
+    assert pose_distance(written, truth)[0] < 0.2
+
+
+def test_routine_without_target_in_view_is_a_json_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    far = {"position_mm": [-480.0, 2000.0, 0.0], "rotvec_rad": [3.141592653589793, 0.0, 0.0]}
+    cfg = sim_cell_config(tmp_path / "cell.toml", T_base_target=far)
+    code, out = run_json(capsys, "calibrate", "routine", "--config", str(cfg))
+    assert code == 2 and out["error"]["code"] == "target_not_visible"

@@ -181,3 +181,23 @@ def test_detection_order_is_canonical_under_180_degree_turns(visp_dir: Path) -> 
     h, w = img.shape
     b_back = np.column_stack((w - 1 - b[:, 0], h - 1 - b[:, 1]))
     assert np.max(np.linalg.norm(a - b_back, axis=1)) < 0.5
+
+
+def test_planned_routine_poses_turn_about_the_target() -> None:
+    from cell.calibration.routine import RoutineSettings, plan_poses
+
+    start = T_from_pose([-400.0, -100.0, 450.0], [np.pi, 0.0, 0.0])
+    pivot_cam = np.array([10.0, -20.0, 400.0])
+    settings = RoutineSettings(n_views=10, tilt_deg=20.0, roll_deg=30.0)
+    poses = plan_poses(start, TRUE_X, pivot_cam, settings)
+    assert len(poses) == 10 and np.allclose(poses[0], start)
+    pivot_base = start @ TRUE_X @ np.r_[pivot_cam, 1.0]
+    axes = []
+    for T in poses[1:]:
+        in_cam = invert_T(T @ TRUE_X) @ pivot_base
+        assert np.linalg.norm(in_cam[:3]) == pytest.approx(np.linalg.norm(pivot_cam), abs=1e-6)
+        turn = invert_T(start) @ T
+        axes.append(Rotation.from_matrix(turn[:3, :3]).as_rotvec())
+    assert np.linalg.matrix_rank(np.array(axes), tol=0.05) == 3  # many different axes
+    angles = np.degrees(np.linalg.norm(axes, axis=1))
+    assert angles.max() < 20.0 + 30.0 + 1.0

@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from estimator.transforms import T_from_pose, invert_T, pose_distance
 from fakes.ur_sim.kinematics import UnreachableError, UR5eKinematics
-from fakes.ur_sim.profiles import JointProfile, LinearProfile, Trapezoid
+from fakes.ur_sim.profiles import BlendedLinearPath, JointProfile, LinearProfile, Trapezoid
 
 HOME = np.array([0.0, -1.571, 1.571, -1.571, -1.571, 0.0])
 
@@ -180,3 +180,24 @@ def test_linear_profile_pure_rotation_takes_time() -> None:
     still = LinearProfile(T0, T0, 250.0, 1000.0, 0.25, 1.0)
     assert still.duration_s == 0.0
     assert np.array_equal(still.at(0.0)[0], T0)
+
+
+def test_blended_path_keeps_speed_and_ends_exactly() -> None:
+    Ta = T_from_pose([-400.0, -150.0, 450.0], [math.pi, 0.0, 0.0])
+    Tb = T_from_pose([-300.0, -150.0, 450.0], [math.pi, 0.0, 0.3])
+    Tc = T_from_pose([-300.0, -50.0, 400.0], [math.pi, 0.0, 0.0])
+    moves = [LinearProfile(Ta, Tb, 200.0, 1000.0, 0.2, 1.0),
+             LinearProfile(Tb, Tc, 200.0, 1000.0, 0.2, 1.0)]
+    stop = BlendedLinearPath(moves, [0.0])
+    blend = BlendedLinearPath(moves, [30.0])
+    assert stop.duration_s == pytest.approx(moves[0].duration_s + moves[1].duration_s)
+    assert blend.duration_s < stop.duration_s - 0.1
+    ts = np.linspace(0.0, blend.duration_s, 3001)
+    ps = np.array([blend.pose_at(t)[:3, 3] for t in ts])
+    speeds = np.linalg.norm(np.diff(ps, axis=0), axis=1) / np.diff(ts)
+    assert speeds.max() <= 200.0 * 1.001
+    assert np.linalg.norm(ps - Tb[:3, 3], axis=1).min() > 2.0  # the corner is cut
+    assert speeds[len(speeds) // 4: 3 * len(speeds) // 4].min() > 20.0  # no stop mid-way
+    assert np.array_equal(blend.pose_at(blend.duration_s), Tc)
+    assert np.allclose(blend.pose_at(blend.duration_s - 1e-9), Tc, atol=1e-6)
+    assert blend.index_at(0.0) == 0 and blend.index_at(blend.duration_s) == 1

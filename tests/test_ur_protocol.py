@@ -302,7 +302,7 @@ def test_speed_servo_and_stops(ctl: ControllerProcess, clients: tuple) -> None:
 def test_second_control_connection_is_rejected(ctl: ControllerProcess, clients: tuple) -> None:
     with pytest.raises(RuntimeError, match="already in use"):
         rtde_control.RTDEControlInterface(ctl.host)
-    c, r = clients
+    c, _ = clients
     assert c.isProgramRunning()  # the first client is unaffected
 
 

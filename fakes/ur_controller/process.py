@@ -112,6 +112,10 @@ class ControllerProcess:
         self._proc.wait(timeout=5.0)
 
     @property
+    def pid(self) -> int:
+        return self._proc.pid
+
+    @property
     def alive(self) -> bool:
         return self._proc.poll() is None
 

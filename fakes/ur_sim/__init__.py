@@ -5,6 +5,8 @@ No network here: the protocol servers in ``fakes.ur_controller`` and ``fakes.sim
 """
 
 from fakes.ur_sim.engine import (
+    HOME_Q_RAD,
+    CommandOutcome,
     CommandRejectedError,
     EmergencyStopActiveError,
     EngineError,
@@ -19,6 +21,8 @@ from fakes.ur_sim.engine import (
 )
 
 __all__ = [
+    "HOME_Q_RAD",
+    "CommandOutcome",
     "CommandRejectedError",
     "EmergencyStopActiveError",
     "EngineError",

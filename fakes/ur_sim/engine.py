@@ -32,7 +32,7 @@ from scipy.spatial.transform import Rotation
 
 from estimator.transforms import T_from_ur_pose, ur_pose_from_T
 from fakes.ur_sim.kinematics import UnreachableError, UR5eKinematics
-from fakes.ur_sim.profiles import JointProfile, LinearProfile
+from fakes.ur_sim.profiles import BlendedLinearPath, JointProfile, LinearProfile
 
 NUM_JOINTS = 6
 CYCLE_S = 0.002  # 500 Hz, the e-Series control rate
@@ -300,18 +300,22 @@ class _MoveJ(_Command):
 
 
 class _MoveL(_Command):
-    def __init__(self, cid: int, name: str, profile: LinearProfile) -> None:
+    """Straight (or blended) TCP motion; joints follow by IK from the previous cycle."""
+
+    def __init__(self, cid: int, name: str, path: BlendedLinearPath, first_entry: int = 0
+                 ) -> None:
         super().__init__(cid, name)
-        self.profile = profile
+        self.path = path
         self.tau = 0.0
-        self.progress = 0
+        self.first_entry = first_entry
+        self.progress = first_entry
 
     def step(self, eng: MotionEngine, now: float, dt: float) -> _Step:
         self.tau += dt * eng._speed_fraction
-        u, _ = self.profile.progress(self.tau)
+        done = self.tau >= self.path.duration_s
+        self.progress = self.first_entry + self.path.index_at(self.tau)
+        T = self.path.pose_at(self.tau)
         try:
-            T = self.profile.pose_at_progress(u)
-            done = self.tau >= self.profile.duration_s
             # the closed form lands the final pose exactly; Newton is plenty in between
             q = (eng._kin.inverse_tcp(T, eng._q) if done
                  else eng._kin.inverse_tcp_local(T, eng._q, eng._q + eng._qd * dt))
@@ -329,11 +333,12 @@ class _Path(_Command):
         self.progress = 0
 
     def step(self, eng: MotionEngine, now: float, dt: float) -> _Step:
-        out = self.segments[self.index].step(eng, now, dt)
+        seg = self.segments[self.index]
+        out = seg.step(eng, now, dt)
+        self.progress = seg.progress
         if out.done and self.index + 1 < len(self.segments):
             self.index += 1
             out.done = False
-        self.progress = self.index
         return out
 
 
@@ -922,8 +927,8 @@ class MotionEngine:
         self._check_joint_limits(q1, "target")
         return _MoveJ(cid, name, JointProfile(q0, q1, speed, accel))
 
-    def _plan_l(self, q0: Vec, pose6: Vec, speed: float, accel: float, cid: int, name: str
-                ) -> tuple[_MoveL, Vec]:
+    def _plan_l(self, q0: Vec, pose6: Vec, speed: float, accel: float
+                ) -> tuple[LinearProfile, Vec]:
         """Check the whole straight line through IK before accepting it; returns the end q."""
         if speed > self.limits.max_tcp_speed_m_s:
             self._trip(f"movel speed {speed:g} m/s exceeds the tool speed limit "
@@ -945,7 +950,7 @@ class MotionEngine:
                 raise UnreachablePoseError(
                     f"linear path to {list(pose6)} passes through a singularity at {u:.0%}")
             q = q_next
-        return _MoveL(cid, name, prof), q
+        return prof, q
 
     # -- profiled moves ---------------------------------------------------------------------
     def move_j(self, q_rad: Sequence[float], speed_rad_s: float, accel_rad_s2: float) -> int:
@@ -983,13 +988,17 @@ class MotionEngine:
         with self._cond:
             self._require_motion_allowed()
             q0, brake = self._rest_start(a)
-            cmd, _ = self._plan_l(q0, p, v, a, self._new_id(), "movel")
-            return self._install(cmd, brake)
+            prof, _ = self._plan_l(q0, p, v, a)
+            return self._install(_MoveL(self._new_id(), "movel", BlendedLinearPath([prof], [])),
+                                 brake)
 
     def move_path(self, path: Sequence[PathEntry]) -> int:
-        """Run waypoints in order, stopping at each (blends are validated, not rounded);
-        ``async_progress`` is the index of the segment under way. All segments are planned
-        and checked before the arm moves."""
+        """Run waypoints in order; ``async_progress`` is the index of the entry under way.
+
+        Consecutive ``movel`` entries with a blend radius (m, at most half of either
+        neighbouring segment) round their corner without stopping; other corners are stop
+        points. All segments are planned and checked before the arm moves.
+        """
         if not path:
             raise CommandRejectedError("empty path")
         with self._cond:
@@ -997,29 +1006,62 @@ class MotionEngine:
             cid = self._new_id()
             q, brake = self._rest_start(1.0)
             segments: list[_Command] = []
+            run: list[LinearProfile] = []  # movel profiles to be blended together
+            run_blends: list[float] = []
+            run_first = 0
             for i, entry in enumerate(path):
-                try:
-                    kind, target, speed, accel, blend = entry
-                except (TypeError, ValueError) as err:
-                    raise CommandRejectedError(
-                        f"path entry {i} must be (kind, target, speed, accel, blend)") from err
-                if not (math.isfinite(float(blend)) and float(blend) >= 0):
-                    raise CommandRejectedError(f"path entry {i}: blend must be >= 0")
-                tgt = _vec(target, 6, f"path entry {i} target")
+                kind, tgt, v, a, blend = self._path_entry(i, entry)
                 if kind == "movej":
-                    v = _positive(speed, f"path entry {i} speed", self.limits.max_joint_speed_rad_s)
-                    a = _positive(accel, f"path entry {i} accel",
-                                  self.limits.max_joint_accel_rad_s2)
-                    seg: _Command = self._plan_j(q, tgt, v, a, cid, "movej")
+                    if run:
+                        segments.append(self._blended(cid, run, run_blends[:-1], run_first))
+                        run, run_blends = [], []
+                    seg = self._plan_j(q, tgt, v, a, cid, "movej")
+                    seg.progress = i
+                    segments.append(seg)
                     q = tgt
-                elif kind == "movel":
-                    v = _positive(speed, f"path entry {i} speed")
-                    a = _positive(accel, f"path entry {i} accel", self.limits.max_tcp_accel_m_s2)
-                    seg, q = self._plan_l(q, tgt, v, a, cid, "movel")
+                    continue
+                prof, q = self._plan_l(q, tgt, v, a)
+                if run and run_blends[-1] > 0:
+                    limit_mm = 0.5 * min(run[-1].length_mm, prof.length_mm)
+                    if run_blends[-1] > limit_mm + 1e-9:
+                        raise CommandRejectedError(
+                            f"path entry {i - 1}: blend {run_blends[-1] / 1000:g} m exceeds "
+                            f"half of a neighbouring segment ({limit_mm / 1000:g} m)")
+                    run.append(prof)
                 else:
-                    raise CommandRejectedError(f"path entry {i}: unknown kind {kind!r}")
-                segments.append(seg)
+                    if run:
+                        segments.append(self._blended(cid, run, run_blends[:-1], run_first))
+                    run, run_blends, run_first = [prof], [], i
+                nxt = path[i + 1][0] if i + 1 < len(path) else None
+                run_blends.append(blend * 1000.0 if nxt == "movel" else 0.0)
+            if run:
+                segments.append(self._blended(cid, run, run_blends[:-1], run_first))
             return self._install(_Path(cid, segments), brake)
+
+    @staticmethod
+    def _blended(cid: int, run: list[LinearProfile], blends_mm: list[float], first: int
+                 ) -> _MoveL:
+        return _MoveL(cid, "movel", BlendedLinearPath(run, blends_mm), first)
+
+    def _path_entry(self, i: int, entry: PathEntry) -> tuple[PathKind, Vec, float, float, float]:
+        try:
+            kind, target, speed, accel, blend = entry
+        except (TypeError, ValueError) as err:
+            raise CommandRejectedError(
+                f"path entry {i} must be (kind, target, speed, accel, blend)") from err
+        b = float(blend)
+        if not (math.isfinite(b) and b >= 0):
+            raise CommandRejectedError(f"path entry {i}: blend must be >= 0")
+        tgt = _vec(target, 6, f"path entry {i} target")
+        if kind == "movej":
+            v = _positive(speed, f"path entry {i} speed", self.limits.max_joint_speed_rad_s)
+            a = _positive(accel, f"path entry {i} accel", self.limits.max_joint_accel_rad_s2)
+        elif kind == "movel":
+            v = _positive(speed, f"path entry {i} speed")
+            a = _positive(accel, f"path entry {i} accel", self.limits.max_tcp_accel_m_s2)
+        else:
+            raise CommandRejectedError(f"path entry {i}: unknown kind {kind!r}")
+        return kind, tgt, v, a, b
 
     # -- streamed motion ---------------------------------------------------------------------
     def _expiry(self, time_s: float) -> float | None:

@@ -128,6 +128,16 @@ class LinearProfile:
     def duration_s(self) -> float:
         return self._trap.duration_s
 
+    @property
+    def ramp_s(self) -> float:
+        """Duration of the acceleration (= deceleration) phase."""
+        return self._trap.t_acc_s
+
+    @property
+    def rotvec_rad(self) -> NDArray[np.float64]:
+        """Rotation from start to end, in the start frame."""
+        return self._rotvec.copy()
+
     def progress(self, t_s: float) -> tuple[float, float]:
         """(u, du/dt) at ``t_s``."""
         u, ud, _ = self._trap.at(t_s)
@@ -149,3 +159,62 @@ class LinearProfile:
                       * Rotation.from_matrix(self.T0[:3, :3]).inv()).as_rotvec()
             twist[3:] = ud * rotvec
         return self.pose_at_progress(u), twist
+
+
+class BlendedLinearPath:
+    """Consecutive straight TCP moves, each corner rounded within its blend radius.
+
+    The next move starts while the previous one is still decelerating (once the previous is
+    within its blend radius of the corner) and the two displacements add up: velocities
+    superpose, so the TCP sweeps a smooth curve past the corner without stopping. The overlap
+    never exceeds the deceleration ramp of the first nor the acceleration ramp of the second,
+    so with equal accelerations the speed never exceeds either move's speed. With no blends it
+    is the moves one after the other, stopping at each corner; it always ends exactly on the
+    last target.
+    """
+
+    def __init__(self, moves: list[LinearProfile], blends_mm: list[float]) -> None:
+        if not moves or len(blends_mm) != len(moves) - 1:
+            raise ValueError("need n moves and n - 1 blend radii")
+        self.moves = moves
+        self.T_start = moves[0].T0.copy()
+        self._R_start = Rotation.from_matrix(self.T_start[:3, :3])
+        starts = [0.0]
+        for i, blend in enumerate(blends_mm):
+            a, b = moves[i], moves[i + 1]
+            overlap = 0.0
+            if blend > 0 and a.length_mm > 0:
+                frac = max(0.0, 1.0 - blend / a.length_mm)
+                overlap = min(a.duration_s - _time_of_progress(a, frac), a.ramp_s, b.ramp_s)
+            starts.append(starts[-1] + a.duration_s - overlap)
+        self.starts_s = starts
+        self.duration_s = starts[-1] + moves[-1].duration_s
+
+    def index_at(self, t_s: float) -> int:
+        """Index of the latest move that has started at ``t_s``."""
+        return max(i for i, t0 in enumerate(self.starts_s) if t0 <= max(t_s, 0.0))
+
+    def pose_at(self, t_s: float) -> NDArray[np.float64]:
+        if t_s >= self.duration_s:
+            return self.moves[-1].T1.copy()
+        p = self.T_start[:3, 3].copy()
+        R = self._R_start
+        for move, t0 in zip(self.moves, self.starts_s, strict=True):
+            if t_s <= t0:
+                break
+            u, _ = move.progress(t_s - t0)
+            p += u * move.delta_mm
+            R = R * Rotation.from_rotvec(u * move.rotvec_rad)
+        return make_T(R.as_matrix(), p)
+
+
+def _time_of_progress(move: LinearProfile, u: float) -> float:
+    """When a move reaches progress ``u`` (bisection: the profile is monotone)."""
+    lo, hi = 0.0, move.duration_s
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if move.progress(mid)[0] < u:
+            lo = mid
+        else:
+            hi = mid
+    return hi

@@ -1,0 +1,238 @@
+"""ur_rtde in a child process, driven over a pipe by :class:`ClientProcess`.
+
+Why a process and not just threads: ur_rtde's Python constructors hold the GIL while they wait
+on the controller (a hung controller would freeze the whole program), its client calls can
+block for minutes when the peer vanishes, and after a dropped connection its control interface
+reconnects from inside its own receive thread and can crash the process. In a child, a hang is
+ended with SIGKILL and a crash is a closed pipe: both become ConnectionLostError in the parent.
+
+Frames are length-prefixed pickles (both ends are this module). Requests are served
+concurrently, so a long move does not block the state sampling that watches it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import os
+import pickle
+import struct
+import subprocess
+import sys
+import threading
+from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
+from typing import IO, Any
+
+_LEN = struct.Struct(">I")
+
+
+class ClientDied(Exception):
+    """The child process is gone (crashed, killed) or stopped answering."""
+
+
+class RemoteError(Exception):
+    """An exception raised by ur_rtde in the child: ``kind`` is its Python type name."""
+
+    def __init__(self, kind: str, message: str) -> None:
+        super().__init__(message)
+        self.kind = kind
+
+
+def _write(stream: IO[bytes], obj: object, lock: threading.Lock) -> None:
+    data = pickle.dumps(obj)
+    with lock:
+        stream.write(_LEN.pack(len(data)) + data)
+        stream.flush()
+
+
+def _read(stream: IO[bytes]) -> Any:
+    head = stream.read(_LEN.size)
+    if len(head) < _LEN.size:
+        raise EOFError
+    (n,) = _LEN.unpack(head)
+    body = stream.read(n)
+    if len(body) < n:
+        raise EOFError
+    return pickle.loads(body)
+
+
+# -- the child -------------------------------------------------------------------------------
+
+class _Clients:
+    """The ur_rtde objects of one controller, living in the child."""
+
+    def __init__(self, host: str) -> None:
+        self.host = host
+        self.objects: dict[str, Any] = {}
+        self.locks = {name: threading.Lock() for name in ("dash", "recv", "ctrl")}
+
+    def create(self, name: str) -> None:
+        import dashboard_client
+        import rtde_control
+        import rtde_receive
+
+        factories = {"dash": dashboard_client.DashboardClient,
+                     "recv": rtde_receive.RTDEReceiveInterface,
+                     "ctrl": rtde_control.RTDEControlInterface}
+        self.objects[name] = factories[name](self.host)
+
+    def call(self, name: str, method: str, args: tuple[Any, ...]) -> Any:
+        obj = self.objects.get(name)
+        if obj is None:
+            raise RuntimeError(f"no {name} client")
+        with self.locks[name]:  # one call at a time per client object
+            return getattr(obj, method)(*args)
+
+    def sample(self) -> dict[str, Any]:
+        """Everything the adapter watches, read from the clients' cached state."""
+        recv = self.objects.get("recv")
+        if recv is None:
+            raise RuntimeError("no receive client")
+        out = {
+            "connected": recv.isConnected(),
+            "timestamp": recv.getTimestamp(),
+            "tcp_pose": recv.getActualTCPPose(),
+            "q": recv.getActualQ(),
+            "qd": recv.getActualQd(),
+            "robot_mode": recv.getRobotMode(),
+            "safety_mode": recv.getSafetyMode(),
+            "safety_bits": recv.getSafetyStatusBits(),
+            "runtime_state": recv.getRuntimeState(),
+            "async_running": False,
+            "async_progress": -1,
+        }
+        ctrl = self.objects.get("ctrl")
+        if ctrl is not None:
+            status = ctrl.getAsyncOperationProgressEx()
+            out["async_running"] = status.isAsyncOperationRunning()
+            out["async_progress"] = status.progress()
+        return out
+
+    def handle(self, op: str, name: str, method: str, args: tuple[Any, ...]) -> Any:
+        if op == "create":
+            return self.create(name)
+        if op == "sample":
+            return self.sample()
+        if op == "drop":
+            self.objects.pop(name, None)
+            return None
+        return self.call(name, method, args)
+
+
+def child_main(host: str) -> None:
+    """Serve requests from stdin until it closes; replies go to stdout."""
+    stdin = sys.stdin.buffer
+    # ur_rtde prints to file descriptor 1: keep the reply stream on a private copy of it and
+    # send fd 1 (and Python's stdout) to stderr.
+    stdout = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)
+    sys.stdout = sys.stderr
+    clients = _Clients(host)
+    lock = threading.Lock()
+
+    def serve(req_id: int, op: str, name: str, method: str, args: tuple[Any, ...]) -> None:
+        try:
+            reply: tuple[Any, ...] = (req_id, True, clients.handle(op, name, method, args))
+        except Exception as exc:
+            reply = (req_id, False, (type(exc).__name__, str(exc)))
+        with contextlib.suppress(OSError, ValueError):
+            _write(stdout, reply, lock)
+
+    while True:
+        try:
+            req = _read(stdin)
+        except (EOFError, OSError):
+            break
+        threading.Thread(target=serve, args=req, daemon=True).start()
+    stdout.flush()
+    os._exit(0)  # skip ur_rtde destructors: the parent has already closed what it wanted
+
+
+# -- the parent ------------------------------------------------------------------------------
+
+class ClientProcess:
+    """A child process holding the ur_rtde clients of one controller."""
+
+    def __init__(self, host: str) -> None:
+        self.host = host
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "drivers.ur_client_process", host],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        self._ids = itertools.count(1)
+        self._pending: dict[int, Future[Any]] = {}
+        self._lock = threading.Lock()
+        self._write_lock = threading.Lock()
+        self.dead_reason: str | None = None
+        threading.Thread(target=self._read_replies, daemon=True,
+                         name=f"ur-client-{host}").start()
+
+    def _read_replies(self) -> None:
+        assert self._proc.stdout is not None
+        while True:
+            try:
+                req_id, ok, value = _read(self._proc.stdout)
+            except (EOFError, OSError, pickle.UnpicklingError):
+                break
+            with self._lock:
+                fut = self._pending.pop(req_id, None)
+            if fut is not None:
+                if ok:
+                    fut.set_result(value)
+                else:
+                    fut.set_exception(RemoteError(*value))
+        code = self._proc.poll()
+        self._die(f"the ur_rtde client process ended (exit code {code})")
+
+    def _die(self, reason: str) -> None:
+        with self._lock:
+            if self.dead_reason is None:
+                self.dead_reason = reason
+            pending, self._pending = self._pending, {}
+        for fut in pending.values():
+            fut.set_exception(ClientDied(reason))
+
+    def request(self, op: str, name: str = "", method: str = "",
+                args: tuple[Any, ...] = (), timeout_s: float = 3.0) -> Any:
+        """Run one request in the child; ClientDied when it is gone or overruns the deadline
+        (the child is then killed: a client that hung once is not trusted again)."""
+        fut: Future[Any] = Future()
+        with self._lock:
+            if self.dead_reason is not None:
+                raise ClientDied(self.dead_reason)
+            req_id = next(self._ids)
+            self._pending[req_id] = fut
+        try:
+            assert self._proc.stdin is not None
+            _write(self._proc.stdin, (req_id, op, name, method, args), self._write_lock)
+        except (OSError, ValueError) as exc:
+            self._die(f"cannot reach the ur_rtde client process: {exc}")
+        try:
+            return fut.result(timeout=timeout_s)
+        except FutureTimeout:
+            what = f"{name}.{method}" if method else f"{op} {name}".strip()
+            self.kill(f"{what}: no answer from the controller within {timeout_s:g} s")
+            raise ClientDied(self.dead_reason or "timeout") from None
+
+    def kill(self, reason: str) -> None:
+        self._die(reason)
+        if self._proc.poll() is None:
+            self._proc.kill()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            self._proc.wait(timeout=2.0)
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Let the child exit (stdin closed); kill it if it does not."""
+        if self._proc.stdin is not None:
+            with contextlib.suppress(OSError):
+                self._proc.stdin.close()
+        try:
+            self._proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            self._proc.wait(timeout=2.0)
+        self._die("closed")
+
+
+if __name__ == "__main__":
+    child_main(sys.argv[1])

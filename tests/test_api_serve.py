@@ -1,0 +1,91 @@
+"""``cell serve`` as a real process: it serves, and after a kill -9 mid-approach a restart keeps
+the audit log and marks the interrupted job."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from importlib import resources
+from pathlib import Path
+
+import httpx
+
+from tests.cell_testing import AUTH
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _config(tmp_path: Path) -> Path:
+    """The built-in sim config, with the in-process arm and a job database under tmp_path."""
+    text = resources.files("cell.configs").joinpath("sim.toml").read_text()
+    text = text.replace('kind = "ur"', 'kind = "sim"')
+    text = text.replace("ur_controller = true", "ur_controller = false")
+    text = re.sub(r'(\[gripper\]\s*)kind = "sim"', r'\1kind = "none"', text)
+    text = text.replace('job_db = "var/cell_jobs.db"', f'job_db = "{tmp_path / "jobs.db"}"')
+    path = tmp_path / "cell.toml"
+    path.write_text(text)
+    return path
+
+
+@contextmanager
+def serving(config: Path, port: int) -> Iterator[tuple[subprocess.Popen[str], str]]:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cell", "serve", "--config", str(config), "--port", str(port),
+         "--log-level", "warning"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            assert proc.poll() is None, proc.stdout.read() if proc.stdout else ""
+            try:
+                if httpx.get(f"{url}/api/v1/health", timeout=1).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            assert time.monotonic() < deadline, "the service did not come up within 60 s"
+            time.sleep(0.2)
+        yield proc, url
+    finally:
+        if proc.poll() is None:
+            proc.terminate()
+            try:
+                proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+def test_restart_after_kill_keeps_audit_and_marks_the_job(tmp_path: Path) -> None:
+    config = _config(tmp_path)
+    port = _free_port()
+    with serving(config, port) as (proc, url):
+        assert httpx.get(f"{url}/docs", timeout=5).status_code == 200
+        r = httpx.post(f"{url}/api/v1/approach", json={"standoff_mm": 40}, headers=AUTH["plc"],
+                       timeout=30)
+        assert r.status_code == 200, r.text
+        job_id = r.json()["id"]
+        time.sleep(0.5)
+        assert httpx.get(f"{url}/api/v1/jobs/{job_id}", headers=AUTH["viewer"],
+                         timeout=5).json()["state"] == "running"
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=10)
+    with serving(config, port) as (_, url):
+        job = httpx.get(f"{url}/api/v1/jobs/{job_id}", headers=AUTH["viewer"], timeout=5).json()
+        assert job["state"] == "interrupted" and job["error"]["code"] == "interrupted"
+        entries = httpx.get(f"{url}/api/v1/audit", headers=AUTH["viewer"],
+                            timeout=5).json()["entries"]
+        approach = [e for e in entries if e["command"] == "approach" and e["job_id"] == job_id]
+        assert approach and approach[0]["caller"] == "plc(plc)"
+        assert approach[0]["params"]["standoff_mm"] == 40
+        assert any(e["command"] == "recover" and e["job_id"] == job_id for e in entries)
