@@ -347,6 +347,15 @@ class Cell:
                 self.image_log.save(frame.image, {"code": err.code, "message": err.message,
                                                   "sequence": frame.sequence})
             raise RefusedError(err.code, f"target not located: {err.message}") from err
+        except Exception as err:  # an estimator bug must not take the service down
+            log.exception("estimator failed on frame %d", frame.sequence)
+            with self._lock:
+                self.stats.locates["error"] += 1
+            if self.image_log is not None:
+                self.image_log.save(frame.image, {"code": "estimator_failed",
+                                                  "message": repr(err), "sequence": frame.sequence})
+            raise RefusedError("estimator_failed",
+                               f"the estimator failed unexpectedly: {err!r}") from err
         with self._lock:
             self.stats.locates["ok"] += 1
             self.stats.locate_seconds_sum += time.perf_counter() - t0

@@ -21,6 +21,7 @@ import rtde_io
 import rtde_receive
 import script_client
 
+from estimator.transforms import T_from_ur_pose
 from fakes.ur_controller import rtde
 from fakes.ur_controller.process import ControllerProcess
 from fakes.ur_controller.script import parse_program, split_programs
@@ -333,3 +334,38 @@ def test_io_interface_and_protective_stop_program_state(
     target[2] -= 0.05
     assert c.moveL(target, 0.1, 0.5) is False
     assert np.allclose(r.getActualTCPPose(), p0, atol=1e-9)
+
+
+def test_rtde_watchdog_and_unsimulated_commands_stop_the_program(
+        ctl: ControllerProcess, clients: tuple) -> None:
+    c, r = clients
+    assert c.setWatchdog(20.0)  # 20 Hz: the client must write within 50 ms
+    for _ in range(20):
+        assert c.kickWatchdog()
+        time.sleep(0.01)
+    assert r.getRuntimeState() == 2
+    time.sleep(0.3)  # no kicks: the controller stops the program
+    assert r.getRuntimeState() == 1
+    assert any("watchdog" in m for m in ctl.state()["messages"])
+    assert c.reuploadScript()
+    deadline = time.monotonic() + 3.0
+    while r.getRuntimeState() != 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert c.teachMode() is False  # not simulated: a runtime error, not a silent success
+    assert any("not simulated" in m for m in ctl.state()["messages"])
+
+
+def test_jog_start_and_stop_in_tool_frame(ctl: ControllerProcess, clients: tuple) -> None:
+    c, r = clients
+    p0 = np.array(r.getActualTCPPose())
+    assert c.jogStart([0.0, 0.0, 0.02, 0.0, 0.0, 0.0],
+                      rtde_control.RTDEControlInterface.Feature.FEATURE_TOOL, 0.5)
+    time.sleep(0.6)
+    assert c.jogStop()
+    p1 = np.array(r.getActualTCPPose())
+    assert np.linalg.norm(r.getActualTCPSpeed()[:3]) < 1e-3
+    tool_z = T_from_ur_pose(p0)[:3, 2]
+    moved_mm = 1000.0 * (p1[:3] - p0[:3])
+    along = float(moved_mm @ tool_z)
+    assert 8.0 < along < 14.0, f"jogged {along:.1f} mm along tool z"
+    assert np.linalg.norm(moved_mm - along * tool_z) < 0.5

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import re
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -121,6 +122,7 @@ class MailboxInterpreter:
         self._async_wr_count = 0
         self._async_op_id = 0
         self._speed_args: tuple[float, ...] | None = None
+        self._watchdog_s: float | None = None  # set_watchdog: max gap between client writes
 
     # -- program lifecycle ---------------------------------------------------------------------
     def start(self, prog: ControlProgram) -> None:
@@ -135,6 +137,7 @@ class MailboxInterpreter:
         self._pending_id = None
         self._async_id = None
         self._speed_args = None
+        self._watchdog_s = None
         self.running = True
         self.engine.set_program_running(True)
         self._write_async(-1)
@@ -195,6 +198,10 @@ class MailboxInterpreter:
                       brake=False)
             return
         with self.regs.lock:
+            if self._watchdog_expired():
+                self.stop("RTDE input watchdog: input_int_register not updated in time, "
+                          "program stopped")
+                return
             self._track_async(snap)
             if self._pending_id is not None:
                 if self._finished(self._pending_id, snap):
@@ -215,6 +222,13 @@ class MailboxInterpreter:
                         self._write_int(0, DONE)
             except EngineError as exc:
                 self.runtime_error(exc)
+
+    def _watchdog_expired(self) -> bool:
+        """rtde_set_watchdog(..., "stop"): the client must keep writing the command register."""
+        if self._watchdog_s is None:
+            return False
+        written = self.regs.in_int_written_s[self._prog.int_offset]
+        return time.monotonic() - written > self._watchdog_s
 
     def _finished(self, command_id: int, snap: EngineSnapshot) -> bool:
         """Has the motion a command started come to an end? Id 0: wait for the arm to rest."""
@@ -340,8 +354,16 @@ class MailboxInterpreter:
         elif cmd == STOP_SCRIPT:
             self.stop("Received stop script!", brake=True)
             return False
+        elif cmd == 35:
+            frequency = self._float(0)
+            if not frequency > 0:
+                raise CommandRejectedError(f"set_watchdog: frequency {frequency} must be > 0")
+            self._watchdog_s = 1.0 / frequency
+            self.regs.in_int_written_s[self._prog.int_offset] = time.monotonic()
+        elif cmd in (8, 20, 21):
+            pass  # F/T zeroing and force-mode tuning: no force is simulated, nothing to change
         else:
-            self._message(f"ur_rtde command {cmd} is not simulated; ignored")
+            raise CommandRejectedError(f"ur_rtde command {cmd} is not simulated")
         return True
 
     def _fk_with_tcp(self, q: list[float], tcp6: list[float]) -> list[float]:
