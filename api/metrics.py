@@ -49,10 +49,10 @@ def render(cell: Cell, http: HttpStats) -> str:
     metric("cell_http_request_seconds_total", "counter", "time spent answering, by route",
            [({"method": m, "route": r}, v) for (m, r), v in seconds.items()])
     st = cell.stats
-    metric("cell_locate_total", "counter", "locate attempts by outcome",
-           [({"outcome": k}, v) for k, v in st.locates.items()])
-    metric("cell_locate_seconds_total", "counter", "time spent estimating successful locates",
-           [({}, st.locate_seconds_sum)])
+    metric("cell_locate_total", "counter", "frames estimated by outcome",
+           [({"outcome": k}, v) for k, v in cell.locator.outcomes.items()])
+    metric("cell_locate_seconds_total", "counter", "time spent estimating successful frames",
+           [({}, cell.locator.seconds_sum)])
     metric("cell_jobs_total", "counter", "finished jobs by final state",
            [({"state": k}, v) for k, v in st.jobs.items()])
     metric("cell_refusals_total", "counter", "refused commands by code",

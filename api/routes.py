@@ -17,6 +17,7 @@ from fastapi.responses import StreamingResponse
 from api import overlay
 from api.auth import Caller, require
 from api.errors import ERROR_RESPONSES
+from api.routes_calibration import taught_target_tcp
 from api.schemas import (
     ApproachRequest,
     GripperRequest,
@@ -29,6 +30,8 @@ from api.schemas import (
     Pose,
     StopRequest,
 )
+from cell.hardware import SimWorld
+from cell.safety import NotFoundError
 from cell.service import Cell
 from estimator.transforms import T_from_pose, pose_dict
 
@@ -41,6 +44,13 @@ Read = Annotated[Caller, Depends(require("read"))]
 def cell_of(request: Request) -> Cell:
     cell: Cell = request.app.state.cell
     return cell
+
+
+def sim_of(request: Request) -> SimWorld:
+    sim = cell_of(request).sim
+    if sim is None:  # the routes are not mounted then; kept for type narrowing
+        raise NotFoundError("not_simulated", "this cell runs on real hardware")
+    return sim
 
 
 @router.get("/health", tags=["status"])
@@ -83,6 +93,8 @@ def approach(request: Request, caller: Annotated[Caller, Depends(require("approa
     b = body or ApproachRequest()
     T = None if b.T_target_tcp is None else T_from_pose(b.T_target_tcp.position_mm,
                                                        b.T_target_tcp.rotvec_rad)
+    if b.taught is not None:
+        T = taught_target_tcp(request, b.taught, given=T is not None)
     job = cell_of(request).approach(caller.label, standoff_mm=b.standoff_mm,
                                     speed_mm_s=b.speed_mm_s, T_target_tcp=T,
                                     use_last_locate=b.use_last_locate, wait=b.wait)
@@ -200,7 +212,7 @@ async def events(request: Request, caller: Read,
 @sim_router.get("/truth")
 def sim_truth(request: Request, caller: Read) -> dict[str, Any]:
     """Ground truth of the simulated cell: where the target and the TCP really are."""
-    sim = cell_of(request).sim
+    sim = sim_of(request)
     return {"T_base_target": pose_dict(sim.true_T_base_target()),
             "T_base_tcp": pose_dict(sim.true_T_base_tcp())}
 
@@ -210,5 +222,5 @@ def sim_target(request: Request, caller: Annotated[Caller, Depends(require("sim_
                body: Pose) -> dict[str, Any]:
     """Place the simulated target at a pose in the base frame."""
     T = T_from_pose(body.position_mm, body.rotvec_rad)
-    cell_of(request).sim.set_target(T)
+    sim_of(request).set_target(T)
     return {"T_base_target": pose_dict(T)}

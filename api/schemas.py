@@ -47,6 +47,9 @@ class ApproachRequest(_Body):
     speed_mm_s: float | None = Field(default=None, gt=0, le=2000)
     T_target_tcp: Pose | None = Field(
         default=None, description="tool pose in the target frame; default from config")
+    taught: str | None = Field(
+        default=None, min_length=1, max_length=64,
+        description="use the T_target_tcp taught under this name (POST /teach) instead")
     use_last_locate: bool = Field(
         default=False, description="start from the last /locate result instead of locating "
         "again (refused when older than limits.max_pose_age_s)")

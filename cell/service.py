@@ -24,10 +24,11 @@ from scipy.spatial.transform import Rotation
 
 from cell.config import CellConfig
 from cell.events import EventBus
-from cell.frames import CellFrames, approach_tcp, mean_pose, observation_camera, step_goal
-from cell.hardware import Hardware
+from cell.frames import CellFrames, approach_tcp, observation_camera, step_goal
+from cell.hardware import Hardware, SimWorld
 from cell.imagelog import ImageLog
 from cell.jobs import Job, JobStore
+from cell.locate import Located, Locator
 from cell.safety import (
     CellError,
     LimitError,
@@ -47,8 +48,7 @@ from drivers.errors import (
     ProtectiveStopError,
 )
 from drivers.gripper import Gripper
-from estimator import EstimationError, PoseResult
-from estimator.pipeline import Estimator
+from estimator import PoseResult
 from estimator.transforms import make_T, pose_dict, pose_distance
 
 log = logging.getLogger(__name__)
@@ -71,47 +71,10 @@ def driver_error(err: DriverError, what: str) -> CellError:
     return RefusedError(err.code, text)
 
 
-@dataclass(frozen=True)
-class Located:
-    """A target pose in the base frame and the evidence it came from."""
-
-    T_base_target: Matrix4
-    T_camera_target: Matrix4
-    T_base_tcp: Matrix4  # at the (last) frame's capture time
-    result: PoseResult  # of the last frame
-    frame_timestamp_s: float
-    frame_sequence: int
-    n_frames: int
-    spread_mm: float  # largest distance of a single-frame estimate from the mean
-    located_at_s: float  # time.monotonic()
-
-    def as_dict(self, now_s: float) -> dict[str, Any]:
-        r = self.result
-        return {
-            "T_base_target": pose_dict(self.T_base_target),
-            "T_camera_target": pose_dict(self.T_camera_target),
-            "T_base_tcp": pose_dict(self.T_base_tcp),
-            "quality": {
-                "rms_px": float(r.rms_px),
-                "max_residual_px": float(np.max(r.residuals_px)) if len(r.residuals_px) else 0.0,
-                "ambiguous": bool(r.ambiguous),
-                "converged": bool(r.converged),
-                "n_points": len(r.matched_ids),
-                "covariance": None if r.covariance is None else r.covariance.tolist(),
-                "frame_age_s": max(0.0, now_s - self.frame_timestamp_s),
-                "n_frames": self.n_frames,
-                "spread_mm": self.spread_mm,
-            },
-            "frame_sequence": self.frame_sequence,
-        }
-
-
 @dataclass
 class CellStats:
     """Counters for /metrics; written under the cell's lock."""
 
-    locates: Counter[str] = field(default_factory=Counter)  # outcome -> count
-    locate_seconds_sum: float = 0.0
     jobs: Counter[str] = field(default_factory=Counter)  # final state -> count
     refusals: Counter[str] = field(default_factory=Counter)  # code -> count
     deadman_stops: int = 0
@@ -150,24 +113,20 @@ class Cell:
         self.target_centre_mm = self.target.points_mm.mean(axis=0)
         self.events = EventBus()
         self.stats = CellStats()
-        self._estimator = Estimator(config.camera.model(), self.target)
-        self._estimator_lock = threading.Lock()
-        self._preview_estimator = Estimator(config.camera.model(), self.target)
-        self._preview_lock = threading.Lock()
+        self.locator = Locator(config.camera.model(), self.target, hardware.camera,
+                               hardware.arm, self.frames, config.camera.fps, image_log)
         self._gripper_lock = threading.Lock()  # one Modbus transaction at a time
         self._gripper_last: dict[str, Any] = {}
         self._lock = threading.RLock()
         self._motion: _Motion | None = None
         self._jog: _Jog | None = None
         self._threads: list[threading.Thread] = []
-        self._last_locate: Located | None = None
-        self._last_frame: Frame | None = None
         self._closing = threading.Event()
         self._monitor: threading.Thread | None = None
         self.started_at = time.time()
 
     @property
-    def sim(self) -> Any:
+    def sim(self) -> SimWorld | None:
         """The simulated world when running on fakes, else None (see cell.hardware)."""
         return self.hw.sim
 
@@ -178,7 +137,10 @@ class Cell:
         arm.connect()
         arm.power_on()
         arm.set_tcp(self.frames.T_flange_tcp)
-        self.hw.camera.connect()
+        try:
+            self.hw.camera.connect()
+        except DriverError as err:  # serve anyway: jogging must stay possible without it
+            log.warning("camera not available at start: %s", err)
         if self.hw.gripper is not None:
             try:
                 self.hw.gripper.connect()
@@ -232,10 +194,10 @@ class Cell:
             arm_state = "disconnected"
         with self._lock:
             motion = self._motion
-            last = self._last_locate
+        last = self.locator.last
         out["state"] = arm_state if arm_state != "idle" or motion is None else motion.name
         cam = self.hw.camera
-        frame = self._last_frame
+        frame = self.locator.last_frame
         out["camera"] = {
             "connected": bool(cam.is_connected),
             "last_frame_age_s": None if frame is None else max(0.0, now - frame.timestamp_s),
@@ -271,30 +233,14 @@ class Cell:
         return job
 
     def latest_frame(self) -> Frame:
-        try:
-            frame = self.hw.camera.latest_frame(timeout_s=1.0)
-        except DriverError as err:
-            raise UnavailableError("camera_lost", f"no camera frame: {err}") from err
-        self._last_frame = frame
-        return frame
+        return self.locator.latest_frame()
 
     @property
     def last_locate(self) -> Located | None:
-        return self._last_locate
+        return self.locator.last
 
     def preview(self, estimate: bool) -> tuple[Frame, PoseResult | None, str | None]:
-        """The freshest frame and, if asked, what the estimator sees in it (for the live view).
-
-        A separate estimator keeps the live view from disturbing locate's tracking state.
-        """
-        frame = self.latest_frame()
-        if not estimate:
-            return frame, None, None
-        try:
-            with self._preview_lock:
-                return frame, self._preview_estimator.estimate(frame.image), None
-        except EstimationError as err:
-            return frame, None, err.message
+        return self.locator.preview(estimate)
 
     # -- audit ----------------------------------------------------------------------------
     @contextmanager
@@ -323,78 +269,10 @@ class Cell:
             note["detail"] = f"rms {loc.result.rms_px:.3f} px"
             return loc
 
-    def _fresh_frame(self, after_s: float | None) -> Frame:
-        """The freshest frame, captured no earlier than ``after_s`` (monotonic)."""
-        deadline = time.monotonic() + 2.0 + 3.0 / self.config.camera.fps
-        while True:
-            frame = self.latest_frame()
-            if after_s is None or frame.timestamp_s >= after_s:
-                return frame
-            if time.monotonic() > deadline:
-                raise UnavailableError("camera_stalled",
-                                       "the camera delivers no new frames; check its connection")
-            time.sleep(0.2 / self.config.camera.fps)
-
-    def _estimate(self, frame: Frame) -> PoseResult:
-        t0 = time.perf_counter()
-        try:
-            with self._estimator_lock:
-                result = self._estimator.estimate(frame.image)
-        except EstimationError as err:
-            with self._lock:
-                self.stats.locates["failed"] += 1
-            if self.image_log is not None:
-                self.image_log.save(frame.image, {"code": err.code, "message": err.message,
-                                                  "sequence": frame.sequence})
-            raise RefusedError(err.code, f"target not located: {err.message}") from err
-        except Exception as err:  # an estimator bug must not take the service down
-            log.exception("estimator failed on frame %d", frame.sequence)
-            with self._lock:
-                self.stats.locates["error"] += 1
-            if self.image_log is not None:
-                self.image_log.save(frame.image, {"code": "estimator_failed",
-                                                  "message": repr(err), "sequence": frame.sequence})
-            raise RefusedError("estimator_failed",
-                               f"the estimator failed unexpectedly: {err!r}") from err
-        with self._lock:
-            self.stats.locates["ok"] += 1
-            self.stats.locate_seconds_sum += time.perf_counter() - t0
-        return result
-
     def _locate(self, n_frames: int = 1, after_s: float | None = None) -> Located:
-        """Estimate from ``n_frames`` successive frames, each paired with the arm pose at its
-        capture time, and average the base-frame results (noise drops as 1/sqrt(n))."""
-        if not self.hw.camera.is_connected:
-            raise UnavailableError("camera_lost", "the camera is not connected")
-        estimates: list[Matrix4] = []
-        seq = -1
-        last: tuple[Frame, PoseResult, Matrix4] | None = None
-        for _ in range(max(1, n_frames)):
-            frame = self._fresh_frame(after_s)
-            while frame.sequence == seq:
-                frame = self._fresh_frame(frame.timestamp_s + 1e-6)
-            seq = frame.sequence
-            result = self._estimate(frame)
-            try:
-                T_base_tcp = self.hw.arm.pose_at(frame.timestamp_s)
-            except LookupError as err:
-                raise RefusedError("stale_pose", "the arm's pose history does not cover the "
-                                   f"frame's capture time: {err}") from err
-            except DriverError as err:
-                raise driver_error(err, "reading the arm pose history") from err
-            estimates.append(self.frames.T_base_target(T_base_tcp, result.T_camera_target))
-            last = (frame, result, T_base_tcp)
-        assert last is not None
-        frame, result, T_base_tcp = last
-        T_mean = mean_pose(estimates) if len(estimates) > 1 else estimates[0]
-        spread = max(float(np.linalg.norm(T[:3, 3] - T_mean[:3, 3])) for T in estimates)
-        T_camera_target = np.linalg.inv(self.frames.T_base_camera(T_base_tcp)) @ T_mean
-        loc = Located(T_mean, T_camera_target, T_base_tcp, result, frame.timestamp_s,
-                      frame.sequence, len(estimates), spread, time.monotonic())
-        with self._lock:
-            self._last_locate = loc
-        self.events.publish("locate", {"T_base_target": pose_dict(T_mean),
-                                       "rms_px": float(result.rms_px)})
+        loc = self.locator.locate(n_frames, after_s)
+        self.events.publish("locate", {"T_base_target": pose_dict(loc.T_base_target),
+                                       "rms_px": float(loc.result.rms_px)})
         return loc
 
     # -- motion bookkeeping ------------------------------------------------------------------
@@ -500,7 +378,7 @@ class Cell:
                     raise UnavailableError("camera_lost", "the camera is lost: approach needs "
                                            "it (jogging is still possible)")
                 if use_last_locate:
-                    loc = self._last_locate
+                    loc = self.locator.last
                     if loc is None:
                         raise RefusedError("stale_pose", "no target has been located yet")
                     age = time.monotonic() - loc.frame_timestamp_s

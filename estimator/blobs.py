@@ -14,6 +14,7 @@ opt-in.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -87,7 +88,7 @@ def adaptive_binarize(
     )
 
 
-def _region_area(contours: list[Contour], hierarchy: NDArray[Any], i: int) -> float:
+def _region_area(contours: Sequence[Contour], hierarchy: list[list[int]], i: int) -> float:
     """Area of an outer contour minus its holes (RETR_CCOMP hierarchy)."""
     area = cv2.contourArea(contours[i])
     child = int(hierarchy[i][2])
@@ -120,9 +121,9 @@ def _weighted_centre(
     background = cv2.mean(window, mask=cv2.bitwise_not(near))[0]
     weights = np.zeros(window.shape, np.float32)
     if polarity == "dark":  # contrast against the background, only near the region
-        cv2.subtract((background, 0.0, 0.0, 0.0), window, weights, near, cv2.CV_32F)
+        cv2.subtract((background, 0.0, 0.0, 0.0), window, weights, near, cv2.CV_32F)  # type: ignore[call-overload]
     else:
-        cv2.subtract(window, (background, 0.0, 0.0, 0.0), weights, near, cv2.CV_32F)
+        cv2.subtract(window, (background, 0.0, 0.0, 0.0), weights, near, cv2.CV_32F)  # type: ignore[call-overload]
     cv2.threshold(weights, 0.0, 0.0, cv2.THRESH_TOZERO, weights)  # negative contrast: no weight
     m = cv2.moments(weights)
     if m["m00"] <= 0.0:
@@ -159,7 +160,7 @@ def blobs_from_mask(
     for i, c in enumerate(contours):
         if hier[i][3] >= 0 or len(c) < 3:  # holes are not dots; specks have no outline
             continue
-        x, y, w, h = rect = cv2.boundingRect(c)
+        x, y, w, h = cv2.boundingRect(c)
         if w * h < min_area or x <= ox or y <= oy or x + w >= x_end or y + h >= y_end:
             continue  # a speck (the region fits in its box), or cut by the window border
         outer = cv2.contourArea(c)
@@ -186,7 +187,7 @@ def blobs_from_mask(
         inertia = math.sqrt(lam_minor / lam_major) if lam_major > 0 else 0.0
         if inertia < filt.min_inertia_ratio:
             continue
-        centre = _weighted_centre(image_u8, c, rect, polarity)
+        centre = _weighted_centre(image_u8, c, (x, y, w, h), polarity)
         if centre is None:
             continue
         out.append(Blob(

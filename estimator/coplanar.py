@@ -111,7 +111,8 @@ def _same_rotation(A: NDArray[np.float64], B: NDArray[np.float64]) -> bool:
 
 
 def _iterate(
-    model: ObjectModel, system: FrameSystem, max_iterations: int, tolerance: float
+    model: ObjectModel, system: FrameSystem, max_iterations: int, tolerance: float,
+    contender_ratio: float,
 ) -> list[_Branch]:
     """Both branches, iterated in lockstep until converged, stopped or out of iterations."""
     first = _Candidates(model, system, np.zeros((1, len(system.pts))))
@@ -123,7 +124,7 @@ def _iterate(
         live = [b for b in branches if b.active and not b.converged]
         if len(branches) == 2 and len(live) == 1:
             done = branches[0] if branches[1] is live[0] else branches[1]
-            if done.converged and live[0].error > CONTENDER_ERROR_RATIO * done.error + 1e-18:
+            if done.converged and live[0].error > contender_ratio * done.error + 1e-18:
                 live[0].active = False  # a clear loser: not worth iterating to convergence
                 live = []
         live = [b for b in live if b.iterations < max_iterations]
@@ -150,13 +151,16 @@ def posit_coplanar(
     camera: CameraModel,
     max_iterations: int,
     tolerance: float,
+    contender_ratio: float = CONTENDER_ERROR_RATIO,
 ) -> PositResult:
     """Coplanar POSIT on normalised points ``xy``; the better branch wins, the other is kept.
 
-    ``tolerance`` is in normalised units, as in :func:`estimator.posit.posit_general`.
+    ``tolerance`` is in normalised units, as in :func:`estimator.posit.posit_general`. Once
+    the winning branch has converged, the other stops unless its error is within
+    ``contender_ratio`` of the winner's (1.0: stop it as soon as it is behind).
     """
     system = FrameSystem(model, xy)
-    branches = _iterate(model, system, max_iterations, tolerance)
+    branches = _iterate(model, system, max_iterations, tolerance, contender_ratio)
     if not branches:
         raise BehindCameraError(
             "coplanar POSIT put the target behind the camera in both branches: the image points "
@@ -164,7 +168,8 @@ def posit_coplanar(
         )
     scored = []
     for branch in branches:
-        T = pose_from_rows(np.array(branch.rows), branch.scale, xy[0], model.points_mm[0])
+        T = pose_from_rows(np.array(branch.rows), branch.scale, xy[0], model.points_mm[0],
+                           orthonormal=True)
         scored.append((reprojection_rms_px(T, model.points_mm, image_points_px, camera), T, branch))
     scored.sort(key=lambda item: item[0])
     rms, T, best = scored[0]

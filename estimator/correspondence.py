@@ -18,6 +18,9 @@ result says ``ambiguous`` rather than guessing.
 
 from __future__ import annotations
 
+import math
+import statistics
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from itertools import combinations, permutations
@@ -36,6 +39,8 @@ PoseSolver = Callable[[NDArray[np.float64], NDArray[np.float64]], PoseResult]
 
 _MAX_VERIFIED = 8  # distinct matchings checked with the full pose solver
 _ACCEPT_RMS_PX = 2.0  # a right matching reprojects far better than this on a calibrated camera
+_QUICK_MARGIN_FACTOR = 3.0  # quick scores above factor * best + margin are not solved
+_QUICK_MARGIN_PX = 2.0
 
 
 @dataclass(frozen=True)
@@ -143,13 +148,13 @@ def _assign(
     dy = preds[:, :, None, 1] - obs[None, None, :, 1]
     d2 = dx * dx + dy * dy  # squared: no sqrt over (K,N,M)
     nearest = d2.argmin(axis=2)
-    ok = np.take_along_axis(d2, nearest[:, :, None], axis=2)[:, :, 0] < tol * tol
+    ok = d2.min(axis=2) < tol * tol
     out: list[dict[int, int]] = []
-    for k in np.flatnonzero(ok.sum(axis=1) >= min_count):
-        near_k = nearest[k][ok[k]]
-        counts = np.bincount(near_k, minlength=len(obs))
-        hyp = {int(m): int(nearest[k, m]) for m in np.flatnonzero(ok[k])
-               if counts[nearest[k, m]] == 1}
+    for k in np.flatnonzero(ok.sum(axis=1) >= min_count).tolist():
+        pairs = [(m, b) for m, (b, good) in enumerate(zip(nearest[k].tolist(), ok[k].tolist(),
+                                                           strict=True)) if good]
+        claimed = Counter(b for _, b in pairs)
+        hyp = {m: b for m, b in pairs if claimed[b] == 1}
         if len(hyp) >= min_count:
             out.append(hyp)
     return out
@@ -298,9 +303,9 @@ def _pnp_score(
 
 
 def _default_tolerance(ideal: NDArray[np.float64]) -> float:
-    d = np.linalg.norm(ideal[:, None, :] - ideal[None, :, :], axis=2)
-    d[np.diag_indices(len(ideal))] = np.inf
-    return float(np.clip(0.25 * d.min(), 1.5, 8.0))
+    diff = ideal[:, None, :] - ideal[None, :, :]
+    d2 = (diff * diff).sum(axis=2) + np.diag(np.full(len(ideal), np.inf))
+    return min(max(0.25 * math.sqrt(float(d2.min())), 1.5), 8.0)
 
 
 def _drop_outlier(
@@ -313,7 +318,7 @@ def _drop_outlier(
     if len(matching) <= min_matched or len(res) != len(matching):
         return matching, pose
     worst = int(res.argmax())
-    if res[worst] < max(1.0, 4.0 * float(np.median(res))):
+    if res[worst] < max(1.0, 4.0 * statistics.median(res.tolist())):
         return matching, pose
     ids = sorted(matching)
     kept = {i: matching[i] for k, i in enumerate(ids) if k != worst}
@@ -348,7 +353,11 @@ def _verify(
             else _pnp_score(target, h, ideal, camera.K)
             for h in ranked
         ]
-        ranked = [ranked[i] for i in np.argsort(quick, kind="stable")]
+        order = np.argsort(quick, kind="stable")
+        # Only contenders get the real solver: a matching whose rigid-view score is far
+        # behind the best one's cannot fit about as well once a rigid pose is imposed.
+        limit = _QUICK_MARGIN_FACTOR * quick[order[0]] + _QUICK_MARGIN_PX
+        ranked = [ranked[i] for i in order if quick[i] <= limit]
     scored: list[tuple[float, dict[int, int], PoseResult]] = []
     for hyp in ranked[:_MAX_VERIFIED]:
         ids = np.array(sorted(hyp), dtype=np.intp)

@@ -14,6 +14,7 @@ Everything runs in undistorted normalised image coordinates, so the focal length
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -105,8 +106,13 @@ def normalised_image_points(
         raise ValueError("image points must be finite")
     xy = camera.undistort_points(img)
     centred = xy - xy.mean(axis=0)
-    s = np.linalg.svd(centred, compute_uv=False)
-    if s[0] <= 0.0 or s[1] <= COLLINEAR_RATIO * s[0]:
+    # Singular values of the centred points from the 2x2 scatter matrix (closed form, no SVD):
+    # s1/s0 = sqrt(lambda_min/lambda_max).
+    (a, b), (_, d) = (centred.T @ centred).tolist()
+    half_trace, det = 0.5 * (a + d), a * d - b * b
+    lam_max = half_trace + math.sqrt(max(half_trace * half_trace - det, 0.0))
+    lam_min = det / lam_max if lam_max > 0.0 else 0.0
+    if lam_max <= 0.0 or lam_min <= COLLINEAR_RATIO**2 * lam_max:
         raise DegenerateGeometryError(
             "the image points are collinear or coincident (target seen edge-on?): tilt the "
             "target towards the camera"
@@ -115,17 +121,22 @@ def normalised_image_points(
 
 
 def pose_from_rows(
-    R_rows: NDArray[np.float64], scale: float, xy0: NDArray[np.float64], P0: NDArray[np.float64]
+    R_rows: NDArray[np.float64], scale: float, xy0: NDArray[np.float64], P0: NDArray[np.float64],
+    *, orthonormal: bool = False,
 ) -> NDArray[np.float64]:
     """4x4 T_camera_target from POSIT's (I/|I|, J/|J|, R1xR2) rows, the scale and P0's image.
 
-    The rows are only approximately orthonormal (I and J come from a least-squares solve), so the
-    rotation is projected onto SO(3) with an SVD; P0 sits at depth Tz = 1/s on its image ray.
+    The rows of plain POSIT are only approximately orthonormal (I and J come from a
+    least-squares solve), so the rotation is projected onto SO(3) with an SVD; coplanar POSIT's
+    rows are orthonormal by construction (``orthonormal``), which skips it. P0 sits at depth
+    Tz = 1/s on its image ray.
     """
-    U, _, Vt = np.linalg.svd(R_rows)
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
+    R = R_rows
+    if not orthonormal:
+        U, _, Vt = np.linalg.svd(R_rows)
+        R = U @ Vt
+        if np.linalg.det(R) < 0:
+            R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
     Tz = 1.0 / scale
     T = np.eye(4)
     T[:3, :3] = R
@@ -139,15 +150,26 @@ def reprojection_rms_px(
 ) -> float:
     """Root-mean-square pixel distance between the points' projections and the image points."""
     P = points_mm @ T[:3, :3].T + T[:3, 3]
-    if np.any(P[:, 2] <= 0.0):
+    if P[:, 2].min() <= 0.0:
         return math.inf
-    d = camera.project(P) - np.asarray(image_points_px, dtype=float)
-    return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
+    img = np.asarray(image_points_px, dtype=float)
+    if camera.has_distortion:
+        d = camera.project(P) - img
+    else:  # the pinhole projection inline: this runs several times per solve
+        focal, centre = pinhole_arrays(camera)
+        d = (P[:, :2] / P[:, 2:] * focal + centre) - img
+    return math.sqrt(float(np.vdot(d, d)) / len(d))
+
+
+@functools.lru_cache(maxsize=16)
+def pinhole_arrays(camera: CameraModel) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(fx, fy) and (cx, cy) as arrays, made once per camera."""
+    return np.array([camera.fx, camera.fy]), np.array([camera.cx, camera.cy])
 
 
 def all_in_front(T: NDArray[np.float64], points_mm: NDArray[np.float64]) -> bool:
     """True when every model point has positive depth in the camera frame."""
-    return bool(np.all(points_mm @ T[2, :3] + T[2, 3] > 0.0))
+    return bool((points_mm @ T[2, :3]).min() > -T[2, 3])
 
 
 class FrameSystem:

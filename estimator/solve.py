@@ -2,11 +2,19 @@
 
 POSIT needs no initial guess but is only a seed: at close range it can stop at a wrong fixed
 point, and coplanar POSIT's iteration can drift away from the true pose. So the seed is refined
-to the maximum-likelihood pose; for planar models the mirrored pose (depth reversed about the
-line of sight) is refined too, so both local minima are found even when both coplanar branches
-fell into one basin; and when the best refined pose still reprojects badly (> RETRY_RMS_PX) the
-seeds are recomputed with each other point as POSIT's reference point (which changes the
-fixed-point iteration). The refined pose with the lowest rms wins.
+to the maximum-likelihood pose by one LM run; for planar models the mirrored pose (depth
+reversed about the line of sight) and the other coplanar branch are candidates for the second
+local minimum, scored raw (one projection each) and refined only when their raw rms makes them
+contenders, so both minima are found even when both coplanar branches fell into one basin; and
+when the best refined pose still reprojects badly (> RETRY_RMS_PX) the seeds are recomputed
+with each other point as POSIT's reference point (which changes the fixed-point iteration).
+The refined pose with the lowest rms wins. The perspective-bias correction then costs one more
+refinement from that pose on the corrected points (Gauss-Newton, see :mod:`estimator.refine`),
+not a re-run.
+
+Cost per planar solve (6 dots): a few coplanar POSIT steps to a 4 px seed (LM finishes the
+job faster than more POSIT iterations would), one LM, one Gauss-Newton for a contending
+alternative, one Gauss-Newton finish. Tracking skips POSIT entirely (:func:`solve_pose_near`).
 
 Ambiguity rule (planar targets): the best pose B and the best *distinct* other pose A (rotation
 differing by more than ~0.06 deg or translation by more than 0.1 % of the range) are both local
@@ -40,7 +48,7 @@ from estimator.posit import (
     posit_general,
     reprojection_rms_px,
 )
-from estimator.refine import covariance_from, refine_arrays
+from estimator.refine import covariance_from, polish_arrays, refine_arrays
 from estimator.result import AlternativePose, PoseResult
 
 AMBIGUITY_RATIO = 1.5
@@ -51,8 +59,8 @@ BAD_RMS_PX = 2.0  # an unconverged seed whose refined rms is above this is a fai
 SEED_MAX_ITERATIONS = 100
 SEED_TOLERANCE_PX = 0.05  # the seed only has to land in the right basin; LM does the rest
 # Coplanar POSIT converges more slowly (error ratio ~0.45 per iteration) and each iteration
-# costs more (two branches, four candidates), while LM takes a 1 px seed in its stride.
-PLANAR_SEED_TOLERANCE_PX = 1.0
+# costs more (two branches, four candidates), while LM takes a few-pixel seed in its stride.
+PLANAR_SEED_TOLERANCE_PX = 4.0
 CONTENDER_RAW_RMS_PX = 8.0  # an unrefined alternative above this cannot refine to < 2 px rms
 CONTENDER_RATIO = 3.0  # ... unless the winner itself fits badly (a wrong basin)
 _SAME_ANGLE_RAD = 1e-3
@@ -114,9 +122,11 @@ class _Problem:
             model = object_model(np.roll(self.obj, -reference, axis=0))
             xy = np.roll(xy, -reference, axis=0)
         if model.planar:
-            img = np.roll(self.img, -reference, axis=0)
+            img = np.roll(self.img, -reference, axis=0) if reference else self.img
+            # The losing branch is only a candidate for the alternative (the mirrored pose is
+            # the better one), so it is not followed once it is behind a converged winner.
             result = posit_coplanar(
-                model, xy, img, self.camera, SEED_MAX_ITERATIONS, self.tolerance
+                model, xy, img, self.camera, SEED_MAX_ITERATIONS, self.tolerance, 1.0
             )
             seeds = [_Seed(result.T_camera_target, result.iterations, result.converged, reference)]
             self.branch_rms = None
@@ -136,10 +146,14 @@ class _Problem:
             )
         return [_Seed(T, iterations, converged, reference)]
 
-    def refine(self, seed: _Seed, img: NDArray[np.float64] | None = None) -> _Solution | None:
-        """LM from the seed on ``img`` (default: the measured points); None if behind camera."""
+    def refine(
+        self, seed: _Seed, img: NDArray[np.float64] | None = None, *, polish: bool = False
+    ) -> _Solution | None:
+        """LM (or, with ``polish``, Gauss-Newton from a near pose) from the seed on ``img``
+        (default: the measured points); None if behind the camera."""
         points = self.img if img is None else img
-        T, residuals, J = refine_arrays(self.obj, points, self.K, self.dist, seed.T)
+        step = polish_arrays if polish else refine_arrays
+        T, residuals, J = step(self.obj, points, self.K, self.dist, seed.T)
         if not all_in_front(T, self.obj):
             return None
         return _Solution(T, residuals, J, _rms(residuals), seed)
@@ -153,6 +167,8 @@ class _Problem:
         projection to score raw, and only one whose raw rms makes it a contender (below
         CONTENDER_RAW_RMS_PX, or within CONTENDER_RATIO of the refined winner) is refined --
         the better one first, the other only if that one fell into the winner's basin.
+        The alternative is refined by Gauss-Newton (see :mod:`estimator.refine`), with LM as
+        the fallback when that does not lower its rms.
         """
         seeds = self.seeds(reference)
         first = self.refine(seeds[0])
@@ -171,7 +187,10 @@ class _Problem:
         for raw_rms, T in options:
             if raw_rms > limit:
                 break
-            solution = self.refine(_Seed(T, *bookkeeping))
+            # Gauss-Newton first (a third of LM's cost); LM only if it did not improve the fit.
+            solution = self.refine(_Seed(T, *bookkeeping), polish=first is not None)
+            if first is not None and (solution is None or solution.rms > raw_rms):
+                solution = self.refine(_Seed(T, *bookkeeping))
             if solution is None:
                 continue
             out.append(solution)
@@ -289,18 +308,21 @@ def solve_pose(
         notes.append(f"seeded with point {best.seed.reference} as POSIT reference")
     image_points = problem.img
     if dot_diameter_mm is not None and correct_bias:
-        # One more LM from the solved pose on the corrected points, not a re-run: the bias is
-        # hundredths of a pixel, so the pose moves by far less than the basin. The alternative
-        # keeps its rms on the measured points; the correction cannot change the ambiguity
-        # verdict, whose margin (1.5x) is far larger.
+        # One more refinement from the solved pose on the corrected points, not a re-run: the
+        # bias is hundredths of a pixel, so the pose moves by far less than the basin. The
+        # alternative keeps its rms on the measured points; the correction cannot change the
+        # ambiguity verdict, whose margin (1.5x) is far larger.
         bias = centroid_bias_px(best.T, problem.obj, dot_diameter_mm, camera)
         image_points = problem.img - bias
-        refined = problem.refine(_Seed(best.T, 0, True, 0), image_points)
-        if refined is not None:
-            best = _Solution(refined.T, refined.residuals, refined.jacobian, refined.rms, best.seed)
         notes.append(
             f"perspective bias corrected (max {float(np.max(np.abs(bias))):.3f} px)"
         )
+    # Gauss-Newton finish (see estimator.refine): tight whatever LM stopped at.
+    polished = problem.refine(_Seed(best.T, 0, True, 0), image_points,
+                              polish=True)
+    if polished is not None:
+        best = _Solution(polished.T, polished.residuals, polished.jacobian, polished.rms,
+                         best.seed)
     if not best.seed.converged and best.rms > BAD_RMS_PX:
         raise NotConvergedError(
             f"POSIT did not converge in {SEED_MAX_ITERATIONS} iterations and the refined pose "
@@ -341,10 +363,11 @@ def solve_pose_near(
 ) -> PoseResult:
     """Pose from matched points when a nearby pose is already known (tracking), no POSIT.
 
-    The same two LM refinements that end :func:`solve_pose` -- on the measured points, then
-    on the bias-corrected ones -- but started from ``T_init``, so a tracked frame gets the very
-    pose a full solve would give. No alternative is searched (the track only starts from an
-    unambiguous pose): ``alternative`` is None and ``ambiguous`` False. Raises
+    Gauss-Newton from ``T_init`` on the measured points, then (with the bias correction) once
+    more on the corrected points: the same finish as :func:`solve_pose`, so a tracked frame
+    gets the very pose a full solve would give (to ~1e-9 mm). No alternative is searched
+    (the track only starts from an unambiguous pose): ``alternative`` is None and
+    ``ambiguous`` False. Raises
     BehindCameraError when the refined pose puts part of the target behind the camera.
     """
     obj = np.ascontiguousarray(object_points_mm, dtype=float).reshape(-1, 3)
@@ -352,13 +375,13 @@ def solve_pose_near(
     if len(obj) != len(img) or len(obj) < 4:
         raise ValueError(f"need 4 or more matched points, got {len(obj)} and {len(img)}")
     K, dist = camera.K, camera.dist_coeffs
-    T, residuals, J = refine_arrays(obj, img, K, dist, np.asarray(T_init, dtype=float))
+    T, residuals, J = polish_arrays(obj, img, K, dist, np.asarray(T_init, dtype=float))
     notes = ["refined from the tracked pose"]
     image_points = img
     if dot_diameter_mm is not None and correct_bias and all_in_front(T, obj):
         bias = centroid_bias_px(T, obj, dot_diameter_mm, camera)
         image_points = img - bias
-        T, residuals, J = refine_arrays(obj, image_points, K, dist, T)
+        T, residuals, J = polish_arrays(obj, image_points, K, dist, T)
         notes.append(f"perspective bias corrected (max {float(np.max(np.abs(bias))):.3f} px)")
     if not all_in_front(T, obj):
         raise BehindCameraError(

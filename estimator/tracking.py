@@ -14,6 +14,7 @@ re-estimates the threshold.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import cast
 
 import cv2
 import numpy as np
@@ -83,8 +84,9 @@ class BlobTracker:
             x1, y1 = min(int(pu + half) + 2, w), min(int(pv + half) + 2, h)
             if x1 - x0 < 4 or y1 - y0 < 4:
                 return None
-            _, mask = cv2.threshold(image_u8[y0:y1, x0:x1], self._threshold, 255, self._kind)
-            cands = blobs_from_mask(image_u8, mask, self.polarity, self.filt, offset=(x0, y0))
+            mask = cv2.threshold(image_u8[y0:y1, x0:x1], self._threshold, 255, self._kind)[1]
+            cands = blobs_from_mask(image_u8, cast(NDArray[np.uint8], mask), self.polarity,
+                                    self.filt, offset=(x0, y0))
             if not cands:
                 return None
             best = min(cands, key=lambda c: (c.u - pu) ** 2 + (c.v - pv) ** 2)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -11,6 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.config import CellConfig, load_config, parse_config
+from cell.hardware import SimWorld
 from cell.runtime import start_cell
 from cell.service import Cell
 
@@ -42,5 +44,23 @@ def running_cell(config: CellConfig) -> Iterator[Cell]:
 
 def tcp(cell: Cell) -> NDArray[np.float64]:
     """The true TCP pose of the simulated arm."""
-    T: NDArray[np.float64] = cell.sim.true_T_base_tcp()
-    return T
+    assert cell.sim is not None
+    return cell.sim.true_T_base_tcp()
+
+
+def world(cell: Cell) -> SimWorld:
+    """The simulated world of a cell built on fakes."""
+    assert cell.sim is not None, "the cell does not run on fakes"
+    return cell.sim
+
+
+def settled_tcp(cell: Cell, timeout_s: float = 5.0) -> NDArray[np.float64]:
+    """The true TCP pose once the arm has come to rest (two reads 0.1 s apart agree)."""
+    deadline = time.monotonic() + timeout_s
+    prev = tcp(cell)
+    while True:
+        time.sleep(0.1)
+        now = tcp(cell)
+        if np.abs(now - prev).max() < 1e-4 or time.monotonic() > deadline:
+            return now
+        prev = now

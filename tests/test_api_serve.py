@@ -89,3 +89,14 @@ def test_restart_after_kill_keeps_audit_and_marks_the_job(tmp_path: Path) -> Non
         assert approach and approach[0]["caller"] == "plc(plc)"
         assert approach[0]["params"]["standoff_mm"] == 40
         assert any(e["command"] == "recover" and e["job_id"] == job_id for e in entries)
+
+
+def test_sample_tokens_are_refused_on_real_hardware(tmp_path: Path) -> None:
+    text = _config(tmp_path).read_text().replace('kind = "sim"', 'kind = "ur"', 1)
+    real = tmp_path / "real.toml"
+    real.write_text(text.replace('host = "127.0.0.1"', 'host = "192.0.2.1"'))
+    out = subprocess.run([sys.executable, "-m", "cell", "serve", "--config", str(real),
+                          "--port", str(_free_port())], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 2
+    assert "sample token" in out.stderr and "sim-operator" in out.stderr

@@ -17,7 +17,7 @@ from cell.frames import approach_tcp
 from cell.service import Cell
 from estimator.transforms import T_from_pose_dict, pose_distance
 from fakes.ur_controller.process import free_loopback_host
-from tests.cell_testing import AUTH, running_cell, sim_config
+from tests.cell_testing import AUTH, running_cell, settled_tcp, sim_config, world
 
 
 @pytest.fixture
@@ -34,13 +34,13 @@ def test_locate_approach_and_grip_through_ur_rtde(client: TestClient) -> None:
     assert status["robot"]["mode"] == "RUNNING" and status["gripper"]["activated"]
     r = client.post("/api/v1/locate", json={"n_frames": 2}, headers=AUTH["plc"])
     assert r.status_code == 200, r.text
-    T_true = cell.sim.true_T_base_target()
+    T_true = world(cell).true_T_base_target()
     d_mm, d_deg = pose_distance(T_from_pose_dict(r.json()["T_base_target"]), T_true)
     assert d_mm <= 0.5 and d_deg <= 0.1
     r = client.post("/api/v1/approach", json={"standoff_mm": 30, "wait": True},
                     headers=AUTH["plc"])
     assert r.status_code == 200 and r.json()["state"] == "succeeded", r.text
-    d_mm, d_deg = pose_distance(cell.sim.true_T_base_tcp(), approach_tcp(T_true, np.eye(4), 30))
+    d_mm, d_deg = pose_distance(world(cell).true_T_base_tcp(), approach_tcp(T_true, np.eye(4), 30))
     print(f"final TCP error through ur_rtde: {d_mm:.3f} mm / {d_deg:.3f} deg")
     assert d_mm <= 0.3 and d_deg <= 0.1
     r = client.post("/api/v1/gripper", json={"action": "close"}, headers=AUTH["operator"])
@@ -49,7 +49,7 @@ def test_locate_approach_and_grip_through_ur_rtde(client: TestClient) -> None:
                     headers=AUTH["operator"])
     assert r.status_code == 200 and abs(r.json()["position_mm"] - 60) < 1.0, r.text
     # continuous jog through ur_rtde, ended by the dead-man
-    z0 = cell.sim.true_T_base_tcp()[2, 3]
+    z0 = world(cell).true_T_base_tcp()[2, 3]
     r = client.post("/api/v1/jog", json={"mode": "continuous", "linear_mm_s": [0, 0, 30]},
                     headers=AUTH["operator"])
     assert r.status_code == 200, r.text
@@ -62,7 +62,7 @@ def test_locate_approach_and_grip_through_ur_rtde(client: TestClient) -> None:
         assert time.monotonic() < deadline
         time.sleep(0.02)
     time.sleep(0.5)
-    rise = cell.sim.true_T_base_tcp()[2, 3] - z0
+    rise = world(cell).true_T_base_tcp()[2, 3] - z0
     assert 15 < rise < 45, rise  # ~1 s at 30 mm/s
 
 
@@ -72,17 +72,16 @@ def test_protective_stop_mid_approach_through_ur_rtde(client: TestClient) -> Non
     assert r.status_code == 200, r.text
     job_id = r.json()["id"]
     time.sleep(0.8)
-    cell.sim.trigger_protective_stop("test")
+    world(cell).trigger_protective_stop("test")
     deadline = time.monotonic() + 20
     while (job := client.get(f"/api/v1/jobs/{job_id}", headers=AUTH["viewer"]).json())[
             "state"] == "running":
         assert time.monotonic() < deadline
         time.sleep(0.05)
     assert job["state"] == "failed" and job["error"]["code"] == "protective_stop", job
-    time.sleep(0.3)
-    held = cell.sim.true_T_base_tcp()
+    held = settled_tcp(cell)
     r = client.post("/api/v1/jog", json={"mode": "step", "translation_mm": [0, 0, 5]},
                     headers=AUTH["operator"])
     assert r.status_code == 409 and r.json()["error"]["code"] == "protective_stop", r.text
     time.sleep(0.3)
-    assert pose_distance(cell.sim.true_T_base_tcp(), held)[0] < 0.01
+    assert pose_distance(world(cell).true_T_base_tcp(), held)[0] < 0.01

@@ -212,3 +212,12 @@ def test_event_bus_drops_oldest_for_slow_listeners() -> None:
         got = [sub.get(0.01) for _ in range(4)]
     assert [g["i"] for g in got[:3] if g] == [2, 3, 4] and got[3] is None
     assert bus.n_subscribers == 0
+
+
+def test_token_table_refuses_sample_tokens_on_real_hardware() -> None:
+    from api.auth import TokenTable
+
+    tokens = list(load_config().api.tokens)
+    assert TokenTable(tokens, simulated=True).lookup("sim-plc").role == "plc"
+    with pytest.raises(ConfigError, match="sample token"):
+        TokenTable(tokens, simulated=False)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 
-from cell.commands import bench, calibrate, camera, gripper, serve, vision
+from cell.commands import bench, calibrate, camera, gripper, serve, teach, vision
 
 Register = Callable[["argparse._SubParsersAction[argparse.ArgumentParser]"], None]
 
@@ -17,4 +17,5 @@ COMMANDS: list[Register] = [
     camera.register,
     serve.register,
     calibrate.register,
+    teach.register,
 ]
