@@ -42,21 +42,21 @@ def centre_and_centroid_normalised(
     if not dot_diameter_mm > 0:
         raise ValueError(f"dot_diameter_mm must be positive, got {dot_diameter_mm}")
     R = T[:3, :3]
-    # Homography columns per dot, in the camera frame: the plane axes and the centre.
-    if normals is None:  # the target's own x and y axes span every dot's plane
-        a = np.broadcast_to(R[:, 0], P.shape)
-        b = np.broadcast_to(R[:, 1], P.shape)
+    c = P @ R.T + T[:3, 3]
+    if c[:, 2].min() <= 0.0:
+        raise ValueError("a dot centre is behind the camera")
+    r2 = (0.5 * dot_diameter_mm) ** 2
+    # Homography columns per dot, in the camera frame: the plane axes a, b and the centre c.
+    # Ellipse centre = H diag(1, 1, -1/r^2) H^T e3; H^T e3 is the third row (a_z, b_z, c_z).
+    if normals is None:  # the target's own x and y axes span every dot's plane: a, b shared
+        ab = R[:, 0] * R[2, 0] + R[:, 1] * R[2, 1]
     else:
         n = np.broadcast_to(np.asarray(normals, dtype=float), P.shape)
         e1, e2 = _plane_bases(np.asarray(n, dtype=float))
         a = e1 @ R.T
         b = e2 @ R.T
-    c = P @ R.T + T[:3, 3]
-    if np.any(c[:, 2] <= 0.0):
-        raise ValueError("a dot centre is behind the camera")
-    r2 = (0.5 * dot_diameter_mm) ** 2
-    # Ellipse centre = H diag(1, 1, -1/r^2) H^T e3; H^T e3 is the third row (a_z, b_z, c_z).
-    centre_h = a * a[:, 2:3] + b * b[:, 2:3] - c * (c[:, 2:3] / r2)
+        ab = a * a[:, 2:3] + b * b[:, 2:3]
+    centre_h = ab - c * (c[:, 2:3] / r2)
     centroid = centre_h[:, :2] / centre_h[:, 2:3]
     return c[:, :2] / c[:, 2:3], centroid
 

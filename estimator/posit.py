@@ -169,7 +169,7 @@ def pinhole_arrays(camera: CameraModel) -> tuple[NDArray[np.float64], NDArray[np
 
 def all_in_front(T: NDArray[np.float64], points_mm: NDArray[np.float64]) -> bool:
     """True when every model point has positive depth in the camera frame."""
-    return bool((points_mm @ T[2, :3]).min() > -T[2, 3])
+    return min((points_mm @ T[2, :3]).tolist()) > -T[2, 3]
 
 
 class FrameSystem:

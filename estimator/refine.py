@@ -123,7 +123,7 @@ def polish_arrays(
     rvec = cv2.Rodrigues(T_init[:3, :3])[0]
     tvec = T_init[:3, 3].reshape(3, 1).copy()
     ideal: NDArray[Any] = img
-    if np.any(dist):  # undistort to full precision first (VVS's own default stops at ~1e-6)
+    if dist.any():  # undistort to full precision first (VVS's own default stops at ~1e-6)
         ideal = cv2.undistortPoints(img.reshape(-1, 1, 2), K, dist, P=K, criteria=_UNDISTORT)
     rvec_out, tvec_out = cv2.solvePnPRefineVVS(
         obj, ideal, K, _NO_DISTORTION, rvec, tvec, _GN_CRITERIA, 1.0)

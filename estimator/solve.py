@@ -85,7 +85,7 @@ class _Solution:
 
 
 def _rms(residuals: NDArray[np.float64]) -> float:
-    return math.sqrt(float(np.sum(residuals * residuals)) / len(residuals))
+    return math.sqrt(float(np.vdot(residuals, residuals)) / len(residuals))
 
 
 def _same_pose(A: NDArray[np.float64], B: NDArray[np.float64]) -> bool:
@@ -165,8 +165,9 @@ class _Problem:
         branch and the mirror of the refined pose (more reliable than the other branch, which
         often drifts into the same basin) are candidates for the second one; each costs a
         projection to score raw, and only one whose raw rms makes it a contender (below
-        CONTENDER_RAW_RMS_PX, or within CONTENDER_RATIO of the refined winner) is refined --
-        the better one first, the other only if that one fell into the winner's basin.
+        CONTENDER_RAW_RMS_PX, or within CONTENDER_RATIO of the refined winner; any, when the
+        winner itself fits worse than RETRY_RMS_PX) is refined -- the better one first, the
+        other only if that one fell into the winner's basin.
         The alternative is refined by Gauss-Newton (see :mod:`estimator.refine`), with LM as
         the fallback when that does not lower its rms.
         """
@@ -181,7 +182,9 @@ class _Problem:
         if len(seeds) > 1 and self.branch_rms is not None:
             options.append((self.branch_rms, seeds[1].T))
         options.sort(key=lambda o: o[0])
-        limit = CONTENDER_RAW_RMS_PX if first is None else max(
+        # A winner that fits badly may sit in a wrong basin (strong perspective traps every
+        # POSIT seed there): then every alternative seed is worth a refinement.
+        limit = math.inf if first is None or first.rms > RETRY_RMS_PX else max(
             CONTENDER_RAW_RMS_PX, CONTENDER_RATIO * first.rms)
         bookkeeping = astuple_seed(seeds[0])
         for raw_rms, T in options:
@@ -229,8 +232,9 @@ def mirrored_pose(
     R = T[:3, :3]
     centre_mm = points_mm.mean(axis=0)
     centre_cam = R @ centre_mm + T[:3, 3]
-    v = centre_cam / np.linalg.norm(centre_cam)
-    R2 = (np.eye(3) - 2.0 * np.outer(v, v)) @ R @ (np.eye(3) - 2.0 * np.outer(normal, normal))
+    v = centre_cam / math.sqrt(float(centre_cam @ centre_cam))
+    R1 = R - np.outer(2.0 * v, v @ R)  # (I - 2 v v^T) R
+    R2 = R1 - np.outer(R1 @ normal, 2.0 * normal)  # ... (I - 2 n n^T)
     out = np.eye(4)
     out[:3, :3] = R2
     out[:3, 3] = centre_cam - R2 @ centre_mm

@@ -200,11 +200,17 @@ def test_busy_stop_during_approach_and_protective_stop(client: TestClient) -> No
     r = client.post("/api/v1/approach", json={"standoff_mm": 40}, headers=PLC)
     assert r.status_code == 200, r.text
     job_id = r.json()["id"]
-    time.sleep(0.5)
+    deadline = time.monotonic() + 5.0
+    while client.get(f"/api/v1/jobs/{job_id}", headers=VIEW).json()["progress"].get(
+            "phase") != "final":  # the long final move: the stop lands mid-motion
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    time.sleep(0.2)
     world(cell).trigger_protective_stop("test: collision")
     job = wait_job(client, job_id)
     assert job["state"] == "failed" and job["error"]["code"] == "protective_stop", job
-    assert "safety stop" in job["error"]["message"]
+    assert "safety stop" in job["error"]["message"] and "approach goal" in \
+        job["error"]["message"]
     # and then nothing moves until it is cleared
     held = settled_tcp(cell)
     for path, body, hdr in (("/api/v1/approach", {}, PLC),
