@@ -321,12 +321,9 @@ def solve_pose(
         notes.append(
             f"perspective bias corrected (max {float(np.max(np.abs(bias))):.3f} px)"
         )
-    # Gauss-Newton finish (see estimator.refine): tight whatever LM stopped at.
-    polished = problem.refine(_Seed(best.T, 0, True, 0), image_points,
-                              polish=True)
-    if polished is not None:
-        best = _Solution(polished.T, polished.residuals, polished.jacobian, polished.rms,
-                         best.seed)
+    T, residuals, J = finish_pose(problem.obj, image_points, camera, best.T)
+    if all_in_front(T, problem.obj):
+        best = _Solution(T, residuals, J, _rms(residuals), best.seed)
     if not best.seed.converged and best.rms > BAD_RMS_PX:
         raise NotConvergedError(
             f"POSIT did not converge in {SEED_MAX_ITERATIONS} iterations and the refined pose "
@@ -356,6 +353,24 @@ def solve_pose(
     )
 
 
+def finish_pose(
+    obj: NDArray[np.float64], img: NDArray[np.float64], camera: CameraModel,
+    T_start: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """The refinement of a pose already near its minimum -> (T, residuals (N,2), J (2N,6)).
+
+    Gauss-Newton (see :mod:`estimator.refine`): tight whatever LM stopped at, and a third of
+    LM's cost there. Full GN steps can overshoot in a nearly flat, ill-conditioned valley; when
+    the fit got worse than at the start, LM does the finish instead.
+    """
+    K, dist = camera.K, camera.dist_coeffs
+    T, residuals, J = polish_arrays(obj, img, K, dist, T_start)
+    start_rms = reprojection_rms_px(T_start, obj, img, camera)
+    if _rms(residuals) > start_rms * (1.0 + 1e-9) + 1e-12:
+        T, residuals, J = refine_arrays(obj, img, K, dist, T_start)
+    return T, residuals, J
+
+
 def solve_pose_near(
     object_points_mm: ArrayLike,
     image_points_px: ArrayLike,
@@ -378,14 +393,13 @@ def solve_pose_near(
     img = np.ascontiguousarray(image_points_px, dtype=float).reshape(-1, 2)
     if len(obj) != len(img) or len(obj) < 4:
         raise ValueError(f"need 4 or more matched points, got {len(obj)} and {len(img)}")
-    K, dist = camera.K, camera.dist_coeffs
-    T, residuals, J = polish_arrays(obj, img, K, dist, np.asarray(T_init, dtype=float))
+    T, residuals, J = finish_pose(obj, img, camera, np.asarray(T_init, dtype=float))
     notes = ["refined from the tracked pose"]
     image_points = img
     if dot_diameter_mm is not None and correct_bias and all_in_front(T, obj):
         bias = centroid_bias_px(T, obj, dot_diameter_mm, camera)
         image_points = img - bias
-        T, residuals, J = polish_arrays(obj, image_points, K, dist, T)
+        T, residuals, J = finish_pose(obj, image_points, camera, T)
         notes.append(f"perspective bias corrected (max {float(np.max(np.abs(bias))):.3f} px)")
     if not all_in_front(T, obj):
         raise BehindCameraError(
