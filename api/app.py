@@ -6,7 +6,6 @@ can build a cell, serve it, and inspect it directly.
 
 from __future__ import annotations
 
-import importlib
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
@@ -16,6 +15,7 @@ from fastapi.responses import PlainTextResponse
 
 from api import errors, metrics
 from api.auth import TokenTable, require
+from api.page import mount_page
 from api.routes import router, sim_router
 from api.routes_calibration import install as install_calibration
 from cell.service import Cell
@@ -59,24 +59,14 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False) -> FastAPI:
 
     @app.get("/metrics", response_class=PlainTextResponse, tags=["status"],
              dependencies=[Depends(require("read"))], responses=errors.ERROR_RESPONSES)
+    @app.get("/api/v1/metrics", response_class=PlainTextResponse, tags=["status"],
+             dependencies=[Depends(require("read"))], responses=errors.ERROR_RESPONSES)
     def prometheus() -> str:
         """Prometheus text format."""
         return metrics.render(cell, app.state.http_stats)
 
-    _mount_page(app)
+    mount_page(app)
     return app
-
-
-
-def _mount_page(app: FastAPI) -> None:
-    """The operator page (issue 6) lives in api.page; serve it when it is there."""
-    try:
-        page = importlib.import_module("api.page")
-    except ImportError:
-        return
-    mount = getattr(page, "mount_page", None)
-    if callable(mount):
-        mount(app)
 
 
 def app_from_environment() -> FastAPI:

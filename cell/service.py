@@ -55,6 +55,10 @@ log = logging.getLogger(__name__)
 Matrix4 = NDArray[np.float64]
 
 
+# A commanded move that has not started within this time has failed. Generous, because a
+# loaded host or a busy controller can delay the first motion cycle by a second or more.
+START_TIMEOUT_S = 5.0
+
 class Cancelled(CellError):
     """The running motion was cancelled by a stop."""
 
@@ -338,7 +342,7 @@ class Cell:
                 d_mm, d_deg = pose_distance(st.T_base_tcp, T_goal)
                 if d_mm < 0.2 and d_deg < 0.1:
                     return st.T_base_tcp
-                if (started and still >= 5) or elapsed > 1.5:
+                if (started and still >= 5) or elapsed > START_TIMEOUT_S:
                     raise RefusedError("motion_failed", f"the arm stopped {d_mm:.2f} mm / "
                                        f"{d_deg:.2f} deg short of the {what}")
             if elapsed > timeout_s:

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator.blobs import BlobFilter, Polarity, blobs_from_mask
+from estimator.blobs import BlobFilter, Polarity, Region, blobs_from_regions, dot_regions
 from estimator.result import Blob
 
 
@@ -77,7 +77,7 @@ class BlobTracker:
         if pred.shape != (len(self._blobs), 2) or not np.all(np.isfinite(pred)):
             return None
         h, w = image_u8.shape
-        found: list[Blob] = []
+        picked: list[Region] = []
         for blob, (pu, pv) in zip(self._blobs, pred.tolist(), strict=True):
             half = 0.5 * max(blob.major_axis_px, 4.0) + 4.0 + self.margin_px
             x0, y0 = max(int(pu - half), 0), max(int(pv - half), 0)
@@ -85,14 +85,17 @@ class BlobTracker:
             if x1 - x0 < 4 or y1 - y0 < 4:
                 return None
             mask = cv2.threshold(image_u8[y0:y1, x0:x1], self._threshold, 255, self._kind)[1]
-            cands = blobs_from_mask(image_u8, cast(NDArray[np.uint8], mask), self.polarity,
-                                    self.filt, offset=(x0, y0))
+            cands = dot_regions(cast(NDArray[np.uint8], mask), self.filt, offset=(x0, y0))
             if not cands:
                 return None
-            best = min(cands, key=lambda c: (c.u - pu) ** 2 + (c.v - pv) ** 2)
+            best = min(cands, key=lambda c: (c.mask_centre[0] - pu) ** 2
+                       + (c.mask_centre[1] - pv) ** 2)
             if not 0.5 <= best.area / max(blob.area, 1e-9) <= 2.0:
                 return None  # a different object wandered into the window
-            found.append(best)
+            picked.append(best)
+        found = blobs_from_regions(image_u8, picked, self.polarity)  # one batch for all dots
+        if len(found) != len(picked):
+            return None
         pts = np.array([[b.u, b.v] for b in found])
         gaps = np.linalg.norm(pts[:, None] - pts[None], axis=2) + np.eye(len(pts)) * 1e9
         if gaps.min() < 1.0:

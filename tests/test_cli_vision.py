@@ -110,5 +110,6 @@ def test_bench_json_has_the_documented_keys() -> None:
     assert r["methods"]["pipeline_full"]["failures"] == 0
     assert r["methods"]["pipeline_full"]["translation_err_mm_median"] < 1.0
     assert 0.8 < r["error_ratio_vs_sqpnp_lm"] < 1.5
+    assert r["bias_correction"]["frames"] >= 1  # with vs without the perspective-bias step
     bad = _cell("bench", "--json", "--frames", "0")
     assert _error(bad)["code"] == "invalid_argument"

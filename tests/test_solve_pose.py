@@ -225,3 +225,21 @@ def test_garbage_points_fail_typed_or_report_a_bad_fit() -> None:
             continue
         assert result.rms_px > 2.0
     assert not_converged >= 1
+
+
+def test_solve_pose_near_finishes_at_the_full_solve_pose() -> None:
+    """Tracking's refinement from a nearby pose lands on the full solve's pose, bias included."""
+    from estimator.solve import solve_pose_near
+
+    rng = np.random.default_rng(28)
+    for _ in range(20):
+        T = _random_pose(rng, FLAT, (350, 700))
+        img = _image(T, FLAT) + rng.normal(0.0, 0.3, (len(FLAT), 2))
+        full = solve_pose(FLAT, img, CAM, dot_diameter_mm=8.0)
+        nudge = make_T(Rotation.from_rotvec(rng.normal(0.0, 0.003, 3)).as_matrix(),
+                       rng.normal(0.0, 0.5, 3))
+        near = solve_pose_near(FLAT, img, CAM, full.T_camera_target @ nudge, dot_diameter_mm=8.0)
+        dt_mm, dr_deg = pose_distance(near.T_camera_target, full.T_camera_target)
+        assert dt_mm < 1e-6 and dr_deg < 1e-6
+        assert near.alternative is None and not near.ambiguous
+        assert np.isclose(near.rms_px, full.rms_px, rtol=1e-6, atol=1e-9)
