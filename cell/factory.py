@@ -107,6 +107,52 @@ def _pose_source(truth: _EngineTruth | _ProcessTruth) -> PoseSource:
     return source
 
 
+def _make_camera(config: CellConfig, truth: _EngineTruth | _ProcessTruth | None
+                 ) -> tuple[Camera, SimCamera | None]:
+    """The configured camera; a simulated one renders what the simulated arm's camera sees."""
+    cc, sim = config.camera, config.sim
+    if cc.kind == "sim":
+        if truth is None:
+            raise ConfigError("camera.kind = \"sim\" needs a simulated robot (robot.kind = "
+                              "\"sim\" or sim.ur_controller = true)")
+        T_flange_camera = (sim.T_flange_camera or config.hand_eye.T_flange_camera).T()
+        sim_camera = SimCamera(
+            cc.model(), config.target.model(), sim.T_base_target.T(), T_flange_camera,
+            _pose_source(truth), fps=cc.fps, noise_std=sim.noise_std,
+            blur_sigma_px=sim.blur_sigma_px)
+        return sim_camera, sim_camera
+    from drivers.oak import OakCamera, OakSettings
+
+    return OakCamera(OakSettings(width=cc.width, height=cc.height, fps=cc.fps)), None
+
+
+def build_camera(config: CellConfig) -> tuple[Camera, Callable[[], None]]:
+    """Only the camera, for commissioning commands, and a function that releases it.
+
+    A simulated camera needs a simulated arm to hang on: it gets an in-process one at the
+    configured home pose, so it shows what the simulated cell sees at home.
+    """
+    truth = None
+    engine = None
+    if config.camera.kind == "sim":
+        home_rad = [float(v) for v in np.radians(config.robot.home_joints_deg)]
+        engine = MotionEngine(q_rad=home_rad)
+        truth = _EngineTruth(engine)
+    try:
+        camera, _ = _make_camera(config, truth)
+    except BaseException:
+        if engine is not None:
+            engine.close()
+        raise
+
+    def release() -> None:
+        camera.disconnect()
+        if engine is not None:
+            engine.close()
+
+    return camera, release
+
+
 def all_simulated(config: CellConfig) -> bool:
     """True when the config builds only fakes (then the sample API tokens are allowed)."""
     return ((config.robot.kind == "sim" or config.sim.ur_controller)
@@ -148,24 +194,9 @@ def _build(config: CellConfig, closers: list[Callable[[], None]]) -> Hardware:
         arm = URArm(rc.host, connect_timeout_s=rc.connect_timeout_s)
         closers.append(arm.disconnect)
 
-    camera: Camera
-    sim_camera = None
-    cc = config.camera
-    if cc.kind == "sim":
-        if truth is None:
-            raise ConfigError("camera.kind = \"sim\" needs a simulated robot (robot.kind = "
-                              "\"sim\" or sim.ur_controller = true)")
-        T_flange_camera = (sim.T_flange_camera or config.hand_eye.T_flange_camera).T()
-        sim_camera = SimCamera(
-            cc.model(), config.target.model(), sim.T_base_target.T(), T_flange_camera,
-            _pose_source(truth), fps=cc.fps, noise_std=sim.noise_std,
-            blur_sigma_px=sim.blur_sigma_px)
-        camera = sim_camera
-    else:
-        from drivers.oak import OakCamera, OakSettings
-
+    camera, sim_camera = _make_camera(config, truth)
+    if sim_camera is None:
         simulated = False
-        camera = OakCamera(OakSettings(width=cc.width, height=cc.height, fps=cc.fps))
     closers.append(camera.disconnect)
 
     gripper: Gripper | None = None
