@@ -7,7 +7,6 @@ camera waits) and must not stall the event loop that serves /stop and /events.
 from __future__ import annotations
 
 import asyncio
-import json
 import time
 from typing import Annotated, Any
 
@@ -30,6 +29,7 @@ from api.schemas import (
     Pose,
     StopRequest,
 )
+from api.sse import SSE_RESPONSES, sse_response
 from cell.hardware import SimWorld
 from cell.safety import NotFoundError
 from cell.service import Cell
@@ -172,41 +172,13 @@ def camera_frame(request: Request, caller: Read, overlay_: Annotated[bool, Query
                     headers={"Cache-Control": "no-store", "X-Frame-Age-S": f"{age:.3f}"})
 
 
-@router.get("/events", tags=["status"],
-            responses={200: {"content": {"text/event-stream": {}},
-                             "description": "server-sent events"}})
+@router.get("/events", tags=["status"], responses=SSE_RESPONSES)
 async def events(request: Request, caller: Read,
                  max_events: Annotated[int | None, Query(ge=1, le=100000)] = None
                  ) -> StreamingResponse:
     """Server-sent events: ``state`` (pose and mode at camera rate), ``job``, ``jog``,
     ``locate``, ``stop``. ``max_events`` ends the stream after that many (for scripts)."""
-    cell = cell_of(request)
-    sub = cell.events.subscribe()
-
-    async def stream() -> Any:
-        sent = 0
-        idle = 0.0
-        try:
-            yield "retry: 1000\n\n"
-            while max_events is None or sent < max_events:
-                ev = sub.get(0)
-                if ev is None:
-                    if await request.is_disconnected():
-                        break
-                    await asyncio.sleep(0.02)
-                    idle += 0.02
-                    if idle >= 5.0:
-                        idle = 0.0
-                        yield ": keep-alive\n\n"
-                    continue
-                idle = 0.0
-                sent += 1
-                yield f"event: {ev['type']}\ndata: {json.dumps(ev)}\n\n"
-        finally:
-            sub.close()
-
-    return StreamingResponse(stream(), media_type="text/event-stream",
-                             headers={"Cache-Control": "no-store"})
+    return sse_response(request, cell_of(request).events.subscribe(), max_events)
 
 
 @sim_router.get("/truth")

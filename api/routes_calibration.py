@@ -7,8 +7,6 @@ service and the taught-pose store (beside the job database) on ``app.state``.
 
 from __future__ import annotations
 
-import asyncio
-import json
 import os
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -21,6 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from api.auth import Caller, require
 from api.errors import ERROR_RESPONSES, ForbiddenError
+from api.sse import SSE_RESPONSES, sse_response
 from cell.calibration.routine import RoutineSettings
 from cell.calibration.service import EVENT, CalibrationService
 from cell.safety import LimitError
@@ -146,42 +145,15 @@ def apply_hand_eye(request: Request, caller: Operator, job_id: str,
                                        b.write_config, b.force)
 
 
-@router.get("/calibration/events", tags=["calibration"],
-            responses={200: {"content": {"text/event-stream": {}},
-                             "description": "server-sent events"}})
+@router.get("/calibration/events", tags=["calibration"], responses=SSE_RESPONSES)
 async def calibration_events(request: Request, caller: Read,
                              max_events: Annotated[int | None, Query(ge=1, le=100000)] = None
                              ) -> StreamingResponse:
     """Server-sent ``calibration`` events: progress (stage, done, total), the finished job,
     and applied results. ``max_events`` ends the stream after that many."""
-    sub = _calibration(request).cell.events.subscribe()
-
-    async def stream() -> Any:
-        sent = 0
-        idle = 0.0
-        try:
-            yield "retry: 1000\n\n"
-            while max_events is None or sent < max_events:
-                ev = sub.get(0)
-                if ev is not None and ev["type"] != EVENT:
-                    continue  # the cell's other events have their own stream (/events)
-                if ev is None:
-                    if await request.is_disconnected():
-                        break
-                    await asyncio.sleep(0.05)
-                    idle += 0.05
-                    if idle >= 5.0:
-                        idle = 0.0
-                        yield ": keep-alive\n\n"
-                    continue
-                idle = 0.0
-                sent += 1
-                yield f"event: {EVENT}\ndata: {json.dumps(ev)}\n\n"
-        finally:
-            sub.close()
-
-    return StreamingResponse(stream(), media_type="text/event-stream",
-                             headers={"Cache-Control": "no-store"})
+    # The cell's other events have their own stream (/events).
+    return sse_response(request, _calibration(request).cell.events.subscribe(), max_events,
+                        keep=lambda ev: ev["type"] == EVENT)
 
 
 # -- taught poses ----------------------------------------------------------------------------

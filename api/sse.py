@@ -1,0 +1,53 @@
+"""Server-sent events from a cell event subscription (one implementation for every stream)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import AsyncIterator, Callable
+from typing import Any
+
+from fastapi import Request
+from fastapi.responses import StreamingResponse
+
+from cell.events import Subscription
+
+POLL_S = 0.02
+KEEPALIVE_S = 5.0  # a comment line this often keeps proxies from closing an idle stream
+
+SSE_RESPONSES: dict[int | str, dict[str, Any]] = {
+    200: {"content": {"text/event-stream": {}}, "description": "server-sent events"},
+}
+
+
+def sse_response(request: Request, sub: Subscription, max_events: int | None,
+                 keep: Callable[[dict[str, Any]], bool] = lambda ev: True) -> StreamingResponse:
+    """Stream the subscription's events (those ``keep`` accepts) until the client leaves or
+    ``max_events`` were sent; the subscription is closed either way."""
+
+    async def stream() -> AsyncIterator[str]:
+        sent = 0
+        idle_s = 0.0
+        try:
+            yield "retry: 1000\n\n"
+            while max_events is None or sent < max_events:
+                ev = sub.get(0)
+                if ev is None:
+                    if await request.is_disconnected():
+                        break
+                    await asyncio.sleep(POLL_S)
+                    idle_s += POLL_S
+                    if idle_s >= KEEPALIVE_S:
+                        idle_s = 0.0
+                        yield ": keep-alive\n\n"
+                    continue
+                if not keep(ev):
+                    continue
+                idle_s = 0.0
+                sent += 1
+                yield f"event: {ev['type']}\ndata: {json.dumps(ev)}\n\n"
+        finally:
+            sub.close()
+
+    return StreamingResponse(stream(), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-store"})
