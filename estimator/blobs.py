@@ -30,6 +30,9 @@ Contour = NDArray[Any]  # OpenCV point array (n, 1, 2) int32
 
 _RIM_PX = 2  # the anti-aliased/blurred rim beyond the binary region that still carries weight
 _DILATE = np.ones((2 * _RIM_PX + 1, 2 * _RIM_PX + 1), np.uint8)
+_COARSE_STEP = 4  # subsampling of the frame for Otsu and for locating the candidate dots
+_COARSE_PAD_PX = 2 * _COARSE_STEP  # a region reaches < one step beyond its sampled pixels
+_COARSE_MAX_FRACTION = 0.4  # a candidate window larger than this: threshold the whole frame
 
 
 @dataclass(frozen=True)
@@ -60,11 +63,60 @@ def _check_image(image_u8: NDArray[np.uint8]) -> NDArray[np.uint8]:
     return img
 
 
+def _subsample(image_u8: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    """Every ``_COARSE_STEP``-th pixel of every ``_COARSE_STEP``-th row (a contiguous copy)."""
+    return np.ascontiguousarray(image_u8[::_COARSE_STEP, ::_COARSE_STEP])
+
+
+def _otsu_of_sample(sample_u8: NDArray[np.uint8]) -> float:
+    thr, _ = cv2.threshold(sample_u8, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
+    return float(thr)
+
+
 def otsu_threshold(image_u8: NDArray[np.uint8]) -> float:
     """Otsu's threshold of the frame, from every fourth pixel of every fourth row."""
-    sample = np.ascontiguousarray(image_u8[::4, ::4])
-    thr, _ = cv2.threshold(sample, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
-    return float(thr)
+    return _otsu_of_sample(_subsample(image_u8))
+
+
+def candidate_window(
+    sample_u8: NDArray[np.uint8], polarity: Polarity, threshold: float, filt: BlobFilter,
+    shape: tuple[int, int],
+) -> tuple[int, int, int, int] | None:
+    """The frame window (x0, y0, x1, y1) holding every possible dot, from the subsampled frame.
+
+    Each region of the thresholded sample that is not too large to be a dot is a candidate;
+    the window is their joint bounding box, scaled back and padded by ``_COARSE_PAD_PX``, so
+    every dot that has a sampled pixel lies wholly inside it and gets exactly the outline (and
+    centre) a full-frame pass would give. None -- search the whole frame -- when a candidate
+    is a single sampled pixel (dots that small may have siblings no sample pixel hit), when
+    there is no candidate, or when the window would not save much.
+    """
+    mask = binarize(sample_u8, polarity, threshold)
+    contours, hierarchy = cv2.findContours(mask, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
+    if hierarchy is None:
+        return None
+    step = _COARSE_STEP
+    too_big = 8.0 * filt.max_area_px / (step * step)  # bounding box, in sample pixels
+    x0 = y0 = 1 << 30
+    x1 = y1 = -1
+    for c, parent in zip(contours, hierarchy[0][:, 3].tolist(), strict=True):
+        if parent >= 0:
+            continue  # a hole
+        x, y, w, h = cv2.boundingRect(c)
+        if w * h > too_big:
+            continue  # a frame, a long line, a plate: no dot
+        if w * h <= 1:
+            return None
+        x0, y0, x1, y1 = min(x0, x), min(y0, y), max(x1, x + w), max(y1, y + h)
+    if x1 < 0:
+        return None
+    height, width = shape
+    pad = _COARSE_PAD_PX
+    win = (max(x0 * step - pad, 0), max(y0 * step - pad, 0),
+           min(x1 * step + pad, width), min(y1 * step + pad, height))
+    if (win[2] - win[0]) * (win[3] - win[1]) > _COARSE_MAX_FRACTION * width * height:
+        return None
+    return win
 
 
 def binarize(
@@ -264,17 +316,31 @@ def detect_blobs_thresholded(
     polarity: Polarity = "dark",
     filt: BlobFilter | None = None,
     threshold: ThresholdSpec = None,
+    *,
+    coarse: bool = True,
 ) -> tuple[list[Blob], float | None]:
     """:func:`detect_blobs` that also returns the global threshold it used (None if adaptive),
-    so the tracker can reuse it in its windows and find the very same regions."""
+    so the tracker can reuse it in its windows and find the very same regions.
+
+    With a global threshold and ``coarse`` (the default), the subsampled frame first locates
+    the window that can hold dots (:func:`candidate_window`), and only that window is
+    thresholded and traced at full resolution; ``coarse=False`` always traces the whole frame.
+    """
     img = _check_image(image_u8)
     if polarity not in ("dark", "light"):
         raise ValueError(f'polarity must be "dark" or "light", got {polarity!r}')
     f = filt if filt is not None else BlobFilter()
     if threshold == "adaptive":
         return blobs_from_mask(img, adaptive_binarize(img, polarity), polarity, f), None
-    thr = otsu_threshold(img) if threshold is None or threshold == "otsu" else float(threshold)
-    return blobs_from_mask(img, binarize(img, polarity, thr), polarity, f), thr
+    sample = _subsample(img)
+    thr = _otsu_of_sample(sample) if threshold is None or threshold == "otsu" else float(
+        threshold)
+    win = candidate_window(sample, polarity, thr, f, img.shape) if coarse else None
+    if win is None:
+        return blobs_from_mask(img, binarize(img, polarity, thr), polarity, f), thr
+    x0, y0, x1, y1 = win
+    mask = binarize(img[y0:y1, x0:x1], polarity, thr)
+    return blobs_from_mask(img, mask, polarity, f, (x0, y0)), thr
 
 
 def detect_blobs(

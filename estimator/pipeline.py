@@ -125,6 +125,10 @@ class Estimator:
         blobs, threshold = detect_blobs_thresholded(
             img, self.polarity, self.filter, self._threshold
         )
+        if len(blobs) < self.target.n_points:  # a dot too small for the coarse pass to see?
+            blobs, threshold = detect_blobs_thresholded(
+                img, self.polarity, self.filter, self._threshold, coarse=False
+            )
         if len(blobs) < self.min_blobs:
             raise TooFewBlobsError(
                 len(blobs), self.min_blobs,

@@ -73,6 +73,7 @@ class _Seed:
     iterations: int
     converged: bool
     reference: int  # index of the model point used as POSIT's P0
+    rms: float = math.inf  # raw reprojection rms (px), when known
 
 
 @dataclass(frozen=True)
@@ -128,7 +129,8 @@ class _Problem:
             result = posit_coplanar(
                 model, xy, img, self.camera, SEED_MAX_ITERATIONS, self.tolerance, 1.0
             )
-            seeds = [_Seed(result.T_camera_target, result.iterations, result.converged, reference)]
+            seeds = [_Seed(result.T_camera_target, result.iterations, result.converged, reference,
+                           result.rms_px)]
             self.branch_rms = None
             if result.alternative is not None:
                 self.branch_rms = result.alternative[1]
@@ -172,7 +174,13 @@ class _Problem:
         the fallback when that does not lower its rms.
         """
         seeds = self.seeds(reference)
-        first = self.refine(seeds[0])
+        first = None
+        if self.model.planar:
+            # Gauss-Newton takes coplanar POSIT's few-pixel seed in a few steps (cheaper than
+            # LM); LM only when that did not improve on the seed.
+            first = self.refine(seeds[0], polish=True)
+        if first is None or not first.rms < seeds[0].rms:
+            first = self.refine(seeds[0])
         out = [] if first is None else [first]
         if not self.model.planar:
             return out

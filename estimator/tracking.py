@@ -77,19 +77,33 @@ class BlobTracker:
         if pred.shape != (len(self._blobs), 2) or not np.all(np.isfinite(pred)):
             return None
         h, w = image_u8.shape
+        # One region of interest around all the predictions (the dots of one target are close
+        # together): one threshold and one contour pass instead of one per dot. Its regions are
+        # the full frame's regions (same global threshold, each wholly inside the ROI).
+        halves = [0.5 * max(b.major_axis_px, 4.0) + 4.0 + self.margin_px for b in self._blobs]
+        reach = max(halves)
+        x0 = max(int(float(pred[:, 0].min()) - reach), 0)
+        y0 = max(int(float(pred[:, 1].min()) - reach), 0)
+        x1 = min(int(float(pred[:, 0].max()) + reach) + 2, w)
+        y1 = min(int(float(pred[:, 1].max()) + reach) + 2, h)
+        if x1 - x0 < 4 or y1 - y0 < 4:
+            return None
+        mask = cv2.threshold(image_u8[y0:y1, x0:x1], self._threshold, 255, self._kind)[1]
+        cands = dot_regions(cast(NDArray[np.uint8], mask), self.filt, offset=(x0, y0))
+        if not cands:
+            return None
+        centres = np.array([c.mask_centre for c in cands])
+        d2 = ((pred[:, None, :] - centres[None, :, :]) ** 2).sum(axis=2)
+        nearest = d2.argmin(axis=1).tolist()
+        if len(set(nearest)) != len(nearest):
+            return None  # two dots claim the same region
         picked: list[Region] = []
-        for blob, (pu, pv) in zip(self._blobs, pred.tolist(), strict=True):
-            half = 0.5 * max(blob.major_axis_px, 4.0) + 4.0 + self.margin_px
-            x0, y0 = max(int(pu - half), 0), max(int(pv - half), 0)
-            x1, y1 = min(int(pu + half) + 2, w), min(int(pv + half) + 2, h)
-            if x1 - x0 < 4 or y1 - y0 < 4:
-                return None
-            mask = cv2.threshold(image_u8[y0:y1, x0:x1], self._threshold, 255, self._kind)[1]
-            cands = dot_regions(cast(NDArray[np.uint8], mask), self.filt, offset=(x0, y0))
-            if not cands:
-                return None
-            best = min(cands, key=lambda c: (c.mask_centre[0] - pu) ** 2
-                       + (c.mask_centre[1] - pv) ** 2)
+        for blob, k, half, dist2 in zip(self._blobs, nearest, halves,
+                                        d2[np.arange(len(nearest)), nearest].tolist(),
+                                        strict=True):
+            best = cands[k]
+            if dist2 > 2.0 * half * half:
+                return None  # nothing where this dot should be (its window was empty)
             if not 0.5 <= best.area / max(blob.area, 1e-9) <= 2.0:
                 return None  # a different object wandered into the window
             picked.append(best)

@@ -125,3 +125,28 @@ def test_bad_input_is_a_clear_error() -> None:
     with pytest.raises(ValueError, match="min_area_px"):
         detect_blobs(np.zeros((10, 10), np.uint8), min_area_px=50, max_area_px=10)
     assert detect_blobs(np.full((100, 100), 128, np.uint8)) == []
+
+
+@pytest.mark.parametrize("options", [{}, {"frame": True}, {"clutter": 3}])
+def test_coarse_window_finds_exactly_the_full_frame_blobs(options: dict) -> None:
+    """The subsampled pass only narrows where the full-resolution pass looks: same regions,
+    same centres, whatever else is in the frame."""
+    from fakes.render import random_scene
+
+    rng = np.random.default_rng(12)
+    for _ in range(6):
+        s = random_scene(rng, CAM, n_dots=7, **options)
+        coarse, thr_a = detect_blobs_thresholded(s.image)
+        full, thr_b = detect_blobs_thresholded(s.image, coarse=False)
+        assert thr_a == thr_b and coarse == full and len(full) >= 7
+
+
+def test_tiny_dots_fall_back_to_the_full_frame() -> None:
+    """Dots of ~5 px may have no pixel in the subsampled frame: they are still all found."""
+    rng = np.random.default_rng(13)
+    target = random_target(rng, 6, dot_diameter_mm=4.0)
+    T = random_pose(rng, CAM, target, distance_mm=(600.0, 650.0))
+    image = render_target(CAM, target, T, rng=rng)
+    blobs = detect_blobs(image)
+    assert len(blobs) == 6
+    assert _nearest_errors(blobs, _truth(target, T)).max() < 0.3
