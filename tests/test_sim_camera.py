@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-import estimator
 from drivers.camera import Camera, Frame
 from drivers.errors import ConnectionLostError
-from estimator import CameraModel, Target
-from estimator.transforms import T_from_pose, invert_T, translation_T
+from estimator import CameraModel, Estimator, Target
+from estimator.transforms import T_from_pose, T_from_ur_pose, invert_T, translation_T
 from fakes.render import default_levels
+from fakes.sim_arm import SimArm
 from fakes.sim_camera import SimCamera
 
 CAM = CameraModel(800.0, 800.0, 319.5, 239.5, (), 640, 480)
@@ -201,32 +201,13 @@ def test_bad_settings_rejected() -> None:
 
 # -- closed loop: simulated arm + simulated camera + estimator -------------------------------
 
-def _pose_estimator() -> object:
-    """``image -> T_camera_target`` from the estimator: its Estimator when it has landed, else
-    the pipeline it is made of (blob detection, correspondence + pose)."""
-    Estimator = getattr(estimator, "Estimator", None)
-    if Estimator is not None:
-        est = Estimator(CAM, TARGET)
-        return lambda image: est.estimate(image).T_camera_target
-    try:
-        from estimator.blobs import detect_blobs
-        from estimator.correspondence import match_blobs
-    except ImportError:
-        pytest.skip("the estimator has not landed yet")
+def test_closed_loop_estimator_sees_the_arm_move() -> None:
+    est = Estimator(CAM, TARGET)
 
     def estimate(image: NDArray[np.uint8]) -> NDArray[np.float64]:
-        blobs = detect_blobs(image, TARGET.polarity)
-        return match_blobs([[b.u, b.v] for b in blobs], TARGET, CAM).pose.T_camera_target
+        return est.estimate(image).T_camera_target
 
-    return estimate
-
-
-def test_closed_loop_estimator_sees_the_arm_move() -> None:
-    estimate = _pose_estimator()
-    sim_arm = pytest.importorskip("fakes.sim_arm")
-    from estimator.transforms import T_from_ur_pose
-
-    arm = sim_arm.SimArm()
+    arm = SimArm()
     arm.connect()
     arm.power_on()
     try:
@@ -241,14 +222,14 @@ def test_closed_loop_estimator_sees_the_arm_move() -> None:
                         seed=3)
         cam.connect()
         try:
-            before = estimate(cam.latest_frame(timeout_s=2.0).image)  # type: ignore[operator]
+            before = estimate(cam.latest_frame(timeout_s=2.0).image)
             step = translation_T(30.0, -20.0, 10.0)
             arm.move_linear(step @ T_base_flange0, speed_mm_s=150.0, accel_mm_s2=1000.0)
             t_done = time.monotonic()
             frame = cam.latest_frame(timeout_s=2.0)
             while frame.timestamp_s < t_done:
                 frame = cam.latest_frame(timeout_s=2.0)
-            after = estimate(frame.image)  # type: ignore[operator]
+            after = estimate(frame.image)
         finally:
             cam.disconnect()
     finally:
@@ -256,7 +237,7 @@ def test_closed_loop_estimator_sees_the_arm_move() -> None:
     # The camera moved by `step` in the base frame; the target stayed where it was.
     T_base_camera0 = T_base_flange0 @ T_FLANGE_CAMERA
     T_base_camera1 = step @ T_base_camera0
-    assert np.linalg.norm((T_base_camera0 @ before)[:3, 3] - T_base_target[:3, 3]) < 2.0
-    assert np.linalg.norm((T_base_camera1 @ after)[:3, 3] - T_base_target[:3, 3]) < 2.0
+    assert np.linalg.norm((T_base_camera0 @ before)[:3, 3] - T_base_target[:3, 3]) < 0.5
+    assert np.linalg.norm((T_base_camera1 @ after)[:3, 3] - T_base_target[:3, 3]) < 0.5
     moved = np.linalg.norm(after[:3, 3] - before[:3, 3])
-    assert moved == pytest.approx(np.linalg.norm([30.0, -20.0, 10.0]), abs=2.0)
+    assert moved == pytest.approx(np.linalg.norm([30.0, -20.0, 10.0]), abs=0.5)
