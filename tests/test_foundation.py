@@ -51,6 +51,21 @@ def test_layering() -> None:
     assert not bad, "\n".join(bad)
 
 
+# Business code never asks whether hardware is simulated: only the hardware factory builds fakes
+# (and the benchmark renders its scenes with the fake renderer).
+MAY_IMPORT_FAKES = {"cell/factory.py", "cell/bench.py"}
+
+
+def test_only_the_factory_builds_fakes() -> None:
+    bad = [
+        str(f.relative_to(REPO))
+        for f in (REPO / "cell").rglob("*.py")
+        if "fakes" in _project_imports(f)
+        and str(f.relative_to(REPO)) not in MAY_IMPORT_FAKES
+    ]
+    assert not bad, f"only {sorted(MAY_IMPORT_FAKES)} may import fakes: {bad}"
+
+
 def test_cli_help() -> None:
     out = subprocess.run([sys.executable, "-m", "cell", "--help"], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
