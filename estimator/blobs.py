@@ -1,8 +1,13 @@
 """Dot detection on 8-bit grey frames: threshold, contours, shape filters, sub-pixel centres.
 
-The fast path thresholds the full frame once (Otsu on a 4x-subsampled copy, which finds
-nearly the same threshold for a sixteenth of the histogram work), finds region outlines with
-cv2.findContours and gets area and shape from contour moments. Only the survivors get the
+The fast path takes every fourth pixel of every fourth row once: Otsu's threshold comes from
+that sample (nearly the same threshold for a sixteenth of the histogram work), and so does the
+window that can hold dots -- the sample is thresholded and traced (a sixteenth of the work), and
+only the bounding box of its dot-sized regions, padded, is thresholded at full resolution.
+Regions wholly inside that window have exactly their full-frame outlines, hence exactly the
+full-frame centres; when dots may be too small to leave a sampled pixel, or the window would
+be most of the frame, the whole frame is traced instead. Region outlines come from
+cv2.findContours, area and shape from contour moments. Only the survivors get the
 expensive part: a grey-level weighted centre of gravity whose weights are each pixel's contrast
 against the local background, over the blob's padded bounding box restricted to its slightly
 dilated region. That uses the anti-aliased rim too, which the binary mask alone would throw
@@ -184,7 +189,7 @@ def weighted_centres(
     (the padded box minus the slightly dilated region), clipped at zero, within the dilated
     region -- so the anti-aliased rim counts and the global threshold does not matter. All
     regions are done in one batch: their patches are laid side by side (with a gap, so the
-    dilation cannot cross) in one strip, which costs one drawContours, one dilate and a dozen
+    dilation cannot cross) in one strip, which costs one drawContours, one dilate and a few
     numpy reductions instead of a dozen OpenCV calls per region. Contours are in frame
     coordinates, so a region found in a tracking window gets exactly the full search's centre.
     """
@@ -209,18 +214,21 @@ def weighted_centres(
         shifted.append(r.contour + np.array([left - x0, -y0], np.int32))
     region = np.zeros(pixels.shape, np.uint8)
     cv2.drawContours(region, shifted, -1, 1, -1)
-    near = cv2.dilate(region, _DILATE).reshape(height, k, stride).astype(bool)
-    pix = pixels.reshape(height, k, stride).astype(np.float64)
+    near = cv2.dilate(region, _DILATE)
     # Mean rather than median of the surrounding ring: 10x cheaper, and a neighbour
     # intruding into the ring only scales the weights, it does not move the centre much.
-    ring = valid.reshape(height, k, stride).astype(bool) & ~near
-    background = (pix * ring).sum(axis=(0, 2)) / np.maximum(ring.sum(axis=(0, 2)), 1)
-    contrast = background[None, :, None] - pix if polarity == "dark" else pix - background[
-        None, :, None]
-    weights = np.where(near, np.maximum(contrast, 0.0), 0.0)
-    m00 = weights.sum(axis=(0, 2))
-    m10 = (weights.sum(axis=0) * np.arange(stride)).sum(axis=1)
-    m01 = (weights.sum(axis=2) * np.arange(height)[:, None]).sum(axis=0)
+    ring = cv2.subtract(valid, near)  # 1 on the padded box outside the dilated region
+    pix = pixels.astype(np.float64)
+    # Per-region sums as column sums of the strip folded per patch (2-D reductions only).
+    ring_sum = (pix * ring).sum(axis=0).reshape(k, stride).sum(axis=1)
+    ring_n = ring.sum(axis=0, dtype=np.int64).reshape(k, stride).sum(axis=1)
+    background = np.repeat(ring_sum / np.maximum(ring_n, 1), stride)
+    contrast = background - pix if polarity == "dark" else pix - background
+    weights = np.maximum(contrast, 0.0) * near
+    columns = weights.sum(axis=0).reshape(k, stride)
+    m00 = columns.sum(axis=1)
+    m10 = columns @ np.arange(stride, dtype=np.float64)
+    m01 = np.arange(height, dtype=np.float64) @ weights.reshape(height, k, stride).sum(axis=2)
     out: list[tuple[float, float] | None] = []
     for (x0, y0, _, _), s0, sx, sy in zip(boxes, m00.tolist(), m10.tolist(), m01.tolist(),
                                           strict=True):

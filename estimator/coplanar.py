@@ -79,7 +79,9 @@ class _Candidates:
         d = (VR[:, :, :2] + system.xy0) / depth - system.pts3
         self.eps = VR[:, :, 2]  # (N-1, 2K)
         # Sum of squared normalised image distances; inf for a point behind the camera.
-        self.errors: list[float] = (d * d).sum(axis=(0, 2)).tolist()
+        squares = (d * d).sum(axis=0)  # (2K, 2): per candidate, x and y separately
+        self.squares: list[list[float]] = squares.tolist()
+        self.errors: list[float] = squares.sum(axis=1).tolist()
         if depth.min() <= 0.0:
             for k, ok in enumerate((depth.min(axis=0)[:, 0] > 0.0).tolist()):
                 if not ok:
@@ -98,8 +100,9 @@ class _Branch:
     """One branch of the iteration: its current candidate and how it got there."""
 
     def __init__(self, rows: tuple[Vec3, Vec3, Vec3], scale: float, eps: NDArray[np.float64],
-                 error: float) -> None:
+                 error: float, squares: list[float]) -> None:
         self.rows, self.scale, self.eps, self.error = rows, scale, eps, error
+        self.squares = squares  # summed squared x and y image errors (normalised units)
         self.iterations = 1
         self.converged = False
         self.active = True
@@ -117,7 +120,8 @@ def _iterate(
     """Both branches, iterated in lockstep until converged, stopped or out of iterations."""
     first = _Candidates(model, system, np.zeros((1, len(system.pts))))
     branches = [
-        _Branch(first.rows[k], first.scales[k], first.eps[:, k], first.errors[k])  # type: ignore[arg-type]
+        _Branch(first.rows[k], first.scales[k], first.eps[:, k], first.errors[k],  # type: ignore[arg-type]
+                first.squares[k])
         for k in range(2) if math.isfinite(first.errors[k])
     ]
     while True:
@@ -139,7 +143,7 @@ def _iterate(
             eps = step.eps[:, k]
             moved = float((np.abs(eps - branch.eps) * system.radius).max())
             branch.rows, branch.scale, branch.eps = step.rows[k], step.scales[k], eps  # type: ignore[assignment]
-            branch.error = step.errors[k]
+            branch.error, branch.squares = step.errors[k], step.squares[k]
             branch.iterations += 1
             branch.converged = moved < tolerance
 
@@ -167,10 +171,16 @@ def posit_coplanar(
             "probably do not match the model (check the correspondence)"
         )
     scored = []
+    fx2, fy2 = camera.fx * camera.fx, camera.fy * camera.fy
     for branch in branches:
         T = pose_from_rows(np.array(branch.rows), branch.scale, xy[0], model.points_mm[0],
                            orthonormal=True)
-        scored.append((reprojection_rms_px(T, model.points_mm, image_points_px, camera), T, branch))
+        if camera.has_distortion or not math.isfinite(branch.error):
+            rms = reprojection_rms_px(T, model.points_mm, image_points_px, camera)
+        else:  # the iteration's own image errors are this pose's (P0's is zero), in pixels
+            sx, sy = branch.squares
+            rms = math.sqrt((sx * fx2 + sy * fy2) / model.n_points)
+        scored.append((rms, T, branch))
     scored.sort(key=lambda item: item[0])
     rms, T, best = scored[0]
     if not math.isfinite(rms):

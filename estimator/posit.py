@@ -149,22 +149,25 @@ def reprojection_rms_px(
     camera: CameraModel,
 ) -> float:
     """Root-mean-square pixel distance between the points' projections and the image points."""
-    P = points_mm @ T[:3, :3].T + T[:3, 3]
-    if P[:, 2].min() <= 0.0:
-        return math.inf
     img = np.asarray(image_points_px, dtype=float)
     if camera.has_distortion:
+        P = points_mm @ T[:3, :3].T + T[:3, 3]
+        if P[:, 2].min() <= 0.0:
+            return math.inf
         d = camera.project(P) - img
-    else:  # the pinhole projection inline: this runs several times per solve
-        focal, centre = pinhole_arrays(camera)
-        d = (P[:, :2] / P[:, 2:] * focal + centre) - img
+    else:  # the pinhole projection inline, K folded into the pose: this runs often
+        KT = pinhole_matrix(camera) @ T[:3]
+        Q = points_mm @ KT[:, :3].T + KT[:, 3]
+        if Q[:, 2].min() <= 0.0:  # K's last row is (0, 0, 1): Q's z is the depth
+            return math.inf
+        d = Q[:, :2] / Q[:, 2:] - img
     return math.sqrt(float(np.vdot(d, d)) / len(d))
 
 
 @functools.lru_cache(maxsize=16)
-def pinhole_arrays(camera: CameraModel) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """(fx, fy) and (cx, cy) as arrays, made once per camera."""
-    return np.array([camera.fx, camera.fy]), np.array([camera.cx, camera.cy])
+def pinhole_matrix(camera: CameraModel) -> NDArray[np.float64]:
+    """The camera's K, made once per camera."""
+    return camera.K
 
 
 def all_in_front(T: NDArray[np.float64], points_mm: NDArray[np.float64]) -> bool:

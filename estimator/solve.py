@@ -73,7 +73,6 @@ class _Seed:
     iterations: int
     converged: bool
     reference: int  # index of the model point used as POSIT's P0
-    rms: float = math.inf  # raw reprojection rms (px), when known
 
 
 @dataclass(frozen=True)
@@ -129,8 +128,7 @@ class _Problem:
             result = posit_coplanar(
                 model, xy, img, self.camera, SEED_MAX_ITERATIONS, self.tolerance, 1.0
             )
-            seeds = [_Seed(result.T_camera_target, result.iterations, result.converged, reference,
-                           result.rms_px)]
+            seeds = [_Seed(result.T_camera_target, result.iterations, result.converged, reference)]
             self.branch_rms = None
             if result.alternative is not None:
                 self.branch_rms = result.alternative[1]
@@ -174,13 +172,10 @@ class _Problem:
         the fallback when that does not lower its rms.
         """
         seeds = self.seeds(reference)
-        first = None
-        if self.model.planar:
-            # Gauss-Newton takes coplanar POSIT's few-pixel seed in a few steps (cheaper than
-            # LM); LM only when that did not improve on the seed.
-            first = self.refine(seeds[0], polish=True)
-        if first is None or not first.rms < seeds[0].rms:
-            first = self.refine(seeds[0])
+        # LM, not Gauss-Newton, from the seed: GN is cheaper, but its undamped steps can jump
+        # from a few-pixel seed of an ill-conditioned view into the other basin and hide the
+        # ambiguity (seen in 1 of 1500 hard scenes).
+        first = self.refine(seeds[0])
         out = [] if first is None else [first]
         if not self.model.planar:
             return out
@@ -329,7 +324,10 @@ def solve_pose(
         notes.append(
             f"perspective bias corrected (max {float(np.max(np.abs(bias))):.3f} px)"
         )
-    T, residuals, J = finish_pose(problem.obj, image_points, camera, best.T)
+    # The residuals on the corrected points are the measured ones plus the bias.
+    start = best.residuals if image_points is problem.img else best.residuals + (
+        problem.img - image_points)
+    T, residuals, J = finish_pose(problem.obj, image_points, camera, best.T, start)
     if all_in_front(T, problem.obj):
         best = _Solution(T, residuals, J, _rms(residuals), best.seed)
     if not best.seed.converged and best.rms > BAD_RMS_PX:
@@ -363,17 +361,19 @@ def solve_pose(
 
 def finish_pose(
     obj: NDArray[np.float64], img: NDArray[np.float64], camera: CameraModel,
-    T_start: NDArray[np.float64],
+    T_start: NDArray[np.float64], start_residuals: NDArray[np.float64] | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """The refinement of a pose already near its minimum -> (T, residuals (N,2), J (2N,6)).
 
     Gauss-Newton (see :mod:`estimator.refine`): tight whatever LM stopped at, and a third of
     LM's cost there. Full GN steps can overshoot in a nearly flat, ill-conditioned valley; when
-    the fit got worse than at the start, LM does the finish instead.
+    the fit got worse than at the start, LM does the finish instead. ``start_residuals``
+    (N,2): those of ``T_start`` on ``img``, when the caller already has them.
     """
     K, dist = camera.K, camera.dist_coeffs
     T, residuals, J = polish_arrays(obj, img, K, dist, T_start)
-    start_rms = reprojection_rms_px(T_start, obj, img, camera)
+    start_rms = (reprojection_rms_px(T_start, obj, img, camera) if start_residuals is None
+                 else _rms(start_residuals))
     if _rms(residuals) > start_rms * (1.0 + 1e-9) + 1e-12:
         T, residuals, J = refine_arrays(obj, img, K, dist, T_start)
     return T, residuals, J
@@ -407,7 +407,7 @@ def solve_pose_near(
     if dot_diameter_mm is not None and correct_bias and all_in_front(T, obj):
         bias = centroid_bias_px(T, obj, dot_diameter_mm, camera)
         image_points = img - bias
-        T, residuals, J = finish_pose(obj, image_points, camera, T)
+        T, residuals, J = finish_pose(obj, image_points, camera, T, residuals + bias)
         notes.append(f"perspective bias corrected (max {float(np.max(np.abs(bias))):.3f} px)")
     if not all_in_front(T, obj):
         raise BehindCameraError(

@@ -1,7 +1,9 @@
 """Tracking mode: look for each dot only in a small window around where it should be now.
 
 Between consecutive frames a dot moves a few pixels, so thresholding and tracing a window of
-a few dot diameters per dot is far cheaper than the full frame (no full-frame pass at all).
+a few dot diameters around each dot is far cheaper than the full frame (no full-frame pass at
+all). The windows of one target overlap or nearly touch, so they are traced as one region of
+interest (their bounding box) and each dot takes the nearest region to its prediction.
 The caller predicts where the dots are (the pipeline projects the model with the pose
 extrapolated from the last two frames); without a prediction the last centres plus their
 last pixel velocity are used. The windows reuse the global threshold of the last full search,
@@ -20,7 +22,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator.blobs import BlobFilter, Polarity, Region, blobs_from_regions, dot_regions
+from estimator.blobs import BlobFilter, Polarity, blobs_from_regions, dot_regions
 from estimator.result import Blob
 
 
@@ -73,47 +75,42 @@ class BlobTracker:
         """
         if not self._blobs:
             return None
+        n = len(self._blobs)
         pred = self.predicted_px() if predicted_px is None else np.asarray(predicted_px, float)
-        if pred.shape != (len(self._blobs), 2) or not np.all(np.isfinite(pred)):
+        if pred.shape != (n, 2) or not np.all(np.isfinite(pred)):
             return None
         h, w = image_u8.shape
         # One region of interest around all the predictions (the dots of one target are close
         # together): one threshold and one contour pass instead of one per dot. Its regions are
         # the full frame's regions (same global threshold, each wholly inside the ROI).
-        halves = [0.5 * max(b.major_axis_px, 4.0) + 4.0 + self.margin_px for b in self._blobs]
-        reach = max(halves)
-        x0 = max(int(float(pred[:, 0].min()) - reach), 0)
-        y0 = max(int(float(pred[:, 1].min()) - reach), 0)
-        x1 = min(int(float(pred[:, 0].max()) + reach) + 2, w)
-        y1 = min(int(float(pred[:, 1].max()) + reach) + 2, h)
+        halves = np.array([0.5 * max(b.major_axis_px, 4.0) for b in self._blobs])
+        halves += 4.0 + self.margin_px
+        reach = float(halves.max())
+        (u0, v0), (u1, v1) = pred.min(axis=0).tolist(), pred.max(axis=0).tolist()
+        x0, y0 = max(int(u0 - reach), 0), max(int(v0 - reach), 0)
+        x1, y1 = min(int(u1 + reach) + 2, w), min(int(v1 + reach) + 2, h)
         if x1 - x0 < 4 or y1 - y0 < 4:
             return None
         mask = cv2.threshold(image_u8[y0:y1, x0:x1], self._threshold, 255, self._kind)[1]
         cands = dot_regions(cast(NDArray[np.uint8], mask), self.filt, offset=(x0, y0))
-        if not cands:
+        if len(cands) < n:
             return None
-        centres = np.array([c.mask_centre for c in cands])
-        d2 = ((pred[:, None, :] - centres[None, :, :]) ** 2).sum(axis=2)
-        nearest = d2.argmin(axis=1).tolist()
-        if len(set(nearest)) != len(nearest):
+        diff = pred[:, None, :] - np.array([c.mask_centre for c in cands])[None, :, :]
+        d2 = np.einsum("ijk,ijk->ij", diff, diff)
+        nearest = d2.argmin(axis=1)
+        picked_ids = nearest.tolist()
+        if len(set(picked_ids)) != n:
             return None  # two dots claim the same region
-        picked: list[Region] = []
-        for blob, k, half, dist2 in zip(self._blobs, nearest, halves,
-                                        d2[np.arange(len(nearest)), nearest].tolist(),
-                                        strict=True):
-            best = cands[k]
-            if dist2 > 2.0 * half * half:
-                return None  # nothing where this dot should be (its window was empty)
-            if not 0.5 <= best.area / max(blob.area, 1e-9) <= 2.0:
+        if np.any(d2[np.arange(n), nearest] > 2.0 * halves * halves):
+            return None  # nothing where a dot should be (its window would have been empty)
+        picked = [cands[k] for k in picked_ids]
+        for blob, region in zip(self._blobs, picked, strict=True):
+            if not 0.5 <= region.area / max(blob.area, 1e-9) <= 2.0:
                 return None  # a different object wandered into the window
-            picked.append(best)
         found = blobs_from_regions(image_u8, picked, self.polarity)  # one batch for all dots
-        if len(found) != len(picked):
+        if len(found) != n:
             return None
         pts = np.array([[b.u, b.v] for b in found])
-        gaps = np.linalg.norm(pts[:, None] - pts[None], axis=2) + np.eye(len(pts)) * 1e9
-        if gaps.min() < 1.0:
-            return None  # two windows locked onto the same blob
         last = np.array([[b.u, b.v] for b in self._blobs])
         self._velocity = pts - last
         self._blobs = tuple(found)
