@@ -89,6 +89,11 @@ class Locator:
         self.last: Located | None = None
         self.last_frame: Frame | None = None
 
+    def set_frames(self, frames: CellFrames) -> None:
+        """New calibrated mounts; the last locate was mapped with the old ones, so drop it."""
+        self.frames = frames
+        self.last = None
+
     def latest_frame(self) -> Frame:
         try:
             frame = self.camera.latest_frame(timeout_s=1.0)

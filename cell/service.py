@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from cell.config import CellConfig
+from cell.config import CellConfig, HandEyeConfig, PoseConfig
 from cell.events import EventBus
 from cell.frames import CellFrames, approach_tcp, observation_camera, step_goal
 from cell.hardware import Hardware, SimWorld
@@ -49,7 +49,7 @@ from drivers.errors import (
 )
 from drivers.gripper import Gripper
 from estimator import PoseResult
-from estimator.transforms import make_T, pose_dict, pose_distance
+from estimator.transforms import make_T, pose_dict, pose_distance, pose_from_T
 
 log = logging.getLogger(__name__)
 Matrix4 = NDArray[np.float64]
@@ -86,7 +86,9 @@ class CellStats:
 
 
 @dataclass
-class _Motion:
+class Motion:
+    """The one motion slot of the cell: who holds it, and how to cancel it."""
+
     name: str
     cancel: threading.Event
     job_id: str | None = None
@@ -122,7 +124,7 @@ class Cell:
         self._gripper_lock = threading.Lock()  # one Modbus transaction at a time
         self._gripper_last: dict[str, Any] = {}
         self._lock = threading.RLock()
-        self._motion: _Motion | None = None
+        self._motion: Motion | None = None
         self._jog: _Jog | None = None
         self._threads: list[threading.Thread] = []
         self._closing = threading.Event()
@@ -280,15 +282,40 @@ class Cell:
         return loc
 
     # -- motion bookkeeping ------------------------------------------------------------------
-    def _claim(self, name: str) -> _Motion:
+    def count_job_end(self, state: str) -> None:
+        """Count a finished job by its end state (for /metrics)."""
+        with self._lock:
+            self.stats.jobs[state] += 1
+
+    def set_hand_eye(self, T_flange_camera: Matrix4) -> None:
+        """Use a new camera mount from now on (after a calibration is applied).
+
+        The last locate is forgotten: it was mapped into the base frame with the old mount.
+        """
+        position_mm, rotvec_rad = pose_from_T(T_flange_camera)
+        pose = PoseConfig(position_mm=(position_mm[0], position_mm[1], position_mm[2]),
+                          rotvec_rad=(rotvec_rad[0], rotvec_rad[1], rotvec_rad[2]))
+        with self._lock:
+            self.frames = CellFrames(np.asarray(T_flange_camera, dtype=float),
+                                     self.frames.T_flange_tcp)
+            self.config = self.config.model_copy(
+                update={"hand_eye": HandEyeConfig(T_flange_camera=pose)})
+            self.locator.set_frames(self.frames)
+
+    def claim_motion(self, name: str) -> Motion:
+        """Take the cell's single motion slot (RefusedError ``busy`` when it is taken).
+
+        Every task that moves the arm (approach, jog, teach, calibration) holds it, so that
+        one motion runs at a time and ``stop`` can cancel whichever it is.
+        """
         with self._lock:
             if self._motion is not None:
                 raise RefusedError("busy", f"the arm is busy ({self._motion.name}); wait for it "
                                    "to finish or stop it")
-            self._motion = _Motion(name, threading.Event())
+            self._motion = Motion(name, threading.Event())
             return self._motion
 
-    def _release(self, motion: _Motion) -> None:
+    def release_motion(self, motion: Motion) -> None:
         with self._lock:
             if self._motion is motion:
                 self._motion = None
@@ -321,7 +348,7 @@ class Cell:
         prev: Matrix4 | None = None
         while True:
             if cancel.is_set():
-                self._stop_arm()
+                self.stop_arm()
                 raise Cancelled("cancelled", f"stopped by request while moving to the {what}")
             st = self.arm_state()
             if st.protective_stop or st.emergency_stop:
@@ -346,12 +373,13 @@ class Cell:
                     raise RefusedError("motion_failed", f"the arm stopped {d_mm:.2f} mm / "
                                        f"{d_deg:.2f} deg short of the {what}")
             if elapsed > timeout_s:
-                self._stop_arm()
+                self.stop_arm()
                 raise RefusedError("motion_timeout",
                                    f"the move to the {what} took longer than {timeout_s:.1f} s")
             time.sleep(0.01)
 
-    def _stop_arm(self) -> str | None:
+    def stop_arm(self) -> str | None:
+        """Stop the arm now; the driver's error text if it could not, else None."""
         try:
             self.hw.arm.stop(decel_mm_s2=2000.0)
         except DriverError as err:
@@ -375,7 +403,7 @@ class Cell:
             if standoff < 0:
                 raise LimitError("invalid_standoff", "standoff_mm must not be negative")
             self.guard.check_speed(speed, accel)
-            motion = self._claim("approach")
+            motion = self.claim_motion("approach")
             try:
                 st = self._check_arm()
                 if not self.hw.camera.is_connected:
@@ -401,7 +429,7 @@ class Cell:
                 motion.job_id = job.id
                 note["job_id"] = job.id
             except BaseException:
-                self._release(motion)
+                self.release_motion(motion)
                 raise
             thread = threading.Thread(
                 target=self._run_approach, name=f"approach-{job.id}", daemon=True,
@@ -424,7 +452,7 @@ class Cell:
                                  R_tcp @ self.frames.T_tcp_camera[:3, :3])
         return self.frames.tcp_for_camera(cam)
 
-    def _run_approach(self, job_id: str, motion: _Motion, loc: Located, T_target_tcp: Matrix4,
+    def _run_approach(self, job_id: str, motion: Motion, loc: Located, T_target_tcp: Matrix4,
                       standoff_mm: float, speed: float, accel: float) -> None:
         try:
             result = self._look_and_move(job_id, motion, loc, T_target_tcp, standoff_mm,
@@ -433,21 +461,20 @@ class Cell:
         except Cancelled as err:
             job = self.jobs.finish(job_id, "cancelled", None, err.code, err.message)
         except CellError as err:
-            self._stop_arm()
+            self.stop_arm()
             job = self.jobs.finish(job_id, "failed", None, err.code, err.message)
         except Exception as err:
             log.exception("approach job %s crashed", job_id)
-            self._stop_arm()
+            self.stop_arm()
             job = self.jobs.finish(job_id, "failed", None, "internal_error", repr(err))
         finally:
-            self._release(motion)
-        with self._lock:
-            self.stats.jobs[job.state] += 1
+            self.release_motion(motion)
+        self.count_job_end(job.state)
         self.jobs.audit(job.caller, "approach_end", {"job_id": job_id}, job.state,
                         job.error_message or "", job_id, job.created_at)
         self.events.publish("job", {"job": job.as_dict()})
 
-    def _look_and_move(self, job_id: str, motion: _Motion, loc: Located,
+    def _look_and_move(self, job_id: str, motion: Motion, loc: Located,
                        T_target_tcp: Matrix4, standoff_mm: float, speed: float,
                        accel: float) -> dict[str, Any]:
         ac = self.config.approach
@@ -505,13 +532,13 @@ class Cell:
             if not 0 < speed <= self.config.limits.max_jog_speed_mm_s:
                 raise LimitError("jog_speed_limit", f"jog speed {speed} mm/s is outside (0, "
                                  f"{self.config.limits.max_jog_speed_mm_s}]")
-            motion = self._claim("jog_step")
+            motion = self.claim_motion("jog_step")
             try:
                 st = self._check_arm()
                 goal = step_goal(st.T_base_tcp, translation_mm, rotation_deg, frame)
                 return self._move(goal, speed, accel, motion.cancel, "jog step")
             finally:
-                self._release(motion)
+                self.release_motion(motion)
 
     def jog_start(self, caller: str, *, frame: JogFrame, linear_mm_s: Any,
                   angular_deg_s: Any) -> dict[str, Any]:
@@ -528,11 +555,11 @@ class Cell:
                     jog.velocity, jog.frame = velocity, frame
                     jog.last_heartbeat_s = time.monotonic()
                     return self._jog_info(jog)
-            motion = self._claim("jog")
+            motion = self.claim_motion("jog")
             try:
                 self._check_arm()
             except BaseException:
-                self._release(motion)
+                self.release_motion(motion)
                 raise
             jog = _Jog(velocity, frame, time.monotonic())
             jog.thread = threading.Thread(target=self._jog_loop, args=(motion, jog),
@@ -558,7 +585,7 @@ class Cell:
         return {"jogging": True, "frame": jog.frame,
                 "deadman_timeout_s": self.config.limits.deadman_timeout_s}
 
-    def _jog_loop(self, motion: _Motion, jog: _Jog) -> None:
+    def _jog_loop(self, motion: Motion, jog: _Jog) -> None:
         limits = self.config.limits
         period_s = 0.02
         reason = "stopped"
@@ -586,12 +613,12 @@ class Cell:
         except DriverError as err:
             reason = f"arm error: {err}"
         finally:
-            self._stop_arm()
+            self.stop_arm()
             jog.stopped_reason = reason
             with self._lock:
                 if self._jog is jog:
                     self._jog = None
-            self._release(motion)
+            self.release_motion(motion)
             self.jobs.audit("service", "jog_end", {}, "stopped", reason)
             self.events.publish("jog", {"jogging": False, "reason": reason})
 
@@ -612,7 +639,7 @@ class Cell:
             if motion is not None:
                 motion.cancel.set()
             self.stats.stops += 1
-        arm_error = self._stop_arm()
+        arm_error = self.stop_arm()
         job_id = None if motion is None else motion.job_id
         out = {"stopped": arm_error is None, "cancelled": None if motion is None else motion.name,
                "job_id": job_id, "arm_error": arm_error}

@@ -246,16 +246,16 @@ def teach(cell: Cell, store: TaughtStore, caller: str, name: str, samples: int =
         if not replace and store.has(name):
             raise RefusedError("taught_exists", f"a pose named {name!r} is already taught; "
                                "delete it first or ask to replace it")
-        # Hold the motion slot: no approach or jog may start while the samples are taken
-        # (the Cell has no public claim yet), and a running one refuses the teach (busy).
-        motion = cell._claim("teach")
+        # Hold the motion slot: no approach or jog may start while the samples are taken,
+        # and a running one refuses the teach (busy).
+        motion = cell.claim_motion("teach")
         try:
             if cell.arm_state().moving:
                 raise RefusedError("arm_moving", "the arm is moving; teach when it rests")
             taught = combine(name, _samples(cell, caller, samples), caller, max_spread_mm,
                              max_spread_deg)
         finally:
-            cell._release(motion)
+            cell.release_motion(motion)
         store.put(taught, replace=replace)
     except CellError as err:
         cell.jobs.audit(caller, "teach", params, f"refused:{err.code}", err.message, None, t0)

@@ -31,14 +31,12 @@ from cell.calibration.routine import (
     run_hand_eye_routine,
 )
 from cell.calibration.solve import CHOICES
-from cell.config import HandEyeConfig, PoseConfig
-from cell.frames import CellFrames
 from cell.jobs import Job
 from cell.safety import CellError, LimitError, NotFoundError, RefusedError, UnavailableError
-from cell.service import Cancelled, Cell, driver_error
+from cell.service import Cancelled, Cell, Motion, driver_error
 from drivers.arm import Arm
 from drivers.errors import DriverError, MotionError
-from estimator.transforms import T_from_pose_dict, pose_dict, pose_distance, pose_from_T
+from estimator.transforms import T_from_pose_dict, pose_dict, pose_distance
 
 log = logging.getLogger(__name__)
 Matrix4 = NDArray[np.float64]
@@ -95,7 +93,7 @@ class CalibrationService:
                 raise LimitError("invalid_request", f"method must be one of {', '.join(CHOICES)}")
             cell.guard.check_speed(settings.speed_mm_s,
                                    min(settings.accel_mm_s2, limits.max_accel_mm_s2))
-            motion = cell._claim("calibration")  # the Cell has no public claim yet
+            motion = cell.claim_motion("calibration")
             try:
                 cell.guard.check_arm(cell.arm_state(), time.monotonic())
                 if not cell.hw.camera.is_connected:
@@ -103,7 +101,7 @@ class CalibrationService:
                 job = cell.jobs.create(JOB_KIND, caller, params)
                 motion.job_id = job.id
             except BaseException:
-                cell._release(motion)
+                cell.release_motion(motion)
                 raise
         except CellError as err:
             cell.jobs.audit(caller, "calibrate", params, f"refused:{err.code}", err.message,
@@ -117,7 +115,7 @@ class CalibrationService:
         self._publish(job)
         return job
 
-    def _run(self, job_id: str, motion: Any, settings: RoutineSettings) -> None:
+    def _run(self, job_id: str, motion: Motion, settings: RoutineSettings) -> None:
         cell = self.cell
         guess = cell.frames.T_flange_camera
 
@@ -145,17 +143,16 @@ class CalibrationService:
         except RoutineError as err:
             job = cell.jobs.finish(job_id, "failed", None, err.code, err.message)
         except DriverError as err:
-            cell._stop_arm()
+            cell.stop_arm()
             e = driver_error(err, "calibration")
             job = cell.jobs.finish(job_id, "failed", None, e.code, e.message)
         except Exception as err:
             log.exception("calibration job %s crashed", job_id)
-            cell._stop_arm()
+            cell.stop_arm()
             job = cell.jobs.finish(job_id, "failed", None, "internal_error", repr(err))
         finally:
-            cell._release(motion)
-        with cell._lock:
-            cell.stats.jobs[job.state] += 1
+            cell.release_motion(motion)
+        cell.count_job_end(job.state)
         cell.jobs.audit(job.caller, "calibrate_end", {"job_id": job_id}, job.state,
                         job.error_message or "", job_id, job.created_at)
         self._publish(job)
@@ -202,7 +199,7 @@ class CalibrationService:
             if write_config and self.config_path is None:
                 raise RefusedError("no_config_file", "the cell runs a built-in config; start it "
                                    "with a config file (CELL_CONFIG) to write the result")
-            motion = cell._claim("apply_calibration")
+            motion = cell.claim_motion("apply_calibration")
             try:
                 if write_config:
                     assert self.config_path is not None
@@ -212,9 +209,9 @@ class CalibrationService:
                     except ConfigWriteError as err:
                         raise RefusedError(err.code, str(err)) from err
                 if running:
-                    self._apply_running(T)
+                    cell.set_hand_eye(T)
             finally:
-                cell._release(motion)
+                cell.release_motion(motion)
         except CellError as err:
             cell.jobs.audit(caller, "apply_calibration", params, f"refused:{err.code}",
                             err.message, job_id, t0)
@@ -246,26 +243,3 @@ class CalibrationService:
                                 f"{', '.join([*r['methods'], 'joint'])}")
         return T_from_pose_dict(r["methods"][method]["T_flange_camera"])
 
-    def _apply_running(self, T_flange_camera: Matrix4) -> None:
-        """Swap the frame chain wherever the cell holds it (attribute assignments, atomic) and
-        its config copy, and forget the last locate: it was mapped with the old mount.
-
-        The Cell has no public setter for its hand-eye yet; this is the one place that knows
-        where it keeps the chain (the Cell and its Locator). The API test checks that a locate
-        after apply uses the new mount.
-        """
-        cell = self.cell
-        position_mm, rotvec_rad = pose_from_T(T_flange_camera)
-        pose = PoseConfig(position_mm=(position_mm[0], position_mm[1], position_mm[2]),
-                          rotvec_rad=(rotvec_rad[0], rotvec_rad[1], rotvec_rad[2]))
-        old = cell.frames
-        new = CellFrames(np.asarray(T_flange_camera, dtype=float), old.T_flange_tcp)
-        cell.config = cell.config.model_copy(
-            update={"hand_eye": HandEyeConfig(T_flange_camera=pose)})
-        cell.frames = new
-        locator = getattr(cell, "locator", None)
-        if locator is not None:
-            if getattr(locator, "frames", None) is old:
-                locator.frames = new
-            if hasattr(locator, "last"):
-                locator.last = None
