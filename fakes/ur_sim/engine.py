@@ -22,445 +22,77 @@ import threading
 import time
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass
-from enum import Enum, IntEnum
-from typing import Literal
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
 from estimator.transforms import T_from_ur_pose, ur_pose_from_T
+from fakes.ur_sim.commands import (
+    Brake,
+    Command,
+    MoveJ,
+    MoveL,
+    PathMove,
+    SafetyTrip,
+    Servo,
+    SpeedJ,
+    SpeedL,
+    Then,
+)
 from fakes.ur_sim.kinematics import UnreachableError, UR5eKinematics
 from fakes.ur_sim.profiles import BlendedLinearPath, JointProfile, LinearProfile
+from fakes.ur_sim.state import (
+    CYCLE_S,
+    HOME_Q_RAD,
+    NUM_JOINTS,
+    CommandOutcome,
+    CommandRejectedError,
+    EmergencyStopActiveError,
+    EngineError,
+    EngineSnapshot,
+    FaultKind,
+    JogFeature,
+    NotRunningError,
+    PathEntry,
+    PathKind,
+    Pose6,
+    ProtectiveStopActiveError,
+    RobotMode,
+    RobotStatusBit,
+    SafetyMode,
+    SafetyStatusBit,
+    SimLimits,
+    UnreachablePoseError,
+    Vec,
+    as_vector,
+    positive_number,
+)
 
-NUM_JOINTS = 6
-CYCLE_S = 0.002  # 500 Hz, the e-Series control rate
-
-
-class RobotMode(IntEnum):
-    """UR RobotMode as RTDE ``robot_mode`` reports it."""
-
-    NO_CONTROLLER = -1
-    DISCONNECTED = 0
-    CONFIRM_SAFETY = 1
-    BOOTING = 2
-    POWER_OFF = 3
-    POWER_ON = 4
-    IDLE = 5
-    BACKDRIVE = 6
-    RUNNING = 7
-
-
-class SafetyMode(IntEnum):
-    """UR SafetyMode as RTDE ``safety_mode`` reports it."""
-
-    NORMAL = 1
-    REDUCED = 2
-    PROTECTIVE_STOP = 3
-    RECOVERY = 4
-    SAFEGUARD_STOP = 5
-    SYSTEM_EMERGENCY_STOP = 6
-    ROBOT_EMERGENCY_STOP = 7
-    VIOLATION = 8
-    FAULT = 9
-
-
-class SafetyStatusBit(IntEnum):
-    """Bit numbers of RTDE ``safety_status_bits``."""
-
-    NORMAL_MODE = 0
-    REDUCED_MODE = 1
-    PROTECTIVE_STOPPED = 2
-    RECOVERY_MODE = 3
-    SAFEGUARD_STOPPED = 4
-    SYSTEM_EMERGENCY_STOPPED = 5
-    ROBOT_EMERGENCY_STOPPED = 6
-    EMERGENCY_STOPPED = 7
-    VIOLATION = 8
-    FAULT = 9
-    STOPPED_DUE_TO_SAFETY = 10
+# The engine module is where callers import the simulator's types from.
+__all__ = [
+    "HOME_Q_RAD",
+    "CommandOutcome",
+    "CommandRejectedError",
+    "EmergencyStopActiveError",
+    "EngineError",
+    "EngineSnapshot",
+    "MotionEngine",
+    "NotRunningError",
+    "ProtectiveStopActiveError",
+    "RobotMode",
+    "RobotStatusBit",
+    "SafetyMode",
+    "SafetyStatusBit",
+    "SimLimits",
+    "UnreachablePoseError",
+]
 
 
-class RobotStatusBit(IntEnum):
-    """Bit numbers of RTDE ``robot_status_bits``."""
-
-    POWER_ON = 0
-    PROGRAM_RUNNING = 1
-    TEACH_BUTTON_PRESSED = 2
-    POWER_BUTTON_PRESSED = 3
-
-
-class EngineError(Exception):
-    """Base class: the engine refused a command. Nothing moved because of it."""
-
-    code = "sim_error"
-
-
-class CommandRejectedError(EngineError):
-    """The command itself is invalid: wrong shape, non-finite, outside joint limits,
-    unreachable, or asking for more than the arm can do."""
-
-    code = "command_rejected"
-
-
-class UnreachablePoseError(CommandRejectedError):
-    """No inverse-kinematics solution (or none inside the joint limits) for a target/path."""
-
-    code = "unreachable"
-
-
-class NotRunningError(EngineError):
-    """Motion needs robot mode RUNNING (powered, brakes released)."""
-
-    code = "not_running"
-
-
-class ProtectiveStopActiveError(EngineError):
-    """The arm is protective-stopped; motion is refused until :meth:`unlock_protective_stop`.
-
-    Also raised by the command that itself trips the stop (e.g. a TCP speed over the limit).
-    """
-
-    code = "protective_stop"
-
-
-class EmergencyStopActiveError(EngineError):
-    """The arm is emergency-stopped; release the e-stop and power on again."""
-
-    code = "emergency_stop"
-
-
-@dataclass(frozen=True)
-class SimLimits:
-    """Safety configuration of the simulated arm (UR5e-like defaults)."""
-
-    joint_min_rad: float = -6.283185307179586
-    joint_max_rad: float = 6.283185307179586
-    max_joint_speed_rad_s: float = 3.14159  # 180 deg/s, UR5e joint maximum
-    max_joint_accel_rad_s2: float = 40.0
-    max_tcp_speed_m_s: float = 1.5  # safety "tool speed" limit
-    max_tcp_accel_m_s2: float = 15.0
-    # Workspace the TCP must stay in (base frame, m): an axis-aligned box AND a sphere.
-    workspace_min_m: tuple[float, float, float] = (-1.0, -1.0, -0.05)
-    workspace_max_m: tuple[float, float, float] = (1.0, 1.0, 1.2)
-    workspace_radius_m: float = 1.05
-    protective_stop_decel_rad_s2: float = 20.0
-    unlock_delay_s: float = 5.0  # a real controller refuses unlock for 5 s after the stop
-    servo_watchdog_s: float = 0.02  # servo stream gap (beyond the command's time) before braking
-    power_on_s: float = 0.3  # POWER_OFF -> POWER_ON -> IDLE
-    brake_release_s: float = 0.4  # IDLE -> RUNNING
-
-
-Pose6 = list[float]
-JogFeature = Literal["base", "tool"]
-PathKind = Literal["movej", "movel"]
-# one waypoint of move_path: (kind, target, speed, accel, blend_m); target is q for "movej"
-# and a pose6 for "movel"
-PathEntry = tuple[PathKind, Sequence[float], float, float, float]
-FaultKind = Literal["protective_stop", "emergency_stop"]
-
-
-@dataclass(frozen=True)
-class EngineSnapshot:
-    """A consistent state of the arm, taken under the engine lock (RTDE output fields)."""
-
-    timestamp_s: float  # controller uptime (RTDE ``timestamp``)
-    host_monotonic_s: float  # time.monotonic() of the sample, for pose histories
-    q: tuple[float, ...]  # actual_q (rad)
-    qd: tuple[float, ...]  # actual_qd (rad/s)
-    target_q: tuple[float, ...]
-    target_qd: tuple[float, ...]
-    target_qdd: tuple[float, ...]
-    tcp_pose: tuple[float, ...]  # actual_TCP_pose, pose6
-    tcp_speed: tuple[float, ...]  # actual_TCP_speed [vx, vy, vz (m/s), wx, wy, wz (rad/s)]
-    target_tcp_pose: tuple[float, ...]
-    target_tcp_speed: tuple[float, ...]
-    tcp_offset: tuple[float, ...]  # pose6 of the TCP in the flange frame
-    tcp_force: tuple[float, ...]  # always zero: no contact simulation
-    joint_temperatures_c: tuple[float, ...]
-    actual_current_a: tuple[float, ...]
-    joint_modes: tuple[int, ...]  # UR JointMode per joint (253 RUNNING, 236 POWER_OFF, ...)
-    robot_mode: RobotMode
-    safety_mode: SafetyMode
-    safety_status_bits: int
-    robot_status_bits: int
-    moving: bool
-    active_command: str | None  # "movej", "movel", "path", "speedj", "speedl", "jog", ...
-    async_progress: int  # -1 when no move runs, else index of the path segment under way
-    speed_scaling: float  # actual speed scaling (0 while stopped by safety)
-    target_speed_fraction: float  # the speed slider
-    seconds_since_protective_stop: float | None  # None when not protective-stopped
-    last_stop_reason: str  # why the last safety stop happened, "" if none
-    last_command_id: int  # id returned by the latest accepted motion command (0: none yet)
-
-
-class CommandOutcome(Enum):
-    """What became of a motion command (see :meth:`MotionEngine.outcome`)."""
-
-    RUNNING = "running"
-    SUCCEEDED = "succeeded"  # arrived / stopped as asked
-    ABORTED = "aborted"  # ended by a safety stop or power loss
-    PREEMPTED = "preempted"  # replaced by a later command or a stop
-
-
-Vec = NDArray[np.float64]
-HOME_Q_RAD = (0.0, -1.571, 1.571, -1.571, -1.571, 0.0)  # tool pointing down, clear of the base
 _JOINT_RUNNING, _JOINT_IDLE, _JOINT_POWER_OFF = 253, 255, 239
 _LIMIT_MARGIN = 1.02  # profiles ride exactly at the limit; only real excess trips a stop
 _PATH_SAMPLE_MM = 5.0  # movel paths are checked through IK at least this densely
 _PATH_SAMPLE_RAD = 0.05
 _MAX_PATH_JOINT_STEP_RAD = 0.35  # a bigger jump between samples means a configuration flip
 _HISTORY_S = 10.0
-
-
-class _SafetyTrip(Exception):
-    """Raised inside a step when the motion itself cannot continue (e.g. IK lost)."""
-
-
-@dataclass
-class _Step:
-    q: Vec
-    qd: Vec
-    qdd: Vec
-    done: bool
-
-
-class _Command:
-    """One thing the arm is doing. ``step`` advances it to ``now`` from the engine state."""
-
-    limited = True  # subject to the run-time safety checks (brakes are not)
-
-    def __init__(self, cid: int, name: str) -> None:
-        self.id = cid
-        self.name = name
-        self.progress = -1
-
-    def step(self, eng: MotionEngine, now: float, dt: float) -> _Step:
-        raise NotImplementedError
-
-
-class _Brake(_Command):
-    """Joint-proportional constant deceleration to rest: every joint stops at the same instant."""
-
-    limited = False
-
-    def __init__(self, cid: int, name: str, q0: Vec, qd0: Vec, decel: float) -> None:
-        super().__init__(cid, name)
-        self.q0, self.qd0 = q0.copy(), qd0.copy()
-        peak = float(np.max(np.abs(qd0)))
-        self.T = peak / decel if peak > 0 else 0.0
-        self.t = 0.0
-
-    @property
-    def q_end(self) -> Vec:
-        return self.q0 + 0.5 * self.T * self.qd0
-
-    def step(self, eng: MotionEngine, now: float, dt: float) -> _Step:
-        self.t += dt
-        if self.t >= self.T:
-            z = np.zeros(6)
-            return _Step(self.q_end, z, z.copy(), True)
-        t, T = self.t, self.T
-        return _Step(self.q0 + self.qd0 * t - 0.5 * self.qd0 / T * t * t,
-                     self.qd0 * (1.0 - t / T), -self.qd0 / T, False)
-
-
-class _Then(_Command):
-    """``first`` then ``second``: a profiled move commanded while the arm still moves brakes
-    first, because a trapezoid starts from rest."""
-
-    def __init__(self, first: _Brake, second: _Command) -> None:
-        super().__init__(second.id, second.name)
-        self.first, self.second = first, second
-        self.limited = True
-
-    def step(self, eng: MotionEngine, now: float, dt: float) -> _Step:
-        if self.first is not None and self.first.t < self.first.T:
-            out = self.first.step(eng, now, dt)
-            out.done = False
-            return out
-        out = self.second.step(eng, now, dt)
-        self.progress = self.second.progress
-        return out
-
-
-class _MoveJ(_Command):
-    def __init__(self, cid: int, name: str, profile: JointProfile) -> None:
-        super().__init__(cid, name)
-        self.profile = profile
-        self.tau = 0.0
-        self.progress = 0
-
-    def step(self, eng: MotionEngine, now: float, dt: float) -> _Step:
-        f = eng._speed_fraction
-        self.tau += dt * f
-        q, qd, qdd = self.profile.at(self.tau)
-        return _Step(q, qd * f, qdd * f * f, self.tau >= self.profile.duration_s)
-
-
-class _MoveL(_Command):
-    """Straight (or blended) TCP motion; joints follow by IK from the previous cycle."""
-
-    def __init__(self, cid: int, name: str, path: BlendedLinearPath, first_entry: int = 0
-                 ) -> None:
-        super().__init__(cid, name)
-        self.path = path
-        self.tau = 0.0
-        self.first_entry = first_entry
-        self.progress = first_entry
-
-    def step(self, eng: MotionEngine, now: float, dt: float) -> _Step:
-        self.tau += dt * eng._speed_fraction
-        done = self.tau >= self.path.duration_s
-        self.progress = self.first_entry + self.path.index_at(self.tau)
-        T = self.path.pose_at(self.tau)
-        try:
-            # the closed form lands the final pose exactly; Newton is plenty in between
-            q = (eng._kin.inverse_tcp(T, eng._q) if done
-                 else eng._kin.inverse_tcp_local(T, eng._q, eng._q + eng._qd * dt))
-        except UnreachableError as err:
-            raise _SafetyTrip("linear move lost its inverse kinematics") from err
-        qd = (q - eng._q) / dt if dt > 0 else np.zeros(6)
-        return _Step(q, qd, (qd - eng._qd) / dt if dt > 0 else np.zeros(6), done)
-
-
-class _Path(_Command):
-    def __init__(self, cid: int, segments: list[_Command]) -> None:
-        super().__init__(cid, "path")
-        self.segments = segments
-        self.index = 0
-        self.progress = 0
-
-    def step(self, eng: MotionEngine, now: float, dt: float) -> _Step:
-        seg = self.segments[self.index]
-        out = seg.step(eng, now, dt)
-        self.progress = seg.progress
-        if out.done and self.index + 1 < len(self.segments):
-            self.index += 1
-            out.done = False
-        return out
-
-
-class _SpeedJ(_Command):
-    """Ramp the joint velocity vector to a target; after ``expire_at`` the target is zero."""
-
-    def __init__(self, cid: int, qd0: Vec, target: Vec, accel: float,
-                 expire_at: float | None) -> None:
-        super().__init__(cid, "speedj")
-        self.qd = qd0.copy()
-        self.target, self.accel, self.expire_at = target, accel, expire_at
-
-    def stop(self, decel: float, now: float) -> None:
-        self.accel, self.expire_at = decel, now
-
-    def step(self, eng: MotionEngine, now: float, dt: float) -> _Step:
-        stopping = self.expire_at is not None and now >= self.expire_at
-        target = np.zeros(6) if stopping else self.target
-        dv = target - self.qd
-        m = float(np.max(np.abs(dv)))
-        new = self.qd + dv * min(1.0, self.accel * dt / m) if m > 0 else self.qd.copy()
-        q = eng._q + 0.5 * (self.qd + new) * dt
-        qdd = (new - self.qd) / dt if dt > 0 else np.zeros(6)
-        self.qd = new
-        return _Step(q, new.copy(), qdd, stopping and not np.any(new))
-
-
-class _SpeedL(_Command):
-    """Cartesian velocity (base or tool frame) integrated on the TCP pose, joints by IK."""
-
-    def __init__(self, cid: int, name: str, eng: MotionEngine, target: Vec, frame: JogFeature,
-                 accel_mm_s2: float, accel_rad_s2: float, expire_at: float | None) -> None:
-        super().__init__(cid, name)
-        self.T = eng._kin.forward_tcp(eng._q)
-        self.twist = eng._kin.jacobian_tcp(eng._q) @ eng._qd
-        self.target, self.frame = target, frame
-        self.acc_lin, self.acc_rot, self.expire_at = accel_mm_s2, accel_rad_s2, expire_at
-
-    def stop(self, decel_mm_s2: float, now: float) -> None:
-        self.acc_lin, self.acc_rot, self.expire_at = decel_mm_s2, decel_mm_s2 / 1000.0, now
-
-    @staticmethod
-    def _ramp(cur: Vec, target: Vec, accel: float, dt: float) -> Vec:
-        dv = target - cur
-        m = float(np.linalg.norm(dv))
-        return cur + dv * min(1.0, accel * dt / m) if m > 0 else cur.copy()
-
-    def step(self, eng: MotionEngine, now: float, dt: float) -> _Step:
-        stopping = self.expire_at is not None and now >= self.expire_at
-        target = np.zeros(6) if stopping else self.target.copy()
-        if self.frame == "tool" and not stopping:
-            R = self.T[:3, :3]
-            target = np.concatenate([R @ target[:3], R @ target[3:]])
-        new = np.concatenate([self._ramp(self.twist[:3], target[:3], self.acc_lin, dt),
-                              self._ramp(self.twist[3:], target[3:], self.acc_rot, dt)])
-        mean = 0.5 * (self.twist + new)
-        T = self.T.copy()
-        T[:3, 3] += mean[:3] * dt
-        T[:3, :3] = (Rotation.from_rotvec(mean[3:] * dt) * Rotation.from_matrix(T[:3, :3])
-                     ).as_matrix()
-        try:
-            q = eng._kin.inverse_tcp_local(T, eng._q, eng._q + eng._qd * dt)
-        except UnreachableError as err:
-            raise _SafetyTrip("Cartesian speed command left the reachable workspace") from err
-        self.T, self.twist = T, new
-        qd = (q - eng._q) / dt if dt > 0 else np.zeros(6)
-        return _Step(q, qd, (qd - eng._qd) / dt if dt > 0 else np.zeros(6),
-                     stopping and not np.any(new))
-
-
-class _Servo(_Command):
-    """Go to the latest target within its ``time_s``; brake when the stream dries up."""
-
-    def __init__(self, cid: int, name: str, decel: float) -> None:
-        super().__init__(cid, name)
-        self.decel = decel
-        self.q_from = np.zeros(6)
-        self.q_to = np.zeros(6)
-        self.t_cmd = 0.0
-        self.time_s = CYCLE_S
-        self.brake: _Brake | None = None
-
-    def retarget(self, q_now: Vec, q_to: Vec, time_s: float, now: float) -> None:
-        self.q_from, self.q_to, self.t_cmd, self.time_s = q_now.copy(), q_to, now, time_s
-        self.brake = None
-
-    @property
-    def velocity(self) -> Vec:
-        return (self.q_to - self.q_from) / self.time_s
-
-    def step(self, eng: MotionEngine, now: float, dt: float) -> _Step:
-        if self.brake is None and now > self.t_cmd + self.time_s + eng.limits.servo_watchdog_s:
-            self.brake = _Brake(self.id, self.name, eng._q, eng._qd, self.decel)
-        if self.brake is not None:
-            return self.brake.step(eng, now, dt)
-        elapsed = now - self.t_cmd
-        if elapsed >= self.time_s:
-            z = np.zeros(6)
-            return _Step(self.q_to.copy(), z, (z - eng._qd) / dt if dt > 0 else z, False)
-        v = self.velocity
-        return _Step(self.q_from + v * elapsed, v, (v - eng._qd) / dt if dt > 0 else v * 0,
-                     False)
-
-
-def _vec(x: ArrayLike, n: int, what: str) -> Vec:
-    try:
-        v = np.asarray(x, dtype=float).reshape(-1)
-    except (TypeError, ValueError) as err:
-        raise CommandRejectedError(f"{what} must be {n} numbers") from err
-    if v.shape != (n,) or not np.all(np.isfinite(v)):
-        raise CommandRejectedError(f"{what} must be {n} finite numbers, got {x!r}")
-    return v
-
-
-def _positive(x: float, what: str, limit: float | None = None) -> float:
-    v = float(x)
-    if not (math.isfinite(v) and v > 0):
-        raise CommandRejectedError(f"{what} must be a positive number, got {x!r}")
-    if limit is not None and v > limit:
-        raise CommandRejectedError(f"{what} {v:g} exceeds the arm's maximum {limit:g}")
-    return v
-
 
 _SAFETY_BITS = {
     SafetyMode.NORMAL: (SafetyStatusBit.NORMAL_MODE,),
@@ -495,7 +127,7 @@ class MotionEngine:
         self._kin = UR5eKinematics(joint_min_rad=self.limits.joint_min_rad,
                                    joint_max_rad=self.limits.joint_max_rad)
         self._cond = threading.Condition()
-        self._q = _vec(HOME_Q_RAD if q_rad is None else q_rad, NUM_JOINTS, "q_rad")
+        self._q = as_vector(HOME_Q_RAD if q_rad is None else q_rad, NUM_JOINTS, "q_rad")
         self._check_joint_limits(self._q, "start q")
         self._qd = np.zeros(6)
         self._qdd = np.zeros(6)
@@ -506,7 +138,7 @@ class MotionEngine:
         self._stop_reason = ""
         self._program_running = False
         self._speed_fraction = 1.0
-        self._cmd: _Command | None = None
+        self._cmd: Command | None = None
         self._next_id = 1
         self._outcomes: dict[int, CommandOutcome] = {}
         self._timers: list[tuple[float, str]] = []  # (due monotonic, event)
@@ -595,7 +227,7 @@ class MotionEngine:
         assert cmd is not None
         try:
             out = cmd.step(self, now, dt)
-        except _SafetyTrip as trip:
+        except SafetyTrip as trip:
             self._protective_stop(str(trip), now)
             return
         if cmd.limited:
@@ -635,7 +267,7 @@ class MotionEngine:
         box = float(np.max(np.concatenate([lo - p, p - hi])))
         return max(box, float(np.linalg.norm(p)) - self.limits.workspace_radius_m)
 
-    def _finish(self, outcome: CommandOutcome, then: _Command | None = None) -> None:
+    def _finish(self, outcome: CommandOutcome, then: Command | None = None) -> None:
         if self._cmd is not None and self._outcomes.get(self._cmd.id) == CommandOutcome.RUNNING:
             self._outcomes[self._cmd.id] = outcome
         self._cmd = then
@@ -659,7 +291,7 @@ class MotionEngine:
 
     def _brake_now(self, decel: float, name: str, outcome: CommandOutcome) -> None:
         """End the active command, braking from the present velocity."""
-        brake = _Brake(0, name, self._q, self._qd, decel)
+        brake = Brake(0, name, self._q, self._qd, decel)
         self._finish(outcome, brake if brake.T > 0 else None)
         if self._cmd is None:
             self._qd = np.zeros(6)
@@ -849,7 +481,7 @@ class MotionEngine:
     # -- kinematics -------------------------------------------------------------------------
     def set_tcp(self, pose6: Sequence[float]) -> None:
         """TCP offset in the flange frame (pose6). Refused while a command is active."""
-        p = _vec(pose6, 6, "TCP pose")
+        p = as_vector(pose6, 6, "TCP pose")
         with self._cond:
             if self._cmd is not None:
                 raise CommandRejectedError("cannot change the TCP while the arm moves")
@@ -858,15 +490,15 @@ class MotionEngine:
 
     def fk(self, q_rad: Sequence[float]) -> Pose6:
         """TCP pose6 of a joint vector, with the current TCP offset."""
-        q = _vec(q_rad, 6, "q")
+        q = as_vector(q_rad, 6, "q")
         with self._cond:
             return ur_pose_from_T(self._kin.forward_tcp(q))
 
     def ik(self, pose6: Sequence[float], q_near: Sequence[float] | None = None) -> list[float]:
         """Joints reaching the TCP pose6 nearest ``q_near`` (default: current q)."""
-        p = _vec(pose6, 6, "pose")
+        p = as_vector(pose6, 6, "pose")
         with self._cond:
-            seed = self._q if q_near is None else _vec(q_near, 6, "q_near")
+            seed = self._q if q_near is None else as_vector(q_near, 6, "q_near")
             return [float(v) for v in self._ik_locked(p, seed)]
 
     def _ik_locked(self, pose6: Vec, seed: Vec) -> Vec:
@@ -903,29 +535,29 @@ class MotionEngine:
         rejected command leaves no trace."""
         return self._next_id
 
-    def _rest_start(self, accel: float) -> tuple[Vec, _Brake | None]:
+    def _rest_start(self, accel: float) -> tuple[Vec, Brake | None]:
         """Where a profiled move will start: here, or where the present motion brakes to."""
         if self._cmd is None and not np.any(self._qd):
             return self._q.copy(), None
-        brake = _Brake(0, "brake", self._q, self._qd, max(accel, 1.0))
+        brake = Brake(0, "brake", self._q, self._qd, max(accel, 1.0))
         return brake.q_end, brake
 
-    def _install(self, cmd: _Command, brake: _Brake | None = None) -> int:
+    def _install(self, cmd: Command, brake: Brake | None = None) -> int:
         self._finish(CommandOutcome.PREEMPTED)
         self._next_id = cmd.id + 1
         self._outcomes[cmd.id] = CommandOutcome.RUNNING
         if len(self._outcomes) > 1000:
             for old in sorted(self._outcomes)[:500]:
                 del self._outcomes[old]
-        self._cmd = _Then(brake, cmd) if brake is not None and brake.T > 0 else cmd
+        self._cmd = Then(brake, cmd) if brake is not None and brake.T > 0 else cmd
         self._last_step = time.monotonic()
         self._cond.notify_all()
         return cmd.id
 
     def _plan_j(self, q0: Vec, q1: Vec, speed: float, accel: float, cid: int, name: str
-                ) -> _MoveJ:
+                ) -> MoveJ:
         self._check_joint_limits(q1, "target")
-        return _MoveJ(cid, name, JointProfile(q0, q1, speed, accel))
+        return MoveJ(cid, name, JointProfile(q0, q1, speed, accel))
 
     def _plan_l(self, q0: Vec, pose6: Vec, speed: float, accel: float
                 ) -> tuple[LinearProfile, Vec]:
@@ -955,9 +587,9 @@ class MotionEngine:
     # -- profiled moves ---------------------------------------------------------------------
     def move_j(self, q_rad: Sequence[float], speed_rad_s: float, accel_rad_s2: float) -> int:
         """Synchronised trapezoidal joint move; returns the command id."""
-        q1 = _vec(q_rad, 6, "target q")
-        v = _positive(speed_rad_s, "joint speed", self.limits.max_joint_speed_rad_s)
-        a = _positive(accel_rad_s2, "joint acceleration", self.limits.max_joint_accel_rad_s2)
+        q1 = as_vector(q_rad, 6, "target q")
+        v = positive_number(speed_rad_s, "joint speed", self.limits.max_joint_speed_rad_s)
+        a = positive_number(accel_rad_s2, "joint acceleration", self.limits.max_joint_accel_rad_s2)
         with self._cond:
             self._require_motion_allowed()
             q0, brake = self._rest_start(a)
@@ -966,9 +598,9 @@ class MotionEngine:
 
     def move_j_ik(self, pose6: Sequence[float], speed_rad_s: float, accel_rad_s2: float) -> int:
         """Joint move to the IK solution of a TCP pose nearest the current q (URScript movej(p))."""
-        p = _vec(pose6, 6, "target pose")
-        v = _positive(speed_rad_s, "joint speed", self.limits.max_joint_speed_rad_s)
-        a = _positive(accel_rad_s2, "joint acceleration", self.limits.max_joint_accel_rad_s2)
+        p = as_vector(pose6, 6, "target pose")
+        v = positive_number(speed_rad_s, "joint speed", self.limits.max_joint_speed_rad_s)
+        a = positive_number(accel_rad_s2, "joint acceleration", self.limits.max_joint_accel_rad_s2)
         with self._cond:
             self._require_motion_allowed()
             q0, brake = self._rest_start(a)
@@ -982,14 +614,14 @@ class MotionEngine:
         The whole line is checked through inverse kinematics first (reach, joint limits,
         singularities). A speed above the tool speed limit trips a protective stop.
         """
-        p = _vec(pose6, 6, "target pose")
-        v = _positive(speed_m_s, "tool speed")
-        a = _positive(accel_m_s2, "tool acceleration", self.limits.max_tcp_accel_m_s2)
+        p = as_vector(pose6, 6, "target pose")
+        v = positive_number(speed_m_s, "tool speed")
+        a = positive_number(accel_m_s2, "tool acceleration", self.limits.max_tcp_accel_m_s2)
         with self._cond:
             self._require_motion_allowed()
             q0, brake = self._rest_start(a)
             prof, _ = self._plan_l(q0, p, v, a)
-            return self._install(_MoveL(self._new_id(), "movel", BlendedLinearPath([prof], [])),
+            return self._install(MoveL(self._new_id(), "movel", BlendedLinearPath([prof], [])),
                                  brake)
 
     def move_path(self, path: Sequence[PathEntry]) -> int:
@@ -1005,7 +637,7 @@ class MotionEngine:
             self._require_motion_allowed()
             cid = self._new_id()
             q, brake = self._rest_start(1.0)
-            segments: list[_Command] = []
+            segments: list[Command] = []
             run: list[LinearProfile] = []  # movel profiles to be blended together
             run_blends: list[float] = []
             run_first = 0
@@ -1036,12 +668,12 @@ class MotionEngine:
                 run_blends.append(blend * 1000.0 if nxt == "movel" else 0.0)
             if run:
                 segments.append(self._blended(cid, run, run_blends[:-1], run_first))
-            return self._install(_Path(cid, segments), brake)
+            return self._install(PathMove(cid, segments), brake)
 
     @staticmethod
     def _blended(cid: int, run: list[LinearProfile], blends_mm: list[float], first: int
-                 ) -> _MoveL:
-        return _MoveL(cid, "movel", BlendedLinearPath(run, blends_mm), first)
+                 ) -> MoveL:
+        return MoveL(cid, "movel", BlendedLinearPath(run, blends_mm), first)
 
     def _path_entry(self, i: int, entry: PathEntry) -> tuple[PathKind, Vec, float, float, float]:
         try:
@@ -1052,13 +684,13 @@ class MotionEngine:
         b = float(blend)
         if not (math.isfinite(b) and b >= 0):
             raise CommandRejectedError(f"path entry {i}: blend must be >= 0")
-        tgt = _vec(target, 6, f"path entry {i} target")
+        tgt = as_vector(target, 6, f"path entry {i} target")
         if kind == "movej":
-            v = _positive(speed, f"path entry {i} speed", self.limits.max_joint_speed_rad_s)
-            a = _positive(accel, f"path entry {i} accel", self.limits.max_joint_accel_rad_s2)
+            v = positive_number(speed, f"path entry {i} speed", self.limits.max_joint_speed_rad_s)
+            a = positive_number(accel, f"path entry {i} accel", self.limits.max_joint_accel_rad_s2)
         elif kind == "movel":
-            v = _positive(speed, f"path entry {i} speed")
-            a = _positive(accel, f"path entry {i} accel", self.limits.max_tcp_accel_m_s2)
+            v = positive_number(speed, f"path entry {i} speed")
+            a = positive_number(accel, f"path entry {i} accel", self.limits.max_tcp_accel_m_s2)
         else:
             raise CommandRejectedError(f"path entry {i}: unknown kind {kind!r}")
         return kind, tgt, v, a, b
@@ -1074,14 +706,14 @@ class MotionEngine:
                 ) -> int:
         """Joint velocity. Brakes with ``accel`` when no new command arrives within ``time_s``
         (``time_s <= 0``: runs until :meth:`speed_stop` or another command)."""
-        qd = _vec(qd_rad_s, 6, "joint speeds")
-        a = _positive(accel_rad_s2, "joint acceleration", self.limits.max_joint_accel_rad_s2)
+        qd = as_vector(qd_rad_s, 6, "joint speeds")
+        a = positive_number(accel_rad_s2, "joint acceleration", self.limits.max_joint_accel_rad_s2)
         expire = self._expiry(time_s)
         with self._cond:
             self._require_motion_allowed()
             if float(np.max(np.abs(qd))) > self.limits.max_joint_speed_rad_s:
                 self._trip("speedj above the joint speed limit")
-            cmd = _SpeedJ(self._new_id(), self._qd, qd, a, expire)
+            cmd = SpeedJ(self._new_id(), self._qd, qd, a, expire)
             return self._install(cmd)
 
     def speed_l(self, xd: Sequence[float], accel_m_s2: float, time_s: float = 0.0) -> int:
@@ -1100,15 +732,15 @@ class MotionEngine:
 
     def _speed_l(self, name: str, xd: Sequence[float], frame: JogFeature, accel_m_s2: float,
                  time_s: float) -> int:
-        twist = _vec(xd, 6, "TCP speeds")
-        a = _positive(accel_m_s2, "tool acceleration", self.limits.max_tcp_accel_m_s2)
+        twist = as_vector(xd, 6, "TCP speeds")
+        a = positive_number(accel_m_s2, "tool acceleration", self.limits.max_tcp_accel_m_s2)
         expire = self._expiry(time_s)
         with self._cond:
             self._require_motion_allowed()
             if float(np.linalg.norm(twist[:3])) > self.limits.max_tcp_speed_m_s:
                 self._trip(f"{name} above the tool speed limit")
             target = np.concatenate([twist[:3] * 1000.0, twist[3:]])
-            cmd = _SpeedL(self._new_id(), name, self, target, frame, a * 1000.0, a, expire)
+            cmd = SpeedL(self._new_id(), name, self, target, frame, a * 1000.0, a, expire)
             return self._install(cmd)
 
     def jog_stop(self, decel_m_s2: float = 0.5) -> None:
@@ -1120,7 +752,7 @@ class MotionEngine:
     ) -> int:
         """Go to ``q`` within ``time_s``; the stream must keep coming (watchdog) or the arm
         brakes. ``lookahead_s``/``gain`` are range-checked like URScript's, not modelled."""
-        q = _vec(q_rad, 6, "servo target q")
+        q = as_vector(q_rad, 6, "servo target q")
         with self._cond:
             return self._servo("servoj", q, time_s, lookahead_s, gain)
 
@@ -1129,7 +761,7 @@ class MotionEngine:
         gain: float = 300.0,
     ) -> int:
         """As :meth:`servo_j` with a TCP pose target (IK nearest the present joints)."""
-        p = _vec(pose6, 6, "servo target pose")
+        p = as_vector(pose6, 6, "servo target pose")
         with self._cond:
             self._require_motion_allowed()
             return self._servo("servol", self._ik_locked(p, self._q), time_s, lookahead_s, gain)
@@ -1147,8 +779,8 @@ class MotionEngine:
         t = max(t, CYCLE_S)
         now = time.monotonic()
         cmd = self._cmd
-        if not (isinstance(cmd, _Servo) and cmd.name == name and cmd.brake is None):
-            cmd = _Servo(self._new_id(), name, decel=10.0)
+        if not (isinstance(cmd, Servo) and cmd.name == name and cmd.brake is None):
+            cmd = Servo(self._new_id(), name, decel=10.0)
             cmd.retarget(self._q, q, t, now)
             self._install(cmd)
         else:
@@ -1160,13 +792,13 @@ class MotionEngine:
     # -- stops (always accepted) ---------------------------------------------------------------
     def speed_stop(self, decel: float = 10.0) -> None:
         """End speedj/speedl/jog with ``decel`` (rad/s^2 or m/s^2); other motion brakes too."""
-        d = _positive(decel, "deceleration")
+        d = positive_number(decel, "deceleration")
         with self._cond:
             cmd = self._cmd
             now = time.monotonic()
-            if isinstance(cmd, _SpeedJ):
+            if isinstance(cmd, SpeedJ):
                 cmd.stop(d, now)
-            elif isinstance(cmd, _SpeedL):
+            elif isinstance(cmd, SpeedL):
                 cmd.stop(d * 1000.0, now)
             elif cmd is not None:
                 self._brake_now(d, "stop", CommandOutcome.PREEMPTED)
@@ -1176,7 +808,7 @@ class MotionEngine:
 
     def stop_j(self, decel_rad_s2: float = 2.0) -> None:
         """Brake in joint space with ``decel``, ending any command."""
-        d = _positive(decel_rad_s2, "deceleration")
+        d = positive_number(decel_rad_s2, "deceleration")
         with self._cond:
             if self._cmd is not None and self._cmd.name not in ("protective_stop",
                                                                 "emergency_stop"):
@@ -1184,7 +816,7 @@ class MotionEngine:
 
     def stop_l(self, decel_m_s2: float = 10.0) -> None:
         """Brake so that the TCP decelerates at about ``decel``, ending any command."""
-        d = _positive(decel_m_s2, "deceleration")
+        d = positive_number(decel_m_s2, "deceleration")
         with self._cond:
             cmd = self._cmd
             if cmd is None or cmd.name in ("protective_stop", "emergency_stop"):
