@@ -46,12 +46,17 @@ CONTENDER_ERROR_RATIO = 4.0  # a losing branch this much worse than the converge
 class _Candidates:
     """Both solutions of one coplanar POSIT step for each of K branches (2K candidates)."""
 
-    def __init__(self, model: ObjectModel, system: FrameSystem, eps: NDArray[np.float64]) -> None:
+    def __init__(
+        self, model: ObjectModel, system: FrameSystem, eps: NDArray[np.float64] | None
+    ) -> None:
+        """``eps`` (K, N-1): each branch's epsilons; None for the first step (all zero)."""
         ux, uy, uz = model.normal_tuple
         self.rows: list[tuple[Vec3, Vec3, Vec3] | None] = []
         self.scales: list[float] = []
         cols: list[float] = []  # s*R1, s*R2, s*R3 of every candidate, as the columns of M
-        for i0x, i0y, i0z, j0x, j0y, j0z in (eps @ system.gain_t + system.offset).tolist():
+        I0J0 = [system.offset.tolist()] if eps is None else (
+            eps @ system.gain_t + system.offset).tolist()
+        for i0x, i0y, i0z, j0x, j0y, j0z in I0J0:
             ii = i0x * i0x + i0y * i0y + i0z * i0z
             jj = j0x * j0x + j0y * j0y + j0z * j0z
             ij = i0x * j0x + i0y * j0y + i0z * j0z
@@ -73,7 +78,7 @@ class _Candidates:
                 cols += (s * r1[0], s * r1[1], s * r1[2], s * r2[0], s * r2[1], s * r2[2],
                          s * r3[0], s * r3[1], s * r3[2])
         k2 = len(cols) // 9
-        VR = (model.vectors_mm[1:] @ np.array(cols).reshape(k2 * 3, 3).T).reshape(-1, k2, 3)
+        VR = (model.tail_mm @ np.array(cols).reshape(k2 * 3, 3).T).reshape(-1, k2, 3)
         # VR[i, k] = s*P0Pi.R1, s*P0Pi.R2, eps_i of candidate k; depth of Pi over that of P0:
         depth = 1.0 + VR[:, :, 2:]
         d = (VR[:, :, :2] + system.xy0) / depth - system.pts3
@@ -81,7 +86,7 @@ class _Candidates:
         # Sum of squared normalised image distances; inf for a point behind the camera.
         squares = (d * d).sum(axis=0)  # (2K, 2): per candidate, x and y separately
         self.squares: list[list[float]] = squares.tolist()
-        self.errors: list[float] = squares.sum(axis=1).tolist()
+        self.errors: list[float] = [sx + sy for sx, sy in self.squares]
         if depth.min() <= 0.0:
             for k, ok in enumerate((depth.min(axis=0)[:, 0] > 0.0).tolist()):
                 if not ok:
@@ -118,7 +123,7 @@ def _iterate(
     contender_ratio: float,
 ) -> list[_Branch]:
     """Both branches, iterated in lockstep until converged, stopped or out of iterations."""
-    first = _Candidates(model, system, np.zeros((1, len(system.pts))))
+    first = _Candidates(model, system, None)
     branches = [
         _Branch(first.rows[k], first.scales[k], first.eps[:, k], first.errors[k],  # type: ignore[arg-type]
                 first.squares[k])

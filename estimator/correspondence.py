@@ -153,8 +153,12 @@ def _assign(
     for k in np.flatnonzero(ok.sum(axis=1) >= min_count).tolist():
         pairs = [(m, b) for m, (b, good) in enumerate(zip(nearest[k].tolist(), ok[k].tolist(),
                                                            strict=True)) if good]
-        claimed = Counter(b for _, b in pairs)
-        hyp = {m: b for m, b in pairs if claimed[b] == 1}
+        blobs = [b for _, b in pairs]
+        if len(set(blobs)) == len(blobs):  # the usual case: no blob claimed twice
+            hyp = dict(pairs)
+        else:
+            claimed = Counter(blobs)
+            hyp = {m: b for m, b in pairs if claimed[b] == 1}
         if len(hyp) >= min_count:
             out.append(hyp)
     return out

@@ -58,6 +58,8 @@ class ObjectModel:
         # Vectors from the reference point P0 to every point (row 0 is zero), so that one matrix
         # product gives the depth offsets of all points at once.
         self.vectors_mm = points_mm - points_mm[0]
+        self.tail_mm = self.vectors_mm[1:]  # P0Pi for i >= 1 (a contiguous row block)
+        self.centre_mm = points_mm.mean(axis=0)
         s = np.linalg.svd(points_mm - points_mm.mean(axis=0), compute_uv=False)
         if s[0] <= 0.0 or s[1] <= COLLINEAR_RATIO * s[0]:
             raise DegenerateGeometryError(
@@ -104,7 +106,11 @@ def normalised_image_points(
         raise ValueError(f"{len(img)} image points for {n_expected} object points")
     if not np.all(np.isfinite(img)):
         raise ValueError("image points must be finite")
-    xy = camera.undistort_points(img)
+    if camera.has_distortion:
+        xy = camera.undistort_points(img)
+    else:  # the pinhole inverse inline (the same arithmetic, per column): this runs often
+        c, f = _principal_and_focal(camera)
+        xy = (img - c) / f
     centred = xy - xy.mean(axis=0)
     # Singular values of the centred points from the 2x2 scatter matrix (closed form, no SVD):
     # s1/s0 = sqrt(lambda_min/lambda_max).
@@ -165,6 +171,11 @@ def reprojection_rms_px(
 
 
 @functools.lru_cache(maxsize=16)
+def _principal_and_focal(camera: CameraModel) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    return np.array([camera.cx, camera.cy]), np.array([camera.fx, camera.fy])
+
+
+@functools.lru_cache(maxsize=16)
 def pinhole_matrix(camera: CameraModel) -> NDArray[np.float64]:
     """The camera's K, made once per camera."""
     return camera.K
@@ -188,15 +199,13 @@ class FrameSystem:
         pts = xy[1:]
         self.x0, self.y0 = float(xy[0, 0]), float(xy[0, 1])
         self.pts = pts
-        self.px = np.ascontiguousarray(pts[:, :1])  # (N-1,1) columns, broadcast over candidates
-        self.py = np.ascontiguousarray(pts[:, 1:])
         self.xy0 = xy[0].copy()
         self.pts3 = pts[:, None, :]  # (N-1,1,2), broadcast over candidates
         self.offset = np.concatenate((B @ (pts[:, 0] - self.x0), B @ (pts[:, 1] - self.y0)))
         self.gain = np.vstack((B * pts[:, 0], B * pts[:, 1]))
         self.gain_t = np.ascontiguousarray(self.gain.T)
         # How far (normalised units) a corrected point moves per unit change of its epsilon.
-        self.radius = np.sqrt(np.sum(pts * pts, axis=1))
+        self.radius = np.sqrt((pts * pts).sum(axis=1))
 
     def IJ(self, eps: NDArray[np.float64]) -> list[float]:
         """I and J (6 floats) of the scaled-orthographic system for these epsilons."""

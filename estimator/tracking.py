@@ -38,6 +38,7 @@ class BlobTracker:
         self.margin_px = float(margin_px)
         self._blobs: tuple[Blob, ...] = ()
         self._velocity = np.zeros((0, 2))
+        self.last_px = np.zeros((0, 2))  # centres of the tracked blobs in the last frame
         self._threshold = 0.0
         self._kind = cv2.THRESH_BINARY_INV if polarity == "dark" else cv2.THRESH_BINARY
         self.model_ids: tuple[int, ...] = ()
@@ -51,19 +52,20 @@ class BlobTracker:
         if len(blobs) != len(model_ids):
             raise ValueError("need one model id per blob")
         self._blobs = tuple(blobs)
+        self.last_px = np.array([[b.u, b.v] for b in blobs], dtype=float).reshape(-1, 2)
         self.model_ids = tuple(int(i) for i in model_ids)
         self._velocity = np.zeros((len(blobs), 2))
         self._threshold = float(threshold)
 
     def reset(self) -> None:
         self._blobs = ()
+        self.last_px = np.zeros((0, 2))
         self.model_ids = ()
         self._velocity = np.zeros((0, 2))
 
     def predicted_px(self) -> NDArray[np.float64]:
         """Where each tracked dot should be in the next frame (constant pixel velocity)."""
-        last = np.array([[b.u, b.v] for b in self._blobs], dtype=float).reshape(-1, 2)
-        return last + self._velocity
+        return self.last_px + self._velocity
 
     def track(
         self, image_u8: NDArray[np.uint8], predicted_px: NDArray[np.float64] | None = None
@@ -82,10 +84,11 @@ class BlobTracker:
         h, w = image_u8.shape
         # One region of interest around all the predictions (the dots of one target are close
         # together): one threshold and one contour pass instead of one per dot. Its regions are
-        # the full frame's regions (same global threshold, each wholly inside the ROI).
-        halves = np.array([0.5 * max(b.major_axis_px, 4.0) for b in self._blobs])
-        halves += 4.0 + self.margin_px
-        reach = float(halves.max())
+        # the full frame's regions (same global threshold, each wholly inside the ROI). (Windows
+        # copied side by side into one strip trace a fifth of the pixels: measured no faster.)
+        pad = 4.0 + self.margin_px
+        halves = [0.5 * max(b.major_axis_px, 4.0) + pad for b in self._blobs]
+        reach = max(halves)
         (u0, v0), (u1, v1) = pred.min(axis=0).tolist(), pred.max(axis=0).tolist()
         x0, y0 = max(int(u0 - reach), 0), max(int(v0 - reach), 0)
         x1, y1 = min(int(u1 + reach) + 2, w), min(int(v1 + reach) + 2, h)
@@ -95,14 +98,16 @@ class BlobTracker:
         cands = dot_regions(cast(NDArray[np.uint8], mask), self.filt, offset=(x0, y0))
         if len(cands) < n:
             return None
-        diff = pred[:, None, :] - np.array([c.mask_centre for c in cands])[None, :, :]
-        d2 = np.einsum("ijk,ijk->ij", diff, diff)
-        nearest = d2.argmin(axis=1)
-        picked_ids = nearest.tolist()
+        centres = np.array([c.mask_centre for c in cands])
+        dx = pred[:, :1] - centres[:, 0]
+        dy = pred[:, 1:] - centres[:, 1]
+        d2 = dx * dx + dy * dy  # (dots, regions)
+        picked_ids = d2.argmin(axis=1).tolist()
         if len(set(picked_ids)) != n:
             return None  # two dots claim the same region
-        if np.any(d2[np.arange(n), nearest] > 2.0 * halves * halves):
-            return None  # nothing where a dot should be (its window would have been empty)
+        for best, half in zip(d2.min(axis=1).tolist(), halves, strict=True):
+            if best > 2.0 * half * half:
+                return None  # nothing where a dot should be (its window would have been empty)
         picked = [cands[k] for k in picked_ids]
         for blob, region in zip(self._blobs, picked, strict=True):
             if not 0.5 <= region.area / max(blob.area, 1e-9) <= 2.0:
@@ -111,7 +116,7 @@ class BlobTracker:
         if len(found) != n:
             return None
         pts = np.array([[b.u, b.v] for b in found])
-        last = np.array([[b.u, b.v] for b in self._blobs])
-        self._velocity = pts - last
+        self._velocity = pts - self.last_px
         self._blobs = tuple(found)
+        self.last_px = pts
         return found

@@ -57,15 +57,22 @@ def test_tracking_gives_the_full_search_result_and_follows_motion(
     threshold: float | None,
 ) -> None:
     """With one fixed threshold the windows see exactly the full search's regions, so the
-    results are identical; with Otsu, the full search re-thresholds every frame and the
-    centres move by a few thousandths of a pixel at most."""
+    centres are identical; with Otsu, the full search re-thresholds every frame and the
+    centres move by a few thousandths of a pixel at most.
+
+    The poses agree to 1e-3 mm / 1e-3 deg, not exactly: a tracked frame corrects its points
+    with the perspective-bias offsets of the previous frame's pose and refines once, where the
+    full search refines, computes the offsets at that raw pose and refines again. Offsets of
+    up to 0.08 px differ by up to ~2e-3 px between the two evaluation poses, which moves the
+    pose by up to ~6e-4 mm (measured over 15 targets at 300-700 mm moving 2.7 mm and 0.2 deg
+    per frame); the 1e-3 tolerance is still 30x below the noise-induced error (~0.03 mm)."""
     rng = np.random.default_rng(31)
     target = random_target(rng, 7)
     T = random_pose(rng, CAM, target, distance_mm=(400.0, 500.0))
     tracker = Estimator(CAM, target, threshold=threshold)
     full = Estimator(CAM, target, tracking=False, threshold=threshold)
     atol_px = 1e-9 if threshold is not None else 0.01
-    tol_mm, tol_deg = (1e-6, 1e-6) if threshold is not None else (0.02, 0.01)
+    tol_mm, tol_deg = (1e-3, 1e-3) if threshold is not None else (0.02, 0.01)
     for k in range(6):
         step = make_T(Rotation.from_rotvec([0.0, 0.003 * k, 0.0]).as_matrix(), [1.5 * k, 0, 0])
         image = render_target(CAM, target, T @ step, rng=rng)
