@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+
+from drivers.ur import URArm
+from fakes.ur_controller.process import ControllerProcess
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -47,3 +51,20 @@ def visp_dir(shared_dir: Path) -> Path:
     if not d.is_dir():
         pytest.skip(f"{d} is absent")
     return d
+
+
+@pytest.fixture
+def ur_ctl() -> Iterator[ControllerProcess]:
+    """A simulated UR controller in its own process on its own loopback address."""
+    with ControllerProcess() as proc:
+        yield proc
+
+
+@pytest.fixture
+def ur_arm(ur_ctl: ControllerProcess) -> Iterator[URArm]:
+    """The real UR adapter (ur_rtde) connected to ``ur_ctl``, powered and brakes released."""
+    arm = URArm(ur_ctl.host)
+    arm.connect()
+    arm.power_on()
+    yield arm
+    arm.disconnect()
