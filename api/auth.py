@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Annotated
 
 from fastapi import Depends, Query, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
@@ -76,3 +77,7 @@ def require(permission: str) -> Callable[..., Caller]:
         return caller
 
     return dependency
+
+
+# The caller of a route any valid token may use.
+Read = Annotated[Caller, Depends(require("read"))]

@@ -14,7 +14,7 @@ from fastapi import APIRouter, Body, Depends, Query, Request, Response
 from fastapi.responses import StreamingResponse
 
 from api import overlay
-from api.auth import Caller, require
+from api.auth import Caller, Read, require
 from api.errors import ERROR_RESPONSES
 from api.routes_calibration import taught_target_tcp
 from api.schemas import (
@@ -38,8 +38,6 @@ from estimator.transforms import T_from_pose, pose_dict
 router = APIRouter(prefix="/api/v1", responses=ERROR_RESPONSES)
 sim_router = APIRouter(prefix="/api/v1/sim", tags=["simulation"], responses=ERROR_RESPONSES)
 
-Read = Annotated[Caller, Depends(require("read"))]
-
 
 def cell_of(request: Request) -> Cell:
     cell: Cell = request.app.state.cell
@@ -56,13 +54,7 @@ def sim_of(request: Request) -> SimWorld:
 @router.get("/health", tags=["status"])
 def health(request: Request) -> dict[str, Any]:
     """Liveness without auth: is the process up and are the devices connected."""
-    cell = cell_of(request)
-    try:
-        arm = bool(cell.hw.arm.state().connected)
-    except Exception:
-        arm = False
-    return {"status": "ok", "arm_connected": arm,
-            "camera_connected": bool(cell.hw.camera.is_connected)}
+    return {"status": "ok", **cell_of(request).health()}
 
 
 @router.get("/me", response_model=Me, tags=["status"])

@@ -17,7 +17,7 @@ from fastapi.responses import StreamingResponse
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from api.auth import Caller, require
+from api.auth import Caller, Read
 from api.errors import ERROR_RESPONSES, ForbiddenError
 from api.sse import SSE_RESPONSES, sse_response
 from cell.calibration.routine import RoutineSettings
@@ -36,7 +36,6 @@ router = APIRouter(prefix="/api/v1", responses={
     **ERROR_RESPONSES, 404: {"description": "unknown job or taught pose",
                              "model": ERROR_RESPONSES[409]["model"]}})
 
-Read = Annotated[Caller, Depends(require("read"))]
 OPERATOR_ROLES = frozenset({"operator"})
 
 

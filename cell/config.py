@@ -1,7 +1,8 @@
 """Cell configuration: one TOML file, validated with pydantic; errors name the offending key.
 
-Tables: ``[camera]`` and ``[target]`` (estimator), later ``[robot]``, ``[hand_eye]``, ``[tool]``,
-``[approach]``, ``[limits]``, ``[api]``, ``[sim]``. Keys of existing tables stay stable.
+Tables: ``[camera]`` and ``[target]`` (required), ``[robot]``, ``[hand_eye]``, ``[tool]``,
+``[approach]``, ``[limits]``, ``[api]``, ``[gripper]``, ``[sim]``. Keys stay stable, because
+commissioned cells keep their files.
 Without a file every command uses the built-in simulated cell (``cell/configs/sim.toml``).
 """
 
@@ -40,7 +41,7 @@ class CameraConfig(_Strict):
     width: int = Field(gt=0)
     height: int = Field(gt=0)
     dist: list[float] = Field(default_factory=list)
-    # Optional keys of the service (issue 5): which device, and its frame rate.
+    # Optional: which device, and its frame rate.
     kind: Literal["sim", "oak"] = "sim"
     fps: float = Field(default=15.0, gt=0, le=120)
 
@@ -195,7 +196,8 @@ class SimConfig(_Strict):
 
 
 class CellConfig(BaseModel):
-    """The whole file. Tables added by later features are optional with sane defaults."""
+    """The whole file. Only ``[camera]`` and ``[target]`` are required, so a minimal file is
+    enough for the vision commands; every other table has defaults (simulated arm, no gripper)."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 

@@ -173,7 +173,6 @@ def build_hardware(config: CellConfig) -> Hardware:
 
 def _build(config: CellConfig, closers: list[Callable[[], None]]) -> Hardware:
     rc, sim = config.robot, config.sim
-    simulated = True
     truth: _EngineTruth | _ProcessTruth | None = None
     arm: Arm
     if rc.kind == "sim":
@@ -187,16 +186,12 @@ def _build(config: CellConfig, closers: list[Callable[[], None]]) -> Hardware:
             ctl = ControllerProcess(rc.host)
             closers.append(ctl.close)
             truth = _ProcessTruth(ctl)
-        else:
-            simulated = False
         from drivers.ur import URArm
 
         arm = URArm(rc.host, connect_timeout_s=rc.connect_timeout_s)
         closers.append(arm.disconnect)
 
     camera, sim_camera = _make_camera(config, truth)
-    if sim_camera is None:
-        simulated = False
     closers.append(camera.disconnect)
 
     gripper: Gripper | None = None
@@ -211,10 +206,10 @@ def _build(config: CellConfig, closers: list[Callable[[], None]]) -> Hardware:
     elif gc.kind == "robotiq":
         if not gc.port:
             raise ConfigError("gripper.port: a serial device is needed for kind = \"robotiq\"")
-        simulated = False
         gripper = RobotiqGripper(gc.port, slave_id=gc.slave_id)
         closers.append(gripper.disconnect)
 
+    simulated = all_simulated(config)
     world = None
     if simulated and truth is not None and sim_camera is not None:
         world = _SimWorld(truth, sim_camera)

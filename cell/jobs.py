@@ -163,22 +163,15 @@ class JobStore:
 
     def get(self, job_id: str) -> Job | None:
         with self._lock:
-            row = self._db.execute(
-                "SELECT id, kind, caller, params, state, progress, result, error_code, "
-                "error_message, created_at, ended_at FROM jobs WHERE id = ?",
-                (job_id,)).fetchone()
+            row = self._db.execute(f"{_SELECT_JOBS} WHERE id = ?", (job_id,)).fetchone()
         return None if row is None else _job(row)
 
-    def list_jobs(self, limit: int = 50, state: str | None = None) -> list[Job]:
-        sql = ("SELECT id, kind, caller, params, state, progress, result, error_code, "
-               "error_message, created_at, ended_at FROM jobs")
-        args: tuple[Any, ...] = ()
-        if state is not None:
-            sql += " WHERE state = ?"
-            args = (state,)
-        sql += " ORDER BY created_at DESC, rowid DESC LIMIT ?"
+    def list_jobs(self, limit: int = 50) -> list[Job]:
+        """The newest ``limit`` jobs, newest first."""
         with self._lock:
-            rows = self._db.execute(sql, (*args, limit)).fetchall()
+            rows = self._db.execute(
+                f"{_SELECT_JOBS} ORDER BY created_at DESC, rowid DESC LIMIT ?", (limit,)
+            ).fetchall()
         return [_job(r) for r in rows]
 
     def audit(self, caller: str, command: str, params: dict[str, Any], outcome: str,
@@ -199,6 +192,11 @@ class JobStore:
                 "ended_at FROM audit ORDER BY id DESC LIMIT ?", (limit,)).fetchall()
         return [AuditEntry(r[0], r[1], r[2], json.loads(r[3]), r[4], r[5], r[6], r[7], r[8])
                 for r in rows]
+
+
+# The columns in the order _job reads them.
+_SELECT_JOBS = ("SELECT id, kind, caller, params, state, progress, result, error_code, "
+                "error_message, created_at, ended_at FROM jobs")
 
 
 def _job(row: tuple[Any, ...]) -> Job:

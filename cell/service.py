@@ -39,14 +39,7 @@ from cell.safety import (
 )
 from drivers.arm import ArmState, JogFrame
 from drivers.camera import Frame
-from drivers.errors import (
-    ConnectionLostError,
-    DeviceTimeoutError,
-    DriverError,
-    EmergencyStopError,
-    NotReadyError,
-    ProtectiveStopError,
-)
+from drivers.errors import ConnectionLostError, DeviceTimeoutError, DriverError
 from drivers.gripper import Gripper
 from estimator import PoseResult
 from estimator.transforms import make_T, pose_dict, pose_distance, pose_from_T
@@ -66,10 +59,9 @@ class Cancelled(CellError):
 
 
 def driver_error(err: DriverError, what: str) -> CellError:
-    """A hardware error as the cell reports it (code kept, kind chosen for the caller)."""
+    """A hardware error as the cell reports it, the driver's code kept: unavailable when the
+    device cannot be reached, otherwise refused in the current state."""
     text = f"{what}: {err}"
-    if isinstance(err, ProtectiveStopError | EmergencyStopError | NotReadyError):
-        return RefusedError(err.code, text)
     if isinstance(err, ConnectionLostError | DeviceTimeoutError):
         return UnavailableError(err.code, text)
     return RefusedError(err.code, text)
@@ -178,6 +170,18 @@ class Cell:
             return self.hw.arm.state()
         except DriverError as err:
             raise driver_error(err, "reading the arm state") from err
+
+    def health(self) -> dict[str, bool]:
+        """Whether arm and camera are connected, for the unauthenticated liveness probe.
+
+        An arm that cannot even be read counts as disconnected: the probe must answer
+        ``false`` for a dead device rather than fail.
+        """
+        try:
+            arm = bool(self.hw.arm.state().connected)
+        except Exception:
+            arm = False
+        return {"arm_connected": arm, "camera_connected": bool(self.hw.camera.is_connected)}
 
     def status(self) -> dict[str, Any]:
         now = time.monotonic()
@@ -453,10 +457,10 @@ class Cell:
         return self.frames.tcp_for_camera(cam)
 
     def _run_approach(self, job_id: str, motion: Motion, loc: Located, T_target_tcp: Matrix4,
-                      standoff_mm: float, speed: float, accel: float) -> None:
+                      standoff_mm: float, speed_mm_s: float, accel_mm_s2: float) -> None:
         try:
             result = self._look_and_move(job_id, motion, loc, T_target_tcp, standoff_mm,
-                                         speed, accel)
+                                         speed_mm_s, accel_mm_s2)
             job = self.jobs.finish(job_id, "succeeded", result)
         except Cancelled as err:
             job = self.jobs.finish(job_id, "cancelled", None, err.code, err.message)
@@ -475,8 +479,8 @@ class Cell:
         self.events.publish("job", {"job": job.as_dict()})
 
     def _look_and_move(self, job_id: str, motion: Motion, loc: Located,
-                       T_target_tcp: Matrix4, standoff_mm: float, speed: float,
-                       accel: float) -> dict[str, Any]:
+                       T_target_tcp: Matrix4, standoff_mm: float, speed_mm_s: float,
+                       accel_mm_s2: float) -> dict[str, Any]:
         ac = self.config.approach
         cycles: list[dict[str, Any]] = []
         converged = False
@@ -485,7 +489,7 @@ class Cell:
             self.jobs.set_progress(job_id, {"phase": "observe", "cycle": cycle,
                                             "cycles": cycles})
             T_obs = self._observation_tcp(loc.T_base_target, T_target_tcp)
-            self._move(T_obs, speed, accel, motion.cancel, "observation pose")
+            self._move(T_obs, speed_mm_s, accel_mm_s2, motion.cancel, "observation pose")
             arrived = time.monotonic()
             if ac.settle_s:
                 time.sleep(ac.settle_s)
@@ -503,7 +507,7 @@ class Cell:
                 raise Cancelled("cancelled", "stopped by request between cycles")
         self.jobs.set_progress(job_id, {"phase": "final", "cycle": len(cycles),
                                         "cycles": cycles})
-        reached = self._move(goal, speed, accel, motion.cancel, "approach goal")
+        reached = self._move(goal, speed_mm_s, accel_mm_s2, motion.cancel, "approach goal")
         reach_mm, reach_deg = pose_distance(reached, goal)
         last = cycles[-1]
         return {

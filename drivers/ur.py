@@ -58,6 +58,7 @@ MOVING_QD_RAD_S = 5e-3  # below this the arm counts as standing (controllers rep
 RUNTIME_PLAYING = 2
 _NORMAL_BIT, _PSTOP_BIT, _ESTOP_BITS = 1 << 0, 1 << 2, (1 << 5) | (1 << 6) | (1 << 7)
 
+
 def probe_rtde(host: str, timeout_s: float) -> None:
     """Check that an RTDE server answers a protocol-version request, with timeouts.
 

@@ -78,11 +78,6 @@ def _otsu_of_sample(sample_u8: NDArray[np.uint8]) -> float:
     return float(thr)
 
 
-def otsu_threshold(image_u8: NDArray[np.uint8]) -> float:
-    """Otsu's threshold of the frame, from every fourth pixel of every fourth row."""
-    return _otsu_of_sample(_subsample(image_u8))
-
-
 def candidate_window(
     sample_u8: NDArray[np.uint8], polarity: Polarity, threshold: float, filt: BlobFilter,
     shape: tuple[int, int],

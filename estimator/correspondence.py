@@ -338,7 +338,7 @@ def _drop_outlier(
 
 
 def _verify(
-    ranked: list[dict[int, int]], n: int, model: _Model, target: Target,
+    ranked: list[dict[int, int]], model: _Model, target: Target,
     ideal: NDArray[np.float64], camera: CameraModel, obs_px: NDArray[np.float64],
     solve: Callable[..., PoseResult],
 ) -> list[tuple[float, dict[int, int], PoseResult]]:
@@ -412,16 +412,16 @@ def match_blobs(
     scored: list[tuple[float, dict[int, int], PoseResult]] = []
     if model.planar:
         scored = _verify(_rank(_hull_hypotheses(model, ideal, tol, min_matched), min_matched),
-                         n, model, target, ideal, camera, obs_px, solve)
+                         model, target, ideal, camera, obs_px, solve)
         if not scored or len(scored[0][1]) < n or scored[0][0] > _ACCEPT_RMS_PX:
             general = _rank(_planar_hypotheses(model, ideal, tol, min_matched, n), min_matched)
-            scored = _verify(general, n, model, target, ideal, camera, obs_px, solve)
+            scored = _verify(general, model, target, ideal, camera, obs_px, solve)
     else:
         general = _rank(
             _general_hypotheses(target, model, ideal, camera.K, tol, min_matched, n),
             min_matched,
         )
-        scored = _verify(general, n, model, target, ideal, camera, obs_px, solve)
+        scored = _verify(general, model, target, ideal, camera, obs_px, solve)
     if not scored:
         raise CorrespondenceError(
             f"no assignment of the {len(obs_px)} blob(s) to the {n} target dots is consistent "

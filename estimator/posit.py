@@ -198,7 +198,6 @@ class FrameSystem:
         B = model.object_matrix
         pts = xy[1:]
         self.x0, self.y0 = float(xy[0, 0]), float(xy[0, 1])
-        self.pts = pts
         self.xy0 = xy[0].copy()
         self.pts3 = pts[:, None, :]  # (N-1,1,2), broadcast over candidates
         self.offset = np.concatenate((B @ (pts[:, 0] - self.x0), B @ (pts[:, 1] - self.y0)))
@@ -206,11 +205,6 @@ class FrameSystem:
         self.gain_t = np.ascontiguousarray(self.gain.T)
         # How far (normalised units) a corrected point moves per unit change of its epsilon.
         self.radius = np.sqrt((pts * pts).sum(axis=1))
-
-    def IJ(self, eps: NDArray[np.float64]) -> list[float]:
-        """I and J (6 floats) of the scaled-orthographic system for these epsilons."""
-        out: list[float] = (self.offset + self.gain @ eps).tolist()
-        return out
 
 
 Vec3 = tuple[float, float, float]
@@ -230,16 +224,6 @@ def unit_rows(I: Vec3, J: Vec3) -> tuple[Vec3, Vec3, Vec3, float] | None:
     b0, b1, b2 = J[0] / nJ, J[1] / nJ, J[2] / nJ
     r3 = (a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0)
     return (a0, a1, a2), (b0, b1, b2), r3, math.sqrt(nI * nJ)
-
-
-def rotation_rows(
-    I: tuple[float, float, float], J: tuple[float, float, float]
-) -> tuple[NDArray[np.float64], float] | None:
-    """:func:`unit_rows` as a 3x3 array of rows and the scale; None when I or J vanishes."""
-    solved = unit_rows(I, J)
-    if solved is None:
-        return None
-    return np.array(solved[:3]), solved[3]
 
 
 def posit_general(

@@ -1,8 +1,9 @@
-"""``cell calibrate {hand-eye,intrinsics} DIR``: calibrate from a folder of images.
+"""``cell calibrate {hand-eye,intrinsics,routine}``: calibrate from images or on the arm.
 
 ``hand-eye`` reads ViSP's eye-in-hand folder as it is or the project's dataset.json format,
 prints every method's ``T_flange_camera`` with the residuals and a verdict, and can write the
 chosen result into a cell config. ``intrinsics`` calibrates the camera from board images.
+``routine`` moves the configured arm through views of the target and solves the same way.
 A verdict of inconsistent data is a result, not an error: the exit status is 0 with a report.
 """
 
@@ -135,7 +136,7 @@ def run_routine(args: argparse.Namespace) -> int:
     try:
         hw = build_hardware(cfg)
     except (ConfigError, DriverError) as err:
-        return fail(getattr(err, "code", "hardware_failed"), str(err), args.json)
+        return fail(err.code, str(err), args.json)
     try:
         T_flange_tcp = cfg.tool.T_flange_tcp.T()
         hw.arm.connect()

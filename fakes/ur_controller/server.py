@@ -148,17 +148,8 @@ class URController:
         if self._owns_engine:
             self.engine.close()
 
-    def start(self) -> None:
-        """Serving starts in the constructor; kept so callers may start/stop symmetrically."""
-
-    def stop(self) -> None:
-        self.close()
-
     def __enter__(self) -> URController:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-ControllerServer = URController  # the name cell.factory uses

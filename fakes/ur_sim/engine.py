@@ -219,7 +219,7 @@ class MotionEngine:
             elif event == "protective_stop":
                 self._protective_stop("injected protective stop", now)
             elif event == "emergency_stop":
-                self._emergency_stop(now)
+                self._emergency_stop()
         self._cond.notify_all()
 
     def _step(self, now: float, dt: float) -> None:
@@ -280,7 +280,7 @@ class MotionEngine:
         self._brake_now(self.limits.protective_stop_decel_rad_s2, "protective_stop",
                         CommandOutcome.ABORTED)
 
-    def _emergency_stop(self, now: float) -> None:
+    def _emergency_stop(self) -> None:
         self._safety_mode = SafetyMode.ROBOT_EMERGENCY_STOP
         self._stop_reason = "emergency stop"
         self._timers = []
@@ -448,7 +448,7 @@ class MotionEngine:
     def trigger_emergency_stop(self) -> None:
         """Category-1 stop: brake, then power off; ROBOT_EMERGENCY_STOP until released."""
         with self._cond:
-            self._emergency_stop(time.monotonic())
+            self._emergency_stop()
 
     def release_emergency_stop(self) -> None:
         """E-stop button released: safety NORMAL, the arm stays POWER_OFF."""
