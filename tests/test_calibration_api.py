@@ -77,7 +77,9 @@ def test_hand_eye_routine_end_to_end(client: TestClient, tmp_path: Path) -> None
     error_before = locate_error_mm(client)
     start = tcp(cell)
 
-    r = client.post(BASE, json={"views": 8, "speed_mm_s": 250}, headers=OP)
+    # 12 views (the CLI's default): with 8 the rotation error is ~0.02 deg but noise alone can
+    # approach the 0.05 deg requirement on a loaded machine.
+    r = client.post(BASE, json={"views": 12, "speed_mm_s": 250}, headers=OP)
     assert r.status_code == 200, r.text
     job_id = r.json()["id"]
     assert r.json()["state"] == "running" and r.json()["kind"] == "hand_eye_calibration"
