@@ -421,23 +421,7 @@ def solve_pose_near(
         image_points = img - bias
         T, residuals, J = finish_pose(obj, image_points, camera, T, residuals + bias)
         notes.append(f"perspective bias corrected (max {float(abs(bias).max()):.3f} px)")
-    if not all_in_front(T, obj):
-        raise BehindCameraError(
-            "the refined pose puts part of the target behind the camera: the tracked points "
-            "no longer match the model"
-        )
-    return PoseResult(
-        T_camera_target=T,
-        rms_px=_rms(residuals),
-        residuals_px=np.sqrt((residuals * residuals).sum(axis=1)),
-        iterations=0,
-        converged=True,
-        ambiguous=False,
-        alternative=None,
-        covariance=covariance_from(residuals, J),
-        image_points_px=image_points,
-        notes=tuple(notes),
-    )
+    return _tracked_result(obj, T, residuals, J, image_points, tuple(notes))
 
 
 def near_pose_unchecked(
@@ -456,6 +440,19 @@ def near_pose_unchecked(
     image_points = img - bias
     start = None if projected_px is None else projected_px - image_points
     T, residuals, J = finish_pose(obj, image_points, camera, T_init, start)
+    return _tracked_result(
+        obj, T, residuals, J, image_points,
+        ("refined from the tracked pose, perspective bias at the predicted pose",),
+        matched_blobs, matched_ids,
+    )
+
+
+def _tracked_result(
+    obj: NDArray[np.float64], T: NDArray[np.float64], residuals: NDArray[np.float64],
+    J: NDArray[np.float64], image_points: NDArray[np.float64], notes: tuple[str, ...],
+    matched_blobs: tuple[Blob, ...] = (), matched_ids: tuple[int, ...] = (),
+) -> PoseResult:
+    """The result of a refinement from a tracked pose (no seed iterations, no alternative)."""
     if not all_in_front(T, obj):
         raise BehindCameraError(
             "the refined pose puts part of the target behind the camera: the tracked points "
@@ -471,5 +468,5 @@ def near_pose_unchecked(
         matched_blobs=matched_blobs,
         matched_ids=matched_ids,
         image_points_px=image_points,
-        notes=("refined from the tracked pose, perspective bias at the predicted pose",),
+        notes=notes,
     )

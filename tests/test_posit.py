@@ -18,15 +18,7 @@ from estimator import (
     posit,
 )
 from estimator.transforms import make_T, pose_distance
-
-CAM = CameraModel(800.0, 800.0, 640.0, 400.0)
-CAM_DISTORTED = CameraModel(820.0, 810.0, 630.0, 410.0, dist=(-0.12, 0.05, 0.001, -0.0005, 0.0))
-SOLID = np.array(
-    [[0, 0, 0], [80, 0, 0], [0, 80, 0], [80, 80, 20], [40, -30, 60], [-30, 50, 40]], float
-)
-FLAT = np.array(
-    [[0, 0, 0], [100, 0, 0], [0, 80, 0], [100, 80, 0], [50, 120, 0], [-30, 40, 0]], float
-)
+from tests.pose_scenes import CAM, CAM_DISTORTED, FLAT, SOLID
 
 
 def _tilted(rng: np.random.Generator, tilt_deg: tuple[float, float]) -> np.ndarray:
