@@ -11,13 +11,13 @@ caller can decide whether the pose is ambiguous. Both branches can drift into th
 point (the iteration is ill-conditioned for plates nearly parallel to the image); then there is
 no distinct alternative and None is returned.
 
-Speed: the two branches are iterated in lockstep, so one iteration is one (K,N-1)x(N-1,6)
-product for the I0/J0 of every branch, scalar arithmetic for the 2K rotations, and one
-(N-1,3)x(3,6K) product that gives every candidate's epsilons and image error at once. Once the
-winning branch has converged, the other is only followed further while its error makes it a
-contender (within ``CONTENDER_ERROR_RATIO`` of the winner's); otherwise it is stopped where it
-is -- it is reported as the alternative either way, and its pose only has to be "the other
-tilt", not a converged one.
+Speed: the iteration is scalar arithmetic on a handful of points, so it runs compiled (numba,
+cached on disk after the first use): in Python each step cost ~20 us of interpreter and numpy
+call overhead for well under a microsecond of arithmetic. The two branches are iterated in
+lockstep. Once the winning branch has converged, the other is only followed further while its
+error makes it a contender (within ``contender_ratio`` of the winner's); otherwise it is
+stopped where it is -- it is reported as the alternative either way, and its pose only has to
+be "the other tilt", not a converged one.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from __future__ import annotations
 import cmath
 import math
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -34,123 +35,140 @@ from estimator.posit import (
     FrameSystem,
     ObjectModel,
     PositResult,
-    Vec3,
     pose_from_rows,
     reprojection_rms_px,
-    unit_rows,
 )
 
 CONTENDER_ERROR_RATIO = 4.0  # a losing branch this much worse than the converged winner stops
 
 
-class _Candidates:
-    """Both solutions of one coplanar POSIT step for each of K branches (2K candidates)."""
+@numba.njit(cache=True, nogil=True)
+def _candidate(
+    I0J0: NDArray[np.float64], sign: float, normal: NDArray[np.float64],
+    tail: NDArray[np.float64], xy0: NDArray[np.float64], pts: NDArray[np.float64],
+    rows: NDArray[np.float64], eps: NDArray[np.float64],
+) -> tuple[float, float, float, float]:
+    """One of the two solutions of a coplanar POSIT step -> (scale, error, sx, sy).
 
-    def __init__(
-        self, model: ObjectModel, system: FrameSystem, eps: NDArray[np.float64] | None
-    ) -> None:
-        """``eps`` (K, N-1): each branch's epsilons; None for the first step (all zero)."""
-        ux, uy, uz = model.normal_tuple
-        self.rows: list[tuple[Vec3, Vec3, Vec3] | None] = []
-        self.scales: list[float] = []
-        cols: list[float] = []  # s*R1, s*R2, s*R3 of every candidate, as the columns of M
-        I0J0 = [system.offset.tolist()] if eps is None else (
-            eps @ system.gain_t + system.offset).tolist()
-        for i0x, i0y, i0z, j0x, j0y, j0z in I0J0:
-            ii = i0x * i0x + i0y * i0y + i0z * i0z
-            jj = j0x * j0x + j0y * j0y + j0z * j0z
-            ij = i0x * j0x + i0y * j0y + i0z * j0z
-            root = cmath.sqrt(complex(jj - ii, -2.0 * ij))
-            for sign in (1.0, -1.0):
-                lam, mu = sign * root.real, sign * root.imag
-                solved = unit_rows(
-                    (i0x + lam * ux, i0y + lam * uy, i0z + lam * uz),
-                    (j0x + mu * ux, j0y + mu * uy, j0z + mu * uz),
-                )
-                if solved is None:
-                    self.rows.append(None)
-                    self.scales.append(1.0)
-                    cols += (0.0,) * 9
-                    continue
-                r1, r2, r3, s = solved
-                self.rows.append((r1, r2, r3))
-                self.scales.append(s)
-                cols += (s * r1[0], s * r1[1], s * r1[2], s * r2[0], s * r2[1], s * r2[2],
-                         s * r3[0], s * r3[1], s * r3[2])
-        k2 = len(cols) // 9
-        VR = (model.tail_mm @ np.array(cols).reshape(k2 * 3, 3).T).reshape(-1, k2, 3)
-        # VR[i, k] = s*P0Pi.R1, s*P0Pi.R2, eps_i of candidate k; depth of Pi over that of P0:
-        depth = 1.0 + VR[:, :, 2:]
-        d = (VR[:, :, :2] + system.xy0) / depth - system.pts3
-        self.eps = VR[:, :, 2]  # (N-1, 2K)
-        # Sum of squared normalised image distances; inf for a point behind the camera.
-        squares = (d * d).sum(axis=0)  # (2K, 2): per candidate, x and y separately
-        self.squares: list[list[float]] = squares.tolist()
-        self.errors: list[float] = [sx + sy for sx, sy in self.squares]
-        if depth.min() <= 0.0:
-            for k, ok in enumerate((depth.min(axis=0)[:, 0] > 0.0).tolist()):
-                if not ok:
-                    self.errors[k] = math.inf
-        for k, r in enumerate(self.rows):
-            if r is None:
-                self.errors[k] = math.inf
-
-    def better_of_pair(self, branch: int) -> int:
-        """Index of the better (lower error) of branch ``branch``'s two candidates."""
-        k = 2 * branch
-        return k if self.errors[k] <= self.errors[k + 1] else k + 1
+    I = I0 + lambda u, J = J0 + mu u with (lambda + i mu)^2 = |J0|^2 - |I0|^2 - 2i I0.J0 (the
+    sign picks the solution); writes the rows R1, R2, R3 into ``rows`` (3,3) and the new
+    epsilons into ``eps`` (N-1). ``error`` is the summed squared normalised image distance
+    (sx + sy, per axis), inf when a point falls behind the camera or I or J vanishes.
+    """
+    i0x, i0y, i0z, j0x, j0y, j0z = I0J0[0], I0J0[1], I0J0[2], I0J0[3], I0J0[4], I0J0[5]
+    ii = i0x * i0x + i0y * i0y + i0z * i0z
+    jj = j0x * j0x + j0y * j0y + j0z * j0z
+    ij = i0x * j0x + i0y * j0y + i0z * j0z
+    root = cmath.sqrt(complex(jj - ii, -2.0 * ij))
+    lam, mu = sign * root.real, sign * root.imag
+    ux, uy, uz = normal[0], normal[1], normal[2]
+    ax, ay, az = i0x + lam * ux, i0y + lam * uy, i0z + lam * uz
+    bx, by, bz = j0x + mu * ux, j0y + mu * uy, j0z + mu * uz
+    nI = math.sqrt(ax * ax + ay * ay + az * az)
+    nJ = math.sqrt(bx * bx + by * by + bz * bz)
+    if nI == 0.0 or nJ == 0.0:
+        return 1.0, math.inf, math.inf, math.inf
+    ax, ay, az = ax / nI, ay / nI, az / nI
+    bx, by, bz = bx / nJ, by / nJ, bz / nJ
+    cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx  # R3 = R1 x R2
+    rows[0, 0], rows[0, 1], rows[0, 2] = ax, ay, az
+    rows[1, 0], rows[1, 1], rows[1, 2] = bx, by, bz
+    rows[2, 0], rows[2, 1], rows[2, 2] = cx, cy, cz
+    s = math.sqrt(nI * nJ)
+    sx = sy = 0.0
+    behind = False
+    for i in range(tail.shape[0]):
+        px, py, pz = tail[i, 0], tail[i, 1], tail[i, 2]
+        e = s * (px * cx + py * cy + pz * cz)  # eps_i = P0Pi.R3 / Tz, Tz = 1/s
+        eps[i] = e
+        depth = 1.0 + e  # depth of Pi over that of P0
+        if depth <= 0.0:
+            behind = True
+            continue
+        dx = (s * (px * ax + py * ay + pz * az) + xy0[0]) / depth - pts[i, 0]
+        dy = (s * (px * bx + py * by + pz * bz) + xy0[1]) / depth - pts[i, 1]
+        sx += dx * dx
+        sy += dy * dy
+    if behind:
+        return s, math.inf, sx, sy
+    return s, sx + sy, sx, sy
 
 
-class _Branch:
-    """One branch of the iteration: its current candidate and how it got there."""
+@numba.njit(cache=True, nogil=True)
+def _iterate(
+    offset: NDArray[np.float64], gain_t: NDArray[np.float64], normal: NDArray[np.float64],
+    tail: NDArray[np.float64], xy0: NDArray[np.float64], pts: NDArray[np.float64],
+    radius: NDArray[np.float64], max_iterations: int, tolerance: float,
+    contender_ratio: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Both branches in lockstep until converged, stopped or out of iterations.
 
-    def __init__(self, rows: tuple[Vec3, Vec3, Vec3], scale: float, eps: NDArray[np.float64],
-                 error: float, squares: list[float]) -> None:
-        self.rows, self.scale, self.eps, self.error = rows, scale, eps, error
-        self.squares = squares  # summed squared x and y image errors (normalised units)
-        self.iterations = 1
-        self.converged = False
-        self.active = True
+    Returns ``rows`` (2,3,3) and ``info`` (2,7): per branch [alive, scale, iterations,
+    converged, error, sx, sy]; a branch is not alive when its first step already put a point
+    behind the camera. A live branch whose both solutions fall behind the camera stops where
+    it is; once one branch has converged, the other stops as soon as its error is more than
+    ``contender_ratio`` times the winner's.
+    """
+    m = tail.shape[0]
+    rows = np.zeros((2, 3, 3))
+    info = np.zeros((2, 7))
+    eps = np.zeros((2, m))
+    active = np.zeros(2, np.bool_)
+    trial_rows = np.zeros((2, 3, 3))
+    trial_eps = np.zeros((2, m))
+    for b in range(2):  # the first step (all eps zero) gives the two branches
+        scale, error, sx, sy = _candidate(offset, 1.0 - 2.0 * b, normal, tail, xy0, pts,
+                                          rows[b], eps[b])
+        if math.isfinite(error):
+            info[b, 0], info[b, 1], info[b, 2] = 1.0, scale, 1.0
+            info[b, 4], info[b, 5], info[b, 6] = error, sx, sy
+            active[b] = True
+    I0J0 = np.empty(6)
+    while True:
+        live = 0
+        for b in range(2):
+            if active[b] and info[b, 3] == 0.0:
+                live += 1
+        if live == 1 and info[0, 0] == 1.0 and info[1, 0] == 1.0:
+            done = 0 if info[0, 3] == 1.0 else 1
+            other = 1 - done
+            if info[done, 3] == 1.0 and info[other, 4] > contender_ratio * info[done, 4] + 1e-18:
+                active[other] = False  # a clear loser: not worth iterating to convergence
+        stepped = False
+        for b in range(2):
+            if not active[b] or info[b, 3] == 1.0 or info[b, 2] >= max_iterations:
+                continue
+            stepped = True
+            for k in range(6):
+                acc = offset[k]
+                for i in range(m):
+                    acc += eps[b, i] * gain_t[i, k]
+                I0J0[k] = acc
+            s0, e0, sx0, sy0 = _candidate(I0J0, 1.0, normal, tail, xy0, pts, trial_rows[0],
+                                          trial_eps[0])
+            s1, e1, sx1, sy1 = _candidate(I0J0, -1.0, normal, tail, xy0, pts, trial_rows[1],
+                                          trial_eps[1])
+            k = 0 if e0 <= e1 else 1
+            scale, error = (s0, e0) if k == 0 else (s1, e1)
+            sx, sy = (sx0, sy0) if k == 0 else (sx1, sy1)
+            if not math.isfinite(error):
+                active[b] = False  # both of its solutions put a point behind the camera
+                continue
+            moved = 0.0
+            for i in range(m):
+                moved = max(moved, abs(trial_eps[k, i] - eps[b, i]) * radius[i])
+                eps[b, i] = trial_eps[k, i]
+            rows[b] = trial_rows[k]
+            info[b, 1], info[b, 4], info[b, 5], info[b, 6] = scale, error, sx, sy
+            info[b, 2] += 1.0
+            info[b, 3] = 1.0 if moved < tolerance else 0.0
+        if not stepped:
+            return rows, info
 
 
 def _same_rotation(A: NDArray[np.float64], B: NDArray[np.float64]) -> bool:
     """True when two rotations differ by less than ~0.1 deg (branches that merged)."""
     return 0.5 * (float(np.sum(A[:3, :3] * B[:3, :3])) - 1.0) > math.cos(2e-3)
-
-
-def _iterate(
-    model: ObjectModel, system: FrameSystem, max_iterations: int, tolerance: float,
-    contender_ratio: float,
-) -> list[_Branch]:
-    """Both branches, iterated in lockstep until converged, stopped or out of iterations."""
-    first = _Candidates(model, system, None)
-    branches = [
-        _Branch(first.rows[k], first.scales[k], first.eps[:, k], first.errors[k],  # type: ignore[arg-type]
-                first.squares[k])
-        for k in range(2) if math.isfinite(first.errors[k])
-    ]
-    while True:
-        live = [b for b in branches if b.active and not b.converged]
-        if len(branches) == 2 and len(live) == 1:
-            done = branches[0] if branches[1] is live[0] else branches[1]
-            if done.converged and live[0].error > contender_ratio * done.error + 1e-18:
-                live[0].active = False  # a clear loser: not worth iterating to convergence
-                live = []
-        live = [b for b in live if b.iterations < max_iterations]
-        if not live:
-            return branches
-        step = _Candidates(model, system, np.array([b.eps for b in live]))
-        for j, branch in enumerate(live):
-            k = step.better_of_pair(j)
-            if not math.isfinite(step.errors[k]):
-                branch.active = False  # both of its solutions put a point behind the camera
-                continue
-            eps = step.eps[:, k]
-            moved = float((np.abs(eps - branch.eps) * system.radius).max())
-            branch.rows, branch.scale, branch.eps = step.rows[k], step.scales[k], eps  # type: ignore[assignment]
-            branch.error, branch.squares = step.errors[k], step.squares[k]
-            branch.iterations += 1
-            branch.converged = moved < tolerance
 
 
 def posit_coplanar(
@@ -169,7 +187,10 @@ def posit_coplanar(
     ``contender_ratio`` of the winner's (1.0: stop it as soon as it is behind).
     """
     system = FrameSystem(model, xy)
-    branches = _iterate(model, system, max_iterations, tolerance, contender_ratio)
+    rows, info = _iterate(system.offset, system.gain_t, model.normal, model.tail_mm,
+                          system.xy0, xy[1:], system.radius, max_iterations, tolerance,
+                          contender_ratio)
+    branches = [b for b in range(2) if info[b, 0] == 1.0]
     if not branches:
         raise BehindCameraError(
             "coplanar POSIT put the target behind the camera in both branches: the image points "
@@ -177,15 +198,14 @@ def posit_coplanar(
         )
     scored = []
     fx2, fy2 = camera.fx * camera.fx, camera.fy * camera.fy
-    for branch in branches:
-        T = pose_from_rows(np.array(branch.rows), branch.scale, xy[0], model.points_mm[0],
-                           orthonormal=True)
-        if camera.has_distortion or not math.isfinite(branch.error):
+    for b in branches:
+        _, scale, _, _, error, sx, sy = info[b].tolist()
+        T = pose_from_rows(rows[b], scale, xy[0], model.points_mm[0], orthonormal=True)
+        if camera.has_distortion or not math.isfinite(error):
             rms = reprojection_rms_px(T, model.points_mm, image_points_px, camera)
         else:  # the iteration's own image errors are this pose's (P0's is zero), in pixels
-            sx, sy = branch.squares
             rms = math.sqrt((sx * fx2 + sy * fy2) / model.n_points)
-        scored.append((rms, T, branch))
+        scored.append((rms, T, b))
     scored.sort(key=lambda item: item[0])
     rms, T, best = scored[0]
     if not math.isfinite(rms):
@@ -193,4 +213,4 @@ def posit_coplanar(
     alternative = None
     if len(scored) > 1 and not _same_rotation(scored[1][1], T):
         alternative = (scored[1][1], scored[1][0])
-    return PositResult(T, best.iterations, best.converged, rms, alternative)
+    return PositResult(T, int(info[best, 2]), bool(info[best, 3]), rms, alternative)

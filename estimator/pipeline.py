@@ -130,8 +130,7 @@ class Estimator:
         bias = (centroid_bias_px(T_pred, obj, self.target.dot_diameter_mm, self.camera)
                 if self.correct_bias else np.zeros_like(pts))
         try:
-            pose = near_pose_unchecked(obj, pts, self.camera, T_pred, bias, tuple(blobs), ids,
-                                       pred)
+            pose = near_pose_unchecked(obj, pts, self.camera, T_pred, bias, tuple(blobs), ids)
         except EstimationError:
             return None
         if pose.rms_px > _TRACK_MAX_RMS_PX:

@@ -191,7 +191,7 @@ class FrameSystem:
 
     With corrected image points x_i(1 + eps_i) - x0, the scaled-orthographic solution is
     I = B (x - x0) + (B diag(x)) eps, and likewise for J; both are stacked into one 6-vector
-    ``offset + gain @ eps`` (``eps @ gain_t`` for several branches at once).
+    ``offset + gain @ eps`` (``gain_t`` is its transpose, as the compiled coplanar step reads it).
     """
 
     def __init__(self, model: ObjectModel, xy: NDArray[np.float64]) -> None:
@@ -199,7 +199,6 @@ class FrameSystem:
         pts = xy[1:]
         self.x0, self.y0 = float(xy[0, 0]), float(xy[0, 1])
         self.xy0 = xy[0].copy()
-        self.pts3 = pts[:, None, :]  # (N-1,1,2), broadcast over candidates
         self.offset = np.concatenate((B @ (pts[:, 0] - self.x0), B @ (pts[:, 1] - self.y0)))
         self.gain = np.vstack((B * pts[:, 0], B * pts[:, 1]))
         self.gain_t = np.ascontiguousarray(self.gain.T)

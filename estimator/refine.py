@@ -1,38 +1,50 @@
 """Maximum-likelihood refinement of a pose seed on the pixel reprojection error.
 
 With Gaussian centroid noise the maximum-likelihood pose minimises the summed squared pixel
-reprojection error; OpenCV's Levenberg-Marquardt (``cv2.solvePnPRefineLM``) does that, through
-the real distortion model. Its pose parameters are OpenCV's (rotation vector, translation), so
-the conversions at this boundary use ``cv2.Rodrigues`` -- the same library's own definition of
-that vector, and an order of magnitude cheaper per call than a SciPy ``Rotation`` round trip.
+reprojection error. MINPACK's Levenberg-Marquardt (``lmder``, through SciPy) minimises it here,
+with the residuals and their analytic Jacobian from ``cv2.projectPoints`` -- the real distortion
+model, so the minimum is the pixel one with or without lens distortion.
 
-LM's own stopping rule ends while the pose can still drift along flat directions of the cost
-(about 1e-3 mm / 1e-3 deg for a planar target, depending on where it started), and started at
-the minimum it spends its whole iteration budget rejecting steps (~3x the cost of a normal
-run). So a pose that is already close -- after the perspective-bias correction, or from the
-tracked pose -- is finished with OpenCV's Gauss-Newton (``cv2.solvePnPRefineVVS``, full steps):
-it converges in two or three steps to 1e-9 mm, whatever the start, so a refinement from the
-tracked pose lands on the minimum a full solve would reach. VVS works on undistorted
-normalised coordinates; with fx = fy and no distortion that is the same cost, and with
-distortion its minimum differs from the pixel one by about 1 % of the noise-induced pose error
-(measured with -0.12 k1).
+The unknown is a correction applied on the left of the start pose, X = R(delta) (R0 P + t0) +
+tau: delta starts at zero, so the rotation vector never nears its singularity at pi whatever
+the start, and ``projectPoints`` of the start-frame points gives exactly the Jacobian over
+(delta, tau) that LM needs. The covariance is then taken at the final pose over OpenCV's
+(rotation vector, translation) of the pose itself, the convention of :class:`PoseResult`.
+
+Why MINPACK and why its compiled entry point: on 4-12 points one ``lmder`` run costs a few
+``projectPoints`` calls (~5 us each), while ``cv2.solvePnPRefineLM`` spends 12-25 us per
+iteration in OpenCV 5 (60-130 us per call) and ``scipy.optimize.leastsq`` wraps the same
+``lmder`` in ~50 us of argument checks and message formatting per call -- three times the solve
+itself, paid two or three times per frame. So ``lmder`` is called directly and ``leastsq`` is
+the fallback should a SciPy release rename it (slower, same result; a test notices). MINPACK
+stops on relative reduction (``ftol``) and step size (``xtol``); from a pose already at the
+minimum it returns after a few evaluations, so the same routine serves both the refinement of
+a POSIT seed and the finish from a tracked pose.
 """
 
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import leastsq
 
 from estimator.camera import CameraModel
 
-_LM_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 1e-12)
-_GN_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 20, 1e-12)
-_UNDISTORT = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-15)
-_NO_DISTORTION = np.zeros(5)
+try:  # MINPACK's lmder without leastsq's per-call checks (see the module docstring)
+    from scipy.optimize._minpack import _lmder as _LMDER
+except ImportError:  # pragma: no cover - depends on the SciPy release
+    _LMDER = None
+
+FAST_PATH = _LMDER is not None
+TOLERANCE = 1e-8  # relative reduction of the squared error, and relative step, at which LM stops
+ROUGH_TOLERANCE = 1e-4  # enough to judge a pose by its rms (~1e-4 relative), not to report it
+MAX_EVALUATIONS = 200
+_STEP_BOUND = 100.0  # MINPACK's ``factor``: initial step bound (its default)
 
 
 @functools.lru_cache(maxsize=16)
@@ -42,13 +54,6 @@ def camera_arrays(camera: CameraModel) -> tuple[NDArray[np.float64], NDArray[np.
     K.flags.writeable = False
     dist.flags.writeable = False
     return K, dist
-
-
-def _as_T(rvec: NDArray[np.float64], tvec: NDArray[np.float64]) -> NDArray[np.float64]:
-    T = np.eye(4)
-    T[:3, :3] = cv2.Rodrigues(rvec)[0]
-    T[:3, 3] = tvec.reshape(3)
-    return T
 
 
 def reprojection(
@@ -89,16 +94,67 @@ def refine_pose(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Levenberg-Marquardt refinement of ``T_init`` (4x4 mm) on the pixel reprojection error.
 
-    Returns ``(T_camera_target,
-    residuals_px (N,), covariance (6,6))``: residuals are the per-point pixel distances, and the
-    covariance is sigma^2 (J^T J)^-1 from the final Jacobian, parameters ordered as rotation
-    vector (rad, x y z) then translation (mm, x y z), noise estimated from the residuals.
+    Returns ``(T_camera_target, residuals_px (N,), covariance (6,6))``: residuals are the
+    per-point pixel distances, and the covariance is sigma^2 (J^T J)^-1 from the final
+    Jacobian, parameters ordered as rotation vector (rad, x y z) then translation (mm, x y z),
+    noise estimated from the residuals.
     """
     obj = np.ascontiguousarray(object_points_mm, dtype=float).reshape(-1, 3)
     img = np.ascontiguousarray(image_points_px, dtype=float).reshape(-1, 2)
     T0 = np.asarray(T_init, dtype=float)
-    T, residuals, J = refine_arrays(obj, img, camera.K, camera.dist_coeffs, T0)
+    K, dist = camera_arrays(camera)
+    T, residuals, J = refine_arrays(obj, img, K, dist, T0)
     return T, np.sqrt((residuals * residuals).sum(axis=1)), covariance_from(residuals, J)
+
+
+def _correction_problem(
+    points_cam: NDArray[np.float64], target_px: NDArray[np.float64], K: NDArray[np.float64],
+    dist: NDArray[np.float64],
+) -> tuple[Callable[[NDArray[np.float64]], NDArray[np.float64]],
+           Callable[[NDArray[np.float64]], NDArray[np.float64]]]:
+    """Residual and Jacobian functions of the correction (delta, tau) for MINPACK.
+
+    ``lmder`` asks for the Jacobian only at the point whose residuals it evaluated last, so
+    both come from one ``projectPoints`` call (recomputed should that ever differ), and a
+    repeated evaluation at the same point is answered from that call too.
+    """
+    last: list[Any] = [None, None, None]  # parameters (bytes), residuals, Jacobian
+
+    def residuals(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        key = x.tobytes()
+        if key != last[0]:  # SciPy evaluates the start twice (a shape check, then lmder)
+            projected, jacobian = cv2.projectPoints(points_cam, x[:3], x[3:], K, dist)
+            last[0], last[2] = key, jacobian[:, :6]
+            last[1] = np.asarray(projected, dtype=np.float64).reshape(-1) - target_px
+        return np.asarray(last[1])
+
+    def jacobian(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        if last[0] != x.tobytes():
+            residuals(x)
+        return np.asarray(last[2])
+
+    return residuals, jacobian
+
+
+def _minimise(
+    obj: NDArray[np.float64], img: NDArray[np.float64], K: NDArray[np.float64],
+    dist: NDArray[np.float64], T_init: NDArray[np.float64], tolerance: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """LM from ``T_init`` -> (T, residual vectors (N,2) px at T)."""
+    R0, t0 = T_init[:3, :3], T_init[:3, 3]
+    points_cam = obj @ R0.T + t0
+    fun, jac = _correction_problem(points_cam, img.reshape(-1), K, dist)
+    x0 = np.zeros(6)
+    if _LMDER is not None:
+        x = _LMDER(fun, jac, x0, (), 0, 0, tolerance, tolerance, 0.0, MAX_EVALUATIONS,
+                   _STEP_BOUND, None)[0]
+    else:  # pragma: no cover - depends on the SciPy release
+        x = leastsq(fun, x0, Dfun=jac, ftol=tolerance, xtol=tolerance, maxfev=MAX_EVALUATIONS)[0]
+    dR = cv2.Rodrigues(x[:3])[0]
+    T: NDArray[np.float64] = np.eye(4)
+    T[:3, :3] = dR @ R0
+    T[:3, 3] = dR @ t0 + x[3:]
+    return T, fun(x).reshape(-1, 2)  # LM's last evaluation is usually at x: no new projection
 
 
 def refine_arrays(
@@ -108,37 +164,22 @@ def refine_arrays(
     dist: NDArray[np.float64],
     T_init: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """The LM step on prepared arrays -> (T, residual vectors (N,2) px, Jacobian (2N,6)).
-
-    rvec/tvec must be (3,1): with flat (3,) arrays ``solvePnPRefineLM`` silently returns its
-    input unchanged (OpenCV 5.0).
-    """
-    rvec = cv2.Rodrigues(T_init[:3, :3])[0]
-    tvec = T_init[:3, 3].reshape(3, 1).copy()
-    rvec_out, tvec_out = cv2.solvePnPRefineLM(obj, img, K, dist, rvec, tvec, _LM_CRITERIA)
-    r = np.asarray(rvec_out, dtype=np.float64)
-    t = np.asarray(tvec_out, dtype=np.float64)
-    residuals, J = reprojection(obj, img, K, dist, r, t)
-    return _as_T(r, t), residuals, J
+    """LM from ``T_init`` on prepared arrays to full precision -> (T, residual vectors (N,2)
+    px, Jacobian (2N,6) over the pose's own rotation vector and translation, for the
+    covariance)."""
+    T, _ = _minimise(obj, img, K, dist, T_init, TOLERANCE)
+    rvec = np.asarray(cv2.Rodrigues(T[:3, :3])[0], dtype=np.float64)
+    residuals, J = reprojection(obj, img, K, dist, rvec, T[:3, 3].copy())
+    return T, residuals, J
 
 
-def polish_arrays(
+def rough_refine_arrays(
     obj: NDArray[np.float64],
     img: NDArray[np.float64],
     K: NDArray[np.float64],
     dist: NDArray[np.float64],
     T_init: NDArray[np.float64],
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Gauss-Newton from a pose already near the minimum (see the module docstring) ->
-    (T, residual vectors (N,2) px, Jacobian (2N,6)), like :func:`refine_arrays`."""
-    rvec = cv2.Rodrigues(T_init[:3, :3])[0]
-    tvec = T_init[:3, 3].reshape(3, 1).copy()
-    ideal: NDArray[Any] = img
-    if dist.any():  # undistort to full precision first (VVS's own default stops at ~1e-6)
-        ideal = cv2.undistortPoints(img.reshape(-1, 1, 2), K, dist, P=K, criteria=_UNDISTORT)
-    rvec_out, tvec_out = cv2.solvePnPRefineVVS(
-        obj, ideal, K, _NO_DISTORTION, rvec, tvec, _GN_CRITERIA, 1.0)
-    r = np.asarray(rvec_out, dtype=np.float64)
-    t = np.asarray(tvec_out, dtype=np.float64)
-    residuals, J = reprojection(obj, img, K, dist, r, t)
-    return _as_T(r, t), residuals, J
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """LM from ``T_init`` only as far as judging the minimum by its rms needs (ROUGH_TOLERANCE)
+    -> (T, residual vectors (N,2) px): for candidate poses, one of which is then refined."""
+    return _minimise(obj, img, K, dist, T_init, ROUGH_TOLERANCE)

@@ -9,12 +9,13 @@ contenders, so both minima are found even when both coplanar branches fell into 
 when the best refined pose still reprojects badly (> RETRY_RMS_PX) the seeds are recomputed
 with each other point as POSIT's reference point (which changes the fixed-point iteration).
 The refined pose with the lowest rms wins. The perspective-bias correction then costs one more
-refinement from that pose on the corrected points (Gauss-Newton, see :mod:`estimator.refine`),
-not a re-run.
+refinement from that pose on the corrected points (a few evaluations from there), not a
+re-run.
 
-Cost per planar solve (6 dots): a few coplanar POSIT steps to a 4 px seed (LM finishes the
-job faster than more POSIT iterations would), one LM, one Gauss-Newton for a contending
-alternative, one Gauss-Newton finish. Tracking skips POSIT entirely (:func:`solve_pose_near`).
+Cost per planar solve (6 dots): a few compiled coplanar POSIT steps to a 4 px seed (LM
+finishes the job faster than more POSIT iterations would), one LM (MINPACK, see
+:mod:`estimator.refine`), a rough LM for a contending alternative, and the short finish on the
+bias-corrected points. Tracking skips POSIT entirely (:func:`solve_pose_near`).
 
 Ambiguity rule (planar targets): the best pose B and the best *distinct* other pose A (rotation
 differing by more than ~0.06 deg or translation by more than 0.1 % of the range) are both local
@@ -48,7 +49,12 @@ from estimator.posit import (
     posit_general,
     reprojection_rms_px,
 )
-from estimator.refine import camera_arrays, covariance_from, polish_arrays, refine_arrays
+from estimator.refine import (
+    camera_arrays,
+    covariance_from,
+    refine_arrays,
+    rough_refine_arrays,
+)
 from estimator.result import AlternativePose, Blob, PoseResult
 
 AMBIGUITY_RATIO = 1.5
@@ -79,7 +85,7 @@ class _Seed:
 class _Solution:
     T: NDArray[np.float64]
     residuals: NDArray[np.float64]  # (N,2) px
-    jacobian: NDArray[np.float64]  # (2N,6)
+    jacobian: NDArray[np.float64] | None  # (2N,6); None for a rough candidate
     rms: float
     seed: _Seed
 
@@ -148,17 +154,14 @@ class _Problem:
             )
         return [_Seed(T, iterations, converged, reference)]
 
-    def refine(
-        self, seed: _Seed, img: NDArray[np.float64] | None = None, *, polish: bool = False
-    ) -> _Solution | None:
-        """LM (or, with ``polish``, Gauss-Newton from a near pose) from the seed on ``img``
-        (default: the measured points); None if behind the camera."""
-        points = self.img if img is None else img
-        step = polish_arrays if polish else refine_arrays
-        T, residuals, J = step(self.obj, points, self.K, self.dist, seed.T)
+    def refine(self, seed: _Seed) -> _Solution | None:
+        """Rough LM from the seed on the measured points (enough to judge it by its rms; see
+        :func:`estimator.refine.rough_refine_arrays`); None if the refined pose puts part of
+        the target behind the camera."""
+        T, residuals = rough_refine_arrays(self.obj, self.img, self.K, self.dist, seed.T)
         if not all_in_front(T, self.obj):
             return None
-        return _Solution(T, residuals, J, _rms(residuals), seed)
+        return _Solution(T, residuals, None, _rms(residuals), seed)
 
     def candidates(self, reference: int) -> list[_Solution]:
         """Refined poses from the seeds with model point ``reference`` as POSIT's P0.
@@ -170,13 +173,11 @@ class _Problem:
         CONTENDER_RAW_RMS_PX, or within CONTENDER_RATIO of the refined winner; any, when the
         winner itself fits worse than RETRY_RMS_PX) is refined -- the better one first, the
         other only if that one fell into the winner's basin.
-        The alternative is refined by Gauss-Newton (see :mod:`estimator.refine`), with LM as
-        the fallback when that does not lower its rms.
         """
         seeds = self.seeds(reference)
-        # LM, not Gauss-Newton, from the seed: GN is cheaper, but its undamped steps can jump
-        # from a few-pixel seed of an ill-conditioned view into the other basin and hide the
-        # ambiguity (seen in 1 of 1500 hard scenes).
+        # Every candidate is refined only as far as judging it needs (POSIT's better branch
+        # is the wrong minimum in about half of weak-perspective views); the winner is
+        # finished to full precision afterwards, on the bias-corrected points if asked.
         first = self.refine(seeds[0])
         out = [] if first is None else [first]
         if not self.model.planar:
@@ -195,10 +196,7 @@ class _Problem:
         for raw_rms, T in options:
             if raw_rms > limit:
                 break
-            # Gauss-Newton first (a third of LM's cost); LM only if it did not improve the fit.
-            solution = self.refine(_Seed(T, *bookkeeping), polish=first is not None)
-            if first is not None and (solution is None or solution.rms > raw_rms):
-                solution = self.refine(_Seed(T, *bookkeeping))
+            solution = self.refine(_Seed(T, *bookkeeping))
             if solution is None:
                 continue
             out.append(solution)
@@ -328,10 +326,7 @@ def solve_pose(
         notes.append(
             f"perspective bias corrected (max {float(abs(bias).max()):.3f} px)"
         )
-    # The residuals on the corrected points are the measured ones plus the bias.
-    start = best.residuals if image_points is problem.img else best.residuals + (
-        problem.img - image_points)
-    T, residuals, J = finish_pose(problem.obj, image_points, camera, best.T, start)
+    T, residuals, J = finish_pose(problem.obj, image_points, camera, best.T)
     if all_in_front(T, problem.obj):
         best = _Solution(T, residuals, J, _rms(residuals), best.seed)
     if not best.seed.converged and best.rms > BAD_RMS_PX:
@@ -357,7 +352,8 @@ def solve_pose(
         converged=best.seed.converged,
         ambiguous=ambiguous,
         alternative=alt_pose,
-        covariance=covariance_from(best.residuals, best.jacobian),
+        covariance=None if best.jacobian is None else covariance_from(best.residuals,
+                                                                       best.jacobian),
         image_points_px=image_points,
         notes=tuple(notes),
     )
@@ -365,22 +361,15 @@ def solve_pose(
 
 def finish_pose(
     obj: NDArray[np.float64], img: NDArray[np.float64], camera: CameraModel,
-    T_start: NDArray[np.float64], start_residuals: NDArray[np.float64] | None = None,
+    T_start: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """The refinement of a pose already near its minimum -> (T, residuals (N,2), J (2N,6)).
 
-    Gauss-Newton (see :mod:`estimator.refine`): tight whatever LM stopped at, and a third of
-    LM's cost there. Full GN steps can overshoot in a nearly flat, ill-conditioned valley; when
-    the fit got worse than at the start, LM does the finish instead. ``start_residuals``
-    (N,2): those of ``T_start`` on ``img``, when the caller already has them.
+    The same LM as from a seed (see :mod:`estimator.refine`): from a nearby pose it stops after
+    a few evaluations, at the minimum a refinement from farther away reaches.
     """
     K, dist = camera_arrays(camera)
-    T, residuals, J = polish_arrays(obj, img, K, dist, T_start)
-    start_rms = (reprojection_rms_px(T_start, obj, img, camera) if start_residuals is None
-                 else _rms(start_residuals))
-    if _rms(residuals) > start_rms * (1.0 + 1e-9) + 1e-12:
-        T, residuals, J = refine_arrays(obj, img, K, dist, T_start)
-    return T, residuals, J
+    return refine_arrays(obj, img, K, dist, T_start)
 
 
 def solve_pose_near(
@@ -419,7 +408,7 @@ def solve_pose_near(
     if dot_diameter_mm is not None and correct_bias and all_in_front(T, obj):
         bias = centroid_bias_px(T, obj, dot_diameter_mm, camera)
         image_points = img - bias
-        T, residuals, J = finish_pose(obj, image_points, camera, T, residuals + bias)
+        T, residuals, J = finish_pose(obj, image_points, camera, T)
         notes.append(f"perspective bias corrected (max {float(abs(bias).max()):.3f} px)")
     return _tracked_result(obj, T, residuals, J, image_points, tuple(notes))
 
@@ -428,18 +417,15 @@ def near_pose_unchecked(
     obj: NDArray[np.float64], img: NDArray[np.float64], camera: CameraModel,
     T_init: NDArray[np.float64], bias: NDArray[np.float64],
     matched_blobs: tuple[Blob, ...] = (), matched_ids: tuple[int, ...] = (),
-    projected_px: NDArray[np.float64] | None = None,
 ) -> PoseResult:
     """:func:`solve_pose_near` with known bias offsets: one refinement, no validation.
 
     For the pipeline, whose arrays are already well formed: ``obj`` (N,3) and ``img`` (N,2)
-    float64, ``bias`` (N,2) px (zeros for no correction), ``projected_px`` (N,2) the
-    projection of ``obj`` at ``T_init`` when the caller has it. The matched blobs and ids go
+    float64, ``bias`` (N,2) px (zeros for no correction). The matched blobs and ids go
     straight into the result.
     """
     image_points = img - bias
-    start = None if projected_px is None else projected_px - image_points
-    T, residuals, J = finish_pose(obj, image_points, camera, T_init, start)
+    T, residuals, J = finish_pose(obj, image_points, camera, T_init)
     return _tracked_result(
         obj, T, residuals, J, image_points,
         ("refined from the tracked pose, perspective bias at the predicted pose",),
