@@ -89,7 +89,7 @@ class Estimator:
 
     def estimate(self, frame_u8: NDArray[np.uint8]) -> PoseResult:
         """Pose of the target in this frame; raises a typed EstimationError when it cannot."""
-        img = np.asarray(frame_u8)
+        img = np.ascontiguousarray(frame_u8)
         if img.dtype != np.uint8 or img.ndim != 2:
             raise ValueError(f"expected an 8-bit grey frame (HxW uint8), got {img.dtype} "
                              f"{img.shape}")

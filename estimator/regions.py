@@ -1,0 +1,310 @@
+"""Compiled kernels of dot detection: region labelling in regions of interest, shape, centres.
+
+Detection is per-pixel and per-region loops over a few thousand to a few tens of thousands of
+pixels, which Python and even per-region OpenCV calls spend most of their time dispatching.
+These kernels run compiled (numba, cached on disk after the first use) and take plain arrays, so
+a frame costs one or two calls from :mod:`estimator.blobs`.
+
+Conventions shared with :mod:`estimator.blobs`:
+
+- A pixel is dot when ``pixel <= threshold`` (dark dots) or ``pixel > threshold`` (light), as
+  OpenCV's THRESH_BINARY_INV / THRESH_BINARY would make it; with a mask, when ``mask != 0``.
+- Regions are 8-connected. A region is only measured inside its region of interest (ROI); one
+  that touches the ROI's border is dropped, because a cut dot has a biased centre. ROIs that
+  overlap are merged by the caller, so every region is seen once and whole.
+- Shape: ``area`` is the area enclosed by the outline through the boundary pixels' centres,
+  as OpenCV's contour area measures it (from the pixel count and the boundary count by Pick's
+  theorem), so area limits mean what they mean for OpenCV's blob detector; ``fill_ratio`` is
+  that area over the area of the convex hull of the pixel centres (holes, notches and text
+  strokes lower it); ``circularity`` is 4 pi area / P^2 with P the perimeter of that hull (a
+  disc gives ~1, a square pi/4, a line of width w and length L about pi w / L: concave shapes
+  are left to the fill ratio); ``inertia_ratio`` is sqrt(lambda_min / lambda_max) of the
+  second moments of the pixel squares (binary moments plus 1/12 per axis).
+- The centre of a surviving region is the grey-level weighted centre of gravity over its
+  bounding box padded by ``PAD_PX``: weights are each pixel's contrast against the background
+  (the mean grey level of the padded box outside the region -- filled row by row -- dilated by
+  ``RIM_PX``), clipped at zero, inside the dilated region. The anti-aliased rim counts and the
+  global threshold does not matter; pixel centres sit at integer coordinates.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+RIM_PX = 2  # the blurred rim beyond the thresholded region that still carries weight
+PAD_PX = RIM_PX + 1  # padding of a region's bounding box for its centre of gravity
+# Columns of the per-dot result rows (see find_dots).
+U, V, AREA, CIRCULARITY, INERTIA, FILL, MAJOR, MINOR, ANGLE, MASK_U, MASK_V, X, Y, W, H = range(15)
+N_COLUMNS = 15
+
+
+@numba.njit(cache=True, nogil=True)
+def merge_rois(rois: NDArray[np.int64]) -> NDArray[np.int64]:
+    """The ROIs with every overlapping pair replaced by its bounding box, until none overlap
+    (so a region is labelled once, in one ROI that holds it whole)."""
+    boxes = rois.copy()
+    n = boxes.shape[0]
+    alive = np.ones(n, np.bool_)
+    merged = True
+    while merged:
+        merged = False
+        for i in range(n):
+            if not alive[i]:
+                continue
+            for j in range(i + 1, n):
+                if not alive[j]:
+                    continue
+                if (boxes[i, 0] < boxes[j, 2] and boxes[j, 0] < boxes[i, 2]
+                        and boxes[i, 1] < boxes[j, 3] and boxes[j, 1] < boxes[i, 3]):
+                    boxes[i, 0] = min(boxes[i, 0], boxes[j, 0])
+                    boxes[i, 1] = min(boxes[i, 1], boxes[j, 1])
+                    boxes[i, 2] = max(boxes[i, 2], boxes[j, 2])
+                    boxes[i, 3] = max(boxes[i, 3], boxes[j, 3])
+                    alive[j] = False
+                    merged = True
+    out = np.empty((int(alive.sum()), 4), np.int64)
+    k = 0
+    for i in range(n):
+        if alive[i]:
+            out[k] = boxes[i]
+            k += 1
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _hull_area_perimeter(px: NDArray[np.float64], py: NDArray[np.float64],
+                         n: int) -> tuple[float, float]:
+    """Area and perimeter of the convex hull of n points (Andrew's monotone chain)."""
+    order = np.argsort(px[:n] * 1e6 + py[:n])
+    hull_x = np.empty(2 * n + 1)
+    hull_y = np.empty(2 * n + 1)
+    k = 0
+    for rep in range(2):  # lower chain left to right, then upper chain right to left
+        start = k
+        for idx in range(n):
+            i = order[idx] if rep == 0 else order[n - 1 - idx]
+            x, y = px[i], py[i]
+            while k >= start + 2:
+                ax, ay = hull_x[k - 2], hull_y[k - 2]
+                bx, by = hull_x[k - 1], hull_y[k - 1]
+                if (bx - ax) * (y - ay) - (by - ay) * (x - ax) > 0.0:
+                    break
+                k -= 1
+            hull_x[k], hull_y[k] = x, y
+            k += 1
+        k -= 1  # the chain's last point starts the other chain
+    area2 = 0.0
+    perimeter = 0.0
+    for i in range(k):
+        j = (i + 1) % k
+        area2 += hull_x[i] * hull_y[j] - hull_x[j] * hull_y[i]
+        perimeter += math.hypot(hull_x[j] - hull_x[i], hull_y[j] - hull_y[i])
+    return abs(area2) / 2.0, perimeter
+
+
+@numba.njit(cache=True, nogil=True)
+def _weighted_centre(
+    image: NDArray[np.uint8], row_min: NDArray[np.int64], row_max: NDArray[np.int64],
+    rx0: int, ry0: int, by0: int, by1: int, dark: bool,
+) -> tuple[float, float, bool]:
+    """Contrast-weighted centre of a region (see the module docstring) -> (u, v, ok).
+
+    The region is given by its extent on each of its rows (``row_min``/``row_max``, ROI
+    coordinates, rows by0..by1, ROI at rx0, ry0), i.e. filled row by row like a filled
+    outline; its dilation by RIM_PX (a square) is then, row by row, the union of the extents
+    of the rows within RIM_PX, widened by RIM_PX -- no per-pixel dilation needed. The box is
+    the bounding box padded by PAD_PX, clipped to the frame.
+    """
+    height, width = image.shape
+    fy0, fy1 = max(ry0 + by0 - PAD_PX, 0), min(ry0 + by1 + PAD_PX, height - 1)
+    x_lo, x_hi = width, -1
+    for k in range(by0, by1 + 1):
+        if row_max[k] >= 0:
+            x_lo, x_hi = min(x_lo, row_min[k]), max(x_hi, row_max[k])
+    fx0, fx1 = max(rx0 + x_lo - PAD_PX, 0), min(rx0 + x_hi + PAD_PX, width - 1)
+    ring_sum = 0.0
+    ring_n = 0
+    near_lo = np.empty(fy1 - fy0 + 1, np.int64)
+    near_hi = np.empty(fy1 - fy0 + 1, np.int64)
+    for y in range(fy0, fy1 + 1):
+        lo, hi = width, -1
+        for k in range(max(y - ry0 - RIM_PX, by0), min(y - ry0 + RIM_PX, by1) + 1):
+            if row_max[k] >= 0:
+                lo, hi = min(lo, row_min[k]), max(hi, row_max[k])
+        if hi >= 0:
+            lo, hi = max(rx0 + lo - RIM_PX, fx0), min(rx0 + hi + RIM_PX, fx1)
+        else:
+            lo, hi = fx1 + 1, fx1  # no near pixel on this row
+        near_lo[y - fy0], near_hi[y - fy0] = lo, hi
+        row = image[y]
+        for x in range(fx0, lo):
+            ring_sum += row[x]
+        for x in range(hi + 1, fx1 + 1):
+            ring_sum += row[x]
+        ring_n += (lo - fx0) + (fx1 - hi)
+    background = ring_sum / max(ring_n, 1)
+    s0 = sx = sy = 0.0
+    for y in range(fy0, fy1 + 1):
+        row = image[y]
+        for x in range(near_lo[y - fy0], near_hi[y - fy0] + 1):
+            g = float(row[x])
+            c = background - g if dark else g - background
+            if c > 0.0:
+                s0 += c
+                sx += c * x
+                sy += c * y
+    if s0 <= 0.0:
+        return 0.0, 0.0, False
+    return sx / s0, sy / s0, True
+
+
+@numba.njit(cache=True, nogil=True)
+def find_dots(
+    image: NDArray[np.uint8], mask: NDArray[np.uint8], use_mask: bool, threshold: float,
+    dark: bool, rois: NDArray[np.int64], min_area_px: float, max_area_px: float,
+    min_circularity: float, min_inertia_ratio: float, min_fill_ratio: float,
+) -> NDArray[np.float64]:
+    """Dots in the ROIs (K,4: x0, y0, x1, y1, end exclusive; none overlapping) -> rows of
+    N_COLUMNS (U, V, AREA, ... H: see the column names), in the frame's scan order of their
+    first pixels (the order a pass over the whole frame finds them in).
+
+    Each ROI is thresholded into a label buffer with a one-pixel background border (so the
+    flood fill needs no bounds checks), then labelled. Regions touching their ROI's border,
+    outside [min_area_px, max_area_px] or below a shape limit are skipped; the survivors get
+    their weighted centre. Cheap tests come first (the area is known when the flood fill
+    ends, the hull only for plausible sizes), so clutter costs little.
+    """
+    width = image.shape[1]
+    max_h = max_w = 1
+    for r in range(rois.shape[0]):
+        max_h = max(max_h, rois[r, 3] - rois[r, 1])
+        max_w = max(max_w, rois[r, 2] - rois[r, 0])
+    cls = np.empty((max_h + 2) * (max_w + 2), np.int32)  # 0 background, -1 dot, k > 0 label k
+    stack = np.empty(max_h * max_w, np.int64)
+    row_min = np.empty(max_h, np.int64)
+    row_max = np.empty(max_h, np.int64)
+    hull_x = np.empty(2 * max_h)
+    hull_y = np.empty(2 * max_h)
+    out = np.empty((16, N_COLUMNS))
+    first = np.empty(16, np.int64)  # frame index of each dot's first pixel in scan order
+    n_out = 0
+    for r in range(rois.shape[0]):
+        x0, y0, x1, y1 = rois[r, 0], rois[r, 1], rois[r, 2], rois[r, 3]
+        h, w = y1 - y0, x1 - x0
+        if h <= 2 or w <= 2:
+            continue
+        stride = w + 2
+        cls[: (h + 2) * stride] = 0
+        for y in range(h):
+            base = (y + 1) * stride + 1
+            if use_mask:
+                mrow = mask[y0 + y]
+                for x in range(w):
+                    if mrow[x0 + x] != 0:
+                        cls[base + x] = -1
+            else:
+                irow = image[y0 + y]
+                for x in range(w):
+                    g = irow[x0 + x]
+                    if (g <= threshold) if dark else (g > threshold):
+                        cls[base + x] = -1
+        label = 0
+        for sy in range(h):
+            for sx in range(w):
+                start = (sy + 1) * stride + sx + 1
+                if cls[start] != -1:
+                    continue
+                label += 1
+                cls[start] = label
+                top = 0
+                stack[top] = start
+                top += 1
+                count = 0
+                boundary = 0  # pixels with a 4-neighbour outside the region
+                m10 = m01 = m20 = m02 = m11 = 0.0
+                bx0, by0, bx1, by1 = sx, sy, sx, sy
+                touches = False
+                for k in range(sy, h):
+                    row_min[k] = w
+                    row_max[k] = -1
+                while top > 0:
+                    top -= 1
+                    i = stack[top]
+                    cy, cx = i // stride - 1, i % stride - 1
+                    count += 1
+                    fx, fy = float(cx - sx), float(cy - sy)  # from the first pixel: the same
+                    # numbers whatever the ROI, so a region gets the same shape in any ROI
+                    m10 += fx
+                    m01 += fy
+                    m20 += fx * fx
+                    m02 += fy * fy
+                    m11 += fx * fy
+                    bx0, by0, bx1, by1 = min(bx0, cx), min(by0, cy), max(bx1, cx), max(by1, cy)
+                    row_min[cy] = min(row_min[cy], cx)
+                    row_max[cy] = max(row_max[cy], cx)
+                    if cx == 0 or cy == 0 or cx == w - 1 or cy == h - 1:
+                        touches = True  # the region may go on beyond the ROI
+                    if (cls[i - 1] == 0 or cls[i + 1] == 0 or cls[i - stride] == 0
+                            or cls[i + stride] == 0):
+                        boundary += 1
+                    for j in (i - stride - 1, i - stride, i - stride + 1, i - 1, i + 1,
+                              i + stride - 1, i + stride, i + stride + 1):
+                        if cls[j] == -1:
+                            cls[j] = label
+                            stack[top] = j
+                            top += 1
+                # The area enclosed by the outline through the boundary pixels' centres (Pick:
+                # A = I + B/2 - 1 with count = I + B), as OpenCV's contour area measures it.
+                area = count - 0.5 * boundary - 1.0
+                if touches or area < min_area_px or area > max_area_px:
+                    continue
+                mx, my = m10 / count, m01 / count  # relative to the first pixel
+                mu20 = m20 / count - mx * mx + 1.0 / 12.0
+                mu02 = m02 / count - my * my + 1.0 / 12.0
+                mu11 = m11 / count - mx * my
+                half_diff = math.hypot((mu20 - mu02) / 2.0, mu11)
+                lam_major = (mu20 + mu02) / 2.0 + half_diff
+                lam_minor = max((mu20 + mu02) / 2.0 - half_diff, 0.0)
+                inertia = math.sqrt(lam_minor / lam_major) if lam_major > 0.0 else 0.0
+                if inertia < min_inertia_ratio:
+                    continue
+                n_pts = 0
+                for k in range(by0, by1 + 1):
+                    if row_max[k] < 0:
+                        continue
+                    hull_x[n_pts], hull_y[n_pts] = row_min[k], k
+                    hull_x[n_pts + 1], hull_y[n_pts + 1] = row_max[k], k
+                    n_pts += 2
+                hull_area, perimeter = _hull_area_perimeter(hull_x, hull_y, n_pts)
+                fill = area / hull_area if hull_area > 0.0 else 0.0
+                if fill < min_fill_ratio:
+                    continue
+                circularity = (4.0 * math.pi * area / (perimeter * perimeter)
+                               if perimeter > 0.0 else 0.0)
+                if circularity < min_circularity:
+                    continue
+                u, v, ok = _weighted_centre(image, row_min, row_max, x0, y0, by0, by1, dark)
+                if not ok:
+                    continue
+                if n_out == out.shape[0]:
+                    grown = np.empty((2 * n_out, N_COLUMNS))
+                    grown[:n_out] = out
+                    out = grown
+                    grown_first = np.empty(2 * n_out, np.int64)
+                    grown_first[:n_out] = first
+                    first = grown_first
+                first[n_out] = (y0 + sy) * width + (x0 + sx)
+                row = out[n_out]
+                row[U], row[V], row[AREA] = u, v, area
+                row[CIRCULARITY], row[INERTIA], row[FILL] = min(circularity, 1.0), inertia, fill
+                row[MAJOR], row[MINOR] = 4.0 * math.sqrt(lam_major), 4.0 * math.sqrt(lam_minor)
+                row[ANGLE] = 0.5 * math.atan2(2.0 * mu11, mu20 - mu02)
+                row[MASK_U], row[MASK_V] = (x0 + sx) + mx, (y0 + sy) + my
+                row[X], row[Y] = x0 + bx0, y0 + by0
+                row[W], row[H] = bx1 - bx0 + 1, by1 - by0 + 1
+                n_out += 1
+    return out[np.argsort(first[:n_out], kind="mergesort")]
