@@ -10,8 +10,8 @@ Conventions shared with :mod:`estimator.blobs`:
 - A pixel is dot when ``pixel <= threshold`` (dark dots) or ``pixel > threshold`` (light), as
   OpenCV's THRESH_BINARY_INV / THRESH_BINARY would make it; with a mask, when ``mask != 0``.
 - Regions are 8-connected. A region is only measured inside its region of interest (ROI); one
-  that touches the ROI's border is dropped, because a cut dot has a biased centre. ROIs that
-  overlap are merged by the caller, so every region is seen once and whole.
+  that touches the ROI's border is dropped, because a cut dot has a biased centre. ROIs may
+  overlap: a region wholly inside two of them is reported once (the same first pixel).
 - Shape: ``area`` is the area enclosed by the outline through the boundary pixels' centres,
   as OpenCV's contour area measures it (from the pixel count and the boundary count by Pick's
   theorem), so area limits mean what they mean for OpenCV's blob detector; ``fill_ratio`` is
@@ -43,36 +43,32 @@ N_COLUMNS = 15
 
 
 @numba.njit(cache=True, nogil=True)
-def merge_rois(rois: NDArray[np.int64]) -> NDArray[np.int64]:
-    """The ROIs with every overlapping pair replaced by its bounding box, until none overlap
-    (so a region is labelled once, in one ROI that holds it whole)."""
-    boxes = rois.copy()
-    n = boxes.shape[0]
-    alive = np.ones(n, np.bool_)
-    merged = True
-    while merged:
-        merged = False
-        for i in range(n):
-            if not alive[i]:
-                continue
-            for j in range(i + 1, n):
-                if not alive[j]:
-                    continue
-                if (boxes[i, 0] < boxes[j, 2] and boxes[j, 0] < boxes[i, 2]
-                        and boxes[i, 1] < boxes[j, 3] and boxes[j, 1] < boxes[i, 3]):
-                    boxes[i, 0] = min(boxes[i, 0], boxes[j, 0])
-                    boxes[i, 1] = min(boxes[i, 1], boxes[j, 1])
-                    boxes[i, 2] = max(boxes[i, 2], boxes[j, 2])
-                    boxes[i, 3] = max(boxes[i, 3], boxes[j, 3])
-                    alive[j] = False
-                    merged = True
-    out = np.empty((int(alive.sum()), 4), np.int64)
-    k = 0
-    for i in range(n):
-        if alive[i]:
-            out[k] = boxes[i]
-            k += 1
-    return out
+def otsu_threshold(image: NDArray[np.uint8], step: int) -> float:
+    """Otsu's threshold of every ``step``-th pixel of every ``step``-th row: the grey level t
+    maximising the between-class variance of [0, t] and (t, 255] (OpenCV's convention)."""
+    hist = np.zeros(256, np.int64)
+    for y in range(0, image.shape[0], step):
+        row = image[y]
+        for x in range(0, image.shape[1], step):
+            hist[row[x]] += 1
+    total = 0
+    weighted = 0.0
+    for g in range(256):
+        total += hist[g]
+        weighted += g * hist[g]
+    best_t, best_var = 0, -1.0
+    n0, sum0 = 0, 0.0
+    for t in range(256):
+        n0 += hist[t]
+        sum0 += t * hist[t]
+        n1 = total - n0
+        if n0 == 0 or n1 == 0:
+            continue
+        m0, m1 = sum0 / n0, (weighted - sum0) / n1
+        var = float(n0) * float(n1) * (m0 - m1) * (m0 - m1)
+        if var > best_var:
+            best_t, best_var = t, var
+    return float(best_t)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -168,7 +164,7 @@ def find_dots(
     dark: bool, rois: NDArray[np.int64], min_area_px: float, max_area_px: float,
     min_circularity: float, min_inertia_ratio: float, min_fill_ratio: float,
 ) -> NDArray[np.float64]:
-    """Dots in the ROIs (K,4: x0, y0, x1, y1, end exclusive; none overlapping) -> rows of
+    """Dots in the ROIs (K,4: x0, y0, x1, y1, end exclusive; may overlap) -> rows of
     N_COLUMNS (U, V, AREA, ... H: see the column names), in the frame's scan order of their
     first pixels (the order a pass over the whole frame finds them in).
 
@@ -183,6 +179,7 @@ def find_dots(
     for r in range(rois.shape[0]):
         max_h = max(max_h, rois[r, 3] - rois[r, 1])
         max_w = max(max_w, rois[r, 2] - rois[r, 0])
+    level = np.int32(max(min(math.floor(threshold), 256), -1))  # g <= t iff g <= floor(t)
     cls = np.empty((max_h + 2) * (max_w + 2), np.int32)  # 0 background, -1 dot, k > 0 label k
     stack = np.empty(max_h * max_w, np.int64)
     row_min = np.empty(max_h, np.int64)
@@ -198,20 +195,24 @@ def find_dots(
         if h <= 2 or w <= 2:
             continue
         stride = w + 2
-        cls[: (h + 2) * stride] = 0
+        cls[:stride] = 0  # the border rows; every other pixel is written below
+        cls[(h + 1) * stride:(h + 2) * stride] = 0
         for y in range(h):
             base = (y + 1) * stride + 1
+            cls[base - 1] = 0
+            cls[base + w] = 0
             if use_mask:
-                mrow = mask[y0 + y]
+                mrow = mask[y0 + y, x0:x1]
                 for x in range(w):
-                    if mrow[x0 + x] != 0:
-                        cls[base + x] = -1
+                    cls[base + x] = -1 if mrow[x] != 0 else 0
+            elif dark:
+                irow = image[y0 + y, x0:x1]
+                for x in range(w):
+                    cls[base + x] = -np.int32(np.int32(irow[x]) <= level)
             else:
-                irow = image[y0 + y]
+                irow = image[y0 + y, x0:x1]
                 for x in range(w):
-                    g = irow[x0 + x]
-                    if (g <= threshold) if dark else (g > threshold):
-                        cls[base + x] = -1
+                    cls[base + x] = -np.int32(np.int32(irow[x]) > level)
         label = 0
         for sy in range(h):
             for sx in range(w):
@@ -290,6 +291,12 @@ def find_dots(
                 u, v, ok = _weighted_centre(image, row_min, row_max, x0, y0, by0, by1, dark)
                 if not ok:
                     continue
+                first_px = (y0 + sy) * width + (x0 + sx)
+                seen = False
+                for k in range(n_out):
+                    seen = seen or first[k] == first_px
+                if seen:
+                    continue  # the same region, whole in an overlapping ROI too
                 if n_out == out.shape[0]:
                     grown = np.empty((2 * n_out, N_COLUMNS))
                     grown[:n_out] = out
@@ -297,7 +304,7 @@ def find_dots(
                     grown_first = np.empty(2 * n_out, np.int64)
                     grown_first[:n_out] = first
                     first = grown_first
-                first[n_out] = (y0 + sy) * width + (x0 + sx)
+                first[n_out] = first_px
                 row = out[n_out]
                 row[U], row[V], row[AREA] = u, v, area
                 row[CIRCULARITY], row[INERTIA], row[FILL] = min(circularity, 1.0), inertia, fill

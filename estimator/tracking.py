@@ -2,8 +2,8 @@
 
 Between consecutive frames a dot moves a few pixels, so labelling a window of a few dot
 diameters around each dot is far cheaper than the full frame (no full-frame pass at all).
-Each dot gets its own window (overlapping windows are merged, see
-:func:`estimator.blobs.dots_in_rois`) and takes the region nearest to its prediction.
+Each dot gets its own window (windows may overlap, see :func:`estimator.blobs.dots_in_rois`)
+and takes the region nearest to its prediction.
 The caller predicts where the dots are (the pipeline projects the model with the pose
 extrapolated from the last two frames); without a prediction the last centres plus their
 last pixel velocity are used. The windows reuse the global threshold of the last full search,
@@ -39,6 +39,7 @@ class BlobTracker:
         self.last_px = np.zeros((0, 2))  # centres of the tracked blobs in the last frame
         self._threshold = 0.0
         self._halves = np.zeros(0)  # half size of each dot's window, px
+        self._areas = np.zeros(0)  # area of each tracked dot in the last frame
         self.model_ids: tuple[int, ...] = ()
 
     @property
@@ -54,8 +55,13 @@ class BlobTracker:
         self.model_ids = tuple(int(i) for i in model_ids)
         self._velocity = np.zeros((len(blobs), 2))
         self._threshold = float(threshold)
+        self._set_shapes(blobs)
+
+    def _set_shapes(self, blobs: Sequence[Blob]) -> None:
+        """Window half sizes (dot radius + 4 px + margin) and areas of the tracked dots."""
         self._halves = np.array([0.5 * max(b.major_axis_px, 4.0) for b in blobs]) + (
             4.0 + self.margin_px)
+        self._areas = np.array([b.area for b in blobs])
 
     def reset(self) -> None:
         self._blobs = ()
@@ -83,15 +89,12 @@ class BlobTracker:
         if pred.shape != (n, 2) or not np.all(np.isfinite(pred)):
             return None
         h, w = image_u8.shape
-        halves = self._halves
-        rois = np.empty((n, 4), np.int64)
-        rois[:, 0] = np.maximum(pred[:, 0] - halves, 0)
-        rois[:, 1] = np.maximum(pred[:, 1] - halves, 0)
-        rois[:, 2] = np.minimum(pred[:, 0] + halves + 2, w)
-        rois[:, 3] = np.minimum(pred[:, 1] + halves + 2, h)
-        found_all = dots_in_rois(image_u8, self.polarity, self.filt, self._threshold, rois)
-        cands = found_all.blobs
-        if len(cands) < n:
+        halves = self._halves[:, None]
+        lo = np.maximum(pred - halves, 0.0)
+        hi = np.minimum(pred + halves + 2.0, (w, h))
+        found_all = dots_in_rois(image_u8, self.polarity, self.filt, self._threshold,
+                                 np.hstack((lo, hi)).astype(np.int64))
+        if len(found_all) < n:
             return None
         centres = found_all.mask_centres_px
         dx = pred[:, :1] - centres[:, 0]
@@ -100,17 +103,16 @@ class BlobTracker:
         picked_ids = d2.argmin(axis=1).tolist()
         if len(set(picked_ids)) != n:
             return None  # two dots claim the same region
-        for best, half in zip(d2.min(axis=1).tolist(), halves.tolist(), strict=True):
-            if best > 2.0 * half * half:
-                return None  # nothing where a dot should be (its window would have been empty)
-        found = [cands[k] for k in picked_ids]
-        for blob, region in zip(self._blobs, found, strict=True):
-            if not 0.5 <= region.area / max(blob.area, 1e-9) <= 2.0:
-                return None  # a different object wandered into the window
+        reach2 = 2.0 * self._halves * self._halves
+        if (d2.min(axis=1) > reach2).any():
+            return None  # nothing where a dot should be (its window would have been empty)
+        ratio = found_all.areas[picked_ids] / np.maximum(self._areas, 1e-9)
+        if ((ratio < 0.5) | (ratio > 2.0)).any():
+            return None  # a different object wandered into the window
+        found = found_all.blobs(picked_ids)
         pts = np.array([[b.u, b.v] for b in found])
         self._velocity = pts - self.last_px
         self._blobs = tuple(found)
-        self._halves = np.array([0.5 * max(b.major_axis_px, 4.0) for b in found]) + (
-            4.0 + self.margin_px)
+        self._set_shapes(found)
         self.last_px = pts
         return found
