@@ -134,6 +134,8 @@ class LimitsConfig(_Strict):
     max_accel_mm_s2: float = Field(default=1500.0, gt=0)
     max_jog_speed_mm_s: float = Field(default=100.0, gt=0)
     max_jog_speed_deg_s: float = Field(default=30.0, gt=0)
+    max_jog_step_mm: float = Field(default=200.0, gt=0)  # one jog step, translation
+    max_jog_step_deg: float = Field(default=45.0, gt=0)  # one jog step, rotation
     tilt_limit_deg: float = Field(default=60.0, gt=0, le=180)
     max_move_mm: float = Field(default=800.0, gt=0)
     max_pose_age_s: float = Field(default=2.0, gt=0)

@@ -533,9 +533,18 @@ class Cell:
         params = {"frame": frame, "translation_mm": list(map(float, translation_mm)),
                   "rotation_deg": list(map(float, rotation_deg)), "speed_mm_s": speed}
         with self._audited(caller, "jog_step", params):
-            if not 0 < speed <= self.config.limits.max_jog_speed_mm_s:
+            limits = self.config.limits
+            if not 0 < speed <= limits.max_jog_speed_mm_s:
                 raise LimitError("jog_speed_limit", f"jog speed {speed} mm/s is outside (0, "
-                                 f"{self.config.limits.max_jog_speed_mm_s}]")
+                                 f"{limits.max_jog_speed_mm_s}]")
+            step_mm = float(np.linalg.norm(np.asarray(translation_mm, dtype=float)))
+            step_deg = float(np.linalg.norm(np.asarray(rotation_deg, dtype=float)))
+            if step_mm > limits.max_jog_step_mm or step_deg > limits.max_jog_step_deg:
+                raise LimitError(
+                    "jog_step_limit",
+                    f"a jog step of {step_mm:.1f} mm / {step_deg:.1f} deg is larger than "
+                    f"limits.max_jog_step_mm = {limits.max_jog_step_mm} / max_jog_step_deg = "
+                    f"{limits.max_jog_step_deg}: use approach or several steps")
             motion = self.claim_motion("jog_step")
             try:
                 st = self._check_arm()

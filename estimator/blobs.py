@@ -112,11 +112,11 @@ def dots_in_rois(
     """The dots wholly inside any of the given regions of interest (K,4: x0, y0, x1, y1 with the
     end exclusive; they may overlap), thresholded at ``threshold`` -- or, with ``mask_u8``
     (the frame's binary mask), wherever the mask is set."""
+    mask = _NO_MASK if mask_u8 is None else np.ascontiguousarray(mask_u8)
     return Detection(regions.find_dots(
-        image_u8, _NO_MASK if mask_u8 is None else mask_u8, mask_u8 is not None,
-        float(threshold), polarity == "dark", np.ascontiguousarray(rois, dtype=np.int64),
-        filt.min_area_px, filt.max_area_px, filt.min_circularity, filt.min_inertia_ratio,
-        filt.min_fill_ratio,
+        np.ascontiguousarray(image_u8), mask, mask_u8 is not None, float(threshold),
+        polarity == "dark", np.ascontiguousarray(rois, dtype=np.int64), filt.min_area_px,
+        filt.max_area_px, filt.min_circularity, filt.min_inertia_ratio, filt.min_fill_ratio,
     ))
 
 

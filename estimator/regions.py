@@ -182,7 +182,9 @@ def find_dots(
     level = np.int32(max(min(math.floor(threshold), 256), -1))  # g <= t iff g <= floor(t)
     cls = np.empty((max_h + 2) * (max_w + 2), np.int32)  # 0 background, -1 dot, k > 0 label k
     stack = np.empty(max_h * max_w, np.int64)
-    row_min = np.empty(max_h, np.int64)
+    pending = np.empty(max_h, np.int64)
+    row_min = np.empty(max_h, np.int64)  # extent of the current region on each ROI row
+
     row_max = np.empty(max_h, np.int64)
     hull_x = np.empty(2 * max_h)
     hull_y = np.empty(2 * max_h)
@@ -201,26 +203,43 @@ def find_dots(
             base = (y + 1) * stride + 1
             cls[base - 1] = 0
             cls[base + w] = 0
+            n_dot = np.int32(0)
             if use_mask:
                 mrow = mask[y0 + y, x0:x1]
                 for x in range(w):
-                    cls[base + x] = -1 if mrow[x] != 0 else 0
+                    is_dot = np.int32(mrow[x] != 0)
+                    cls[base + x] = -is_dot
+                    n_dot += is_dot
             elif dark:
                 irow = image[y0 + y, x0:x1]
                 for x in range(w):
-                    cls[base + x] = -np.int32(np.int32(irow[x]) <= level)
+                    is_dot = np.int32(np.int32(irow[x]) <= level)
+                    cls[base + x] = -is_dot
+                    n_dot += is_dot
             else:
                 irow = image[y0 + y, x0:x1]
                 for x in range(w):
-                    cls[base + x] = -np.int32(np.int32(irow[x]) > level)
+                    is_dot = np.int32(np.int32(irow[x]) > level)
+                    cls[base + x] = -is_dot
+                    n_dot += is_dot
+            pending[y] = n_dot  # dot pixels of the row not labelled yet
+            row_min[y] = w
+            row_max[y] = -1
         label = 0
+        used0, used1 = 0, -1  # rows whose extents the last region set (reset before the next)
         for sy in range(h):
+            if pending[sy] == 0:
+                continue  # most rows of a window hold no (unlabelled) dot pixel
             for sx in range(w):
                 start = (sy + 1) * stride + sx + 1
                 if cls[start] != -1:
                     continue
                 label += 1
                 cls[start] = label
+                pending[sy] -= 1
+                for k in range(used0, used1 + 1):
+                    row_min[k] = w
+                    row_max[k] = -1
                 top = 0
                 stack[top] = start
                 top += 1
@@ -229,9 +248,6 @@ def find_dots(
                 m10 = m01 = m20 = m02 = m11 = 0.0
                 bx0, by0, bx1, by1 = sx, sy, sx, sy
                 touches = False
-                for k in range(sy, h):
-                    row_min[k] = w
-                    row_max[k] = -1
                 while top > 0:
                     top -= 1
                     i = stack[top]
@@ -256,8 +272,10 @@ def find_dots(
                               i + stride - 1, i + stride, i + stride + 1):
                         if cls[j] == -1:
                             cls[j] = label
+                            pending[j // stride - 1] -= 1
                             stack[top] = j
                             top += 1
+                used0, used1 = by0, by1
                 # The area enclosed by the outline through the boundary pixels' centres (Pick:
                 # A = I + B/2 - 1 with count = I + B), as OpenCV's contour area measures it.
                 area = count - 0.5 * boundary - 1.0

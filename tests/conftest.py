@@ -29,6 +29,15 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(skip_oak)
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _estimator_kernels() -> None:
+    """Compile (or load) the estimator's numba kernels once, before any test times a request:
+    a first compile inside an HTTP locate would take ~15 s (make install normally did it)."""
+    from estimator.kernels import warm_up
+
+    warm_up()
+
+
 @pytest.fixture
 def ur_host(request: pytest.FixtureRequest) -> str:
     host = request.config.getoption("--ur-host")

@@ -150,3 +150,45 @@ def test_tiny_dots_fall_back_to_the_full_frame() -> None:
     blobs = detect_blobs(image)
     assert len(blobs) == 6
     assert _nearest_errors(blobs, _truth(target, T)).max() < 0.3
+
+
+def test_rings_and_outlines_are_not_dots_but_a_filled_disc_is() -> None:
+    """Holes count against a region: a dark ring or a square outline has the size of a dot
+    but fails the fill ratio; the filled disc beside them is found, centre to 0.05 px."""
+    img = np.full((200, 300), 210, np.uint8)
+    cv2.circle(img, (60, 100), 14, 30, 4, cv2.LINE_AA)  # ring
+    cv2.rectangle(img, (120, 85), (150, 115), 30, 3)  # square outline
+    cv2.circle(img, (230, 100), 12, 30, -1, cv2.LINE_AA)  # dot
+    blobs = detect_blobs(img)
+    assert len(blobs) == 1, [(round(b.u), round(b.v), b.fill_ratio) for b in blobs]
+    assert abs(blobs[0].u - 230) < 0.05 and abs(blobs[0].v - 100) < 0.05
+    loose = detect_blobs(img, min_fill_ratio=0.0, min_circularity=0.0)
+    assert len(loose) == 3 and sorted(b.fill_ratio for b in loose)[1] < 0.85
+
+
+def test_a_tracked_dot_gets_exactly_the_full_search_centre() -> None:
+    """The tracker labels only windows around the predictions, with the full search's
+    threshold: each dot's region, shape and centre are the full search's, bit for bit."""
+    from estimator.tracking import BlobTracker
+
+    rng = np.random.default_rng(14)
+    for _ in range(5):
+        target = random_target(rng, 6)
+        img = render_target(CAM, target, random_pose(rng, CAM, target), rng=rng)
+        blobs, thr = detect_blobs_thresholded(img)
+        assert thr is not None and len(blobs) == 6
+        tracker = BlobTracker("dark")
+        tracker.start(blobs, list(range(6)), thr)
+        shift = rng.uniform(-3.0, 3.0, 2)
+        moved = np.roll(img, (int(shift[1]), int(shift[0])), axis=(0, 1))
+        again, _ = detect_blobs_thresholded(moved, threshold=thr)
+        tracked = tracker.track(moved, np.array([[b.u, b.v] for b in blobs]) + shift.round())
+        assert tracked is not None
+        key = sorted((b.u, b.v, b.area, b.inertia_ratio, b.fill_ratio) for b in tracked)
+        assert key == sorted((b.u, b.v, b.area, b.inertia_ratio, b.fill_ratio) for b in again)
+
+
+def test_kernels_warm_up_runs_every_kernel() -> None:
+    from estimator.kernels import warm_up
+
+    assert warm_up() < 10.0  # compiled already (make install, or the session fixture)

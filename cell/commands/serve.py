@@ -40,6 +40,10 @@ def _serve(args: argparse.Namespace) -> int:
         os.environ["CELL_CONFIG"] = os.path.abspath(args.config)
     else:
         os.environ.pop("CELL_CONFIG", None)
+    from estimator.kernels import warm_up
+
+    # Compiled once per checkout (make install does it); loading takes a fraction of a second.
+    print(f"estimator kernels ready in {warm_up():.1f} s", flush=True)
     print(f"serving the cell on http://{args.host}:{args.port} (docs at /docs)", flush=True)
     uvicorn.run("api.app:app_from_environment", factory=True, host=args.host, port=args.port,
                 log_level=args.log_level)
