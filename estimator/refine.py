@@ -41,8 +41,7 @@ except ImportError:  # pragma: no cover - depends on the SciPy release
     _LMDER = None
 
 FAST_PATH = _LMDER is not None
-TOLERANCE = 1e-8  # relative reduction of the squared error, and relative step, at which LM stops
-ROUGH_TOLERANCE = 1e-4  # enough to judge a pose by its rms (~1e-4 relative), not to report it
+TOLERANCE = 1e-8  # relative reduction of the squared error and relative step at which LM stops
 MAX_EVALUATIONS = 200
 _STEP_BOUND = 100.0  # MINPACK's ``factor``: initial step bound (its default)
 
@@ -136,27 +135,6 @@ def _correction_problem(
     return residuals, jacobian
 
 
-def _minimise(
-    obj: NDArray[np.float64], img: NDArray[np.float64], K: NDArray[np.float64],
-    dist: NDArray[np.float64], T_init: NDArray[np.float64], tolerance: float,
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """LM from ``T_init`` -> (T, residual vectors (N,2) px at T)."""
-    R0, t0 = T_init[:3, :3], T_init[:3, 3]
-    points_cam = obj @ R0.T + t0
-    fun, jac = _correction_problem(points_cam, img.reshape(-1), K, dist)
-    x0 = np.zeros(6)
-    if _LMDER is not None:
-        x = _LMDER(fun, jac, x0, (), 0, 0, tolerance, tolerance, 0.0, MAX_EVALUATIONS,
-                   _STEP_BOUND, None)[0]
-    else:  # pragma: no cover - depends on the SciPy release
-        x = leastsq(fun, x0, Dfun=jac, ftol=tolerance, xtol=tolerance, maxfev=MAX_EVALUATIONS)[0]
-    dR = cv2.Rodrigues(x[:3])[0]
-    T: NDArray[np.float64] = np.eye(4)
-    T[:3, :3] = dR @ R0
-    T[:3, 3] = dR @ t0 + x[3:]
-    return T, fun(x).reshape(-1, 2)  # LM's last evaluation is usually at x: no new projection
-
-
 def refine_arrays(
     obj: NDArray[np.float64],
     img: NDArray[np.float64],
@@ -164,22 +142,22 @@ def refine_arrays(
     dist: NDArray[np.float64],
     T_init: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """LM from ``T_init`` on prepared arrays to full precision -> (T, residual vectors (N,2)
-    px, Jacobian (2N,6) over the pose's own rotation vector and translation, for the
-    covariance)."""
-    T, _ = _minimise(obj, img, K, dist, T_init, TOLERANCE)
+    """LM from ``T_init`` on prepared arrays -> (T, residual vectors (N,2) px, Jacobian (2N,6)
+    over the pose's own rotation vector and translation, for the covariance)."""
+    R0, t0 = T_init[:3, :3], T_init[:3, 3]
+    points_cam = obj @ R0.T + t0
+    fun, jac = _correction_problem(points_cam, img.reshape(-1), K, dist)
+    x0 = np.zeros(6)
+    if _LMDER is not None:
+        x = _LMDER(fun, jac, x0, (), 0, 0, TOLERANCE, TOLERANCE, 0.0, MAX_EVALUATIONS,
+                   _STEP_BOUND, None)[0]
+    else:  # pragma: no cover - depends on the SciPy release
+        x = leastsq(fun, x0, Dfun=jac, ftol=TOLERANCE, xtol=TOLERANCE,
+                    maxfev=MAX_EVALUATIONS)[0]
+    dR = cv2.Rodrigues(x[:3])[0]
+    T: NDArray[np.float64] = np.eye(4)
+    T[:3, :3] = dR @ R0
+    T[:3, 3] = dR @ t0 + x[3:]
     rvec = np.asarray(cv2.Rodrigues(T[:3, :3])[0], dtype=np.float64)
     residuals, J = reprojection(obj, img, K, dist, rvec, T[:3, 3].copy())
     return T, residuals, J
-
-
-def rough_refine_arrays(
-    obj: NDArray[np.float64],
-    img: NDArray[np.float64],
-    K: NDArray[np.float64],
-    dist: NDArray[np.float64],
-    T_init: NDArray[np.float64],
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """LM from ``T_init`` only as far as judging the minimum by its rms needs (ROUGH_TOLERANCE)
-    -> (T, residual vectors (N,2) px): for candidate poses, one of which is then refined."""
-    return _minimise(obj, img, K, dist, T_init, ROUGH_TOLERANCE)

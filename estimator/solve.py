@@ -14,8 +14,11 @@ re-run.
 
 Cost per planar solve (6 dots): a few compiled coplanar POSIT steps to a 4 px seed (LM
 finishes the job faster than more POSIT iterations would), one LM (MINPACK, see
-:mod:`estimator.refine`), a rough LM for a contending alternative, and the short finish on the
-bias-corrected points. Tracking skips POSIT entirely (:func:`solve_pose_near`).
+:mod:`estimator.refine`), one more for a contending alternative, and the short finish on the
+bias-corrected points. Every candidate is refined to full precision: a minimum only roughly
+reached can lie far enough along a flat valley to pass for a distinct one and stop the search
+for the real other minimum (seen at close range). Tracking skips POSIT entirely
+(:func:`solve_pose_near`).
 
 Ambiguity rule (planar targets): the best pose B and the best *distinct* other pose A (rotation
 differing by more than ~0.06 deg or translation by more than 0.1 % of the range) are both local
@@ -53,7 +56,6 @@ from estimator.refine import (
     camera_arrays,
     covariance_from,
     refine_arrays,
-    rough_refine_arrays,
 )
 from estimator.result import AlternativePose, Blob, PoseResult
 
@@ -85,7 +87,7 @@ class _Seed:
 class _Solution:
     T: NDArray[np.float64]
     residuals: NDArray[np.float64]  # (N,2) px
-    jacobian: NDArray[np.float64] | None  # (2N,6); None for a rough candidate
+    jacobian: NDArray[np.float64]  # (2N,6)
     rms: float
     seed: _Seed
 
@@ -155,13 +157,12 @@ class _Problem:
         return [_Seed(T, iterations, converged, reference)]
 
     def refine(self, seed: _Seed) -> _Solution | None:
-        """Rough LM from the seed on the measured points (enough to judge it by its rms; see
-        :func:`estimator.refine.rough_refine_arrays`); None if the refined pose puts part of
-        the target behind the camera."""
-        T, residuals = rough_refine_arrays(self.obj, self.img, self.K, self.dist, seed.T)
+        """LM from the seed on the measured points; None if the refined pose puts part of the
+        target behind the camera."""
+        T, residuals, J = refine_arrays(self.obj, self.img, self.K, self.dist, seed.T)
         if not all_in_front(T, self.obj):
             return None
-        return _Solution(T, residuals, None, _rms(residuals), seed)
+        return _Solution(T, residuals, J, _rms(residuals), seed)
 
     def candidates(self, reference: int) -> list[_Solution]:
         """Refined poses from the seeds with model point ``reference`` as POSIT's P0.
@@ -169,15 +170,15 @@ class _Problem:
         Planar models have two local minima. Besides the better coplanar branch, the other
         branch and the mirror of the refined pose (more reliable than the other branch, which
         often drifts into the same basin) are candidates for the second one; each costs a
-        projection to score raw, and only one whose raw rms makes it a contender (below
-        CONTENDER_RAW_RMS_PX, or within CONTENDER_RATIO of the refined winner; any, when the
-        winner itself fits worse than RETRY_RMS_PX) is refined -- the better one first, the
-        other only if that one fell into the winner's basin.
+        projection to score raw. The better of them is always refined: at close range POSIT's
+        branch can end in a spurious minimum that fits to a fraction of a pixel, whose mirror
+        reprojects tens of pixels off and still leads to the true pose (seen: 0.68 px rms,
+        55 mm off, mirror 8 px raw). The other is refined only when the first fell into the
+        winner's basin and its raw rms makes it a contender (below CONTENDER_RAW_RMS_PX, or
+        within CONTENDER_RATIO of the refined winner; any, when the winner itself fits worse
+        than RETRY_RMS_PX).
         """
         seeds = self.seeds(reference)
-        # Every candidate is refined only as far as judging it needs (POSIT's better branch
-        # is the wrong minimum in about half of weak-perspective views); the winner is
-        # finished to full precision afterwards, on the bias-corrected points if asked.
         first = self.refine(seeds[0])
         out = [] if first is None else [first]
         if not self.model.planar:
@@ -193,8 +194,8 @@ class _Problem:
         limit = math.inf if first is None or first.rms > RETRY_RMS_PX else max(
             CONTENDER_RAW_RMS_PX, CONTENDER_RATIO * first.rms)
         bookkeeping = astuple_seed(seeds[0])
-        for raw_rms, T in options:
-            if raw_rms > limit:
+        for k, (raw_rms, T) in enumerate(options):
+            if k and raw_rms > limit:
                 break
             solution = self.refine(_Seed(T, *bookkeeping))
             if solution is None:
@@ -326,9 +327,10 @@ def solve_pose(
         notes.append(
             f"perspective bias corrected (max {float(abs(bias).max()):.3f} px)"
         )
-    T, residuals, J = finish_pose(problem.obj, image_points, camera, best.T)
-    if all_in_front(T, problem.obj):
-        best = _Solution(T, residuals, J, _rms(residuals), best.seed)
+    if image_points is not problem.img:
+        T, residuals, J = finish_pose(problem.obj, image_points, camera, best.T)
+        if all_in_front(T, problem.obj):
+            best = _Solution(T, residuals, J, _rms(residuals), best.seed)
     if not best.seed.converged and best.rms > BAD_RMS_PX:
         raise NotConvergedError(
             f"POSIT did not converge in {SEED_MAX_ITERATIONS} iterations and the refined pose "
@@ -352,8 +354,7 @@ def solve_pose(
         converged=best.seed.converged,
         ambiguous=ambiguous,
         alternative=alt_pose,
-        covariance=None if best.jacobian is None else covariance_from(best.residuals,
-                                                                       best.jacobian),
+        covariance=covariance_from(best.residuals, best.jacobian),
         image_points_px=image_points,
         notes=tuple(notes),
     )

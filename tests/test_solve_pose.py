@@ -89,8 +89,7 @@ def test_refine_pose_from_a_perturbed_seed() -> None:
 
 def test_refinement_reaches_opencv_lm_minimum_from_far_and_near() -> None:
     """MINPACK's LM (called directly, see estimator.refine) lands on the minimum OpenCV's own LM
-    finds, from a rough seed and from the minimum itself, with and without distortion; the
-    rough variant is within its tolerance of it."""
+    finds, from a rough seed and from the minimum itself, with and without distortion."""
     from estimator import refine
 
     assert refine.FAST_PATH, "scipy.optimize._minpack._lmder is gone: refinement is 3x slower"
@@ -107,15 +106,11 @@ def test_refinement_reaches_opencv_lm_minimum_from_far_and_near() -> None:
                                         (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 200,
                                          1e-15))
             T_cv = make_T(cv2.Rodrigues(r)[0], t.ravel())
-            T_ours, residuals, J = refine.refine_arrays(FLAT, img, K, dist, seed)
+            T_ours, _, J = refine.refine_arrays(FLAT, img, K, dist, seed)
             assert max(pose_distance(T_ours, T_cv)) < 1e-4  # mm, deg: 1e-3 of the noise error
             assert J.shape == (2 * len(FLAT), 6)
             T_again, _, _ = refine.refine_arrays(FLAT, img, K, dist, T_ours)
             assert max(pose_distance(T_again, T_ours)) < 1e-4
-            _, res_rough = refine.rough_refine_arrays(FLAT, img, K, dist, seed)
-            rms = np.sqrt(np.mean(np.sum(residuals**2, axis=1)))
-            rms_rough = np.sqrt(np.mean(np.sum(res_rough**2, axis=1)))
-            assert rms * (1 - 1e-9) <= rms_rough < rms * (1 + 1e-3)
 
 
 def test_accuracy_matches_sqpnp_plus_lm() -> None:
