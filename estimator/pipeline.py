@@ -7,8 +7,8 @@ the last two frames, each dot is looked for only in a small window around its pr
 ids come from the track, so there is no correspondence step), and the pose is refined from the
 prediction instead of seeded by POSIT -- once: the points are corrected with the
 perspective-bias offsets at the predicted pose (they change by ~1e-3 px between frames) and
-refined by one Gauss-Newton run (:func:`estimator.solve.near_pose_unchecked`). That gives the
-full search's pose to < 1e-3 mm instead of 1e-9 mm, for half the refinement cost.
+refined by one LM run from the prediction (:func:`estimator.solve.near_pose_unchecked`). That
+gives the full search's pose to < 1e-3 mm, for a fraction of the full search's cost.
 """
 
 from __future__ import annotations

@@ -385,9 +385,9 @@ def solve_pose_near(
 ) -> PoseResult:
     """Pose from matched points when a nearby pose is already known (tracking), no POSIT.
 
-    Gauss-Newton from ``T_init`` on the measured points, then (with the bias correction) once
-    more on the corrected points: the same finish as :func:`solve_pose`, so a tracked frame
-    gets the very pose a full solve would give (to ~1e-9 mm). With ``bias_px`` (N,2: the
+    LM from ``T_init`` on the measured points, then (with the bias correction) once more on
+    the corrected points: the same finish as :func:`solve_pose`, so a tracked frame gets the
+    pose a full solve would give (to ~1e-6 mm). With ``bias_px`` (N,2: the
     perspective-bias offsets at a nearby pose, e.g. the tracked prediction) the points are
     corrected first and refined once -- half the cost; the offsets (hundredths of a pixel)
     differ from those at the solved pose by ~1e-3 px for mm-scale motion, which moves the
