@@ -20,6 +20,7 @@ from fakes.ur_controller.rtde import LEVEL_ERROR, LEVEL_INFO, RTDEServer
 from fakes.ur_controller.script import (
     RUNTIME_PLAYING,
     RUNTIME_STOPPED,
+    ControlProgram,
     MailboxInterpreter,
     ScriptError,
     parse_program,
@@ -32,6 +33,11 @@ log = logging.getLogger(__name__)
 CONTROLLER_VERSION = (5, 11, 1, 108318)  # >= 5.11: ur_rtde streams at 500 Hz
 CYCLE_S = 0.002
 IDLE_CYCLE_S = 0.02  # nobody streams: the program still steps, just less often
+# A real controller takes tens of milliseconds to compile and start an uploaded program. The
+# delay matters: ur_rtde stops its script, clears the command register over RTDE and uploads
+# a new script over another socket; a program started at once could still read the stop
+# command and end (seen as a rare hang of movePath waiting for the program to run).
+PROGRAM_START_S = 0.08
 
 
 class URController:
@@ -52,6 +58,7 @@ class URController:
         self.messages: list[str] = []  # every text message the controller emitted
         self._lock = threading.RLock()
         self.interpreter = MailboxInterpreter(self.engine, self.regs, self._message)
+        self._starting: tuple[ControlProgram, float] | None = None  # uploaded, not yet running
         self.rtde = RTDEServer(host, self.regs, CONTROLLER_VERSION, self._apply_io, rtde_port)
         self.script = script_service(host, self._on_program, script_port)
         self.dashboard = dashboard_service(host, self, dashboard_port)
@@ -72,6 +79,7 @@ class URController:
 
     def stop_program(self, reason: str) -> None:
         with self._lock:
+            self._starting = None
             self.interpreter.stop(reason)
 
     def _on_program(self, text: str) -> None:
@@ -82,11 +90,12 @@ class URController:
             return
         with self._lock:
             self.interpreter.stop("", brake=False)  # a new program replaces the running one
+            self._starting = None
             if prog is None:
                 self._message("The simulator runs only the ur_rtde control script; "
                               "other URScript programs are not executed", LEVEL_ERROR)
                 return
-            self.interpreter.start(prog)
+            self._starting = (prog, time.monotonic() + PROGRAM_START_S)
 
     def _message(self, text: str, level: int = LEVEL_INFO) -> None:
         log.info("%s: %s", self.host, text)
@@ -121,6 +130,9 @@ class URController:
 
     def _cycle_once(self) -> None:
         with self._lock:
+            if self._starting is not None and time.monotonic() >= self._starting[1]:
+                self.interpreter.start(self._starting[0])
+                self._starting = None
             snap = self.engine.snapshot()
             self.interpreter.step(snap)
             if self.interpreter.running:
