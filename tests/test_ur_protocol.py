@@ -26,7 +26,9 @@ from fakes.ur_controller import rtde
 from fakes.ur_controller.process import ControllerProcess
 from fakes.ur_controller.script import parse_program, split_programs
 
-pytestmark = pytest.mark.timeout(60)
+# The ur_rtde clients run in this process and block inside C++ (movePath waits for the program
+# without a deadline): a signal cannot interrupt them, a watchdog thread can end the run.
+pytestmark = pytest.mark.timeout(60, method="thread")
 
 
 def profile_time(distance: float, v: float, a: float) -> float:
