@@ -100,7 +100,8 @@ class Detection:
 
     def blobs(self, indices: list[int] | None = None) -> list[Blob]:
         """Blobs of all rows, or of the rows at ``indices`` in that order."""
-        rows = self.rows[:, :9] if indices is None else self.rows[indices, :9]
+        fields = regions.ANGLE + 1  # columns U..ANGLE are Blob's fields, in order
+        rows = self.rows[:, :fields] if indices is None else self.rows[indices, :fields]
         return [Blob(u, v, area, circ, inertia, fill, major, minor, angle)
                 for u, v, area, circ, inertia, fill, major, minor, angle in rows.tolist()]
 

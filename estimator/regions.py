@@ -38,8 +38,8 @@ from numpy.typing import NDArray
 RIM_PX = 2  # the blurred rim beyond the thresholded region that still carries weight
 PAD_PX = RIM_PX + 1  # padding of a region's bounding box for its centre of gravity
 # Columns of the per-dot result rows (see find_dots).
-U, V, AREA, CIRCULARITY, INERTIA, FILL, MAJOR, MINOR, ANGLE, MASK_U, MASK_V, X, Y, W, H = range(15)
-N_COLUMNS = 15
+U, V, AREA, CIRCULARITY, INERTIA, FILL, MAJOR, MINOR, ANGLE, MASK_U, MASK_V = range(11)
+N_COLUMNS = 11
 
 
 @numba.njit(cache=True, nogil=True)
@@ -165,7 +165,7 @@ def find_dots(
     min_circularity: float, min_inertia_ratio: float, min_fill_ratio: float,
 ) -> NDArray[np.float64]:
     """Dots in the ROIs (K,4: x0, y0, x1, y1, end exclusive; may overlap) -> rows of
-    N_COLUMNS (U, V, AREA, ... H: see the column names), in the frame's scan order of their
+    N_COLUMNS (U, V, AREA, ... MASK_V: see the column names), in the frame's scan order of their
     first pixels (the order a pass over the whole frame finds them in).
 
     Each ROI is thresholded into a label buffer with a one-pixel background border (so the
@@ -329,7 +329,5 @@ def find_dots(
                 row[MAJOR], row[MINOR] = 4.0 * math.sqrt(lam_major), 4.0 * math.sqrt(lam_minor)
                 row[ANGLE] = 0.5 * math.atan2(2.0 * mu11, mu20 - mu02)
                 row[MASK_U], row[MASK_V] = (x0 + sx) + mx, (y0 + sy) + my
-                row[X], row[Y] = x0 + bx0, y0 + by0
-                row[W], row[H] = bx1 - bx0 + 1, by1 - by0 + 1
                 n_out += 1
     return out[np.argsort(first[:n_out], kind="mergesort")]
