@@ -59,6 +59,7 @@ class ObjectModel:
         # product gives the depth offsets of all points at once.
         self.vectors_mm = points_mm - points_mm[0]
         self.tail_mm = self.vectors_mm[1:]  # P0Pi for i >= 1 (a contiguous row block)
+        self.origin_mm = self.points_mm[0].copy()  # P0
         self.centre_mm = points_mm.mean(axis=0)
         s = np.linalg.svd(points_mm - points_mm.mean(axis=0), compute_uv=False)
         if s[0] <= 0.0 or s[1] <= COLLINEAR_RATIO * s[0]:
@@ -71,7 +72,7 @@ class ObjectModel:
         # Object matrix B: pseudo-inverse of the (N-1)x3 matrix of P0Pi. For a planar model
         # the cut-off drops the (numerically zero) normal direction, which coplanar POSIT
         # then recovers from the orthonormality constraints.
-        self.object_matrix = np.linalg.pinv(A, rcond=PLANAR_RATIO * 10)
+        self.object_matrix = np.ascontiguousarray(np.linalg.pinv(A, rcond=PLANAR_RATIO * 10))
         _, _, vt = np.linalg.svd(A)
         self.normal = vt[2].copy()  # unit normal of the model plane (only meaningful if planar)
         self.normal_tuple = (float(vt[2, 0]), float(vt[2, 1]), float(vt[2, 2]))
@@ -128,21 +129,18 @@ def normalised_image_points(
 
 def pose_from_rows(
     R_rows: NDArray[np.float64], scale: float, xy0: NDArray[np.float64], P0: NDArray[np.float64],
-    *, orthonormal: bool = False,
 ) -> NDArray[np.float64]:
     """4x4 T_camera_target from POSIT's (I/|I|, J/|J|, R1xR2) rows, the scale and P0's image.
 
     The rows of plain POSIT are only approximately orthonormal (I and J come from a
-    least-squares solve), so the rotation is projected onto SO(3) with an SVD; coplanar POSIT's
-    rows are orthonormal by construction (``orthonormal``), which skips it. P0 sits at depth
-    Tz = 1/s on its image ray.
+    least-squares solve), so the rotation is projected onto SO(3) with an SVD. P0 sits at
+    depth Tz = 1/s on its image ray. (Coplanar POSIT's rows are orthonormal by construction;
+    its compiled kernel composes its poses itself.)
     """
-    R = R_rows
-    if not orthonormal:
-        U, _, Vt = np.linalg.svd(R_rows)
-        R = U @ Vt
-        if np.linalg.det(R) < 0:
-            R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
+    U, _, Vt = np.linalg.svd(R_rows)
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
     Tz = 1.0 / scale
     T = np.eye(4)
     T[:3, :3] = R

@@ -8,13 +8,13 @@ local minimum, scored raw (one projection each) and refined only when their raw 
 contenders, so both minima are found even when both coplanar branches fell into one basin; and
 when the best refined pose still reprojects badly (> RETRY_RMS_PX) the seeds are recomputed
 with each other point as POSIT's reference point (which changes the fixed-point iteration).
-The refined pose with the lowest rms wins. The perspective-bias correction then costs one more
-refinement from that pose on the corrected points (a few evaluations from there), not a
-re-run.
+The refined pose with the lowest rms wins. The perspective-bias correction then moves it by
+one first-order step to the corrected points' minimum (the correction is hundredths of a
+pixel; :func:`estimator.refine.shift_pose`), not a re-run.
 
-Cost per planar solve (6 dots): a few compiled coplanar POSIT steps to a 4 px seed (LM
+Cost per planar solve (6 dots): one compiled call of coplanar POSIT to a 4 px seed (LM
 finishes the job faster than more POSIT iterations would), one LM (MINPACK, see
-:mod:`estimator.refine`), one more for a contending alternative, and the short finish on the
+:mod:`estimator.refine`), one more for a contending alternative, and one linear step for the
 bias-corrected points. Every candidate is refined to full precision: a minimum only roughly
 reached can lie far enough along a flat valley to pass for a distinct one and stop the search
 for the real other minimum (seen at close range). Tracking skips POSIT entirely
@@ -55,7 +55,10 @@ from estimator.posit import (
 from estimator.refine import (
     camera_arrays,
     covariance_from,
+    pose_reprojection,
     refine_arrays,
+    refine_fit,
+    shift_pose,
 )
 from estimator.result import AlternativePose, Blob, PoseResult
 
@@ -87,7 +90,6 @@ class _Seed:
 class _Solution:
     T: NDArray[np.float64]
     residuals: NDArray[np.float64]  # (N,2) px
-    jacobian: NDArray[np.float64]  # (2N,6)
     rms: float
     seed: _Seed
 
@@ -159,10 +161,10 @@ class _Problem:
     def refine(self, seed: _Seed) -> _Solution | None:
         """LM from the seed on the measured points; None if the refined pose puts part of the
         target behind the camera."""
-        T, residuals, J = refine_arrays(self.obj, self.img, self.K, self.dist, seed.T)
+        T, residuals = refine_fit(self.obj, self.img, self.K, self.dist, seed.T)
         if not all_in_front(T, self.obj):
             return None
-        return _Solution(T, residuals, J, _rms(residuals), seed)
+        return _Solution(T, residuals, _rms(residuals), seed)
 
     def candidates(self, reference: int) -> list[_Solution]:
         """Refined poses from the seeds with model point ``reference`` as POSIT's P0.
@@ -317,20 +319,23 @@ def solve_pose(
     if best.seed.reference:
         notes.append(f"seeded with point {best.seed.reference} as POSIT reference")
     image_points = problem.img
+    residuals = J = None
     if dot_diameter_mm is not None and correct_bias:
-        # One more refinement from the solved pose on the corrected points, not a re-run: the
-        # bias is hundredths of a pixel, so the pose moves by far less than the basin. The
+        # The bias is hundredths of a pixel, so the corrected points' minimum is one
+        # first-order step from the solved pose (see shift_pose), not a re-run. The
         # alternative keeps its rms on the measured points; the correction cannot change the
         # ambiguity verdict, whose margin (1.5x) is far larger.
         bias = centroid_bias_px(best.T, problem.obj, dot_diameter_mm, camera)
-        image_points = problem.img - bias
-        notes.append(
-            f"perspective bias corrected (max {float(abs(bias).max()):.3f} px)"
-        )
-    if image_points is not problem.img:
-        T, residuals, J = finish_pose(problem.obj, image_points, camera, best.T)
+        corrected = problem.img - bias
+        T, shifted, J_shifted = shift_pose(problem.obj, corrected, problem.K, problem.dist,
+                                           best.T)
         if all_in_front(T, problem.obj):
-            best = _Solution(T, residuals, J, _rms(residuals), best.seed)
+            image_points, residuals, J = corrected, shifted, J_shifted
+            best = _Solution(T, residuals, _rms(residuals), best.seed)
+            notes.append(f"perspective bias corrected (max {float(abs(bias).max()):.3f} px)")
+    if residuals is None or J is None:
+        _, residuals, J = pose_reprojection(problem.obj, image_points, problem.K, problem.dist,
+                                            best.T)
     if not best.seed.converged and best.rms > BAD_RMS_PX:
         raise NotConvergedError(
             f"POSIT did not converge in {SEED_MAX_ITERATIONS} iterations and the refined pose "
@@ -354,7 +359,7 @@ def solve_pose(
         converged=best.seed.converged,
         ambiguous=ambiguous,
         alternative=alt_pose,
-        covariance=covariance_from(best.residuals, best.jacobian),
+        covariance=covariance_from(residuals, J),
         image_points_px=image_points,
         notes=tuple(notes),
     )
@@ -385,9 +390,10 @@ def solve_pose_near(
 ) -> PoseResult:
     """Pose from matched points when a nearby pose is already known (tracking), no POSIT.
 
-    LM from ``T_init`` on the measured points, then (with the bias correction) once more on
-    the corrected points: the same finish as :func:`solve_pose`, so a tracked frame gets the
-    pose a full solve would give (to ~1e-6 mm). With ``bias_px`` (N,2: the
+    LM from ``T_init`` on the measured points, then (with the bias correction) the first-order
+    step to the corrected points' minimum (:func:`estimator.refine.shift_pose`): the same
+    finish as :func:`solve_pose`, so a tracked frame gets the pose a full solve would give
+    (to ~1e-6 mm). With ``bias_px`` (N,2: the
     perspective-bias offsets at a nearby pose, e.g. the tracked prediction) the points are
     corrected first and refined once -- half the cost; the offsets (hundredths of a pixel)
     differ from those at the solved pose by ~1e-3 px for mm-scale motion, which moves the
@@ -409,7 +415,8 @@ def solve_pose_near(
     if dot_diameter_mm is not None and correct_bias and all_in_front(T, obj):
         bias = centroid_bias_px(T, obj, dot_diameter_mm, camera)
         image_points = img - bias
-        T, residuals, J = finish_pose(obj, image_points, camera, T)
+        K, dist = camera_arrays(camera)
+        T, residuals, J = shift_pose(obj, image_points, K, dist, T)
         notes.append(f"perspective bias corrected (max {float(abs(bias).max()):.3f} px)")
     return _tracked_result(obj, T, residuals, J, image_points, tuple(notes))
 
