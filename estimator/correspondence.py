@@ -60,6 +60,7 @@ class _Model:
 
     planar: bool
     plane_xy: NDArray[np.float64]  # (N,2) in-plane coordinates, front-facing orientation
+    plane_h: NDArray[np.float64]  # (3,N) the same, homogeneous, as columns
     hull: tuple[int, ...]  # model indices of the convex hull, counter-clockwise
     bases: tuple[tuple[int, ...], ...]  # 4 (planar) or 3 dots; each dot misses from one
 
@@ -120,8 +121,9 @@ def _model_for(target: Target) -> _Model:
     pts = target.points_mm
     if planar:
         xy = _plane_coordinates(pts)
-        return _Model(True, xy, _ccw_hull(xy), _choose_bases(xy, True))
-    return _Model(False, np.zeros((0, 2)), (), _choose_bases(pts, False))
+        plane_h = np.vstack((xy.T, np.ones(len(xy))))
+        return _Model(True, xy, plane_h, _ccw_hull(xy), _choose_bases(xy, True))
+    return _Model(False, np.zeros((0, 2)), np.zeros((3, 0)), (), _choose_bases(pts, False))
 
 
 _MODELS: dict[int, tuple[Target, _Model]] = {}
@@ -165,14 +167,14 @@ def _assign(
 
 
 def _homography_predictions(
-    model: _Model, srcs: list[NDArray[np.float32]], dsts: list[NDArray[np.float32]]
+    model: _Model, src: NDArray[np.float32], dsts: NDArray[np.float32]
 ) -> NDArray[np.float64]:
-    """Model dots mapped through the homography of each (src, dst) quadruple: (K,N,2)."""
-    Hs = np.array([cv2.getPerspectiveTransform(a, b) for a, b in zip(srcs, dsts, strict=True)])
-    pts = np.column_stack((model.plane_xy, np.ones(len(model.plane_xy))))
-    proj = np.einsum("kij,nj->kni", Hs, pts)
+    """Model dots mapped through the homography of ``src`` (4,2) to each ``dsts[k]`` (K,4,2):
+    (K,N,2)."""
+    Hs = np.array([cv2.getPerspectiveTransform(src, dst) for dst in dsts])
+    proj = Hs @ model.plane_h  # (K,3,N)
     with np.errstate(divide="ignore", invalid="ignore"):
-        return np.asarray(proj[:, :, :2] / proj[:, :, 2:3], dtype=float)
+        return np.asarray((proj[:, :2] / proj[:, 2:]).transpose(0, 2, 1), dtype=float)
 
 
 def _hull_hypotheses(
@@ -183,11 +185,11 @@ def _hull_hypotheses(
     h = len(model.hull)
     if h < 4 or len(blob_hull) != h:
         return []
-    pick = [0, h // 4, h // 2, (3 * h) // 4]
+    pick = np.array([0, h // 4, h // 2, (3 * h) // 4])
     src = model.plane_xy[[model.hull[i] for i in pick]].astype(np.float32)
-    dsts = [ideal[[blob_hull[(i + shift) % h] for i in pick]].astype(np.float32)
-            for shift in range(h)]
-    return _assign(_homography_predictions(model, [src] * h, dsts), ideal, tol, min_count)
+    corners = np.asarray(blob_hull)[(pick[None, :] + np.arange(h)[:, None]) % h]  # (h,4)
+    dsts = ideal[corners].astype(np.float32)
+    return _assign(_homography_predictions(model, src, dsts), ideal, tol, min_count)
 
 
 def _quad_orders(pts4: NDArray[np.float64], idx: list[int]) -> tuple[int, list[list[int]]]:
@@ -221,8 +223,8 @@ def _planar_hypotheses(
         if not orders or not by_kind[kind]:
             continue
         src = model.plane_xy[orders[0]].astype(np.float32)
-        dsts = [ideal[o].astype(np.float32) for o in by_kind[kind]]
-        preds = _homography_predictions(model, [src] * len(dsts), dsts)
+        dsts = ideal[np.array(by_kind[kind])].astype(np.float32)
+        preds = _homography_predictions(model, src, dsts)
         out += _assign(preds, ideal, tol, min_count)
         if any(len(h) == n_wanted for h in out):
             break  # every full matching shows up from any basis: the others add nothing
