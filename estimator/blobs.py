@@ -95,6 +95,11 @@ class Detection:
         return self.rows[:, regions.MASK_U:regions.MASK_V + 1]
 
     @property
+    def centres_px(self) -> NDArray[np.float64]:
+        """(N,2) weighted centre of each dot (a copy: contiguous, the caller's to keep)."""
+        return self.rows[:, regions.U:regions.V + 1].copy()
+
+    @property
     def areas(self) -> NDArray[np.float64]:
         return self.rows[:, regions.AREA]
 
@@ -143,13 +148,27 @@ def detect_blobs_thresholded(
     the regions of interest that can hold dots, and only those are labelled at full
     resolution; ``coarse=False`` always labels the whole frame (same dots, same centres).
     """
+    found, thr = detect_dots(image_u8, polarity, filt, threshold, coarse=coarse)
+    return found.blobs(), thr
+
+
+def detect_dots(
+    image_u8: NDArray[np.uint8],
+    polarity: Polarity = "dark",
+    filt: BlobFilter | None = None,
+    threshold: ThresholdSpec = None,
+    *,
+    coarse: bool = True,
+) -> tuple[Detection, float | None]:
+    """:func:`detect_blobs_thresholded` with the dots as a :class:`Detection`: the pipeline
+    builds Blob objects only for the dots it matches."""
     img = _check_image(image_u8)
     if polarity not in ("dark", "light"):
         raise ValueError(f'polarity must be "dark" or "light", got {polarity!r}')
     f = filt if filt is not None else BlobFilter()
     if threshold == "adaptive":
         mask = adaptive_binarize(img, polarity)
-        return dots_in_rois(img, polarity, f, 0.0, _whole_frame(img), mask).blobs(), None
+        return dots_in_rois(img, polarity, f, 0.0, _whole_frame(img), mask), None
     sample = np.ascontiguousarray(img[::COARSE_STEP, ::COARSE_STEP])
     kind = cv2.THRESH_BINARY_INV if polarity == "dark" else cv2.THRESH_BINARY
     if threshold is None or threshold == "otsu":
@@ -161,8 +180,7 @@ def detect_blobs_thresholded(
     sample_mask = cv2.threshold(sample, thr, 255, kind)[1]
     sample_u8: NDArray[np.uint8] = np.asarray(sample_mask, dtype=np.uint8)
     rois = _coarse_rois(sample_u8, f, img.shape) if coarse else None
-    return dots_in_rois(img, polarity, f, thr, _whole_frame(img) if rois is None else rois
-                        ).blobs(), thr
+    return dots_in_rois(img, polarity, f, thr, _whole_frame(img) if rois is None else rois), thr
 
 
 def _coarse_rois(

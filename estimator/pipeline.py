@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimator.bias import centroid_bias_px
-from estimator.blobs import BlobFilter, Polarity, ThresholdSpec, detect_blobs_thresholded
+from estimator.blobs import BlobFilter, Polarity, ThresholdSpec, detect_dots
 from estimator.camera import CameraModel
 from estimator.correspondence import match_blobs
 from estimator.errors import EstimationError, TooFewBlobsError
@@ -140,22 +140,20 @@ class Estimator:
         return pose
 
     def _full_search(self, img: NDArray[np.uint8]) -> PoseResult:
-        blobs, threshold = detect_blobs_thresholded(
-            img, self.polarity, self.filter, self._threshold
-        )
-        if len(blobs) < self.target.n_points:  # a dot too small for the coarse pass to see?
-            blobs, threshold = detect_blobs_thresholded(
+        found, threshold = detect_dots(img, self.polarity, self.filter, self._threshold)
+        if len(found) < self.target.n_points:  # a dot too small for the coarse pass to see?
+            found, threshold = detect_dots(
                 img, self.polarity, self.filter, self._threshold, coarse=False
             )
-        if len(blobs) < self.min_blobs:
+        if len(found) < self.min_blobs:
             raise TooFewBlobsError(
-                len(blobs), self.min_blobs,
+                len(found), self.min_blobs,
                 f"the target has {self.target.n_points} {self.polarity} dots",
             )
-        pts = np.array([[b.u, b.v] for b in blobs])
+        pts = found.centres_px
         corr = match_blobs(pts, self.target, self.camera, max_missing=self.max_missing,
                            correct_bias=self.correct_bias)
-        matched = [blobs[i] for i in corr.blob_indices]
+        matched = found.blobs(list(corr.blob_indices))
         if self.tracking and threshold is not None and not corr.ambiguous:
             self._tracker.start(matched, corr.model_ids, threshold)
             self._track_obj = np.ascontiguousarray(self.target.points_mm[list(corr.model_ids)])
