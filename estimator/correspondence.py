@@ -20,12 +20,12 @@ from __future__ import annotations
 
 import math
 import statistics
-from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from itertools import combinations, permutations
 
 import cv2
+import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -138,31 +138,54 @@ def _cached_model(target: Target) -> _Model:
     return hit[1]
 
 
+@numba.njit(cache=True, nogil=True)
+def _nearest_blobs(
+    preds: NDArray[np.float64], obs: NDArray[np.float64], tol: float
+) -> NDArray[np.int64]:
+    """(K,N): for each hypothesis and model dot the blob nearest its prediction if within
+    ``tol`` and claimed by no other dot of the hypothesis, else -1.
+
+    K x N x M distances of a handful of points each: compiled, because the equivalent numpy
+    expression spends its time in a dozen array allocations and reductions per call.
+    """
+    n_hyp, n_dots, n_obs = preds.shape[0], preds.shape[1], obs.shape[0]
+    out = np.full((n_hyp, n_dots), -1, np.int64)
+    claims = np.zeros(n_obs, np.int64)
+    tol2 = tol * tol
+    for k in range(n_hyp):
+        claims[:] = 0
+        for m in range(n_dots):
+            px, py = preds[k, m, 0], preds[k, m, 1]
+            best, best_d2 = -1, math.inf
+            for b in range(n_obs):
+                dx, dy = px - obs[b, 0], py - obs[b, 1]
+                d2 = dx * dx + dy * dy
+                if d2 < best_d2:
+                    best, best_d2 = b, d2
+            if best >= 0 and best_d2 < tol2:  # NaN predictions never get here
+                out[k, m] = best
+                claims[best] += 1
+        for m in range(n_dots):
+            if out[k, m] >= 0 and claims[out[k, m]] > 1:
+                out[k, m] = -1  # a blob claimed by two dots goes to neither
+    return out
+
+
 def _assign(
     preds: NDArray[np.float64], obs: NDArray[np.float64], tol: float, min_count: int
 ) -> list[dict[int, int]]:
     """For each hypothesis (K,N,2 predictions): model dot -> nearest blob within ``tol``.
 
     Blobs claimed by two dots go to neither. Hypotheses explaining fewer than ``min_count``
-    dots are dropped here, vectorised, before any per-hypothesis Python work.
+    dots are dropped before any per-hypothesis Python work.
     """
-    dx = preds[:, :, None, 0] - obs[None, None, :, 0]
-    dy = preds[:, :, None, 1] - obs[None, None, :, 1]
-    d2 = dx * dx + dy * dy  # squared: no sqrt over (K,N,M)
-    nearest = d2.argmin(axis=2)
-    ok = d2.min(axis=2) < tol * tol
+    nearest = _nearest_blobs(np.ascontiguousarray(preds, dtype=np.float64),
+                             np.ascontiguousarray(obs, dtype=np.float64), float(tol))
+    matched = nearest >= 0
     out: list[dict[int, int]] = []
-    for k in np.flatnonzero(ok.sum(axis=1) >= min_count).tolist():
-        pairs = [(m, b) for m, (b, good) in enumerate(zip(nearest[k].tolist(), ok[k].tolist(),
-                                                           strict=True)) if good]
-        blobs = [b for _, b in pairs]
-        if len(set(blobs)) == len(blobs):  # the usual case: no blob claimed twice
-            hyp = dict(pairs)
-        else:
-            claimed = Counter(blobs)
-            hyp = {m: b for m, b in pairs if claimed[b] == 1}
-        if len(hyp) >= min_count:
-            out.append(hyp)
+    for k in np.flatnonzero(matched.sum(axis=1) >= min_count).tolist():
+        row = nearest[k].tolist()
+        out.append({m: b for m, b in enumerate(row) if b >= 0})
     return out
 
 
