@@ -179,8 +179,8 @@ def _assign(
     Blobs claimed by two dots go to neither. Hypotheses explaining fewer than ``min_count``
     dots are dropped before any per-hypothesis Python work.
     """
-    nearest = _nearest_blobs(np.ascontiguousarray(preds, dtype=np.float64),
-                             np.ascontiguousarray(obs, dtype=np.float64), float(tol))
+    nearest = _nearest_blobs(np.require(preds, np.float64, ["C", "W"]),
+                             np.require(obs, np.float64, ["C", "W"]), float(tol))
     matched = nearest >= 0
     out: list[dict[int, int]] = []
     for k in np.flatnonzero(matched.sum(axis=1) >= min_count).tolist():
@@ -331,10 +331,21 @@ def _pnp_score(
     return float(np.sqrt(np.mean(np.sum((pred.reshape(-1, 2) - img) ** 2, axis=1))))
 
 
+@numba.njit(cache=True, nogil=True)
+def _min_spacing_px(points: NDArray[np.float64]) -> float:
+    """Smallest distance between two of the points (inf for fewer than two)."""
+    best = math.inf
+    for i in range(points.shape[0]):
+        for j in range(i + 1, points.shape[0]):
+            dx, dy = points[i, 0] - points[j, 0], points[i, 1] - points[j, 1]
+            best = min(best, dx * dx + dy * dy)
+    return math.sqrt(best)
+
+
 def _default_tolerance(ideal: NDArray[np.float64]) -> float:
-    diff = ideal[:, None, :] - ideal[None, :, :]
-    d2 = (diff * diff).sum(axis=2) + np.diag(np.full(len(ideal), np.inf))
-    return min(max(0.25 * math.sqrt(float(d2.min())), 1.5), 8.0)
+    """A quarter of the closest blob spacing, within [1.5, 8] px: a prediction nearer a blob
+    than that is unambiguous."""
+    return min(max(0.25 * _min_spacing_px(ideal), 1.5), 8.0)
 
 
 def _drop_outlier(
@@ -417,14 +428,18 @@ def match_blobs(
     remain. Raises TooFewBlobsError when there are not enough blobs to try, and
     CorrespondenceError when no matching is explained by a rigid pose.
     """
-    obs_px = np.asarray(points_px, dtype=float).reshape(-1, 2)
+    # C-contiguous and writable, as the compiled kernels were compiled for (anything else
+    # would compile another variant of them, for seconds, inside this call).
+    obs_px = np.require(np.asarray(points_px, dtype=float).reshape(-1, 2), None, ["C", "W"])
     n = target.n_points
     min_matched = max(4, n - max_missing)
     if len(obs_px) < min_matched:
         raise TooFewBlobsError(len(obs_px), min_matched, f"the target has {n} dots")
     model = _cached_model(target)
     # Matching happens in ideal (undistorted) pixels, where straight lines stay straight.
-    ideal = camera.undistort_points(obs_px) * [camera.fx, camera.fy] + [camera.cx, camera.cy]
+    ideal = obs_px
+    if camera.has_distortion:
+        ideal = camera.undistort_points(obs_px) * [camera.fx, camera.fy] + [camera.cx, camera.cy]
     tol = tolerance_px if tolerance_px is not None else _default_tolerance(ideal)
 
     def solve(ids: NDArray[np.intp], pts: NDArray[np.float64], bias: bool = correct_bias
