@@ -14,6 +14,7 @@ one dot (second order in the dot's image size).
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -30,6 +31,34 @@ def _plane_bases(normals: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDA
     return e1, np.cross(n, e1)
 
 
+@numba.njit(cache=True, nogil=True)
+def _plate_centre_and_centroid(
+    T: NDArray[np.float64], P: NDArray[np.float64], r2: float
+) -> NDArray[np.float64]:
+    """:func:`centre_and_centroid_normalised` for dots in the target's z = 0 plane ->
+    (N,4): projected centre (x, y), ellipse centroid (x, y); all NaN when a dot centre is
+    behind the camera. The plane axes a, b are the target's x and y axes, shared by every
+    dot, so per dot only its centre c enters: centroid ~ (a a_z + b b_z) - c c_z / r^2.
+    """
+    n = P.shape[0]
+    out = np.empty((n, 4))
+    ab = np.empty(3)
+    for k in range(3):
+        ab[k] = T[k, 0] * T[2, 0] + T[k, 1] * T[2, 1]
+    for i in range(n):
+        c0 = T[0, 0] * P[i, 0] + T[0, 1] * P[i, 1] + T[0, 2] * P[i, 2] + T[0, 3]
+        c1 = T[1, 0] * P[i, 0] + T[1, 1] * P[i, 1] + T[1, 2] * P[i, 2] + T[1, 3]
+        c2 = T[2, 0] * P[i, 0] + T[2, 1] * P[i, 1] + T[2, 2] * P[i, 2] + T[2, 3]
+        if c2 <= 0.0:
+            out[:] = np.nan
+            return out
+        w = c2 / r2
+        h0, h1, h2 = ab[0] - c0 * w, ab[1] - c1 * w, ab[2] - c2 * w
+        out[i, 0], out[i, 1] = c0 / c2, c1 / c2
+        out[i, 2], out[i, 3] = h0 / h2, h1 / h2
+    return out
+
+
 def centre_and_centroid_normalised(
     T_camera_target: ArrayLike,
     object_points_mm: ArrayLike,
@@ -41,21 +70,24 @@ def centre_and_centroid_normalised(
     P = np.asarray(object_points_mm, dtype=float).reshape(-1, 3)
     if not dot_diameter_mm > 0:
         raise ValueError(f"dot_diameter_mm must be positive, got {dot_diameter_mm}")
+    r2 = (0.5 * dot_diameter_mm) ** 2
+    if normals is None:  # the target's own x and y axes span every dot's plane (compiled)
+        both = _plate_centre_and_centroid(np.require(T, np.float64, ["C", "W"]),
+                                          np.require(P, np.float64, ["C", "W"]), r2)
+        if len(both) and not np.isfinite(both[0, 0]):
+            raise ValueError("a dot centre is behind the camera")
+        return both[:, :2], both[:, 2:]
     R = T[:3, :3]
     c = P @ R.T + T[:3, 3]
     if c[:, 2].min() <= 0.0:
         raise ValueError("a dot centre is behind the camera")
-    r2 = (0.5 * dot_diameter_mm) ** 2
     # Homography columns per dot, in the camera frame: the plane axes a, b and the centre c.
     # Ellipse centre = H diag(1, 1, -1/r^2) H^T e3; H^T e3 is the third row (a_z, b_z, c_z).
-    if normals is None:  # the target's own x and y axes span every dot's plane: a, b shared
-        ab = R[:, 0] * R[2, 0] + R[:, 1] * R[2, 1]
-    else:
-        n = np.broadcast_to(np.asarray(normals, dtype=float), P.shape)
-        e1, e2 = _plane_bases(np.asarray(n, dtype=float))
-        a = e1 @ R.T
-        b = e2 @ R.T
-        ab = a * a[:, 2:3] + b * b[:, 2:3]
+    n = np.broadcast_to(np.asarray(normals, dtype=float), P.shape)
+    e1, e2 = _plane_bases(np.asarray(n, dtype=float))
+    a = e1 @ R.T
+    b = e2 @ R.T
+    ab = a * a[:, 2:3] + b * b[:, 2:3]
     centre_h = ab - c * (c[:, 2:3] / r2)
     centroid = centre_h[:, :2] / centre_h[:, 2:3]
     return c[:, :2] / c[:, 2:3], centroid

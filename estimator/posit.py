@@ -18,6 +18,7 @@ import functools
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -154,18 +155,34 @@ def reprojection_rms_px(
 ) -> float:
     """Root-mean-square pixel distance between the points' projections and the image points."""
     img = np.asarray(image_points_px, dtype=float)
-    if camera.has_distortion:
-        P = points_mm @ T[:3, :3].T + T[:3, 3]
-        if P[:, 2].min() <= 0.0:
-            return math.inf
-        d = camera.project(P) - img
-    else:  # the pinhole projection inline, K folded into the pose: this runs often
-        KT = pinhole_matrix(camera) @ T[:3]
-        Q = points_mm @ KT[:, :3].T + KT[:, 3]
-        if Q[:, 2].min() <= 0.0:  # K's last row is (0, 0, 1): Q's z is the depth
-            return math.inf
-        d = Q[:, :2] / Q[:, 2:] - img
+    if not camera.has_distortion:  # compiled: this runs several times per frame
+        return _pinhole_rms_px(np.require(T, np.float64, ["C", "W"]),
+                               np.require(points_mm, np.float64, ["C", "W"]),
+                               np.require(img.reshape(-1, 2), np.float64, ["C", "W"]),
+                               camera.fx, camera.fy, camera.cx, camera.cy)
+    P = points_mm @ T[:3, :3].T + T[:3, 3]
+    if P[:, 2].min() <= 0.0:
+        return math.inf
+    d = camera.project(P) - img
     return math.sqrt(float(np.vdot(d, d)) / len(d))
+
+
+@numba.njit(cache=True, nogil=True)
+def _pinhole_rms_px(
+    T: NDArray[np.float64], P: NDArray[np.float64], img: NDArray[np.float64],
+    fx: float, fy: float, cx: float, cy: float,
+) -> float:
+    """:func:`reprojection_rms_px` of a camera without distortion (inf if a point is behind)."""
+    total = 0.0
+    for i in range(P.shape[0]):
+        x = T[0, 0] * P[i, 0] + T[0, 1] * P[i, 1] + T[0, 2] * P[i, 2] + T[0, 3]
+        y = T[1, 0] * P[i, 0] + T[1, 1] * P[i, 1] + T[1, 2] * P[i, 2] + T[1, 3]
+        z = T[2, 0] * P[i, 0] + T[2, 1] * P[i, 1] + T[2, 2] * P[i, 2] + T[2, 3]
+        if z <= 0.0:
+            return math.inf
+        du, dv = fx * x / z + cx - img[i, 0], fy * y / z + cy - img[i, 1]
+        total += du * du + dv * dv
+    return math.sqrt(total / P.shape[0])
 
 
 @functools.lru_cache(maxsize=16)

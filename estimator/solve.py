@@ -37,6 +37,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -236,16 +237,38 @@ def mirrored_pose(
     R' = (I - 2 v v^T) R (I - 2 n n^T). Under perspective this lands in the second local
     minimum's basin -- the seed coplanar POSIT misses when both its branches fall into one.
     """
-    R = T[:3, :3]
     if centre_mm is None:
         centre_mm = points_mm.mean(axis=0)
-    centre_cam = R @ centre_mm + T[:3, 3]
-    v = centre_cam / math.sqrt(float(centre_cam @ centre_cam))
-    R1 = R - (2.0 * v)[:, None] * (v @ R)  # (I - 2 v v^T) R
-    R2 = R1 - (R1 @ normal)[:, None] * (2.0 * normal)  # ... (I - 2 n n^T)
-    out = np.eye(4)
-    out[:3, :3] = R2
-    out[:3, 3] = centre_cam - R2 @ centre_mm
+    return _mirror(np.require(T, np.float64, ["C", "W"]),
+                   np.require(normal, np.float64, ["C", "W"]),
+                   np.require(centre_mm, np.float64, ["C", "W"]))
+
+
+@numba.njit(cache=True, nogil=True)
+def _mirror(
+    T: NDArray[np.float64], normal: NDArray[np.float64], centre_mm: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """:func:`mirrored_pose`'s arithmetic, compiled (3x3 products: numpy's per-call overhead
+    would be most of its cost)."""
+    c = np.empty(3)
+    for r in range(3):
+        c[r] = T[r, 0] * centre_mm[0] + T[r, 1] * centre_mm[1] + T[r, 2] * centre_mm[2] + T[r, 3]
+    norm = math.sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2])
+    v = c / norm
+    R1 = np.empty((3, 3))
+    for j in range(3):  # (I - 2 v v^T) R
+        vR = v[0] * T[0, j] + v[1] * T[1, j] + v[2] * T[2, j]
+        for r in range(3):
+            R1[r, j] = T[r, j] - 2.0 * v[r] * vR
+    out = np.zeros((4, 4))
+    for r in range(3):  # ... (I - 2 n n^T)
+        Rn = R1[r, 0] * normal[0] + R1[r, 1] * normal[1] + R1[r, 2] * normal[2]
+        for j in range(3):
+            out[r, j] = R1[r, j] - 2.0 * Rn * normal[j]
+    for r in range(3):
+        out[r, 3] = c[r] - (out[r, 0] * centre_mm[0] + out[r, 1] * centre_mm[1]
+                            + out[r, 2] * centre_mm[2])
+    out[3, 3] = 1.0
     return out
 
 
