@@ -18,6 +18,7 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from estimator.arrays import kernel_array
 from estimator.camera import CameraModel
 
 
@@ -72,8 +73,7 @@ def centre_and_centroid_normalised(
         raise ValueError(f"dot_diameter_mm must be positive, got {dot_diameter_mm}")
     r2 = (0.5 * dot_diameter_mm) ** 2
     if normals is None:  # the target's own x and y axes span every dot's plane (compiled)
-        both = _plate_centre_and_centroid(np.require(T, np.float64, ["C", "W"]),
-                                          np.require(P, np.float64, ["C", "W"]), r2)
+        both = _plate_centre_and_centroid(kernel_array(T), kernel_array(P), r2)
         if len(both) and not np.isfinite(both[0, 0]):
             raise ValueError("a dot centre is behind the camera")
         return both[:, :2], both[:, 2:]

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimator import regions
+from estimator.arrays import kernel_array
 from estimator.result import Blob
 
 Polarity = Literal["dark", "light"]
@@ -118,13 +119,11 @@ def dots_in_rois(
     """The dots wholly inside any of the given regions of interest (K,4: x0, y0, x1, y1 with the
     end exclusive; they may overlap), thresholded at ``threshold`` -- or, with ``mask_u8``
     (the frame's binary mask), wherever the mask is set."""
-    # C-contiguous and writable: numba compiles (~15 s) a new variant for other layouts or a
-    # read-only buffer, so anything else is copied (1 ms at most) rather than recompiled.
-    image = np.require(image_u8, np.uint8, ["C", "W"])
-    mask = _NO_MASK if mask_u8 is None else np.require(mask_u8, np.uint8, ["C", "W"])
+    image = kernel_array(image_u8, np.uint8)
+    mask = _NO_MASK if mask_u8 is None else kernel_array(mask_u8, np.uint8)
     return Detection(regions.find_dots(
         image, mask, mask_u8 is not None, float(threshold),
-        polarity == "dark", np.ascontiguousarray(rois, dtype=np.int64), filt.min_area_px,
+        polarity == "dark", kernel_array(rois, np.int64), filt.min_area_px,
         filt.max_area_px, filt.min_circularity, filt.min_inertia_ratio, filt.min_fill_ratio,
     ))
 

@@ -29,6 +29,7 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from estimator.arrays import kernel_array
 from estimator.camera import CameraModel
 from estimator.errors import BehindCameraError, DegenerateGeometryError
 from estimator.posit import (
@@ -230,7 +231,7 @@ def posit_coplanar(
     ``contender_ratio`` of the winner's (1.0: stop it as soon as it is behind).
     """
     Ts, info = _branches(model.object_matrix, model.tail_mm, model.normal, model.origin_mm,
-                         np.ascontiguousarray(xy), max_iterations, tolerance,
+                         kernel_array(xy), max_iterations, tolerance,
                          contender_ratio)
     branches = [b for b in range(2) if info[b, 0] == 1.0]
     if not branches:

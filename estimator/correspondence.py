@@ -29,6 +29,7 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from estimator.arrays import kernel_array
 from estimator.camera import CameraModel
 from estimator.errors import CorrespondenceError, EstimationError, TooFewBlobsError
 from estimator.result import PoseResult
@@ -179,8 +180,7 @@ def _assign(
     Blobs claimed by two dots go to neither. Hypotheses explaining fewer than ``min_count``
     dots are dropped before any per-hypothesis Python work.
     """
-    nearest = _nearest_blobs(np.require(preds, np.float64, ["C", "W"]),
-                             np.require(obs, np.float64, ["C", "W"]), float(tol))
+    nearest = _nearest_blobs(kernel_array(preds), kernel_array(obs), float(tol))
     matched = nearest >= 0
     out: list[dict[int, int]] = []
     for k in np.flatnonzero(matched.sum(axis=1) >= min_count).tolist():
@@ -428,9 +428,7 @@ def match_blobs(
     remain. Raises TooFewBlobsError when there are not enough blobs to try, and
     CorrespondenceError when no matching is explained by a rigid pose.
     """
-    # C-contiguous and writable, as the compiled kernels were compiled for (anything else
-    # would compile another variant of them, for seconds, inside this call).
-    obs_px = np.require(np.asarray(points_px, dtype=float).reshape(-1, 2), None, ["C", "W"])
+    obs_px = kernel_array(np.asarray(points_px, dtype=float).reshape(-1, 2))
     n = target.n_points
     min_matched = max(4, n - max_missing)
     if len(obs_px) < min_matched:

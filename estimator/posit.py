@@ -22,6 +22,7 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from estimator.arrays import kernel_array
 from estimator.camera import CameraModel
 from estimator.errors import BehindCameraError, DegenerateGeometryError, TooFewBlobsError
 
@@ -156,9 +157,8 @@ def reprojection_rms_px(
     """Root-mean-square pixel distance between the points' projections and the image points."""
     img = np.asarray(image_points_px, dtype=float)
     if not camera.has_distortion:  # compiled: this runs several times per frame
-        return _pinhole_rms_px(np.require(T, np.float64, ["C", "W"]),
-                               np.require(points_mm, np.float64, ["C", "W"]),
-                               np.require(img.reshape(-1, 2), np.float64, ["C", "W"]),
+        return _pinhole_rms_px(kernel_array(T), kernel_array(points_mm),
+                               kernel_array(img.reshape(-1, 2)),
                                camera.fx, camera.fy, camera.cx, camera.cy)
     P = points_mm @ T[:3, :3].T + T[:3, 3]
     if P[:, 2].min() <= 0.0:

@@ -41,6 +41,7 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from estimator.arrays import kernel_array
 from estimator.bias import centroid_bias_px
 from estimator.camera import CameraModel
 from estimator.coplanar import posit_coplanar
@@ -239,9 +240,7 @@ def mirrored_pose(
     """
     if centre_mm is None:
         centre_mm = points_mm.mean(axis=0)
-    return _mirror(np.require(T, np.float64, ["C", "W"]),
-                   np.require(normal, np.float64, ["C", "W"]),
-                   np.require(centre_mm, np.float64, ["C", "W"]))
+    return _mirror(kernel_array(T), kernel_array(normal), kernel_array(centre_mm))
 
 
 @numba.njit(cache=True, nogil=True)
