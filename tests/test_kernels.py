@@ -57,10 +57,10 @@ def test_odd_inputs_compile_no_second_variant() -> None:
     for camera in (CAM, CAM_DISTORTED):
         frame = render_target(camera, target, T, rng=np.random.default_rng(1))
         frame.flags.writeable = False
-        estimator_ = Estimator(camera, target)
-        estimator_.estimate(frame)
-        estimator_.estimate(frame)
-        assert estimator_.last_mode == "tracking"
+        pipeline = Estimator(camera, target)
+        pipeline.estimate(frame)
+        pipeline.estimate(frame)
+        assert pipeline.last_mode == "tracking"
         img = camera.project(points @ T[:3, :3].T + T[:3, 3])
         fortran = np.asfortranarray(img)
         readonly = img.copy()
