@@ -16,6 +16,7 @@ from estimator import (
     PositResult,
     TooFewBlobsError,
     posit,
+    solve_pose,
 )
 from estimator.transforms import make_T, pose_distance
 from tests.pose_scenes import CAM, CAM_DISTORTED, FLAT, SOLID
@@ -110,6 +111,28 @@ def test_wrong_fixed_point_at_close_range() -> None:
     assert result.converged
     assert pose_distance(result.T_camera_target, T)[1] > 10.0
     assert result.rms_px > 100.0
+
+
+def test_coplanar_posit_walks_away_from_a_near_frontal_plate_and_solve_pose_recovers() -> None:
+    """A plate tilted 8 deg, noise-free: the true pose is a fixed point of coplanar POSIT, but
+    a repelling one (near-frontal plates make the out-of-plane component a square root of a
+    vanishing quantity), so the iteration converges elsewhere, 30 deg off; neither branch is
+    right. solve_pose's refinement and second-minimum search still land on the exact pose."""
+    plate = np.array([[114.055644, 12.974365, 0.0], [50.799174, 74.493233, 0.0],
+                      [49.103896, 49.463432, 0.0], [3.307094, 67.81618, 0.0],
+                      [64.577198, 29.675854, 0.0], [94.611444, 27.287535, 0.0]])
+    camera = CameraModel(800.0, 800.0, 639.5, 399.5, width=1280, height=800)
+    T = make_T(Rotation.from_rotvec([0.107317, 0.113399, -1.490715]).as_matrix(),
+               [-155.917944, 54.021709, 621.440249])
+    img = camera.project(plate @ T[:3, :3].T + T[:3, 3])
+    seed = posit(plate, img, camera)
+    assert seed.converged
+    assert pose_distance(seed.T_camera_target, T)[1] > 20.0
+    assert seed.alternative is not None
+    assert pose_distance(seed.alternative[0], T)[1] > 5.0
+    result = solve_pose(plate, img, camera)
+    dt_mm, dr_deg = pose_distance(result.T_camera_target, T)
+    assert dt_mm < 1e-6 and dr_deg < 1e-6
 
 
 def test_too_few_points() -> None:
