@@ -107,26 +107,60 @@ def normalised_image_points(
         raise ValueError(f"image points must have shape (N, 2), got {img.shape}")
     if len(img) != n_expected:
         raise ValueError(f"{len(img)} image points for {n_expected} object points")
-    if not np.all(np.isfinite(img)):
-        raise ValueError("image points must be finite")
     if camera.has_distortion:
-        xy = camera.undistort_points(img)
-    else:  # the pinhole inverse inline (the same arithmetic, per column): this runs often
-        c, f = _principal_and_focal(camera)
-        xy = (img - c) / f
-    centred = xy - xy.mean(axis=0)
-    # Singular values of the centred points from the 2x2 scatter matrix (closed form, no SVD):
-    # s1/s0 = sqrt(lambda_min/lambda_max).
-    (a, b), (_, d) = (centred.T @ centred).tolist()
-    half_trace, det = 0.5 * (a + d), a * d - b * b
-    lam_max = half_trace + math.sqrt(max(half_trace * half_trace - det, 0.0))
-    lam_min = det / lam_max if lam_max > 0.0 else 0.0
-    if lam_max <= 0.0 or lam_min <= COLLINEAR_RATIO**2 * lam_max:
+        if not np.isfinite(img).all():
+            raise ValueError("image points must be finite")
+        xy = kernel_array(camera.undistort_points(img))
+    else:  # the pinhole inverse, compiled with the spread below: this runs every frame
+        xy = _pinhole_normalised(kernel_array(img), camera.fx, camera.fy, camera.cx, camera.cy)
+    spread = _spread_ratio(xy)
+    if not spread >= 0.0:  # NaN: a coordinate is not finite
+        raise ValueError("image points must be finite")
+    if spread <= COLLINEAR_RATIO**2:
         raise DegenerateGeometryError(
             "the image points are collinear or coincident (target seen edge-on?): tilt the "
             "target towards the camera"
         )
     return xy
+
+
+@numba.njit(cache=True, nogil=True)
+def _pinhole_normalised(
+    img: NDArray[np.float64], fx: float, fy: float, cx: float, cy: float
+) -> NDArray[np.float64]:
+    """Pixel -> normalised coordinates of a camera without distortion."""
+    out = np.empty_like(img)
+    for i in range(img.shape[0]):
+        out[i, 0] = (img[i, 0] - cx) / fx
+        out[i, 1] = (img[i, 1] - cy) / fy
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _spread_ratio(xy: NDArray[np.float64]) -> float:
+    """lambda_min / lambda_max of the points' 2x2 scatter matrix (the squared ratio of their
+    singular values, closed form, no SVD): 0 for collinear or coincident points, NaN when a
+    coordinate is not finite."""
+    n = xy.shape[0]
+    mx = my = 0.0
+    for i in range(n):
+        mx += xy[i, 0]
+        my += xy[i, 1]
+    mx /= n
+    my /= n
+    a = b = d = 0.0
+    for i in range(n):
+        dx, dy = xy[i, 0] - mx, xy[i, 1] - my
+        a += dx * dx
+        b += dx * dy
+        d += dy * dy
+    if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(d)):
+        return math.nan
+    half_trace, det = 0.5 * (a + d), a * d - b * b
+    lam_max = half_trace + math.sqrt(max(half_trace * half_trace - det, 0.0))
+    if lam_max <= 0.0:
+        return 0.0
+    return max(det / lam_max, 0.0) / lam_max
 
 
 def pose_from_rows(
@@ -183,11 +217,6 @@ def _pinhole_rms_px(
         du, dv = fx * x / z + cx - img[i, 0], fy * y / z + cy - img[i, 1]
         total += du * du + dv * dv
     return math.sqrt(total / P.shape[0])
-
-
-@functools.lru_cache(maxsize=16)
-def _principal_and_focal(camera: CameraModel) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    return np.array([camera.cx, camera.cy]), np.array([camera.fx, camera.fy])
 
 
 @functools.lru_cache(maxsize=16)
