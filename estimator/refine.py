@@ -157,8 +157,7 @@ def refine_fit(
     projection beyond LM's own; the Jacobian for the covariance is taken only for the pose
     that is kept (:func:`pose_reprojection`).
     """
-    R0, t0 = T_init[:3, :3], T_init[:3, 3]
-    points_cam = obj @ R0.T + t0
+    points_cam = obj @ T_init[:3, :3].T + T_init[:3, 3]
     fun, jac, residuals_at = _correction_problem(points_cam, img.reshape(-1), K, dist)
     x0 = np.zeros(6)
     if _LMDER is not None:
@@ -167,11 +166,16 @@ def refine_fit(
     else:  # pragma: no cover - depends on the SciPy release
         x = leastsq(fun, x0, Dfun=jac, ftol=TOLERANCE, xtol=TOLERANCE,
                     maxfev=MAX_EVALUATIONS)[0]
+    return left_corrected(T_init, x), residuals_at(x).reshape(-1, 2)
+
+
+def left_corrected(T: NDArray[np.float64], x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The pose T moved by the left correction x = (delta, tau): R(delta) (R P + t) + tau."""
     dR = cv2.Rodrigues(x[:3])[0]
-    T: NDArray[np.float64] = np.eye(4)
-    T[:3, :3] = dR @ R0
-    T[:3, 3] = dR @ t0 + x[3:]
-    return T, residuals_at(x).reshape(-1, 2)
+    out: NDArray[np.float64] = np.eye(4)
+    out[:3, :3] = dR @ T[:3, :3]
+    out[:3, 3] = dR @ T[:3, 3] + x[3:]
+    return out
 
 
 def pose_reprojection(
@@ -227,12 +231,7 @@ def shift_pose(
     residuals = np.asarray(projected, dtype=np.float64).reshape(-1, 1) - img.reshape(-1, 1)
     ok, step = cv2.solve(np.asarray(jacobian[:, :6]), -residuals,
                          flags=cv2.DECOMP_CHOLESKY | cv2.DECOMP_NORMAL)
-    moved = T
-    if ok:  # otherwise J is rank-deficient (the points do not determine the pose): keep T
-        step = step.reshape(6)
-        dR = cv2.Rodrigues(step[:3])[0]
-        moved = np.eye(4)
-        moved[:3, :3] = dR @ T[:3, :3]
-        moved[:3, 3] = dR @ T[:3, 3] + step[3:]
+    # Not ok: J is rank-deficient (the points do not determine the pose), so T stays.
+    moved = left_corrected(T, np.asarray(step, dtype=np.float64).reshape(6)) if ok else T
     _, residuals2, J2 = pose_reprojection(obj, img, K, dist, moved)
     return moved, residuals2, J2
