@@ -166,6 +166,9 @@ class ApiConfig(_Strict):
 
     tokens: list[TokenConfig] = Field(default_factory=list)
     job_db: str = "var/cell_jobs.db"  # relative paths are relative to the working directory
+    # Each successful hand-eye routine saves its views (images, flange poses) to a dataset
+    # folder here, named after its job; empty: not saved.
+    calibration_dir: str = "var/calibration"
     image_log_dir: str = ""  # empty: no image log of failed locates
     image_log_max: int = Field(default=50, ge=1)
 

@@ -28,6 +28,7 @@ def sim_config(tmp_path: Path, *, robot: str = "sim", host: str = "127.0.0.1",
     data["sim"]["ur_controller"] = robot == "ur"
     data["gripper"]["kind"] = gripper
     data["api"]["job_db"] = str(tmp_path / "jobs.db")
+    data["api"]["calibration_dir"] = str(tmp_path / "calibration")
     for name, values in tables.items():
         data[name].update(values)
     return parse_config(data)

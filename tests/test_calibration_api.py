@@ -16,6 +16,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from api.app import create_app
+from cell.calibration.dataset import load_dataset
+from cell.calibration.solve import solve_dataset
 from cell.config import load_config
 from cell.service import Cell
 from estimator.transforms import T_from_pose_dict, pose_distance
@@ -113,6 +115,13 @@ def test_hand_eye_routine_end_to_end(client: TestClient, tmp_path: Path) -> None
           f"(guess was {pose_distance(guess, truth)[0]:.2f} mm off)")
     assert d_mm < 0.2 and d_deg < 0.05
     assert pose_distance(tcp(cell), start)[0] < 0.2  # back at its start pose
+    # the views are kept as a dataset that re-solves offline to the same answer
+    saved = result["dataset"]
+    assert saved["saved"] is True and saved["views"] == len(result["views"])
+    assert Path(saved["folder"]) == tmp_path / "calibration" / f"hand-eye-{job_id}"
+    again = solve_dataset(load_dataset(saved["folder"]), chosen="joint")
+    d_mm, d_deg = pose_distance(again.T_flange_camera, T_from_pose_dict(result["T_flange_camera"]))
+    assert d_mm < 1e-3 and d_deg < 1e-4
     # nothing applied without a request
     assert np.allclose(cell.frames.T_flange_camera, guess)
     assert load_config(tmp_path / "cell.toml").hand_eye.T_flange_camera.T()[1, 3] == 60.0

@@ -12,8 +12,10 @@ The project's format is a folder with a ``dataset.json``::
      "views": [{"image": "view-01.png",
                 "T_base_flange": {"position_mm": [...], "rotvec_rad": [...]}}, ...]}
 
-Image paths are relative to the folder. Every failure is a :class:`DatasetError` whose message
-names the file and what is wrong with it.
+Instead of ``"board"``, a dataset may name the cell's dot target, as the guided routine on a
+cell writes it: ``"target": {"points_mm": [[x, y, z], ...], "dot_diameter_mm": 8.0,
+"polarity": "dark"}``. Image paths are relative to the folder. Every failure is a
+:class:`DatasetError` whose message names the file and what is wrong with it.
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
-from estimator import CameraModel
+from estimator import CameraModel, Target
 from estimator.calib.board import Board
 from estimator.transforms import T_from_pose_dict, T_from_ur_pose, pose_dict
 
@@ -67,10 +69,17 @@ class View:
 @dataclass(frozen=True)
 class HandEyeDataset:
     camera: CameraModel
-    board: Board
+    board: Board | None  # the calibration pattern: a board, or else ...
     views: tuple[View, ...]
     source: str  # "visp" or "project"
     folder: Path
+    target: Target | None = None  # ... the cell's dot target
+
+    @property
+    def pattern(self) -> Board | Target:
+        pattern = self.board if self.board is not None else self.target
+        assert pattern is not None  # the loaders set exactly one
+        return pattern
 
 
 def load_dataset(folder: str | Path) -> HandEyeDataset:
@@ -213,8 +222,16 @@ def load_project_dataset(folder: str | Path) -> HandEyeDataset:
         c = data["camera"]
         camera = CameraModel(float(c["fx"]), float(c["fy"]), float(c["cx"]), float(c["cy"]),
                              tuple(c.get("dist", ())), int(c["width"]), int(c["height"]))
-        b = data["board"]
-        board = Board(b["kind"], int(b["cols"]), int(b["rows"]), float(b["pitch_mm"]))
+        board, target = None, None
+        if "board" in data:
+            b = data["board"]
+            board = Board(b["kind"], int(b["cols"]), int(b["rows"]), float(b["pitch_mm"]))
+        elif "target" in data:
+            t = data["target"]
+            target = Target(np.asarray(t["points_mm"], dtype=float),
+                            float(t["dot_diameter_mm"]), t.get("polarity", "dark"))
+        else:
+            raise ValueError('the dataset names no pattern: give "board" or "target"')
         views = []
         for k, v in enumerate(data["views"]):
             try:
@@ -230,17 +247,18 @@ def load_project_dataset(folder: str | Path) -> HandEyeDataset:
         raise
     except (KeyError, TypeError, ValueError, AttributeError) as err:
         raise DatasetError("dataset_invalid", f"{path}: {err!r}") from err
-    return HandEyeDataset(camera, board, tuple(views), "project", d)
+    return HandEyeDataset(camera, board, tuple(views), "project", d, target)
 
 
 def save_project_dataset(
     folder: str | Path,
     camera: CameraModel,
-    board: Board,
+    pattern: Board | Target,
     views: Sequence[tuple[str, NDArray[np.float64]]],
     images: Sequence[NDArray[np.uint8]] | None = None,
 ) -> HandEyeDataset:
-    """Write ``dataset.json`` (and the images when given) for ``(image file, T_base_flange)``."""
+    """Write ``dataset.json`` (and the images when given, lossless) for ``(image file,
+    T_base_flange)`` views of a board or of the dot target."""
     d = Path(folder)
     d.mkdir(parents=True, exist_ok=True)
     if images is not None:
@@ -252,9 +270,14 @@ def save_project_dataset(
         "version": 1,
         "camera": {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
                    "width": camera.width, "height": camera.height, "dist": list(camera.dist)},
-        "board": {"kind": board.kind, "cols": board.cols, "rows": board.rows,
-                  "pitch_mm": board.pitch_mm},
-        "views": [{"image": name, "T_base_flange": pose_dict(T)} for name, T in views],
     }
+    if isinstance(pattern, Board):
+        data["board"] = {"kind": pattern.kind, "cols": pattern.cols, "rows": pattern.rows,
+                         "pitch_mm": pattern.pitch_mm}
+    else:
+        data["target"] = {"points_mm": pattern.points_mm.tolist(),
+                          "dot_diameter_mm": pattern.dot_diameter_mm,
+                          "polarity": pattern.polarity}
+    data["views"] = [{"image": name, "T_base_flange": pose_dict(T)} for name, T in views]
     (d / DATASET_FILE).write_text(json.dumps(data, indent=2) + "\n")
     return load_project_dataset(d)

@@ -14,20 +14,22 @@ wrong pose. Views that fail (unreachable pose, target not found) are reported an
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from cell.calibration.dataset import HandEyeDataset, save_project_dataset
+from cell.calibration.observe import Observation, ObservationError, Observer
 from cell.calibration.report import HandEyeReport
 from cell.calibration.solve import Progress, solve_observations
 from drivers.arm import Arm
 from drivers.camera import Camera, Frame
 from drivers.errors import DriverError
-from estimator import CameraModel, EstimationError, Target
-from estimator.calib.board import Board, board_pose, detect_board
+from estimator import CameraModel, Target
+from estimator.calib.board import Board
 from estimator.calib.handeye import HandEyeError
 from estimator.transforms import invert_T, make_T
 
@@ -43,65 +45,6 @@ class RoutineError(Exception):
         super().__init__(message)
         self.code = code
         self.message = message
-
-
-@dataclass(frozen=True)
-class Observation:
-    """The target in one image: matched points and the pose they give on their own."""
-
-    object_points_mm: NDArray[np.float64]  # (N, 3) in the target frame
-    image_points_px: NDArray[np.float64]  # (N, 2)
-    T_camera_board: Matrix4
-    rms_px: float
-
-
-Observer = Callable[[NDArray[np.uint8], CameraModel], Observation]
-
-
-class ObservationError(Exception):
-    """The target was not found in the image; the message says why."""
-
-
-def board_observer(board: Board) -> Observer:
-    """Observe a chessboard or circle grid."""
-
-    def observe(image: NDArray[np.uint8], camera: CameraModel) -> Observation:
-        pts = detect_board(board, image)
-        if pts is None:
-            raise ObservationError(f"no complete {board.cols}x{board.rows} {board.kind} in view")
-        pose = board_pose(board, pts, camera)
-        return Observation(board.object_points_mm(), pts, pose.T_camera_board, pose.rms_px)
-
-    return observe
-
-
-def dot_target_observer(target: Target, min_dots: int | None = None) -> Observer:
-    """Observe the cell's dot target with the estimator (blobs, matching, bias-corrected pose).
-
-    All dots are required by default: a missing dot is usually a dot at the image border,
-    where its centre is the least trustworthy.
-    """
-    from estimator.blobs import detect_blobs
-    from estimator.correspondence import match_blobs
-
-    needed = target.n_points if min_dots is None else min_dots
-
-    def observe(image: NDArray[np.uint8], camera: CameraModel) -> Observation:
-        blobs = detect_blobs(image, target.polarity)
-        try:
-            match = match_blobs([(b.u, b.v) for b in blobs], target, camera, max_missing=0
-                                if needed >= target.n_points else target.n_points - needed)
-        except EstimationError as err:
-            raise ObservationError(err.message) from err
-        pose = match.pose
-        pts = pose.image_points_px
-        if pts is None:
-            raise ObservationError("the estimator returned no image points")
-        ids = np.asarray(match.model_ids, dtype=int)
-        return Observation(target.points_mm[ids], np.asarray(pts, dtype=float).reshape(-1, 2),
-                           pose.T_camera_target, float(pose.rms_px))
-
-    return observe
 
 
 @dataclass(frozen=True)
@@ -132,6 +75,21 @@ class RoutineResult:
     T_base_flange: tuple[Matrix4, ...]  # of the views used
     observations: tuple[Observation, ...]
     failed: tuple[tuple[int, str], ...] = field(default_factory=tuple)  # (view, reason)
+    images: tuple[NDArray[np.uint8], ...] = ()  # of the views used, as the camera gave them
+    camera: CameraModel | None = None  # the intrinsics the views were solved with
+
+
+def save_views(folder: str | Path, result: RoutineResult, pattern: Board | Target
+               ) -> HandEyeDataset:
+    """Write the routine's views (PNG, lossless) and flange poses as a project dataset, so
+    ``cell calibrate hand-eye FOLDER`` re-solves exactly what the routine solved (same images,
+    same observations, same answer) and the calibration can be audited or redone later."""
+    if result.camera is None or len(result.images) != len(result.T_base_flange):
+        raise ValueError("this routine result holds no images to save")
+    names = [f"view-{k:02d}.png" for k in range(len(result.images))]
+    return save_project_dataset(folder, result.camera, pattern,
+                                list(zip(names, result.T_base_flange, strict=True)),
+                                result.images)
 
 
 def plan_poses(
@@ -181,13 +139,13 @@ def run_hand_eye_routine(
     report = progress or (lambda stage, done, total: None)
     tcp_inv = invert_T(T_flange_tcp)
     T_start_tcp = arm.tcp_pose()
-    flange0, obs0, intrinsics = _capture(arm, camera, observer, tcp_inv, s)
+    flange0, obs0, intrinsics, image0 = _capture(arm, camera, observer, tcp_inv, s)
     if isinstance(obs0, str):
         raise RoutineError("target_not_visible", f"at the start pose: {obs0}")
     centre = obs0.object_points_mm.mean(axis=0)
     pivot = obs0.T_camera_board[:3, :3] @ centre + obs0.T_camera_board[:3, 3]
     plan = plan_poses(flange0, T_flange_camera_guess, pivot, s)
-    flanges, observations, failed = [flange0], [obs0], []
+    flanges, observations, images, failed = [flange0], [obs0], [image0], []
     report("views", 1, len(plan))
     try:
         for k, T_base_flange in enumerate(plan[1:], start=1):
@@ -199,12 +157,13 @@ def run_hand_eye_routine(
                 failed.append((k, f"move refused: {err}"))
                 report("views", k + 1, len(plan))
                 continue
-            flange, obs, _ = _capture(arm, camera, observer, tcp_inv, s)
+            flange, obs, _, image = _capture(arm, camera, observer, tcp_inv, s)
             if isinstance(obs, str):
                 failed.append((k, obs))
             else:
                 flanges.append(flange)
                 observations.append(obs)
+                images.append(image)
             report("views", k + 1, len(plan))
     finally:
         if s.return_to_start and arm.state().ready:
@@ -226,13 +185,15 @@ def run_hand_eye_routine(
         )
     except HandEyeError as err:
         raise RoutineError(err.code, str(err)) from err
-    return RoutineResult(result, tuple(flanges), tuple(observations), tuple(failed))
+    return RoutineResult(result, tuple(flanges), tuple(observations), tuple(failed),
+                         tuple(images), intrinsics)
 
 
 def _capture(
     arm: Arm, camera: Camera, observer: Observer, tcp_inv: Matrix4, s: RoutineSettings
-) -> tuple[Matrix4, Observation | str, CameraModel]:
-    """A frame exposed after the arm settled, its flange pose, and what it shows."""
+) -> tuple[Matrix4, Observation | str, CameraModel, NDArray[np.uint8]]:
+    """A frame exposed after the arm settled: its flange pose, what it shows, the camera's
+    intrinsics and the image."""
     stopped = time.monotonic()
     time.sleep(s.settle_s)
     frame = _frame_after(camera, stopped + s.settle_s, s.frame_timeout_s)
@@ -242,9 +203,9 @@ def _capture(
         T_base_tcp = arm.tcp_pose()
     flange = T_base_tcp @ tcp_inv
     try:
-        return flange, observer(frame.image, frame.camera), frame.camera
+        return flange, observer(frame.image, frame.camera), frame.camera, frame.image.copy()
     except ObservationError as err:
-        return flange, str(err), frame.camera
+        return flange, str(err), frame.camera, frame.image.copy()
 
 
 def _frame_after(camera: Camera, t_s: float, timeout_s: float) -> Frame:

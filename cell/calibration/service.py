@@ -24,11 +24,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.calibration.config_writer import ConfigWriteError, write_hand_eye
+from cell.calibration.dataset import DatasetError
+from cell.calibration.observe import dot_target_observer
 from cell.calibration.routine import (
     RoutineError,
+    RoutineResult,
     RoutineSettings,
-    dot_target_observer,
     run_hand_eye_routine,
+    save_views,
 )
 from cell.calibration.solve import CHOICES
 from cell.jobs import Job
@@ -137,6 +140,7 @@ class CalibrationService:
             out["change_from_current"] = {"T_flange_camera": pose_dict(guess),
                                           "distance_mm": d_mm, "distance_deg": d_deg}
             out["applied"] = None
+            out["dataset"] = self._save(job_id, result)
             job = cell.jobs.finish(job_id, "succeeded", out)
         except Cancelled as err:
             job = cell.jobs.finish(job_id, "cancelled", None, err.code, err.message)
@@ -156,6 +160,22 @@ class CalibrationService:
         cell.jobs.audit(job.caller, "calibrate_end", {"job_id": job_id}, job.state,
                         job.error_message or "", job_id, job.created_at)
         self._publish(job)
+
+    def _save(self, job_id: str, result: RoutineResult) -> dict[str, Any] | None:
+        """Save the views as a dataset (see ``[api] calibration_dir``) -> where, or why not.
+
+        A failure to save does not fail the calibration, whose result stands on its own; it
+        is reported in the result and logged."""
+        root = self.cell.config.api.calibration_dir
+        if not root:
+            return None
+        folder = Path(root) / f"hand-eye-{job_id}"
+        try:
+            dataset = save_views(folder, result, self.cell.target)
+        except (DatasetError, OSError) as err:
+            log.warning("calibration job %s: views not saved to %s: %s", job_id, folder, err)
+            return {"folder": str(folder), "saved": False, "error": str(err)}
+        return {"folder": str(dataset.folder), "saved": True, "views": len(dataset.views)}
 
     def _publish(self, job: Job) -> None:
         self.cell.events.publish(EVENT, {"job_id": job.id, "state": job.state,

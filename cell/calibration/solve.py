@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.calibration.dataset import HandEyeDataset
+from cell.calibration.observe import ObservationError, dot_target_observer
 from cell.calibration.report import HandEyeReport, MethodResult, judge
 from estimator import CameraModel
 from estimator.calib.board import Board, board_pose, detect_board
@@ -34,10 +35,14 @@ def solve_dataset(
     refine: bool = True,
     progress: Progress | None = None,
 ) -> HandEyeReport:
-    """Detect the board in every view's image, then :func:`solve_views`."""
+    """Find the pattern in every view's image (views without it are skipped), then solve:
+    a board's features go to :func:`solve_views`, the dot target's observations (the same the
+    guided routine makes) to :func:`solve_observations`."""
     report = progress or _quiet
-    names, flanges, points, skipped = [], [], [], []
     total = len(dataset.views)
+    if dataset.board is None:
+        return _solve_target_dataset(dataset, chosen, refine, report)
+    names, flanges, points, skipped = [], [], [], []
     for k, view in enumerate(dataset.views):
         corners = detect_board(dataset.board, view.load_image())
         if corners is None:
@@ -49,6 +54,28 @@ def solve_dataset(
         report("detect", k + 1, total)
     return solve_views(dataset.camera, dataset.board, names, flanges, points, chosen, refine,
                        tuple(skipped), report)
+
+
+def _solve_target_dataset(
+    dataset: HandEyeDataset, chosen: str, refine: bool, report: Progress
+) -> HandEyeReport:
+    assert dataset.target is not None
+    observe = dot_target_observer(dataset.target)
+    names, flanges, observations, skipped = [], [], [], []
+    for k, view in enumerate(dataset.views):
+        try:
+            observations.append(observe(view.load_image(), dataset.camera))
+        except ObservationError:
+            skipped.append(view.name)
+        else:
+            names.append(view.name)
+            flanges.append(view.T_base_flange)
+        report("detect", k + 1, len(dataset.views))
+    return solve_observations(
+        dataset.camera, names, flanges, [o.object_points_mm for o in observations],
+        [o.image_points_px for o in observations], [o.T_camera_board for o in observations],
+        [o.rms_px for o in observations], chosen, refine, tuple(skipped), report,
+    )
 
 
 def solve_views(

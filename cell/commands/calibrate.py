@@ -57,6 +57,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     rt.add_argument("--square-mm", "--pitch-mm", dest="pitch_mm", type=float, default=25.0)
     rt.add_argument("--write-config", metavar="FILE",
                     help="write the chosen T_flange_camera into FILE's [hand_eye] table")
+    rt.add_argument("--save-dataset", metavar="DIR",
+                    help="write the views (images and flange poses) as a dataset to DIR, for "
+                         "`cell calibrate hand-eye DIR` to re-solve")
     rt.add_argument("--json", action="store_true", help="print JSON")
     rt.set_defaults(func=run_routine)
 
@@ -109,12 +112,13 @@ def run_hand_eye(args: argparse.Namespace) -> int:
 
 def run_routine(args: argparse.Namespace) -> int:
     from cell.calibration.config_writer import ConfigWriteError, write_hand_eye
+    from cell.calibration.dataset import DatasetError
+    from cell.calibration.observe import board_observer, dot_target_observer
     from cell.calibration.routine import (
         RoutineError,
         RoutineSettings,
-        board_observer,
-        dot_target_observer,
         run_hand_eye_routine,
+        save_views,
     )
     from cell.commands.common import fail, print_json
     from cell.config import ConfigError, load_config
@@ -127,8 +131,10 @@ def run_routine(args: argparse.Namespace) -> int:
         settings = RoutineSettings(n_views=args.views, tilt_deg=args.tilt_deg,
                                    speed_mm_s=args.speed_mm_s, accel_mm_s2=4 * args.speed_mm_s,
                                    chosen=args.method, min_views=min(6, args.views))
-        observer = (board_observer(Board(args.board, args.cols, args.rows, args.pitch_mm))
-                    if args.board else dot_target_observer(cfg.target.model()))
+        pattern = (Board(args.board, args.cols, args.rows, args.pitch_mm) if args.board
+                   else cfg.target.model())
+        observer = (board_observer(pattern) if isinstance(pattern, Board)
+                    else dot_target_observer(pattern))
     except ConfigError as err:
         return fail(ConfigError.code, str(err), args.json)
     except ValueError as err:
@@ -154,6 +160,12 @@ def run_routine(args: argparse.Namespace) -> int:
     finally:
         hw.close()
     report = result.report
+    saved = None
+    if args.save_dataset:
+        try:
+            saved = str(save_views(args.save_dataset, result, pattern).folder)
+        except DatasetError as err:
+            return fail(err.code, err.message, args.json)
     written = None
     if args.write_config:
         note = f"cell calibrate routine, {len(report.view_names)} views, --method {report.chosen}"
@@ -166,11 +178,14 @@ def run_routine(args: argparse.Namespace) -> int:
         out = report.as_dict()
         out["failed_views"] = [{"view": k, "reason": r} for k, r in result.failed]
         out["written_config"] = written
+        out["dataset"] = saved
         print_json(out)
     else:
         print(report.summary())
         for k, reason in result.failed:
             print(f"view {k} skipped: {reason}")
+        if saved:
+            print(f"views saved to {saved} (re-solve: cell calibrate hand-eye {saved})")
         if written:
             print(f"wrote [hand_eye] T_flange_camera ({report.chosen}) to {written}")
     return 0
