@@ -75,12 +75,6 @@ class HandEyeDataset:
     folder: Path
     target: Target | None = None  # ... the cell's dot target
 
-    @property
-    def pattern(self) -> Board | Target:
-        pattern = self.board if self.board is not None else self.target
-        assert pattern is not None  # the loaders set exactly one
-        return pattern
-
 
 def load_dataset(folder: str | Path) -> HandEyeDataset:
     """Read either format, recognised by its files."""
