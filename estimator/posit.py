@@ -14,7 +14,6 @@ Everything runs in undistorted normalised image coordinates, so the focal length
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 
@@ -219,12 +218,6 @@ def _pinhole_rms_px(
     return math.sqrt(total / P.shape[0])
 
 
-@functools.lru_cache(maxsize=16)
-def pinhole_matrix(camera: CameraModel) -> NDArray[np.float64]:
-    """The camera's K, made once per camera."""
-    return camera.K
-
-
 def all_in_front(T: NDArray[np.float64], points_mm: NDArray[np.float64]) -> bool:
     """True when every model point has positive depth in the camera frame."""
     return min((points_mm @ T[2, :3]).tolist()) > -T[2, 3]
@@ -235,17 +228,16 @@ class FrameSystem:
 
     With corrected image points x_i(1 + eps_i) - x0, the scaled-orthographic solution is
     I = B (x - x0) + (B diag(x)) eps, and likewise for J; both are stacked into one 6-vector
-    ``offset + gain @ eps`` (``gain_t`` is its transpose, as the compiled coplanar step reads it).
+    ``offset + gain @ eps``. (Coplanar POSIT builds the same system inside its compiled
+    kernel, :func:`estimator.coplanar._branches`.)
     """
 
     def __init__(self, model: ObjectModel, xy: NDArray[np.float64]) -> None:
         B = model.object_matrix
         pts = xy[1:]
-        self.x0, self.y0 = float(xy[0, 0]), float(xy[0, 1])
-        self.xy0 = xy[0].copy()
-        self.offset = np.concatenate((B @ (pts[:, 0] - self.x0), B @ (pts[:, 1] - self.y0)))
+        x0, y0 = float(xy[0, 0]), float(xy[0, 1])
+        self.offset = np.concatenate((B @ (pts[:, 0] - x0), B @ (pts[:, 1] - y0)))
         self.gain = np.vstack((B * pts[:, 0], B * pts[:, 1]))
-        self.gain_t = np.ascontiguousarray(self.gain.T)
         # How far (normalised units) a corrected point moves per unit change of its epsilon.
         self.radius = np.sqrt((pts * pts).sum(axis=1))
 

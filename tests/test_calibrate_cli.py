@@ -267,6 +267,24 @@ def test_dot_target_dataset_round_trip_and_a_dataset_without_pattern(tmp_path: P
     assert err.value.code == "dataset_invalid" and '"board" or "target"' in err.value.message
 
 
+def test_routine_refuses_a_dataset_folder_it_cannot_use_before_moving(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg = sim_cell_config(tmp_path / "cell.toml")
+    taken = tmp_path / "taken"
+    taken.mkdir()
+    (taken / "dataset.json").write_text("{}")
+    code, out = run_json(capsys, "calibrate", "routine", "--config", str(cfg),
+                         "--save-dataset", str(taken))
+    assert code == 2 and out["error"]["code"] == "dataset_exists"
+    assert (taken / "dataset.json").read_text() == "{}"  # the old record is untouched
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    code, out = run_json(capsys, "calibrate", "routine", "--config", str(cfg),
+                         "--save-dataset", str(blocker / "views"))
+    assert code == 2 and out["error"]["code"] == "dataset_unwritable"
+
+
 def test_routine_without_target_in_view_is_a_json_error(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -244,6 +244,26 @@ def load_project_dataset(folder: str | Path) -> HandEyeDataset:
     return HandEyeDataset(camera, board, tuple(views), "project", d, target)
 
 
+def new_dataset_folder(folder: str | Path) -> Path:
+    """Create ``folder`` for a dataset about to be recorded, before anything moves.
+
+    Raises DatasetError ``dataset_exists`` when it already holds a dataset (a calibration's
+    record is never overwritten) and ``dataset_unwritable`` when it cannot be written.
+    """
+    d = Path(folder)
+    if (d / DATASET_FILE).exists():
+        raise DatasetError("dataset_exists", f"{d} already holds a {DATASET_FILE}: choose a "
+                           "new folder (a calibration's record is never overwritten)")
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+        probe = d / ".write-test"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        raise DatasetError("dataset_unwritable", f"cannot write to {d}: {err}") from err
+    return d
+
+
 def save_project_dataset(
     folder: str | Path,
     camera: CameraModel,
@@ -254,7 +274,10 @@ def save_project_dataset(
     """Write ``dataset.json`` (and the images when given, lossless) for ``(image file,
     T_base_flange)`` views of a board or of the dot target."""
     d = Path(folder)
-    d.mkdir(parents=True, exist_ok=True)
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise DatasetError("dataset_unwritable", f"cannot create {d}: {err}") from err
     if images is not None:
         for (name, _), img in zip(views, images, strict=True):
             if not cv2.imwrite(str(d / name), img):
@@ -273,5 +296,9 @@ def save_project_dataset(
                           "dot_diameter_mm": pattern.dot_diameter_mm,
                           "polarity": pattern.polarity}
     data["views"] = [{"image": name, "T_base_flange": pose_dict(T)} for name, T in views]
-    (d / DATASET_FILE).write_text(json.dumps(data, indent=2) + "\n")
+    try:
+        (d / DATASET_FILE).write_text(json.dumps(data, indent=2) + "\n")
+    except OSError as err:
+        raise DatasetError("dataset_unwritable", f"cannot write {d / DATASET_FILE}: {err}"
+                           ) from err
     return load_project_dataset(d)

@@ -112,7 +112,7 @@ def run_hand_eye(args: argparse.Namespace) -> int:
 
 def run_routine(args: argparse.Namespace) -> int:
     from cell.calibration.config_writer import ConfigWriteError, write_hand_eye
-    from cell.calibration.dataset import DatasetError
+    from cell.calibration.dataset import DatasetError, new_dataset_folder
     from cell.calibration.observe import board_observer, dot_target_observer
     from cell.calibration.routine import (
         RoutineError,
@@ -135,8 +135,12 @@ def run_routine(args: argparse.Namespace) -> int:
                    else cfg.target.model())
         observer = (board_observer(pattern) if isinstance(pattern, Board)
                     else dot_target_observer(pattern))
+        if args.save_dataset:  # checked before the arm moves for minutes
+            new_dataset_folder(args.save_dataset)
     except ConfigError as err:
         return fail(ConfigError.code, str(err), args.json)
+    except DatasetError as err:
+        return fail(err.code, err.message, args.json)
     except ValueError as err:
         return fail("invalid_argument", str(err), args.json)
     try:
