@@ -220,7 +220,7 @@ def _branches(
 
 def _same_rotation(A: NDArray[np.float64], B: NDArray[np.float64]) -> bool:
     """True when two rotations differ by less than ~0.1 deg (branches that merged)."""
-    return 0.5 * (float(np.sum(A[:3, :3] * B[:3, :3])) - 1.0) > math.cos(2e-3)
+    return 0.5 * (float((A[:3, :3] * B[:3, :3]).sum()) - 1.0) > math.cos(2e-3)
 
 
 def posit_coplanar(

@@ -44,6 +44,7 @@ FAST_PATH = _LMDER is not None
 TOLERANCE = 1e-8  # relative reduction of the squared error and relative step at which LM stops
 MAX_EVALUATIONS = 200
 _STEP_BOUND = 100.0  # MINPACK's ``factor``: initial step bound (its default)
+_BOTTOM_ROW = np.array([0.0, 0.0, 0.0, 1.0])
 
 
 @functools.lru_cache(maxsize=16)
@@ -80,7 +81,7 @@ def covariance_from(residuals: NDArray[np.float64], J: NDArray[np.float64]) -> N
     sigma2 = float(np.sum(residuals * residuals)) / dof if dof > 0 else float("nan")
     JtJ = J.T @ J
     ok, inverse = cv2.invert(JtJ, flags=cv2.DECOMP_CHOLESKY)  # 5x cheaper than an SVD
-    if not ok or not np.all(np.isfinite(inverse)):
+    if not ok or not np.isfinite(inverse).all():
         inverse = np.linalg.pinv(JtJ)
     return np.asarray(sigma2 * inverse, dtype=np.float64)
 
@@ -128,18 +129,22 @@ def _correction_problem(
         key = x.tobytes()
         if key != last[0]:  # SciPy evaluates the start twice (a shape check, then lmder)
             projected, jacobian = cv2.projectPoints(points_cam, x[:3], x[3:], K, dist)
-            before[:] = last
-            last[0], last[2] = key, jacobian[:, :6]
-            last[1] = np.asarray(projected, dtype=np.float64).reshape(-1) - target_px
-        return np.asarray(last[1])
+            before[0], before[1] = last[0], last[1]
+            last[0], last[1], last[2] = key, projected.reshape(-1) - target_px, jacobian[:, :6]
+        result: NDArray[np.float64] = last[1]
+        return result
 
     def jacobian(x: NDArray[np.float64]) -> NDArray[np.float64]:
         if last[0] != x.tobytes():
             residuals(x)
-        return np.asarray(last[2])
+        result: NDArray[np.float64] = last[2]
+        return result
 
     def residuals_at(x: NDArray[np.float64]) -> NDArray[np.float64]:
-        return np.asarray(before[1]) if before[0] == x.tobytes() else residuals(x)
+        if before[0] == x.tobytes():
+            result: NDArray[np.float64] = before[1]
+            return result
+        return residuals(x)
 
     return residuals, jacobian, residuals_at
 
@@ -172,9 +177,10 @@ def refine_fit(
 def left_corrected(T: NDArray[np.float64], x: NDArray[np.float64]) -> NDArray[np.float64]:
     """The pose T moved by the left correction x = (delta, tau): R(delta) (R P + t) + tau."""
     dR = cv2.Rodrigues(x[:3])[0]
-    out: NDArray[np.float64] = np.eye(4)
+    out: NDArray[np.float64] = np.empty((4, 4))
     out[:3, :3] = dR @ T[:3, :3]
     out[:3, 3] = dR @ T[:3, 3] + x[3:]
+    out[3] = _BOTTOM_ROW
     return out
 
 
