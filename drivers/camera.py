@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Literal, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -19,6 +19,24 @@ class Frame:
     timestamp_s: float  # host time.monotonic() at mid-exposure
     sequence: int  # device frame counter; gaps mean dropped frames
     camera: CameraModel
+
+
+FocusSetting = int | Literal["auto"]
+
+
+@dataclass(frozen=True)
+class CameraSettings:
+    """Sensor settings an operator or the config may change while the camera runs.
+
+    ``None`` means "not set here": in a request, leave that setting as it is; in what a camera
+    reports, the camera has no such control (a fixed-focus sensor reports ``focus=None``).
+    ``exposure_us`` and ``iso`` together fix the exposure (manual); ``focus`` is a lens
+    position 0..255 or ``"auto"``.
+    """
+
+    exposure_us: int | None = None
+    iso: int | None = None
+    focus: FocusSetting | None = None
 
 
 @runtime_checkable
@@ -37,3 +55,13 @@ class Camera(Protocol):
     @property
     def is_connected(self) -> bool:
         """True while frames are flowing."""
+
+    def get_settings(self) -> CameraSettings:
+        """The settings in force (None for a control the camera does not have)."""
+
+    def apply_settings(self, settings: CameraSettings) -> CameraSettings:
+        """Change the settings given (None fields are left alone) and return those in force.
+
+        ValueError names the setting when a value is outside what the camera accepts; then
+        nothing changes.
+        """

@@ -28,7 +28,7 @@ import depthai as dai
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.camera import Frame
+from drivers.camera import CameraSettings, Frame
 from drivers.errors import ConnectionLostError, DeviceTimeoutError
 from drivers.oak_calibration import board_socket, camera_model_from_calibration
 from estimator import CameraModel
@@ -171,6 +171,15 @@ class OakCamera:
     @property
     def is_connected(self) -> bool:
         return self.status().state == "streaming"
+
+    def get_settings(self) -> CameraSettings:
+        s = self.settings
+        focus = s.lens_position
+        return CameraSettings(exposure_us=s.exposure_us, iso=s.iso, focus=focus)
+
+    def apply_settings(self, settings: CameraSettings) -> CameraSettings:
+        raise ValueError("changing OAK settings while it streams is not supported yet; set "
+                         "them in the config's [camera] table")
 
     @property
     def camera_model(self) -> CameraModel | None:

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.camera import Frame
+from drivers.camera import CameraSettings, Frame
 from drivers.errors import ConnectionLostError, DeviceTimeoutError
 from estimator import CameraModel, Target
 from estimator.transforms import invert_T
@@ -70,6 +70,7 @@ class SimCamera:
         self.lighting_gradient = lighting_gradient
         self.exposure_jitter = exposure_jitter
         self._rng = np.random.default_rng(seed)
+        self._iso = 100
         self._cond = threading.Condition()
         self._latest: _Exposure | None = None
         self._handed_out = -1
@@ -116,6 +117,29 @@ class SimCamera:
             self._blocked = blocked
 
     # -- Camera interface --------------------------------------------------------------------
+    def get_settings(self) -> CameraSettings:
+        """The simulated sensor has manual exposure and gain, and a fixed-focus lens."""
+        with self._cond:
+            return CameraSettings(exposure_us=round(self.exposure_s * 1e6), iso=self._iso,
+                                  focus=None)
+
+    def apply_settings(self, settings: CameraSettings) -> CameraSettings:
+        exposure_s = self.exposure_s
+        if settings.exposure_us is not None:
+            exposure_s = settings.exposure_us * 1e-6
+            if not 0 < exposure_s < 1.0 / self.fps:
+                raise ValueError(f"exposure_us must be within (0, {1e6 / self.fps:.0f}) at "
+                                 f"{self.fps:g} fps, got {settings.exposure_us}")
+        if settings.iso is not None and not 100 <= settings.iso <= 1600:
+            raise ValueError(f"iso must be within [100, 1600], got {settings.iso}")
+        if settings.focus is not None:
+            raise ValueError("the simulated camera has a fixed-focus lens: focus cannot be set")
+        with self._cond:
+            self.exposure_s = exposure_s
+            if settings.iso is not None:
+                self._iso = settings.iso
+        return self.get_settings()
+
     @property
     def is_connected(self) -> bool:
         with self._cond:
