@@ -17,6 +17,7 @@ from api import errors, metrics
 from api.auth import TokenTable, require
 from api.page import mount_page
 from api.routes import router, sim_router
+from api.routes_arm import router as arm_router
 from api.routes_calibration import install as install_calibration
 from cell.service import Cell
 
@@ -42,6 +43,7 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False) -> FastAPI:
     app.state.http_stats = metrics.HttpStats()
     errors.install(app)
     app.include_router(router)
+    app.include_router(arm_router)  # operator recovery: home, unlock, power
     install_calibration(app)  # hand-eye routine and taught poses (issue 7)
     if cell.sim is not None:
         app.include_router(sim_router)

@@ -18,7 +18,8 @@ from cell.config import SAMPLE_TOKENS, ConfigError, TokenConfig
 
 PERMISSIONS: dict[str, frozenset[str]] = {
     "viewer": frozenset({"read"}),
-    "operator": frozenset({"read", "locate", "approach", "jog", "gripper", "sim_write"}),
+    "operator": frozenset({"read", "locate", "approach", "jog", "gripper", "sim_write",
+                           "recover"}),
     "plc": frozenset({"read", "locate", "approach"}),
 }
 # every valid token may stop the cell

@@ -53,8 +53,10 @@ def sim_of(request: Request) -> SimWorld:
 
 @router.get("/health", tags=["status"])
 def health(request: Request) -> dict[str, Any]:
-    """Liveness without auth: is the process up and are the devices connected."""
-    return {"status": "ok", **cell_of(request).health()}
+    """Liveness without auth: 200 while the process serves. ``status`` is ``ok`` with every
+    device connected, ``degraded`` otherwise, and ``missing`` names the devices that are not
+    (the cell reconnects them by itself)."""
+    return cell_of(request).health()
 
 
 @router.get("/me", response_model=Me, tags=["status"])

@@ -89,6 +89,12 @@ class RobotConfig(_Strict):
     kind: Literal["ur", "sim"] = "sim"
     host: str = "127.0.0.1"
     connect_timeout_s: float = Field(default=5.0, gt=0)
+    # Power on and release the brakes when the service starts and after a controller that
+    # came back (False: an operator does it from the page or POST /api/v1/arm/power).
+    power_on_at_start: bool = False
+    # Reconnect tries to a lost arm or camera: first after this, doubling up to the maximum.
+    reconnect_initial_s: float = Field(default=0.2, gt=0, le=60)
+    reconnect_max_s: float = Field(default=5.0, gt=0, le=300)
     home_joints_deg: tuple[float, float, float, float, float, float] = (
         0.0, -90.0, 90.0, -90.0, -90.0, 0.0)
 
@@ -131,7 +137,12 @@ class LimitsConfig(_Strict):
     workspace_min_mm: Vec3 = (-900.0, -900.0, -100.0)
     workspace_max_mm: Vec3 = (900.0, 900.0, 1000.0)
     max_speed_mm_s: float = Field(default=250.0, gt=0)
+    # Slower than this is refused: a speed that rounds to nothing on the wire would leave an
+    # arm creeping for hours while the cell has long given up on the move.
+    min_speed_mm_s: float = Field(default=1.0, gt=0)
     max_accel_mm_s2: float = Field(default=1500.0, gt=0)
+    max_joint_speed_deg_s: float = Field(default=60.0, gt=0, le=360)  # joint moves (home)
+    max_joint_accel_deg_s2: float = Field(default=120.0, gt=0)
     max_jog_speed_mm_s: float = Field(default=100.0, gt=0)
     max_jog_speed_deg_s: float = Field(default=30.0, gt=0)
     max_jog_step_mm: float = Field(default=200.0, gt=0)  # one jog step, translation
@@ -146,6 +157,9 @@ class LimitsConfig(_Strict):
         if any(lo >= hi for lo, hi in zip(self.workspace_min_mm, self.workspace_max_mm,
                                           strict=True)):
             raise ValueError("workspace_min_mm must be below workspace_max_mm on every axis")
+        if self.min_speed_mm_s > min(self.max_speed_mm_s, self.max_jog_speed_mm_s):
+            raise ValueError("min_speed_mm_s must not exceed max_speed_mm_s or "
+                             "max_jog_speed_mm_s")
         return self
 
 
@@ -195,6 +209,9 @@ class SimConfig(_Strict):
     # The true camera mount; None means the [hand_eye] value is exact.
     T_flange_camera: PoseConfig | None = None
     ur_controller: bool = False  # kind="ur": start the simulated controller at robot.host
+    # False: it is not running when the service starts (SimWorld.start_controller starts it),
+    # as when a cell PC boots before its controller.
+    controller_running_at_start: bool = True
     noise_std: float = Field(default=1.0, ge=0)
     blur_sigma_px: float = Field(default=0.8, ge=0)
     gripper_object_width_mm: float | None = Field(default=None, ge=0, le=85)

@@ -16,6 +16,7 @@ implementation it has. Choices:
 from __future__ import annotations
 
 import contextlib
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -58,20 +59,49 @@ class _ProcessTruth:
 
     ur_rtde's constructors hold the GIL while talking to the controller, so a controller in
     the client's process would deadlock; time.monotonic is system-wide, so its timestamps
-    compare with ours.
+    compare with ours. The controller can be killed and started again (a controller reboot):
+    meanwhile the arm stands where it was, so the last pose read stays the truth.
     """
 
-    def __init__(self, ctl: ControllerProcess) -> None:
-        self.ctl = ctl
+    def __init__(self, host: str, start: bool) -> None:
+        self.host = host
+        self.ctl: ControllerProcess | None = ControllerProcess(host) if start else None
+        self._last: tuple[Matrix4, Matrix4] | None = None
 
     def flange_and_tcp(self) -> tuple[Matrix4, Matrix4, float]:
-        st = self.ctl.state()
+        ctl = self.ctl
+        try:
+            if ctl is None or not ctl.alive:
+                raise RuntimeError("the simulated controller is not running")
+            st = ctl.state()
+        except Exception as err:  # down: the brakes hold the arm where it was
+            if self._last is None:
+                raise RuntimeError(f"no simulated arm pose yet: {err}") from err
+            return self._last[0], self._last[1], time.monotonic()
         T_tcp = T_from_ur_pose(st["tcp_pose"])
-        return (T_tcp @ invert_T(T_from_ur_pose(st["tcp_offset"])), T_tcp,
-                float(st["host_monotonic_s"]))
+        T_flange = T_tcp @ invert_T(T_from_ur_pose(st["tcp_offset"]))
+        self._last = (T_flange, T_tcp)
+        return T_flange, T_tcp, float(st["host_monotonic_s"])
 
     def protective_stop(self, reason: str) -> None:
+        if self.ctl is None:
+            raise RuntimeError("the simulated controller is not running")
         self.ctl.protective_stop()
+
+    def start_controller(self) -> None:
+        if self.ctl is not None and self.ctl.alive:
+            raise RuntimeError(f"a simulated controller already runs on {self.host}")
+        if self.ctl is not None:
+            self.ctl.close()
+        self.ctl = ControllerProcess(self.host)
+
+    def kill_controller(self) -> None:
+        if self.ctl is not None and self.ctl.alive:
+            self.ctl.kill()
+
+    def close(self) -> None:
+        if self.ctl is not None:
+            self.ctl.close()
 
 
 class _SimWorld:
@@ -95,6 +125,17 @@ class _SimWorld:
 
     def set_camera_lost(self, lost: bool) -> None:
         self._camera.set_lost(lost)
+
+    def kill_controller(self) -> None:
+        self._process_truth().kill_controller()
+
+    def start_controller(self) -> None:
+        self._process_truth().start_controller()
+
+    def _process_truth(self) -> _ProcessTruth:
+        if not isinstance(self._truth, _ProcessTruth):
+            raise RuntimeError("the in-process simulated arm has no controller to restart")
+        return self._truth
 
 
 def _pose_source(truth: _EngineTruth | _ProcessTruth) -> PoseSource:
@@ -183,9 +224,9 @@ def _build(config: CellConfig, closers: list[Callable[[], None]]) -> Hardware:
         closers.append(arm.disconnect)
     else:
         if sim.ur_controller:
-            ctl = ControllerProcess(rc.host)
-            closers.append(ctl.close)
-            truth = _ProcessTruth(ctl)
+            process_truth = _ProcessTruth(rc.host, start=sim.controller_running_at_start)
+            closers.append(process_truth.close)
+            truth = process_truth
         from drivers.ur import URArm
 
         arm = URArm(rc.host, connect_timeout_s=rc.connect_timeout_s)

@@ -34,6 +34,13 @@ class SimWorld(Protocol):
 
     def set_camera_lost(self, lost: bool) -> None: ...
 
+    def kill_controller(self) -> None:
+        """SIGKILL the simulated controller process (RuntimeError for an in-process arm)."""
+
+    def start_controller(self) -> None:
+        """Start a simulated controller on the configured address (after a kill, or when
+        the config said it is not running at start)."""
+
 
 @dataclass
 class Hardware:

@@ -5,15 +5,26 @@ from __future__ import annotations
 from pathlib import Path
 
 from cell.config import CellConfig, load_config
-from cell.factory import build_hardware
+from cell.factory import all_simulated, build_hardware
 from cell.imagelog import ImageLog
 from cell.jobs import JobStore
 from cell.service import Cell
+from cell.tokens import check_tokens
+
+
+def check_startable(config: CellConfig) -> None:
+    """Everything about the config that can refuse a start, before any device is touched
+    (ConfigError): a token refusal after the arm was powered on would be too late."""
+    check_tokens(config, all_simulated(config))
 
 
 def start_cell(config: CellConfig | str | Path | None = None) -> Cell:
-    """Build and start the cell; on failure everything built so far is released."""
+    """Validate, build and start the cell; on failure everything built so far is released.
+
+    A device that cannot be reached does not stop the start: the cell serves, reports it
+    (``/health``: degraded) and reconnects it in the background."""
     cfg = config if isinstance(config, CellConfig) else load_config(config)
+    check_startable(cfg)
     hw = build_hardware(cfg)
     try:
         jobs = JobStore(cfg.api.job_db)

@@ -238,8 +238,7 @@ def teach(cell: Cell, store: TaughtStore, caller: str, name: str, samples: int =
     averaged ``T_target_tcp`` under ``name``. Nothing moves; every refusal stores nothing."""
     params = {"name": name, "samples": samples, "max_spread_mm": max_spread_mm,
               "max_spread_deg": max_spread_deg, "replace": replace}
-    t0 = time.time()
-    try:
+    with cell.core.audit.command(caller, "teach", params) as note:
         check_name(name)
         if not 1 <= samples <= 50:
             raise LimitError("invalid_request", "samples must be 1..50")
@@ -248,20 +247,13 @@ def teach(cell: Cell, store: TaughtStore, caller: str, name: str, samples: int =
                                "delete it first or ask to replace it")
         # Hold the motion slot: no approach or jog may start while the samples are taken,
         # and a running one refuses the teach (busy).
-        motion = cell.claim_motion("teach")
-        try:
+        with cell.core.slot.hold("teach"):
             if cell.arm_state().moving:
                 raise RefusedError("arm_moving", "the arm is moving; teach when it rests")
             taught = combine(name, _samples(cell, caller, samples), caller, max_spread_mm,
                              max_spread_deg)
-        finally:
-            cell.release_motion(motion)
         store.put(taught, replace=replace)
-    except CellError as err:
-        cell.jobs.audit(caller, "teach", params, f"refused:{err.code}", err.message, None, t0)
-        raise
-    cell.jobs.audit(caller, "teach", params, "ok", f"spread {taught.spread_mm:.3f} mm / "
-                    f"{taught.spread_deg:.3f} deg", None, t0)
+        note.detail = (f"spread {taught.spread_mm:.3f} mm / {taught.spread_deg:.3f} deg")
     return taught
 
 

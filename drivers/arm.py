@@ -54,6 +54,9 @@ class Arm(Protocol):
     def power_on(self) -> None:
         """Power on and release the brakes; returns when the arm is RUNNING."""
 
+    def power_off(self) -> None:
+        """Power the arm off (brakes engage). Refused by the controller while it moves."""
+
     def set_tcp(self, T_flange_tcp: NDArray[np.float64]) -> None: ...
 
     def state(self) -> ArmState: ...
@@ -62,6 +65,10 @@ class Arm(Protocol):
         """Current ``T_base_tcp`` (mm)."""
 
     def joint_positions_rad(self) -> NDArray[np.float64]: ...
+
+    def forward_kinematics(self, joints_rad: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``T_base_tcp`` (mm) the arm would have at ``joints_rad``, with the configured TCP:
+        the controller's own kinematics, so a joint move can be checked before it is sent."""
 
     def pose_at(self, timestamp_s: float) -> NDArray[np.float64]:
         """``T_base_tcp`` at a past ``time.monotonic()`` instant, from the pose history.
@@ -96,4 +103,5 @@ class Arm(Protocol):
         """Stop any motion now. Always accepted, also when nothing moves."""
 
     def recover_protective_stop(self) -> None:
-        """Unlock a protective stop (may be refused for the first seconds, as on a real arm)."""
+        """Unlock a protective stop. UnlockTooEarlyError (with ``retry_in_s``) while the
+        controller still refuses, as a real UR does for the first 5 s after the stop."""

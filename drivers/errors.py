@@ -21,6 +21,16 @@ class NotReadyError(DriverError):
     code = "not_ready"
 
 
+class UnlockTooEarlyError(NotReadyError):
+    """The controller refuses to unlock a protective stop this soon after it happened."""
+
+    code = "unlock_too_early"
+
+    def __init__(self, message: str, retry_in_s: float) -> None:
+        super().__init__(message)
+        self.retry_in_s = retry_in_s
+
+
 class ProtectiveStopError(DriverError):
     """The arm is protective-stopped; motion is refused until recovered."""
 

@@ -37,26 +37,57 @@ from drivers.errors import (
     MotionError,
     NotReadyError,
     ProtectiveStopError,
+    UnlockTooEarlyError,
 )
 from drivers.pose_history import PoseHistory
-from drivers.ur_client_process import ClientDied, ClientProcess, RemoteError
+from drivers.ur_client_process import (
+    Call,
+    ClientDied,
+    ClientName,
+    ClientProcess,
+    Create,
+    RemoteError,
+    Request,
+    Sample,
+    StateSample,
+)
+from drivers.ur_modes import (
+    ESTOP_BITS,
+    RobotMode,
+    RuntimeState,
+    SafetyBits,
+    robot_mode_name,
+    safety_mode_name,
+)
 from estimator.transforms import T_from_ur_pose, ur_pose_from_T
 
 log = logging.getLogger(__name__)
 
 
 RTDE_PORT = 30004
-ROBOT_MODES = {-1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING",
-               3: "POWER_OFF", 4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING",
-               8: "UPDATING_FIRMWARE"}
-SAFETY_MODES = {1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY",
-                5: "SAFEGUARD_STOP", 6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP",
-                8: "VIOLATION", 9: "FAULT", 10: "VALIDATE_JOINT_ID", 11: "UNDEFINED_SAFETY_MODE",
-                12: "AUTOMATIC_MODE_SAFEGUARD_STOP", 13: "SYSTEM_THREE_POSITION_ENABLING_STOP"}
-RUNNING_MODE = 7
+DASHBOARD_PORT = 29999
 MOVING_QD_RAD_S = 5e-3  # below this the arm counts as standing (controllers report jitter)
-RUNTIME_PLAYING = 2
-_NORMAL_BIT, _PSTOP_BIT, _ESTOP_BITS = 1 << 0, 1 << 2, (1 << 5) | (1 << 6) | (1 << 7)
+UNLOCK_DELAY_S = 5.0  # a UR refuses to unlock a protective stop for this long after it
+
+
+def dashboard_stop(host: str, timeout_s: float) -> str:
+    """Send the dashboard's ``stop`` (stop the running program, so any motion) on a plain
+    socket and return the controller's reply.
+
+    Used before anything else when a link comes back: a controller that was frozen or cut
+    off may still be running the move it had, and a fresh ur_rtde client takes a second to
+    start, which is a second of motion nobody is watching. ConnectionLostError when the
+    dashboard does not answer in time.
+    """
+    try:
+        with socket.create_connection((host, DASHBOARD_PORT), timeout=timeout_s) as sock:
+            reader = sock.makefile("rb")
+            reader.readline()  # "Connected: Universal Robots Dashboard Server"
+            sock.sendall(b"stop\n")
+            return reader.readline().decode("utf-8", "replace").strip()
+    except OSError as exc:
+        raise ConnectionLostError(f"UR controller at {host} is unreachable (dashboard: "
+                                  f"{exc})") from exc
 
 
 def probe_rtde(host: str, timeout_s: float) -> None:
@@ -96,6 +127,8 @@ class URArm:
         self._has_control = False
         self._lost_reason: str | None = "not connected"
         self._pstop_latched = False
+        self._pstop_seen_s: float | None = None  # when this adapter first saw the stop
+        self._tcp_pose: list[float] | None = None  # the TCP set with set_tcp (UR pose)
         self._jog_deadline_s: float | None = None
         self._jog_decel_m_s2 = 1.0
         self._last_ts = -1.0
@@ -104,24 +137,26 @@ class URArm:
         self._monitor: threading.Thread | None = None
 
     # -- the client process ------------------------------------------------------------------
-    def _request(self, op: str, name: str = "", method: str = "", *args: Any,
-                 timeout_s: float | None = None) -> Any:
+    def _request(self, req: Request, timeout_s: float | None = None) -> Any:
         """One request to the ur_rtde clients; a dead or hung client is a lost link."""
         client = self._client
         if client is None:
             raise ConnectionLostError(f"UR controller at {self.host}: not connected")
         try:
-            return client.request(op, name, method, args, timeout_s or self.call_timeout_s)
+            return client.request(req, timeout_s or self.call_timeout_s)
         except ClientDied as exc:
             self._mark_lost(str(exc))
             raise ConnectionLostError(f"UR controller at {self.host}: {exc}") from exc
+
+    def _call(self, client: ClientName, method: str, *args: Any) -> Any:
+        return self._request(Call(client, method, args))
 
     def _ctrl(self, method: str, *args: Any) -> Any:
         self._check_link()
         if not self._has_control:
             raise NotReadyError(f"{self.host} is not powered on: call power_on() first")
         try:
-            return self._request("call", "ctrl", method, *args)
+            return self._call("ctrl", method, *args)
         except RemoteError as exc:
             if exc.kind == "ValueError":  # the client's own range checks
                 raise MotionError(f"{method} rejected: {exc}") from exc
@@ -130,40 +165,47 @@ class URArm:
 
     def _dash(self, method: str, *args: Any) -> Any:
         try:
-            return self._request("call", "dash", method, *args)
+            return self._call("dash", method, *args)
         except RemoteError as exc:
             self._mark_lost(f"dashboard {method}: {exc}")
             raise ConnectionLostError(f"dashboard {method} on {self.host}: {exc}") from exc
 
-    def _sample(self) -> dict[str, Any]:
+    def _sample(self) -> StateSample:
         self._check_link()
         try:
-            sample: dict[str, Any] = self._request("sample")
+            sample: StateSample = self._request(Sample())
         except RemoteError as exc:
             self._mark_lost(f"state: {exc}")
             raise ConnectionLostError(f"state of {self.host}: {exc}") from exc
-        if not sample["connected"]:
+        if not sample.connected:
             self._mark_lost("the RTDE stream was closed by the controller")
             self._check_link()
         return sample
 
     # -- connection ----------------------------------------------------------------------------
     def connect(self) -> None:
-        """Connect; ConnectionLostError when unreachable, NotReadyError when not in remote."""
+        """Connect; ConnectionLostError when unreachable, NotReadyError when not in remote.
+
+        The first thing said to a controller is the dashboard's ``stop``: whatever it was
+        doing while nobody watched (a move it kept running through a frozen or broken link)
+        ends before a new client is even started.
+        """
         if self._lost_reason is None:
             return
+        reply = dashboard_stop(self.host, self.connect_timeout_s)
+        log.info("%s: dashboard stop before connecting: %s", self.host, reply)
         probe_rtde(self.host, self.connect_timeout_s)
         if self._client is not None:
             self._client.kill("replaced")
         self._client = ClientProcess(self.host)
         self._lost_reason = None
         try:
-            self._request("create", "dash", timeout_s=self.connect_timeout_s + 5.0)
+            self._request(Create("dash"), timeout_s=self.connect_timeout_s + 5.0)
             self._dash("connect", int(self.connect_timeout_s * 1000))
             if not self._dash("isInRemoteControl"):
                 raise NotReadyError(f"UR controller at {self.host} is not in remote control: "
                                     "switch the pendant to Remote")
-            self._request("create", "recv", timeout_s=self.connect_timeout_s + 5.0)
+            self._request(Create("recv"), timeout_s=self.connect_timeout_s + 5.0)
         except RemoteError as exc:
             self._mark_lost(str(exc))
             raise ConnectionLostError(f"cannot connect to {self.host}: {exc}") from exc
@@ -174,7 +216,7 @@ class URArm:
         self._last_ts_change_s = time.monotonic()
         self._start_monitor()
         sample = self._sample()
-        if sample["robot_mode"] == RUNNING_MODE and sample["safety_bits"] & _NORMAL_BIT:
+        if sample.robot_mode == RobotMode.RUNNING and sample.safety_bits & SafetyBits.NORMAL:
             self._start_control()
 
     def _start_control(self) -> None:
@@ -185,15 +227,21 @@ class URArm:
         deadline = time.monotonic() + self.connect_timeout_s
         while True:
             try:
-                self._request("create", "ctrl", timeout_s=self.connect_timeout_s + 10.0)
+                self._request(Create("ctrl"), timeout_s=self.connect_timeout_s + 10.0)
                 self._has_control = True
-                return
+                break
             except RemoteError as exc:
                 # IN_USE: another client owns the control registers; a real controller
                 # refuses the second control connection.
                 if "in use" not in str(exc).lower() or time.monotonic() > deadline:
                     raise NotReadyError(f"cannot take control of {self.host}: {exc}") from exc
                 time.sleep(0.2)
+        if self._tcp_pose is not None:  # a new control script starts with the default TCP
+            self._ctrl("setTcp", self._tcp_pose)
+
+    @property
+    def connected(self) -> bool:
+        return self._lost_reason is None
 
     def disconnect(self) -> None:
         self._stop_monitor.set()
@@ -208,10 +256,12 @@ class URArm:
         if client is None:
             return
         if healthy:
-            for name, method in (("ctrl", "stopScript"), ("ctrl", "disconnect"),
-                                 ("recv", "disconnect"), ("dash", "disconnect")):
+            goodbyes: tuple[tuple[ClientName, str], ...] = (
+                ("ctrl", "stopScript"), ("ctrl", "disconnect"), ("recv", "disconnect"),
+                ("dash", "disconnect"))
+            for name, method in goodbyes:
                 try:
-                    client.request("call", name, method, (), self.call_timeout_s)
+                    client.request(Call(name, method), self.call_timeout_s)
                 except ClientDied:
                     break
                 except RemoteError:
@@ -243,17 +293,25 @@ class URArm:
             except DriverError:
                 continue
             now = time.monotonic()
-            if sample["timestamp"] != self._last_ts:
-                self._last_ts, self._last_ts_change_s = sample["timestamp"], now
-                self.history.add(now, T_from_ur_pose(sample["tcp_pose"]))
+            if sample.timestamp_s != self._last_ts:
+                self._last_ts, self._last_ts_change_s = sample.timestamp_s, now
+                self.history.add(now, T_from_ur_pose(list(sample.tcp_pose)))
             elif now - self._last_ts_change_s > self.stale_after_s:
                 self._mark_lost(f"no RTDE data for {now - self._last_ts_change_s:.2f} s")
                 continue
+            self._note_protective_stop(sample, now)
             if self._jog_deadline_s is not None and now > self._jog_deadline_s:
                 try:
                     self._end_jog()
                 except DriverError as exc:
                     log.warning("%s: jog watchdog could not stop the arm: %s", self.host, exc)
+
+    def _note_protective_stop(self, s: StateSample, now: float) -> None:
+        if s.safety_bits & SafetyBits.PROTECTIVE_STOPPED:
+            if self._pstop_seen_s is None:
+                self._pstop_seen_s = now
+        else:
+            self._pstop_seen_s = None
 
     def _mark_lost(self, reason: str) -> None:
         if self._lost_reason is None:
@@ -281,12 +339,18 @@ class URArm:
         while True:
             sample = self._sample()
             self._raise_if_estopped(sample)
-            if sample["robot_mode"] == RUNNING_MODE:
+            if sample.robot_mode == RobotMode.RUNNING:
                 break
             if time.monotonic() > deadline:
                 raise NotReadyError(f"{self.host} did not reach RUNNING after power on")
             time.sleep(0.02)
         self._start_control()
+
+    def power_off(self) -> None:
+        if self._moving(self._sample()):
+            raise NotReadyError(f"{self.host}: power off refused while the arm moves")
+        self._dash("powerOff")
+        self._has_control = False  # the control script ends with the power
 
     def state(self) -> ArmState:
         try:
@@ -298,19 +362,27 @@ class URArm:
                             time.monotonic())
         return ArmState(
             connected=True,
-            robot_mode=ROBOT_MODES.get(s["robot_mode"], "UNKNOWN"),
-            safety_status=SAFETY_MODES.get(s["safety_mode"], "UNKNOWN"),
+            robot_mode=robot_mode_name(s.robot_mode),
+            safety_status=safety_mode_name(s.safety_mode),
             moving=self._moving(s),
-            T_base_tcp=T_from_ur_pose(s["tcp_pose"]),
-            joints_rad=np.asarray(s["q"], dtype=float),
+            T_base_tcp=T_from_ur_pose(list(s.tcp_pose)),
+            joints_rad=np.asarray(s.q_rad, dtype=float),
             timestamp_s=time.monotonic(),
         )
 
     def tcp_pose(self) -> NDArray[np.float64]:
-        return T_from_ur_pose(self._sample()["tcp_pose"])
+        return T_from_ur_pose(list(self._sample().tcp_pose))
 
     def joint_positions_rad(self) -> NDArray[np.float64]:
-        return np.asarray(self._sample()["q"], dtype=float)
+        return np.asarray(self._sample().q_rad, dtype=float)
+
+    def forward_kinematics(self, joints_rad: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The controller's own forward kinematics (URScript get_forward_kin) with our TCP."""
+        q = np.asarray(joints_rad, dtype=float).reshape(-1)
+        if q.shape != (6,) or not np.all(np.isfinite(q)):
+            raise MotionError(f"joints must be 6 finite values, got {joints_rad!r}")
+        pose = self._ctrl("getForwardKinematics", q.tolist(), self._tcp_pose or [0.0] * 6)
+        return T_from_ur_pose(list(pose))
 
     def pose_at(self, timestamp_s: float) -> NDArray[np.float64]:
         return self.history.at(timestamp_s)
@@ -318,44 +390,49 @@ class URArm:
     def is_moving(self) -> bool:
         return self._moving(self._sample())
 
-    def _moving(self, s: dict[str, Any]) -> bool:
-        return bool(self._jog_deadline_s is not None or s["async_running"]
-                    or np.max(np.abs(s["qd"])) > MOVING_QD_RAD_S)
+    def _moving(self, s: StateSample) -> bool:
+        """Moving as a person means it: joints turning, or a move or jog under way. A
+        safety-stopped arm has no move under way, whatever its last command was."""
+        turning = bool(np.max(np.abs(s.qd_rad_s)) > MOVING_QD_RAD_S)
+        if s.safety_bits & (SafetyBits.PROTECTIVE_STOPPED | ESTOP_BITS):
+            return turning
+        return turning or self._jog_deadline_s is not None or s.async_running
 
     def async_progress(self) -> int:
         """Index of the path segment under way, or -1 when no async move runs."""
         s = self._sample()
-        return int(s["async_progress"]) if s["async_running"] else -1
+        return s.async_progress if s.async_running else -1
 
-    def _raise_if_estopped(self, s: dict[str, Any]) -> None:
-        if int(s["safety_bits"]) & _ESTOP_BITS:
+    def _raise_if_estopped(self, s: StateSample) -> None:
+        if s.safety_bits & ESTOP_BITS:
             raise EmergencyStopError(f"{self.host} is emergency-stopped: release the e-stop, "
                                      "then power on again")
 
-    def _raise_if_stopped(self, s: dict[str, Any]) -> None:
+    def _raise_if_stopped(self, s: StateSample) -> None:
         """Typed error for a safety stop; a protective stop latches until recovered."""
         self._raise_if_estopped(s)
-        if int(s["safety_bits"]) & _PSTOP_BIT:
+        if s.safety_bits & SafetyBits.PROTECTIVE_STOPPED:
             self._pstop_latched = True
+            self._note_protective_stop(s, time.monotonic())
         if self._pstop_latched:
             raise ProtectiveStopError(f"{self.host} is protective-stopped: "
                                       "call recover_protective_stop()")
 
     def _ensure_program(self) -> None:
         """The control script stops on runtime errors and safety stops; upload it again."""
-        if self._sample()["runtime_state"] == RUNTIME_PLAYING:
+        if self._sample().runtime_state == RuntimeState.PLAYING:
             return
         self._ctrl("reuploadScript")
         deadline = time.monotonic() + self.connect_timeout_s
-        while self._sample()["runtime_state"] != RUNTIME_PLAYING:
+        while self._sample().runtime_state != RuntimeState.PLAYING:
             if time.monotonic() > deadline:
                 raise NotReadyError(f"{self.host}: the control script did not start")
             time.sleep(0.01)
 
-    def _ready_for_motion(self) -> dict[str, Any]:
+    def _ready_for_motion(self) -> StateSample:
         s = self._sample()
         self._raise_if_stopped(s)
-        if s["robot_mode"] != RUNNING_MODE or not self._has_control:
+        if s.robot_mode != RobotMode.RUNNING or not self._has_control:
             raise NotReadyError(f"{self.host} is not RUNNING: call power_on() first")
         self._ensure_program()
         return s
@@ -366,6 +443,7 @@ class URArm:
         self._ready_for_motion()
         if not self._ctrl("setTcp", pose):
             self._raise_command_failure("setTcp")
+        self._tcp_pose = [float(v) for v in pose]
 
     def move_linear(
         self, T_base_tcp: NDArray[np.float64], speed_mm_s: float, accel_mm_s2: float,
@@ -375,7 +453,7 @@ class URArm:
         v, a = _positive(speed_mm_s, "speed") / 1000.0, _positive(accel_mm_s2, "accel") / 1000.0
         s = self._ready_for_motion()
         self._end_jog()
-        distance_m = float(np.linalg.norm(np.subtract(pose[:3], s["tcp_pose"][:3])))
+        distance_m = float(np.linalg.norm(np.subtract(pose[:3], s.tcp_pose[:3])))
         if not self._ctrl("moveL", pose, v, a, True):
             self._raise_command_failure("moveL")
         if wait:
@@ -391,7 +469,7 @@ class URArm:
         v, a = _positive(speed_rad_s, "speed"), _positive(accel_rad_s2, "accel")
         s = self._ready_for_motion()
         self._end_jog()
-        travel = float(np.max(np.abs(q - np.asarray(s["q"]))))
+        travel = float(np.max(np.abs(q - np.asarray(s.q_rad))))
         if not self._ctrl("moveJ", q.tolist(), v, a, True):
             self._raise_command_failure("moveJ")
         if wait:
@@ -406,19 +484,21 @@ class URArm:
             if time.monotonic() > deadline:
                 break
             time.sleep(0.01)
-        running = s["runtime_state"] == RUNTIME_PLAYING
+        running = s.runtime_state == RuntimeState.PLAYING
         raise MotionError(f"{what} was rejected by the controller"
                           + ("" if running else " (runtime error: the target is unreachable, "
                              "outside the limits or not allowed)"))
 
     def _wait_for_motion(self, timeout_s: float) -> None:
+        """Until the controller says the move is over: ur_rtde's async operation ended (the
+        control script's own progress), never a guess from the pose standing still."""
         deadline = time.monotonic() + timeout_s
         while True:
             s = self._sample()
             self._raise_if_stopped(s)
-            if s["runtime_state"] != RUNTIME_PLAYING:
+            if s.runtime_state != RuntimeState.PLAYING:
                 raise MotionError(f"{self.host}: the control program stopped during the move")
-            if not s["async_running"]:
+            if not s.async_running:
                 return
             if time.monotonic() > deadline:
                 self.stop()
@@ -438,7 +518,7 @@ class URArm:
         s = self._ready_for_motion()
         v_m, w = twist[:3] / 1000.0, twist[3:]
         if frame == "tool":
-            R_base_tcp = T_from_ur_pose(s["tcp_pose"])[:3, :3]
+            R_base_tcp = T_from_ur_pose(list(s.tcp_pose))[:3, :3]
             v_m, w = R_base_tcp @ v_m, R_base_tcp @ w
         xd = [*map(float, v_m), *map(float, w)]
         if not self._ctrl("speedL", xd, a, 0.0):
@@ -453,7 +533,8 @@ class URArm:
         self._ctrl("speedStop", self._jog_decel_m_s2)
 
     def stop(self, decel_mm_s2: float = 2000.0) -> None:
-        """Stop any motion now. Accepted in any state; ConnectionLostError without a link."""
+        """Stop any motion now. Accepted in any state; ConnectionLostError without a link
+        (the next connect stops the controller before anything else)."""
         decel = _positive(decel_mm_s2, "deceleration") / 1000.0
         self._check_link()
         if not self._has_control:
@@ -464,24 +545,28 @@ class URArm:
 
     def recover_protective_stop(self) -> None:
         """Unlock a protective stop (refused by the controller for 5 s after the stop:
-        NotReadyError), then restart the control program."""
+        UnlockTooEarlyError with the seconds left), then restart the control program."""
         s = self._sample()
         self._raise_if_estopped(s)
-        if int(s["safety_bits"]) & _PSTOP_BIT:
+        if s.safety_bits & SafetyBits.PROTECTIVE_STOPPED:
+            self._note_protective_stop(s, time.monotonic())
             try:
-                self._request("call", "dash", "unlockProtectiveStop")
+                self._call("dash", "unlockProtectiveStop")
             except RemoteError as exc:
                 if "unlock protective stop failure" not in str(exc).lower():
                     self._mark_lost(f"unlock protective stop: {exc}")
                     raise ConnectionLostError(f"unlock protective stop: {exc}") from exc
-                raise NotReadyError(f"{self.host} refused to unlock: {exc}") from exc
+                seen = self._pstop_seen_s or time.monotonic()
+                left = max(0.1, UNLOCK_DELAY_S - (time.monotonic() - seen))
+                raise UnlockTooEarlyError(f"{self.host} refused to unlock: {exc}", left) from exc
             self._dash("closeSafetyPopup")
             deadline = time.monotonic() + 2.0
-            while int(self._sample()["safety_bits"]) & _PSTOP_BIT:
+            while self._sample().safety_bits & SafetyBits.PROTECTIVE_STOPPED:
                 if time.monotonic() > deadline:
                     raise NotReadyError(f"{self.host}: protective stop did not clear")
                 time.sleep(0.01)
         self._pstop_latched = False
+        self._pstop_seen_s = None
         self._start_control()
 
 

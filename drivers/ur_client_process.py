@@ -6,8 +6,10 @@ block for minutes when the peer vanishes, and after a dropped connection its con
 reconnects from inside its own receive thread and can crash the process. In a child, a hang is
 ended with SIGKILL and a crash is a closed pipe: both become ConnectionLostError in the parent.
 
-Frames are length-prefixed pickles (both ends are this module). Requests are served
-concurrently, so a long move does not block the state sampling that watches it.
+Frames are length-prefixed pickles of the typed messages below (both ends are this module):
+requests are :class:`Create`, :class:`Call`, :class:`Sample` and :class:`Drop`; a sample comes
+back as a :class:`StateSample`. Requests are served concurrently, so a long move does not
+block the state sampling that watches it.
 """
 
 from __future__ import annotations
@@ -22,9 +24,69 @@ import sys
 import threading
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
-from typing import IO, Any
+from dataclasses import dataclass
+from typing import IO, Any, Literal
 
 _LEN = struct.Struct(">I")
+
+ClientName = Literal["dash", "recv", "ctrl"]
+
+
+@dataclass(frozen=True)
+class Create:
+    """Create one ur_rtde client (its constructor connects, and may block for long)."""
+
+    client: ClientName
+
+
+@dataclass(frozen=True)
+class Call:
+    """Call a ur_rtde method by its own name on one client."""
+
+    client: ClientName
+    method: str
+    args: tuple[Any, ...] = ()
+
+
+@dataclass(frozen=True)
+class Sample:
+    """Read everything the adapter watches from the clients' cached state."""
+
+
+@dataclass(frozen=True)
+class Drop:
+    """Forget a client (after its connection is known to be gone)."""
+
+    client: ClientName
+
+
+Request = Create | Call | Sample | Drop
+
+
+@dataclass(frozen=True)
+class StateSample:
+    """One consistent read of the receive (and control) client's state, UR units."""
+
+    connected: bool
+    timestamp_s: float  # controller time of the RTDE package
+    tcp_pose: tuple[float, ...]  # [x, y, z (m), rx, ry, rz (rad)]
+    q_rad: tuple[float, ...]
+    qd_rad_s: tuple[float, ...]
+    robot_mode: int
+    safety_mode: int
+    safety_bits: int
+    runtime_state: int
+    async_running: bool = False  # ur_rtde's async operation (moveL/moveJ/path) under way
+    async_progress: int = -1
+
+
+def describe(req: Request) -> str:
+    """A request in words, for timeouts and logs."""
+    if isinstance(req, Call):
+        return f"{req.client}.{req.method}"
+    if isinstance(req, Sample):
+        return "sample"
+    return f"{type(req).__name__.lower()} {req.client}"
 
 
 class ClientDied(Exception):
@@ -67,7 +129,7 @@ class _Clients:
         self.objects: dict[str, Any] = {}
         self.locks = {name: threading.Lock() for name in ("dash", "recv", "ctrl")}
 
-    def create(self, name: str) -> None:
+    def create(self, name: ClientName) -> None:
         import dashboard_client
         import rtde_control
         import rtde_receive
@@ -77,47 +139,46 @@ class _Clients:
                      "ctrl": rtde_control.RTDEControlInterface}
         self.objects[name] = factories[name](self.host)
 
-    def call(self, name: str, method: str, args: tuple[Any, ...]) -> Any:
+    def call(self, name: ClientName, method: str, args: tuple[Any, ...]) -> Any:
         obj = self.objects.get(name)
         if obj is None:
             raise RuntimeError(f"no {name} client")
         with self.locks[name]:  # one call at a time per client object
             return getattr(obj, method)(*args)
 
-    def sample(self) -> dict[str, Any]:
+    def sample(self) -> StateSample:
         """Everything the adapter watches, read from the clients' cached state."""
         recv = self.objects.get("recv")
         if recv is None:
             raise RuntimeError("no receive client")
-        out = {
-            "connected": recv.isConnected(),
-            "timestamp": recv.getTimestamp(),
-            "tcp_pose": recv.getActualTCPPose(),
-            "q": recv.getActualQ(),
-            "qd": recv.getActualQd(),
-            "robot_mode": recv.getRobotMode(),
-            "safety_mode": recv.getSafetyMode(),
-            "safety_bits": recv.getSafetyStatusBits(),
-            "runtime_state": recv.getRuntimeState(),
-            "async_running": False,
-            "async_progress": -1,
-        }
+        running, progress = False, -1
         ctrl = self.objects.get("ctrl")
         if ctrl is not None:
             status = ctrl.getAsyncOperationProgressEx()
-            out["async_running"] = status.isAsyncOperationRunning()
-            out["async_progress"] = status.progress()
-        return out
+            running, progress = bool(status.isAsyncOperationRunning()), int(status.progress())
+        return StateSample(
+            connected=bool(recv.isConnected()),
+            timestamp_s=float(recv.getTimestamp()),
+            tcp_pose=tuple(recv.getActualTCPPose()),
+            q_rad=tuple(recv.getActualQ()),
+            qd_rad_s=tuple(recv.getActualQd()),
+            robot_mode=int(recv.getRobotMode()),
+            safety_mode=int(recv.getSafetyMode()),
+            safety_bits=int(recv.getSafetyStatusBits()),
+            runtime_state=int(recv.getRuntimeState()),
+            async_running=running,
+            async_progress=progress,
+        )
 
-    def handle(self, op: str, name: str, method: str, args: tuple[Any, ...]) -> Any:
-        if op == "create":
-            return self.create(name)
-        if op == "sample":
+    def handle(self, req: Request) -> Any:
+        if isinstance(req, Create):
+            return self.create(req.client)
+        if isinstance(req, Sample):
             return self.sample()
-        if op == "drop":
-            self.objects.pop(name, None)
+        if isinstance(req, Drop):
+            self.objects.pop(req.client, None)
             return None
-        return self.call(name, method, args)
+        return self.call(req.client, req.method, req.args)
 
 
 def child_main(host: str) -> None:
@@ -131,9 +192,9 @@ def child_main(host: str) -> None:
     clients = _Clients(host)
     lock = threading.Lock()
 
-    def serve(req_id: int, op: str, name: str, method: str, args: tuple[Any, ...]) -> None:
+    def serve(req_id: int, req: Request) -> None:
         try:
-            reply: tuple[Any, ...] = (req_id, True, clients.handle(op, name, method, args))
+            reply: tuple[Any, ...] = (req_id, True, clients.handle(req))
         except Exception as exc:
             reply = (req_id, False, (type(exc).__name__, str(exc)))
         with contextlib.suppress(OSError, ValueError):
@@ -192,8 +253,7 @@ class ClientProcess:
         for fut in pending.values():
             fut.set_exception(ClientDied(reason))
 
-    def request(self, op: str, name: str = "", method: str = "",
-                args: tuple[Any, ...] = (), timeout_s: float = 3.0) -> Any:
+    def request(self, req: Request, timeout_s: float = 3.0) -> Any:
         """Run one request in the child; ClientDied when it is gone or overruns the deadline
         (the child is then killed: a client that hung once is not trusted again)."""
         fut: Future[Any] = Future()
@@ -204,14 +264,13 @@ class ClientProcess:
             self._pending[req_id] = fut
         try:
             assert self._proc.stdin is not None
-            _write(self._proc.stdin, (req_id, op, name, method, args), self._write_lock)
+            _write(self._proc.stdin, (req_id, req), self._write_lock)
         except (OSError, ValueError) as exc:
             self._die(f"cannot reach the ur_rtde client process: {exc}")
         try:
             return fut.result(timeout=timeout_s)
         except FutureTimeout:
-            what = f"{name}.{method}" if method else f"{op} {name}".strip()
-            self.kill(f"{what}: no answer from the controller within {timeout_s:g} s")
+            self.kill(f"{describe(req)}: no answer from the controller within {timeout_s:g} s")
             raise ClientDied(self.dead_reason or "timeout") from None
 
     def kill(self, reason: str) -> None:
@@ -235,4 +294,8 @@ class ClientProcess:
 
 
 if __name__ == "__main__":
-    child_main(sys.argv[1])
+    # Run the importable module's copy, so the message classes the parent pickles (by their
+    # module name) are the very ones ``handle`` checks against.
+    from drivers.ur_client_process import child_main as _child_main
+
+    _child_main(sys.argv[1])

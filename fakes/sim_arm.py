@@ -22,6 +22,7 @@ from drivers.errors import (
     MotionError,
     NotReadyError,
     ProtectiveStopError,
+    UnlockTooEarlyError,
 )
 from estimator.transforms import T_from_ur_pose, ur_pose_from_T
 from fakes.ur_sim.engine import (
@@ -104,6 +105,12 @@ class SimArm:
         if not self._wait(lambda s: s.robot_mode == RobotMode.RUNNING, self.power_timeout_s):
             raise NotReadyError("the arm did not reach RUNNING after power on")
 
+    def power_off(self) -> None:
+        self._require_connected()
+        if self.engine.snapshot().moving:
+            raise NotReadyError("power off refused: the arm is moving; stop it first")
+        self.engine.power_off()
+
     def _wait(self, pred: Callable[[EngineSnapshot], bool], timeout_s: float) -> bool:
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
@@ -137,6 +144,11 @@ class SimArm:
     def joint_positions_rad(self) -> NDArray[np.float64]:
         self._require_connected()
         return np.array(self.engine.snapshot().q)
+
+    def forward_kinematics(self, joints_rad: NDArray[np.float64]) -> NDArray[np.float64]:
+        q = np.asarray(joints_rad, dtype=float).reshape(-1)
+        with _driver_errors():
+            return T_from_ur_pose(self.engine.fk(q.tolist()))
 
     def pose_at(self, timestamp_s: float) -> NDArray[np.float64]:
         """``T_base_tcp`` at a past monotonic instant (joint history, FK with today's TCP)."""
@@ -200,7 +212,7 @@ class SimArm:
             self.engine.stop_l(max(decel_mm_s2, 1.0) / 1000.0)
 
     def recover_protective_stop(self) -> None:
-        """Unlock; ProtectiveStopError while the controller still refuses (first 5 s)."""
+        """Unlock; UnlockTooEarlyError while the controller still refuses (first 5 s)."""
         self._require_connected()
         s = self.engine.snapshot()
         if s.safety_mode in (SafetyMode.ROBOT_EMERGENCY_STOP, SafetyMode.SYSTEM_EMERGENCY_STOP):
@@ -208,5 +220,5 @@ class SimArm:
         if not self.engine.unlock_protective_stop():
             since = s.seconds_since_protective_stop or 0.0
             wait_s = max(0.0, self.engine.limits.unlock_delay_s - since)
-            raise ProtectiveStopError(
-                f"unlock refused: the controller allows it {wait_s:.1f} s from now")
+            raise UnlockTooEarlyError(
+                f"unlock refused: the controller allows it {wait_s:.1f} s from now", wait_s)

@@ -242,11 +242,14 @@ class SimCamera:
             if not lost:
                 try:
                     self._expose()
-                except Exception as err:  # the pose source (arm simulation) went away
+                except Exception as err:  # the pose source (arm simulation) is away
                     with self._cond:
                         self._error = f"pose source failed: {err}"
                         self._cond.notify_all()
-                    return
+                else:
+                    if self._error is not None:  # it came back: frames flow again
+                        with self._cond:
+                            self._error = None
             next_start += period
             if next_start < time.monotonic() - period:  # fell behind (loaded host): skip ahead
                 next_start = time.monotonic()

@@ -144,10 +144,14 @@ def test_safety_guard_refusals() -> None:
         g.check_speed(1e4, 100)
     with pytest.raises(LimitError):
         g.check_jog_speed([200, 0, 0], [0, 0, 0])
-    assert g.jog_allowed(DOWN, DOWN @ translation_T(0, 0, 10))
-    assert not g.jog_allowed(DOWN, DOWN @ translation_T(0, 0, 290))
+    g.check_jog_ahead(DOWN, DOWN @ translation_T(0, 0, 10))
+    with pytest.raises(LimitError, match="outside the workspace"):
+        g.check_jog_ahead(DOWN, DOWN @ translation_T(0, 0, 290))
     outside = translation_T(0, 0, 500) @ DOWN  # z = 800, above the box
-    assert g.jog_allowed(outside, translation_T(0, 0, -10) @ outside)  # back towards the box
+    g.check_jog_ahead(outside, translation_T(0, 0, -10) @ outside)  # back towards the box
+    for away in (translation_T(0, 0, 10), translation_T(10, 0, 0)):  # further out, or along
+        with pytest.raises(LimitError, match="only moves back towards the box"):
+            g.check_jog_ahead(outside, away @ outside)
 
 
 def test_job_store_records_and_marks_interrupted_jobs(tmp_path: Path) -> None:

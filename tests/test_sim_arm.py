@@ -15,6 +15,7 @@ from drivers.errors import (
     MotionError,
     NotReadyError,
     ProtectiveStopError,
+    UnlockTooEarlyError,
 )
 from estimator.transforms import T_from_pose, pose_distance, translation_T
 from fakes.sim_arm import SimArm
@@ -135,8 +136,9 @@ def test_protective_stop_mid_move_then_recover(arm: SimArm) -> None:
     assert st.protective_stop and not st.ready and not st.moving
     with pytest.raises(ProtectiveStopError):
         arm.move_linear(T0, 100.0, 500.0)
-    with pytest.raises(ProtectiveStopError):
+    with pytest.raises(UnlockTooEarlyError) as refused:
         arm.recover_protective_stop()  # refused right after the stop
+    assert 0.0 < refused.value.retry_in_s <= arm.engine.limits.unlock_delay_s
     time.sleep(0.6)
     arm.recover_protective_stop()
     assert arm.state().ready

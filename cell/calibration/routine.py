@@ -1,10 +1,13 @@
 """The guided hand-eye routine: move the arm around a start pose, look, solve, judge.
 
-Works on any :class:`drivers.arm.Arm` and :class:`drivers.camera.Camera`. The poses tilt the
-camera about the target (so it stays in view) about several axes and roll it about the optical
-axis, because AX = XB is only determined by rotations about at least two different axes. The
-target's position for that pivot comes from the first view and the current (rough) hand-eye
-guess; a guess off by centimetres only shifts the target in the image.
+Works on any :class:`drivers.arm.Arm` and :class:`drivers.camera.Camera`; the cell and the CLI
+hand it their :class:`cell.motion.GuardedArm`, so every view pose is checked against the
+limits first (a refused view is skipped, not moved to) and a stop ends the routine.
+
+The poses tilt the camera about the target (so it stays in view) about several axes and roll
+it about the optical axis, because AX = XB is only determined by rotations about at least two
+different axes. The target's position for that pivot comes from the first view and the current
+(rough) hand-eye guess; a guess off by centimetres only shifts the target in the image.
 
 Each view is taken from a frame exposed after the arm has stopped and settled, with the flange
 pose the arm reports for that frame's timestamp, so a slow camera cannot pair an image with the
@@ -25,6 +28,7 @@ from cell.calibration.dataset import HandEyeDataset, save_project_dataset
 from cell.calibration.observe import Observation, ObservationError, Observer
 from cell.calibration.report import HandEyeReport
 from cell.calibration.solve import Progress, solve_observations
+from cell.safety import LimitError
 from drivers.arm import Arm
 from drivers.camera import Camera, Frame
 from drivers.errors import DriverError
@@ -151,7 +155,7 @@ def run_hand_eye_routine(
         for k, T_base_flange in enumerate(plan[1:], start=1):
             try:
                 arm.move_linear(T_base_flange @ T_flange_tcp, s.speed_mm_s, s.accel_mm_s2)
-            except DriverError as err:
+            except (DriverError, LimitError) as err:  # the controller's or the guard's no
                 if not arm.state().ready:
                     raise
                 failed.append((k, f"move refused: {err}"))

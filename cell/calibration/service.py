@@ -15,7 +15,6 @@ arm and camera under the cell's rules:
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -35,10 +34,9 @@ from cell.calibration.routine import (
 )
 from cell.calibration.solve import CHOICES
 from cell.jobs import Job
-from cell.safety import CellError, LimitError, NotFoundError, RefusedError, UnavailableError
-from cell.service import Cancelled, Cell, Motion, driver_error
-from drivers.arm import Arm
-from drivers.errors import DriverError, MotionError
+from cell.motion import Motion
+from cell.safety import LimitError, NotFoundError, RefusedError, UnavailableError
+from cell.service import Cell
 from estimator.transforms import T_from_pose_dict, pose_dict, pose_distance
 
 log = logging.getLogger(__name__)
@@ -48,31 +46,6 @@ JOB_KIND = "hand_eye_calibration"
 EVENT = "calibration"
 
 
-class _GuardedArm:
-    """The cell's arm as the routine sees it: moves are checked by the cell's safety guard
-    first, and refused for good once the job is cancelled (so a stop really stops)."""
-
-    def __init__(self, cell: Cell, cancel: threading.Event) -> None:
-        self._cell = cell
-        self._arm = cell.hw.arm
-        self._cancel = cancel
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._arm, name)
-
-    def move_linear(self, T_base_tcp: Matrix4, speed_mm_s: float, accel_mm_s2: float,
-                    wait: bool = True) -> None:
-        if self._cancel.is_set():
-            raise Cancelled("cancelled", "stopped by request during the calibration")
-        try:
-            self._cell.guard.check_goal(self._arm.tcp_pose(), T_base_tcp, "calibration view")
-        except LimitError as err:
-            raise MotionError(err.message) from err  # the routine skips this view
-        self._arm.move_linear(T_base_tcp, speed_mm_s, accel_mm_s2, wait)
-        if self._cancel.is_set():
-            raise Cancelled("cancelled", "stopped by request during the calibration")
-
-
 class CalibrationService:
     """Hand-eye calibration jobs on one cell; ``config_path`` is the file ``apply`` may write
     (None: the cell runs a built-in config, and writing is refused)."""
@@ -80,86 +53,54 @@ class CalibrationService:
     def __init__(self, cell: Cell, config_path: str | Path | None = None) -> None:
         self.cell = cell
         self.config_path = None if config_path is None else Path(config_path)
-        self._threads: list[threading.Thread] = []
 
     # -- start -------------------------------------------------------------------------------
     def start(self, caller: str, settings: RoutineSettings) -> Job:
         """Start the routine around the arm's current pose; returns the running job."""
-        cell = self.cell
-        limits = cell.config.limits
+        core = self.cell.core
         params = {"views": settings.n_views, "tilt_deg": settings.tilt_deg,
                   "roll_deg": settings.roll_deg, "speed_mm_s": settings.speed_mm_s,
                   "method": settings.chosen}
-        t0 = time.time()
-        try:
+
+        def check(motion: Motion) -> None:
             if settings.chosen not in CHOICES:
                 raise LimitError("invalid_request", f"method must be one of {', '.join(CHOICES)}")
-            cell.guard.check_speed(settings.speed_mm_s,
-                                   min(settings.accel_mm_s2, limits.max_accel_mm_s2))
-            motion = cell.claim_motion("calibration")
-            try:
-                cell.guard.check_arm(cell.arm_state(), time.monotonic())
-                if not cell.hw.camera.is_connected:
-                    raise UnavailableError("camera_lost", "calibration needs the camera")
-                job = cell.jobs.create(JOB_KIND, caller, params)
-                motion.job_id = job.id
-            except BaseException:
-                cell.release_motion(motion)
-                raise
-        except CellError as err:
-            cell.jobs.audit(caller, "calibrate", params, f"refused:{err.code}", err.message,
-                            None, t0)
-            raise
-        cell.jobs.audit(caller, "calibrate", params, "ok", "started", job.id, t0)
-        thread = threading.Thread(target=self._run, args=(job.id, motion, settings),
-                                  name=f"calibration-{job.id}", daemon=True)
-        self._threads = [t for t in self._threads if t.is_alive()] + [thread]
-        thread.start()
-        self._publish(job)
-        return job
+            core.arm.guard.check_speed(settings.speed_mm_s, settings.accel_mm_s2)
+            core.arm.ready_state()
+            if not core.camera.is_connected:
+                raise UnavailableError("camera_lost", "calibration needs the camera")
 
-    def _run(self, job_id: str, motion: Motion, settings: RoutineSettings) -> None:
-        cell = self.cell
-        guess = cell.frames.T_flange_camera
+        def work(job_id: str, motion: Motion) -> dict[str, Any]:
+            return self._run(job_id, settings)
+
+        return core.runner.start(JOB_KIND, caller, params, work, check=check, needs_camera=True,
+                                 on_change=self._publish, motion_name="calibration")
+
+    def _run(self, job_id: str, settings: RoutineSettings) -> dict[str, Any]:
+        core = self.cell.core
+        guess = core.frames.T_flange_camera
 
         def progress(stage: str, done: int, total: int) -> None:
             info = {"stage": stage, "done": done, "total": total}
-            cell.jobs.set_progress(job_id, info)
-            cell.events.publish(EVENT, {"job_id": job_id, "state": "running", **info})
+            core.runner.progress(job_id, info)
+            core.events.publish(EVENT, {"job_id": job_id, "state": "running", **info})
 
+        progress("views", 0, settings.n_views)
         try:
-            progress("views", 0, settings.n_views)
-            arm: Arm = _GuardedArm(cell, motion.cancel)
             result = run_hand_eye_routine(
-                arm, cell.hw.camera, dot_target_observer(cell.target),
-                cell.frames.T_flange_tcp, guess, settings, progress)
-            report = result.report
-            out = report.as_dict()
-            out["failed_views"] = [{"view": k, "reason": r} for k, r in result.failed]
-            d_mm, d_deg = pose_distance(report.T_flange_camera, guess)
-            out["change_from_current"] = {"T_flange_camera": pose_dict(guess),
-                                          "distance_mm": d_mm, "distance_deg": d_deg}
-            out["applied"] = None
-            out["dataset"] = self._save(job_id, result)
-            job = cell.jobs.finish(job_id, "succeeded", out)
-        except Cancelled as err:
-            job = cell.jobs.finish(job_id, "cancelled", None, err.code, err.message)
+                core.arm, core.camera, dot_target_observer(core.target),
+                core.frames.T_flange_tcp, guess, settings, progress)
         except RoutineError as err:
-            job = cell.jobs.finish(job_id, "failed", None, err.code, err.message)
-        except DriverError as err:
-            cell.stop_arm()
-            e = driver_error(err, "calibration")
-            job = cell.jobs.finish(job_id, "failed", None, e.code, e.message)
-        except Exception as err:
-            log.exception("calibration job %s crashed", job_id)
-            cell.stop_arm()
-            job = cell.jobs.finish(job_id, "failed", None, "internal_error", repr(err))
-        finally:
-            cell.release_motion(motion)
-        cell.count_job_end(job.state)
-        cell.jobs.audit(job.caller, "calibrate_end", {"job_id": job_id}, job.state,
-                        job.error_message or "", job_id, job.created_at)
-        self._publish(job)
+            raise RefusedError(err.code, err.message) from err
+        report = result.report
+        out = report.as_dict()
+        out["failed_views"] = [{"view": k, "reason": r} for k, r in result.failed]
+        d_mm, d_deg = pose_distance(report.T_flange_camera, guess)
+        out["change_from_current"] = {"T_flange_camera": pose_dict(guess),
+                                      "distance_mm": d_mm, "distance_deg": d_deg}
+        out["applied"] = None
+        out["dataset"] = self._save(job_id, result)
+        return out
 
     def _save(self, job_id: str, result: RoutineResult) -> dict[str, Any] | None:
         """Save the views as a dataset (see ``[api] calibration_dir``) -> where, or why not.
@@ -180,7 +121,6 @@ class CalibrationService:
     def _publish(self, job: Job) -> None:
         self.cell.events.publish(EVENT, {"job_id": job.id, "state": job.state,
                                          **job.progress, "job": job.as_dict()})
-        self.cell.events.publish("job", {"job": job.as_dict()})
 
     # -- read --------------------------------------------------------------------------------
     def job(self, job_id: str) -> Job:
@@ -209,9 +149,9 @@ class CalibrationService:
         """
         params = {"job_id": job_id, "method": method, "running": running,
                   "write_config": write_config, "force": force}
-        t0 = time.time()
         cell = self.cell
-        try:
+        with cell.core.audit.command(caller, "apply_calibration", params) as note:
+            note.job_id = job_id
             T = self._result_T(self.job(job_id), method, force)
             if not running and not write_config:
                 raise LimitError("invalid_request", "nothing to do: ask for running and/or "
@@ -219,8 +159,7 @@ class CalibrationService:
             if write_config and self.config_path is None:
                 raise RefusedError("no_config_file", "the cell runs a built-in config; start it "
                                    "with a config file (CELL_CONFIG) to write the result")
-            motion = cell.claim_motion("apply_calibration")
-            try:
+            with cell.core.slot.hold("apply_calibration"):
                 if write_config:
                     assert self.config_path is not None
                     try:
@@ -230,15 +169,8 @@ class CalibrationService:
                         raise RefusedError(err.code, str(err)) from err
                 if running:
                     cell.set_hand_eye(T)
-            finally:
-                cell.release_motion(motion)
-        except CellError as err:
-            cell.jobs.audit(caller, "apply_calibration", params, f"refused:{err.code}",
-                            err.message, job_id, t0)
-            raise
         out = {"job_id": job_id, "T_flange_camera": pose_dict(T), "running": running,
                "written_config": str(self.config_path) if write_config else None}
-        cell.jobs.audit(caller, "apply_calibration", params, "ok", "", job_id, t0)
         cell.events.publish(EVENT, {"job_id": job_id, "state": "applied", "applied": out})
         return out
 

@@ -47,7 +47,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     rt.add_argument("--config", metavar="FILE", help="cell config (default: the simulated cell)")
     rt.add_argument("--views", type=int, default=12, help="number of views (default 12)")
     rt.add_argument("--tilt-deg", type=float, default=18.0, help="camera tilt about the target")
-    rt.add_argument("--speed-mm-s", type=float, default=300.0, help="linear move speed")
+    rt.add_argument("--speed-mm-s", type=float, default=None,
+                    help="linear move speed (default: 200 or the config's limits.max_speed_mm_s "
+                         "if lower; above that limit is refused)")
     rt.add_argument("--method", default="joint", choices=["tsai", "park", "horaud", "joint"],
                     help="the result to choose (default joint)")
     rt.add_argument("--board", choices=["chessboard", "circles", "acircles"],
@@ -123,13 +125,19 @@ def run_routine(args: argparse.Namespace) -> int:
     from cell.commands.common import fail, print_json
     from cell.config import ConfigError, load_config
     from cell.factory import build_hardware
+    from cell.motion import GuardedArm
+    from cell.safety import CellError, SafetyGuard
     from drivers.errors import DriverError
     from estimator.calib.board import Board
 
     try:
         cfg = load_config(args.config)
+        limits = cfg.limits
+        speed = min(200.0, limits.max_speed_mm_s) if args.speed_mm_s is None else args.speed_mm_s
+        accel = min(4.0 * speed, limits.max_accel_mm_s2)
+        SafetyGuard(limits).check_speed(speed, accel)  # refused before anything is built
         settings = RoutineSettings(n_views=args.views, tilt_deg=args.tilt_deg,
-                                   speed_mm_s=args.speed_mm_s, accel_mm_s2=4 * args.speed_mm_s,
+                                   speed_mm_s=speed, accel_mm_s2=accel,
                                    chosen=args.method, min_views=min(6, args.views))
         pattern = (Board(args.board, args.cols, args.rows, args.pitch_mm) if args.board
                    else cfg.target.model())
@@ -141,6 +149,8 @@ def run_routine(args: argparse.Namespace) -> int:
         return fail(ConfigError.code, str(err), args.json)
     except DatasetError as err:
         return fail(err.code, err.message, args.json)
+    except CellError as err:
+        return fail(err.code, err.message, args.json)
     except ValueError as err:
         return fail("invalid_argument", str(err), args.json)
     try:
@@ -149,15 +159,19 @@ def run_routine(args: argparse.Namespace) -> int:
         return fail(err.code, str(err), args.json)
     try:
         T_flange_tcp = cfg.tool.T_flange_tcp.T()
-        hw.arm.connect()
-        hw.arm.power_on()
-        hw.arm.set_tcp(T_flange_tcp)
+        arm = GuardedArm(hw.arm, limits)  # every view pose checked, as in the service
+        arm.connect()
+        arm.power_on()
+        arm.set_tcp(T_flange_tcp)
         hw.camera.connect()
-        result = run_hand_eye_routine(
-            hw.arm, hw.camera, observer, T_flange_tcp, cfg.hand_eye.T_flange_camera.T(),
-            settings, progress=None if args.json else _progress,
-        )
+        with arm.slot.hold("calibration"):
+            result = run_hand_eye_routine(
+                arm, hw.camera, observer, T_flange_tcp, cfg.hand_eye.T_flange_camera.T(),
+                settings, progress=None if args.json else _progress,
+            )
     except RoutineError as err:
+        return fail(err.code, err.message, args.json)
+    except CellError as err:
         return fail(err.code, err.message, args.json)
     except DriverError as err:
         return fail(err.code, str(err), args.json)

@@ -25,17 +25,14 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def _serve(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from cell.config import SAMPLE_TOKENS, ConfigError, load_config
-    from cell.factory import all_simulated
+    from cell.config import ConfigError, load_config
+    from cell.runtime import check_startable
 
     try:
         config = load_config(args.config)
+        check_startable(config)  # before "serving", before any device is touched
     except ConfigError as err:
         return fail(err.code, str(err), False)
-    sample = sorted(t.token for t in config.api.tokens if t.token in SAMPLE_TOKENS)
-    if sample and not all_simulated(config):
-        return fail("config_invalid", f"api.tokens: sample token(s) {', '.join(sample)} are "
-                    "refused with real hardware; configure your own secret tokens", False)
     if args.config is not None:
         os.environ["CELL_CONFIG"] = os.path.abspath(args.config)
     else:

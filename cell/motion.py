@@ -1,0 +1,355 @@
+"""THE one path to the arm: the motion slot and the guarded arm.
+
+Every command that can move the arm goes through :class:`GuardedArm`, which implements the
+whole :class:`drivers.arm.Arm` protocol over the real (or simulated) arm and checks each
+motion command against the configured limits before anything is sent. A refusal raises the
+limit's :class:`cell.safety.CellError` and nothing moves. ``tests/test_motion_path.py`` fails
+when any module other than this one calls an arm's motion methods.
+
+Rules it keeps, whoever calls it (approach, jog, teach, calibration routine, home, CLI):
+- a motion command needs the :class:`MotionSlot` held (one motion at a time) and is refused
+  once the holder has been cancelled, so a stop really stops;
+- the arm must be connected, powered, free of safety stops, and its state fresh;
+- speed and acceleration within the caps (and above the floor: a speed that rounds to
+  nothing on the wire would creep for hours);
+- the whole interpolated path within the box and the tilt limit (see ``SafetyGuard``);
+- a blocking move returns only when the controller says it is over and the arm is at the
+  goal; any other end (cancelled, fault, short) leaves the arm commanded to stop and still
+  before the error reaches the caller, so the slot is never released over a moving arm.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from cell.config import LimitsConfig
+from cell.safety import CellError, RefusedError, SafetyGuard, UnavailableError
+from drivers.arm import Arm, ArmState, JogFrame
+from drivers.errors import (
+    ConnectionLostError,
+    DeviceTimeoutError,
+    DriverError,
+    EmergencyStopError,
+    ProtectiveStopError,
+)
+from estimator.transforms import make_T, pose_distance
+
+log = logging.getLogger(__name__)
+Matrix4 = NDArray[np.float64]
+
+AT_GOAL_MM = 0.2  # a move that ends further than this from its goal has failed
+AT_GOAL_DEG = 0.1
+JOINT_PATH_STEP_DEG = 3.0  # sampling of a joint move for the envelope and tilt checks
+JOG_HORIZON_S = 0.15  # a continuous jog is checked this far ahead
+SETTLE_TIMEOUT_S = 10.0
+
+
+class Cancelled(CellError):
+    """The running motion was cancelled by a stop."""
+
+    kind = "conflict"
+
+
+def driver_error(err: DriverError, what: str, device: str = "arm") -> CellError:
+    """A hardware error as the cell reports it: unavailable when the device cannot be
+    reached (the arm's lost link is ``arm_disconnected``), otherwise refused in the current
+    state with the driver's code."""
+    text = f"{what}: {err}"
+    if isinstance(err, ProtectiveStopError | EmergencyStopError):
+        text = (f"the arm stopped on a safety stop while {what}: {err}; clear the cause, "
+                "then unlock")
+    if isinstance(err, ConnectionLostError):
+        return UnavailableError("arm_disconnected" if device == "arm" else err.code, text)
+    if isinstance(err, DeviceTimeoutError):
+        return UnavailableError(err.code, text)
+    return RefusedError(err.code, text)
+
+
+@dataclass
+class Motion:
+    """The one motion slot's holder: who, and how to cancel it (with the reason, when a
+    fault rather than a person cancelled it)."""
+
+    name: str
+    cancel: threading.Event = field(default_factory=threading.Event)
+    job_id: str | None = None
+    needs_camera: bool = False
+    reason: CellError | None = None
+
+    def cancel_with(self, reason: CellError | None = None) -> None:
+        if reason is not None and self.reason is None:
+            self.reason = reason
+        self.cancel.set()
+
+    def raise_if_cancelled(self, what: str) -> None:
+        if self.cancel.is_set():
+            if self.reason is not None:
+                raise type(self.reason)(self.reason.code, self.reason.message)
+            raise Cancelled("cancelled", f"stopped by request {what}")
+
+
+class MotionSlot:
+    """One motion at a time: approach, jog, teach, calibration and home each hold it."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._motion: Motion | None = None
+
+    @property
+    def current(self) -> Motion | None:
+        with self._lock:
+            return self._motion
+
+    def claim(self, name: str, *, needs_camera: bool = False) -> Motion:
+        """Take the slot (RefusedError ``busy`` when it is taken)."""
+        with self._lock:
+            if self._motion is not None:
+                raise RefusedError("busy", f"the arm is busy ({self._motion.name}); wait for it "
+                                   "to finish or stop it")
+            self._motion = Motion(name, needs_camera=needs_camera)
+            return self._motion
+
+    def release(self, motion: Motion) -> None:
+        with self._lock:
+            if self._motion is motion:
+                self._motion = None
+
+    @contextmanager
+    def hold(self, name: str, *, needs_camera: bool = False) -> Iterator[Motion]:
+        motion = self.claim(name, needs_camera=needs_camera)
+        try:
+            yield motion
+        finally:
+            self.release(motion)
+
+    def cancel(self, reason: CellError | None = None) -> Motion | None:
+        """Cancel whatever holds the slot; returns it (None when idle)."""
+        motion = self.current
+        if motion is not None:
+            motion.cancel_with(reason)
+        return motion
+
+
+CommandKind = Literal["move_linear", "move_joint", "jog", "stop"]
+
+
+@dataclass(frozen=True)
+class Commanded:
+    """A command that passed the guard and was sent to the arm (for audits and tests)."""
+
+    t_s: float  # time.monotonic()
+    kind: CommandKind
+    T_base_tcp: Matrix4 | None  # goal of a move (for a joint move: its FK), None for stop
+    velocity: NDArray[np.float64] | None = None  # jog twist [mm/s, rad/s]
+    frame: JogFrame = "base"
+
+
+class GuardedArm:
+    """:class:`drivers.arm.Arm` with every motion command checked first (see module doc)."""
+
+    def __init__(self, arm: Arm, limits: LimitsConfig, slot: MotionSlot | None = None,
+                 history: int = 2000) -> None:
+        self._arm = arm
+        self.guard = SafetyGuard(limits)
+        self.slot = slot if slot is not None else MotionSlot()
+        self._commanded: deque[Commanded] = deque(maxlen=history)
+        self._lock = threading.Lock()
+
+    @property
+    def limits(self) -> LimitsConfig:
+        return self.guard.limits
+
+    @property
+    def raw(self) -> Arm:
+        """The unguarded arm, for the link supervisor (connect, reconnect) only."""
+        return self._arm
+
+    def commanded(self) -> list[Commanded]:
+        with self._lock:
+            return list(self._commanded)
+
+    def _record(self, c: Commanded) -> None:
+        with self._lock:
+            self._commanded.append(c)
+
+    # -- pass-through: connection, power, state ---------------------------------------------
+    def connect(self) -> None:
+        self._arm.connect()
+
+    def disconnect(self) -> None:
+        self._arm.disconnect()
+
+    def power_on(self) -> None:
+        self._arm.power_on()
+
+    def power_off(self) -> None:
+        self._arm.power_off()
+
+    def set_tcp(self, T_flange_tcp: Matrix4) -> None:
+        self._arm.set_tcp(T_flange_tcp)
+
+    def state(self) -> ArmState:
+        return self._arm.state()
+
+    def tcp_pose(self) -> Matrix4:
+        return self._arm.tcp_pose()
+
+    def joint_positions_rad(self) -> NDArray[np.float64]:
+        return self._arm.joint_positions_rad()
+
+    def forward_kinematics(self, joints_rad: NDArray[np.float64]) -> Matrix4:
+        return self._arm.forward_kinematics(joints_rad)
+
+    def pose_at(self, timestamp_s: float) -> Matrix4:
+        return self._arm.pose_at(timestamp_s)
+
+    def is_moving(self) -> bool:
+        return self._arm.is_moving()
+
+    def recover_protective_stop(self) -> None:
+        self._arm.recover_protective_stop()
+
+    def stop(self, decel_mm_s2: float = 2000.0) -> None:
+        """Always passed on: stopping is never refused."""
+        self._record(Commanded(time.monotonic(), "stop", None))
+        self._arm.stop(decel_mm_s2)
+
+    # -- checks ------------------------------------------------------------------------------
+    def ready_state(self) -> ArmState:
+        """The arm's state, checked: connected, ready, fresh (CellError otherwise)."""
+        try:
+            st = self._arm.state()
+        except DriverError as err:
+            raise driver_error(err, "reading the arm state") from err
+        self.guard.check_arm(st, time.monotonic())
+        return st
+
+    def _holder(self, what: str) -> Motion:
+        motion = self.slot.current
+        if motion is None:
+            raise RefusedError("no_motion_slot", f"{what} refused: motion commands need the "
+                               "cell's motion slot (internal error: report it)")
+        motion.raise_if_cancelled(f"before the {what}")
+        return motion
+
+    # -- motion ------------------------------------------------------------------------------
+    def move_linear(self, T_base_tcp: Matrix4, speed_mm_s: float, accel_mm_s2: float,
+                    wait: bool = True, what: str = "move") -> None:
+        """Checked straight move; with ``wait`` (the cell's way) returns at the goal."""
+        motion = self._holder(what)
+        self.guard.check_speed(float(speed_mm_s), float(accel_mm_s2))
+        st = self.ready_state()
+        T_goal = np.asarray(T_base_tcp, dtype=float)
+        self.guard.check_goal(st.T_base_tcp, T_goal, what)
+        self._record(Commanded(time.monotonic(), "move_linear", T_goal.copy()))
+        self._run(motion, what, T_goal, lambda: self._arm.move_linear(
+            T_goal, speed_mm_s, accel_mm_s2, wait=wait), wait)
+
+    def move_joint(self, joints_rad: NDArray[np.float64], speed_rad_s: float,
+                   accel_rad_s2: float, wait: bool = True, what: str = "joint move") -> None:
+        """Checked joint move: the path (linear in joint space, as the controller moves) is
+        sampled through the controller's own kinematics against the box and tilt limit."""
+        motion = self._holder(what)
+        self.guard.check_joint_speed(float(speed_rad_s), float(accel_rad_s2))
+        q1 = np.asarray(joints_rad, dtype=float).reshape(-1)
+        if q1.shape != (6,) or not np.all(np.isfinite(q1)):
+            raise RefusedError("invalid_pose", f"the {what} needs 6 finite joint values")
+        st = self.ready_state()
+        q0 = np.asarray(st.joints_rad, dtype=float)
+        n = max(2, int(np.ceil(np.degrees(np.max(np.abs(q1 - q0))) / JOINT_PATH_STEP_DEG)) + 1)
+        try:
+            path = [st.T_base_tcp] + [self._arm.forward_kinematics(q0 + u * (q1 - q0))
+                                      for u in np.linspace(0.0, 1.0, n)[1:]]
+        except DriverError as err:
+            raise driver_error(err, f"checking the {what}") from err
+        self.guard.check_path(path, what)
+        T_goal = path[-1]
+        self._record(Commanded(time.monotonic(), "move_joint", T_goal.copy()))
+        self._run(motion, what, T_goal, lambda: self._arm.move_joint(
+            q1, speed_rad_s, accel_rad_s2, wait=wait), wait)
+
+    def jog(self, velocity: NDArray[np.float64], frame: JogFrame = "base",
+            accel_mm_s2: float = 500.0) -> None:
+        """Checked velocity command: caps, and the path ``JOG_HORIZON_S`` ahead."""
+        self._holder("jog")
+        v = np.asarray(velocity, dtype=float).reshape(-1)
+        if v.shape != (6,):
+            raise RefusedError("invalid_request", "a jog needs [vx, vy, vz, wx, wy, wz]")
+        self.guard.check_jog_speed(v[:3], np.degrees(v[3:]))
+        if not 0 < accel_mm_s2 <= self.limits.max_accel_mm_s2:
+            raise RefusedError("accel_limit", f"jog acceleration {accel_mm_s2} mm/s^2 is outside "
+                               f"(0, {self.limits.max_accel_mm_s2}]")
+        st = self.ready_state()
+        self.guard.check_jog_ahead(st.T_base_tcp, jog_ahead(st.T_base_tcp, v, frame,
+                                                            JOG_HORIZON_S))
+        self._record(Commanded(time.monotonic(), "jog", None, v.copy(), frame))
+        try:
+            self._arm.jog(v, frame, accel_mm_s2)
+        except DriverError as err:
+            self.settle()
+            raise driver_error(err, "jogging") from err
+
+    def _run(self, motion: Motion, what: str, T_goal: Matrix4, send: Callable[[], None],
+             wait: bool) -> None:
+        """Send a checked move; with ``wait`` verify how it ended (see module doc)."""
+        try:
+            send()
+        except DriverError as err:
+            self.settle()
+            motion.raise_if_cancelled(f"while moving to the {what}")
+            raise driver_error(err, f"moving to the {what}") from err
+        except BaseException:
+            self.settle()
+            raise
+        if not wait:
+            return
+        try:
+            reached = self._arm.state().T_base_tcp
+        except DriverError as err:
+            raise driver_error(err, f"reading the arm after the {what}") from err
+        d_mm, d_deg = pose_distance(reached, T_goal)
+        if d_mm <= AT_GOAL_MM and d_deg <= AT_GOAL_DEG:
+            return
+        self.settle()
+        motion.raise_if_cancelled(f"while moving to the {what}")
+        raise RefusedError("motion_failed", f"the arm stopped {d_mm:.2f} mm / {d_deg:.2f} deg "
+                           f"short of the {what}")
+
+    def settle(self, timeout_s: float = SETTLE_TIMEOUT_S) -> bool:
+        """Command a stop and wait until the arm stands still; False if it still moves (or
+        cannot be read) after ``timeout_s``."""
+        try:
+            self.stop()
+        except DriverError as err:
+            log.warning("stop after a failed move was not accepted: %s", err)
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            try:
+                if not self._arm.state().moving:
+                    return True
+            except DriverError:
+                return False
+            time.sleep(0.01)
+        log.error("the arm still moves %.0f s after a stop was commanded", timeout_s)
+        return False
+
+
+def jog_ahead(T: Matrix4, velocity: NDArray[np.float64], frame: JogFrame,
+              horizon_s: float) -> Matrix4:
+    """Where a jog at ``velocity`` (mm/s, rad/s) leads from ``T`` within ``horizon_s``."""
+    v, w = velocity[:3], velocity[3:]
+    dR = Rotation.from_rotvec(w * horizon_s).as_matrix()
+    if frame == "tool":
+        return make_T(T[:3, :3] @ dR, T[:3, 3] + T[:3, :3] @ v * horizon_s)
+    return make_T(dR @ T[:3, :3], T[:3, 3] + v * horizon_s)
