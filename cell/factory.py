@@ -29,7 +29,7 @@ from drivers.camera import Camera
 from drivers.gripper import Gripper
 from drivers.robotiq import RobotiqGripper
 from estimator.transforms import T_from_ur_pose, invert_T
-from fakes.gripper import FakeGripper
+from fakes.gripper import FakeGripper, LineFault
 from fakes.sim_arm import SimArm
 from fakes.sim_camera import SimCamera
 from fakes.ur_controller.process import ControllerProcess
@@ -107,9 +107,11 @@ class _ProcessTruth:
 class _SimWorld:
     """Ground truth and fault switches over the simulated arm and camera."""
 
-    def __init__(self, truth: _EngineTruth | _ProcessTruth, camera: SimCamera) -> None:
+    def __init__(self, truth: _EngineTruth | _ProcessTruth, camera: SimCamera,
+                 gripper: FakeGripper | None = None) -> None:
         self._truth = truth
         self._camera = camera
+        self._gripper = gripper
 
     def true_T_base_target(self) -> Matrix4:
         return self._camera.T_base_target
@@ -128,6 +130,11 @@ class _SimWorld:
 
     def kill_controller(self) -> None:
         self._process_truth().kill_controller()
+
+    def inject_gripper_fault(self, fault: LineFault, count: int = 1) -> None:
+        if self._gripper is None:
+            raise RuntimeError("this simulated cell has no simulated gripper")
+        self._gripper.inject_line_fault(fault, count)
 
     def start_controller(self) -> None:
         self._process_truth().start_controller()
@@ -236,6 +243,7 @@ def _build(config: CellConfig, closers: list[Callable[[], None]]) -> Hardware:
     closers.append(camera.disconnect)
 
     gripper: Gripper | None = None
+    fake: FakeGripper | None = None
     gc = config.gripper
     if gc.kind == "sim":
         fake = FakeGripper(slave_id=gc.slave_id, object_width_mm=sim.gripper_object_width_mm,
@@ -253,7 +261,7 @@ def _build(config: CellConfig, closers: list[Callable[[], None]]) -> Hardware:
     simulated = all_simulated(config)
     world = None
     if simulated and truth is not None and sim_camera is not None:
-        world = _SimWorld(truth, sim_camera)
+        world = _SimWorld(truth, sim_camera, fake)
     hw = Hardware(arm=arm, camera=camera, gripper=gripper, simulated=simulated, sim=world,
                   closers=list(closers))
     closers.clear()

@@ -11,7 +11,7 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Literal, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,6 +33,10 @@ class SimWorld(Protocol):
     def trigger_protective_stop(self, reason: str = "test") -> None: ...
 
     def set_camera_lost(self, lost: bool) -> None: ...
+
+    def inject_gripper_fault(self, fault: Literal["garbage", "bad_crc", "no_answer"],
+                             count: int = 1) -> None:
+        """The next ``count`` gripper transactions fail on the serial line."""
 
     def kill_controller(self) -> None:
         """SIGKILL the simulated controller process (RuntimeError for an in-process arm)."""

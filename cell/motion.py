@@ -153,6 +153,8 @@ class Commanded:
     T_base_tcp: Matrix4 | None  # goal of a move (for a joint move: its FK), None for stop
     velocity: NDArray[np.float64] | None = None  # jog twist [mm/s, rad/s]
     frame: JogFrame = "base"
+    T_from: Matrix4 | None = None  # where the arm was when the command was checked
+    path: tuple[Matrix4, ...] = ()  # the sampled path it was checked on
 
 
 class GuardedArm:
@@ -252,7 +254,8 @@ class GuardedArm:
         st = self.ready_state()
         T_goal = np.asarray(T_base_tcp, dtype=float)
         self.guard.check_goal(st.T_base_tcp, T_goal, what)
-        self._record(Commanded(time.monotonic(), "move_linear", T_goal.copy()))
+        self._record(Commanded(time.monotonic(), "move_linear", T_goal.copy(),
+                               T_from=st.T_base_tcp.copy()))
         self._run(motion, what, T_goal, lambda: self._arm.move_linear(
             T_goal, speed_mm_s, accel_mm_s2, wait=wait), wait)
 
@@ -262,6 +265,18 @@ class GuardedArm:
         sampled through the controller's own kinematics against the box and tilt limit."""
         motion = self._holder(what)
         self.guard.check_joint_speed(float(speed_rad_s), float(accel_rad_s2))
+        q1 = np.asarray(joints_rad, dtype=float).reshape(-1)
+        st, path = self.check_joint_move(q1, what)
+        T_goal = path[-1]
+        self._record(Commanded(time.monotonic(), "move_joint", T_goal.copy(),
+                               T_from=st.T_base_tcp.copy(), path=tuple(path)))
+        self._run(motion, what, T_goal, lambda: self._arm.move_joint(
+            q1, speed_rad_s, accel_rad_s2, wait=wait), wait)
+
+    def check_joint_move(self, joints_rad: NDArray[np.float64], what: str = "joint move"
+                         ) -> tuple[ArmState, list[Matrix4]]:
+        """The arm's state and the sampled TCP path of a joint move from where it is now, after
+        checking it (CellError when refused); callers use it to refuse before a job starts."""
         q1 = np.asarray(joints_rad, dtype=float).reshape(-1)
         if q1.shape != (6,) or not np.all(np.isfinite(q1)):
             raise RefusedError("invalid_pose", f"the {what} needs 6 finite joint values")
@@ -274,10 +289,7 @@ class GuardedArm:
         except DriverError as err:
             raise driver_error(err, f"checking the {what}") from err
         self.guard.check_path(path, what)
-        T_goal = path[-1]
-        self._record(Commanded(time.monotonic(), "move_joint", T_goal.copy()))
-        self._run(motion, what, T_goal, lambda: self._arm.move_joint(
-            q1, speed_rad_s, accel_rad_s2, wait=wait), wait)
+        return st, path
 
     def jog(self, velocity: NDArray[np.float64], frame: JogFrame = "base",
             accel_mm_s2: float = 500.0) -> None:
@@ -293,7 +305,8 @@ class GuardedArm:
         st = self.ready_state()
         self.guard.check_jog_ahead(st.T_base_tcp, jog_ahead(st.T_base_tcp, v, frame,
                                                             JOG_HORIZON_S))
-        self._record(Commanded(time.monotonic(), "jog", None, v.copy(), frame))
+        self._record(Commanded(time.monotonic(), "jog", None, v.copy(), frame,
+                               T_from=st.T_base_tcp.copy()))
         try:
             self._arm.jog(v, frame, accel_mm_s2)
         except DriverError as err:

@@ -30,7 +30,7 @@ def start_home(core: CellCore, caller: str, *, speed_deg_s: float | None = None,
 
     def check(motion: Motion) -> None:
         core.arm.guard.check_joint_speed(np.radians(speed), np.radians(accel))
-        core.arm.ready_state()
+        core.arm.check_joint_move(q_home, "home pose")
 
     def work(job_id: str, motion: Motion) -> dict[str, Any]:
         core.runner.progress(job_id, {"phase": "moving"})
