@@ -16,6 +16,8 @@ implementation it has. Choices:
 from __future__ import annotations
 
 import contextlib
+import os
+import signal
 import time
 from collections.abc import Callable
 
@@ -99,6 +101,11 @@ class _ProcessTruth:
         if self.ctl is not None and self.ctl.alive:
             self.ctl.kill()
 
+    def freeze_controller(self, frozen: bool) -> None:
+        if self.ctl is None or not self.ctl.alive:
+            raise RuntimeError("the simulated controller is not running")
+        os.kill(self.ctl.pid, signal.SIGSTOP if frozen else signal.SIGCONT)
+
     def close(self) -> None:
         if self.ctl is not None:
             self.ctl.close()
@@ -130,6 +137,9 @@ class _SimWorld:
 
     def kill_controller(self) -> None:
         self._process_truth().kill_controller()
+
+    def freeze_controller(self, frozen: bool) -> None:
+        self._process_truth().freeze_controller(frozen)
 
     def inject_gripper_fault(self, fault: LineFault, count: int = 1) -> None:
         if self._gripper is None:

@@ -38,6 +38,9 @@ class SimWorld(Protocol):
                              count: int = 1) -> None:
         """The next ``count`` gripper transactions fail on the serial line."""
 
+    def freeze_controller(self, frozen: bool) -> None:
+        """SIGSTOP (True) or SIGCONT (False) the simulated controller process."""
+
     def kill_controller(self) -> None:
         """SIGKILL the simulated controller process (RuntimeError for an in-process arm)."""
 

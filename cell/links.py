@@ -20,7 +20,7 @@ import time
 from dataclasses import dataclass
 
 from cell.core import CellCore
-from cell.safety import UnavailableError
+from cell.safety import CellError, UnavailableError
 from drivers.errors import DriverError
 
 log = logging.getLogger(__name__)
@@ -74,8 +74,16 @@ class LinkSupervisor:
             self._thread.join(timeout=5.0)
 
     def missing(self) -> list[str]:
+        """Devices not connected now: the supervisor's view, and the devices' own (which
+        may know of a loss a check period before the supervisor does)."""
+        try:
+            arm_now = self.core.arm.state().connected
+        except DriverError:
+            arm_now = False
+        camera_now = bool(self.core.camera.is_connected)
         with self._lock:
-            return [s.name for s in (self.arm, self.camera) if not s.up]
+            return [s.name for s, now in ((self.arm, arm_now), (self.camera, camera_now))
+                    if not (s.up and now)]
 
     def snapshot(self) -> dict[str, dict[str, object]]:
         now = time.monotonic()
@@ -145,24 +153,35 @@ class LinkSupervisor:
                     err, delay)
 
     def _try_arm(self, first: bool) -> None:
-        arm = self.core.arm.raw
+        """Connect (the adapter stops the controller first) and make the arm ready as at
+        start, holding the motion slot throughout: nothing may move on a half-prepared link
+        (a TCP not yet set would make every pose wrong by the tool's length)."""
+        slot = self.core.slot
         try:
-            reconnect = getattr(arm, "reconnect", None)
-            if first or reconnect is None:
-                arm.connect()
-            else:
-                reconnect()
-        except DriverError as err:
-            self._failed_try(self.arm, err)
-            return
-        self._up(self.arm)
-        try:  # readiness is not the link: a stopped or unpowered arm stays connected
-            if self.core.config.robot.power_on_at_start:
-                arm.power_on()
-            if arm.state().ready:
-                arm.set_tcp(self.core.frames.T_flange_tcp)
-        except DriverError as err:
-            log.warning("arm connected but not made ready: %s", err)
+            motion = slot.claim("reconnect")
+        except CellError:
+            return  # a job still ends on the old link; try on the next check
+        try:
+            arm = self.core.arm.raw
+            try:
+                reconnect = getattr(arm, "reconnect", None)
+                if first or reconnect is None:
+                    arm.connect()
+                else:
+                    reconnect()
+            except DriverError as err:
+                self._failed_try(self.arm, err)
+                return
+            try:  # readiness is not the link: a stopped or unpowered arm stays connected
+                if self.core.config.robot.power_on_at_start:
+                    arm.power_on()
+                if arm.state().ready:
+                    arm.set_tcp(self.core.frames.T_flange_tcp)
+            except DriverError as err:
+                log.warning("arm connected but not made ready: %s", err)
+            self._up(self.arm)
+        finally:
+            slot.release(motion)
 
     def _try_camera(self, first: bool) -> None:
         try:

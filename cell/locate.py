@@ -126,14 +126,15 @@ class Locator:
             frame = self._fresh_frame(after_s)
             while frame.sequence == seq:
                 frame = self._fresh_frame(frame.timestamp_s + 1e-6)
-            result = self._estimate(frame)
             try:
                 T_base_tcp = self.arm.pose_at(frame.timestamp_s)
-            except LookupError as err:
-                raise RefusedError("stale_pose", "the arm's pose history does not cover the "
-                                   f"frame's capture time: {err}") from err
+            except LookupError:
+                # a frame older than the history (a link that just came back): the next one
+                frame = self._fresh_frame(time.monotonic())
+                T_base_tcp = self._pose_at(frame)
             except DriverError as err:
                 raise UnavailableError(err.code, f"reading the arm pose history: {err}") from err
+            result = self._estimate(frame)
             estimates.append(self.frames.T_base_target(T_base_tcp, result.T_camera_target))
             last = (frame, result, T_base_tcp)
         assert last is not None
@@ -145,6 +146,15 @@ class Locator:
                       frame.sequence, len(estimates), spread, time.monotonic())
         self.last = loc
         return loc
+
+    def _pose_at(self, frame: Frame) -> Matrix4:
+        try:
+            return self.arm.pose_at(frame.timestamp_s)
+        except LookupError as err:
+            raise RefusedError("stale_pose", "the arm's pose history does not cover the "
+                               f"frame's capture time: {err}") from err
+        except DriverError as err:
+            raise UnavailableError(err.code, f"reading the arm pose history: {err}") from err
 
     def _fresh_frame(self, after_s: float | None) -> Frame:
         """The freshest frame, captured no earlier than ``after_s`` (monotonic)."""

@@ -24,7 +24,7 @@ class PoseHistory:
             raise ValueError("a pose history needs room for at least 2 samples")
         self._times: deque[float] = deque(maxlen=max_samples)
         self._poses: deque[NDArray[np.float64]] = deque(maxlen=max_samples)
-        self._lock = threading.Lock()
+        self._lock = threading.Condition()
 
     def __len__(self) -> int:
         return len(self._times)
@@ -36,19 +36,24 @@ class PoseHistory:
                 return
             self._times.append(timestamp_s)
             self._poses.append(np.array(T, dtype=float))
+            self._lock.notify_all()
 
     def span(self) -> tuple[float, float] | None:
         """(oldest, newest) sample time, or None when empty."""
         with self._lock:
             return (self._times[0], self._times[-1]) if self._times else None
 
-    def at(self, timestamp_s: float) -> NDArray[np.float64]:
+    def at(self, timestamp_s: float, wait_s: float = 0.0) -> NDArray[np.float64]:
         """Pose at ``timestamp_s``: linear in position, slerp in rotation between samples.
 
-        LookupError when the instant is before the oldest sample or more than
-        ``NEWEST_TOLERANCE_S`` after the newest.
+        An instant newer than the newest sample waits up to ``wait_s`` for samples to arrive
+        (the stream reader may lag a loaded host by a few cycles). LookupError when the instant
+        is before the oldest sample or, after that, more than ``NEWEST_TOLERANCE_S`` after the
+        newest.
         """
         with self._lock:
+            self._lock.wait_for(lambda: bool(self._times) and self._times[-1] >= timestamp_s,
+                                timeout=wait_s)
             times = list(self._times)
             poses = list(self._poses)
         if not times or timestamp_s < times[0] or timestamp_s > times[-1] + NEWEST_TOLERANCE_S:

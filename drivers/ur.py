@@ -113,7 +113,7 @@ class URArm:
 
     def __init__(
         self, host: str, *, connect_timeout_s: float = 5.0, call_timeout_s: float = 3.0,
-        watchdog_s: float = 0.25, stale_after_s: float = 0.75, history_samples: int = 5000,
+        watchdog_s: float = 0.25, stale_after_s: float = 1.5, history_samples: int = 5000,
         poll_period_s: float = 0.004,
     ) -> None:
         self.host = host
@@ -198,7 +198,9 @@ class URArm:
         if self._client is not None:
             self._client.kill("replaced")
         self._client = ClientProcess(self.host)
-        self._lost_reason = None
+        # Readers in other threads see "connecting" (not connected) until the receive client
+        # exists; only then is the link up.
+        self._lost_reason = "connecting"
         try:
             self._request(Create("dash"), timeout_s=self.connect_timeout_s + 5.0)
             self._dash("connect", int(self.connect_timeout_s * 1000))
@@ -207,11 +209,12 @@ class URArm:
                                     "switch the pendant to Remote")
             self._request(Create("recv"), timeout_s=self.connect_timeout_s + 5.0)
         except RemoteError as exc:
-            self._mark_lost(str(exc))
+            self._lost_reason = f"connect failed: {exc}"
             raise ConnectionLostError(f"cannot connect to {self.host}: {exc}") from exc
-        except DriverError:
-            self._lost_reason = self._lost_reason or "connect failed"
+        except DriverError as exc:
+            self._lost_reason = f"connect failed: {exc}"
             raise
+        self._lost_reason = None
         self._last_ts = -1.0
         self._last_ts_change_s = time.monotonic()
         self._start_monitor()
@@ -349,8 +352,12 @@ class URArm:
     def power_off(self) -> None:
         if self._moving(self._sample()):
             raise NotReadyError(f"{self.host}: power off refused while the arm moves")
-        self._dash("powerOff")
-        self._has_control = False  # the control script ends with the power
+        self._dash("powerOff")  # the control script ends with the power; power_on restarts it
+        deadline = time.monotonic() + 5.0
+        while self._sample().robot_mode not in (RobotMode.POWER_OFF, RobotMode.IDLE):
+            if time.monotonic() > deadline:
+                raise NotReadyError(f"{self.host} did not power off")
+            time.sleep(0.02)
 
     def state(self) -> ArmState:
         try:
@@ -385,7 +392,9 @@ class URArm:
         return T_from_ur_pose(list(pose))
 
     def pose_at(self, timestamp_s: float) -> NDArray[np.float64]:
-        return self.history.at(timestamp_s)
+        wait_s = 0.5 if self._lost_reason is None else 0.0
+        return self.history.at(timestamp_s, wait_s=min(wait_s, timestamp_s + 0.5
+                                                        - time.monotonic()))
 
     def is_moving(self) -> bool:
         return self._moving(self._sample())
@@ -539,6 +548,10 @@ class URArm:
         self._check_link()
         if not self._has_control:
             return  # no control program: nothing of ours is moving
+        s = self._sample()
+        if s.robot_mode != RobotMode.RUNNING or s.runtime_state != RuntimeState.PLAYING:
+            self._jog_deadline_s = None
+            return  # powered off, or the control script is not running: nothing moves
         self._jog_deadline_s = None
         self._ctrl("speedStop", decel)
         self._ctrl("stopL", decel, False)
