@@ -6,6 +6,7 @@ can build a cell, serve it, and inspect it directly.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
@@ -20,6 +21,10 @@ from api.routes import router, sim_router
 from api.routes_arm import router as arm_router
 from api.routes_calibration import install as install_calibration
 from cell.service import Cell
+
+# Called first thing on SIGTERM/SIGINT by ``cell serve`` (see cell.commands.serve), before
+# uvicorn waits for open connections: the arm must not wait for an SSE client to leave.
+SHUTDOWN_HOOKS: list[Callable[[], None]] = []
 
 
 def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False) -> FastAPI:
@@ -40,6 +45,7 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False) -> FastAPI:
         '{"error": {"code", "message"}}. Authorise with a bearer token.')
     app.state.cell = cell
     app.state.tokens = tokens
+    app.state.closing = threading.Event()  # set at shutdown: streams end on their own
     app.state.http_stats = metrics.HttpStats()
     errors.install(app)
     app.include_router(router)
@@ -86,7 +92,14 @@ def app_from_environment() -> FastAPI:
         print(f"error ({code}): the cell could not start: {err}", file=sys.stderr)
         raise SystemExit(2) from err
     try:
-        return create_app(cell, close_cell_on_shutdown=True)
+        app = create_app(cell, close_cell_on_shutdown=True)
     except BaseException:
         cell.close()
         raise
+
+    def on_signal() -> None:
+        app.state.closing.set()
+        cell.stop("service", reason="shutdown: the service is stopping")
+
+    SHUTDOWN_HOOKS.append(on_signal)
+    return app

@@ -25,12 +25,16 @@ def sse_response(request: Request, sub: Subscription, max_events: int | None,
     """Stream the subscription's events (those ``keep`` accepts) until the client leaves or
     ``max_events`` were sent; the subscription is closed either way."""
 
+    closing = getattr(request.app.state, "closing", None)
+
     async def stream() -> AsyncIterator[str]:
         sent = 0
         idle_s = 0.0
         try:
             yield "retry: 1000\n\n"
             while max_events is None or sent < max_events:
+                if closing is not None and closing.is_set():
+                    break  # the service is stopping: do not hold its shutdown up
                 ev = sub.get(0)
                 if ev is None:
                     if await request.is_disconnected():

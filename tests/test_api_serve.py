@@ -100,3 +100,42 @@ def test_sample_tokens_are_refused_on_real_hardware(tmp_path: Path) -> None:
                          timeout=60)
     assert out.returncode == 2
     assert "sample token" in out.stderr and "sim-operator" in out.stderr
+
+
+def test_sigterm_stops_the_arm_first_and_closes_streams_within_2_s(tmp_path: Path) -> None:
+    """Audit item 8: one open SSE client delayed the shutdown by 47 s, the arm not stopped."""
+    import sqlite3
+    import threading
+
+    config = _config(tmp_path)
+    with serving(config, _free_port()) as (proc, url):
+        got: list[str] = []
+
+        def listen() -> None:
+            with httpx.stream("GET", f"{url}/api/v1/events", headers=AUTH["viewer"],
+                              timeout=60) as r:
+                for line in r.iter_lines():
+                    got.append(line)
+
+        listener = threading.Thread(target=listen, daemon=True)
+        listener.start()
+        r = httpx.post(f"{url}/api/v1/approach", json={"standoff_mm": 40, "speed_mm_s": 40},
+                       headers=AUTH["plc"], timeout=30)
+        assert r.status_code == 200, r.text
+        job_id = r.json()["id"]
+        time.sleep(1.0)
+        assert got, "the event stream delivered nothing"
+        t_term = time.time()
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=15)
+        exited_s = time.time() - t_term
+        listener.join(5.0)
+    print(f"exited {exited_s:.2f} s after SIGTERM with a stream open")
+    assert exited_s < 4.0  # streams closed within 2 s, then the cell's own shutdown
+    db = sqlite3.connect(str(tmp_path / "jobs.db"))
+    stops = db.execute("SELECT started_at, outcome, params FROM audit WHERE command = 'stop' "
+                       "ORDER BY id").fetchall()
+    assert stops and stops[0][1] == "ok" and "shutdown" in stops[0][2]
+    assert stops[0][0] - t_term < 0.5, "the arm was not stopped first"
+    state = db.execute("SELECT state FROM jobs WHERE id = ?", (job_id,)).fetchone()[0]
+    assert state == "cancelled"

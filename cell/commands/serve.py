@@ -9,6 +9,10 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
+from types import FrameType
+
+import uvicorn
 
 from cell.commands.common import fail
 
@@ -23,8 +27,6 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def _serve(args: argparse.Namespace) -> int:
-    import uvicorn
-
     from cell.config import ConfigError, load_config
     from cell.runtime import check_startable
 
@@ -42,6 +44,26 @@ def _serve(args: argparse.Namespace) -> int:
     # Compiled once per checkout (make install does it); loading takes a fraction of a second.
     print(f"estimator kernels ready in {warm_up():.1f} s", flush=True)
     print(f"serving the cell on http://{args.host}:{args.port} (docs at /docs)", flush=True)
-    uvicorn.run("api.app:app_from_environment", factory=True, host=args.host, port=args.port,
-                log_level=args.log_level)
+    server = _StopFirstServer(uvicorn.Config(
+        "api.app:app_from_environment", factory=True, host=args.host, port=args.port,
+        log_level=args.log_level, timeout_graceful_shutdown=SHUTDOWN_GRACE_S))
+    server.run()
     return 0
+
+
+SHUTDOWN_GRACE_S = 2  # open streams get this long after SIGTERM, and only after the arm stop
+
+
+class _StopFirstServer(uvicorn.Server):
+    """On SIGTERM/SIGINT the arm is stopped (and streams told to end) before uvicorn starts
+    its graceful shutdown, which would otherwise wait for every client to leave first."""
+
+    def handle_exit(self, sig: int, frame: FrameType | None) -> None:
+        from api.app import SHUTDOWN_HOOKS
+
+        for hook in list(SHUTDOWN_HOOKS):
+            try:
+                hook()
+            except Exception as err:  # the shutdown itself must go on
+                print(f"shutdown hook failed: {err!r}", file=sys.stderr, flush=True)
+        super().handle_exit(sig, frame)
