@@ -9,7 +9,6 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("bench", help="benchmark the estimator against OpenCV pipelines",
                        description="Times and pose errors on rendered 1280x800 frames "
                                    "(see cell/bench.py for what is measured and how).")
-    p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--frames", type=int, default=60, help="rendered frames (default 60)")
     p.add_argument("--scenes", type=int, default=1000,
                    help="random scenes for the 0.5 px accuracy comparison (default 1000)")

@@ -20,7 +20,6 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     snap.add_argument("--config", default=None, help="cell config (default: built-in sim)")
     snap.add_argument("--out", required=True, help="image file to write (.png)")
     snap.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for a frame")
-    snap.add_argument("--json", action="store_true", help="print JSON")
     snap.set_defaults(func=run_snapshot)
 
 

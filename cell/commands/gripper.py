@@ -19,7 +19,6 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--baudrate", type=int, default=115200)
     p.add_argument("--timeout", type=float, default=0.5, help="per-request timeout in s")
     p.add_argument("action", choices=["status", "activate", "open", "close"])
-    p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=run)
 
 
