@@ -258,6 +258,8 @@ def test_config_check_passes_the_shipped_configs_without_hardware(tmp_path: Path
         assert out.returncode == 0, out.stdout + out.stderr
         info = json.loads(out.stdout)
         assert info["ok"] is True and info["real_hardware"] is real
+        # the example still holds the sample tokens, which only `cell serve` refuses
+        assert [w.split(":")[0] for w in info["warnings"]] == (["api.tokens"] if real else [])
     # nothing was created in the working directory (no job database, no state)
     assert list(tmp_path.iterdir()) == []
 

@@ -2,7 +2,8 @@
 
 What an integrator runs after every edit of a real cell's file: the strict schema and the
 commissioning checks (:mod:`cell.config_checks`), every problem listed with its key. Exit 0 when
-the file loads, 2 otherwise.
+the file loads (with warnings for what only ``cell serve`` refuses, such as the sample API
+tokens on real hardware), 2 otherwise.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def run_check(args: argparse.Namespace) -> int:
     import sys
 
-    from cell.config import ConfigError, load_config
+    from cell.config import SAMPLE_TOKENS, ConfigError, load_config
 
     try:
         config = load_config(args.file)
@@ -42,8 +43,14 @@ def run_check(args: argparse.Namespace) -> int:
                                              if config.robot.kind == "ur"
                                              and config.sim.ur_controller else ""),
                "camera": config.camera.kind, "gripper": config.gripper.kind}
+    warnings = []
+    sample = sorted(t.token for t in config.api.tokens if t.token in SAMPLE_TOKENS)
+    if sample and config.has_real_device():
+        warnings.append(f"api.tokens: sample token(s) {', '.join(sample)}: `cell serve` refuses "
+                        "them with real hardware; configure your own secret tokens")
     out = {"file": args.file, "ok": True, "real_hardware": config.has_real_device(),
            "devices": devices, "accepted": list(config.commissioning.accept),
+           "warnings": warnings,
            "state": {"job_db": config.api.job_db, "calibration_dir": config.api.calibration_dir,
                      "image_log_dir": config.api.image_log_dir}}
     if args.json:
@@ -54,4 +61,6 @@ def run_check(args: argparse.Namespace) -> int:
               f"{'real hardware' if out['real_hardware'] else 'all simulated'})")
         if config.commissioning.accept:
             print(f"  accepted on purpose: {', '.join(config.commissioning.accept)}")
+        for warning in warnings:
+            print(f"  warning: {warning}")
     return 0
