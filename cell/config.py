@@ -357,6 +357,13 @@ def _schema_problems(err: ValidationError) -> list[Problem]:
         elif isinstance(e.get("input"), str) and e["type"] in ("int_type", "float_type",
                                                                 "bool_type"):
             msg += f" (got the string {e['input']!r}: write it without quotes)"
+        elif e["type"] == "value_error":
+            msg = msg.removeprefix("Value error, ")
+            # a table-level check whose message starts with the key it is about: name that key
+            model = _model_at(loc)
+            first = msg.split(" ", 1)[0]
+            if model is not None and first in model.model_fields:
+                key = f"{key}.{first}" if key else first
         problems.append(Problem(key, msg))
     return problems
 
