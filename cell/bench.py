@@ -394,12 +394,20 @@ def _bias_effect(camera: CameraModel, n: int, rng: np.random.Generator) -> dict[
 
 
 def run_bench(camera: CameraModel, frames: int = 40, scenes: int = 1000, seed: int = 0,
-              bias_frames: int | None = None) -> dict[str, Any]:
+              bias_frames: int | None = None,
+              progress: Callable[[str, int, int], None] | None = None) -> dict[str, Any]:
     """Run everything; returns the JSON-able report (see the module docstring for fairness).
 
     ``bias_frames`` (default: twice ``frames``, at most 100) close-range frames measure the
-    perspective-bias correction.
+    perspective-bias correction. ``progress(stage, done, total)`` is told when each of the five
+    stages is done (the CLI draws a bar; nothing is timed across it).
     """
+    stages = ("render", "frame benchmark", "pose only", "accuracy", "bias correction")
+
+    def step(k: int) -> None:
+        if progress is not None:
+            progress("bench", k, len(stages))
+
     if frames < 1 or scenes < 1:
         raise ValueError("frames and scenes must be at least 1")
     n_bias = bias_frames if bias_frames is not None else min(100, 2 * frames)
@@ -407,11 +415,17 @@ def run_bench(camera: CameraModel, frames: int = 40, scenes: int = 1000, seed: i
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
     try:
+        step(0)
         rendered = _make_frames(camera, frames, rng)
+        step(1)
         methods = _frame_benchmark(camera, rendered)
+        step(2)
         pose_only = _pose_only(camera, rendered, rng)
+        step(3)
         accuracy = _accuracy(camera, scenes, rng)
+        step(4)
         bias = _bias_effect(camera, n_bias, rng)
+        step(5)
     finally:
         cv2.setNumThreads(threads)
     frame_ms = methods["pipeline_full"]["ms_median"]

@@ -1,30 +1,44 @@
-"""Cell configuration: one TOML file, validated with pydantic; errors name the offending key.
+"""Cell configuration: one TOML file, validated strictly; every error names the offending key.
 
-Tables: ``[camera]`` and ``[target]`` (required), ``[robot]``, ``[hand_eye]``, ``[tool]``,
-``[approach]``, ``[limits]``, ``[api]``, ``[gripper]``, ``[sim]``. Keys stay stable, because
-commissioned cells keep their files.
+Tables: ``[camera]``, ``[target]`` and ``[robot]`` (``kind`` required), ``[hand_eye]``,
+``[tool]``, ``[approach]``, ``[limits]``, ``[api]``, ``[gripper]``, ``[sim]``,
+``[commissioning]``. A config with any real device must also state ``[limits]``, ``[tool]`` and
+``[hand_eye]`` (their defaults suit only the simulated cell). Types are strict (``width =
+"1280"`` is an error, not a coercion), an unknown key is answered with the closest valid name,
+and the commissioning checks (:mod:`cell.config_checks`) catch values in the wrong unit.
+Keys stay stable, because commissioned cells keep their files.
 Without a file every command uses the built-in simulated cell (``cell/configs/sim.toml``).
 """
 
 from __future__ import annotations
 
+import json
 import tomllib
+import typing
 from importlib import resources
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from cell.config_checks import Problem, check, closest
 from estimator import CameraModel, Target
 from estimator.transforms import T_from_pose
 
 
 class ConfigError(Exception):
-    """The configuration file is missing, unreadable or invalid; the message names the key."""
+    """The configuration file is missing, unreadable or invalid; the message names the key.
+
+    ``problems`` lists every problem found (schema and commissioning checks), each with its key.
+    """
 
     code = "config_invalid"
+
+    def __init__(self, message: str, problems: list[Problem] | None = None) -> None:
+        super().__init__(message)
+        self.problems = problems if problems is not None else [Problem("", message)]
 
 
 class _Strict(BaseModel):
@@ -41,9 +55,15 @@ class CameraConfig(_Strict):
     width: int = Field(gt=0)
     height: int = Field(gt=0)
     dist: list[float] = Field(default_factory=list)
-    # Optional: which device, and its frame rate.
+    # Which device, its frame rate, and (OAK) which one and how it exposes. The output size is
+    # ``width`` x ``height``. Unset sensor settings keep the device's defaults.
     kind: Literal["sim", "oak"] = "sim"
     fps: float = Field(default=15.0, gt=0, le=120)
+    device_id: str = ""  # OAK serial number (MxId) or IP address; empty: the first device found
+    socket: Literal["CAM_A", "CAM_B", "CAM_C", "CAM_D"] = "CAM_B"  # CAM_B: OAK-D's left mono
+    exposure_us: int | None = Field(default=None, ge=1)  # manual exposure time
+    iso: int | None = Field(default=None, ge=100, le=1600)  # sensor gain
+    focus: int | Literal["auto"] | None = None  # lens position 0..255, "auto", unset: fixed
 
     @field_validator("dist")
     @classmethod
@@ -51,6 +71,21 @@ class CameraConfig(_Strict):
         if len(v) not in (0, 4, 5, 8, 12, 14):
             raise ValueError("dist must have 0, 4, 5, 8, 12 or 14 coefficients")
         return v
+
+    @field_validator("focus")
+    @classmethod
+    def _focus(cls, v: int | str | None) -> int | str | None:
+        if isinstance(v, int) and not 0 <= v <= 255:
+            raise ValueError(f"focus must be a lens position 0..255 or \"auto\", got {v}")
+        return v
+
+    @model_validator(mode="after")
+    def _exposure_fits(self) -> CameraConfig:
+        if self.exposure_us is not None and self.exposure_us > 1e6 / self.fps:
+            raise ValueError(f"exposure_us = {self.exposure_us} does not fit in one frame at "
+                             f"{self.fps:g} fps (at most {int(1e6 / self.fps)} us): lower it "
+                             "or the fps")
+        return self
 
     def model(self) -> CameraModel:
         return CameraModel(self.fx, self.fy, self.cx, self.cy, tuple(self.dist),
@@ -86,8 +121,10 @@ class RobotConfig(_Strict):
     simulated arm (fast tests). ``home_joints_deg`` is where ``cell serve`` starts on a simulated
     arm and what an operator can return to."""
 
-    kind: Literal["ur", "sim"] = "sim"
+    kind: Literal["ur", "sim"]  # required: a file that lost it must not run a simulated arm
     host: str = "127.0.0.1"
+    # The UR adapter's timing (drivers.ur.URArm): connecting, one call to the controller, the
+    # jog watchdog period, and how long unchanged RTDE data may be before the link counts as lost.
     connect_timeout_s: float = Field(default=5.0, gt=0)
     # Power on and release the brakes when the service starts and after a controller that
     # came back (False: an operator does it from the page or POST /api/v1/arm/power).
@@ -95,6 +132,11 @@ class RobotConfig(_Strict):
     # Reconnect tries to a lost arm or camera: first after this, doubling up to the maximum.
     reconnect_initial_s: float = Field(default=0.2, gt=0, le=60)
     reconnect_max_s: float = Field(default=5.0, gt=0, le=300)
+    call_timeout_s: float = Field(default=3.0, gt=0)
+    watchdog_s: float = Field(default=0.25, gt=0)
+    # No new RTDE data for this long = the controller is gone (frozen, cable): generous,
+    # because a loaded cell PC can delay the stream reader by most of a second.
+    stale_after_s: float = Field(default=1.5, gt=0)
     home_joints_deg: tuple[float, float, float, float, float, float] = (
         0.0, -90.0, 90.0, -90.0, -90.0, 0.0)
 
@@ -175,16 +217,46 @@ class TokenConfig(_Strict):
 SAMPLE_TOKENS = frozenset({"sim-viewer", "sim-operator", "sim-plc"})
 
 
+STATE_PATH_KEYS = ("job_db", "calibration_dir", "image_log_dir")
+STATE_DEFAULTS = {"job_db": "jobs.db", "calibration_dir": "calibration",
+                  "image_log_dir": "failed-locates"}
+
+
 class ApiConfig(_Strict):
-    """Bearer tokens and their roles. The sample tokens are refused on real hardware."""
+    """Bearer tokens and their roles, and where the service keeps its state.
+
+    ``state_dir`` (absolute) holds everything the service writes: the job and audit database,
+    the taught poses beside it, each hand-eye routine's views and the image log of failed
+    locates. With it, relative ``job_db`` / ``calibration_dir`` / ``image_log_dir`` are inside
+    it and absent ones default to ``jobs.db``, ``calibration`` and ``failed-locates``; the
+    loaded config holds the resolved absolute paths. Without it (the simulated cell) relative
+    paths are relative to the working directory. The sample tokens are refused on real hardware.
+    """
 
     tokens: list[TokenConfig] = Field(default_factory=list)
-    job_db: str = "var/cell_jobs.db"  # relative paths are relative to the working directory
+    state_dir: str = ""
+    job_db: str = "var/cell_jobs.db"
     # Each successful hand-eye routine saves its views (images, flange poses) to a dataset
     # folder here, named after its job; empty: not saved.
     calibration_dir: str = "var/calibration"
     image_log_dir: str = ""  # empty: no image log of failed locates
     image_log_max: int = Field(default=50, ge=1)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _inside_state_dir(cls, data: Any) -> Any:
+        if not isinstance(data, dict) or not isinstance(data.get("state_dir"), str) \
+                or not data["state_dir"]:
+            return data
+        root = PurePosixPath(data["state_dir"])
+        if not root.is_absolute():
+            raise ValueError(f"state_dir must be an absolute path, got {str(root)!r}")
+        out = dict(data)
+        for key in STATE_PATH_KEYS:
+            value = out.get(key, STATE_DEFAULTS[key])
+            if isinstance(value, str) and value and not PurePosixPath(value).is_absolute():
+                out[key] = str(root / value)
+        return out
 
     @field_validator("tokens")
     @classmethod
@@ -200,6 +272,11 @@ class GripperConfig(_Strict):
     kind: Literal["robotiq", "sim", "none"] = "none"
     port: str = ""
     slave_id: int = Field(default=9, ge=1, le=247)
+    baudrate: Literal[9600, 19200, 38400, 57600, 115200] = 115200  # Robotiq's default: 115200
+    timeout_s: float = Field(default=0.5, gt=0)  # one Modbus request
+    retries: int = Field(default=1, ge=0, le=10)
+    motion_timeout_s: float = Field(default=5.0, gt=0)
+    activation_timeout_s: float = Field(default=10.0, gt=0)
 
 
 class SimConfig(_Strict):
@@ -217,15 +294,22 @@ class SimConfig(_Strict):
     gripper_object_width_mm: float | None = Field(default=None, ge=0, le=85)
 
 
+class CommissioningConfig(_Strict):
+    """Keys whose unusual value is intended: the commissioning checks let them pass."""
+
+    accept: list[str] = Field(default_factory=list)
+
+
 class CellConfig(BaseModel):
-    """The whole file. Only ``[camera]`` and ``[target]`` are required, so a minimal file is
-    enough for the vision commands; every other table has defaults (simulated arm, no gripper)."""
+    """The whole file. ``[camera]``, ``[target]`` and ``[robot]`` are required; with any real
+    device ``[limits]``, ``[tool]`` and ``[hand_eye]`` are too (checked on the raw file by
+    :func:`cell.config_checks.check`); the rest have defaults (no gripper, simulated truth)."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     camera: CameraConfig
     target: TargetConfig
-    robot: RobotConfig = RobotConfig()
+    robot: RobotConfig
     hand_eye: HandEyeConfig = HandEyeConfig()
     tool: ToolConfig = ToolConfig()
     approach: ApproachConfig = ApproachConfig()
@@ -233,25 +317,95 @@ class CellConfig(BaseModel):
     api: ApiConfig = ApiConfig()
     gripper: GripperConfig = GripperConfig()
     sim: SimConfig = SimConfig()
+    commissioning: CommissioningConfig = CommissioningConfig()
 
+    def has_real_device(self) -> bool:
+        """Any device that is not simulated (then the commissioning rules apply)."""
+        return ((self.robot.kind == "ur" and not self.sim.ur_controller)
+                or self.camera.kind == "oak" or self.gripper.kind == "robotiq")
 
 
 SIM_CONFIG_NAME = "sim.toml"
 
+_MISSING_HINTS = {
+    "robot": "required table: [robot] with kind = \"ur\" (a UR controller) or \"sim\"",
+    "robot.kind": "required: \"ur\" (a UR controller at host) or \"sim\" (the simulated arm)",
+}
 
-def _format_validation_error(err: ValidationError, source: str) -> str:
-    lines = [f"invalid configuration in {source}:"]
+
+def _model_at(loc: tuple[int | str, ...]) -> type[BaseModel] | None:
+    """The config model that holds the key at ``loc`` (for naming the valid keys there)."""
+    model: type[BaseModel] = CellConfig
+    for part in loc:
+        if isinstance(part, int):
+            continue
+        field = model.model_fields.get(part)
+        if field is None:
+            return None
+        nested = _nested_model(field.annotation)
+        if nested is None:
+            return None
+        model = nested
+    return model
+
+
+def _nested_model(annotation: Any) -> type[BaseModel] | None:
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in typing.get_args(annotation):
+        found = _nested_model(arg)
+        if found is not None:
+            return found
+    return None
+
+
+def _schema_problems(err: ValidationError) -> list[Problem]:
+    problems = []
     for e in err.errors():
-        key = ".".join(str(p) for p in e["loc"])
-        lines.append(f"  {key}: {e['msg']}")
-    return "\n".join(lines)
+        loc = tuple(e["loc"])
+        key = ".".join(str(p) for p in loc)
+        msg = e["msg"]
+        if e["type"] == "extra_forbidden":
+            model = _model_at(loc[:-1])
+            valid = list(model.model_fields) if model is not None else []
+            hint = closest(str(loc[-1]), valid)
+            msg = "unknown key" + (f"; did you mean {hint!r}?" if hint else
+                                   (f"; valid keys: {', '.join(valid)}" if valid else ""))
+        elif e["type"] == "missing" and key in _MISSING_HINTS:
+            msg = _MISSING_HINTS[key]
+        elif isinstance(e.get("input"), str) and e["type"] in ("int_type", "float_type",
+                                                                "bool_type"):
+            msg += f" (got the string {e['input']!r}: write it without quotes)"
+        elif e["type"] == "value_error":
+            msg = msg.removeprefix("Value error, ")
+            # a table-level check whose message starts with the key it is about: name that key
+            model = _model_at(loc)
+            first = msg.split(" ", 1)[0]
+            if model is not None and first in model.model_fields:
+                key = f"{key}.{first}" if key else first
+        problems.append(Problem(key, msg))
+    return problems
+
+
+def _format(problems: list[Problem], source: str) -> str:
+    return "\n".join([f"invalid configuration in {source}:", *(f"  {p}" for p in problems)])
 
 
 def parse_config(data: dict[str, Any], source: str = "<config>") -> CellConfig:
+    """Validate raw config data: the strict schema, then the commissioning checks; a
+    ConfigError lists every problem found, each naming its key."""
+    problems: list[Problem] = []
+    config = None
     try:
-        return CellConfig.model_validate(data)
+        # Validated as JSON in strict mode: TOML's arrays fill tuples, integers fill floats,
+        # and nothing else is coerced ("1280" is not an integer).
+        config = CellConfig.model_validate_json(json.dumps(data, default=str), strict=True)
     except ValidationError as err:
-        raise ConfigError(_format_validation_error(err, source)) from err
+        problems.extend(_schema_problems(err))
+    problems.extend(check(data))
+    if problems or config is None:
+        raise ConfigError(_format(problems, source), problems)
+    return config
 
 
 def load_config(path: str | Path | None = None) -> CellConfig:

@@ -20,6 +20,7 @@ import os
 import signal
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,7 +28,7 @@ from numpy.typing import NDArray
 from cell.config import CellConfig, ConfigError
 from cell.hardware import Hardware
 from drivers.arm import Arm
-from drivers.camera import Camera
+from drivers.camera import Camera, CameraSettings
 from drivers.gripper import Gripper
 from drivers.robotiq import RobotiqGripper
 from estimator.transforms import T_from_ur_pose, invert_T
@@ -36,6 +37,9 @@ from fakes.sim_arm import SimArm
 from fakes.sim_camera import SimCamera
 from fakes.ur_controller.process import ControllerProcess
 from fakes.ur_sim.engine import MotionEngine
+
+if TYPE_CHECKING:
+    from drivers.oak import OakSettings  # imported when used: depthai loads slowly
 
 Matrix4 = NDArray[np.float64]
 PoseSource = Callable[[], tuple[Matrix4, float]]
@@ -178,10 +182,41 @@ def _make_camera(config: CellConfig, truth: _EngineTruth | _ProcessTruth | None
             cc.model(), config.target.model(), sim.T_base_target.T(), T_flange_camera,
             _pose_source(truth), fps=cc.fps, noise_std=sim.noise_std,
             blur_sigma_px=sim.blur_sigma_px)
+        if cc.exposure_us is not None or cc.iso is not None or cc.focus is not None:
+            try:
+                sim_camera.apply_settings(CameraSettings(cc.exposure_us, cc.iso, cc.focus))
+            except ValueError as err:
+                raise ConfigError(f"camera: {err}") from err
         return sim_camera, sim_camera
-    from drivers.oak import OakCamera, OakSettings
+    from drivers.oak import OakCamera
 
-    return OakCamera(OakSettings(width=cc.width, height=cc.height, fps=cc.fps)), None
+    return OakCamera(oak_settings(config)), None
+
+
+def oak_settings(config: CellConfig) -> OakSettings:
+    """The OAK adapter's settings from ``[camera]``; unset sensor values keep its defaults."""
+    from drivers.oak import OakSettings
+
+    cc = config.camera
+    sensor: dict[str, Any] = {}
+    if cc.exposure_us is not None:
+        sensor["exposure_us"] = cc.exposure_us
+    if cc.iso is not None:
+        sensor["iso"] = cc.iso
+    try:
+        return OakSettings(width=cc.width, height=cc.height, fps=cc.fps, socket=cc.socket,
+                           device_id=cc.device_id or None, focus=cc.focus, **sensor)
+    except ValueError as err:
+        raise ConfigError(f"camera: {err}") from err
+
+
+def robotiq_gripper(config: CellConfig, port: str) -> RobotiqGripper:
+    """The Modbus RTU adapter with ``[gripper]``'s link and timing settings."""
+    gc = config.gripper
+    return RobotiqGripper(port, slave_id=gc.slave_id, baudrate=gc.baudrate,
+                          timeout_s=gc.timeout_s, retries=gc.retries,
+                          motion_timeout_s=gc.motion_timeout_s,
+                          activation_timeout_s=gc.activation_timeout_s)
 
 
 def build_camera(config: CellConfig) -> tuple[Camera, Callable[[], None]]:
@@ -213,8 +248,7 @@ def build_camera(config: CellConfig) -> tuple[Camera, Callable[[], None]]:
 
 def all_simulated(config: CellConfig) -> bool:
     """True when the config builds only fakes (then the sample API tokens are allowed)."""
-    return ((config.robot.kind == "sim" or config.sim.ur_controller)
-            and config.camera.kind == "sim" and config.gripper.kind in ("sim", "none"))
+    return not config.has_real_device()
 
 
 def build_hardware(config: CellConfig) -> Hardware:
@@ -246,7 +280,9 @@ def _build(config: CellConfig, closers: list[Callable[[], None]]) -> Hardware:
             truth = process_truth
         from drivers.ur import URArm
 
-        arm = URArm(rc.host, connect_timeout_s=rc.connect_timeout_s)
+        arm = URArm(rc.host, connect_timeout_s=rc.connect_timeout_s,
+                    call_timeout_s=rc.call_timeout_s, watchdog_s=rc.watchdog_s,
+                    stale_after_s=rc.stale_after_s)
         closers.append(arm.disconnect)
 
     camera, sim_camera = _make_camera(config, truth)
@@ -260,12 +296,12 @@ def _build(config: CellConfig, closers: list[Callable[[], None]]) -> Hardware:
                            activation_time_s=0.2)
         fake.start()
         closers.append(fake.stop)
-        gripper = RobotiqGripper(fake.port, slave_id=gc.slave_id)
+        gripper = robotiq_gripper(config, fake.port)
         closers.append(gripper.disconnect)
     elif gc.kind == "robotiq":
         if not gc.port:
             raise ConfigError("gripper.port: a serial device is needed for kind = \"robotiq\"")
-        gripper = RobotiqGripper(gc.port, slave_id=gc.slave_id)
+        gripper = robotiq_gripper(config, gc.port)
         closers.append(gripper.disconnect)
 
     simulated = all_simulated(config)

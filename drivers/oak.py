@@ -1,12 +1,15 @@
 """Luxonis OAK camera adapter (depthai v3) behind :class:`drivers.camera.Camera`.
 
 The device-specific part is one small backend (:class:`OakDeviceBackend`) that builds the
-``dai.node.Camera`` with manual exposure, fixed focus and a grey output at the configured size
-and rate. Everything else (freshest-frame handling, mid-exposure timestamps, dropped sequence
-numbers, intrinsics from the factory calibration, device-loss detection and reconnection with
-backoff) lives in :class:`OakCamera` and works with any backend that hands over a pipeline and
-an output, so it is tested with a host-only pipeline (``dai.Pipeline(createImplicitDevice=False)``
-and a ``ThreadedHostNode`` producing ``ImgFrame``s).
+``dai.node.Camera`` with manual exposure, a fixed lens position (or autofocus when asked) and a
+grey output at the configured size and rate. Settings changed while streaming
+(:meth:`OakCamera.apply_settings`) go to the camera node's control input as
+``dai.CameraControl`` messages, and are kept for the next reconnection.
+Everything else (freshest-frame handling, mid-exposure timestamps, dropped sequence numbers,
+intrinsics from the factory calibration, device-loss detection and reconnection with backoff)
+lives in :class:`OakCamera` and works with any backend that hands over a pipeline and an output,
+so it is tested with a host-only pipeline (``dai.Pipeline(createImplicitDevice=False)`` and a
+``ThreadedHostNode`` producing ``ImgFrame``s).
 
 Clocks: ``ImgFrame.getTimestamp()`` is on ``dai::Clock``, which is ``std::chrono::steady_clock``
 with device timestamps already converted to host time by depthai's clock sync. On Linux that is
@@ -28,7 +31,7 @@ import depthai as dai
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.camera import CameraSettings, Frame
+from drivers.camera import CameraSettings, FocusSetting, Frame
 from drivers.errors import ConnectionLostError, DeviceTimeoutError
 from drivers.oak_calibration import board_socket, camera_model_from_calibration
 from estimator import CameraModel
@@ -38,7 +41,8 @@ CameraState = Literal["disconnected", "connecting", "streaming", "reconnecting"]
 
 @dataclass(frozen=True)
 class OakSettings:
-    """What the cell configures. ``lens_position`` None leaves fixed-focus sensors alone."""
+    """What the cell configures. ``focus`` is a lens position 0..255 or ``"auto"``; None leaves
+    fixed-focus sensors (the OAK-D's mono pair) alone."""
 
     width: int = 1280
     height: int = 800
@@ -46,7 +50,7 @@ class OakSettings:
     socket: str = "CAM_B"  # left mono sensor of an OAK-D; CAM_A on an OAK-1
     exposure_us: int = 2000
     iso: int = 400
-    lens_position: int | None = None
+    focus: FocusSetting | None = None
     device_id: str | None = None  # serial number or IP; None = the first device found
     stall_timeout_s: float = 2.0  # no frame for this long while streaming = device lost
     backoff_initial_s: float = 0.5
@@ -59,8 +63,10 @@ class OakSettings:
             raise ValueError(f"fps must be within (0, 120], got {self.fps}")
         if not 1 <= self.exposure_us <= 1_000_000 / self.fps:
             raise ValueError(f"exposure_us must fit in a frame period, got {self.exposure_us}")
-        if self.lens_position is not None and not 0 <= self.lens_position <= 255:
-            raise ValueError(f"lens_position must be 0..255, got {self.lens_position}")
+        if not 100 <= self.iso <= 1600:
+            raise ValueError(f"iso must be within [100, 1600], got {self.iso}")
+        if self.focus != "auto" and self.focus is not None and not 0 <= self.focus <= 255:
+            raise ValueError(f"focus must be a lens position 0..255 or \"auto\", got {self.focus}")
         board_socket(self.socket)
 
 
@@ -86,6 +92,7 @@ class OakSession:
     pipeline: Any  # dai.Pipeline
     output: Any  # dai.Node.Output
     calibration: Any  # dai.CalibrationHandler
+    control: Any = None  # dai.Node.Input taking dai.CameraControl; None: settings are fixed
 
 
 class OakBackend(Protocol):
@@ -101,15 +108,26 @@ class OakDeviceBackend:
             else dai.Device()
         pipeline = dai.Pipeline(device)
         cam = pipeline.create(dai.node.Camera).build(board_socket(settings.socket))
-        # Auto exposure and autofocus would change blob contrast and the intrinsics under us.
-        cam.initialControl.setManualExposure(settings.exposure_us, settings.iso)
-        if settings.lens_position is not None:
-            cam.initialControl.setManualFocus(settings.lens_position)
+        # Auto exposure would change blob contrast under us, and autofocus the intrinsics:
+        # both only when the config asks for them.
+        control_message(settings, initial=cam.initialControl)
         output = cam.requestOutput(
             (settings.width, settings.height), type=dai.ImgFrame.Type.GRAY8, fps=settings.fps,
             enableUndistortion=False,  # the estimator applies the factory distortion itself
         )
-        return OakSession(pipeline, output, device.readCalibration())
+        return OakSession(pipeline, output, device.readCalibration(), cam.inputControl)
+
+
+def control_message(settings: OakSettings, initial: Any = None) -> Any:
+    """``settings``' exposure, gain and focus as a ``dai.CameraControl`` (or set on
+    ``initial``, a node's ``initialControl``)."""
+    ctrl = initial if initial is not None else dai.CameraControl()
+    ctrl.setManualExposure(settings.exposure_us, settings.iso)
+    if settings.focus == "auto":
+        ctrl.setAutoFocusMode(dai.CameraControl.AutoFocusMode.CONTINUOUS_VIDEO)
+    elif settings.focus is not None:
+        ctrl.setManualFocus(settings.focus)
+    return ctrl
 
 
 def grey_image(img: Any) -> NDArray[np.uint8]:
@@ -146,6 +164,7 @@ class OakCamera:
         self._status = CameraStatus("disconnected")
         self._session: OakSession | None = None
         self._queue: Any = None
+        self._control: Any = None  # input queue of the camera node's control input
         self._model: CameraModel | None = None
         self._latest: Any = None  # newest dai.ImgFrame
         self._latest_t = 0.0
@@ -174,12 +193,27 @@ class OakCamera:
 
     def get_settings(self) -> CameraSettings:
         s = self.settings
-        focus = s.lens_position
-        return CameraSettings(exposure_us=s.exposure_us, iso=s.iso, focus=focus)
+        return CameraSettings(exposure_us=s.exposure_us, iso=s.iso, focus=s.focus)
 
     def apply_settings(self, settings: CameraSettings) -> CameraSettings:
-        raise ValueError("changing OAK settings while it streams is not supported yet; set "
-                         "them in the config's [camera] table")
+        """Validate, send to the streaming device, and keep for reconnections.
+
+        A value the OAK does not accept raises ValueError naming it, and nothing changes.
+        """
+        changes: dict[str, Any] = {}
+        if settings.exposure_us is not None:
+            changes["exposure_us"] = settings.exposure_us
+        if settings.iso is not None:
+            changes["iso"] = settings.iso
+        if settings.focus is not None:
+            changes["focus"] = settings.focus
+        new = replace(self.settings, **changes)  # __post_init__ validates
+        with self._cond:
+            control = self._control
+            if control is not None:
+                control.send(control_message(new))
+            self.settings = new
+        return self.get_settings()
 
     @property
     def camera_model(self) -> CameraModel | None:
@@ -217,6 +251,7 @@ class OakCamera:
                                                   s.height)
             queue = session.output.createOutputQueue(maxSize=1, blocking=False)
             queue.addCallback(self._on_frame)
+            control = None if session.control is None else session.control.createInputQueue()
             with self._cond:
                 self._last_seq = None  # sequence numbers restart with the pipeline
                 self._latest_t = time.monotonic()  # grace period for the first frame
@@ -224,10 +259,14 @@ class OakCamera:
         except Exception:
             self._stop_pipeline(session)
             raise
-        self._model, self._session, self._queue = model, session, queue
+        with self._cond:
+            self._model, self._session, self._queue = model, session, queue
+            self._control = control
         self._set_status(state="streaming", last_error=None, retry_in_s=None)
 
     def _close(self) -> None:
+        with self._cond:
+            self._control = None
         session, self._session, self._queue = self._session, None, None
         if session is not None:
             self._stop_pipeline(session)

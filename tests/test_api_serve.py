@@ -94,6 +94,7 @@ def test_restart_after_kill_keeps_audit_and_marks_the_job(tmp_path: Path) -> Non
 def test_sample_tokens_are_refused_on_real_hardware(tmp_path: Path) -> None:
     text = _config(tmp_path).read_text().replace('kind = "sim"', 'kind = "ur"', 1)
     real = tmp_path / "real.toml"
+    text = text.replace("[api]\n", f'[api]\nstate_dir = "{tmp_path}"\n', 1)  # real: required
     real.write_text(text.replace('host = "127.0.0.1"', 'host = "192.0.2.1"'))
     out = subprocess.run([sys.executable, "-m", "cell", "serve", "--config", str(real),
                           "--port", str(_free_port())], capture_output=True, text=True,

@@ -33,7 +33,7 @@ def run_json(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, Any]:
 
 def test_hand_eye_json_on_visp_folder(visp_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
     code, out = run_json(capsys, "calibrate", "hand-eye", str(visp_dir))
-    assert code == 0
+    assert code == 1  # the verdict: ViSP's robot poses and images disagree by millimetres
     assert out["dataset"]["format"] == "visp"
     assert set(out["methods"]) == {"tsai", "park", "horaud"}
     for name, m in out["methods"].items():
@@ -42,7 +42,7 @@ def test_hand_eye_json_on_visp_folder(visp_dir: Path, capsys: pytest.CaptureFixt
         assert d_mm < 1.0 and d_deg < 0.1, name
         assert m["residual"]["mean_mm"] <= 5.41 and m["residual"]["mean_deg"] <= 0.456
         assert len(m["residual"]["per_view_mm"]) == 8
-    assert out["chosen"] == "tsai"
+    assert out["chosen"] == "joint"  # the default everywhere, as the routine's
     assert out["joint"]["rms_px"] > 2.0 and len(out["joint"]["per_view_rms_px"]) == 8
     assert out["verdict"]["consistent"] is False and "px" in out["verdict"]["text"]
     assert [v["name"] for v in out["views"]] == [f"franka_image-{i}" for i in range(1, 9)]
@@ -59,7 +59,7 @@ def test_project_format_gives_the_same_answer(
     save_project_dataset(folder, visp.camera, visp.board,
                          [(v.image_path.name, v.T_base_flange) for v in visp.views])
     code, out = run_json(capsys, "calibrate", "hand-eye", str(folder), "--method", "park")
-    assert code == 0 and out["dataset"]["format"] == "project" and out["chosen"] == "park"
+    assert code == 1 and out["dataset"]["format"] == "project" and out["chosen"] == "park"
     code, ref = run_json(capsys, "calibrate", "hand-eye", str(visp_dir), "--method", "park")
     got = T_from_pose_dict(out["T_flange_camera"])
     assert pose_distance(got, T_from_pose_dict(ref["T_flange_camera"]))[0] < 1e-6
@@ -111,12 +111,24 @@ def test_write_config_updates_only_hand_eye(
     original = (REPO / "cell" / "configs" / "sim.toml").read_text()
     cfg.write_text(original)
     before = load_config(cfg)
+    # ViSP's data disagree with themselves: nothing is written without --force
     code, out = run_json(capsys, "calibrate", "hand-eye", str(visp_dir), "--write-config", str(cfg))
-    assert code == 0 and out["written_config"] == str(cfg)
+    assert code == 1 and out["written_config"] is None and "--force" in out["not_written"]
+    assert cfg.read_text() == original and list(tmp_path.iterdir()) == [cfg]
+    code, out = run_json(capsys, "calibrate", "hand-eye", str(visp_dir), "--write-config", str(cfg),
+                         "--force")
+    assert code == 1 and out["written_config"] == str(cfg)
     after = load_config(cfg)
     written = after.hand_eye.T_flange_camera.T()
     assert pose_distance(written, T_from_pose_dict(out["T_flange_camera"]))[0] < 1e-9
     assert after.model_dump(exclude={"hand_eye"}) == before.model_dump(exclude={"hand_eye"})
+    # the old file is kept as a timestamped backup, and the change is reported
+    change = out["config_change"]
+    backup = Path(change["backup"])
+    assert backup.parent == tmp_path and backup.name.startswith("cell.toml.")
+    assert backup.name.endswith(".bak") and backup.read_text() == original
+    assert change["old_T_flange_camera"]["position_mm"] == [0.0, 60.0, 30.0]
+    assert change["distance_mm"] > 10.0
     # every line outside [hand_eye] is kept byte for byte, comments included
     def outside(text: str) -> list[str]:
         lines, inside = [], False
@@ -127,16 +139,41 @@ def test_write_config_updates_only_hand_eye(
                 lines.append(line)
         return lines
     assert outside(cfg.read_text()) == outside(original)
-    # a second write replaces the table instead of adding another one
+    # a second write replaces the table instead of adding another one; the human output
+    # prints the change
     assert main(["calibrate", "hand-eye", str(visp_dir), "--method", "park", "--no-refine",
-                 "--write-config", str(cfg)]) == 0
-    capsys.readouterr()
+                 "--write-config", str(cfg)]) == 0  # AX = XB alone: the data agree
+    human = capsys.readouterr().out
+    assert "position_mm" in human and "->" in human and ".bak" in human
     assert cfg.read_text().count("[hand_eye]") == 1
+    assert len(list(tmp_path.glob("cell.toml.*.bak"))) == 2  # never over an older backup
     # a broken config is refused and left as it was
     cfg.write_text("[camera\n")
-    code, out = run_json(capsys, "calibrate", "hand-eye", str(visp_dir), "--write-config", str(cfg))
+    code, out = run_json(capsys, "calibrate", "hand-eye", str(visp_dir), "--write-config", str(cfg),
+                         "--force")
     assert code == 2 and out["error"]["code"] == "config_write_failed"
     assert cfg.read_text() == "[camera\n"
+
+
+def test_write_config_refuses_what_is_not_a_valid_cell_config(
+    visp_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # a mistyped path does not become a stub config holding only [hand_eye]
+    typo = tmp_path / "none.toml"
+    code, out = run_json(capsys, "calibrate", "hand-eye", str(visp_dir), "--write-config",
+                         str(typo), "--force")
+    assert code == 2 and out["error"]["code"] == "config_write_failed"
+    assert "does not exist" in out["error"]["message"] and not typo.exists()
+    # a TOML fragment, or a config that does not validate, is refused and left as it was
+    for text in ("[hand_eye]\n", (REPO / "cell" / "configs" / "sim.toml").read_text()
+                 .replace("speed_mm_s = 150.0", "speed_mm_s = 0.15")):
+        frag = tmp_path / "frag.toml"
+        frag.write_text(text)
+        code, out = run_json(capsys, "calibrate", "hand-eye", str(visp_dir), "--write-config",
+                             str(frag), "--force")
+        assert code == 2 and "not a valid cell config" in out["error"]["message"]
+        assert frag.read_text() == text
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frag.toml"]  # no backup either
 
 
 def test_intrinsics_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -233,8 +270,11 @@ def test_routine_recovers_the_simulated_hand_eye(
     # observations of the dot target; the poses pass through JSON, and the refinement's
     # tolerance turns that last-digit rounding into micrometres at most).
     assert out["dataset"] == str(saved)
-    code, again = run_json(capsys, "calibrate", "hand-eye", str(saved), "--method", "joint")
+    # ... with the default method, which is the routine's
+    assert Path(out["config_change"]["backup"]).is_file()
+    code, again = run_json(capsys, "calibrate", "hand-eye", str(saved))
     assert code == 0, again
+    assert again["chosen"] == out["chosen"]
     assert again["views"] == out["views"]
     d_mm, d_deg = pose_distance(T_from_pose_dict(again["T_flange_camera"]),
                                 T_from_pose_dict(out["T_flange_camera"]))

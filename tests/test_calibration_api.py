@@ -136,6 +136,19 @@ def test_hand_eye_routine_end_to_end(client: TestClient, tmp_path: Path) -> None
     written = load_config(tmp_path / "cell.toml")
     assert pose_distance(written.hand_eye.T_flange_camera.T(), applied)[0] < 1e-6
     assert written.tool == load_config().tool  # only [hand_eye] changed
+    change = r.json()["config_change"]  # the old file is kept as a timestamped backup
+    sim_toml = (REPO / "cell" / "configs" / "sim.toml").read_text()
+    assert Path(change["backup"]).read_text() == sim_toml
+    assert change["old_T_flange_camera"]["position_mm"] == [0.0, 60.0, 30.0]
+    # a file that is no valid cell config is refused, and left as it was
+    good = (tmp_path / "cell.toml").read_text()
+    broken = good.replace('kind = "ur"', 'kinds = "ur"', 1)  # in [robot]
+    assert broken != good
+    (tmp_path / "cell.toml").write_text(broken)
+    r = client.post(f"{BASE}/{job_id}/apply", json={"write_config": True}, headers=OP)
+    assert r.status_code == 409 and r.json()["error"]["code"] == "config_write_failed", r.text
+    assert "not a valid cell config" in r.json()["error"]["message"]
+    assert (tmp_path / "cell.toml").read_text() == broken
     error_after = locate_error_mm(client)
     print(f"locate error with the guess {error_before:.2f} mm, after apply {error_after:.3f} mm")
     assert error_before > 2.0 and error_after < 0.5

@@ -51,9 +51,9 @@ def test_config_errors_name_the_key() -> None:
                       "limits": {"workspace_min_mm": [0, 0, 0], "workspace_max_mm": [0, 1, 1]}})
 
 
-def test_old_config_without_new_tables_still_loads(tmp_path: Path) -> None:
-    f = tmp_path / "c.toml"
-    f.write_text(textwrap.dedent("""
+def test_minimal_config_needs_the_robot_kind(tmp_path: Path) -> None:
+    """A file that lost its [robot] table must not quietly run a simulated arm."""
+    text = textwrap.dedent("""
         [camera]
         fx = 800.0
         fy = 800.0
@@ -64,7 +64,12 @@ def test_old_config_without_new_tables_still_loads(tmp_path: Path) -> None:
         [target]
         points_mm = [[0,0,0],[60,0,0],[100,10,0],[0,50,0]]
         dot_diameter_mm = 10.0
-    """))
+    """)
+    f = tmp_path / "c.toml"
+    f.write_text(text)
+    with pytest.raises(ConfigError, match=r"robot: required table"):
+        load_config(f)
+    f.write_text(text + '[robot]\nkind = "sim"\n')
     c = load_config(f)
     assert c.robot.kind == "sim" and c.gripper.kind == "none" and not c.sim.ur_controller
 

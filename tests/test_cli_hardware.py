@@ -65,6 +65,21 @@ def test_gripper_wrong_slave_id_times_out(fake_gripper_link: Path) -> None:
     assert "slave 3" in out["error"]["message"]  # type: ignore[index]
 
 
+def test_gripper_link_settings_from_the_config(fake_gripper_link: Path, tmp_path: Path) -> None:
+    sim_toml = (REPO / "cell" / "configs" / "sim.toml").read_text()
+    config = tmp_path / "cell.toml"
+    gripper = (f'[gripper]\nkind = "robotiq"\nport = "{fake_gripper_link}"\nslave_id = 3\n'
+               'timeout_s = 0.2\n')
+    config.write_text(sim_toml.replace('[gripper]\nkind = "sim"\n', gripper).replace(
+        "[api]\n", f'[api]\nstate_dir = "{tmp_path}"\n', 1))
+    rc, out = cell("gripper", "--config", str(config), "status", "--json")
+    assert rc == 2 and "slave 3" in out["error"]["message"]  # type: ignore[index]
+    rc, status = cell("gripper", "--config", str(config), "--slave-id", "9", "status", "--json")
+    assert rc == 0 and status["activated"] is False
+    rc, out = cell("gripper", "status", "--json")
+    assert rc == 2 and out["error"]["code"] == "invalid_argument"  # type: ignore[index]
+
+
 def test_gripper_missing_port_is_connection_lost(tmp_path: Path) -> None:
     rc, out = cell("gripper", "--port", str(tmp_path / "nothing"), "status", "--json")
     assert rc == 2 and out["error"]["code"] == "connection_lost"  # type: ignore[index]
@@ -99,11 +114,11 @@ def test_snapshot_with_an_oak_config_uses_the_oak_adapter(
 
     sim_toml = (REPO / "cell" / "configs" / "sim.toml").read_text()
     config = tmp_path / "oak.toml"
-    config.write_text(sim_toml.replace("[camera]\n", "[camera]\nkind = \"oak\"\n", 1))
-    try:
-        load_config(config)
-    except Exception:
-        pytest.skip("the config has no camera.kind yet")
+    config.write_text(sim_toml.replace(
+        "[camera]\n", "[camera]\nkind = \"oak\"\nexposure_us = 1800\niso = 700\n"
+        "device_id = \"192.168.1.44\"\nsocket = \"CAM_C\"\n", 1).replace(
+        "[api]\n", f"[api]\nstate_dir = \"{tmp_path}\"\n", 1))
+    load_config(config)
     opened: list[oak.OakSettings] = []
 
     def no_device(self: object, settings: oak.OakSettings) -> oak.OakSession:
@@ -117,3 +132,27 @@ def test_snapshot_with_an_oak_config_uses_the_oak_adapter(
     assert rc == 2 and out["error"]["code"] == "connection_lost"
     assert "No available devices" in out["error"]["message"]
     assert opened and (opened[0].width, opened[0].height) == (1280, 800)
+    assert (opened[0].exposure_us, opened[0].iso) == (1800, 700)
+    assert (opened[0].device_id, opened[0].socket) == ("192.168.1.44", "CAM_C")
+
+
+def test_snapshot_prints_the_settings_in_force(tmp_path: Path) -> None:
+    sim_toml = (REPO / "cell" / "configs" / "sim.toml").read_text()
+    config = tmp_path / "cell.toml"
+    config.write_text(sim_toml.replace("[camera]\n", "[camera]\nexposure_us = 2500\n"
+                                       "iso = 800\n", 1))
+    rc, info = cell("camera", "snapshot", "--config", str(config), "--out",
+                    str(tmp_path / "f.png"), "--json")
+    assert rc == 0
+    assert info["settings"] == {"device_id": None, "socket": None, "fps": 15.0,
+                                "exposure_us": 2500, "iso": 800, "focus": None}
+    out = subprocess.run([sys.executable, "-m", "cell", "camera", "snapshot", "--config",
+                          str(config), "--out", str(tmp_path / "g.png")], capture_output=True,
+                         text=True, cwd=REPO, timeout=60)
+    assert out.returncode == 0
+    assert "settings in force: 15 fps, exposure 2500 us, iso 800, focus fixed" in out.stdout
+    # a setting the simulated sensor cannot take is a config error before any frame
+    config.write_text(sim_toml.replace("[camera]\n", "[camera]\nfocus = 100\n", 1))
+    rc, info = cell("camera", "snapshot", "--config", str(config), "--out",
+                    str(tmp_path / "h.png"), "--json")
+    assert rc == 2 and "fixed-focus" in info["error"]["message"]  # type: ignore[index]

@@ -76,10 +76,16 @@ def _error(out: subprocess.CompletedProcess[str]) -> dict[str, str]:
 
 def test_failures_exit_2_with_a_json_error(tmp_path: Path, scene: tuple[Path, np.ndarray]) -> None:
     missing = tmp_path / "nope.png"
-    assert _error(_cell("estimate", str(missing), "--json"))["code"] == "image_unreadable"
+    out = _cell("estimate", str(missing), "--json")
+    assert _error(out)["code"] == "image_unreadable" and "no such file" in out.stdout
+    assert out.stderr == ""  # no OpenCV loader warning next to our error
     junk = tmp_path / "junk.png"
     junk.write_bytes(b"not an image")
-    assert _error(_cell("detect", str(junk), "--json"))["code"] == "image_unreadable"
+    out = _cell("detect", str(junk), "--json")
+    assert _error(out)["code"] == "image_unreadable" and out.stderr == ""
+    plain = _cell("detect", str(missing))
+    assert plain.returncode == 2 and plain.stderr.strip() == (
+        f"error (image_unreadable): cannot read {missing}: no such file")
 
     blank = tmp_path / "blank.png"
     cv2.imwrite(str(blank), np.full((800, 1280), 170, np.uint8))
@@ -101,9 +107,12 @@ def test_failures_exit_2_with_a_json_error(tmp_path: Path, scene: tuple[Path, np
 
 
 def test_bench_json_has_the_documented_keys() -> None:
-    out = _cell("bench", "--json", "--frames", "2", "--scenes", "5")
-    assert out.returncode == 0, out.stderr
+    out = _cell("bench", "--json", "--frames", "2", "--scenes", "5", "--check")
     r = json.loads(out.stdout)
+    # --check: exit 1 exactly when a target is missed (the 100x target is out of reach)
+    assert not all(r["targets_met"].values())
+    assert out.returncode == 1, out.stderr
+    assert out.stderr == ""  # --json: no progress bars, nothing but the document
     for key in ("frame_ms_median", "tracking_ms_median", "speedup_vs_cc", "speedup_vs_sbd",
                 "error_ratio_vs_sqpnp_lm"):
         assert isinstance(r[key], float) and np.isfinite(r[key]), key

@@ -164,8 +164,11 @@ def test_real_data_verdict_explains_the_pixel_rms(visp_report: HandEyeReport) ->
     assert not visp_report.verdict.consistent
     text = visp_report.verdict.text
     assert f"{visp_report.joint.rms_px:.2f} px" in text and "robot" in text
-    assert visp_report.chosen == "tsai"
-    assert pose_distance(visp_report.T_flange_camera, VISP_T_FLANGE_CAMERA)[0] < 1.0
+    # the default (as the routine's) is the joint result; on these data it moves millimetres
+    # away from the AX = XB answers, which is why the verdict rejects them
+    assert visp_report.chosen == "joint"
+    assert np.allclose(visp_report.T_flange_camera, visp_report.joint.T_flange_camera)
+    assert pose_distance(visp_report.methods["tsai"].T_flange_camera, VISP_T_FLANGE_CAMERA)[0] < 1.0
 
 
 def test_detection_order_is_canonical_under_180_degree_turns(visp_dir: Path) -> None:

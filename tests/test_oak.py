@@ -6,13 +6,14 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import depthai as dai
 import numpy as np
 import pytest
 
-from drivers.camera import Camera
+from drivers.camera import Camera, CameraSettings
 from drivers.errors import ConnectionLostError, DeviceTimeoutError
 from drivers.oak import CameraStatus, OakCamera, OakSession, OakSettings
 from drivers.oak_calibration import (
@@ -21,6 +22,7 @@ from drivers.oak_calibration import (
     trim_distortion,
 )
 
+REPO = Path(__file__).resolve().parents[1]
 K_FULL = [[800.0, 0.0, 639.5], [0.0, 801.0, 399.5], [0.0, 0.0, 1.0]]
 DIST = [0.1, -0.05, 0.001, 0.002, 0.01]
 
@@ -31,7 +33,10 @@ class HostSource(dai.node.ThreadedHostNode):
     def __init__(self) -> None:
         super().__init__()
         self.out = self.createOutput()
+        self.control = self.createInput()  # like dai.node.Camera's inputControl
         self.width, self.height, self.fps, self.exposure_us = 64, 40, 50.0, 4000
+        self.iso, self.lens_position, self.autofocus = 400, 0, False
+        self.controls: list[Any] = []
         self.skip: set[int] = set()
         self.alive = threading.Event()
         self.alive.set()
@@ -42,6 +47,7 @@ class HostSource(dai.node.ThreadedHostNode):
         while self.isRunning():
             time.sleep(1.0 / self.fps)
             seq += 1
+            self._apply_controls()
             if seq in self.skip or not self.alive.is_set():
                 continue
             f = dai.ImgFrame()
@@ -50,11 +56,28 @@ class HostSource(dai.node.ThreadedHostNode):
             f.setSequenceNum(seq)
             cam = f.cam
             cam.exposureTimeUs = self.exposure_us
+            cam.sensitivityIso = self.iso
+            cam.lensPosition = self.lens_position
             f.cam = cam
             end = dai.Clock.now()
             f.setTimestamp(end)
             self.sent_end_s[seq] = end.total_seconds()
             self.out.send(f)
+
+
+    def _apply_controls(self) -> None:
+        """What the sensor does with CameraControl messages: the next frames show them."""
+        C = dai.CameraControl.Command
+        while (ctrl := self.control.tryGet()) is not None:
+            self.controls.append(ctrl)
+            if ctrl.getCommand(C.AE_MANUAL):
+                self.exposure_us = round(ctrl.getExposureTime().total_seconds() * 1e6)
+                self.iso = ctrl.getSensitivity()
+            if ctrl.getCommand(C.MOVE_LENS):
+                self.lens_position, self.autofocus = ctrl.getLensPosition(), False
+            if ctrl.getCommand(C.AF_MODE):
+                self.autofocus = (ctrl.autoFocusMode
+                                  == dai.CameraControl.AutoFocusMode.CONTINUOUS_VIDEO)
 
 
 class HostBackend:
@@ -65,6 +88,7 @@ class HostBackend:
         self.skip = skip or set()
         self.sources: list[HostSource] = []
         self.pipelines: list[Any] = []
+        self.opened: list[OakSettings] = []
 
     def open(self, settings: OakSettings) -> OakSession:
         if self.fail_next > 0:
@@ -73,11 +97,15 @@ class HostBackend:
         p = dai.Pipeline(createImplicitDevice=False)
         src = p.create(HostSource)
         src.width, src.height, src.fps = settings.width, settings.height, settings.fps
+        src.exposure_us, src.iso = settings.exposure_us, settings.iso  # the initial control
+        src.lens_position = settings.focus if isinstance(settings.focus, int) else 0
+        src.autofocus = settings.focus == "auto"
         src.skip = self.skip
         self.sources.append(src)
         self.pipelines.append(p)
+        self.opened.append(settings)
         calib = offline_calibration(settings.socket, K_FULL, 1280, 800, DIST)
-        return OakSession(p, src.out, calib)
+        return OakSession(p, src.out, calib, src.control)
 
 
 SETTINGS = OakSettings(width=64, height=40, fps=50.0, exposure_us=4000, stall_timeout_s=0.3,
@@ -137,8 +165,11 @@ def test_settings_reject_bad_values() -> None:
         OakSettings(fps=60.0, exposure_us=20000)
     with pytest.raises(ValueError, match="socket"):
         OakSettings(socket="CAM_Z")
-    with pytest.raises(ValueError, match="lens_position"):
-        OakSettings(lens_position=300)
+    with pytest.raises(ValueError, match="focus"):
+        OakSettings(focus=300)
+    with pytest.raises(ValueError, match="iso"):
+        OakSettings(iso=50)
+    assert OakSettings(focus="auto").focus == "auto"
 
 
 def test_is_a_camera(camera: OakCamera) -> None:
@@ -250,5 +281,97 @@ def test_real_oak_streams_at_the_configured_rate() -> None:
         assert abs(frames[-1].timestamp_s - time.monotonic()) < 0.2
         assert frames[-1].image.shape == (400, 640)
         assert cam.camera_model is not None and cam.camera_model.width == 640
+    finally:
+        cam.disconnect()
+
+
+def _wait_frame(cam: OakCamera, cond: Any, timeout_s: float = 5.0) -> dai.ImgFrame:
+    """The newest depthai frame once ``cond(frame)`` holds (the control took effect)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        cam.latest_frame(timeout_s=2.0)
+        msg = cam._latest
+        if msg is not None and cond(msg):
+            return msg
+        assert time.monotonic() < deadline, "the setting never reached the frames"
+
+
+def test_apply_settings_reaches_the_streaming_sensor(camera: OakCamera,
+                                                     backend: HostBackend) -> None:
+    assert camera.get_settings() == CameraSettings(exposure_us=4000, iso=400, focus=None)
+    in_force = camera.apply_settings(CameraSettings(exposure_us=1500, iso=800, focus=120))
+    assert in_force == CameraSettings(exposure_us=1500, iso=800, focus=120)
+    msg = _wait_frame(camera, lambda m: m.cam.exposureTimeUs == 1500)
+    assert msg.cam.sensitivityIso == 800 and msg.cam.lensPosition == 120
+    # mid-exposure moves with the exposure: 0.75 ms before the end now
+    frame = camera.latest_frame(timeout_s=2.0)
+    end_s = backend.sources[0].sent_end_s[frame.sequence]
+    assert frame.timestamp_s == pytest.approx(end_s - 0.00075, abs=1e-6)
+    camera.apply_settings(CameraSettings(focus="auto"))
+    _wait_frame(camera, lambda m: backend.sources[0].autofocus)
+    assert camera.get_settings().focus == "auto"
+
+
+def test_rejected_settings_change_nothing(camera: OakCamera, backend: HostBackend) -> None:
+    before = camera.get_settings()
+    with pytest.raises(ValueError, match="exposure_us"):
+        camera.apply_settings(CameraSettings(exposure_us=50_000))  # longer than 1/50 s
+    with pytest.raises(ValueError, match="iso"):
+        camera.apply_settings(CameraSettings(iso=20))
+    with pytest.raises(ValueError, match="focus"):
+        camera.apply_settings(CameraSettings(focus=999))
+    assert camera.get_settings() == before
+    camera.latest_frame(timeout_s=2.0)
+    assert backend.sources[0].controls == []  # nothing was sent to the device
+
+
+def test_settings_survive_a_reconnection(camera: OakCamera, backend: HostBackend) -> None:
+    camera.apply_settings(CameraSettings(exposure_us=3000))
+    backend.pipelines[0].stop()
+    _wait_for(lambda: camera.status().reconnects == 1)
+    assert backend.opened[-1].exposure_us == 3000
+    msg = _wait_frame(camera, lambda m: True)
+    assert msg.cam.exposureTimeUs == 3000
+
+
+def test_settings_before_connect_are_used_on_connect() -> None:
+    backend = HostBackend()
+    cam = OakCamera(SETTINGS, backend=backend)
+    cam.apply_settings(CameraSettings(iso=1200))
+    cam.connect()
+    try:
+        assert _wait_frame(cam, lambda m: True).cam.sensitivityIso == 1200
+    finally:
+        cam.disconnect()
+
+
+def test_config_camera_settings_reach_the_oak_adapter(tmp_path: Path) -> None:
+    """[camera] device id, socket, size, fps, exposure, iso and focus -> the adapter -> the
+    host-only pipeline's frames."""
+    from cell.config import load_config
+    from cell.factory import oak_settings
+
+    text = (REPO / "cell" / "configs" / "real-cell.example.toml").read_text()
+    text = text.replace("width = 1280", "width = 64").replace("height = 800", "height = 40")
+    text = text.replace("fps = 15.0", "fps = 40.0").replace('device_id = ""',
+                                                              'device_id = "14442C10D13EABCE00"')
+    text = text.replace('socket = "CAM_B"', 'socket = "CAM_A"')
+    text = text.replace("exposure_us = 2000", "exposure_us = 3500").replace("iso = 400",
+                                                                            "iso = 640")
+    text = text.replace("# focus = 130", "focus = 130")
+    (tmp_path / "cell.toml").write_text(text)
+    settings = oak_settings(load_config(tmp_path / "cell.toml"))
+    assert (settings.width, settings.height, settings.fps) == (64, 40, 40.0)
+    assert settings.device_id == "14442C10D13EABCE00" and settings.socket == "CAM_A"
+    assert (settings.exposure_us, settings.iso, settings.focus) == (3500, 640, 130)
+    backend = HostBackend()
+    cam = OakCamera(settings, backend=backend)
+    cam.connect()
+    try:
+        msg = _wait_frame(cam, lambda m: True)
+        assert (msg.cam.exposureTimeUs, msg.cam.sensitivityIso, msg.cam.lensPosition) == \
+            (3500, 640, 130)
+        assert cam.latest_frame(timeout_s=2.0).image.shape == (40, 64)
+        assert cam.get_settings() == CameraSettings(exposure_us=3500, iso=640, focus=130)
     finally:
         cam.disconnect()

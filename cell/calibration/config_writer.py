@@ -1,20 +1,27 @@
 """Write the hand-eye result into the cell config's ``[hand_eye]`` table, and nothing else.
 
-The table holds ``T_flange_camera`` as the project's pose object (``position_mm``,
-``rotvec_rad``), which is the schema ``cell.config.HandEyeConfig`` reads.
+Used by ``cell calibrate ... --write-config`` and by the API's apply. The table holds
+``T_flange_camera`` as the project's pose object (``position_mm``, ``rotvec_rad``), which is the
+schema ``cell.config.HandEyeConfig`` reads.
 
-A cell config carries hand-written comments and layout that a TOML round trip would lose, so
-this edits the text: it replaces the ``[hand_eye]`` table's lines (or appends the table), then
-parses the result with tomllib and refuses to write unless every other table is unchanged.
-The file is replaced atomically, so a failure leaves the old file as it was.
+Only a file that exists and loads as a valid cell config is edited (a mistyped path must not
+become a stub config holding only ``[hand_eye]``), and the result must load as one too. A cell
+config carries hand-written comments and layout that a TOML round trip would lose, so this edits
+the text: it replaces the ``[hand_eye]`` table's lines (or appends the table), then parses the
+result and refuses to write unless every other table is unchanged. The old file is kept as a
+timestamped backup beside it and the file is replaced atomically, so a failure leaves it as it
+was.
 """
 
 from __future__ import annotations
 
 import os
 import re
+import shutil
 import tempfile
 import tomllib
+from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.config import ConfigError, parse_config
-from estimator.transforms import pose_from_T
+from estimator.transforms import pose_dict, pose_distance, pose_from_T
 
 TABLE = "hand_eye"
 _HEADER = re.compile(r"^\s*\[\[?\s*([A-Za-z0-9_\-.\"' ]+?)\s*\]\]?\s*(#.*)?$")
@@ -30,6 +37,39 @@ _HEADER = re.compile(r"^\s*\[\[?\s*([A-Za-z0-9_\-.\"' ]+?)\s*\]\]?\s*(#.*)?$")
 
 class ConfigWriteError(Exception):
     code = "config_write_failed"
+
+
+@dataclass(frozen=True)
+class ConfigChange:
+    """What a write changed: the old and new camera mount, and where the old file is kept."""
+
+    path: Path
+    backup: Path
+    old_T_flange_camera: NDArray[np.float64]
+    new_T_flange_camera: NDArray[np.float64]
+
+    def distance(self) -> tuple[float, float]:
+        return pose_distance(self.new_T_flange_camera, self.old_T_flange_camera)
+
+    def as_dict(self) -> dict[str, Any]:
+        d_mm, d_deg = self.distance()
+        return {"file": str(self.path), "backup": str(self.backup),
+                "old_T_flange_camera": pose_dict(self.old_T_flange_camera),
+                "new_T_flange_camera": pose_dict(self.new_T_flange_camera),
+                "distance_mm": d_mm, "distance_deg": d_deg}
+
+    def summary(self) -> str:
+        old = pose_dict(self.old_T_flange_camera)
+        new = pose_dict(self.new_T_flange_camera)
+        d_mm, d_deg = self.distance()
+
+        def fmt(v: list[float], digits: int) -> str:
+            return "[" + ", ".join(f"{x:.{digits}f}" for x in v) + "]"
+
+        return (f"[hand_eye] T_flange_camera in {self.path}:\n"
+                f"  position_mm {fmt(old['position_mm'], 3)} -> {fmt(new['position_mm'], 3)}\n"
+                f"  rotvec_rad  {fmt(old['rotvec_rad'], 5)} -> {fmt(new['rotvec_rad'], 5)}\n"
+                f"  moved {d_mm:.3f} mm / {d_deg:.4f} deg; the old file is kept as {self.backup}")
 
 
 def hand_eye_table(T_flange_camera: NDArray[np.float64], comment: str = "") -> str:
@@ -46,22 +86,26 @@ def hand_eye_table(T_flange_camera: NDArray[np.float64], comment: str = "") -> s
 
 def write_hand_eye(
     path: str | Path, T_flange_camera: NDArray[np.float64], comment: str = ""
-) -> None:
-    """Create or update ``[hand_eye] T_flange_camera`` in the TOML file at ``path``.
+) -> ConfigChange:
+    """Update ``[hand_eye] T_flange_camera`` in the cell config at ``path``; returns the change.
 
-    A file that was a valid cell config must stay one; a partial file (e.g. a fragment that
-    is merged elsewhere) only has to stay valid TOML with its other tables unchanged.
+    Refused (ConfigWriteError, nothing written) unless the file exists, loads as a valid cell
+    config, and still does with only its ``[hand_eye]`` table changed.
     """
     p = Path(path)
-    old_text = ""
-    if p.exists():
-        try:
-            old_text = p.read_text()
-            old = tomllib.loads(old_text)
-        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as err:
-            raise ConfigWriteError(f"cannot update {p}: it is not readable TOML ({err})") from err
-    else:
-        old = {}
+    if not p.is_file():
+        raise ConfigWriteError(f"{p} does not exist: the result is written only into an "
+                               "existing cell config (check the path)")
+    try:
+        old_text = p.read_text()
+        old = tomllib.loads(old_text)
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as err:
+        raise ConfigWriteError(f"cannot update {p}: it is not readable TOML ({err})") from err
+    try:
+        old_T = parse_config(old, str(p)).hand_eye.T_flange_camera.T()
+    except ConfigError as err:
+        raise ConfigWriteError(f"cannot update {p}: it is not a valid cell config ({err}); fix "
+                               "it first (`cell config check FILE`)") from err
     table = hand_eye_table(T_flange_camera, comment)
     new_text = _replace_table(old_text, table)
     try:
@@ -73,21 +117,30 @@ def write_hand_eye(
             f"cannot update {p} safely: [{TABLE}] is written in a form this tool does not edit "
             "(inline or dotted keys); move it into its own [hand_eye] table"
         )
-    if old and _valid_cell_config(old):
-        try:
-            parse_config(new, str(p))
-        except ConfigError as err:
-            raise ConfigWriteError(f"the updated {p} would not be a valid cell config: {err}") \
-                from err
-    _atomic_write(p, new_text)
-
-
-def _valid_cell_config(data: dict[str, Any]) -> bool:
     try:
-        parse_config(data)
-    except ConfigError:
-        return False
-    return True
+        written = parse_config(new, str(p)).hand_eye.T_flange_camera.T()
+    except ConfigError as err:
+        raise ConfigWriteError(f"the updated {p} would not be a valid cell config: {err}") \
+            from err
+    backup = _backup(p)
+    _atomic_write(p, new_text)
+    return ConfigChange(p, backup, old_T, written)
+
+
+def _backup(path: Path) -> Path:
+    """Copy ``path`` to ``NAME.YYYYmmddTHHMMSSZ.bak`` beside it (never over an older backup)."""
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    backup = path.with_name(f"{path.name}.{stamp}.bak")
+    k = 1
+    while backup.exists():
+        backup = path.with_name(f"{path.name}.{stamp}-{k}.bak")
+        k += 1
+    try:
+        shutil.copy2(path, backup)
+    except OSError as err:
+        raise ConfigWriteError(f"cannot keep a backup of {path} as {backup}: {err}; nothing "
+                               "was written") from err
+    return backup
 
 
 def _without(data: dict[str, Any], key: str) -> dict[str, Any]:

@@ -27,7 +27,7 @@ from scipy.spatial.transform import Rotation
 from cell.calibration.dataset import HandEyeDataset, save_project_dataset
 from cell.calibration.observe import Observation, ObservationError, Observer
 from cell.calibration.report import HandEyeReport
-from cell.calibration.solve import Progress, solve_observations
+from cell.calibration.solve import DEFAULT_METHOD, Progress, solve_observations
 from cell.safety import LimitError
 from drivers.arm import Arm
 from drivers.camera import Camera, Frame
@@ -61,7 +61,7 @@ class RoutineSettings:
     settle_s: float = 0.15  # after the arm stops, before a frame counts
     frame_timeout_s: float = 2.0
     min_views: int = 6
-    chosen: str = "joint"  # the pose-set is rich and the robot exact enough on a calibrated cell
+    chosen: str = DEFAULT_METHOD  # the pose-set is rich and the robot exact on a calibrated cell
     return_to_start: bool = True
 
     def __post_init__(self) -> None:

@@ -159,18 +159,21 @@ class CalibrationService:
             if write_config and self.config_path is None:
                 raise RefusedError("no_config_file", "the cell runs a built-in config; start it "
                                    "with a config file (CELL_CONFIG) to write the result")
+            change = None
             with cell.core.slot.hold("apply_calibration"):
                 if write_config:
                     assert self.config_path is not None
                     try:
-                        write_hand_eye(self.config_path, T,
-                                       f"hand-eye calibration job {job_id} by {caller}")
+                        change = write_hand_eye(self.config_path, T,
+                                                f"hand-eye calibration job {job_id} by {caller}")
                     except ConfigWriteError as err:
                         raise RefusedError(err.code, str(err)) from err
                 if running:
                     cell.set_hand_eye(T)
         out = {"job_id": job_id, "T_flange_camera": pose_dict(T), "running": running,
-               "written_config": str(self.config_path) if write_config else None}
+               "written_config": str(self.config_path) if write_config else None,
+               # the old and new mount and the timestamped backup of the old file
+               "config_change": None if change is None else change.as_dict()}
         cell.events.publish(EVENT, {"job_id": job_id, "state": "applied", "applied": out})
         return out
 

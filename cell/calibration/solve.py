@@ -23,6 +23,10 @@ Progress = Callable[[str, int, int], None]  # (stage, done, total)
 
 METHODS: tuple[str, ...] = tuple(SOLVERS)
 CHOICES: tuple[str, ...] = (*METHODS, "joint")
+# The one default everywhere (CLI re-solve, CLI and API routine): the joint refinement over
+# every image point, which the routine's verdict reports as the best-fitting answer. Re-solving
+# a routine's saved views therefore gives the routine's answer without naming a method.
+DEFAULT_METHOD = "joint"
 
 
 def _quiet(stage: str, done: int, total: int) -> None:
@@ -31,7 +35,7 @@ def _quiet(stage: str, done: int, total: int) -> None:
 
 def solve_dataset(
     dataset: HandEyeDataset,
-    chosen: str = "tsai",
+    chosen: str = DEFAULT_METHOD,
     refine: bool = True,
     progress: Progress | None = None,
 ) -> HandEyeReport:
@@ -84,7 +88,7 @@ def solve_views(
     names: Sequence[str],
     T_base_flange: Sequence[NDArray[np.float64]],
     image_points_px: Sequence[NDArray[np.float64]],
-    chosen: str = "tsai",
+    chosen: str = DEFAULT_METHOD,
     refine: bool = True,
     skipped: tuple[str, ...] = (),
     progress: Progress | None = None,
@@ -107,7 +111,7 @@ def solve_observations(
     image_points_px: Sequence[NDArray[np.float64]],
     T_camera_board: Sequence[NDArray[np.float64]],
     pnp_rms_px: Sequence[float],
-    chosen: str = "tsai",
+    chosen: str = DEFAULT_METHOD,
     refine: bool = True,
     skipped: tuple[str, ...] = (),
     progress: Progress | None = None,

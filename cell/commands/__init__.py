@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 
-from cell.commands import bench, calibrate, camera, gripper, serve, teach, vision
+from cell.commands import bench, calibrate, camera, config, gripper, serve, teach, vision
 
 Register = Callable[["argparse._SubParsersAction[argparse.ArgumentParser]"], None]
 
@@ -18,4 +18,5 @@ COMMANDS: list[Register] = [
     serve.register,
     calibrate.register,
     teach.register,
+    config.register,
 ]

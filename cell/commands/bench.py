@@ -1,4 +1,8 @@
-"""``cell bench``: the estimator against OpenCV pipelines on identical rendered frames."""
+"""``cell bench``: the estimator against OpenCV pipelines on identical rendered frames.
+
+``--check`` turns the issue's speed and accuracy targets into the exit status: 1 when any is
+missed (the report is printed either way), so a CI job or an integrator's script can gate on it.
+"""
 
 from __future__ import annotations
 
@@ -9,19 +13,22 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("bench", help="benchmark the estimator against OpenCV pipelines",
                        description="Times and pose errors on rendered 1280x800 frames "
                                    "(see cell/bench.py for what is measured and how).")
-    p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--frames", type=int, default=60, help="rendered frames (default 60)")
     p.add_argument("--scenes", type=int, default=1000,
                    help="random scenes for the 0.5 px accuracy comparison (default 1000)")
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--config", metavar="CELL.toml", default=None,
                    help="take the camera from this config (default: the simulated cell)")
+    p.add_argument("--check", action="store_true",
+                   help="exit with status 1 when a target is missed")
     p.set_defaults(func=_bench)
 
 
 def _bench(args: argparse.Namespace) -> int:
+    import sys
+
     from cell.bench import format_report, run_bench
-    from cell.commands.common import fail, print_json
+    from cell.commands.common import EXIT_NO, EXIT_OK, fail, print_json, progress_bars
     from cell.config import ConfigError, load_config
 
     if args.frames < 1 or args.scenes < 1:
@@ -30,9 +37,16 @@ def _bench(args: argparse.Namespace) -> int:
         camera = load_config(args.config).camera.model()
     except ConfigError as err:
         return fail(ConfigError.code, str(err), args.json)
-    report = run_bench(camera, frames=args.frames, scenes=args.scenes, seed=args.seed)
+    with progress_bars(not args.json) as progress:
+        report = run_bench(camera, frames=args.frames, scenes=args.scenes, seed=args.seed,
+                           progress=progress)
     if args.json:
         print_json(report)
     else:
         print(format_report(report))
-    return 0
+    missed = [k for k, met in report["targets_met"].items() if not met]
+    if args.check and missed:
+        if not args.json:
+            print(f"targets missed: {', '.join(missed)}", file=sys.stderr)
+        return EXIT_NO
+    return EXIT_OK

@@ -4,13 +4,27 @@
 prints every method's ``T_flange_camera`` with the residuals and a verdict, and can write the
 chosen result into a cell config. ``intrinsics`` calibrates the camera from board images.
 ``routine`` moves the configured arm through views of the target and solves the same way.
-A verdict of inconsistent data is a result, not an error: the exit status is 0 with a report.
+Both choose the same default method (:data:`cell.calibration.solve.DEFAULT_METHOD`), so
+re-solving a routine's saved views gives the routine's answer.
+
+Exit status: 0 when the verdict is that the data agree, 1 when it is that they disagree (the
+full report is still printed, and nothing is written into a config unless ``--force``), 2 on an
+error. ``--write-config`` edits only an existing, valid cell config, keeps a timestamped backup
+of it and prints the change.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
+from typing import TYPE_CHECKING, Any
+
+from cell.commands.common import EXIT_NO, EXIT_OK, fail, print_json, progress_bars
+
+if TYPE_CHECKING:
+
+    from cell.calibration.report import HandEyeReport
+
+METHOD_CHOICES = ["tsai", "park", "horaud", "joint"]
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -19,13 +33,16 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
     he = what.add_parser("hand-eye", help="T_flange_camera from board images and robot poses")
     he.add_argument("folder", metavar="DIR", help="ViSP eye-in-hand folder or dataset.json folder")
-    he.add_argument("--method", default="tsai", choices=["tsai", "park", "horaud", "joint"],
-                    help="the result to choose (all are computed and printed; default tsai)")
+    he.add_argument("--method", default=None, choices=METHOD_CHOICES,
+                    help="the result to choose (all are computed and printed; default joint, "
+                         "as the routine; tsai with --no-refine)")
     he.add_argument("--no-refine", action="store_true",
                     help="skip the joint reprojection refinement")
     he.add_argument("--write-config", metavar="FILE",
-                    help="write the chosen T_flange_camera into FILE's [hand_eye] table")
-    he.add_argument("--json", action="store_true", help="print JSON")
+                    help="write the chosen T_flange_camera into FILE's [hand_eye] table (an "
+                         "existing, valid cell config; a timestamped backup is kept)")
+    he.add_argument("--force", action="store_true",
+                    help="write the config even when the verdict is that the data disagree")
     he.set_defaults(func=run_hand_eye)
 
     it = what.add_parser("intrinsics", help="fx, fy, cx, cy and distortion from board images")
@@ -38,7 +55,6 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                     help="square size, or circle spacing along a row, in mm")
     it.add_argument("--no-distortion", action="store_true",
                     help="ideal pinhole: fix all distortion coefficients at zero")
-    it.add_argument("--json", action="store_true", help="print JSON")
     it.set_defaults(func=run_intrinsics)
 
     rt = what.add_parser(
@@ -50,7 +66,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     rt.add_argument("--speed-mm-s", type=float, default=None,
                     help="linear move speed (default: 200 or the config's limits.max_speed_mm_s "
                          "if lower; above that limit is refused)")
-    rt.add_argument("--method", default="joint", choices=["tsai", "park", "horaud", "joint"],
+    rt.add_argument("--method", default=None, choices=METHOD_CHOICES,
                     help="the result to choose (default joint)")
     rt.add_argument("--board", choices=["chessboard", "circles", "acircles"],
                     help="look at a calibration board instead of the cell's dot target")
@@ -58,62 +74,95 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     rt.add_argument("--rows", type=int, default=6)
     rt.add_argument("--square-mm", "--pitch-mm", dest="pitch_mm", type=float, default=25.0)
     rt.add_argument("--write-config", metavar="FILE",
-                    help="write the chosen T_flange_camera into FILE's [hand_eye] table")
+                    help="write the chosen T_flange_camera into FILE's [hand_eye] table (an "
+                         "existing, valid cell config; a timestamped backup is kept)")
+    rt.add_argument("--force", action="store_true",
+                    help="write the config even when the verdict is that the data disagree")
     rt.add_argument("--save-dataset", metavar="DIR",
                     help="write the views (images and flange poses) as a dataset to DIR, for "
                          "`cell calibrate hand-eye DIR` to re-solve")
-    rt.add_argument("--json", action="store_true", help="print JSON")
     rt.set_defaults(func=run_routine)
 
 
-def _progress(stage: str, done: int, total: int) -> None:
-    print(f"\r{stage} {done}/{total}", end="\n" if done == total else "", file=sys.stderr,
-          flush=True)
+def _write(args: argparse.Namespace, report: HandEyeReport, note: str
+           ) -> dict[str, Any] | str | int | None:
+    """Write the chosen result if asked. Returns the change, why it was not written (the data
+    disagree and no ``--force``), the exit status of a reported write error, or None."""
+    import sys
+
+    from cell.calibration.config_writer import ConfigWriteError, write_hand_eye
+
+    if not args.write_config:
+        return None
+    if not report.verdict.consistent and not args.force:
+        reason = (f"not written to {args.write_config}: the data disagree with themselves; "
+                  "pass --force to write the result anyway")
+        if not args.json:
+            print(reason, file=sys.stderr)
+        return reason
+    try:
+        change = write_hand_eye(args.write_config, report.T_flange_camera, note)
+    except ConfigWriteError as err:
+        return fail(err.code, str(err), args.json)
+    if not args.json:
+        print(f"wrote ({report.chosen}) {change.summary()}")
+    return change.as_dict()
+
+
+def _json_write_fields(written: dict[str, Any] | str | None, path: str | None
+                       ) -> dict[str, Any]:
+    change = written if isinstance(written, dict) else None
+    return {"written_config": path if change is not None else None, "config_change": change,
+            "not_written": written if isinstance(written, str) else None}
+
+
+def _verdict_status(report: HandEyeReport) -> int:
+    return EXIT_OK if report.verdict.consistent else EXIT_NO
+
+
+def _method(args: argparse.Namespace) -> str:
+    from cell.calibration.solve import DEFAULT_METHOD
+
+    if args.method is not None:
+        return str(args.method)
+    return "tsai" if getattr(args, "no_refine", False) else DEFAULT_METHOD
 
 
 def run_hand_eye(args: argparse.Namespace) -> int:
-    from cell.calibration.config_writer import ConfigWriteError, write_hand_eye
     from cell.calibration.dataset import DatasetError, load_dataset
     from cell.calibration.solve import solve_dataset
-    from cell.commands.common import fail, print_json
     from estimator.calib.handeye import HandEyeError
 
     try:
         dataset = load_dataset(args.folder)
-        report = solve_dataset(dataset, args.method, refine=not args.no_refine,
-                               progress=None if args.json else _progress)
+        with progress_bars(not args.json) as progress:
+            report = solve_dataset(dataset, _method(args), refine=not args.no_refine,
+                                   progress=progress)
     except DatasetError as err:
         return fail(err.code, err.message, args.json)
     except HandEyeError as err:
         return fail(err.code, str(err), args.json)
-    written = None
-    if args.write_config:
-        chosen = report.methods.get(report.chosen)
-        note = f"cell calibrate hand-eye {dataset.folder} --method {report.chosen}"
-        if chosen is not None:
-            note += (f": base-board spread {chosen.spread.mean_mm:.2f} mm / "
-                     f"{chosen.spread.mean_deg:.3f} deg")
-        if report.joint is not None:
-            note += f", joint reprojection rms {report.joint.rms_px:.2f} px"
-        try:
-            write_hand_eye(args.write_config, report.T_flange_camera, note)
-        except ConfigWriteError as err:
-            return fail(err.code, str(err), args.json)
-        written = args.write_config
+    chosen = report.methods.get(report.chosen)
+    note = f"cell calibrate hand-eye {dataset.folder} --method {report.chosen}"
+    if chosen is not None:
+        note += (f": base-board spread {chosen.spread.mean_mm:.2f} mm / "
+                 f"{chosen.spread.mean_deg:.3f} deg")
+    if report.joint is not None:
+        note += f", joint reprojection rms {report.joint.rms_px:.2f} px"
+    if not args.json:
+        print(report.summary())
+    written = _write(args, report, note)
+    if isinstance(written, int):
+        return written
     if args.json:
         out = report.as_dict()
         out["dataset"] = {"folder": str(dataset.folder), "format": dataset.source}
-        out["written_config"] = written
+        out.update(_json_write_fields(written, args.write_config))
         print_json(out)
-    else:
-        print(report.summary())
-        if written:
-            print(f"wrote [hand_eye] T_flange_camera ({report.chosen}) to {written}")
-    return 0
+    return _verdict_status(report)
 
 
 def run_routine(args: argparse.Namespace) -> int:
-    from cell.calibration.config_writer import ConfigWriteError, write_hand_eye
     from cell.calibration.dataset import DatasetError, new_dataset_folder
     from cell.calibration.observe import board_observer, dot_target_observer
     from cell.calibration.routine import (
@@ -122,7 +171,6 @@ def run_routine(args: argparse.Namespace) -> int:
         run_hand_eye_routine,
         save_views,
     )
-    from cell.commands.common import fail, print_json
     from cell.config import ConfigError, load_config
     from cell.factory import build_hardware
     from cell.motion import GuardedArm
@@ -138,13 +186,15 @@ def run_routine(args: argparse.Namespace) -> int:
         SafetyGuard(limits).check_speed(speed, accel)  # refused before anything is built
         settings = RoutineSettings(n_views=args.views, tilt_deg=args.tilt_deg,
                                    speed_mm_s=speed, accel_mm_s2=accel,
-                                   chosen=args.method, min_views=min(6, args.views))
+                                   chosen=_method(args), min_views=min(6, args.views))
         pattern = (Board(args.board, args.cols, args.rows, args.pitch_mm) if args.board
                    else cfg.target.model())
         observer = (board_observer(pattern) if isinstance(pattern, Board)
                     else dot_target_observer(pattern))
         if args.save_dataset:  # checked before the arm moves for minutes
             new_dataset_folder(args.save_dataset)
+        if args.write_config:  # likewise: a config that cannot take the result
+            _check_writable_config(args.write_config)
     except ConfigError as err:
         return fail(ConfigError.code, str(err), args.json)
     except DatasetError as err:
@@ -164,10 +214,10 @@ def run_routine(args: argparse.Namespace) -> int:
         arm.power_on()
         arm.set_tcp(T_flange_tcp)
         hw.camera.connect()
-        with arm.slot.hold("calibration"):
+        with progress_bars(not args.json) as progress, arm.slot.hold("calibration"):
             result = run_hand_eye_routine(
                 arm, hw.camera, observer, T_flange_tcp, cfg.hand_eye.T_flange_camera.T(),
-                settings, progress=None if args.json else _progress,
+                settings, progress=progress,
             )
     except RoutineError as err:
         return fail(err.code, err.message, args.json)
@@ -184,39 +234,45 @@ def run_routine(args: argparse.Namespace) -> int:
             saved = str(save_views(args.save_dataset, result, pattern).folder)
         except DatasetError as err:
             return fail(err.code, err.message, args.json)
-    written = None
-    if args.write_config:
-        note = f"cell calibrate routine, {len(report.view_names)} views, --method {report.chosen}"
-        try:
-            write_hand_eye(args.write_config, report.T_flange_camera, note)
-        except ConfigWriteError as err:
-            return fail(err.code, str(err), args.json)
-        written = args.write_config
-    if args.json:
-        out = report.as_dict()
-        out["failed_views"] = [{"view": k, "reason": r} for k, r in result.failed]
-        out["written_config"] = written
-        out["dataset"] = saved
-        print_json(out)
-    else:
+    if not args.json:
         print(report.summary())
         for k, reason in result.failed:
             print(f"view {k} skipped: {reason}")
         if saved:
             print(f"views saved to {saved} (re-solve: cell calibrate hand-eye {saved})")
-        if written:
-            print(f"wrote [hand_eye] T_flange_camera ({report.chosen}) to {written}")
-    return 0
+    note = f"cell calibrate routine, {len(report.view_names)} views, --method {report.chosen}"
+    written = _write(args, report, note)
+    if isinstance(written, int):
+        return written
+    if args.json:
+        out = report.as_dict()
+        out["failed_views"] = [{"view": k, "reason": r} for k, r in result.failed]
+        out.update(_json_write_fields(written, args.write_config))
+        out["dataset"] = saved
+        print_json(out)
+    return _verdict_status(report)
+
+
+def _check_writable_config(path: str) -> None:
+    """Refuse before the routine moves the arm when ``--write-config`` could not be honoured."""
+    from pathlib import Path
+
+    from cell.config import ConfigError, load_config
+
+    if not Path(path).is_file():
+        raise ValueError(f"--write-config {path}: no such file; the result is written only into "
+                         "an existing cell config")
+    try:
+        load_config(path)
+    except ConfigError as err:
+        raise ValueError(f"--write-config {path} is not a valid cell config: {err}") from err
 
 
 def run_intrinsics(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    import cv2
-    import numpy as np
-
     from cell.calibration.dataset import IMAGE_SUFFIXES
-    from cell.commands.common import fail, print_json
+    from cell.commands.common import read_grey
     from estimator.calib.board import Board
     from estimator.calib.intrinsics import IntrinsicsError, calibrate_intrinsics
 
@@ -229,15 +285,22 @@ def run_intrinsics(args: argparse.Namespace) -> int:
         return fail("invalid_argument", str(err), args.json)
     paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     images = []
-    for p in paths:
-        img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
-        if img is None:
-            return fail("image_unreadable", f"cannot read image {p}", args.json)
-        images.append(np.asarray(img, dtype=np.uint8))
-    try:
-        result = calibrate_intrinsics(board, images, distortion=not args.no_distortion)
-    except IntrinsicsError as err:
-        return fail(err.code, str(err), args.json)
+    with progress_bars(not args.json) as progress:
+        for k, p in enumerate(paths):
+            img = read_grey(p)
+            if isinstance(img, str):
+                return fail("image_unreadable", img, args.json)
+            images.append(img)
+            if progress is not None:
+                progress("read", k + 1, len(paths))
+        if progress is not None:
+            progress("calibrate", 0, 1)
+        try:
+            result = calibrate_intrinsics(board, images, distortion=not args.no_distortion)
+        except IntrinsicsError as err:
+            return fail(err.code, str(err), args.json)
+        if progress is not None:
+            progress("calibrate", 1, 1)
     cam = result.camera
     per_image = {paths[i].name: e for i, e in zip(result.used, result.per_image_rms_px,
                                                   strict=True)}

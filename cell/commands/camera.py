@@ -9,8 +9,9 @@ is built by :func:`cell.factory.build_camera`, the one place that chooses real o
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
-from cell.commands.common import fail, print_json
+from cell.commands.common import fail, print_json, progress_bars
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -20,7 +21,6 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     snap.add_argument("--config", default=None, help="cell config (default: built-in sim)")
     snap.add_argument("--out", required=True, help="image file to write (.png)")
     snap.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for a frame")
-    snap.add_argument("--json", action="store_true", help="print JSON")
     snap.set_defaults(func=run_snapshot)
 
 
@@ -41,8 +41,16 @@ def run_snapshot(args: argparse.Namespace) -> int:
     except (ConfigError, ValueError) as err:
         return fail("config_invalid", str(err), args.json)
     try:
-        camera.connect()
-        frame = camera.latest_frame(timeout_s=args.timeout)
+        with progress_bars(not args.json) as progress:
+            if progress is not None:
+                progress("snapshot", 0, 2)
+            camera.connect()
+            if progress is not None:
+                progress("snapshot", 1, 2)
+            frame = camera.latest_frame(timeout_s=args.timeout)
+            in_force = camera.get_settings()
+            if progress is not None:
+                progress("snapshot", 2, 2)
     except DriverError as err:
         return fail(err.code, str(err), args.json)
     finally:
@@ -59,6 +67,13 @@ def run_snapshot(args: argparse.Namespace) -> int:
         "out": args.out, "camera": kind, "width": int(frame.image.shape[1]),
         "height": int(frame.image.shape[0]), "sequence": frame.sequence,
         "timestamp_s": frame.timestamp_s,
+        # What the camera runs with: check these against the [camera] table.
+        "settings": {
+            "device_id": config.camera.device_id if kind == "oak" else None,
+            "socket": config.camera.socket if kind == "oak" else None,
+            "fps": config.camera.fps, "exposure_us": in_force.exposure_us,
+            "iso": in_force.iso, "focus": in_force.focus,
+        },
         # The intrinsics valid for this image: what a real cell's [camera] table should hold.
         "intrinsics": {
             "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
@@ -70,4 +85,22 @@ def run_snapshot(args: argparse.Namespace) -> int:
     else:
         print(f"saved {info['width']}x{info['height']} frame {frame.sequence} from the {kind} "
               f"camera to {args.out}")
+        print("settings in force: " + _settings_line(info["settings"]))
+        c = info["intrinsics"]
+        print(f"intrinsics: fx {c['fx']:.2f} fy {c['fy']:.2f} cx {c['cx']:.2f} cy {c['cy']:.2f}"
+              f" dist {[round(d, 5) for d in c['dist']]}")
     return 0
+
+
+def _settings_line(s: dict[str, Any]) -> str:
+    focus = s["focus"]
+    parts = [f"{s['fps']:g} fps",
+             f"exposure {s['exposure_us']} us" if s["exposure_us"] is not None else "",
+             f"iso {s['iso']}" if s["iso"] is not None else "",
+             "focus fixed (no lens control)" if focus is None else
+             ("autofocus" if focus == "auto" else f"focus lens position {focus}")]
+    if s["socket"]:
+        parts.append(f"socket {s['socket']}")
+    if s["device_id"] is not None:
+        parts.append(f"device {s['device_id'] or 'first found'}")
+    return ", ".join(p for p in parts if p)

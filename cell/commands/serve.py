@@ -22,7 +22,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--config", default=None, help="cell TOML (default: built-in simulated cell)")
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=8000)
-    p.add_argument("--log-level", default="info")
+    p.add_argument("--log-level", default="info",
+                   choices=["critical", "error", "warning", "info", "debug"])
+    p.add_argument("--log-format", default="text", choices=["text", "json"],
+                   help="json: one JSON object per line on stderr (for journald and log "
+                        "shippers)")
     p.set_defaults(func=_serve)
 
 
@@ -39,14 +43,30 @@ def _serve(args: argparse.Namespace) -> int:
         os.environ["CELL_CONFIG"] = os.path.abspath(args.config)
     else:
         os.environ.pop("CELL_CONFIG", None)
+    import logging
+    import logging.config
+
+    from cell.logs import log_config
     from estimator.kernels import warm_up
 
+    logging_config = log_config(args.log_format, args.log_level)
+    logging.config.dictConfig(logging_config)
+    log = logging.getLogger("cell.serve")
+
+    def say(message: str) -> None:
+        if args.log_format == "json":
+            log.info(message)
+        else:
+            print(message, flush=True)
+
     # Compiled once per checkout (make install does it); loading takes a fraction of a second.
-    print(f"estimator kernels ready in {warm_up():.1f} s", flush=True)
-    print(f"serving the cell on http://{args.host}:{args.port} (docs at /docs)", flush=True)
+    say(f"estimator kernels ready in {warm_up():.1f} s")
+    say(f"serving the cell on http://{args.host}:{args.port} (docs at /docs); state in "
+        f"{os.path.dirname(os.path.abspath(config.api.job_db))}")
     server = _StopFirstServer(uvicorn.Config(
         "api.app:app_from_environment", factory=True, host=args.host, port=args.port,
-        log_level=args.log_level, timeout_graceful_shutdown=SHUTDOWN_GRACE_S))
+        log_level=args.log_level, log_config=logging_config,
+        timeout_graceful_shutdown=SHUTDOWN_GRACE_S))
     server.run()
     return 0
 

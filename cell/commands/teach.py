@@ -19,7 +19,6 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="the cell service (default $CELL_URL or http://127.0.0.1:8000)")
     p.add_argument("--token", default=os.environ.get("CELL_TOKEN"),
                    help="bearer token (default $CELL_TOKEN); teaching needs an operator token")
-    p.add_argument("--json", action="store_true", help="print JSON")
     what = p.add_subparsers(dest="teach_command", required=True, metavar="ACTION")
     add = what.add_parser("add", help="teach NAME at the arm's current pose")
     add.add_argument("name")

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 from typing import TYPE_CHECKING
 
-from cell.commands.common import fail, print_json
+from cell.commands.common import fail, print_json, read_grey
 
 if TYPE_CHECKING:
     import numpy as np
@@ -28,13 +28,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         p.add_argument("image", metavar="IMAGE", help="8-bit grey (or colour) image file")
         p.add_argument("--config", metavar="CELL.toml", default=None,
                        help="cell config (default: the built-in simulated cell)")
-        p.add_argument("--json", action="store_true", help="machine-readable output")
         p.set_defaults(func=func)
 
 
 def _load(args: argparse.Namespace) -> tuple[CellConfig, NDArray[np.uint8]] | int:
     """Config and grey image, or the exit status of the failure already reported."""
-    import cv2
     import numpy as np
 
     from cell.config import ConfigError, load_config
@@ -43,11 +41,9 @@ def _load(args: argparse.Namespace) -> tuple[CellConfig, NDArray[np.uint8]] | in
         config = load_config(args.config)
     except ConfigError as err:
         return fail(ConfigError.code, str(err), args.json)
-    image = cv2.imread(args.image, cv2.IMREAD_GRAYSCALE)
-    if image is None:
-        return fail("image_unreadable",
-                    f"cannot read {args.image} as an image (missing file or unknown format)",
-                    args.json)
+    image = read_grey(args.image)
+    if isinstance(image, str):
+        return fail("image_unreadable", image, args.json)
     return config, np.asarray(image, dtype=np.uint8)
 
 

@@ -1,0 +1,66 @@
+"""``cell config check FILE``: validate a cell config without touching any hardware.
+
+What an integrator runs after every edit of a real cell's file: the strict schema and the
+commissioning checks (:mod:`cell.config_checks`), every problem listed with its key. Exit 0 when
+the file loads (with warnings for what only ``cell serve`` refuses, such as the sample API
+tokens on real hardware), 2 otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from cell.commands.common import print_json
+
+
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser("config", help="check a cell config file")
+    what = p.add_subparsers(dest="config_command", required=True, metavar="ACTION")
+    chk = what.add_parser("check", help="validate FILE (schema and commissioning checks); no "
+                          "hardware is touched")
+    chk.add_argument("file", metavar="FILE", help="cell config (TOML)")
+    chk.set_defaults(func=run_check)
+
+
+def run_check(args: argparse.Namespace) -> int:
+    import sys
+
+    from cell.config import SAMPLE_TOKENS, ConfigError, load_config
+
+    try:
+        config = load_config(args.file)
+    except ConfigError as err:
+        if args.json:
+            print_json({"file": args.file, "ok": False, "error": {
+                "code": err.code, "message": str(err),
+                "problems": [p.as_dict() for p in err.problems]}})
+        else:
+            print(f"{args.file}: {len(err.problems)} problem(s)", file=sys.stderr)
+            for p in err.problems:
+                print(f"  {p}", file=sys.stderr)
+        return 2
+    devices = {"robot": config.robot.kind + (" (simulated controller)"
+                                             if config.robot.kind == "ur"
+                                             and config.sim.ur_controller else ""),
+               "camera": config.camera.kind, "gripper": config.gripper.kind}
+    warnings = []
+    sample = sorted(t.token for t in config.api.tokens if t.token in SAMPLE_TOKENS)
+    if sample and config.has_real_device():
+        warnings.append(f"api.tokens: sample token(s) {', '.join(sample)}: `cell serve` refuses "
+                        "them with real hardware; configure your own secret tokens")
+    out = {"file": args.file, "ok": True, "real_hardware": config.has_real_device(),
+           "devices": devices, "accepted": list(config.commissioning.accept),
+           "warnings": warnings,
+           "state": {"job_db": config.api.job_db, "calibration_dir": config.api.calibration_dir,
+                     "image_log_dir": config.api.image_log_dir}}
+    if args.json:
+        print_json(out)
+    else:
+        kinds = ", ".join(f"{k} {v}" for k, v in devices.items())
+        print(f"{args.file}: valid ({kinds}; "
+              f"{'real hardware' if out['real_hardware'] else 'all simulated'})")
+        if config.commissioning.accept:
+            print(f"  accepted on purpose: {', '.join(config.commissioning.accept)}")
+        for warning in warnings:
+            print(f"  warning: {warning}")
+    return 0
