@@ -172,17 +172,18 @@ def _pnp(
 
 
 def _sbd_detector(filt: BlobFilter) -> Any:
-    """OpenCV's SimpleBlobDetector: default thresholds, shape filters as ours."""
+    """OpenCV's SimpleBlobDetector: default thresholds, shape filters as close to ours as its
+    filters allow (it has no ellipse fit: circularity is off unless ours is set)."""
     params = cv2.SimpleBlobDetector_Params()  # type: ignore[attr-defined]
     params.filterByColor = True
     params.blobColor = 0
     params.filterByArea = True
     params.minArea = filt.min_area_px
     params.maxArea = filt.max_area_px
-    params.filterByCircularity = True
-    params.minCircularity = filt.min_circularity
+    params.filterByCircularity = filt.min_circularity > 0.0
+    params.minCircularity = max(filt.min_circularity, 1e-3)
     params.filterByInertia = True
-    params.minInertiaRatio = filt.min_inertia_ratio
+    params.minInertiaRatio = filt.inertia_limit
     params.filterByConvexity = True
     params.minConvexity = filt.min_fill_ratio
     return cv2.SimpleBlobDetector_create(params)  # type: ignore[attr-defined]

@@ -24,11 +24,13 @@ class Blob:
     major_axis_px: float = 0.0
     minor_axis_px: float = 0.0
     angle_rad: float = 0.0  # of the major axis, image x towards y
+    ellipse_error: float = 0.0  # misfit of the outline to the moment ellipse (regions.py)
 
     def as_dict(self) -> dict[str, float]:
         return {
             "u": self.u, "v": self.v, "area": self.area, "circularity": self.circularity,
             "inertia_ratio": self.inertia_ratio, "fill_ratio": self.fill_ratio,
+            "ellipse_error": self.ellipse_error,
         }
 
 
