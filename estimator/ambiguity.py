@@ -1,0 +1,71 @@
+"""When is a pose ambiguous: an alternative that is a different pose and fits as well.
+
+Two poses are *different* when a dot moves by more than ``max_dot_mm`` (default 1 mm) or the
+rotation differs by more than ``max_deg`` (default 1 deg) between them: an alternative closer
+than that is the same answer for any use of the pose. They are *separable* when the measured
+points tell them apart at the noise level actually present: with sigma^2 the noise variance
+estimated from the chosen pose's residuals (SSR_best / (2N - 6) for N points, 6 pose
+parameters, floored at ``noise_floor_px`` -- centre errors never vanish on a real camera), the
+likelihood-ratio statistic delta_chi2 = (SSR_alt - SSR_best) / sigma^2 exceeds the 0.999
+quantile of chi^2 with 1 degree of freedom (10.83): the alternative is then rejected at
+p = 0.001. ``ambiguous`` = different and not separable; ``margin`` = delta_chi2 / threshold
+says by how much (above 1: separable).
+
+On a symmetric layout the equivalent labellings fit exactly as well (delta_chi2 = 0): always
+ambiguous for a fresh search, which is what tracking resolves.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import chi2
+
+from estimator.result import AmbiguityTest
+
+MAX_DOT_MM = 1.0
+MAX_DEG = 1.0
+NOISE_FLOOR_PX = 0.02
+CHI2_THRESHOLD = 10.83  # chi^2, 1 dof, 0.999 quantile
+NOISE_CONFIDENCE = 0.05  # lower chi^2 quantile: the noise bound holds with 95 % confidence
+TEST_NAME = "likelihood ratio: delta_chi2 = (SSR_alt - SSR_best) / sigma^2 > 10.83 (p 0.001)"
+
+
+@lru_cache(maxsize=256)
+def _chi2_low(dof: int) -> float:
+    return float(chi2.ppf(NOISE_CONFIDENCE, dof))
+
+
+def pose_difference(
+    T_a: NDArray[np.float64], T_b: NDArray[np.float64], points_mm: NDArray[np.float64]
+) -> tuple[float, float]:
+    """(largest dot displacement mm, rotation angle deg) between two poses of the dots."""
+    pa = points_mm @ T_a[:3, :3].T + T_a[:3, 3]
+    pb = points_mm @ T_b[:3, :3].T + T_b[:3, 3]
+    shift = float(np.sqrt(((pa - pb) ** 2).sum(axis=1)).max())
+    cos_angle = 0.5 * (float((T_a[:3, :3] * T_b[:3, :3]).sum()) - 1.0)
+    return shift, math.degrees(math.acos(max(-1.0, min(1.0, cos_angle))))
+
+
+def ambiguity_test(
+    T_best: NDArray[np.float64], rms_best_px: float, T_alt: NDArray[np.float64],
+    rms_alt_px: float, points_mm: NDArray[np.float64], *, max_dot_mm: float = MAX_DOT_MM,
+    max_deg: float = MAX_DEG, noise_floor_px: float = NOISE_FLOOR_PX,
+) -> AmbiguityTest:
+    """The module docstring's test of an alternative pose against the chosen one."""
+    n = len(points_mm)
+    shift, angle = pose_difference(T_best, T_alt, points_mm)
+    different = shift > max_dot_mm or angle > max_deg
+    ssr_best, ssr_alt = n * rms_best_px**2, n * rms_alt_px**2
+    dof = max(2 * n - 6, 1)
+    sigma2 = max(ssr_best / _chi2_low(dof), noise_floor_px**2)
+    delta = max(ssr_alt - ssr_best, 0.0) / sigma2
+    margin = delta / CHI2_THRESHOLD
+    return AmbiguityTest(
+        ambiguous=bool(different and margin <= 1.0), different=different, dot_shift_mm=shift,
+        rotation_deg=angle, delta_chi2=delta, threshold=CHI2_THRESHOLD,
+        sigma_px=math.sqrt(sigma2), margin=margin, test=TEST_NAME,
+    )
