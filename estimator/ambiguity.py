@@ -3,40 +3,35 @@
 Two poses are *different* when a dot moves by more than ``max_dot_mm`` (default 1 mm) or the
 rotation differs by more than ``max_deg`` (default 1 deg) between them: an alternative closer
 than that is the same answer for any use of the pose. They are *separable* when the measured
-points tell them apart at the noise level actually present: with sigma^2 the noise variance
-estimated from the chosen pose's residuals (SSR_best / (2N - 6) for N points, 6 pose
-parameters, floored at ``noise_floor_px`` -- centre errors never vanish on a real camera), the
-likelihood-ratio statistic delta_chi2 = (SSR_alt - SSR_best) / sigma^2 exceeds the 0.999
-quantile of chi^2 with 1 degree of freedom (10.83): the alternative is then rejected at
-p = 0.001. ``ambiguous`` = different and not separable; ``margin`` = delta_chi2 / threshold
-says by how much (above 1: separable).
+points tell them apart at the noise level actually present. sigma^2, the noise variance, is
+estimated from the chosen pose's residuals (SSR_best over 2N - 6 degrees of freedom for N
+points and 6 pose parameters) pooled with a prior of ``noise_prior_px`` (0.05 px, a good
+detector's centre noise) worth PRIOR_DOF = 2 degrees of freedom: a 4-dot plate leaves only 2
+of its own, too few to trust alone, while a grid's many dots outweigh the prior. The test is
+the likelihood ratio: delta_chi2 = (SSR_alt - SSR_best) / sigma^2 above the 0.999 quantile of
+chi^2 with 1 degree of freedom (10.83) rejects the alternative at p = 0.001. ``ambiguous`` =
+different and not separable; ``margin`` = delta_chi2 / threshold says by how much (above 1:
+separable).
 
-On a symmetric layout the equivalent labellings fit exactly as well (delta_chi2 = 0): always
-ambiguous for a fresh search, which is what tracking resolves.
+On a symmetric layout the equivalent labellings fit exactly as well (delta_chi2 = 0): a fresh
+search on one is always ambiguous, which is what tracking resolves.
 """
 
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2
 
 from estimator.result import AmbiguityTest
 
 MAX_DOT_MM = 1.0
 MAX_DEG = 1.0
-NOISE_FLOOR_PX = 0.02
+NOISE_PRIOR_PX = 0.05
+PRIOR_DOF = 2.0
 CHI2_THRESHOLD = 10.83  # chi^2, 1 dof, 0.999 quantile
-NOISE_CONFIDENCE = 0.05  # lower chi^2 quantile: the noise bound holds with 95 % confidence
 TEST_NAME = "likelihood ratio: delta_chi2 = (SSR_alt - SSR_best) / sigma^2 > 10.83 (p 0.001)"
-
-
-@lru_cache(maxsize=256)
-def _chi2_low(dof: int) -> float:
-    return float(chi2.ppf(NOISE_CONFIDENCE, dof))
 
 
 def pose_difference(
@@ -53,15 +48,15 @@ def pose_difference(
 def ambiguity_test(
     T_best: NDArray[np.float64], rms_best_px: float, T_alt: NDArray[np.float64],
     rms_alt_px: float, points_mm: NDArray[np.float64], *, max_dot_mm: float = MAX_DOT_MM,
-    max_deg: float = MAX_DEG, noise_floor_px: float = NOISE_FLOOR_PX,
+    max_deg: float = MAX_DEG, noise_prior_px: float = NOISE_PRIOR_PX,
 ) -> AmbiguityTest:
     """The module docstring's test of an alternative pose against the chosen one."""
     n = len(points_mm)
     shift, angle = pose_difference(T_best, T_alt, points_mm)
     different = shift > max_dot_mm or angle > max_deg
     ssr_best, ssr_alt = n * rms_best_px**2, n * rms_alt_px**2
-    dof = max(2 * n - 6, 1)
-    sigma2 = max(ssr_best / _chi2_low(dof), noise_floor_px**2)
+    dof = max(2 * n - 6, 0)
+    sigma2 = (ssr_best + PRIOR_DOF * noise_prior_px**2) / (dof + PRIOR_DOF)
     delta = max(ssr_alt - ssr_best, 0.0) / sigma2
     margin = delta / CHI2_THRESHOLD
     return AmbiguityTest(
