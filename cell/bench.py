@@ -550,17 +550,18 @@ def _sequence_pose(k: int, target: Target) -> NDArray[np.float64]:
 
 def _symmetric_sequence(camera: CameraModel, n: int, rng: np.random.Generator
                         ) -> dict[str, Any]:
-    """A 2-fold symmetric 5-dot plate over a moving sequence, one Estimator throughout: label
-    flips (consecutive poses > 90 deg apart), tracking time, and each frame's fresh full
-    search (time, and whether it says ambiguous with its equivalent pose)."""
+    """A 2-fold symmetric 5-dot plate over a moving sequence (rendered first), one Estimator
+    throughout: label flips (consecutive poses > 90 deg apart) and tracking time per frame
+    (one run each: a sequence cannot be repeated); then each frame's fresh full search (min
+    of runs, and whether it says ambiguous with its equivalent pose)."""
     target = symmetric_target()
     est = Estimator(camera, target)
     track, full = _Method(), _Method()
     flips, fresh_ambiguous, failures = 0, 0, 0
     T_prev = None
-    for k in range(n):
-        T = _sequence_pose(k, target)
-        image = render_target(camera, target, T, rng=rng)
+    poses = [_sequence_pose(k, target) for k in range(n)]
+    images = [render_target(camera, target, T, rng=rng) for T in poses]
+    for T, image in zip(poses, images, strict=True):
         try:
             cpu, wall, res = _time(partial(est.estimate, image), 1)
         except EstimationError:
@@ -572,6 +573,7 @@ def _symmetric_sequence(camera: CameraModel, n: int, rng: np.random.Generator
         if T_prev is not None and _rotation_deg(T_prev, res.T_camera_target) > 90.0:
             flips += 1
         T_prev = res.T_camera_target
+    for T, image in zip(poses, images, strict=True):  # fresh full searches, after the track
         best: tuple[float, float, Any] = (np.inf, np.inf, None)
         with contextlib.suppress(EstimationError):
             for _ in range(REPEATS):

@@ -146,7 +146,10 @@ class Estimator:
         bias = (centroid_bias_px(T_pred, obj, self.target.dot_diameter_mm, self.camera)
                 if self.correct_bias else np.zeros_like(pts))
         try:
-            pose = near_pose_unchecked(obj, pts, self.camera, T_pred, bias, tuple(blobs), ids)
+            pose = near_pose_unchecked(
+                obj, pts, self.camera, T_pred, bias, tuple(blobs), ids, "continuity",
+                f"dot identities kept by continuity (tracked frame {self._tracked_frames + 1} "
+                "since the full search)")
         except EstimationError:
             return None
         if pose.rms_px > _TRACK_MAX_RMS_PX:
@@ -154,9 +157,7 @@ class Estimator:
         self.last_mode = "tracking"
         self._T_prev, self._T_last = self._T_last, pose.T_camera_target
         self._tracked_frames += 1
-        return replace(pose, identity="continuity", notes=(
-            *pose.notes, f"dot identities kept by continuity (tracked frame "
-            f"{self._tracked_frames} since the full search)"))
+        return pose
 
     def _full_search(self, img: NDArray[np.uint8]) -> PoseResult:
         found, threshold = detect_dots(img, self.polarity, self.filter, self._threshold)

@@ -455,6 +455,7 @@ def near_pose_unchecked(
     obj: NDArray[np.float64], img: NDArray[np.float64], camera: CameraModel,
     T_init: NDArray[np.float64], bias: NDArray[np.float64],
     matched_blobs: tuple[Blob, ...] = (), matched_ids: tuple[int, ...] = (),
+    identity: str = "given", note: str | None = None,
 ) -> PoseResult:
     """:func:`solve_pose_near` with known bias offsets: one refinement, no validation.
 
@@ -464,10 +465,10 @@ def near_pose_unchecked(
     """
     image_points = img - bias
     T, residuals, J = finish_pose(obj, image_points, camera, T_init)
+    notes = ("refined from the tracked pose, perspective bias at the predicted pose",)
     return _tracked_result(
-        obj, T, residuals, J, image_points,
-        ("refined from the tracked pose, perspective bias at the predicted pose",),
-        matched_blobs, matched_ids,
+        obj, T, residuals, J, image_points, notes if note is None else (*notes, note),
+        matched_blobs, matched_ids, identity,
     )
 
 
@@ -475,6 +476,7 @@ def _tracked_result(
     obj: NDArray[np.float64], T: NDArray[np.float64], residuals: NDArray[np.float64],
     J: NDArray[np.float64], image_points: NDArray[np.float64], notes: tuple[str, ...],
     matched_blobs: tuple[Blob, ...] = (), matched_ids: tuple[int, ...] = (),
+    identity: str = "given",
 ) -> PoseResult:
     """The result of a refinement from a tracked pose (no seed iterations, no alternative)."""
     if not all_in_front(T, obj):
@@ -493,4 +495,5 @@ def _tracked_result(
         matched_ids=matched_ids,
         image_points_px=image_points,
         notes=notes,
+        identity=identity,
     )

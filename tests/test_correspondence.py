@@ -150,3 +150,45 @@ def test_hull_fast_path_is_fast_on_a_clean_view() -> None:
     for _ in range(20):
         match_blobs(px, target, CAM)
     print(f"match_blobs (8 dots, incl. solve_pose): {(time.perf_counter() - t0) / 20 * 1e3:.2f} ms")
+
+
+def test_three_collinear_dots_and_a_fourth_are_matched() -> None:
+    target = Target([[0, 0, 0], [50, 0, 0], [100, 0, 0], [40, 70, 0]], 8.0)
+    rng = np.random.default_rng(51)
+    for _ in range(10):
+        T = random_pose(rng, CAM, target)
+        px = _image_points(target, T, rng)
+        perm = rng.permutation(len(px))
+        result = match_blobs(px[perm], target, CAM)
+        assert len(result.model_ids) == 4
+        _check(target, T, result, px[perm], perm)
+
+
+def test_a_6x6_grid_is_matched_up_to_its_symmetry() -> None:
+    from cell.bench import _error_mod_symmetry
+    from fakes.render import grid_target
+
+    target = grid_target(6, 6, 25.0, 7.0)
+    rng = np.random.default_rng(52)
+    for _ in range(5):
+        T = random_pose(rng, CAM, target, max_tilt_deg=40.0)
+        px = _image_points(target, T, rng)
+        result = match_blobs(px[rng.permutation(len(px))], target, CAM)
+        assert len(result.model_ids) == 36
+        assert result.ambiguous and len(result.pose.equivalent_poses) == 3
+        t_err, r_err = _error_mod_symmetry(result.pose.T_camera_target, T, target)
+        assert t_err < 2.0 and r_err < 0.5
+
+
+def test_layouts_that_cannot_fix_a_pose_are_refused() -> None:
+    from cell.config import TargetConfig
+
+    line = [[0.0, 0.0, 0.0], [50.0, 0.0, 0.0], [100.0, 0.0, 0.0], [150.0, 0.0, 0.0]]
+    with pytest.raises(ValueError, match="one line"):
+        Target(line, 5.0)
+    with pytest.raises(ValueError, match="one line"):
+        TargetConfig(points_mm=line, dot_diameter_mm=5.0)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="distinct"):
+        Target([[0, 0, 0]] * 3 + [[10, 0, 0], [0, 10, 0]], 5.0)
+    with pytest.raises(ValueError, match="4 to 100"):
+        Target(np.zeros((101, 3)), 5.0)
