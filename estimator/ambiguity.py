@@ -21,9 +21,11 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from estimator.arrays import kernel_array
 from estimator.result import AmbiguityTest
 
 MAX_DOT_MM = 1.0
@@ -38,11 +40,30 @@ def pose_difference(
     T_a: NDArray[np.float64], T_b: NDArray[np.float64], points_mm: NDArray[np.float64]
 ) -> tuple[float, float]:
     """(largest dot displacement mm, rotation angle deg) between two poses of the dots."""
-    pa = points_mm @ T_a[:3, :3].T + T_a[:3, 3]
-    pb = points_mm @ T_b[:3, :3].T + T_b[:3, 3]
-    shift = float(np.sqrt(((pa - pb) ** 2).sum(axis=1)).max())
-    cos_angle = 0.5 * (float((T_a[:3, :3] * T_b[:3, :3]).sum()) - 1.0)
+    shift, cos_angle = _difference(kernel_array(T_a), kernel_array(T_b), kernel_array(points_mm))
     return shift, math.degrees(math.acos(max(-1.0, min(1.0, cos_angle))))
+
+
+@numba.njit(cache=True, nogil=True)
+def _difference(
+    T_a: NDArray[np.float64], T_b: NDArray[np.float64], points_mm: NDArray[np.float64]
+) -> tuple[float, float]:
+    """(largest dot displacement, cos of the rotation angle): a few 3-vectors, compiled
+    because numpy's per-call overhead would be most of the cost on every solve."""
+    best = 0.0
+    for i in range(points_mm.shape[0]):
+        d2 = 0.0
+        for r in range(3):
+            d = T_b[r, 3] - T_a[r, 3]
+            for c in range(3):
+                d += (T_b[r, c] - T_a[r, c]) * points_mm[i, c]
+            d2 += d * d
+        best = max(best, d2)
+    trace = 0.0
+    for r in range(3):
+        for c in range(3):
+            trace += T_a[r, c] * T_b[r, c]
+    return math.sqrt(best), 0.5 * (trace - 1.0)
 
 
 def ambiguity_test(

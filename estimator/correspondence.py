@@ -81,16 +81,20 @@ def _ccw_hull(points: NDArray[np.float64], straight_tol: float = 0.0) -> tuple[i
     """
     idx = cv2.convexHull(points.astype(np.float32), clockwise=False, returnPoints=False)
     hull = [int(i) for i in np.asarray(idx).ravel()]
+    if straight_tol <= 0.0:
+        return tuple(hull)
+    xy = points[hull].tolist()
     while len(hull) > 3:
-        p = points[hull]
-        prev, nxt = np.roll(p, 1, axis=0), np.roll(p, -1, axis=0)
-        chord = nxt - prev
-        cross = chord[:, 0] * (p[:, 1] - prev[:, 1]) - chord[:, 1] * (p[:, 0] - prev[:, 0])
-        dist = np.abs(cross) / np.maximum(np.hypot(chord[:, 0], chord[:, 1]), 1e-12)
-        k = int(dist.argmin())
+        dist = []
+        for k in range(len(hull)):
+            (ax, ay), (bx, by), (cx, cy) = xy[k - 1], xy[k], xy[(k + 1) % len(hull)]
+            chord = math.hypot(cx - ax, cy - ay)
+            dist.append(abs((cx - ax) * (by - ay) - (cy - ay) * (bx - ax)) / max(chord, 1e-12))
+        k = min(range(len(hull)), key=dist.__getitem__)
         if dist[k] > straight_tol:
             break
         del hull[k]
+        del xy[k]
     return tuple(hull)
 
 

@@ -171,14 +171,14 @@ def test_symmetric_target_is_tracked_without_label_flips() -> None:
             assert result.identity == "symmetry"
         else:
             assert est.last_mode == "tracking" and result.identity == "continuity"
-            assert _rotation_deg(T_prev, result.T_camera_target) < 10.0
+            assert T_prev is not None and _rotation_deg(T_prev, result.T_camera_target) < 10.0
         t_err, r_err = _error_mod_symmetry(result.T_camera_target, T, target)
         assert t_err < 1.0 and r_err < 0.5
         T_prev = result.T_camera_target
     # A lost track is re-acquired with the labelling nearest the last pose.
     est._tracker.reset()
     result = est.estimate(render_target(cam, target, _sequence_pose(25, target), rng=rng))
-    assert est.last_mode == "full" and result.identity == "continuity"
+    assert est.last_mode == "full" and result.identity == "continuity" and T_prev is not None
     assert not result.ambiguous and _rotation_deg(T_prev, result.T_camera_target) < 10.0
 
 
