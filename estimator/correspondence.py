@@ -358,13 +358,29 @@ def _planar_hypotheses(
     return out
 
 
+def _faces_camera(rvec: NDArray[np.float64], tvec: NDArray[np.float64],
+                  normal: NDArray[np.float64], centre: NDArray[np.float64]) -> bool:
+    """True when the plate's +z normal points away from the camera (its front is seen)."""
+    R = cv2.Rodrigues(rvec)[0]
+    return float((R @ normal) @ (R @ centre + np.ravel(tvec))) > 0.0
+
+
 def _general_hypotheses(
     target: Target, model: _Model, ideal: NDArray[np.float64], K: NDArray[np.float64],
     tol: float, min_count: int, n_wanted: int,
 ) -> list[dict[int, int]]:
-    """Non-planar search: ordered blob triples against model triangles, P3P poses each."""
+    """Ordered blob triples against model triangles, P3P poses each (non-planar targets, and
+    planar ones without 4 dots off a common line). A planar target's poses must show its
+    front (target +z pointing away from the camera): a mirror-symmetric layout seen from
+    behind would otherwise explain the blobs as well, with mirrored labels."""
     out = []
     zero = np.zeros(5)
+    normal = None
+    if model.planar:
+        centred = target.points_mm - target.points_mm.mean(axis=0)
+        normal = np.linalg.svd(centred)[2][2]
+        normal = normal if normal[2] >= 0 else -normal
+        centre = target.points_mm.mean(axis=0)
     pool = list(range(len(ideal)))
     if len(ideal) > _MAX_SEARCH_BLOBS:  # bounded: 12 * 11 * 10 ordered triples at most
         pool = sorted(_spread_subset(ideal, list(_ccw_hull(ideal, 0.5 * tol)),
@@ -374,10 +390,12 @@ def _general_hypotheses(
         for triple in permutations(pool, 3):
             img = np.ascontiguousarray(ideal[list(triple)])
             n_sol, rvecs, tvecs = cv2.solveP3P(obj, img, K, zero, flags=cv2.SOLVEPNP_P3P)
-            preds = [
-                cv2.projectPoints(target.points_mm, rvecs[k], tvecs[k], K, zero)[0]
-                for k in range(int(n_sol)) if tvecs[k][2, 0] > 0
-            ]
+            keep = [k for k in range(int(n_sol)) if tvecs[k][2, 0] > 0]
+            if normal is not None:
+                keep = [k for k in keep if _faces_camera(
+                    np.asarray(rvecs[k], float), np.asarray(tvecs[k], float), normal, centre)]
+            preds = [cv2.projectPoints(target.points_mm, rvecs[k], tvecs[k], K, zero)[0]
+                     for k in keep]
             if preds:
                 stacked = np.asarray(preds, dtype=float).reshape(len(preds), -1, 2)
                 out += _assign(stacked, ideal, tol, min_count)

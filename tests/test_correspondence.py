@@ -192,3 +192,38 @@ def test_layouts_that_cannot_fix_a_pose_are_refused() -> None:
         Target([[0, 0, 0]] * 3 + [[10, 0, 0], [0, 10, 0]], 5.0)
     with pytest.raises(ValueError, match="4 to 100"):
         Target(np.zeros((101, 3)), 5.0)
+
+
+def _asymmetric_grid(rows: int = 4, cols: int = 11, pitch_mm: float = 40.0) -> Target:
+    """OpenCV's asymmetric circle grid layout: every other column shifted by half a pitch."""
+    pts = [[(2 * j + i % 2) * pitch_mm / 2, i * pitch_mm / 2, 0.0]
+           for j in range(rows) for i in range(cols)]
+    return Target(pts, 5.0)
+
+
+@pytest.mark.parametrize(("name", "n_equivalent"), [
+    ("grid10x10", 4), ("asymmetric4x11", 1), ("line4_plus1", 1), ("cross5", 4)])
+def test_layouts_from_4_to_100_dots(name: str, n_equivalent: int) -> None:
+    """Grids up to 100 dots, an asymmetric circle grid, four dots on a line plus one, a
+    4-fold cross: every dot matched, the pose right up to the layout's symmetry, which the
+    result reports as the number of equivalent labellings."""
+    from cell.bench import _error_mod_symmetry
+    from fakes.render import grid_target
+
+    target = {
+        "grid10x10": grid_target(10, 10, 15.0, 5.0),
+        "asymmetric4x11": _asymmetric_grid(),
+        "line4_plus1": Target([[0, 0, 0], [30, 0, 0], [60, 0, 0], [90, 0, 0], [45, 50, 0]], 8.0),
+        "cross5": Target([[0, 0, 0], [50, 0, 0], [-50, 0, 0], [0, 50, 0], [0, -50, 0]], 8.0),
+    }[name]
+    rng = np.random.default_rng(53)
+    for _ in range(6):
+        T = random_pose(rng, CAM, target, max_tilt_deg=40.0, distance_mm=(350.0, 500.0))
+        px = _image_points(target, T, rng)
+        perm = rng.permutation(len(px))
+        result = match_blobs(px[perm], target, CAM)
+        assert len(result.model_ids) == target.n_points
+        assert result.n_equivalent == n_equivalent
+        assert len(result.pose.equivalent_poses) == n_equivalent - 1
+        t_err, r_err = _error_mod_symmetry(result.pose.T_camera_target, T, target)
+        assert t_err < 5.0 and r_err < 1.0, (t_err, r_err)
