@@ -29,6 +29,7 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from estimator.ambiguity import MAX_DEG, MAX_DOT_MM
 from estimator.arrays import kernel_array
 from estimator.camera import CameraModel
 from estimator.errors import CorrespondenceError, EstimationError, TooFewBlobsError
@@ -559,6 +560,7 @@ def match_blobs(
     correct_bias: bool = True,
     solver: PoseSolver | None = None,
     prior_T: NDArray[np.float64] | None = None,
+    ambiguity: tuple[float, float] = (MAX_DOT_MM, MAX_DEG),
 ) -> Correspondence:
     """Match detected blob centres (M,2 px) to the target's dots and solve the pose.
 
@@ -586,7 +588,8 @@ def match_blobs(
         if solver is not None:
             return solver(target.points_mm[ids], pts)
         return solve_pose(target.points_mm[ids], pts, camera,
-                          dot_diameter_mm=target.dot_diameter_mm, correct_bias=bias)
+                          dot_diameter_mm=target.dot_diameter_mm, correct_bias=bias,
+                          ambiguity_mm=ambiguity[0], ambiguity_deg=ambiguity[1])
 
     scored: list[tuple[float, dict[int, int], PoseResult]] = []
     homography = model.planar and bool(model.bases) and len(model.bases[0]) == 4

@@ -25,6 +25,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
+from estimator.ambiguity import MAX_DEG, MAX_DOT_MM
 from estimator.bias import centroid_bias_px
 from estimator.blobs import BlobFilter, Polarity, ThresholdSpec, detect_dots
 from estimator.camera import CameraModel
@@ -53,7 +54,9 @@ class Estimator:
 
     ``detector_options`` are those of :func:`estimator.detect_blobs` (``min_area_px``,
     ``max_area_px``, ``min_circularity``, ``min_inertia_ratio``, ``min_fill_ratio``,
-    ``threshold``); the polarity comes from the target.
+    ``threshold``, ``max_tilt_deg``, ``max_ellipse_error``); the polarity comes from the
+    target. ``ambiguity_mm`` / ``ambiguity_deg``: how far an alternative pose must be from the
+    chosen one at the dots to count as a different answer (see :mod:`estimator.ambiguity`).
     """
 
     def __init__(
@@ -65,6 +68,8 @@ class Estimator:
         max_missing: int = 1,
         correct_bias: bool = True,
         track_margin_px: float = 12.0,
+        ambiguity_mm: float = MAX_DOT_MM,
+        ambiguity_deg: float = MAX_DEG,
         **detector_options: float | str | None,
     ) -> None:
         self.camera = camera
@@ -72,6 +77,9 @@ class Estimator:
         self.tracking = tracking
         self.max_missing = int(max_missing)
         self.correct_bias = correct_bias
+        if not (ambiguity_mm > 0 and ambiguity_deg > 0):
+            raise ValueError("ambiguity_mm and ambiguity_deg must be positive")
+        self.ambiguity = (float(ambiguity_mm), float(ambiguity_deg))
         opts = dict(detector_options)
         self._threshold = _threshold_spec(opts.pop("threshold", None))
         try:
@@ -173,7 +181,8 @@ class Estimator:
         pts = found.centres_px
         prior = self._prior_T if self._prior_age <= PRIOR_MAX_FRAMES else None
         corr = match_blobs(pts, self.target, self.camera, max_missing=self.max_missing,
-                           correct_bias=self.correct_bias, prior_T=prior)
+                           correct_bias=self.correct_bias, prior_T=prior,
+                           ambiguity=self.ambiguity)
         matched = found.blobs(list(corr.blob_indices))
         # A symmetric layout's labellings fit alike: any one is a consistent start, and the
         # track keeps it. Different matchings that fit alike are no start at all.
