@@ -304,9 +304,13 @@ def _homography_predictions(
 def _hull_hypotheses(
     model: _Model, ideal: NDArray[np.float64], tol: float, min_count: int
 ) -> list[dict[int, int]]:
-    """Fast path: match hull corners by rotation only."""
-    blob_hull = _ccw_hull(ideal, 0.5 * tol)
+    """Fast path: match hull corners by rotation only. The blobs' hull is straightened (dots
+    along a straight edge are no corners) only when the plain hull has more corners than the
+    model's, so a corner a hair off its neighbours' line is kept when the model has it."""
     h = len(model.hull)
+    blob_hull = _ccw_hull(ideal)
+    if len(blob_hull) > h:
+        blob_hull = _ccw_hull(ideal, 0.5 * tol)
     if h < 4 or len(blob_hull) != h:
         return []
     pick = np.array([0, h // 4, h // 2, (3 * h) // 4])
