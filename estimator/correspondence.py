@@ -33,8 +33,9 @@ from estimator.ambiguity import MAX_DEG, MAX_DOT_MM
 from estimator.arrays import kernel_array
 from estimator.camera import CameraModel
 from estimator.errors import CorrespondenceError, EstimationError, TooFewBlobsError
+from estimator.refine import camera_arrays, covariance_from, pose_reprojection
 from estimator.result import AlternativePose, PoseResult
-from estimator.solve import solve_pose, solve_pose_near
+from estimator.solve import solve_pose
 from estimator.target import Target
 
 PoseSolver = Callable[[NDArray[np.float64], NDArray[np.float64]], PoseResult]
@@ -634,7 +635,7 @@ def match_blobs(
     equivalents: list[tuple[dict[int, int], NDArray[np.float64]]] = []
     if model.symmetries:
         best, pose, equivalents, by_continuity = _pick_equivalent(
-            model, best, pose, prior_T, obs_px, target, camera, correct_bias and solver is None)
+            model, best, pose, prior_T, target, camera)
         if identity == "unique":
             identity = "continuity" if by_continuity else "symmetry"
     ids_sorted = tuple(sorted(best))
@@ -669,34 +670,42 @@ def _rotation_cos(A: NDArray[np.float64], B: NDArray[np.float64]) -> float:
 
 def _pick_equivalent(
     model: _Model, best: dict[int, int], pose: PoseResult, prior_T: NDArray[np.float64] | None,
-    obs_px: NDArray[np.float64], target: Target, camera: CameraModel, correct_bias: bool,
+    target: Target, camera: CameraModel,
 ) -> tuple[dict[int, int], PoseResult, list[tuple[dict[int, int], NDArray[np.float64]]], bool]:
     """Among the labellings a layout symmetry makes of the best matching (poses T S), the one
     nearest ``prior_T`` (the previous frames' pose) or, without one, the one with the
-    smallest rotation -> (matching, its pose, the others, chosen by continuity)."""
+    smallest rotation -> (matching, its pose, the others, chosen by continuity).
+
+    The chosen labelling's pose needs no solve: T S reprojects every dot exactly where T put
+    the dot it stands in for (and the perspective-bias offsets move with the dots), so only
+    the residual order and the covariance (over T S's own rotation vector) are redone.
+    """
     T = pose.T_camera_target
-    options = [(best, T)] + [(_permuted(best, perm), T @ S) for perm, S in model.symmetries]
+    options = [(best, T, tuple(range(target.n_points)))] + [
+        (_permuted(best, perm), T @ S, perm) for perm, S in model.symmetries]
     reference = prior_T if prior_T is not None else np.eye(4)
-    cos = [_rotation_cos(reference, Tk) for _, Tk in options]
+    cos = [_rotation_cos(reference, Tk) for _, Tk, _ in options]
     k = int(np.argmax(cos))
     # Continuity decides only when the prior is clearly nearest one labelling: within half
     # the smallest symmetry rotation of it.
     by_continuity = prior_T is not None and cos[k] > math.cos(
         math.radians(0.5 * model.min_symmetry_deg))
-    others = [o for i, o in enumerate(options) if i != k]
-    if k == 0:
+    others = [(m, Tk) for i, (m, Tk, _) in enumerate(options) if i != k]
+    if k == 0 or pose.image_points_px is None:
         return best, pose, others, by_continuity
-    chosen, T_k = options[k]
-    ids = np.array(sorted(chosen), dtype=np.intp)
-    pts = obs_px[[chosen[i] for i in ids]]
-    near = solve_pose_near(target.points_mm[ids], pts, camera, T_k,
-                           dot_diameter_mm=target.dot_diameter_mm if correct_bias else None,
-                           correct_bias=correct_bias)
-    S = np.linalg.solve(T, T_k)
+    chosen, T_k, perm = options[k]
+    position = {m: i for i, m in enumerate(sorted(best))}
+    ids = sorted(chosen)
+    order = [position[perm[m]] for m in ids]
+    img = np.ascontiguousarray(pose.image_points_px[order])
+    K, dist = camera_arrays(camera)
+    _, residuals, J = pose_reprojection(target.points_mm[ids], img, K, dist, T_k)
     alt = pose.alternative
+    S = np.linalg.solve(T, T_k)
     moved = replace(
-        near, iterations=pose.iterations, converged=pose.converged, ambiguous=pose.ambiguous,
-        ambiguity=pose.ambiguity, notes=pose.notes,
+        pose, T_camera_target=T_k, image_points_px=img,
+        residuals_px=np.sqrt((residuals * residuals).sum(axis=1)),
+        covariance=covariance_from(residuals, J),
         alternative=None if alt is None else AlternativePose(alt.T_camera_target @ S,
                                                              alt.rms_px))
     return chosen, moved, others, by_continuity

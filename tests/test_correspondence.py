@@ -9,6 +9,7 @@ import pytest
 
 from estimator import CameraModel, CorrespondenceError, Target, TooFewBlobsError
 from estimator.correspondence import match_blobs
+from estimator.solve import solve_pose_near
 from estimator.transforms import pose_distance
 from fakes.render import random_pose, random_target
 
@@ -109,11 +110,33 @@ def test_undecidable_views_are_ambiguous_never_confidently_wrong() -> None:
 def test_symmetric_target_is_reported_ambiguous(points: list[list[float]]) -> None:
     rng = np.random.default_rng(2)
     target = Target(points, 8.0)
-    T = random_pose(rng, CAM, target, max_tilt_deg=10.0)
-    result = match_blobs(_image_points(target, T, rng, 0.05), target, CAM)
-    assert result.ambiguous and result.n_equivalent >= 2
-    assert result.pose.ambiguous
-    assert any("symmetric" in note for note in result.pose.notes)
+    for _ in range(4):  # random spins: the kept labelling is the solved one or derived
+        T = random_pose(rng, CAM, target, max_tilt_deg=10.0)
+        result = match_blobs(_image_points(target, T, rng, 0.05), target, CAM)
+        assert result.ambiguous and result.n_equivalent >= 2
+        assert result.pose.ambiguous and result.pose.identity == "symmetry"
+        assert any("symmetric" in note for note in result.pose.notes)
+        # The kept labelling's pose is derived (T S), not re-solved: it is the pose a solve
+        # of that labelling gives, residuals and covariance included.
+        ids = list(result.model_ids)
+        pts = result.pose.image_points_px
+        assert pts is not None
+        again = solve_pose_near(target.points_mm[ids], pts, CAM, result.pose.T_camera_target)
+        dt, dr = pose_distance(again.T_camera_target, result.pose.T_camera_target)
+        assert dt < 1e-3 and dr < 1e-4
+        assert np.allclose(again.residuals_px, result.pose.residuals_px, atol=1e-4)
+        assert result.pose.covariance is not None and again.covariance is not None
+        assert np.allclose(again.covariance, result.pose.covariance, rtol=1e-2, atol=1e-9)
+        for eq in result.pose.equivalent_poses:
+            assert abs(eq.rms_px - result.pose.rms_px) < 1e-12
+        # The smallest rotation of the equivalent poses was kept.
+        angle = _angle_deg(result.pose.T_camera_target)
+        assert all(angle <= _angle_deg(e.T_camera_target) + 1e-9
+                   for e in result.pose.equivalent_poses)
+
+
+def _angle_deg(T: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1))))
 
 
 def test_inconsistent_blobs_raise_correspondence_error() -> None:
