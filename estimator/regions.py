@@ -32,9 +32,9 @@ Conventions shared with :mod:`estimator.blobs`:
 - The centre of a surviving region is the grey-level weighted centre of gravity over its
   bounding box padded by ``PAD_PX``: weights are each pixel's contrast against the background
   (the mean grey level of the padded box outside the region -- filled row by row -- dilated by
-  ``RIM_PX``) over the dot's contrast (the region's mean level against that background),
-  clipped to [0, 1], inside the dilated region: a coverage, so shading across a dot does not
-  pull its centre. The anti-aliased rim counts and the
+  ``RIM_PX``) over the dot's contrast (the mean level of the region's core, less its outline
+  pixels, against that background), clipped to [0, 1], inside the dilated region: a coverage,
+  so shading across a dot pulls its centre less. The anti-aliased rim counts and the
   global threshold does not matter; pixel centres sit at integer coordinates.
 """
 
@@ -200,18 +200,28 @@ def _weighted_centre(
             ring_sum += row[x]
         ring_n += (lo - fx0) + (fx1 - hi)
     background = ring_sum / max(ring_n, 1)
-    # The dot's own level: the mean over the region (its rim pixels make it a little paler
-    # than the core). Contrast is scaled by it and capped at 1, so every core pixel weighs
-    # the same -- a shading gradient across the dot does not pull the centre -- and the rim
-    # pixels by their coverage.
+    # The dot's own level: the mean over its core (the region less its outline pixels, whose
+    # anti-aliasing makes them paler). Contrast is scaled by it and capped at 1, so the core
+    # weighs evenly -- shading across a dot pulls its centre less -- and the rim pixels by
+    # their coverage.
     inner_sum = 0.0
     inner_n = 0
-    for k in range(by0, by1 + 1):
+    for k in range(by0 + 1, by1):  # the core: one pixel in from the region's outline
         if row_max[k] >= 0:
+            lo = max(row_min[k], row_min[k - 1], row_min[k + 1]) + 1  # rows of a connected
+            # region between its first and last are never empty
+            hi = min(row_max[k], row_max[k - 1], row_max[k + 1]) - 1
             row = image[ry0 + k]
-            for x in range(rx0 + row_min[k], rx0 + row_max[k] + 1):
+            for x in range(rx0 + lo, rx0 + hi + 1):
                 inner_sum += row[x]
-            inner_n += row_max[k] - row_min[k] + 1
+            inner_n += max(hi - lo + 1, 0)
+    if inner_n == 0:  # too small for a core: the whole region
+        for k in range(by0, by1 + 1):
+            if row_max[k] >= 0:
+                row = image[ry0 + k]
+                for x in range(rx0 + row_min[k], rx0 + row_max[k] + 1):
+                    inner_sum += row[x]
+                inner_n += row_max[k] - row_min[k] + 1
     full = (background - inner_sum / max(inner_n, 1) if dark
             else inner_sum / max(inner_n, 1) - background)
     if full <= 0.0:
