@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from cell.config_checks import Problem, check, closest
 from estimator import CameraModel, Target
+from estimator.target import layout_problem
 from estimator.transforms import T_from_pose
 
 
@@ -95,9 +96,18 @@ class CameraConfig(_Strict):
 class TargetConfig(_Strict):
     """Dot centres in the target frame (mm), dot diameter, dark or light dots."""
 
-    points_mm: list[tuple[float, float, float]] = Field(min_length=4, max_length=12)
+    points_mm: list[tuple[float, float, float]] = Field(min_length=4, max_length=100)
     dot_diameter_mm: float = Field(gt=0)
     polarity: Literal["dark", "light"] = "dark"
+
+    @field_validator("points_mm")
+    @classmethod
+    def _determines_a_pose(cls, v: list[tuple[float, float, float]]) -> list[
+            tuple[float, float, float]]:
+        problem = layout_problem(v)
+        if problem is not None:
+            raise ValueError(problem)
+        return v
 
     def model(self) -> Target:
         return Target(self.points_mm, self.dot_diameter_mm, self.polarity)

@@ -19,6 +19,7 @@ frame with OpenCV, so it is several times slower and opt-in.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -36,17 +37,30 @@ ThresholdSpec = float | Literal["otsu", "adaptive"] | None
 COARSE_STEP = 4  # subsampling of the frame for Otsu and for locating the candidate dots
 _COARSE_PAD_PX = 2 * COARSE_STEP  # a region reaches < one step beyond its sampled pixels
 _NO_MASK = np.zeros((1, 1), np.uint8)
+INERTIA_MARGIN = 0.85  # of cos(max tilt): small ellipses' minor axes are quantised
 
 
 @dataclass(frozen=True)
 class BlobFilter:
-    """Which regions count as dots. Defaults accept circles seen up to ~70 deg off-axis."""
+    """Which regions count as dots: perspective-aware, so a dot seen obliquely still counts.
+
+    A circular dot tilted by t images as an ellipse with axis ratio ~cos(t), so the shape test
+    is how well the region fits an ellipse (``max_ellipse_error``, see
+    :mod:`estimator.regions`) and how convex it is (``min_fill_ratio``), with the elongation
+    limited by ``max_tilt_deg`` (inertia ratio >= 0.85 cos(max_tilt_deg), the 0.85 for the
+    pixel grid's effect on small minor axes) unless ``min_inertia_ratio`` is set. Circularity
+    (4 pi A / P^2) drops with the tilt (0.68 for a perfect ellipse at 70 deg, ~0.5 for a small
+    pixelated one), so it is only a filter when ``min_circularity`` is set. Lines fail the
+    inertia ratio, frames, rings and text the fill ratio, specks the area.
+    """
 
     min_area_px: float = 12.0
     max_area_px: float = 20000.0
-    min_circularity: float = 0.6
-    min_inertia_ratio: float = 0.3
+    min_circularity: float = 0.0
+    min_inertia_ratio: float | None = None
     min_fill_ratio: float = 0.85
+    max_tilt_deg: float = 70.0
+    max_ellipse_error: float = 0.085
 
     def __post_init__(self) -> None:
         if not 0 < self.min_area_px < self.max_area_px:
@@ -55,8 +69,19 @@ class BlobFilter:
             )
         for name in ("min_circularity", "min_inertia_ratio", "min_fill_ratio"):
             v = getattr(self, name)
-            if not 0.0 <= v <= 1.0:
+            if v is not None and not 0.0 <= v <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {v}")
+        if not 0.0 <= self.max_tilt_deg < 90.0:
+            raise ValueError(f"max_tilt_deg must be in [0, 90), got {self.max_tilt_deg}")
+        if not self.max_ellipse_error > 0.0:
+            raise ValueError(f"max_ellipse_error must be positive, got {self.max_ellipse_error}")
+
+    @property
+    def inertia_limit(self) -> float:
+        """The smallest inertia ratio (minor/major axis) accepted."""
+        if self.min_inertia_ratio is not None:
+            return self.min_inertia_ratio
+        return INERTIA_MARGIN * math.cos(math.radians(self.max_tilt_deg))
 
 
 def _check_image(image_u8: NDArray[np.uint8]) -> NDArray[np.uint8]:
@@ -106,10 +131,9 @@ class Detection:
 
     def blobs(self, indices: list[int] | None = None) -> list[Blob]:
         """Blobs of all rows, or of the rows at ``indices`` in that order."""
-        fields = regions.ANGLE + 1  # columns U..ANGLE are Blob's fields, in order
+        fields = regions.ELLIPSE + 1  # columns U..ELLIPSE are Blob's fields, in order
         rows = self.rows[:, :fields] if indices is None else self.rows[indices, :fields]
-        return [Blob(u, v, area, circ, inertia, fill, major, minor, angle)
-                for u, v, area, circ, inertia, fill, major, minor, angle in rows.tolist()]
+        return [Blob(*row) for row in rows.tolist()]
 
 
 def dots_in_rois(
@@ -124,7 +148,8 @@ def dots_in_rois(
     return Detection(regions.find_dots(
         image, mask, mask_u8 is not None, float(threshold),
         polarity == "dark", kernel_array(rois, np.int64), filt.min_area_px,
-        filt.max_area_px, filt.min_circularity, filt.min_inertia_ratio, filt.min_fill_ratio,
+        filt.max_area_px, filt.min_circularity, filt.inertia_limit, filt.min_fill_ratio,
+        filt.max_ellipse_error,
     ))
 
 
@@ -221,17 +246,21 @@ def detect_blobs(
     *,
     min_area_px: float = 12.0,
     max_area_px: float = 20000.0,
-    min_circularity: float = 0.6,
-    min_inertia_ratio: float = 0.3,
+    min_circularity: float = 0.0,
+    min_inertia_ratio: float | None = None,
     min_fill_ratio: float = 0.85,
+    max_tilt_deg: float = 70.0,
+    max_ellipse_error: float = 0.085,
     threshold: ThresholdSpec = None,
 ) -> list[Blob]:
     """Dark (or light) roughly elliptical dots of the frame with sub-pixel centres.
 
     ``threshold``: None/"otsu" (global Otsu, the fast default), "adaptive" (local mean; for
-    strongly uneven lighting) or a grey level. Lines, frames, text and specks fail the area,
-    fill-ratio (region / convex hull), circularity (4*pi*A/P^2) or inertia-ratio (minor/major
-    axis) filters. Raises ValueError for a non-8-bit or non-grey image.
+    strongly uneven lighting) or a grey level. Dots seen up to ``max_tilt_deg`` off-axis pass;
+    lines, frames, text and specks fail the area, fill-ratio (region / convex hull),
+    ellipse-fit or inertia-ratio (minor/major axis) filters (see :class:`BlobFilter`). Raises
+    ValueError for a non-8-bit or non-grey image.
     """
-    filt = BlobFilter(min_area_px, max_area_px, min_circularity, min_inertia_ratio, min_fill_ratio)
+    filt = BlobFilter(min_area_px, max_area_px, min_circularity, min_inertia_ratio,
+                      min_fill_ratio, max_tilt_deg, max_ellipse_error)
     return detect_blobs_thresholded(image_u8, polarity, filt, threshold)[0]

@@ -29,10 +29,12 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from estimator.ambiguity import MAX_DEG, MAX_DOT_MM
 from estimator.arrays import kernel_array
 from estimator.camera import CameraModel
 from estimator.errors import CorrespondenceError, EstimationError, TooFewBlobsError
-from estimator.result import PoseResult
+from estimator.refine import camera_arrays, covariance_from, pose_reprojection
+from estimator.result import AlternativePose, PoseResult
 from estimator.solve import solve_pose
 from estimator.target import Target
 
@@ -42,6 +44,8 @@ _MAX_VERIFIED = 8  # distinct matchings checked with the full pose solver
 _ACCEPT_RMS_PX = 2.0  # a right matching reprojects far better than this on a calibrated camera
 _QUICK_MARGIN_FACTOR = 3.0  # quick scores above factor * best + margin are not solved
 _QUICK_MARGIN_PX = 2.0
+_MAX_BASIS_DOTS = 12  # model dots the bases are chosen from (bounded set-up for big grids)
+_MAX_SEARCH_BLOBS = 12  # blobs the general planar search forms quadruples from
 
 
 @dataclass(frozen=True)
@@ -64,12 +68,52 @@ class _Model:
     plane_h: NDArray[np.float64]  # (3,N) the same, homogeneous, as columns
     hull: tuple[int, ...]  # model indices of the convex hull, counter-clockwise
     bases: tuple[tuple[int, ...], ...]  # 4 (planar) or 3 dots; each dot misses from one
+    # Rigid symmetries of the layout other than the identity: (perm, S) with S p_m = p_perm[m]
+    # (4x4, target frame); for planar targets only those keeping the plate's front side.
+    symmetries: tuple[tuple[tuple[int, ...], NDArray[np.float64]], ...] = ()
+    min_symmetry_deg: float = 180.0  # smallest rotation angle among the symmetries
 
 
-def _ccw_hull(points: NDArray[np.float64]) -> tuple[int, ...]:
-    """Indices of the convex hull corners in counter-clockwise order (x right, y down frame)."""
+def _ccw_hull(points: NDArray[np.float64], straight_tol: float = 0.0) -> tuple[int, ...]:
+    """Indices of the convex hull corners in counter-clockwise order (x right, y down frame).
+
+    Corners within ``straight_tol`` of the line through their neighbours are dropped (most
+    straight first): the dots along a grid's edge are no corners, whether noise puts them a
+    hair inside or outside the line.
+    """
     idx = cv2.convexHull(points.astype(np.float32), clockwise=False, returnPoints=False)
-    return tuple(int(i) for i in np.asarray(idx).ravel())
+    hull = [int(i) for i in np.asarray(idx).ravel()]
+    if straight_tol <= 0.0:
+        return tuple(hull)
+    xy = points[hull].tolist()
+    while len(hull) > 3:
+        dist = []
+        for k in range(len(hull)):
+            (ax, ay), (bx, by), (cx, cy) = xy[k - 1], xy[k], xy[(k + 1) % len(hull)]
+            chord = math.hypot(cx - ax, cy - ay)
+            dist.append(abs((cx - ax) * (by - ay) - (cy - ay) * (bx - ax)) / max(chord, 1e-12))
+        k = min(range(len(hull)), key=dist.__getitem__)
+        if dist[k] > straight_tol:
+            break
+        del hull[k]
+        del xy[k]
+    return tuple(hull)
+
+
+def _spread_subset(points: NDArray[np.float64], first: list[int], limit: int) -> list[int]:
+    """Up to ``limit`` indices: ``first`` (e.g. hull corners), then farthest-point sampling,
+    so a bounded search still spans the whole layout."""
+    chosen = list(dict.fromkeys(first))[:limit]
+    if not chosen:
+        chosen = [int(np.argmax(points[:, 0]))]
+    d = np.min(np.linalg.norm(points[:, None] - points[chosen][None], axis=2), axis=1)
+    while len(chosen) < min(limit, len(points)):
+        k = int(d.argmax())
+        if d[k] <= 0.0:
+            break
+        chosen.append(k)
+        d = np.minimum(d, np.linalg.norm(points - points[k], axis=1))
+    return chosen
 
 
 def _plane_coordinates(points_mm: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -98,17 +142,23 @@ def _triangle_quality(pts: NDArray[np.float64]) -> float:
 
 def _choose_bases(points: NDArray[np.float64], planar: bool) -> tuple[tuple[int, ...], ...]:
     """Well-conditioned bases (4 dots for a homography, 3 for P3P) such that every dot is
-    absent from at least one of them, so one missing dot cannot defeat the search."""
-    n = len(points)
+    absent from at least one of them, so one missing dot cannot defeat the search. Large
+    layouts are searched on a spread subset of at most _MAX_BASIS_DOTS dots (hull corners
+    first); degenerate bases (three dots on a line, for a homography) are never chosen."""
+    pts2 = points if points.shape[1] == 2 else points[:, :2]
+    first = list(_ccw_hull(pts2)) if planar else []
+    subset = _spread_subset(points, first, _MAX_BASIS_DOTS)
+    extent = float(np.ptp(points, axis=0).max())
     scored = []
-    for quad in combinations(range(n), 4 if planar else 3):
+    for quad in combinations(subset, 4 if planar else 3):
         q = _quad_quality(points[list(quad)]) if planar else _triangle_quality(points[list(quad)])
-        scored.append((q, quad))
+        if q > 1e-3 * extent * extent:
+            scored.append((q, quad))
     scored.sort(reverse=True)
     if not scored:
         return ()
     chosen = [scored[0][1]]
-    for dot in range(n):
+    for dot in subset:
         if all(dot in b for b in chosen):
             for _q, quad in scored:
                 if dot not in quad:
@@ -117,14 +167,66 @@ def _choose_bases(points: NDArray[np.float64], planar: bool) -> tuple[tuple[int,
     return tuple(chosen)
 
 
+def _rigid_fit(src: NDArray[np.float64], dst: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The rotation + translation (4x4) taking src onto dst best (Kabsch)."""
+    cs, cd = src.mean(axis=0), dst.mean(axis=0)
+    U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
+    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0)])
+    R = Vt.T @ D @ U.T
+    S = np.eye(4)
+    S[:3, :3], S[:3, 3] = R, cd - R @ cs
+    return S
+
+
+def _symmetries(
+    points_mm: NDArray[np.float64], xy: NDArray[np.float64]
+) -> tuple[tuple[tuple[int, ...], NDArray[np.float64]], ...]:
+    """In-plane rotations about the centroid that map the planar layout onto itself (the
+    only rigid symmetries a front view can show), as (perm, S)."""
+    extent = float(np.ptp(xy, axis=0).max())
+    tol = 1e-3 * extent
+    centred = xy - xy.mean(axis=0)
+    radius = np.hypot(centred[:, 0], centred[:, 1])
+    ref = int(radius.argmax())
+    out = []
+    for j in np.flatnonzero(np.abs(radius - radius[ref]) < tol).tolist():
+        if j == ref:
+            continue
+        a = math.atan2(centred[j, 1], centred[j, 0]) - math.atan2(centred[ref, 1],
+                                                                  centred[ref, 0])
+        c, s_ = math.cos(a), math.sin(a)
+        rotated = centred @ np.array([[c, s_], [-s_, c]])
+        d = np.linalg.norm(rotated[:, None] - centred[None], axis=2)
+        perm = d.argmin(axis=1)
+        if d[np.arange(len(xy)), perm].max() > tol or len(set(perm.tolist())) != len(xy):
+            continue
+        S = _rigid_fit(points_mm, points_mm[perm])
+        out.append((tuple(int(k) for k in perm), S))
+    return tuple(out)
+
+
 def _model_for(target: Target) -> _Model:
     planar = target.is_planar
     pts = target.points_mm
     if planar:
         xy = _plane_coordinates(pts)
         plane_h = np.vstack((xy.T, np.ones(len(xy))))
-        return _Model(True, xy, plane_h, _ccw_hull(xy), _choose_bases(xy, True))
+        extent = float(np.ptp(xy, axis=0).max())
+        bases = _choose_bases(xy, True)
+        if not bases:  # no 4 dots without 3 on a line: P3P on triangles instead
+            return _Model(True, xy, plane_h, (), _choose_bases(pts, False),
+                          *_symmetry_fields(_symmetries(pts, xy)))
+        return _Model(True, xy, plane_h, _ccw_hull(xy, 1e-6 * extent), bases,
+                      *_symmetry_fields(_symmetries(pts, xy)))
     return _Model(False, np.zeros((0, 2)), np.zeros((3, 0)), (), _choose_bases(pts, False))
+
+
+def _symmetry_fields(
+    sym: tuple[tuple[tuple[int, ...], NDArray[np.float64]], ...]
+) -> tuple[tuple[tuple[tuple[int, ...], NDArray[np.float64]], ...], float]:
+    angles = [math.degrees(math.acos(max(-1.0, min(1.0, 0.5 * (np.trace(S[:3, :3]) - 1.0)))))
+              for _, S in sym]
+    return sym, min(angles, default=180.0)
 
 
 _MODELS: dict[int, tuple[Target, _Model]] = {}
@@ -203,9 +305,13 @@ def _homography_predictions(
 def _hull_hypotheses(
     model: _Model, ideal: NDArray[np.float64], tol: float, min_count: int
 ) -> list[dict[int, int]]:
-    """Fast path: match hull corners by rotation only."""
-    blob_hull = _ccw_hull(ideal)
+    """Fast path: match hull corners by rotation only. The blobs' hull is straightened (dots
+    along a straight edge are no corners) only when the plain hull has more corners than the
+    model's, so a corner a hair off its neighbours' line is kept when the model has it."""
     h = len(model.hull)
+    blob_hull = _ccw_hull(ideal)
+    if len(blob_hull) > h:
+        blob_hull = _ccw_hull(ideal, 0.5 * tol)
     if h < 4 or len(blob_hull) != h:
         return []
     pick = np.array([0, h // 4, h // 2, (3 * h) // 4])
@@ -237,7 +343,11 @@ def _planar_hypotheses(
     """General planar search: every blob quadruple against every model basis of its kind."""
     out: list[dict[int, int]] = []
     by_kind: dict[int, list[list[int]]] = {3: [], 4: []}
-    for quad in combinations(range(len(ideal)), 4):
+    pool: list[int] = list(range(len(ideal)))
+    if len(ideal) > _MAX_SEARCH_BLOBS:  # bounded: C(12, 4) = 495 quadruples at most
+        pool = sorted(_spread_subset(ideal, list(_ccw_hull(ideal, 0.5 * tol)),
+                                     _MAX_SEARCH_BLOBS))
+    for quad in combinations(pool, 4):
         kind, orders = _quad_orders(ideal[list(quad)], list(quad))
         if orders:
             by_kind[kind] += orders
@@ -254,22 +364,44 @@ def _planar_hypotheses(
     return out
 
 
+def _faces_camera(rvec: NDArray[np.float64], tvec: NDArray[np.float64],
+                  normal: NDArray[np.float64], centre: NDArray[np.float64]) -> bool:
+    """True when the plate's +z normal points away from the camera (its front is seen)."""
+    R = cv2.Rodrigues(rvec)[0]
+    return float((R @ normal) @ (R @ centre + np.ravel(tvec))) > 0.0
+
+
 def _general_hypotheses(
     target: Target, model: _Model, ideal: NDArray[np.float64], K: NDArray[np.float64],
     tol: float, min_count: int, n_wanted: int,
 ) -> list[dict[int, int]]:
-    """Non-planar search: ordered blob triples against model triangles, P3P poses each."""
+    """Ordered blob triples against model triangles, P3P poses each (non-planar targets, and
+    planar ones without 4 dots off a common line). A planar target's poses must show its
+    front (target +z pointing away from the camera): a mirror-symmetric layout seen from
+    behind would otherwise explain the blobs as well, with mirrored labels."""
     out = []
     zero = np.zeros(5)
+    normal = None
+    if model.planar:
+        centred = target.points_mm - target.points_mm.mean(axis=0)
+        normal = np.linalg.svd(centred)[2][2]
+        normal = normal if normal[2] >= 0 else -normal
+        centre = target.points_mm.mean(axis=0)
+    pool = list(range(len(ideal)))
+    if len(ideal) > _MAX_SEARCH_BLOBS:  # bounded: 12 * 11 * 10 ordered triples at most
+        pool = sorted(_spread_subset(ideal, list(_ccw_hull(ideal, 0.5 * tol)),
+                                     _MAX_SEARCH_BLOBS))
     for basis in model.bases:
         obj = np.ascontiguousarray(target.points_mm[list(basis)])
-        for triple in permutations(range(len(ideal)), 3):
+        for triple in permutations(pool, 3):
             img = np.ascontiguousarray(ideal[list(triple)])
             n_sol, rvecs, tvecs = cv2.solveP3P(obj, img, K, zero, flags=cv2.SOLVEPNP_P3P)
-            preds = [
-                cv2.projectPoints(target.points_mm, rvecs[k], tvecs[k], K, zero)[0]
-                for k in range(int(n_sol)) if tvecs[k][2, 0] > 0
-            ]
+            keep = [k for k in range(int(n_sol)) if tvecs[k][2, 0] > 0]
+            if normal is not None:
+                keep = [k for k in keep if _faces_camera(
+                    np.asarray(rvecs[k], float), np.asarray(tvecs[k], float), normal, centre)]
+            preds = [cv2.projectPoints(target.points_mm, rvecs[k], tvecs[k], K, zero)[0]
+                     for k in keep]
             if preds:
                 stacked = np.asarray(preds, dtype=float).reshape(len(preds), -1, 2)
                 out += _assign(stacked, ideal, tol, min_count)
@@ -278,14 +410,25 @@ def _general_hypotheses(
     return out
 
 
-def _rank(hypotheses: list[dict[int, int]], min_matched: int) -> list[dict[int, int]]:
-    """Distinct matchings with the most dots explained, best first."""
+def _permuted(hyp: dict[int, int], perm: tuple[int, ...]) -> dict[int, int]:
+    """The matching a layout symmetry makes of ``hyp``: dot m gets the blob of dot perm[m]."""
+    return {m: hyp[p] for m, p in enumerate(perm) if p in hyp}
+
+
+def _rank(
+    hypotheses: list[dict[int, int]], min_matched: int, model: _Model | None = None
+) -> list[dict[int, int]]:
+    """Distinct matchings with the most dots explained, best first. Matchings that a
+    symmetry of the layout maps onto each other fit exactly alike: one of each set is kept
+    (its equivalents are derived from its pose, not solved)."""
     seen: set[tuple[tuple[int, int], ...]] = set()
     best: list[dict[int, int]] = []
+    perms = [] if model is None else [perm for perm, _ in model.symmetries]
     for hyp in hypotheses:
         if len(hyp) < min_matched:
             continue
-        key = tuple(sorted(hyp.items()))
+        key = min([tuple(sorted(hyp.items()))]
+                  + [tuple(sorted(_permuted(hyp, perm).items())) for perm in perms])
         if key not in seen:
             seen.add(key)
             best.append(hyp)
@@ -389,7 +532,7 @@ def _verify(
     if len(ranked) > 1:
         K_inv = np.asarray(np.linalg.inv(camera.K), dtype=np.float64)
         quick = [
-            _planar_score(model, h, ideal, K_inv) if model.planar
+            _planar_score(model, h, ideal, K_inv) if model.planar and model.hull
             else _pnp_score(target, h, ideal, camera.K)
             for h in ranked
         ]
@@ -421,11 +564,16 @@ def match_blobs(
     max_missing: int = 1,
     correct_bias: bool = True,
     solver: PoseSolver | None = None,
+    prior_T: NDArray[np.float64] | None = None,
+    ambiguity: tuple[float, float] = (MAX_DOT_MM, MAX_DEG),
 ) -> Correspondence:
     """Match detected blob centres (M,2 px) to the target's dots and solve the pose.
 
     Tolerates extra blobs and up to ``max_missing`` missing dots as long as 4 or more dots
-    remain. Raises TooFewBlobsError when there are not enough blobs to try, and
+    remain. On a symmetric layout the labellings the symmetry relates fit exactly alike:
+    one is solved, the others are reported as ``equivalent_poses``; the kept one is the
+    nearest ``prior_T`` (the last known pose, for continuity) or the one with the smallest
+    rotation. Raises TooFewBlobsError when there are not enough blobs to try, and
     CorrespondenceError when no matching is explained by a rigid pose.
     """
     obs_px = kernel_array(np.asarray(points_px, dtype=float).reshape(-1, 2))
@@ -445,19 +593,23 @@ def match_blobs(
         if solver is not None:
             return solver(target.points_mm[ids], pts)
         return solve_pose(target.points_mm[ids], pts, camera,
-                          dot_diameter_mm=target.dot_diameter_mm, correct_bias=bias)
+                          dot_diameter_mm=target.dot_diameter_mm, correct_bias=bias,
+                          ambiguity_mm=ambiguity[0], ambiguity_deg=ambiguity[1])
 
     scored: list[tuple[float, dict[int, int], PoseResult]] = []
-    if model.planar:
-        scored = _verify(_rank(_hull_hypotheses(model, ideal, tol, min_matched), min_matched),
-                         model, target, ideal, camera, obs_px, solve)
+    homography = model.planar and bool(model.bases) and len(model.bases[0]) == 4
+    if homography:
+        scored = _verify(
+            _rank(_hull_hypotheses(model, ideal, tol, min_matched), min_matched, model),
+            model, target, ideal, camera, obs_px, solve)
         if not scored or len(scored[0][1]) < n or scored[0][0] > _ACCEPT_RMS_PX:
-            general = _rank(_planar_hypotheses(model, ideal, tol, min_matched, n), min_matched)
+            general = _rank(_planar_hypotheses(model, ideal, tol, min_matched, n), min_matched,
+                            model)
             scored = _verify(general, model, target, ideal, camera, obs_px, solve)
     else:
         general = _rank(
             _general_hypotheses(target, model, ideal, camera.K, tol, min_matched, n),
-            min_matched,
+            min_matched, model,
         )
         scored = _verify(general, model, target, ideal, camera, obs_px, solve)
     if not scored:
@@ -479,17 +631,81 @@ def match_blobs(
         ids = np.array(sorted(best), dtype=np.intp)
         pose = solve(ids, obs_px[[best[i] for i in ids]])
     best, pose = _drop_outlier(best, pose, min_matched, obs_px, solve)
+    identity = "ambiguous" if n_equivalent > 1 else "unique"
+    equivalents: list[tuple[dict[int, int], NDArray[np.float64]]] = []
+    if model.symmetries:
+        best, pose, equivalents, by_continuity = _pick_equivalent(
+            model, best, pose, prior_T, target, camera)
+        if identity == "unique":
+            identity = "continuity" if by_continuity else "symmetry"
     ids_sorted = tuple(sorted(best))
+    notes = list(pose.notes)
     if n_equivalent > 1:
-        pose = replace(pose, ambiguous=True, notes=(*pose.notes, (
-            f"correspondence ambiguous: {n_equivalent} matchings of blobs to dots fit equally "
-            "well (a symmetric dot layout, or too few dots visible among clutter); use an "
-            "asymmetric layout and keep all dots in view"
-        )))
+        notes.append(
+            f"correspondence ambiguous: {n_equivalent} different matchings of blobs to dots fit "
+            "about as well (too few dots visible among clutter?); keep all dots in view")
+    if equivalents:
+        notes.append(
+            f"symmetric layout: {len(equivalents) + 1} labellings fit exactly alike; "
+            + ("the one nearest the previous pose was kept" if identity == "continuity"
+               else "the one with the smallest rotation was chosen; tracking keeps it"))
+    ambiguous = pose.ambiguous or n_equivalent > 1 or identity == "symmetry"
+    rms = float(pose.rms_px)
+    pose = replace(
+        pose, ambiguous=ambiguous, notes=tuple(notes), identity=identity,
+        equivalent_poses=tuple(AlternativePose(T, rms) for _, T in equivalents))
     return Correspondence(
         model_ids=ids_sorted,
         blob_indices=tuple(best[i] for i in ids_sorted),
         pose=pose,
-        ambiguous=n_equivalent > 1,
-        n_equivalent=n_equivalent,
+        ambiguous=ambiguous,
+        n_equivalent=max(n_equivalent, len(equivalents) + 1),
     )
+
+
+def _rotation_cos(A: NDArray[np.float64], B: NDArray[np.float64]) -> float:
+    """cos of the rotation angle between two poses' rotations."""
+    return 0.5 * (float((A[:3, :3] * B[:3, :3]).sum()) - 1.0)
+
+
+def _pick_equivalent(
+    model: _Model, best: dict[int, int], pose: PoseResult, prior_T: NDArray[np.float64] | None,
+    target: Target, camera: CameraModel,
+) -> tuple[dict[int, int], PoseResult, list[tuple[dict[int, int], NDArray[np.float64]]], bool]:
+    """Among the labellings a layout symmetry makes of the best matching (poses T S), the one
+    nearest ``prior_T`` (the previous frames' pose) or, without one, the one with the
+    smallest rotation -> (matching, its pose, the others, chosen by continuity).
+
+    The chosen labelling's pose needs no solve: T S reprojects every dot exactly where T put
+    the dot it stands in for (and the perspective-bias offsets move with the dots), so only
+    the residual order and the covariance (over T S's own rotation vector) are redone.
+    """
+    T = pose.T_camera_target
+    options = [(best, T, tuple(range(target.n_points)))] + [
+        (_permuted(best, perm), T @ S, perm) for perm, S in model.symmetries]
+    reference = prior_T if prior_T is not None else np.eye(4)
+    cos = [_rotation_cos(reference, Tk) for _, Tk, _ in options]
+    k = int(np.argmax(cos))
+    # Continuity decides only when the prior is clearly nearest one labelling: within half
+    # the smallest symmetry rotation of it.
+    by_continuity = prior_T is not None and cos[k] > math.cos(
+        math.radians(0.5 * model.min_symmetry_deg))
+    others = [(m, Tk) for i, (m, Tk, _) in enumerate(options) if i != k]
+    if k == 0 or pose.image_points_px is None:
+        return best, pose, others, by_continuity
+    chosen, T_k, perm = options[k]
+    position = {m: i for i, m in enumerate(sorted(best))}
+    ids = sorted(chosen)
+    order = [position[perm[m]] for m in ids]
+    img = np.ascontiguousarray(pose.image_points_px[order])
+    K, dist = camera_arrays(camera)
+    _, residuals, J = pose_reprojection(target.points_mm[ids], img, K, dist, T_k)
+    alt = pose.alternative
+    S = np.linalg.solve(T, T_k)
+    moved = replace(
+        pose, T_camera_target=T_k, image_points_px=img,
+        residuals_px=np.sqrt((residuals * residuals).sum(axis=1)),
+        covariance=covariance_from(residuals, J),
+        alternative=None if alt is None else AlternativePose(alt.T_camera_target @ S,
+                                                             alt.rms_px))
+    return chosen, moved, others, by_continuity

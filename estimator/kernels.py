@@ -1,6 +1,8 @@
 """Compile the estimator's numba kernels ahead of the first frame: ``python -m estimator.kernels``.
 
-The kernels (:mod:`estimator.regions`, :mod:`estimator.coplanar`) compile on first use, which
+The kernels (:mod:`estimator.regions`, :mod:`estimator.coplanar`, and small ones in
+:mod:`estimator.correspondence`, :mod:`estimator.solve`, :mod:`estimator.ambiguity`; the
+warm-up's estimate runs every one of them) compile on first use, which
 takes ~15 s on a 2-core machine, and cache the machine code next to their sources, after which
 loading them takes ~0.3 s. A cell must not spend those 15 s inside its first locate, so
 ``make install`` runs this module once and the cell calls :func:`warm_up` when it starts.

@@ -20,10 +20,21 @@ Conventions shared with :mod:`estimator.blobs`:
   disc gives ~1, a square pi/4, a line of width w and length L about pi w / L: concave shapes
   are left to the fill ratio); ``inertia_ratio`` is sqrt(lambda_min / lambda_max) of the
   second moments of the pixel squares (binary moments plus 1/12 per axis).
+- Ellipse fit: a circular dot seen at a tilt images as an ellipse, so dots are judged by how
+  well the region matches the ellipse of its own second moments (a filled ellipse with
+  covariance S has the boundary x^T S^-1 x = 4), not by circularity, which falls with the
+  tilt. ``ellipse_error`` is the rms radial distance (px) of the region's outline -- the ends of
+  each row's extent and the middle of the top and bottom rows, at pixel edges -- from that
+  ellipse, over the ellipse's mean semi-axis plus ``ELLIPSE_SLACK_PX`` (the pixel grid alone
+  leaves ~0.3 px rms): ~0.02-0.07 for an ellipse of any size and tilt, 0.1-0.15 for squares and
+  triangles, more for anything ragged. The tilt itself is limited by the inertia ratio
+  (cos(tilt) for an ellipse).
 - The centre of a surviving region is the grey-level weighted centre of gravity over its
   bounding box padded by ``PAD_PX``: weights are each pixel's contrast against the background
   (the mean grey level of the padded box outside the region -- filled row by row -- dilated by
-  ``RIM_PX``), clipped at zero, inside the dilated region. The anti-aliased rim counts and the
+  ``RIM_PX``) over the dot's contrast (the mean level of the region's core, less its outline
+  pixels, against that background), clipped to [0, 1], inside the dilated region: a coverage,
+  so shading across a dot pulls its centre less. The anti-aliased rim counts and the
   global threshold does not matter; pixel centres sit at integer coordinates.
 """
 
@@ -38,8 +49,54 @@ from numpy.typing import NDArray
 RIM_PX = 2  # the blurred rim beyond the thresholded region that still carries weight
 PAD_PX = RIM_PX + 1  # padding of a region's bounding box for its centre of gravity
 # Columns of the per-dot result rows (see find_dots).
-U, V, AREA, CIRCULARITY, INERTIA, FILL, MAJOR, MINOR, ANGLE, MASK_U, MASK_V = range(11)
-N_COLUMNS = 11
+U, V, AREA, CIRCULARITY, INERTIA, FILL, MAJOR, MINOR, ANGLE, ELLIPSE, MASK_U, MASK_V = range(12)
+N_COLUMNS = 12
+ELLIPSE_SLACK_PX = 2.0  # added to the mean semi-axis when normalising the ellipse error
+
+
+@numba.njit(cache=True, nogil=True)
+def _radial_residual(dx: float, dy: float, i20: float, i02: float, i11: float) -> float:
+    """Distance (px, signed) of the point (dx, dy) from the centre-based ellipse whose
+    inverse covariance is (i20, i11; i11, i02), along the ray from its centre."""
+    q = 0.25 * (i20 * dx * dx + 2.0 * i11 * dx * dy + i02 * dy * dy)
+    r = math.hypot(dx, dy)
+    if q <= 0.0 or r == 0.0:
+        return 0.0
+    return r * (1.0 - 1.0 / math.sqrt(q))
+
+
+@numba.njit(cache=True, nogil=True)
+def _ellipse_error(
+    row_min: NDArray[np.int64], row_max: NDArray[np.int64], by0: int, by1: int,
+    sx: int, sy: int, mx: float, my: float, mu20: float, mu02: float, mu11: float, lam_major: float,
+    lam_minor: float,
+) -> float:
+    """The region's ellipse error (see the module docstring): rms radial residual of the
+    outline points from the moment ellipse, normalised by its mean semi-axis plus slack.
+    Coordinates are taken from the region's first pixel (sx, sy; the centroid is at mx, my
+    from it), so a region gets the same number in any ROI."""
+    det = mu20 * mu02 - mu11 * mu11
+    if det <= 0.0:
+        return math.inf
+    i20, i02, i11 = mu02 / det, mu20 / det, -mu11 / det
+    ss = 0.0
+    n = 0
+    for k in range(by0, by1 + 1):
+        if row_max[k] < 0:
+            continue
+        dy = float(k - sy) - my
+        e = _radial_residual(float(row_min[k] - sx) - 0.5 - mx, dy, i20, i02, i11)
+        ss += e * e
+        e = _radial_residual(float(row_max[k] - sx) + 0.5 - mx, dy, i20, i02, i11)
+        ss += e * e
+        n += 2
+    for k, dy in ((by0, float(by0 - sy) - 0.5 - my), (by1, float(by1 - sy) + 0.5 - my)):
+        e = _radial_residual(0.5 * float(row_min[k] + row_max[k] - 2 * sx) - mx, dy, i20, i02,
+                             i11)
+        ss += e * e
+        n += 1
+    mean_semi_axis = 2.0 * math.sqrt(math.sqrt(lam_major * lam_minor))
+    return math.sqrt(ss / n) / (mean_semi_axis + ELLIPSE_SLACK_PX)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -143,12 +200,38 @@ def _weighted_centre(
             ring_sum += row[x]
         ring_n += (lo - fx0) + (fx1 - hi)
     background = ring_sum / max(ring_n, 1)
+    # The dot's own level: the mean over its core (the region less its outline pixels, whose
+    # anti-aliasing makes them paler). Contrast is scaled by it and capped at 1, so the core
+    # weighs evenly -- shading across a dot pulls its centre less -- and the rim pixels by
+    # their coverage.
+    inner_sum = 0.0
+    inner_n = 0
+    for k in range(by0 + 1, by1):  # the core: one pixel in from the region's outline
+        if row_max[k] >= 0:
+            lo = max(row_min[k], row_min[k - 1], row_min[k + 1]) + 1  # rows of a connected
+            # region between its first and last are never empty
+            hi = min(row_max[k], row_max[k - 1], row_max[k + 1]) - 1
+            row = image[ry0 + k]
+            for x in range(rx0 + lo, rx0 + hi + 1):
+                inner_sum += row[x]
+            inner_n += max(hi - lo + 1, 0)
+    if inner_n == 0:  # too small for a core: the whole region
+        for k in range(by0, by1 + 1):
+            if row_max[k] >= 0:
+                row = image[ry0 + k]
+                for x in range(rx0 + row_min[k], rx0 + row_max[k] + 1):
+                    inner_sum += row[x]
+                inner_n += row_max[k] - row_min[k] + 1
+    full = (background - inner_sum / max(inner_n, 1) if dark
+            else inner_sum / max(inner_n, 1) - background)
+    if full <= 0.0:
+        return 0.0, 0.0, False
     s0 = sx = sy = 0.0
     for y in range(fy0, fy1 + 1):
         row = image[y]
         for x in range(near_lo[y - fy0], near_hi[y - fy0] + 1):
             g = float(row[x])
-            c = background - g if dark else g - background
+            c = min((background - g if dark else g - background) / full, 1.0)
             if c > 0.0:
                 s0 += c
                 sx += c * x
@@ -163,6 +246,7 @@ def find_dots(
     image: NDArray[np.uint8], mask: NDArray[np.uint8], use_mask: bool, threshold: float,
     dark: bool, rois: NDArray[np.int64], min_area_px: float, max_area_px: float,
     min_circularity: float, min_inertia_ratio: float, min_fill_ratio: float,
+    max_ellipse_error: float,
 ) -> NDArray[np.float64]:
     """Dots in the ROIs (K,4: x0, y0, x1, y1, end exclusive; may overlap) -> rows of
     N_COLUMNS (U, V, AREA, ... MASK_V: see the column names), in the frame's scan order of their
@@ -306,6 +390,10 @@ def find_dots(
                                if perimeter > 0.0 else 0.0)
                 if circularity < min_circularity:
                     continue
+                ellipse_err = _ellipse_error(row_min, row_max, by0, by1, sx, sy, mx, my,
+                                             mu20, mu02, mu11, lam_major, lam_minor)
+                if ellipse_err > max_ellipse_error:
+                    continue
                 u, v, ok = _weighted_centre(image, row_min, row_max, x0, y0, by0, by1, dark)
                 if not ok:
                     continue
@@ -328,6 +416,7 @@ def find_dots(
                 row[CIRCULARITY], row[INERTIA], row[FILL] = min(circularity, 1.0), inertia, fill
                 row[MAJOR], row[MINOR] = 4.0 * math.sqrt(lam_major), 4.0 * math.sqrt(lam_minor)
                 row[ANGLE] = 0.5 * math.atan2(2.0 * mu11, mu20 - mu02)
+                row[ELLIPSE] = ellipse_err
                 row[MASK_U], row[MASK_V] = (x0 + sx) + mx, (y0 + sy) + my
                 n_out += 1
     return out[np.argsort(first[:n_out], kind="mergesort")]

@@ -20,16 +20,14 @@ reached can lie far enough along a flat valley to pass for a distinct one and st
 for the real other minimum (seen at close range). Tracking skips POSIT entirely
 (:func:`solve_pose_near`).
 
-Ambiguity rule (planar targets): the best pose B and the best *distinct* other pose A (rotation
+Ambiguity (planar targets): the best pose B and the best *distinct* other pose A (rotation
 differing by more than ~0.06 deg or translation by more than 0.1 % of the range) are both local
-minima of the reprojection error. They are called ambiguous when
-``rms_A < AMBIGUITY_RATIO * max(rms_B, NOISE_FLOOR_PX)`` and ``rms_A < AMBIGUITY_MAX_RMS_PX``:
-the alternative explains the points within 1.5x as well as the winner (with a floor of typical
-centroid noise, so that noise-free data does not make every tiny difference decisive), and it
-is a good fit at all. For planar targets ``alternative`` is always filled: the refined other
-minimum, or -- when there is no second minimum -- the unrefined losing coplanar branch (or the
-mirrored pose), and the same rule applies to it: a pose that fits nearly as well is ambiguous
-whether or not it is a local minimum.
+minima of the reprojection error. For planar targets ``alternative`` is always filled: the
+refined other minimum, or -- when there is no second minimum -- the unrefined losing coplanar
+branch (or the mirrored pose). ``ambiguous`` is decided by :func:`estimator.ambiguity.
+ambiguity_test`: the alternative must differ at the dots (default 1 mm / 1 deg) and not be
+separable at the noise level measured from B's residuals (likelihood-ratio test); the result
+carries the test and its margin (``ambiguity``).
 """
 
 from __future__ import annotations
@@ -41,6 +39,7 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from estimator.ambiguity import MAX_DEG, MAX_DOT_MM, ambiguity_test
 from estimator.arrays import kernel_array
 from estimator.bias import centroid_bias_px
 from estimator.camera import CameraModel
@@ -64,9 +63,6 @@ from estimator.refine import (
 )
 from estimator.result import AlternativePose, Blob, PoseResult
 
-AMBIGUITY_RATIO = 1.5
-NOISE_FLOOR_PX = 0.1
-AMBIGUITY_MAX_RMS_PX = 2.0
 RETRY_RMS_PX = 1.0  # best refined rms above this: try the other reference points too
 BAD_RMS_PX = 2.0  # an unconverged seed whose refined rms is above this is a failure
 SEED_MAX_ITERATIONS = 100
@@ -310,6 +306,8 @@ def solve_pose(
     *,
     dot_diameter_mm: float | None = None,
     correct_bias: bool = True,
+    ambiguity_mm: float = MAX_DOT_MM,
+    ambiguity_deg: float = MAX_DEG,
 ) -> PoseResult:
     """Pose of the target in the camera frame from matched image points (px).
 
@@ -373,10 +371,15 @@ def solve_pose(
     elif planar:
         alt_pose = _unrefined_alternative(problem, best.T, image_points)
         notes.append("no second local minimum: the alternative is the unrefined other branch")
-    ambiguous = alt_pose is not None and (
-        alt_pose.rms_px < AMBIGUITY_RATIO * max(best.rms, NOISE_FLOOR_PX)
-        and alt_pose.rms_px < AMBIGUITY_MAX_RMS_PX
-    )
+    test = None if alt_pose is None else ambiguity_test(
+        best.T, best.rms, alt_pose.T_camera_target, alt_pose.rms_px, problem.obj,
+        max_dot_mm=ambiguity_mm, max_deg=ambiguity_deg)
+    ambiguous = test is not None and test.ambiguous
+    if test is not None:
+        notes.append(
+            f"alternative pose {'NOT ' if ambiguous else ''}separable: delta_chi2 "
+            f"{test.delta_chi2:.1f} vs {test.threshold} at sigma {test.sigma_px:.3f} px, "
+            f"{test.dot_shift_mm:.2f} mm / {test.rotation_deg:.2f} deg apart")
     return PoseResult(
         T_camera_target=best.T,
         rms_px=best.rms,
@@ -388,6 +391,7 @@ def solve_pose(
         covariance=covariance_from(residuals, J),
         image_points_px=image_points,
         notes=tuple(notes),
+        ambiguity=test,
     )
 
 
@@ -451,6 +455,7 @@ def near_pose_unchecked(
     obj: NDArray[np.float64], img: NDArray[np.float64], camera: CameraModel,
     T_init: NDArray[np.float64], bias: NDArray[np.float64],
     matched_blobs: tuple[Blob, ...] = (), matched_ids: tuple[int, ...] = (),
+    identity: str = "given", note: str | None = None,
 ) -> PoseResult:
     """:func:`solve_pose_near` with known bias offsets: one refinement, no validation.
 
@@ -460,10 +465,10 @@ def near_pose_unchecked(
     """
     image_points = img - bias
     T, residuals, J = finish_pose(obj, image_points, camera, T_init)
+    notes = ("refined from the tracked pose, perspective bias at the predicted pose",)
     return _tracked_result(
-        obj, T, residuals, J, image_points,
-        ("refined from the tracked pose, perspective bias at the predicted pose",),
-        matched_blobs, matched_ids,
+        obj, T, residuals, J, image_points, notes if note is None else (*notes, note),
+        matched_blobs, matched_ids, identity,
     )
 
 
@@ -471,6 +476,7 @@ def _tracked_result(
     obj: NDArray[np.float64], T: NDArray[np.float64], residuals: NDArray[np.float64],
     J: NDArray[np.float64], image_points: NDArray[np.float64], notes: tuple[str, ...],
     matched_blobs: tuple[Blob, ...] = (), matched_ids: tuple[int, ...] = (),
+    identity: str = "given",
 ) -> PoseResult:
     """The result of a refinement from a tracked pose (no seed iterations, no alternative)."""
     if not all_in_front(T, obj):
@@ -489,4 +495,5 @@ def _tracked_result(
         matched_ids=matched_ids,
         image_points_px=image_points,
         notes=notes,
+        identity=identity,
     )

@@ -273,15 +273,16 @@ def ellipse_centre_px(
 def random_pose(
     rng: np.random.Generator, camera: CameraModel, target: Target, *,
     distance_mm: tuple[float, float] = (350.0, 700.0), max_tilt_deg: float = 40.0,
-    border_px: float = 40.0,
+    border_px: float = 40.0, min_tilt_deg: float = 0.0,
 ) -> NDArray[np.float64]:
-    """A random front-facing pose that keeps every dot at least ``border_px`` inside the image."""
+    """A random front-facing pose that keeps every dot at least ``border_px`` inside the image,
+    tilted by ``min_tilt_deg`` to ``max_tilt_deg`` from facing the camera."""
     centre = target.points_mm.mean(axis=0)
     for _ in range(1000):
         axis = rng.normal(size=3)
         axis[2] = 0.0
         axis /= np.linalg.norm(axis)
-        tilt = Rotation.from_rotvec(axis * np.radians(rng.uniform(0.0, max_tilt_deg)))
+        tilt = Rotation.from_rotvec(axis * np.radians(rng.uniform(min_tilt_deg, max_tilt_deg)))
         spin = Rotation.from_rotvec([0.0, 0.0, rng.uniform(-np.pi, np.pi)])
         R = (tilt * spin).as_matrix()
         z = rng.uniform(*distance_mm)
@@ -302,6 +303,21 @@ def random_pose(
         if inside.all() and gap.min() > 2.5 * dot_px:
             return T
     raise RuntimeError("could not find a pose that keeps the target in view")
+
+
+def grid_target(rows: int, cols: int, pitch_mm: float, dot_diameter_mm: float,
+                polarity: str = "dark") -> Target:
+    """A regular circle grid (rows x cols dots, ``pitch_mm`` apart) in z = 0."""
+    yy, xx = np.mgrid[0:rows, 0:cols]
+    pts = np.column_stack((xx.ravel() * pitch_mm, yy.ravel() * pitch_mm, np.zeros(rows * cols)))
+    return Target(pts, dot_diameter_mm, "dark" if polarity == "dark" else "light")
+
+
+def symmetric_target(dot_diameter_mm: float = 10.0, polarity: str = "dark") -> Target:
+    """A 2-fold symmetric 5-dot plate: the corners of a 140 x 120 mm rectangle and its centre
+    (the layout of the hand-held sequence the estimator once lost track of)."""
+    pts = [[0, 0, 0], [140, 0, 0], [140, 120, 0], [0, 120, 0], [70, 60, 0]]
+    return Target(pts, dot_diameter_mm, "dark" if polarity == "dark" else "light")
 
 
 def random_target(rng: np.random.Generator, n_dots: int, *, planar: bool = True,
