@@ -14,7 +14,7 @@ from contextlib import asynccontextmanager
 from fastapi import Depends, FastAPI, Request, Response
 from fastapi.responses import PlainTextResponse
 
-from api import errors, metrics
+from api import errors, metrics, openapi_limits
 from api.auth import TokenTable, require
 from api.page import mount_page
 from api.routes import router, sim_router
@@ -74,6 +74,7 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False) -> FastAPI:
         return metrics.render(cell, app.state.http_stats)
 
     mount_page(app)
+    openapi_limits.install(app, cell.config.limits)
     return app
 
 

@@ -332,3 +332,20 @@ def test_routine_without_target_in_view_is_a_json_error(
     cfg = sim_cell_config(tmp_path / "cell.toml", T_base_target=far)
     code, out = run_json(capsys, "calibrate", "routine", "--config", str(cfg))
     assert code == 2 and out["error"]["code"] == "target_not_visible"
+
+
+def test_routine_refuses_a_speed_above_the_limit_before_anything_moves(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The routine drives the arm through the same guard as the service: a speed above
+    ``limits.max_speed_mm_s`` is refused before any hardware is even built."""
+    import cell.factory
+
+    built: list[object] = []
+    monkeypatch.setattr(cell.factory, "build_hardware", lambda cfg: built.append(cfg))
+    cfg = sim_cell_config(tmp_path / "cell.toml")
+    code, out = run_json(capsys, "calibrate", "routine", "--config", str(cfg),
+                         "--speed-mm-s", "300")
+    assert code != 0 and out["error"]["code"] == "speed_limit"
+    assert "250" in out["error"]["message"]  # the configured limit is named
+    assert built == []  # nothing was connected, so nothing could move
