@@ -124,6 +124,8 @@ def test_unlock_and_home_over_http(tmp_path: Path) -> None:
         r = client.post("/api/v1/arm/home", json={"wait": True}, headers=OP)
         assert r.status_code == 409 and r.json()["error"]["code"] == "protective_stop", r.text
         held = settled_tcp(cell)
+        robot = client.get("/api/v1/status", headers=VIEW).json()["robot"]
+        assert robot["protective_stop"] and not robot["moving"], robot  # audit item 9
         time.sleep(5.0)
         r = client.post("/api/v1/arm/unlock", headers=OP)
         assert r.status_code == 200 and r.json()["unlocked"] and r.json()["ready"], r.text
