@@ -22,10 +22,6 @@ from api.routes_arm import router as arm_router
 from api.routes_calibration import install as install_calibration
 from cell.service import Cell
 
-# Called first thing on SIGTERM/SIGINT by ``cell serve`` (see cell.commands.serve), before
-# uvicorn waits for open connections: the arm must not wait for an SSE client to leave.
-SHUTDOWN_HOOKS: list[Callable[[], None]] = []
-
 
 def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False) -> FastAPI:
     """Build the API for ``cell``. Raises ConfigError when a sample token is configured on
@@ -84,7 +80,7 @@ def app_from_environment() -> FastAPI:
     import os
     import sys
 
-    from cell.runtime import start_cell
+    from cell.runtime import SHUTDOWN_HOOKS, start_cell
 
     try:
         cell = start_cell(os.environ.get("CELL_CONFIG") or None)
@@ -102,5 +98,5 @@ def app_from_environment() -> FastAPI:
         app.state.closing.set()
         cell.stop("service", reason="shutdown: the service is stopping")
 
-    SHUTDOWN_HOOKS.append(on_signal)
+    SHUTDOWN_HOOKS.append(on_signal)  # cell serve runs it on SIGTERM, before the HTTP drain
     return app

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 from cell.config import CellConfig, load_config
@@ -10,6 +11,11 @@ from cell.imagelog import ImageLog
 from cell.jobs import JobStore
 from cell.service import Cell
 from cell.tokens import check_tokens
+
+# Called first thing on SIGTERM/SIGINT by ``cell serve`` (see cell.commands.serve), before the
+# HTTP server waits for open connections: the arm must not wait for an SSE client to leave.
+# The app that serves a cell registers its stop here (api.app.app_from_environment).
+SHUTDOWN_HOOKS: list[Callable[[], None]] = []
 
 
 def check_startable(config: CellConfig) -> None:

@@ -79,7 +79,7 @@ class _StopFirstServer(uvicorn.Server):
     its graceful shutdown, which would otherwise wait for every client to leave first."""
 
     def handle_exit(self, sig: int, frame: FrameType | None) -> None:
-        from api.app import SHUTDOWN_HOOKS
+        from cell.runtime import SHUTDOWN_HOOKS
 
         for hook in list(SHUTDOWN_HOOKS):
             try:
