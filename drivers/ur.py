@@ -59,7 +59,7 @@ from drivers.ur_modes import (
     robot_mode_name,
     safety_mode_name,
 )
-from estimator.transforms import T_from_ur_pose, ur_pose_from_T
+from estimator.transforms import T_from_ur_pose, pose_distance, ur_pose_from_T
 
 log = logging.getLogger(__name__)
 
@@ -463,10 +463,13 @@ class URArm:
         s = self._ready_for_motion()
         self._end_jog()
         distance_m = float(np.linalg.norm(np.subtract(pose[:3], s.tcp_pose[:3])))
+        turn_rad = pose_distance(T_from_ur_pose(list(s.tcp_pose)), T_base_tcp)[1] * math.pi / 180
         if not self._ctrl("moveL", pose, v, a, True):
             self._raise_command_failure("moveL")
         if wait:
-            self._wait_for_motion(2.0 * (distance_m / v + v / a) + 5.0)
+            # A UR applies the tool speed to the rotation too (v in rad/s), so a move that
+            # mostly turns takes angle / v: the deadline is a watchdog, not the expected time.
+            self._wait_for_motion(2.0 * (max(distance_m, turn_rad) / v + v / a) + 5.0)
 
     def move_joint(
         self, joints_rad: NDArray[np.float64], speed_rad_s: float, accel_rad_s2: float,
