@@ -2,16 +2,16 @@
 around one :class:`~fakes.ur_sim.MotionEngine`.
 
 The ports are fixed by the client (29999, 30003, 30004), so parallel controllers use different
-loopback addresses (127.0.0.2, 127.0.0.3, ...). A 500 Hz cycle thread does what the real
-controller's cycle does: runs the control program one step, samples the arm, and sends each
-RTDE connection its data package when its period is due.
+loopback addresses (127.0.0.2, 127.0.0.3, ...). Every 500 Hz cycle of the engine's controller
+clock does what the real controller's cycle does: steps the arm, runs the control program one
+step, samples the arm, and sends each RTDE connection its data package when its period is due
+(by controller time, so a host stall is caught up with one package per missed cycle).
 """
 
 from __future__ import annotations
 
 import logging
 import threading
-import time
 
 from fakes.ur_controller.dashboard import dashboard_service
 from fakes.ur_controller.faults import Faults
@@ -64,8 +64,8 @@ class URController:
         self.dashboard = dashboard_service(host, self, dashboard_port)
         self.faults = Faults(self)
         self._alive = True
-        self._cycle = threading.Thread(target=self._run, daemon=True, name=f"ur-cycle-{host}")
-        self._cycle.start()
+        self._t0_host = self.engine.snapshot().host_monotonic_s - self.engine.controller_time_s()
+        self.engine.set_cycle_hook(self._cycle_once, self._wants_cycles, IDLE_CYCLE_S)
 
     # -- program ------------------------------------------------------------------------------
     def program_state(self) -> str:
@@ -95,7 +95,8 @@ class URController:
                 self._message("The simulator runs only the ur_rtde control script; "
                               "other URScript programs are not executed", LEVEL_ERROR)
                 return
-            self._starting = (prog, time.monotonic() + PROGRAM_START_S)
+            now = self.engine.controller_time_s() + self._t0_host
+            self._starting = (prog, now + PROGRAM_START_S)
 
     def _message(self, text: str, level: int = LEVEL_INFO) -> None:
         log.info("%s: %s", self.host, text)
@@ -112,25 +113,16 @@ class URController:
                 self._message(f"speed slider: {exc}", LEVEL_ERROR)
 
     # -- the controller cycle ------------------------------------------------------------------
-    def _run(self) -> None:
-        next_t = time.monotonic()
-        while self._alive:
-            if not self.faults.frozen:
-                try:
-                    self._cycle_once()
-                except Exception:  # the cycle must survive anything one step does
-                    log.exception("controller cycle failed")
-            period = CYCLE_S if self.rtde.any_streaming() else IDLE_CYCLE_S
-            next_t += period
-            delay = next_t - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            elif delay < -0.05:
-                next_t = time.monotonic()  # fell behind on a loaded machine: don't burst
+    def _wants_cycles(self) -> bool:
+        return self.rtde.any_streaming() or self.interpreter.running or self._starting is not None
 
     def _cycle_once(self) -> None:
+        """One controller cycle, run by the engine thread after it stepped the arm."""
+        if self.faults.frozen or not self._alive:
+            return
         with self._lock:
-            if self._starting is not None and time.monotonic() >= self._starting[1]:
+            now = self.engine.controller_time_s() + self._t0_host
+            if self._starting is not None and now >= self._starting[1]:
                 self.interpreter.start(self._starting[0])
                 self._starting = None
             snap = self.engine.snapshot()
@@ -140,7 +132,7 @@ class URController:
         if not self.faults.stream_stalled():
             with self.regs.lock:
                 view = ControllerView(snap, self.regs, self.runtime_state())
-                packages = self.rtde.due_packages(view, time.monotonic())
+                packages = self.rtde.due_packages(view, snap.timestamp_s)
             self.rtde.send_packages(packages)
 
     # -- lifecycle -----------------------------------------------------------------------------
@@ -156,7 +148,7 @@ class URController:
         for service in (self.rtde.service, self.script, self.dashboard):
             service.frozen = False
             service.close(reset)
-        self._cycle.join(timeout=1.0)
+        self.engine.set_cycle_hook(None)
         if self._owns_engine:
             self.engine.close()
 
