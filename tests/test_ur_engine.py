@@ -27,6 +27,7 @@ from fakes.ur_sim.engine import (
     RobotMode,
     RobotStatusBit,
     SafetyMode,
+    SafetyPlane,
     SafetyStatusBit,
     SimLimits,
     UnreachablePoseError,
@@ -180,7 +181,7 @@ def test_invalid_commands_change_nothing(eng: MotionEngine) -> None:
 
 def test_workspace_exit_trips_protective_stop() -> None:
     e = _running(SimLimits(power_on_s=0.05, brake_release_s=0.05, unlock_delay_s=0.5,
-                           workspace_min_m=(-1.0, -1.0, 0.35)))
+                           safety_planes=(SafetyPlane.floor(0.35),)))
     try:
         p = list(e.snapshot().tcp_pose)
         target = p.copy()
@@ -188,7 +189,7 @@ def test_workspace_exit_trips_protective_stop() -> None:
         cid = e.move_l(target, 0.2, 1.0)
         s = _wait(e, lambda s: s.safety_mode == SafetyMode.PROTECTIVE_STOP)
         assert s.safety_mode == SafetyMode.PROTECTIVE_STOP
-        assert "workspace" in s.last_stop_reason
+        assert "safety plane" in s.last_stop_reason
         assert e.wait_until_idle(2)
         s = e.snapshot()
         # stopped at the boundary: the crossing cycle is refused, then a short braking distance

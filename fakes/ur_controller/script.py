@@ -32,8 +32,12 @@ READY, DONE = 1, 2
 RUNTIME_STOPPED, RUNTIME_PLAYING = 1, 2
 CONTROL_SCRIPT_MARK = "RTDE Control Script"
 # commands the script treats as real-time: processed every cycle, answered with "ready"
-REALTIME_CMDS = {24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71}
+REALTIME_CMDS = {24, 11, 9, 10, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71}
 STOP_SCRIPT = 255
+# mailbox commands the simulator refuses (see MailboxInterpreter.refuse), by ur_rtde's names
+REFUSED_CMDS = {6: "forceMode", 12: "servoC", 25: "toolContact", 28: "getTargetWaypoint",
+                51: "moveUntilContact"}
+REFUSE_RESUME_S = 0.3
 _MOVE = re.compile(
     r"^\s*(movej|movel|movep)\((p?)\[([^\]]*)\],a=([^,]+),v=([^,]+),r=([^)]+)\)\s*$")
 _PROGRAM_END = re.compile(r"^end\s*$", re.MULTILINE)
@@ -71,10 +75,10 @@ def parse_program(text: str) -> ControlProgram | None:
             m = _MOVE.match(line)
             if m is None:
                 continue
-            if m[1] == "movep":
-                raise ScriptError("movep in a path is not supported by the simulator")
             target = [float(v) for v in m[3].split(",")]
-            kind = "movel" if m[1] == "movel" else "movej"
+            # movep (constant tool speed through blends) runs as a blended movel here
+            kind = ("movej_pose" if m[1] == "movej" and m[2] else "movej" if m[1] == "movej"
+                    else "movel" if m[2] else "movel_joints")
             prog.path.append((kind, target, float(m[5]), float(m[4]), float(m[6])))  # type: ignore[arg-type]
     return prog
 
@@ -123,9 +127,14 @@ class MailboxInterpreter:
         self._async_op_id = 0
         self._speed_args: tuple[float, ...] | None = None
         self._watchdog_s: float | None = None  # set_watchdog: max gap between client writes
+        self._resume: tuple[ControlProgram, float] | None = None  # after a refused command
+        self.hand_guiding = False  # teach or freedrive mode
+        self._ignore: tuple[int, float] | None = None  # (command, write time) refused
 
     # -- program lifecycle ---------------------------------------------------------------------
     def start(self, prog: ControlProgram) -> None:
+        self._resume = None
+        self.hand_guiding = False
         snap = self.engine.snapshot()
         if snap.robot_mode != RobotMode.RUNNING or snap.safety_mode != SafetyMode.NORMAL:
             self._message("Program not started: the robot is not running (power on, release "
@@ -191,6 +200,9 @@ class MailboxInterpreter:
     # -- the cycle -----------------------------------------------------------------------------
     def step(self, snap: EngineSnapshot) -> None:
         if not self.running:
+            if self._resume is not None and time.monotonic() >= self._resume[1]:
+                prog, self._resume = self._resume[0], None
+                self.start(prog)
             return
         if snap.safety_mode != SafetyMode.NORMAL or snap.robot_mode != RobotMode.RUNNING:
             self.stop(f"Program stopped: {snap.safety_mode.name} / {snap.robot_mode.name}"
@@ -209,6 +221,12 @@ class MailboxInterpreter:
                     self._write_int(0, DONE)
                 return
             cmd = self._int(0)
+            if self._ignore is not None:
+                written = self.regs.in_int_written_s[self._prog.int_offset]
+                if (cmd, written) == self._ignore:
+                    cmd = 0  # the refused command, still in the register: not run again
+                else:
+                    self._ignore = None
             try:
                 if cmd in REALTIME_CMDS:
                     self._process(cmd, snap)
@@ -360,11 +378,41 @@ class MailboxInterpreter:
                 raise CommandRejectedError(f"set_watchdog: frequency {frequency} must be > 0")
             self._watchdog_s = 1.0 / frequency
             self.regs.in_int_written_s[self._prog.int_offset] = time.monotonic()
-        elif cmd in (8, 20, 21):
-            pass  # F/T zeroing and force-mode tuning: no force is simulated, nothing to change
+        elif cmd in (8, 20, 21, 7, 55, 56, 57, 59, 62, 63):
+            # F/T zeroing, force-mode tuning and stop, external F/T input, gravity, contact
+            # detection on/off: accepted; the simulated arm feels no force, so nothing changes
+            pass
+        elif cmd == 64:
+            self._write_int(1, 0)  # read_contact_detection: no contact in free space
+        elif cmd in (18, 52):
+            self.hand_guiding = True  # teach/freedrive: nobody pushes the simulated arm
+        elif cmd in (19, 53):
+            self.hand_guiding = False
+        elif cmd == 54:
+            self._write_int(1, 1 if self.hand_guiding else 0)
+        elif cmd == 36:
+            self._write_int(1, 1 if e.pose_within_safety_limits(self._floats(0)) else 0)
+        elif cmd == 37:
+            self._write_int(1, 1 if e.joints_within_safety_limits(self._floats(0)) else 0)
+        elif cmd == 38:
+            self._write_floats(0, [0.0] * 6)  # joint torques: no dynamics model, zero
+        elif cmd in REFUSED_CMDS:
+            self.refuse(f"{REFUSED_CMDS[cmd]} is not simulated by this controller simulator")
+            return False
         else:
-            raise CommandRejectedError(f"ur_rtde command {cmd} is not simulated")
+            self.refuse(f"ur_rtde command {cmd} is not simulated by this controller simulator")
+            return False
         return True
+
+    def refuse(self, reason: str) -> None:
+        """Answer an unsimulated command: the client's call returns False at once (its
+        program is seen to stop), and the same control program resumes by itself shortly
+        after, registers and all, so the client's next command runs without a re-upload."""
+        self.last_error = reason
+        prog = self._prog
+        self._ignore = (self._int(0), self.regs.in_int_written_s[prog.int_offset])
+        self.stop(f"Refused: {reason}", brake=False)
+        self._resume = (prog, time.monotonic() + REFUSE_RESUME_S)
 
     def _fk_with_tcp(self, q: list[float], tcp6: list[float]) -> list[float]:
         """get_forward_kin(q, tcp): the engine's fk uses its own TCP, so swap it for ``tcp6``."""

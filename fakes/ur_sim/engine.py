@@ -60,6 +60,7 @@ from fakes.ur_sim.state import (
     RobotMode,
     RobotStatusBit,
     SafetyMode,
+    SafetyPlane,
     SafetyStatusBit,
     SimLimits,
     UnreachablePoseError,
@@ -82,6 +83,7 @@ __all__ = [
     "RobotMode",
     "RobotStatusBit",
     "SafetyMode",
+    "SafetyPlane",
     "SafetyStatusBit",
     "SimLimits",
     "UnreachablePoseError",
@@ -334,16 +336,32 @@ class MotionEngine:
             return f"tool speed limit ({tcp_speed:.2f} m/s)"
         outside = self._workspace_excess_m(T_tcp)
         if outside > 0 and outside > self._workspace_excess_m(self._kin.forward_tcp(self._q)):
-            return "TCP left the workspace"  # (moving back in from outside is allowed)
+            return "TCP crossed a safety plane"  # (moving back to the allowed side is allowed)
         return ""
 
     def _workspace_excess_m(self, T_base_tcp: Vec) -> float:
-        """How far (m) the TCP is outside the workspace box or sphere (<= 0: inside)."""
+        """How far (m) the TCP is beyond the worst safety plane (<= 0: on the allowed side)."""
         p = T_base_tcp[:3, 3] / 1000.0
-        lo = np.asarray(self.limits.workspace_min_m)
-        hi = np.asarray(self.limits.workspace_max_m)
-        box = float(np.max(np.concatenate([lo - p, p - hi])))
-        return max(box, float(np.linalg.norm(p)) - self.limits.workspace_radius_m)
+        return max((pl.excess_m(p) for pl in self.limits.safety_planes), default=-math.inf)
+
+    def joints_within_safety_limits(self, q_rad: Sequence[float]) -> bool:
+        """isJointsWithinSafetyLimits: inside the joint limits and the TCP on the allowed
+        side of every safety plane."""
+        q = as_vector(q_rad, 6, "q")
+        if np.any(q < self.limits.joint_min_rad) or np.any(q > self.limits.joint_max_rad):
+            return False
+        with self._cond:
+            return self._workspace_excess_m(self._kin.forward_tcp(q)) <= 0
+
+    def pose_within_safety_limits(self, pose6: Sequence[float]) -> bool:
+        """isPoseWithinSafetyLimits: reachable inside the joint limits and the planes."""
+        p = as_vector(pose6, 6, "pose")
+        with self._cond:
+            try:
+                q = self._ik_locked(p, self._q)
+            except UnreachablePoseError:
+                return False
+        return self.joints_within_safety_limits(q.tolist())
 
     def _finish(self, outcome: CommandOutcome, then: Command | None = None) -> None:
         if self._cmd is not None and self._outcomes.get(self._cmd.id) == CommandOutcome.RUNNING:
@@ -724,7 +742,12 @@ class MotionEngine:
             run_first = 0
             for i, entry in enumerate(path):
                 kind, tgt, v, a, blend = self._path_entry(i, entry)
-                if kind == "movej":
+                if kind == "movej_pose":
+                    tgt = self._ik_locked(tgt, q)
+                elif kind == "movel_joints":
+                    self._check_joint_limits(tgt, f"path entry {i} target")
+                    tgt = np.asarray(ur_pose_from_T(self._kin.forward_tcp(tgt)))
+                if kind in ("movej", "movej_pose"):
                     if run:
                         segments.append(self._blended(cid, run, run_blends[:-1], run_first))
                         run, run_blends = [], []
@@ -746,7 +769,7 @@ class MotionEngine:
                         segments.append(self._blended(cid, run, run_blends[:-1], run_first))
                     run, run_blends, run_first = [prof], [], i
                 nxt = path[i + 1][0] if i + 1 < len(path) else None
-                run_blends.append(blend * 1000.0 if nxt == "movel" else 0.0)
+                run_blends.append(blend * 1000.0 if nxt in ("movel", "movel_joints") else 0.0)
             if run:
                 segments.append(self._blended(cid, run, run_blends[:-1], run_first))
             return self._install(PathMove(cid, segments), brake)
@@ -766,10 +789,10 @@ class MotionEngine:
         if not (math.isfinite(b) and b >= 0):
             raise CommandRejectedError(f"path entry {i}: blend must be >= 0")
         tgt = as_vector(target, 6, f"path entry {i} target")
-        if kind == "movej":
+        if kind in ("movej", "movej_pose"):
             v = positive_number(speed, f"path entry {i} speed", self.limits.max_joint_speed_rad_s)
             a = positive_number(accel, f"path entry {i} accel", self.limits.max_joint_accel_rad_s2)
-        elif kind == "movel":
+        elif kind in ("movel", "movel_joints"):
             v = positive_number(speed, f"path entry {i} speed")
             a = positive_number(accel, f"path entry {i} accel", self.limits.max_tcp_accel_m_s2)
         else:
