@@ -24,7 +24,8 @@ import script_client
 from estimator.transforms import T_from_ur_pose
 from fakes.ur_controller import rtde
 from fakes.ur_controller.process import ControllerProcess
-from fakes.ur_controller.script import parse_program, split_programs
+from fakes.ur_controller.script import parse_program
+from fakes.ur_controller.urscript import split_programs
 
 # The ur_rtde clients run in this process and block inside C++ (movePath waits for the program
 # without a deadline): a signal cannot interrupt them, a watchdog thread can end the run.

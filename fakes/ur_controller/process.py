@@ -12,7 +12,7 @@ import threading
 from typing import Any
 
 READY_TIMEOUT_S = 20.0
-_PORTS = (29999, 30003, 30004)
+_PORTS = (29999, 30001, 30002, 30003, 30004)
 
 
 def free_loopback_host() -> str:

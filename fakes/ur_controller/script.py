@@ -1,4 +1,4 @@
-"""Port 30003: receives URScript programs, and the interpreter of ur_rtde's register mailbox.
+"""The interpreter of ur_rtde's register mailbox (its control script, uploaded to 30003).
 
 The simulator does not execute URScript. It recognises the control script ur_rtde uploads
 (``rtde_control.script``), takes from it the two things the client injects (the register offset
@@ -21,15 +21,13 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from fakes.ur_controller.registers import RegisterFile
-from fakes.ur_controller.tcp import TcpService
 from fakes.ur_sim import EngineError, EngineSnapshot, MotionEngine, RobotMode, SafetyMode
 from fakes.ur_sim.engine import CommandOutcome, CommandRejectedError, PathEntry
 
 log = logging.getLogger(__name__)
 
-SCRIPT_PORT = 30003
 READY, DONE = 1, 2
-RUNTIME_STOPPED, RUNTIME_PLAYING = 1, 2
+RUNTIME_STOPPED, RUNTIME_PLAYING, RUNTIME_PAUSED = 1, 2, 4
 CONTROL_SCRIPT_MARK = "RTDE Control Script"
 # commands the script treats as real-time: processed every cycle, answered with "ready"
 REALTIME_CMDS = {24, 11, 9, 10, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71}
@@ -40,7 +38,6 @@ REFUSED_CMDS = {6: "forceMode", 12: "servoC", 25: "toolContact", 28: "getTargetW
 REFUSE_RESUME_S = 0.3
 _MOVE = re.compile(
     r"^\s*(movej|movel|movep)\((p?)\[([^\]]*)\],a=([^,]+),v=([^,]+),r=([^)]+)\)\s*$")
-_PROGRAM_END = re.compile(r"^end\s*$", re.MULTILINE)
 
 
 class ScriptError(Exception):
@@ -81,17 +78,6 @@ def parse_program(text: str) -> ControlProgram | None:
                     else "movel" if m[2] else "movel_joints")
             prog.path.append((kind, target, float(m[5]), float(m[4]), float(m[6])))  # type: ignore[arg-type]
     return prog
-
-
-def split_programs(buffer: str) -> tuple[list[str], str]:
-    """Complete ``def ...: ... end`` programs in the buffer, and the incomplete rest."""
-    programs: list[str] = []
-    while True:
-        m = _PROGRAM_END.search(buffer)
-        if m is None:
-            return programs, buffer
-        programs.append(buffer[:m.end()])
-        buffer = buffer[m.end():].lstrip("\n")
 
 
 def _pose_T(pose6: list[float]) -> np.ndarray:
@@ -420,30 +406,3 @@ class MailboxInterpreter:
         T_flange_tcp_current = _pose_T(list(self.engine.snapshot().tcp_offset))
         T_base_flange = T_base_tcp @ np.linalg.inv(T_flange_tcp_current)
         return _T_pose(T_base_flange @ _pose_T(tcp6))
-
-
-class ScriptSession:
-    """One client of port 30003: accumulates text and hands on each complete program."""
-
-    def __init__(self, on_program: Callable[[str], None]) -> None:
-        self._on_program = on_program
-        self._buffer = ""
-
-    def on_open(self) -> None:
-        pass
-
-    def feed(self, data: bytes) -> bool:
-        self._buffer += data.decode(errors="replace")
-        programs, self._buffer = split_programs(self._buffer)
-        for program in programs:
-            self._on_program(program)
-        return True
-
-    def on_close(self) -> None:
-        pass
-
-
-def script_service(host: str, on_program: Callable[[str], None],
-                   port: int = SCRIPT_PORT) -> TcpService:
-    """The script receiver on ``host:30003``."""
-    return TcpService(host, port, "script", lambda sock: ScriptSession(on_program))

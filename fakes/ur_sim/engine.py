@@ -420,6 +420,9 @@ class MotionEngine:
                       for i in range(6)) if mode in _POWERED else (25.0,) * 6
         cmd = self._cmd
         stopped = safety != SafetyMode.NORMAL
+        elbow_m = self._kin.link_frames(q)[2][:3, 3] / 1000.0
+        elbow_v = ((self._kin.link_frames(q + qd * 1e-3)[2][:3, 3] / 1000.0 - elbow_m) / 1e-3
+                   if np.any(qd) else np.zeros(3))
         return EngineSnapshot(
             timestamp_s=uptime,
             host_monotonic_s=now,
@@ -451,6 +454,8 @@ class MotionEngine:
                 and self._stop_t is not None else None),
             last_stop_reason=self._stop_reason,
             last_command_id=self._next_id - 1,
+            elbow_position=tuple(map(float, elbow_m)),
+            elbow_velocity=tuple(map(float, elbow_v)),
         )
 
     def wait_until_idle(self, timeout_s: float) -> bool:

@@ -198,6 +198,8 @@ class EngineSnapshot:
     seconds_since_protective_stop: float | None  # None when not protective-stopped
     last_stop_reason: str  # why the last safety stop happened, "" if none
     last_command_id: int  # id returned by the latest accepted motion command (0: none yet)
+    elbow_position: tuple[float, ...] = (0.0, 0.0, 0.0)  # m, base frame (elbow joint centre)
+    elbow_velocity: tuple[float, ...] = (0.0, 0.0, 0.0)  # m/s
 
 
 class CommandOutcome(Enum):
