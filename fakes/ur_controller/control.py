@@ -29,6 +29,8 @@ def state_of(ctl: URController) -> dict[str, Any]:
         "program": ctl.program_state(),
         "messages": ctl.messages[-20:],
         "host_monotonic_s": snap.host_monotonic_s,
+        "controller_lag_s": ctl.engine.lag_s(),
+        "skipped_cycles": ctl.engine.skipped_cycles,
     }
 
 

@@ -6,6 +6,7 @@ engine owns the state, the safety checks and the thread.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -215,6 +216,9 @@ class SpeedL(Command):
                      stopping and not np.any(new))
 
 
+STREAM_WINDOW_S = 0.02  # servo stream speed is judged over at least this much host time
+
+
 class Servo(Command):
     """servoj/servol: follow a stream of joint targets on the controller clock.
 
@@ -234,35 +238,45 @@ class Servo(Command):
         self.ref = q_arm.copy()
         self.target = q_arm.copy()
         self.v_ref = np.zeros(6)
-        self.seg_end_t = 0.0
+        self.seg_left_s = 0.0  # controller time the reference still runs towards the target
         self.last_call_t = 0.0
-        self.last_host_s: float | None = None
+        self.samples: deque[tuple[float, Vec]] = deque()  # (host time, target) seen
         self.time_s = CYCLE_S
         self.tau_s = 0.033
         self.brake: Brake | None = None
 
-    def stream_interval(self, time_s: float, host_s: float) -> float:
-        """How long the stream took for its latest step (>= the command's own time)."""
-        if self.last_host_s is None:
-            return time_s
-        return max(time_s, host_s - self.last_host_s)
+    def stream_velocity(self, q_to: Vec, time_s: float, host_s: float) -> Vec:
+        """Joint velocity the stream asks for with this target (the safety check): the step
+        from a target seen at least ``STREAM_WINDOW_S`` earlier over the time between them.
 
-    def implied_velocity(self, q_to: Vec, time_s: float, host_s: float) -> Vec:
-        """Joint velocity the stream asks for with this target (the safety check)."""
-        return (q_to - self.target) / self.stream_interval(time_s, host_s)
+        A client that stalls and then catches up sends several targets in a burst, of which
+        a controller cycle sees only the last; over the window the burst averages out to the
+        stream's real speed, while a target that jumps truly too far still shows.
+        """
+        if not self.samples:
+            return (q_to - self.target) / time_s
+        t_ref, q_ref = self.samples[0]
+        for t, q in reversed(self.samples):
+            if t <= host_s - STREAM_WINDOW_S:
+                t_ref, q_ref = t, q
+                break
+        return (q_to - q_ref) / max(time_s, host_s - t_ref)
 
     def retarget(self, q_to: Vec, time_s: float, lookahead_s: float, gain: float, now: float,
                  host_s: float) -> None:
         self.last_call_t, self.time_s = now, time_s
         self.tau_s = max(2 * CYCLE_S, lookahead_s * 100.0 / gain)
         self.brake = None
-        if self.last_host_s is not None and np.array_equal(q_to, self.target):
+        if self.samples and np.array_equal(q_to, self.target):
             return  # the same target again: the program re-issues it every cycle
-        interval = self.stream_interval(time_s, host_s)
+        # the reference reaches the target in the time the stream took to deliver it
+        interval = max(time_s, host_s - self.samples[-1][0]) if self.samples else time_s
         self.v_ref = (q_to - self.ref) / interval
-        self.seg_end_t = now + interval
+        self.seg_left_s = interval
         self.target = q_to.copy()
-        self.last_host_s = host_s
+        self.samples.append((host_s, self.target))
+        while len(self.samples) > 2 and self.samples[1][0] < host_s - 4 * STREAM_WINDOW_S:
+            self.samples.popleft()
 
     def step(self, eng: MotionEngine, now: float, dt: float) -> Step:
         silent_s = now - self.last_call_t - self.time_s
@@ -270,12 +284,12 @@ class Servo(Command):
             self.brake = Brake(self.id, self.name, eng._q, eng._qd, self.decel)
         if self.brake is not None:
             return self.brake.step(eng, now, dt)
-        if now < self.seg_end_t:
-            self.ref = self.ref + self.v_ref * dt
-            v_ref = self.v_ref
-        else:
-            self.ref = self.target.copy()
-            v_ref = np.zeros(6)
+        run_s = min(dt, self.seg_left_s)
+        if run_s > 0:
+            self.seg_left_s -= run_s
+            self.ref = self.target.copy() if self.seg_left_s <= 1e-9 else (
+                self.ref + self.v_ref * run_s)
+        v_ref = self.v_ref * (run_s / dt)
         v_cmd = v_ref + (self.ref - eng._q) / self.tau_s
         dv = v_cmd - eng._qd
         dv_max = eng.limits.max_joint_accel_rad_s2 * dt

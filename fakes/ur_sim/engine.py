@@ -151,6 +151,8 @@ class MotionEngine:
         self._cycles = 0  # controller cycles since t0: the controller's own clock
         self.skipped_cycles = 0  # cycles lost to host stalls longer than the catch-up window
         self._hook: Callable[[], None] | None = None
+        self._servo_ik: tuple[Vec, Vec] | None = None  # last servol pose and its IK
+        self._snap_cache: tuple[tuple[object, ...], EngineSnapshot] | None = None
         self._hook_wants: Callable[[], bool] | None = None
         self._idle_period_s = 0.02
         self._history: deque[tuple[float, Vec]] = deque(maxlen=int(_HISTORY_S / CYCLE_S))
@@ -228,6 +230,12 @@ class MotionEngine:
         with self._cond:
             self._sync_idle_clock()
             return self._cycles * CYCLE_S
+
+    def lag_s(self) -> float:
+        """How far the controller clock is behind the host clock (0 when keeping up)."""
+        with self._cond:
+            self._sync_idle_clock()
+            return max(0.0, time.monotonic() - self._now())
 
     def _run(self) -> None:
         while True:
@@ -402,6 +410,17 @@ class MotionEngine:
     def _snapshot_locked(self) -> EngineSnapshot:
         # While moving, the state belongs to the last control cycle, not to the reading instant.
         self._sync_idle_clock()
+        # One snapshot per cycle and state: the protocol layer asks several times a cycle.
+        key = (self._cycles, self._next_id, id(self._cmd), self._safety_mode, self._robot_mode,
+               self._program_running, self._speed_fraction, tuple(self._tcp_offset),
+               self._stop_reason, self._q.tobytes(), self._qd.tobytes())
+        if self._snap_cache is not None and self._snap_cache[0] == key:
+            return self._snap_cache[1]
+        snap = self._build_snapshot()
+        self._snap_cache = (key, snap)
+        return snap
+
+    def _build_snapshot(self) -> EngineSnapshot:
         now = self._now()
         q, qd = self._q, self._qd
         pose = tuple(ur_pose_from_T(self._kin.forward_tcp(q)))
@@ -420,9 +439,6 @@ class MotionEngine:
                       for i in range(6)) if mode in _POWERED else (25.0,) * 6
         cmd = self._cmd
         stopped = safety != SafetyMode.NORMAL
-        elbow_m = self._kin.link_frames(q)[2][:3, 3] / 1000.0
-        elbow_v = ((self._kin.link_frames(q + qd * 1e-3)[2][:3, 3] / 1000.0 - elbow_m) / 1e-3
-                   if np.any(qd) else np.zeros(3))
         return EngineSnapshot(
             timestamp_s=uptime,
             host_monotonic_s=now,
@@ -454,8 +470,6 @@ class MotionEngine:
                 and self._stop_t is not None else None),
             last_stop_reason=self._stop_reason,
             last_command_id=self._next_id - 1,
-            elbow_position=tuple(map(float, elbow_m)),
-            elbow_velocity=tuple(map(float, elbow_v)),
         )
 
     def wait_until_idle(self, timeout_s: float) -> bool:
@@ -875,7 +889,13 @@ class MotionEngine:
         p = as_vector(pose6, 6, "servo target pose")
         with self._cond:
             self._require_motion_allowed()
-            return self._servo("servol", self._ik_locked(p, self._q), time_s, lookahead_s, gain)
+            cached = self._servo_ik
+            if cached is not None and np.array_equal(cached[0], p):
+                q = cached[1]  # the program re-issues the same target every cycle
+            else:
+                q = self._ik_locked(p, self._q)
+                self._servo_ik = (p, q)
+            return self._servo("servol", q, time_s, lookahead_s, gain)
 
     def _servo(self, name: str, q: Vec, time_s: float, lookahead_s: float, gain: float) -> int:
         t = float(time_s)
@@ -890,10 +910,12 @@ class MotionEngine:
         t = max(t, CYCLE_S)
         now, host_s = self._now(), time.monotonic()
         cmd = self._cmd
-        fresh = not (isinstance(cmd, Servo) and cmd.name == name and cmd.brake is None)
+        # a braking servo of the same stream resumes (its stream history stays): after a host
+        # stall the arm may have fallen behind the stream, which is no jump of the stream
+        fresh = not (isinstance(cmd, Servo) and cmd.name == name)
         servo = Servo(self._new_id(), name, self._q, decel=10.0) if fresh else cmd
         assert isinstance(servo, Servo)
-        v = servo.implied_velocity(q, t, host_s)
+        v = servo.stream_velocity(q, t, host_s)
         if float(np.max(np.abs(v))) > self.limits.max_joint_speed_rad_s * _LIMIT_MARGIN:
             self._trip(f"{name} target needs more than the joint speed limit "
                        f"({float(np.max(np.abs(v))):.2f} rad/s)")

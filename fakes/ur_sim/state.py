@@ -198,8 +198,24 @@ class EngineSnapshot:
     seconds_since_protective_stop: float | None  # None when not protective-stopped
     last_stop_reason: str  # why the last safety stop happened, "" if none
     last_command_id: int  # id returned by the latest accepted motion command (0: none yet)
-    elbow_position: tuple[float, ...] = (0.0, 0.0, 0.0)  # m, base frame (elbow joint centre)
-    elbow_velocity: tuple[float, ...] = (0.0, 0.0, 0.0)  # m/s
+
+    # computed on demand: most cycles nobody asks, and the kinematics cost CPU at 500 Hz
+    @property
+    def elbow_position(self) -> tuple[float, ...]:
+        """Elbow joint centre in the base frame (m)."""
+        from fakes.ur_sim.kinematics import elbow_position_m
+
+        return tuple(map(float, elbow_position_m(self.q)))
+
+    @property
+    def elbow_velocity(self) -> tuple[float, ...]:
+        """Elbow joint centre velocity (m/s)."""
+        from fakes.ur_sim.kinematics import elbow_position_m
+
+        if not any(self.qd):
+            return (0.0, 0.0, 0.0)
+        ahead = [q + 1e-3 * qd for q, qd in zip(self.q, self.qd, strict=True)]
+        return tuple(map(float, (elbow_position_m(ahead) - elbow_position_m(self.q)) / 1e-3))
 
 
 class CommandOutcome(Enum):
