@@ -344,7 +344,7 @@ def test_io_interface_and_protective_stop_program_state(
     assert np.allclose(r.getActualTCPPose(), p0, atol=1e-9)
 
 
-def test_rtde_watchdog_and_unsimulated_commands_stop_the_program(
+def test_rtde_watchdog_stops_the_program_and_unsimulated_commands_are_refused(
         ctl: ControllerProcess, clients: tuple) -> None:
     c, r = clients
     assert c.setWatchdog(20.0)  # 20 Hz: the client must write within 50 ms
@@ -361,9 +361,21 @@ def test_rtde_watchdog_and_unsimulated_commands_stop_the_program(
     while r.getRuntimeState() != 2 and time.monotonic() < deadline:
         time.sleep(0.01)
     assert r.getRuntimeState() == 2
-    assert c.teachMode() is False  # not simulated: a runtime error, not a silent success
+    assert c.teachMode() and c.endTeachMode()  # simulated: nobody pushes the arm
+    t0 = time.monotonic()
+    # not simulated: refused at once with a message, not a silent success, not a hang
+    assert c.moveUntilContact([0.0, 0.0, -0.05, 0.0, 0.0, 0.0]) is False
+    assert time.monotonic() - t0 < 2.0
     messages = ctl.state()["messages"]
-    assert any("not simulated" in m for m in messages), messages
+    assert any("moveUntilContact is not simulated" in m for m in messages), messages
+    deadline = time.monotonic() + 3.0  # ... and the program resumes by itself
+    while not c.isProgramRunning() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    q = r.getActualQ()
+    target = list(q)
+    target[0] += 0.05
+    assert c.moveJ(target, 1.0, 1.0)
+    assert np.allclose(r.getActualQ(), target, atol=1e-4)
 
 
 def test_jog_start_and_stop_in_tool_frame(ctl: ControllerProcess, clients: tuple) -> None:
