@@ -256,11 +256,14 @@ class Servo(Command):
         if not self.samples:
             return (q_to - self.target) / time_s
         t_ref, q_ref = self.samples[0]
-        for t, q in reversed(self.samples):
+        newer = len(self.samples)  # targets after the reference, this one included
+        for i in range(len(self.samples) - 1, -1, -1):
+            t, q = self.samples[i]
             if t <= host_s - STREAM_WINDOW_S:
-                t_ref, q_ref = t, q
+                t_ref, q_ref, newer = t, q, len(self.samples) - i
                 break
-        return (q_to - q_ref) / max(time_s, host_s - t_ref)
+        # each target asks for its own ``time``: n targets span at least n * time
+        return (q_to - q_ref) / max(time_s * newer, host_s - t_ref)
 
     def retarget(self, q_to: Vec, time_s: float, lookahead_s: float, gain: float, now: float,
                  host_s: float) -> None:
