@@ -176,6 +176,7 @@ _OUTPUTS: dict[str, tuple[str, Getter]] = {
     "encoder0_raw": ("INT32", lambda v: 0),
     "encoder1_raw": ("INT32", lambda v: 0),
     "time_scale_source": ("UINT32", lambda v: 0),
+    "external_force_torque": ("VECTOR6D", lambda v: v.regs.external_ft),
 }
 
 _REGISTER_NAME = re.compile(r"(input|output)_(int|double|bit)_register_(\d+)$")
