@@ -339,10 +339,13 @@ class RTDEConnection:
 
     def package_if_due(self, view: ControllerView, now_s: float) -> bytes | None:
         """This connection's data package when its period has elapsed, else None."""
-        if not self.started or self.closed or self.output is None or now_s < self._next_due_s:
+        # (a tenth of a cycle of tolerance: cycle times are sums of 2 ms steps, not exact)
+        if (not self.started or self.closed or self.output is None
+                or now_s < self._next_due_s - 2e-4):
             return None
         period = 1.0 / self.output.frequency_hz
-        self._next_due_s = max(self._next_due_s + period, now_s - period)
+        self._next_due_s = (now_s + period if self._next_due_s <= 0.0  # first after start
+                            else max(self._next_due_s + period, now_s - period))
         return self.output.encode(view)
 
     # -- Handler -----------------------------------------------------------------------------
