@@ -162,10 +162,11 @@ def test_servoj_stream_at_500_hz(ctl: ControllerProcess, rtde: tuple) -> None:
         joint_q[0] += 0.001
         joint_q[1] += 0.001
         c.waitPeriod(t_start)
-    c.servoStop()
+    c.servoStop()  # brakes from 0.5 rad/s at 10 rad/s^2: about 12 mrad past the last target
+    assert wait_until(c.isSteady, 3.0)
     no_stop(ctl)
     last = np.array(joint_q) - np.array([0.001, 0.001, 0, 0, 0, 0])
-    assert wait_until(lambda: np.allclose(truth_q(ctl), last, atol=0.01), 3.0)
+    assert np.allclose(truth_q(ctl), last, atol=0.03)
 
 
 def test_speedj_then_speed_stop(ctl: ControllerProcess, rtde: tuple) -> None:
