@@ -151,15 +151,24 @@ class ClientSession:
     def on_close(self) -> None:
         self.closed = True
 
+    def backlogged(self) -> bool:
+        """Still more than the limit queued after trying to send it."""
+        if len(self._pending) <= _MAX_PENDING_BYTES:
+            return False
+        self.send(b"")
+        return len(self._pending) > _MAX_PENDING_BYTES
+
     def send(self, data: bytes) -> None:
         """Queue a whole package; dropped whole when the client is not reading."""
         with self._lock:
             if self.closed:
                 return
             if len(self._pending) > _MAX_PENDING_BYTES:
-                self.dropped += 1
+                self.dropped += 1 if data else 0
             else:
                 self._pending += data
+            if not self._pending:
+                return
             try:
                 _, writable, _ = select.select([], [self.sock], [], 0)
                 if not writable:
@@ -206,9 +215,12 @@ class ClientInterfaces:
         state: bytes | None = None
         rt: bytes | None = None
         for session in self.sessions():
-            if session.closed or now_s < session.next_due_s:
+            if session.closed or now_s < session.next_due_s - 2e-4:
                 continue
             if session.kind == "realtime":
+                if session.backlogged():
+                    session.dropped += 1  # a client that does not read (ur_rtde's script one)
+                    continue
                 rt = rt if rt is not None else realtime_package(view)
                 session.send(rt)
                 continue
