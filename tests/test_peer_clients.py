@@ -302,6 +302,18 @@ def test_unsupported_command_is_refused_and_the_program_keeps_running(
     assert c.getJointTorques() == [0.0] * 6
 
 
+def test_move_until_contact_stops_on_the_contact_surface(ctl: ControllerProcess,
+                                                         rtde: tuple) -> None:
+    c, r = rtde
+    z0 = r.getActualTCPPose()[2]
+    ctl.set_contact_plane_z(z0 - 0.04)  # a table 40 mm below the tool
+    t0 = time.monotonic()
+    assert c.moveUntilContact([0.0, 0.0, -0.05, 0.0, 0.0, 0.0], [0.0] * 6, 0.5)
+    assert 0.5 < time.monotonic() - t0 < 10.0  # 40 mm at 50 mm/s, then back to the contact
+    assert truth_pose(ctl)[2] == pytest.approx(z0 - 0.04, abs=1e-4)
+    no_stop(ctl)
+
+
 def test_custom_script_function_runs_the_supported_subset(ctl: ControllerProcess,
                                                           rtde: tuple) -> None:
     c, r = rtde

@@ -16,6 +16,7 @@ import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -33,8 +34,7 @@ CONTROL_SCRIPT_MARK = "RTDE Control Script"
 REALTIME_CMDS = {24, 11, 9, 10, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71}
 STOP_SCRIPT = 255
 # mailbox commands the simulator refuses (see MailboxInterpreter.refuse), by ur_rtde's names
-REFUSED_CMDS = {6: "forceMode", 12: "servoC", 25: "toolContact", 28: "getTargetWaypoint",
-                51: "moveUntilContact"}
+REFUSED_CMDS = {6: "forceMode", 12: "servoC", 25: "toolContact", 28: "getTargetWaypoint"}
 REFUSE_RESUME_S = 0.3
 _MOVE = re.compile(
     r"^\s*(movej|movel|movep)\((p?)\[([^\]]*)\],a=([^,]+),v=([^,]+),r=([^)]+)\)\s*$")
@@ -116,10 +116,12 @@ class MailboxInterpreter:
         self._resume: tuple[ControlProgram, float] | None = None  # after a refused command
         self.hand_guiding = False  # teach or freedrive mode
         self._ignore: tuple[int, float] | None = None  # (command, write time) refused
+        self._contact: dict[str, Any] | None = None  # a moveUntilContact under way
 
     # -- program lifecycle ---------------------------------------------------------------------
     def start(self, prog: ControlProgram) -> None:
         self._resume = None
+        self._contact = None
         self.hand_guiding = False
         snap = self.engine.snapshot()
         if snap.robot_mode != RobotMode.RUNNING or snap.safety_mode != SafetyMode.NORMAL:
@@ -201,6 +203,9 @@ class MailboxInterpreter:
                           "program stopped")
                 return
             self._track_async(snap)
+            if self._contact is not None:
+                self._step_contact(snap)
+                return
             if self._pending_id is not None:
                 if self._finished(self._pending_id, snap):
                     self._pending_id = None
@@ -222,7 +227,8 @@ class MailboxInterpreter:
                     self._write_int(0, READY)
                 elif not self._executing:
                     self._executing = True
-                    if self._process(cmd, snap) and self._pending_id is None:
+                    if (self._process(cmd, snap) and self._pending_id is None
+                            and self._contact is None):
                         self._write_int(0, DONE)
             except EngineError as exc:
                 self.runtime_error(exc)
@@ -369,7 +375,15 @@ class MailboxInterpreter:
             # detection on/off: accepted; the simulated arm feels no force, so nothing changes
             pass
         elif cmd == 64:
-            self._write_int(1, 0)  # read_contact_detection: no contact in free space
+            touching = e.contact_excess_m(snap.tcp_pose) >= -1e-4
+            self._write_int(1, 1 if touching else 0)
+        elif cmd == 51:
+            if not e.contact_planes:
+                self.refuse("moveUntilContact: the simulated world has no contact surface "
+                            "(configure one: ControllerProcess.set_contact_plane_z)")
+                return False
+            e.speed_l(self._floats(0), self._float(12), 0.0)
+            self._contact = {"stage": "approach"}
         elif cmd in (18, 52):
             self.hand_guiding = True  # teach/freedrive: nobody pushes the simulated arm
         elif cmd in (19, 53):
@@ -389,6 +403,26 @@ class MailboxInterpreter:
             self.refuse(f"ur_rtde command {cmd} is not simulated by this controller simulator")
             return False
         return True
+
+    def _step_contact(self, snap: EngineSnapshot) -> None:
+        """moveUntilContact: speedl until the TCP reaches a contact surface, stopl, then back
+        to where the contact was detected (as ur_rtde's script does), then done."""
+        e, c = self.engine, self._contact
+        assert c is not None
+        if c["stage"] == "approach":
+            if e.contact_excess_m(snap.tcp_pose) >= 0.0:
+                c["pose"] = list(snap.tcp_pose)
+                c["stage"] = "braking"
+                e.stop_l(3.0)
+            elif snap.active_command != "speedl":
+                self._contact = None  # ended otherwise (stopped by a stop or a safety stop)
+                self._write_int(0, DONE)
+        elif c["stage"] == "braking" and snap.active_command is None:
+            c["cid"] = e.move_l(c["pose"], 0.05, 1.0)
+            c["stage"] = "retract"
+        elif c["stage"] == "retract" and e.outcome(int(c["cid"])) != CommandOutcome.RUNNING:
+            self._contact = None
+            self._write_int(0, DONE)
 
     def refuse(self, reason: str) -> None:
         """Answer an unsimulated command: the client's call returns False at once (its

@@ -153,6 +153,7 @@ class MotionEngine:
         self._hook: Callable[[], None] | None = None
         self._servo_ik: tuple[Vec, Vec] | None = None  # last servol pose and its IK
         self._snap_cache: tuple[tuple[object, ...], EngineSnapshot] | None = None
+        self.contact_planes: tuple[SafetyPlane, ...] = ()
         self._hook_wants: Callable[[], bool] | None = None
         self._idle_period_s = 0.02
         self._history: deque[tuple[float, Vec]] = deque(maxlen=int(_HISTORY_S / CYCLE_S))
@@ -351,6 +352,18 @@ class MotionEngine:
         """How far (m) the TCP is beyond the worst safety plane (<= 0: on the allowed side)."""
         p = T_base_tcp[:3, 3] / 1000.0
         return max((pl.excess_m(p) for pl in self.limits.safety_planes), default=-math.inf)
+
+    def set_contact_planes(self, planes: Sequence[SafetyPlane]) -> None:
+        """Surfaces in the simulated world the tool can touch (moveUntilContact); the free
+        side is where ``normal . p >= offset_m``. No collision physics: contact is detected
+        when the TCP reaches a surface, and nothing stops the arm but the program."""
+        with self._cond:
+            self.contact_planes = tuple(planes)
+
+    def contact_excess_m(self, pose6: Sequence[float]) -> float:
+        """How far (m) a TCP position is into the nearest contact surface (< 0: free)."""
+        p = [float(v) for v in pose6[:3]]
+        return max((pl.excess_m(p) for pl in self.contact_planes), default=-math.inf)
 
     def joints_within_safety_limits(self, q_rad: Sequence[float]) -> bool:
         """isJointsWithinSafetyLimits: inside the joint limits and the TCP on the allowed
