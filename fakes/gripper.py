@@ -31,6 +31,8 @@ from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 from pymodbus.pdu.register_message import (
     ReadHoldingRegistersResponse,
     ReadInputRegistersResponse,
+    ReadWriteMultipleRegistersRequest,
+    ReadWriteMultipleRegistersResponse,
     WriteMultipleRegistersResponse,
 )
 
@@ -60,10 +62,25 @@ ILLEGAL_ADDRESS = 0x02
 FRAME_GAP_S = 0.05  # silence that drops a half-received frame (RTU's 3.5 chars, lenient)
 
 
+# The position scale of the manual's register description: gPO/rPR 0x00 is fully open (85 mm),
+# 0xFF fully closed, linear over the stroke. A real gripper's fingers stop at software limits
+# inside that range (the manual's example reads 0x0D after a full opening request); the model
+# takes those limits as parameters, by default the whole range.
+POS_OPEN_LIMIT = 0x00
+POS_CLOSED_LIMIT = 0xFF
+MANUAL_EXAMPLE_OPEN_LIMIT = 0x0D
+MM_PER_BIT = STROKE_MM / 255.0
+
+
+def finger_position(opening_mm: float) -> float:
+    """Position units (gPO) at which the fingers are ``opening_mm`` apart."""
+    return float(mm_to_position(opening_mm))
+
+
 def speed_units_per_s(rsp: int) -> float:
     """Finger speed for an ``rSP`` byte, in position units (1/255 of the stroke) per second."""
     mm_s = MIN_SPEED_MM_S + (MAX_SPEED_MM_S - MIN_SPEED_MM_S) * rsp / 255.0
-    return mm_s * 255.0 / STROKE_MM
+    return mm_s / MM_PER_BIT
 
 
 @dataclass
@@ -81,9 +98,11 @@ class GripperModel:
     def __init__(
         self, activation_time_s: float = 0.5, object_width_mm: float | None = None,
         clock: Callable[[], float] = time.monotonic,
+        limits: tuple[int, int] = (POS_OPEN_LIMIT, POS_CLOSED_LIMIT),
     ) -> None:
         self.activation_time_s = activation_time_s
         self.object_width_mm = object_width_mm
+        self.open_limit, self.closed_limit = limits
         self._clock = clock
         self.request = [0, 0, 0, 0, 0, 0]  # the six action-request bytes
         self._activate_started: float | None = None
@@ -131,10 +150,11 @@ class GripperModel:
             self._pos, self._gobj = pos, GOBJ_MOVING
 
     def _start_motion(self) -> None:
-        target, rsp = self.request[3], self.request[4]
+        rsp = self.request[4]
+        target = min(max(self.request[3], self.open_limit), self.closed_limit)
         stop_at = None
         if self.object_width_mm is not None:
-            contact = float(mm_to_position(self.object_width_mm))
+            contact = finger_position(self.object_width_mm)
             if self._pos <= contact < target:
                 stop_at = contact
         self._motion = _Motion(self._pos, target, speed_units_per_s(rsp), self.now(), stop_at)
@@ -158,7 +178,7 @@ class GripperModel:
                 return
             if not was_active:
                 self._activate_started = self.now()
-                self._pos = 0.0  # activation runs a full stroke and ends open
+                self._pos = float(self.open_limit)  # activation runs a full stroke, ends open
             if not new[0] & RGTO:
                 self._motion = None
                 return
@@ -181,7 +201,9 @@ class GripperModel:
                 self._update()
             act = self.request[0] & RACT
             gto = 1 if self.request[0] & RGTO else 0
-            gobj = self._gobj if gsta == GSTA_ACTIVATED else GOBJ_MOVING
+            # gOBJ is only meaningful with gGTO = 1 (the manual: "ignore if gGTO == 0"); the
+            # gripper reports 0 then, so an activated, idle gripper reads 0x31 as in its example
+            gobj = self._gobj if gsta == GSTA_ACTIVATED and gto else GOBJ_MOVING
             moving = self._motion is not None
             current = 0x0A if moving else (self.request[5] // 4 if gobj == 2 else 0)
             status = act | (gto << 3) | (gsta << 4) | (gobj << 6)
@@ -301,6 +323,18 @@ class FakeGripper:
             return WriteMultipleRegistersResponse(
                 address=pdu.address, count=len(pdu.registers), dev_id=self.slave_id
             )
+        if fc == 0x17:  # read/write multiple registers: the write happens before the read
+            assert isinstance(pdu, ReadWriteMultipleRegistersRequest)
+            offset = pdu.write_address - ACTION_REQUEST_ADDR
+            regs_in = list(pdu.write_registers)
+            if offset < 0 or offset + len(regs_in) > N_REGISTERS or not regs_in:
+                return ExceptionResponse(fc, ILLEGAL_ADDRESS, self.slave_id)
+            if self.model.read_registers(pdu.read_address, pdu.read_count) is None:
+                return ExceptionResponse(fc, ILLEGAL_ADDRESS, self.slave_id)
+            self.model.write_request(offset, regs_in)
+            regs = self.model.read_registers(pdu.read_address, pdu.read_count)
+            assert regs is not None
+            return ReadWriteMultipleRegistersResponse(registers=regs, dev_id=self.slave_id)
         return ExceptionResponse(fc, ILLEGAL_FUNCTION, self.slave_id)
 
     def _reply(self, response: ModbusPDU) -> None:

@@ -21,7 +21,12 @@ from drivers.errors import (
 )
 from drivers.gripper import Gripper
 from drivers.robotiq import RobotiqGripper, mm_to_position, position_to_mm
-from fakes.gripper import FakeGripper, GripperModel, speed_units_per_s
+from fakes.gripper import (
+    MANUAL_EXAMPLE_OPEN_LIMIT,
+    FakeGripper,
+    GripperModel,
+    speed_units_per_s,
+)
 
 H = bytes.fromhex
 
@@ -215,7 +220,8 @@ def test_model_needs_activation_and_takes_time() -> None:
     m.write_request(0, [0x0100, 0, 0])
     assert (m.status_bytes()[0] >> 4) & 3 == 1  # activating
     clock.t = 1.01
-    assert (m.status_bytes()[0] >> 4) & 3 == 3
+    assert m.status_bytes()[0] == 0x31  # the manual's example: gACT = 1, gSTA = 3, gOBJ = 0
+    assert m.status_bytes()[4] == 0
     m.write_request(0, [0x0900, 0x00FF, 0xFFFF])
     assert m.status_bytes()[2] == 0  # the order fault cleared by a valid request
     full_stroke_s = 255 / speed_units_per_s(255)
@@ -225,7 +231,20 @@ def test_model_needs_activation_and_takes_time() -> None:
     assert mid[0] >> 6 == 0 and 120 < mid[4] < 135
     clock.t += full_stroke_s
     done = m.status_bytes()
-    assert done[0] >> 6 == 3 and done[4] == 255
+    # closed on nothing: at the closed software limit, "at requested position" (0xF9)
+    assert done[0] == 0xF9 and done[3] == 0xFF and done[4] == 255
+
+
+def test_model_with_the_manual_examples_software_limit() -> None:
+    """The manual's opening example: full-open request, fingers at 0x0D, status 0xF9."""
+    clock = Clock()
+    m = GripperModel(activation_time_s=0.1, clock=clock, limits=(MANUAL_EXAMPLE_OPEN_LIMIT, 255))
+    m.write_request(0, [0x0100, 0, 0])
+    clock.t = 0.2
+    assert m.status_bytes()[0] == 0x31
+    m.write_request(0, [0x0900, 0x0000, 0xFFFF])
+    clock.t = 2.0
+    assert m.status_bytes() == [0xF9, 0x00, 0x00, 0x00, 0x0D, 0x00]
 
 
 # -- end to end over a real pseudo-terminal --------------------------------------------------

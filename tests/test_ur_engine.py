@@ -27,6 +27,7 @@ from fakes.ur_sim.engine import (
     RobotMode,
     RobotStatusBit,
     SafetyMode,
+    SafetyPlane,
     SafetyStatusBit,
     SimLimits,
     UnreachablePoseError,
@@ -180,7 +181,7 @@ def test_invalid_commands_change_nothing(eng: MotionEngine) -> None:
 
 def test_workspace_exit_trips_protective_stop() -> None:
     e = _running(SimLimits(power_on_s=0.05, brake_release_s=0.05, unlock_delay_s=0.5,
-                           workspace_min_m=(-1.0, -1.0, 0.35)))
+                           safety_planes=(SafetyPlane.floor(0.35),)))
     try:
         p = list(e.snapshot().tcp_pose)
         target = p.copy()
@@ -188,7 +189,7 @@ def test_workspace_exit_trips_protective_stop() -> None:
         cid = e.move_l(target, 0.2, 1.0)
         s = _wait(e, lambda s: s.safety_mode == SafetyMode.PROTECTIVE_STOP)
         assert s.safety_mode == SafetyMode.PROTECTIVE_STOP
-        assert "workspace" in s.last_stop_reason
+        assert "safety plane" in s.last_stop_reason
         assert e.wait_until_idle(2)
         s = e.snapshot()
         # stopped at the boundary: the crossing cycle is refused, then a short braking distance
@@ -475,3 +476,79 @@ def test_blended_linear_path_rounds_corners(eng: MotionEngine) -> None:
     assert t_blend < t_stop - 0.2
     with pytest.raises(CommandRejectedError):  # blend above half a segment
         eng.move_path([("movel", a, 0.2, 1.0, 0.06), ("movel", b, 0.2, 1.0, 0.0)])
+
+
+# -- the controller's own clock -------------------------------------------------------------------
+
+def test_controller_clock_catches_up_after_a_host_stall(eng: MotionEngine) -> None:
+    """A host stall (here: the engine lock held for 150 ms, as a descheduled process would be)
+    is caught up cycle by cycle: the pose history keeps one 2 ms step per cycle and the
+    motion's speed stays what the profile says instead of jumping."""
+    seen: list[tuple[float, float]] = []
+    eng.set_cycle_hook(lambda: seen.append((eng.snapshot().timestamp_s, eng.snapshot().qd[0])),
+                       lambda: True)
+    q = _plus(eng.snapshot().q, [0.8, 0, 0, 0, 0, 0])
+    cid = eng.move_j(q.tolist(), 1.0, 2.0)
+    time.sleep(0.2)
+    with eng._cond:  # the stall
+        time.sleep(0.15)
+    assert eng.wait_for(cid, 5.0) == CommandOutcome.SUCCEEDED
+    eng.set_cycle_hook(None)
+    stamps = np.array([t for t, _ in seen])
+    steps = np.diff(stamps)
+    assert np.allclose(steps[steps > 0], CYCLE_S, atol=1e-9)  # no cycle skipped
+    assert max(abs(v) for _, v in seen) <= 1.0 * 1.001  # never above the profile's speed
+
+
+def test_servo_burst_after_client_stall_does_not_trip(eng: MotionEngine) -> None:
+    """ur_rtde's way: the program re-issues the register's latest target every cycle, the
+    client writes targets at 500 Hz, stalls 60 ms, then writes its late targets back to back
+    (the program sees only the last). Judged over the window, the stream has its real speed,
+    so nothing trips, and the arm ends on the last target."""
+    q0 = np.array(eng.snapshot().q)
+    register = {"q": q0.copy(), "k": 0}
+
+    def program_cycle() -> None:
+        eng.servo_j(register["q"].tolist(), CYCLE_S, 0.1, 300)
+
+    eng.set_cycle_hook(program_cycle, lambda: True)
+    t0 = time.monotonic()
+    stalled = False
+    while register["k"] < 300:
+        t = time.monotonic() - t0
+        if t > 0.2 and not stalled:
+            stalled = True
+            time.sleep(0.06)
+            t = time.monotonic() - t0
+        k = min(int(t / CYCLE_S), 300)
+        register["q"] = q0 + np.array([1.0 * CYCLE_S * k, 0, 0, 0, 0, 0])  # 1 rad/s
+        register["k"] = k
+        time.sleep(0.002)
+    time.sleep(0.3)
+    eng.set_cycle_hook(None)
+    s = eng.snapshot()
+    assert s.safety_mode == SafetyMode.NORMAL, s.last_stop_reason
+    assert abs(s.q[0] - register["q"][0]) < 1e-3
+
+
+def test_servo_tracking_lag_is_about_one_cycle(eng: MotionEngine) -> None:
+    """Targets issued every controller cycle (as ur_rtde's script does): with lookahead 0.1 s
+    and gain 300 the arm follows a 0.5 rad/s ramp within a few cycles of the latest target."""
+    q0 = np.array(eng.snapshot().q)
+    lag: list[float] = []
+    count = [0]
+
+    def cycle() -> None:
+        i = count[0]
+        if i >= 400:
+            return
+        if i > 200:
+            lag.append((q0[0] + 0.5 * CYCLE_S * (i - 1) - eng.snapshot().q[0]) / (0.5 * CYCLE_S))
+        eng.servo_j((q0 + np.array([0.5 * CYCLE_S * i, 0, 0, 0, 0, 0])).tolist(), CYCLE_S, 0.1,
+                    300)
+        count[0] += 1
+
+    eng.set_cycle_hook(cycle, lambda: count[0] < 400)
+    assert _wait(eng, lambda s: count[0] >= 400, 10.0)
+    eng.set_cycle_hook(None)
+    assert lag and max(abs(x) for x in lag) < 4.0

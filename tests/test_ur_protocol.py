@@ -24,7 +24,8 @@ import script_client
 from estimator.transforms import T_from_ur_pose
 from fakes.ur_controller import rtde
 from fakes.ur_controller.process import ControllerProcess
-from fakes.ur_controller.script import parse_program, split_programs
+from fakes.ur_controller.script import parse_program
+from fakes.ur_controller.urscript import split_programs
 
 # The ur_rtde clients run in this process and block inside C++ (movePath waits for the program
 # without a deadline): a signal cannot interrupt them, a watchdog thread can end the run.
@@ -343,7 +344,7 @@ def test_io_interface_and_protective_stop_program_state(
     assert np.allclose(r.getActualTCPPose(), p0, atol=1e-9)
 
 
-def test_rtde_watchdog_and_unsimulated_commands_stop_the_program(
+def test_rtde_watchdog_stops_the_program_and_unsimulated_commands_are_refused(
         ctl: ControllerProcess, clients: tuple) -> None:
     c, r = clients
     assert c.setWatchdog(20.0)  # 20 Hz: the client must write within 50 ms
@@ -360,9 +361,21 @@ def test_rtde_watchdog_and_unsimulated_commands_stop_the_program(
     while r.getRuntimeState() != 2 and time.monotonic() < deadline:
         time.sleep(0.01)
     assert r.getRuntimeState() == 2
-    assert c.teachMode() is False  # not simulated: a runtime error, not a silent success
+    assert c.teachMode() and c.endTeachMode()  # simulated: nobody pushes the arm
+    t0 = time.monotonic()
+    # not simulated: refused at once with a message, not a silent success, not a hang
+    assert c.moveUntilContact([0.0, 0.0, -0.05, 0.0, 0.0, 0.0]) is False
+    assert time.monotonic() - t0 < 2.0
     messages = ctl.state()["messages"]
-    assert any("not simulated" in m for m in messages), messages
+    assert any(m.startswith("Refused: moveUntilContact") for m in messages), messages
+    deadline = time.monotonic() + 3.0  # ... and the program resumes by itself
+    while not c.isProgramRunning() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    q = r.getActualQ()
+    target = list(q)
+    target[0] += 0.05
+    assert c.moveJ(target, 1.0, 1.0)
+    assert np.allclose(r.getActualQ(), target, atol=1e-4)
 
 
 def test_jog_start_and_stop_in_tool_frame(ctl: ControllerProcess, clients: tuple) -> None:
@@ -382,3 +395,70 @@ def test_jog_start_and_stop_in_tool_frame(ctl: ControllerProcess, clients: tuple
     along = float(moved_mm @ tool_z)
     assert 20.0 * (t1 - t0) - 3.0 < along < 20.0 * (t2 - t0) + 1.0, f"jogged {along:.1f} mm"
     assert np.linalg.norm(moved_mm - along * tool_z) < 0.5
+
+
+# The output names (and types) of UR's RTDE client library's full record configuration
+# (record_configuration_v3.xml), as published; the registers are generated below.
+RECORD_OUTPUTS = {
+    "timestamp": "DOUBLE", "target_q": "VECTOR6D", "target_qd": "VECTOR6D",
+    "target_qdd": "VECTOR6D", "target_current": "VECTOR6D", "target_moment": "VECTOR6D",
+    "actual_q": "VECTOR6D", "actual_qd": "VECTOR6D", "actual_current": "VECTOR6D",
+    "joint_control_output": "VECTOR6D", "actual_TCP_pose": "VECTOR6D",
+    "actual_TCP_speed": "VECTOR6D", "actual_TCP_force": "VECTOR6D", "target_TCP_pose": "VECTOR6D",
+    "target_TCP_speed": "VECTOR6D", "actual_digital_input_bits": "UINT64",
+    "joint_temperatures": "VECTOR6D", "actual_execution_time": "DOUBLE", "robot_mode": "INT32",
+    "joint_mode": "VECTOR6INT32", "safety_status": "INT32", "actual_tool_accelerometer": "VECTOR3D",
+    "speed_scaling": "DOUBLE", "target_speed_fraction": "DOUBLE", "actual_momentum": "DOUBLE",
+    "actual_main_voltage": "DOUBLE", "actual_robot_voltage": "DOUBLE",
+    "actual_robot_current": "DOUBLE", "actual_joint_voltage": "VECTOR6D",
+    "actual_digital_output_bits": "UINT64", "runtime_state": "UINT32",
+    "joint_position_deviation_ratio": "DOUBLE", "payload": "DOUBLE", "payload_cog": "VECTOR3D",
+    "payload_inertia": "VECTOR6D", "ft_raw_wrench": "VECTOR6D", "script_control_line": "UINT32",
+    "actual_current_window": "VECTOR6D", "elbow_position": "VECTOR3D",
+    "elbow_velocity": "VECTOR3D", "robot_status_bits": "UINT32", "safety_status_bits": "UINT32",
+    "safety_mode": "INT32", "io_current": "DOUBLE", "tool_mode": "UINT32",
+    "tcp_force_scalar": "DOUBLE", "tcp_offset": "VECTOR6D", "dexterity": "DOUBLE",
+    "analog_io_types": "UINT32", "standard_analog_input0": "DOUBLE",
+    "standard_analog_input1": "DOUBLE", "standard_analog_output0": "DOUBLE",
+    "standard_analog_output1": "DOUBLE", "tool_analog_input_types": "UINT32",
+    "tool_analog_input0": "DOUBLE", "tool_analog_input1": "DOUBLE",
+    "tool_output_voltage": "INT32", "tool_output_voltage_2": "INT32",
+    "tool_output_current": "DOUBLE", "tool_output_current_2": "DOUBLE",
+    "tool_temperature": "DOUBLE", "tool_output_mode": "UINT8",
+    "tool_digital_output0_mode": "UINT8", "tool_digital_output1_mode": "UINT8",
+    "euromap67_input_bits": "UINT32", "euromap67_output_bits": "UINT32",
+    "euromap67_24V_voltage": "DOUBLE", "euromap67_24V_current": "DOUBLE",
+    "actual_configurable_digital_input_bits": "UINT64",
+    "actual_configurable_digital_output_bits": "UINT64", "encoder0_raw": "INT32",
+    "encoder1_raw": "INT32", "output_bit_registers0_to_31": "UINT32",
+    "output_bit_registers32_to_63": "UINT32", "input_bit_registers0_to_31": "UINT32",
+    "input_bit_registers32_to_63": "UINT32", "external_force_torque": "VECTOR6D",
+    **{f"{d}_bit_register_{i}": "BOOL" for d in ("output", "input") for i in range(64, 128)},
+    **{f"{d}_int_register_{i}": "INT32" for d in ("output", "input") for i in range(48)},
+    **{f"{d}_double_register_{i}": "DOUBLE" for d in ("output", "input") for i in range(48)},
+}
+
+
+def test_record_configuration_outputs_byte_by_byte(ctl: ControllerProcess) -> None:
+    """UR's guide: 'O' carries a double frequency then the comma-separated names;
+    the reply is the recipe id then the comma-separated types; 'S' starts, each 'U' carries
+    the recipe id and the values at their types' widths, big-endian."""
+    names = list(RECORD_OUTPUTS)
+    c = RawRTDE(ctl.host)
+    try:
+        assert c.request(rtde.REQUEST_PROTOCOL_VERSION, struct.pack(">H", 2)) == b"\x01"
+        reply = c.request(rtde.CONTROL_PACKAGE_SETUP_OUTPUTS,
+                          struct.pack(">d", 125.0) + ",".join(names).encode())
+        assert reply[0] == 1
+        assert reply[1:].decode().split(",") == [RECORD_OUTPUTS[n] for n in names]
+        assert c.request(rtde.CONTROL_PACKAGE_START) == b"\x01"
+        fmt = ">B" + "".join(rtde.TYPE_FORMATS[RECORD_OUTPUTS[n]] for n in names)
+        first = c.next(rtde.DATA_PACKAGE)[1]
+        second = c.next(rtde.DATA_PACKAGE)[1]
+        assert len(first) == struct.calcsize(fmt)
+        a, b = struct.unpack(fmt, first), struct.unpack(fmt, second)
+        assert a[0] == 1 and b[1] - a[1] == pytest.approx(0.008, abs=1e-9)  # 125 Hz
+        q = a[1 + 6 * 5 + 1:1 + 6 * 5 + 1 + 6]  # actual_q after timestamp and 5 vectors
+        assert np.allclose(q, ctl.state()["q"], atol=1e-9)
+    finally:
+        c.close()

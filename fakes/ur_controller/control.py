@@ -14,6 +14,7 @@ import signal
 from typing import IO, Any
 
 from fakes.ur_controller.server import URController
+from fakes.ur_sim import SafetyPlane
 
 
 def state_of(ctl: URController) -> dict[str, Any]:
@@ -29,6 +30,8 @@ def state_of(ctl: URController) -> dict[str, Any]:
         "program": ctl.program_state(),
         "messages": ctl.messages[-20:],
         "host_monotonic_s": snap.host_monotonic_s,
+        "controller_lag_s": ctl.engine.lag_s(),
+        "skipped_cycles": ctl.engine.skipped_cycles,
     }
 
 
@@ -55,6 +58,8 @@ def handle(ctl: URController, line: str) -> dict[str, Any]:
         f.stall_stream(args[0] if args else 1.0)
     elif cmd == "freeze":
         f.freeze()
+    elif cmd == "contact":
+        ctl.engine.set_contact_planes([SafetyPlane.floor(args[0])] if args else [])
     elif cmd == "remote":
         ctl.remote_control = "off" not in words
     elif cmd == "kill":

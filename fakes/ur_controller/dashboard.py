@@ -38,6 +38,14 @@ class DashboardBackend(Protocol):
 
     def stop_program(self, reason: str) -> None: ...
 
+    def loaded_program(self) -> str | None: ...
+
+    def load_program(self, name: str) -> bool: ...
+
+    def play(self) -> bool: ...
+
+    def pause(self) -> bool: ...
+
 
 def reply_to(line: str, ctl: DashboardBackend) -> str:
     """The dashboard's answer to one command line (without the trailing newline)."""
@@ -74,17 +82,20 @@ def reply_to(line: str, ctl: DashboardBackend) -> str:
         ctl.stop_program("stopped from the dashboard")
         return "Stopped"
     if low == "play":
-        return "Failed to execute: play"  # no .urp program is ever loaded on the simulator
+        return "Starting program" if ctl.play() else "Failed to execute: play"
     if low == "pause":
-        return "Failed to execute: pause"
+        return "Pausing program" if ctl.pause() else "Failed to execute: pause"
     if low == "programstate":
         return f"{ctl.program_state()} {ctl.program_name()}"
     if low == "running":
         return f"Program running: {str(ctl.program_state() == 'PLAYING').lower()}"
     if low == "get loaded program":
-        return "No program loaded"
+        loaded = ctl.loaded_program()
+        return f"Loaded program: {loaded}" if loaded else "No program loaded"
     if low.startswith("load "):
-        return f"File not found: {cmd[5:]}"
+        name = cmd[5:].strip()
+        return (f"Loading program: {name}" if ctl.load_program(name)
+                else f"File not found: {name}")
     if low == "polyscopeversion":
         return f"URSoftware {ctl.polyscope_version} (Oct 15 2021)"
     if low == "get serial number":

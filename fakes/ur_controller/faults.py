@@ -18,7 +18,7 @@ if TYPE_CHECKING:
     from fakes.ur_controller.server import URController
     from fakes.ur_controller.tcp import TcpService
 
-Port = Literal["rtde", "script", "dashboard"]
+Port = Literal["rtde", "script", "dashboard", "primary", "secondary"]
 
 
 class Faults:
@@ -31,10 +31,13 @@ class Faults:
 
     def _services(self, ports: tuple[Port, ...]) -> list[TcpService]:
         ctl = self._ctl
-        table = {"rtde": ctl.rtde.service, "script": ctl.script, "dashboard": ctl.dashboard}
+        table = {"rtde": ctl.rtde.service, "script": ctl.script, "dashboard": ctl.dashboard,
+                 "primary": ctl.client_interfaces.services["primary"],
+                 "secondary": ctl.client_interfaces.services["secondary"]}
         return [table[p] for p in ports]
 
-    def drop_connections(self, ports: tuple[Port, ...] = ("rtde", "script", "dashboard"),
+    def drop_connections(self, ports: tuple[Port, ...] = ("rtde", "script", "dashboard",
+                                                          "primary", "secondary"),
                          reset: bool = False) -> None:
         for service in self._services(ports):
             service.drop_all(reset)
@@ -63,6 +66,6 @@ class Faults:
     def freeze(self) -> None:
         """The controller stops answering without closing anything it has open."""
         self.frozen = True
-        for service in self._services(("rtde", "script", "dashboard")):
+        for service in self._services(("rtde", "script", "dashboard", "primary", "secondary")):
             service.frozen = True
             service.stop_listening()

@@ -12,7 +12,7 @@ import threading
 from typing import Any
 
 READY_TIMEOUT_S = 20.0
-_PORTS = (29999, 30003, 30004)
+_PORTS = (29999, 30001, 30002, 30003, 30004)
 
 
 def free_loopback_host() -> str:
@@ -102,6 +102,10 @@ class ControllerProcess:
 
     def freeze(self) -> None:
         self.command("freeze")
+
+    def set_contact_plane_z(self, z_m: float | None) -> None:
+        """A horizontal surface at height ``z_m`` (base frame) the tool can touch; None: none."""
+        self.command("contact" if z_m is None else f"contact {z_m}")
 
     def set_remote_control(self, on: bool) -> None:
         self.command("remote on" if on else "remote off")

@@ -143,6 +143,40 @@ _OUTPUTS: dict[str, tuple[str, Getter]] = {
     "output_bit_registers32_to_63": ("UINT32", lambda v: (v.regs.out_bits >> 32) & 0xFFFFFFFF),
     "input_bit_registers0_to_31": ("UINT32", lambda v: v.regs.in_bits & 0xFFFFFFFF),
     "input_bit_registers32_to_63": ("UINT32", lambda v: (v.regs.in_bits >> 32) & 0xFFFFFFFF),
+    # simulated: the arm's state
+    "elbow_position": ("VECTOR3D", lambda v: v.snap.elbow_position),
+    "elbow_velocity": ("VECTOR3D", lambda v: v.snap.elbow_velocity),
+    "tcp_offset": ("VECTOR6D", lambda v: v.snap.tcp_offset),
+    "actual_current_window": ("VECTOR6D", lambda v: tuple(abs(c) for c in v.snap.actual_current_a)),
+    "actual_configurable_digital_output_bits": ("UINT64", lambda v: v.regs.configurable_do),
+    "tool_output_mode": ("UINT8", lambda v: 0),  # 0: digital outputs, not a tool serial link
+    "tool_digital_output0_mode": ("UINT8", lambda v: 1),  # 1: sinking (NPN), UR's default
+    "tool_digital_output1_mode": ("UINT8", lambda v: 1),
+    "script_control_line": ("UINT32", lambda v: 0),
+    # constant: no dynamics, contact, tool electronics or Euromap67 board are simulated
+    "joint_position_deviation_ratio": ("DOUBLE", lambda v: 0.0),
+    "collision_detection_ratio": ("DOUBLE", lambda v: 0.0),
+    "dexterity": ("DOUBLE", lambda v: 1.0),
+    "io_current": ("DOUBLE", lambda v: 0.1),
+    "tool_mode": ("UINT32", lambda v: 253 if v.snap.robot_mode >= 4 else 0),
+    "analog_io_types": ("UINT32", lambda v: 0),
+    "tool_analog_input_types": ("UINT32", lambda v: 0),
+    "tool_analog_input0": ("DOUBLE", lambda v: 0.0),
+    "tool_analog_input1": ("DOUBLE", lambda v: 0.0),
+    "tool_output_voltage": ("INT32", lambda v: 24 if v.snap.robot_mode >= 4 else 0),
+    "tool_output_voltage_2": ("INT32", lambda v: 0),
+    "tool_output_current": ("DOUBLE", lambda v: 0.0),
+    "tool_output_current_2": ("DOUBLE", lambda v: 0.0),
+    "tool_temperature": ("DOUBLE", lambda v: 30.0 if v.snap.robot_mode >= 4 else 25.0),
+    "euromap67_input_bits": ("UINT32", lambda v: 0),
+    "euromap67_output_bits": ("UINT32", lambda v: 0),
+    "euromap67_24V_voltage": ("DOUBLE", lambda v: 0.0),
+    "euromap67_24V_current": ("DOUBLE", lambda v: 0.0),
+    "actual_configurable_digital_input_bits": ("UINT64", lambda v: 0),
+    "encoder0_raw": ("INT32", lambda v: 0),
+    "encoder1_raw": ("INT32", lambda v: 0),
+    "time_scale_source": ("UINT32", lambda v: 0),
+    "external_force_torque": ("VECTOR6D", lambda v: v.regs.external_ft),
 }
 
 _REGISTER_NAME = re.compile(r"(input|output)_(int|double|bit)_register_(\d+)$")
@@ -305,10 +339,13 @@ class RTDEConnection:
 
     def package_if_due(self, view: ControllerView, now_s: float) -> bytes | None:
         """This connection's data package when its period has elapsed, else None."""
-        if not self.started or self.closed or self.output is None or now_s < self._next_due_s:
+        # (a tenth of a cycle of tolerance: cycle times are sums of 2 ms steps, not exact)
+        if (not self.started or self.closed or self.output is None
+                or now_s < self._next_due_s - 2e-4):
             return None
         period = 1.0 / self.output.frequency_hz
-        self._next_due_s = max(self._next_due_s + period, now_s - period)
+        self._next_due_s = (now_s + period if self._next_due_s <= 0.0  # first after start
+                            else max(self._next_due_s + period, now_s - period))
         return self.output.encode(view)
 
     # -- Handler -----------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""Port 30003: receives URScript programs, and the interpreter of ur_rtde's register mailbox.
+"""The interpreter of ur_rtde's register mailbox (its control script, uploaded to 30003).
 
 The simulator does not execute URScript. It recognises the control script ur_rtde uploads
 (``rtde_control.script``), takes from it the two things the client injects (the register offset
@@ -16,27 +16,28 @@ import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from fakes.ur_controller.registers import RegisterFile
-from fakes.ur_controller.tcp import TcpService
 from fakes.ur_sim import EngineError, EngineSnapshot, MotionEngine, RobotMode, SafetyMode
 from fakes.ur_sim.engine import CommandOutcome, CommandRejectedError, PathEntry
 
 log = logging.getLogger(__name__)
 
-SCRIPT_PORT = 30003
 READY, DONE = 1, 2
-RUNTIME_STOPPED, RUNTIME_PLAYING = 1, 2
+RUNTIME_STOPPED, RUNTIME_PLAYING, RUNTIME_PAUSED = 1, 2, 4
 CONTROL_SCRIPT_MARK = "RTDE Control Script"
 # commands the script treats as real-time: processed every cycle, answered with "ready"
-REALTIME_CMDS = {24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71}
+REALTIME_CMDS = {24, 11, 9, 10, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71}
 STOP_SCRIPT = 255
+# mailbox commands the simulator refuses (see MailboxInterpreter.refuse), by ur_rtde's names
+REFUSED_CMDS = {6: "forceMode", 12: "servoC", 25: "toolContact", 28: "getTargetWaypoint"}
+REFUSE_RESUME_S = 0.3
 _MOVE = re.compile(
     r"^\s*(movej|movel|movep)\((p?)\[([^\]]*)\],a=([^,]+),v=([^,]+),r=([^)]+)\)\s*$")
-_PROGRAM_END = re.compile(r"^end\s*$", re.MULTILINE)
 
 
 class ScriptError(Exception):
@@ -71,23 +72,12 @@ def parse_program(text: str) -> ControlProgram | None:
             m = _MOVE.match(line)
             if m is None:
                 continue
-            if m[1] == "movep":
-                raise ScriptError("movep in a path is not supported by the simulator")
             target = [float(v) for v in m[3].split(",")]
-            kind = "movel" if m[1] == "movel" else "movej"
+            # movep (constant tool speed through blends) runs as a blended movel here
+            kind = ("movej_pose" if m[1] == "movej" and m[2] else "movej" if m[1] == "movej"
+                    else "movel" if m[2] else "movel_joints")
             prog.path.append((kind, target, float(m[5]), float(m[4]), float(m[6])))  # type: ignore[arg-type]
     return prog
-
-
-def split_programs(buffer: str) -> tuple[list[str], str]:
-    """Complete ``def ...: ... end`` programs in the buffer, and the incomplete rest."""
-    programs: list[str] = []
-    while True:
-        m = _PROGRAM_END.search(buffer)
-        if m is None:
-            return programs, buffer
-        programs.append(buffer[:m.end()])
-        buffer = buffer[m.end():].lstrip("\n")
 
 
 def _pose_T(pose6: list[float]) -> np.ndarray:
@@ -123,9 +113,16 @@ class MailboxInterpreter:
         self._async_op_id = 0
         self._speed_args: tuple[float, ...] | None = None
         self._watchdog_s: float | None = None  # set_watchdog: max gap between client writes
+        self._resume: tuple[ControlProgram, float] | None = None  # after a refused command
+        self.hand_guiding = False  # teach or freedrive mode
+        self._ignore: tuple[int, float] | None = None  # (command, write time) refused
+        self._contact: dict[str, Any] | None = None  # a moveUntilContact under way
 
     # -- program lifecycle ---------------------------------------------------------------------
     def start(self, prog: ControlProgram) -> None:
+        self._resume = None
+        self._contact = None
+        self.hand_guiding = False
         snap = self.engine.snapshot()
         if snap.robot_mode != RobotMode.RUNNING or snap.safety_mode != SafetyMode.NORMAL:
             self._message("Program not started: the robot is not running (power on, release "
@@ -191,6 +188,9 @@ class MailboxInterpreter:
     # -- the cycle -----------------------------------------------------------------------------
     def step(self, snap: EngineSnapshot) -> None:
         if not self.running:
+            if self._resume is not None and time.monotonic() >= self._resume[1]:
+                prog, self._resume = self._resume[0], None
+                self.start(prog)
             return
         if snap.safety_mode != SafetyMode.NORMAL or snap.robot_mode != RobotMode.RUNNING:
             self.stop(f"Program stopped: {snap.safety_mode.name} / {snap.robot_mode.name}"
@@ -203,12 +203,21 @@ class MailboxInterpreter:
                           "program stopped")
                 return
             self._track_async(snap)
+            if self._contact is not None:
+                self._step_contact(snap)
+                return
             if self._pending_id is not None:
                 if self._finished(self._pending_id, snap):
                     self._pending_id = None
                     self._write_int(0, DONE)
                 return
             cmd = self._int(0)
+            if self._ignore is not None:
+                written = self.regs.in_int_written_s[self._prog.int_offset]
+                if (cmd, written) == self._ignore:
+                    cmd = 0  # the refused command, still in the register: not run again
+                else:
+                    self._ignore = None
             try:
                 if cmd in REALTIME_CMDS:
                     self._process(cmd, snap)
@@ -218,7 +227,8 @@ class MailboxInterpreter:
                     self._write_int(0, READY)
                 elif not self._executing:
                     self._executing = True
-                    if self._process(cmd, snap) and self._pending_id is None:
+                    if (self._process(cmd, snap) and self._pending_id is None
+                            and self._contact is None):
                         self._write_int(0, DONE)
             except EngineError as exc:
                 self.runtime_error(exc)
@@ -360,11 +370,69 @@ class MailboxInterpreter:
                 raise CommandRejectedError(f"set_watchdog: frequency {frequency} must be > 0")
             self._watchdog_s = 1.0 / frequency
             self.regs.in_int_written_s[self._prog.int_offset] = time.monotonic()
-        elif cmd in (8, 20, 21):
-            pass  # F/T zeroing and force-mode tuning: no force is simulated, nothing to change
+        elif cmd in (8, 20, 21, 7, 55, 56, 57, 59, 62, 63):
+            # F/T zeroing, force-mode tuning and stop, external F/T input, gravity, contact
+            # detection on/off: accepted; the simulated arm feels no force, so nothing changes
+            pass
+        elif cmd == 64:
+            touching = e.contact_excess_m(snap.tcp_pose) >= -1e-4
+            self._write_int(1, 1 if touching else 0)
+        elif cmd == 51:
+            if not e.contact_planes:
+                self.refuse("moveUntilContact: the simulated world has no contact surface "
+                            "(configure one: ControllerProcess.set_contact_plane_z)")
+                return False
+            e.speed_l(self._floats(0), self._float(12), 0.0)
+            self._contact = {"stage": "approach"}
+        elif cmd in (18, 52):
+            self.hand_guiding = True  # teach/freedrive: nobody pushes the simulated arm
+        elif cmd in (19, 53):
+            self.hand_guiding = False
+        elif cmd == 54:
+            self._write_int(1, 1 if self.hand_guiding else 0)
+        elif cmd == 36:
+            self._write_int(1, 1 if e.pose_within_safety_limits(self._floats(0)) else 0)
+        elif cmd == 37:
+            self._write_int(1, 1 if e.joints_within_safety_limits(self._floats(0)) else 0)
+        elif cmd == 38:
+            self._write_floats(0, [0.0] * 6)  # joint torques: no dynamics model, zero
+        elif cmd in REFUSED_CMDS:
+            self.refuse(f"{REFUSED_CMDS[cmd]} is not simulated by this controller simulator")
+            return False
         else:
-            raise CommandRejectedError(f"ur_rtde command {cmd} is not simulated")
+            self.refuse(f"ur_rtde command {cmd} is not simulated by this controller simulator")
+            return False
         return True
+
+    def _step_contact(self, snap: EngineSnapshot) -> None:
+        """moveUntilContact: speedl until the TCP reaches a contact surface, stopl, then back
+        to where the contact was detected (as ur_rtde's script does), then done."""
+        e, c = self.engine, self._contact
+        assert c is not None
+        if c["stage"] == "approach":
+            if e.contact_excess_m(snap.tcp_pose) >= 0.0:
+                c["pose"] = list(snap.tcp_pose)
+                c["stage"] = "braking"
+                e.stop_l(3.0)
+            elif snap.active_command != "speedl":
+                self._contact = None  # ended otherwise (stopped by a stop or a safety stop)
+                self._write_int(0, DONE)
+        elif c["stage"] == "braking" and snap.active_command is None:
+            c["cid"] = e.move_l(c["pose"], 0.05, 1.0)
+            c["stage"] = "retract"
+        elif c["stage"] == "retract" and e.outcome(int(c["cid"])) != CommandOutcome.RUNNING:
+            self._contact = None
+            self._write_int(0, DONE)
+
+    def refuse(self, reason: str) -> None:
+        """Answer an unsimulated command: the client's call returns False at once (its
+        program is seen to stop), and the same control program resumes by itself shortly
+        after, registers and all, so the client's next command runs without a re-upload."""
+        self.last_error = reason
+        prog = self._prog
+        self._ignore = (self._int(0), self.regs.in_int_written_s[prog.int_offset])
+        self.stop(f"Refused: {reason}", brake=False)
+        self._resume = (prog, time.monotonic() + REFUSE_RESUME_S)
 
     def _fk_with_tcp(self, q: list[float], tcp6: list[float]) -> list[float]:
         """get_forward_kin(q, tcp): the engine's fk uses its own TCP, so swap it for ``tcp6``."""
@@ -372,30 +440,3 @@ class MailboxInterpreter:
         T_flange_tcp_current = _pose_T(list(self.engine.snapshot().tcp_offset))
         T_base_flange = T_base_tcp @ np.linalg.inv(T_flange_tcp_current)
         return _T_pose(T_base_flange @ _pose_T(tcp6))
-
-
-class ScriptSession:
-    """One client of port 30003: accumulates text and hands on each complete program."""
-
-    def __init__(self, on_program: Callable[[str], None]) -> None:
-        self._on_program = on_program
-        self._buffer = ""
-
-    def on_open(self) -> None:
-        pass
-
-    def feed(self, data: bytes) -> bool:
-        self._buffer += data.decode(errors="replace")
-        programs, self._buffer = split_programs(self._buffer)
-        for program in programs:
-            self._on_program(program)
-        return True
-
-    def on_close(self) -> None:
-        pass
-
-
-def script_service(host: str, on_program: Callable[[str], None],
-                   port: int = SCRIPT_PORT) -> TcpService:
-    """The script receiver on ``host:30003``."""
-    return TcpService(host, port, "script", lambda sock: ScriptSession(on_program))

@@ -16,6 +16,7 @@ from fakes.ur_sim.engine import (
     ProtectiveStopActiveError,
     RobotMode,
     SafetyMode,
+    SafetyPlane,
     SimLimits,
     UnreachablePoseError,
 )
@@ -32,6 +33,7 @@ __all__ = [
     "ProtectiveStopActiveError",
     "RobotMode",
     "SafetyMode",
+    "SafetyPlane",
     "SimLimits",
     "UnreachablePoseError",
 ]

@@ -6,6 +6,7 @@ engine owns the state, the safety checks and the thread.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -215,35 +216,92 @@ class SpeedL(Command):
                      stopping and not np.any(new))
 
 
-class Servo(Command):
-    """Go to the latest target within its ``time_s``; brake when the stream dries up."""
+STREAM_WINDOW_S = 0.02  # servo stream speed is judged over at least this much host time
 
-    def __init__(self, cid: int, name: str, decel: float) -> None:
+
+class Servo(Command):
+    """servoj/servol: follow a stream of joint targets on the controller clock.
+
+    Each new target starts a reference segment from the present reference to the target, run
+    at the speed the stream implies: the step from the previous target over the time the stream
+    took to deliver it (at least the command's ``time``), so a stream delayed by a host stall
+    does not read as a jump. The arm follows the reference with a proportional law, velocity =
+    reference velocity + (reference - q) / tau with tau = lookahead_time * 100 / gain (at least
+    two cycles): a longer lookahead smooths and lags more, a higher gain follows tighter and
+    overshoots more, as UR describes the two parameters. Acceleration is limited to the arm's
+    joint acceleration and speed to its joint speed; the arm brakes when the stream stops.
+    """
+
+    def __init__(self, cid: int, name: str, q_arm: Vec, decel: float) -> None:
         super().__init__(cid, name)
         self.decel = decel
-        self.q_from = np.zeros(6)
-        self.q_to = np.zeros(6)
-        self.t_cmd = 0.0
+        self.ref = q_arm.copy()
+        self.target = q_arm.copy()
+        self.v_ref = np.zeros(6)
+        self.seg_left_s = 0.0  # controller time the reference still runs towards the target
+        self.last_call_t = 0.0
+        self.samples: deque[tuple[float, Vec]] = deque()  # (host time, target) seen
         self.time_s = CYCLE_S
+        self.tau_s = 0.033
         self.brake: Brake | None = None
 
-    def retarget(self, q_now: Vec, q_to: Vec, time_s: float, now: float) -> None:
-        self.q_from, self.q_to, self.t_cmd, self.time_s = q_now.copy(), q_to, now, time_s
-        self.brake = None
+    def stream_velocity(self, q_to: Vec, time_s: float, host_s: float) -> Vec:
+        """Joint velocity the stream asks for with this target (the safety check): the step
+        from a target seen at least ``STREAM_WINDOW_S`` earlier over the time between them.
 
-    @property
-    def velocity(self) -> Vec:
-        return (self.q_to - self.q_from) / self.time_s
+        A client that stalls and then catches up sends several targets in a burst, of which
+        a controller cycle sees only the last; over the window the burst averages out to the
+        stream's real speed, while a target that jumps truly too far still shows.
+        """
+        if not self.samples:
+            return (q_to - self.target) / time_s
+        t_ref, q_ref = self.samples[0]
+        newer = len(self.samples)  # targets after the reference, this one included
+        for i in range(len(self.samples) - 1, -1, -1):
+            t, q = self.samples[i]
+            if t <= host_s - STREAM_WINDOW_S:
+                t_ref, q_ref, newer = t, q, len(self.samples) - i
+                break
+        # each target asks for its own ``time``: n targets span at least n * time
+        return (q_to - q_ref) / max(time_s * newer, host_s - t_ref)
+
+    def retarget(self, q_to: Vec, time_s: float, lookahead_s: float, gain: float, now: float,
+                 host_s: float) -> None:
+        self.last_call_t, self.time_s = now, time_s
+        self.tau_s = max(2 * CYCLE_S, lookahead_s * 100.0 / gain)
+        self.brake = None
+        if self.samples and np.array_equal(q_to, self.target):
+            return  # the same target again: the program re-issues it every cycle
+        # the reference reaches the target in the time the stream took to deliver it
+        interval = max(time_s, host_s - self.samples[-1][0]) if self.samples else time_s
+        self.v_ref = (q_to - self.ref) / interval
+        self.seg_left_s = interval
+        self.target = q_to.copy()
+        self.samples.append((host_s, self.target))
+        while len(self.samples) > 2 and self.samples[1][0] < host_s - 4 * STREAM_WINDOW_S:
+            self.samples.popleft()
 
     def step(self, eng: MotionEngine, now: float, dt: float) -> Step:
-        if self.brake is None and now > self.t_cmd + self.time_s + eng.limits.servo_watchdog_s:
+        silent_s = now - self.last_call_t - self.time_s
+        if self.brake is None and silent_s > eng.limits.servo_watchdog_s:
             self.brake = Brake(self.id, self.name, eng._q, eng._qd, self.decel)
         if self.brake is not None:
             return self.brake.step(eng, now, dt)
-        elapsed = now - self.t_cmd
-        if elapsed >= self.time_s:
-            z = np.zeros(6)
-            return Step(self.q_to.copy(), z, (z - eng._qd) / dt if dt > 0 else z, False)
-        v = self.velocity
-        return Step(self.q_from + v * elapsed, v, (v - eng._qd) / dt if dt > 0 else v * 0,
-                     False)
+        run_s = min(dt, self.seg_left_s)
+        if run_s > 0:
+            self.seg_left_s -= run_s
+            self.ref = self.target.copy() if self.seg_left_s <= 1e-9 else (
+                self.ref + self.v_ref * run_s)
+        v_ref = self.v_ref * (run_s / dt)
+        v_cmd = v_ref + (self.ref - eng._q) / self.tau_s
+        dv = v_cmd - eng._qd
+        dv_max = eng.limits.max_joint_accel_rad_s2 * dt
+        m = float(np.max(np.abs(dv)))
+        if m > dv_max:
+            dv *= dv_max / m
+        qd = eng._qd + dv
+        peak = float(np.max(np.abs(qd)))
+        if peak > eng.limits.max_joint_speed_rad_s:
+            qd *= eng.limits.max_joint_speed_rad_s / peak
+        q = eng._q + 0.5 * (eng._qd + qd) * dt
+        return Step(q, qd, (qd - eng._qd) / dt, False)

@@ -17,11 +17,12 @@ and are executed by the thread.
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -59,6 +60,7 @@ from fakes.ur_sim.state import (
     RobotMode,
     RobotStatusBit,
     SafetyMode,
+    SafetyPlane,
     SafetyStatusBit,
     SimLimits,
     UnreachablePoseError,
@@ -81,6 +83,7 @@ __all__ = [
     "RobotMode",
     "RobotStatusBit",
     "SafetyMode",
+    "SafetyPlane",
     "SafetyStatusBit",
     "SimLimits",
     "UnreachablePoseError",
@@ -93,6 +96,8 @@ _PATH_SAMPLE_MM = 5.0  # movel paths are checked through IK at least this densel
 _PATH_SAMPLE_RAD = 0.05
 _MAX_PATH_JOINT_STEP_RAD = 0.35  # a bigger jump between samples means a configuration flip
 _HISTORY_S = 10.0
+_MAX_CATCH_UP_CYCLES = 500  # a host stall up to 1 s is caught up cycle by cycle
+log = logging.getLogger(__name__)
 
 _SAFETY_BITS = {
     SafetyMode.NORMAL: (SafetyStatusBit.NORMAL_MODE,),
@@ -143,7 +148,14 @@ class MotionEngine:
         self._outcomes: dict[int, CommandOutcome] = {}
         self._timers: list[tuple[float, str]] = []  # (due monotonic, event)
         self._t0 = time.monotonic()
-        self._last_step = self._t0
+        self._cycles = 0  # controller cycles since t0: the controller's own clock
+        self.skipped_cycles = 0  # cycles lost to host stalls longer than the catch-up window
+        self._hook: Callable[[], None] | None = None
+        self._servo_ik: tuple[Vec, Vec] | None = None  # last servol pose and its IK
+        self._snap_cache: tuple[tuple[object, ...], EngineSnapshot] | None = None
+        self.contact_planes: tuple[SafetyPlane, ...] = ()
+        self._hook_wants: Callable[[], bool] | None = None
+        self._idle_period_s = 0.02
         self._history: deque[tuple[float, Vec]] = deque(maxlen=int(_HISTORY_S / CYCLE_S))
         self._history.append((self._t0, self._q.copy()))
         self._alive = True
@@ -183,28 +195,105 @@ class MotionEngine:
     def _busy(self) -> bool:
         return self._cmd is not None
 
+    def set_cycle_hook(self, hook: Callable[[], None] | None,
+                       wants_cycles: Callable[[], bool] | None = None,
+                       idle_period_s: float = 0.02) -> None:
+        """Run ``hook`` after every controller cycle, on the engine thread, outside the lock.
+
+        The protocol layer (control program, RTDE output) lives in this hook, so it steps on
+        the same controller clock as the arm: after a host stall every missed cycle is run,
+        in order, with its own timestamp. ``wants_cycles`` says whether somebody needs every
+        cycle (an RTDE stream); otherwise the idle engine calls the hook every
+        ``idle_period_s``.
+        """
+        with self._cond:
+            self._hook = hook
+            self._hook_wants = wants_cycles
+            self._idle_period_s = idle_period_s
+            self._cond.notify_all()
+
+    def _cycling(self) -> bool:
+        wants = self._hook_wants
+        return self._busy() or (self._hook is not None and wants is not None and wants())
+
+    def _now(self) -> float:
+        """The controller clock, as a ``time.monotonic()`` instant: t0 + cycles * 2 ms."""
+        return self._t0 + self._cycles * CYCLE_S
+
+    def _sync_idle_clock(self) -> None:
+        """An idle controller's clock is simply the present (no cycle to catch up)."""
+        if not self._cycling():
+            due = int((time.monotonic() - self._t0) / CYCLE_S)
+            self._cycles = max(self._cycles, due)
+
+    def controller_time_s(self) -> float:
+        """Seconds since controller start on the controller's own 500 Hz clock."""
+        with self._cond:
+            self._sync_idle_clock()
+            return self._cycles * CYCLE_S
+
+    def lag_s(self) -> float:
+        """How far the controller clock is behind the host clock (0 when keeping up)."""
+        with self._cond:
+            self._sync_idle_clock()
+            return max(0.0, time.monotonic() - self._now())
+
     def _run(self) -> None:
-        next_t = time.monotonic()
         while True:
             with self._cond:
                 if not self._alive:
                     return
-                now = time.monotonic()
+                due = int((time.monotonic() - self._t0) / CYCLE_S)
+                if not self._cycling():
+                    self._cycles = max(self._cycles, due)
+                    self._run_timers(self._now())
+                    if not self._cycling():
+                        period = self._idle_period_s if self._hook is not None else 1.0
+                        wake = min((t for t, _ in self._timers),
+                                   default=time.monotonic() + period)
+                        self._cond.wait(timeout=max(0.0, min(wake - time.monotonic(), period)))
+                        hook = self._hook if self._alive and not self._cycling() else None
+                        if hook is None:
+                            continue
+                    else:
+                        hook = None
+                else:
+                    hook = None
+            if hook is not None:
+                self._call_hook(hook)
+                continue
+            self._cycle_until(due)
+
+    def _cycle_until(self, due: int) -> None:
+        """Run controller cycles up to ``due`` (catching up after a stall), then wait for the
+        next one. A stall longer than ``_MAX_CATCH_UP_S`` is skipped, and the skip is visible
+        as a jump in the controller clock (RTDE ``timestamp``), as a real gap would be."""
+        behind = due - self._cycles
+        if behind > _MAX_CATCH_UP_CYCLES:
+            with self._cond:
+                self._cycles = due - _MAX_CATCH_UP_CYCLES
+                self.skipped_cycles += behind - _MAX_CATCH_UP_CYCLES
+        while self._alive:
+            with self._cond:
+                if self._cycles >= due or not self._cycling():
+                    break
+                self._cycles += 1
+                now = self._now()
                 self._run_timers(now)
-                if not self._busy():
-                    due = min((t for t, _ in self._timers), default=now + 1.0)
-                    self._cond.wait(timeout=max(0.0, due - now))
-                    next_t = time.monotonic()
-                    continue
-                dt = max(0.0, now - self._last_step)
-                self._last_step = now
-                self._step(now, dt)
-            next_t += CYCLE_S
-            delay = next_t - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            elif delay < -0.05:
-                next_t = time.monotonic()  # fell far behind (loaded machine): don't burst
+                if self._busy():
+                    self._step(now, CYCLE_S)
+                hook = self._hook
+            if hook is not None:
+                self._call_hook(hook)
+        delay = self._t0 + (self._cycles + 1) * CYCLE_S - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+
+    def _call_hook(self, hook: Callable[[], None]) -> None:
+        try:
+            hook()
+        except Exception:  # the controller cycle must survive anything one step does
+            log.exception("controller cycle hook failed")
 
     def _run_timers(self, now: float) -> None:
         due = [e for t, e in self._timers if t <= now]
@@ -256,16 +345,44 @@ class MotionEngine:
             return f"tool speed limit ({tcp_speed:.2f} m/s)"
         outside = self._workspace_excess_m(T_tcp)
         if outside > 0 and outside > self._workspace_excess_m(self._kin.forward_tcp(self._q)):
-            return "TCP left the workspace"  # (moving back in from outside is allowed)
+            return "TCP crossed a safety plane"  # (moving back to the allowed side is allowed)
         return ""
 
     def _workspace_excess_m(self, T_base_tcp: Vec) -> float:
-        """How far (m) the TCP is outside the workspace box or sphere (<= 0: inside)."""
+        """How far (m) the TCP is beyond the worst safety plane (<= 0: on the allowed side)."""
         p = T_base_tcp[:3, 3] / 1000.0
-        lo = np.asarray(self.limits.workspace_min_m)
-        hi = np.asarray(self.limits.workspace_max_m)
-        box = float(np.max(np.concatenate([lo - p, p - hi])))
-        return max(box, float(np.linalg.norm(p)) - self.limits.workspace_radius_m)
+        return max((pl.excess_m(p) for pl in self.limits.safety_planes), default=-math.inf)
+
+    def set_contact_planes(self, planes: Sequence[SafetyPlane]) -> None:
+        """Surfaces in the simulated world the tool can touch (moveUntilContact); the free
+        side is where ``normal . p >= offset_m``. No collision physics: contact is detected
+        when the TCP reaches a surface, and nothing stops the arm but the program."""
+        with self._cond:
+            self.contact_planes = tuple(planes)
+
+    def contact_excess_m(self, pose6: Sequence[float]) -> float:
+        """How far (m) a TCP position is into the nearest contact surface (< 0: free)."""
+        p = [float(v) for v in pose6[:3]]
+        return max((pl.excess_m(p) for pl in self.contact_planes), default=-math.inf)
+
+    def joints_within_safety_limits(self, q_rad: Sequence[float]) -> bool:
+        """isJointsWithinSafetyLimits: inside the joint limits and the TCP on the allowed
+        side of every safety plane."""
+        q = as_vector(q_rad, 6, "q")
+        if np.any(q < self.limits.joint_min_rad) or np.any(q > self.limits.joint_max_rad):
+            return False
+        with self._cond:
+            return self._workspace_excess_m(self._kin.forward_tcp(q)) <= 0
+
+    def pose_within_safety_limits(self, pose6: Sequence[float]) -> bool:
+        """isPoseWithinSafetyLimits: reachable inside the joint limits and the planes."""
+        p = as_vector(pose6, 6, "pose")
+        with self._cond:
+            try:
+                q = self._ik_locked(p, self._q)
+            except UnreachablePoseError:
+                return False
+        return self.joints_within_safety_limits(q.tolist())
 
     def _finish(self, outcome: CommandOutcome, then: Command | None = None) -> None:
         if self._cmd is not None and self._outcomes.get(self._cmd.id) == CommandOutcome.RUNNING:
@@ -296,7 +413,6 @@ class MotionEngine:
         if self._cmd is None:
             self._qd = np.zeros(6)
             self._qdd = np.zeros(6)
-        self._last_step = time.monotonic()
         self._cond.notify_all()
 
     # -- state ---------------------------------------------------------------------------
@@ -306,7 +422,19 @@ class MotionEngine:
 
     def _snapshot_locked(self) -> EngineSnapshot:
         # While moving, the state belongs to the last control cycle, not to the reading instant.
-        now = time.monotonic() if self._cmd is None else self._last_step
+        self._sync_idle_clock()
+        # One snapshot per cycle and state: the protocol layer asks several times a cycle.
+        key = (self._cycles, self._next_id, id(self._cmd), self._safety_mode, self._robot_mode,
+               self._program_running, self._speed_fraction, tuple(self._tcp_offset),
+               self._stop_reason, self._q.tobytes(), self._qd.tobytes())
+        if self._snap_cache is not None and self._snap_cache[0] == key:
+            return self._snap_cache[1]
+        snap = self._build_snapshot()
+        self._snap_cache = (key, snap)
+        return snap
+
+    def _build_snapshot(self) -> EngineSnapshot:
+        now = self._now()
         q, qd = self._q, self._qd
         pose = tuple(ur_pose_from_T(self._kin.forward_tcp(q)))
         twist = self._kin.jacobian_tcp(q) @ qd
@@ -403,7 +531,8 @@ class MotionEngine:
                 raise EmergencyStopActiveError("release the emergency stop before powering on")
             if self._robot_mode == RobotMode.POWER_OFF:
                 self._robot_mode = RobotMode.POWER_ON
-                self._timers.append((time.monotonic() + self.limits.power_on_s, "idle"))
+                self._sync_idle_clock()
+                self._timers.append((self._now() + self.limits.power_on_s, "idle"))
                 self._cond.notify_all()
 
     def power_off(self) -> None:
@@ -423,7 +552,7 @@ class MotionEngine:
                 return
             self.power_on()
             idle_due = max([t for t, e in self._timers if e == "idle"],
-                           default=time.monotonic())
+                           default=self._now())
             self._timers.append((idle_due + self.limits.brake_release_s, "running"))
             self._cond.notify_all()
 
@@ -433,7 +562,8 @@ class MotionEngine:
             if self._safety_mode != SafetyMode.PROTECTIVE_STOP:
                 return self._safety_mode == SafetyMode.NORMAL
             assert self._stop_t is not None
-            if time.monotonic() - self._stop_t < self.limits.unlock_delay_s:
+            self._sync_idle_clock()
+            if self._now() - self._stop_t < self.limits.unlock_delay_s:
                 return False
             self._safety_mode = SafetyMode.NORMAL
             self._stop_t = None
@@ -443,7 +573,7 @@ class MotionEngine:
         """Brake quickly, abort the active command, refuse motion until unlocked."""
         with self._cond:
             if self._safety_mode not in _ESTOP:
-                self._protective_stop(reason, time.monotonic())
+                self._protective_stop(reason, self._now())
 
     def trigger_emergency_stop(self) -> None:
         """Category-1 stop: brake, then power off; ROBOT_EMERGENCY_STOP until released."""
@@ -462,7 +592,8 @@ class MotionEngine:
         if fault not in ("protective_stop", "emergency_stop"):
             raise CommandRejectedError(f"unknown fault {fault!r}")
         with self._cond:
-            self._timers.append((time.monotonic() + max(0.0, float(after_s)), fault))
+            self._sync_idle_clock()
+            self._timers.append((self._now() + max(0.0, float(after_s)), fault))
             self._cond.notify_all()
 
     def set_speed_fraction(self, fraction: float) -> None:
@@ -515,6 +646,7 @@ class MotionEngine:
                 f"[{self.limits.joint_min_rad:.4f}, {self.limits.joint_max_rad:.4f}] rad")
 
     def _require_motion_allowed(self) -> None:
+        self._sync_idle_clock()
         if self._safety_mode in _ESTOP:
             raise EmergencyStopActiveError("the arm is emergency-stopped")
         if self._safety_mode == SafetyMode.PROTECTIVE_STOP:
@@ -527,7 +659,7 @@ class MotionEngine:
 
     def _trip(self, reason: str) -> None:
         """A command that would break a safety limit: stop the arm and refuse the command."""
-        self._protective_stop(reason, time.monotonic())
+        self._protective_stop(reason, self._now())
         raise ProtectiveStopActiveError(f"protective stop: {reason}")
 
     def _new_id(self) -> int:
@@ -550,7 +682,6 @@ class MotionEngine:
             for old in sorted(self._outcomes)[:500]:
                 del self._outcomes[old]
         self._cmd = Then(brake, cmd) if brake is not None and brake.T > 0 else cmd
-        self._last_step = time.monotonic()
         self._cond.notify_all()
         return cmd.id
 
@@ -643,7 +774,12 @@ class MotionEngine:
             run_first = 0
             for i, entry in enumerate(path):
                 kind, tgt, v, a, blend = self._path_entry(i, entry)
-                if kind == "movej":
+                if kind == "movej_pose":
+                    tgt = self._ik_locked(tgt, q)
+                elif kind == "movel_joints":
+                    self._check_joint_limits(tgt, f"path entry {i} target")
+                    tgt = np.asarray(ur_pose_from_T(self._kin.forward_tcp(tgt)))
+                if kind in ("movej", "movej_pose"):
                     if run:
                         segments.append(self._blended(cid, run, run_blends[:-1], run_first))
                         run, run_blends = [], []
@@ -665,7 +801,7 @@ class MotionEngine:
                         segments.append(self._blended(cid, run, run_blends[:-1], run_first))
                     run, run_blends, run_first = [prof], [], i
                 nxt = path[i + 1][0] if i + 1 < len(path) else None
-                run_blends.append(blend * 1000.0 if nxt == "movel" else 0.0)
+                run_blends.append(blend * 1000.0 if nxt in ("movel", "movel_joints") else 0.0)
             if run:
                 segments.append(self._blended(cid, run, run_blends[:-1], run_first))
             return self._install(PathMove(cid, segments), brake)
@@ -685,10 +821,10 @@ class MotionEngine:
         if not (math.isfinite(b) and b >= 0):
             raise CommandRejectedError(f"path entry {i}: blend must be >= 0")
         tgt = as_vector(target, 6, f"path entry {i} target")
-        if kind == "movej":
+        if kind in ("movej", "movej_pose"):
             v = positive_number(speed, f"path entry {i} speed", self.limits.max_joint_speed_rad_s)
             a = positive_number(accel, f"path entry {i} accel", self.limits.max_joint_accel_rad_s2)
-        elif kind == "movel":
+        elif kind in ("movel", "movel_joints"):
             v = positive_number(speed, f"path entry {i} speed")
             a = positive_number(accel, f"path entry {i} accel", self.limits.max_tcp_accel_m_s2)
         else:
@@ -700,7 +836,9 @@ class MotionEngine:
         t = float(time_s)
         if not math.isfinite(t):
             raise CommandRejectedError(f"time must be finite, got {time_s!r}")
-        return time.monotonic() + t if t > 0 else None
+        with self._cond:
+            self._sync_idle_clock()
+            return self._now() + t if t > 0 else None
 
     def speed_j(self, qd_rad_s: Sequence[float], accel_rad_s2: float, time_s: float = 0.0
                 ) -> int:
@@ -751,7 +889,7 @@ class MotionEngine:
         gain: float = 300.0,
     ) -> int:
         """Go to ``q`` within ``time_s``; the stream must keep coming (watchdog) or the arm
-        brakes. ``lookahead_s``/``gain`` are range-checked like URScript's, not modelled."""
+        brakes. ``lookahead_s`` and ``gain`` shape the tracking (see :class:`Servo`)."""
         q = as_vector(q_rad, 6, "servo target q")
         with self._cond:
             return self._servo("servoj", q, time_s, lookahead_s, gain)
@@ -764,7 +902,13 @@ class MotionEngine:
         p = as_vector(pose6, 6, "servo target pose")
         with self._cond:
             self._require_motion_allowed()
-            return self._servo("servol", self._ik_locked(p, self._q), time_s, lookahead_s, gain)
+            cached = self._servo_ik
+            if cached is not None and np.array_equal(cached[0], p):
+                q = cached[1]  # the program re-issues the same target every cycle
+            else:
+                q = self._ik_locked(p, self._q)
+                self._servo_ik = (p, q)
+            return self._servo("servol", q, time_s, lookahead_s, gain)
 
     def _servo(self, name: str, q: Vec, time_s: float, lookahead_s: float, gain: float) -> int:
         t = float(time_s)
@@ -777,17 +921,21 @@ class MotionEngine:
         self._require_motion_allowed()
         self._check_joint_limits(q, "servo target")
         t = max(t, CYCLE_S)
-        now = time.monotonic()
+        now, host_s = self._now(), time.monotonic()
         cmd = self._cmd
-        if not (isinstance(cmd, Servo) and cmd.name == name and cmd.brake is None):
-            cmd = Servo(self._new_id(), name, decel=10.0)
-            cmd.retarget(self._q, q, t, now)
-            self._install(cmd)
-        else:
-            cmd.retarget(self._q, q, t, now)
-        if float(np.max(np.abs(cmd.velocity))) > self.limits.max_joint_speed_rad_s * _LIMIT_MARGIN:
-            self._trip(f"{name} target needs more than the joint speed limit")
-        return cmd.id
+        # a braking servo of the same stream resumes (its stream history stays): after a host
+        # stall the arm may have fallen behind the stream, which is no jump of the stream
+        fresh = not (isinstance(cmd, Servo) and cmd.name == name)
+        servo = Servo(self._new_id(), name, self._q, decel=10.0) if fresh else cmd
+        assert isinstance(servo, Servo)
+        v = servo.stream_velocity(q, t, host_s)
+        if float(np.max(np.abs(v))) > self.limits.max_joint_speed_rad_s * _LIMIT_MARGIN:
+            self._trip(f"{name} target needs more than the joint speed limit "
+                       f"({float(np.max(np.abs(v))):.2f} rad/s)")
+        servo.retarget(q, t, float(lookahead_s), float(gain), now, host_s)
+        if fresh:
+            self._install(servo)
+        return servo.id
 
     # -- stops (always accepted) ---------------------------------------------------------------
     def speed_stop(self, decel: float = 10.0) -> None:
@@ -795,7 +943,7 @@ class MotionEngine:
         d = positive_number(decel, "deceleration")
         with self._cond:
             cmd = self._cmd
-            now = time.monotonic()
+            now = self._now()
             if isinstance(cmd, SpeedJ):
                 cmd.stop(d, now)
             elif isinstance(cmd, SpeedL):

@@ -240,3 +240,11 @@ def _pose_error(A: NDArray[np.float64], B: NDArray[np.float64]) -> float:
     """A cheap combined error (mm + rotation-matrix units) for verifying solutions."""
     dp_m = float(np.max(np.abs(A[:3, 3] - B[:3, 3]))) / 1000.0
     return dp_m + float(np.max(np.abs(A[:3, :3] - B[:3, :3])))
+
+
+_PLAIN = UR5eKinematics()
+
+
+def elbow_position_m(q_rad: ArrayLike) -> NDArray[np.float64]:
+    """Centre of the elbow joint (the origin of DH frame 2) in the base frame, in m."""
+    return _PLAIN.link_frames(q_rad)[2][:3, 3] / 1000.0

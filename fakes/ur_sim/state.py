@@ -112,6 +112,31 @@ class EmergencyStopActiveError(EngineError):
 
 
 @dataclass(frozen=True)
+class SafetyPlane:
+    """A safety plane in the base frame: the TCP must stay where ``normal . p >= offset_m``."""
+
+    normal: tuple[float, float, float]
+    offset_m: float
+    name: str = "safety plane"
+
+    def __post_init__(self) -> None:
+        n = np.asarray(self.normal, dtype=float)
+        norm = float(np.linalg.norm(n))
+        if n.shape != (3,) or not math.isfinite(norm) or norm < 1e-9:
+            raise ValueError(f"safety plane normal must be 3 finite numbers, got {self.normal}")
+        object.__setattr__(self, "normal", tuple(float(v) / norm for v in n))
+
+    @staticmethod
+    def floor(z_m: float) -> SafetyPlane:
+        """A horizontal plane the TCP must stay above (a table top)."""
+        return SafetyPlane((0.0, 0.0, 1.0), z_m, "floor")
+
+    def excess_m(self, p_m: ArrayLike) -> float:
+        """How far (m) a point is on the forbidden side (<= 0: allowed)."""
+        return self.offset_m - float(np.dot(self.normal, p_m))
+
+
+@dataclass(frozen=True)
 class SimLimits:
     """Safety configuration of the simulated arm (UR5e-like defaults)."""
 
@@ -121,10 +146,9 @@ class SimLimits:
     max_joint_accel_rad_s2: float = 40.0
     max_tcp_speed_m_s: float = 1.5  # safety "tool speed" limit
     max_tcp_accel_m_s2: float = 15.0
-    # Workspace the TCP must stay in (base frame, m): an axis-aligned box AND a sphere.
-    workspace_min_m: tuple[float, float, float] = (-1.0, -1.0, -0.05)
-    workspace_max_m: tuple[float, float, float] = (1.0, 1.0, 1.2)
-    workspace_radius_m: float = 1.05
+    # Safety planes the TCP must not cross. A default controller has none (its only "space"
+    # limit is the arm's reach); a cell adds planes for tables and walls.
+    safety_planes: tuple[SafetyPlane, ...] = ()
     protective_stop_decel_rad_s2: float = 20.0
     unlock_delay_s: float = 5.0  # a real controller refuses unlock for 5 s after the stop
     servo_watchdog_s: float = 0.02  # servo stream gap (beyond the command's time) before braking
@@ -134,9 +158,10 @@ class SimLimits:
 
 Pose6 = list[float]
 JogFeature = Literal["base", "tool"]
-PathKind = Literal["movej", "movel"]
-# one waypoint of move_path: (kind, target, speed, accel, blend_m); target is q for "movej"
-# and a pose6 for "movel"
+PathKind = Literal["movej", "movej_pose", "movel", "movel_joints"]
+# one waypoint of move_path: (kind, target, speed, accel, blend_m); target is q for "movej" and
+# "movel_joints" (URScript movel(q): a straight line to fk(q)) and a pose6 for "movel" and
+# "movej_pose" (URScript movej(p[...]): a joint move to the pose's IK nearest the path so far)
 PathEntry = tuple[PathKind, Sequence[float], float, float, float]
 FaultKind = Literal["protective_stop", "emergency_stop"]
 
@@ -173,6 +198,24 @@ class EngineSnapshot:
     seconds_since_protective_stop: float | None  # None when not protective-stopped
     last_stop_reason: str  # why the last safety stop happened, "" if none
     last_command_id: int  # id returned by the latest accepted motion command (0: none yet)
+
+    # computed on demand: most cycles nobody asks, and the kinematics cost CPU at 500 Hz
+    @property
+    def elbow_position(self) -> tuple[float, ...]:
+        """Elbow joint centre in the base frame (m)."""
+        from fakes.ur_sim.kinematics import elbow_position_m
+
+        return tuple(map(float, elbow_position_m(self.q)))
+
+    @property
+    def elbow_velocity(self) -> tuple[float, ...]:
+        """Elbow joint centre velocity (m/s)."""
+        from fakes.ur_sim.kinematics import elbow_position_m
+
+        if not any(self.qd):
+            return (0.0, 0.0, 0.0)
+        ahead = [q + 1e-3 * qd for q, qd in zip(self.q, self.qd, strict=True)]
+        return tuple(map(float, (elbow_position_m(ahead) - elbow_position_m(self.q)) / 1e-3))
 
 
 class CommandOutcome(Enum):
