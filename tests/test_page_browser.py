@@ -133,7 +133,7 @@ def test_camera_view_refreshes_with_overlay(
     print(f"camera view: {rate:.1f} frames/s")
     assert rate >= 2.0  # "several fps"; the page caps itself at ~6.7
     assert page.evaluate("document.querySelector('[data-testid=camera]').naturalWidth") == 320
-    frames = rec.of("/api/v1/camera/frame.png")
+    frames = rec.of("/api/v1/camera/frame.jpg")
     assert frames and all("overlay=true" in c.query for c in frames)
     assert page.get_by_test_id("quality-rms").inner_text() == "0.21 px"
 
