@@ -1,4 +1,5 @@
-"""``cell serve [--config FILE] [--host H] [--port N]``: the cell service and its HTTP API.
+"""``cell serve [--config FILE] [--host H] [--port N] [--ssl-certfile F --ssl-keyfile F]``:
+the cell service and its HTTP API (HTTPS when given a certificate and key).
 
 Without ``--config`` it serves the built-in simulated cell (simulated UR controller driven
 through ur_rtde, simulated camera, fake gripper on a pty). uvicorn imports the app factory by
@@ -19,6 +20,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=8000)
     p.add_argument("--log-level", default="info")
+    p.add_argument("--ssl-certfile", default=None,
+                   help="serve HTTPS with this certificate (PEM); needs --ssl-keyfile")
+    p.add_argument("--ssl-keyfile", default=None, help="the certificate's private key (PEM)")
     p.set_defaults(func=_serve)
 
 
@@ -28,6 +32,11 @@ def _serve(args: argparse.Namespace) -> int:
     from cell.config import SAMPLE_TOKENS, ConfigError, load_config
     from cell.factory import all_simulated
 
+    if bool(args.ssl_certfile) != bool(args.ssl_keyfile):
+        return fail("invalid_arguments", "--ssl-certfile and --ssl-keyfile go together", False)
+    for path in (args.ssl_certfile, args.ssl_keyfile):
+        if path and not os.path.isfile(path):
+            return fail("invalid_arguments", f"no such file: {path}", False)
     try:
         config = load_config(args.config)
     except ConfigError as err:
@@ -44,7 +53,9 @@ def _serve(args: argparse.Namespace) -> int:
 
     # Compiled once per checkout (make install does it); loading takes a fraction of a second.
     print(f"estimator kernels ready in {warm_up():.1f} s", flush=True)
-    print(f"serving the cell on http://{args.host}:{args.port} (docs at /docs)", flush=True)
+    scheme = "https" if args.ssl_certfile else "http"
+    print(f"serving the cell on {scheme}://{args.host}:{args.port} (docs at /docs)", flush=True)
     uvicorn.run("api.app:app_from_environment", factory=True, host=args.host, port=args.port,
-                log_level=args.log_level)
+                log_level=args.log_level, ssl_certfile=args.ssl_certfile,
+                ssl_keyfile=args.ssl_keyfile)
     return 0
