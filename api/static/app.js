@@ -264,6 +264,7 @@ async function refreshLastJob() {
   try {
     const job = await api("GET", `/jobs/${encodeURIComponent(id)}`);
     if (state.lastJob && state.lastJob.id === id) state.lastJob = job;
+    if (job.state !== "running") { refreshLogs(); refreshAlarms(); }
   } catch (e) { /* shown as it was; the next status poll retries */ }
   renderJob(state.lastJob);
 }
@@ -558,7 +559,10 @@ function el(tag, props = {}, ...children) {
 function renderBanner(list) {
   const banner = $("alarm-banner");
   const ul = $("alarm-list");
-  ul.replaceChildren(...list.alarms.map((a) => {
+  const key = `${mayAck()}:${list.alarms.map((a) => a.id).join(",")}`;
+  if (ul.dataset.key !== key) ul.dataset.key = key;
+  else list = { ...list, unchanged: true };
+  if (!list.unchanged) ul.replaceChildren(...list.alarms.map((a) => {
     const ack = el("button", { type: "button", textContent: "Acknowledge", disabled: !mayAck(),
       dataset: { testid: "alarm-ack", alarmId: String(a.id) } });
     ack.addEventListener("click", () => acknowledge(a.id));
@@ -631,7 +635,7 @@ async function refreshHistory() {
 async function refreshLogs() {
   if (!state.token) return;
   try {
-    await Promise.all([refreshAlarmLog(), refreshHistory()]);
+    await Promise.all([refreshAlarmLog(), refreshHistory(), refreshImages()]);
   } catch (e) { /* retried on the next round */ }
 }
 
@@ -742,10 +746,14 @@ async function refreshImages() {
   if (!r.enabled) {
     $("images-note").textContent = "The image log is off (set [api] image_log_dir in the config).";
     $("images").replaceChildren();
+    $("images").dataset.key = "";
     return;
   }
   $("images-note").textContent = r.total ? `${r.total} frame(s) whose locate failed, newest first`
     : "No failed locates logged.";
+  const key = r.images.map((img) => img.name).join(",");
+  if ($("images").dataset.key === key) return;
+  $("images").dataset.key = key;
   $("images").replaceChildren(...r.images.map((img) => {
     const b = el("button", { type: "button", textContent: `${when(img.saved_at)} · ${img.code || "?"}: ${img.message || ""}`,
       dataset: { testid: "image-entry", name: img.name } });
