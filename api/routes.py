@@ -18,6 +18,7 @@ from api import overlay
 from api.auth import Caller, Read, Stream, require
 from api.errors import CONFLICT, DEVICE_ERRORS, ERROR_RESPONSES, NOT_FOUND, UNAVAILABLE
 from api.live import LiveView
+from api.media import EventStreamResponse, JPEGResponse, MJPEGResponse, PNGResponse
 from api.routes_calibration import taught_target_tcp
 from api.schemas import (
     ApproachRequest,
@@ -86,7 +87,16 @@ def locate(request: Request, caller: Annotated[Caller, Depends(require("locate")
            body: Annotated[LocateRequest | None, Body()] = None) -> dict[str, Any]:
     """Locate the target now: ``T_base_target``, ``T_camera_target`` and quality."""
     cell = cell_of(request)
-    loc = cell.locate(caller.label, (body or LocateRequest()).n_frames)
+    t0 = time.perf_counter()
+    outcome = "error"
+    try:
+        loc = cell.locate(caller.label, (body or LocateRequest()).n_frames)
+        outcome = "ok"
+    except CellError as err:
+        outcome = err.code
+        raise
+    finally:
+        request.app.state.metrics.locate.labels(outcome).observe(time.perf_counter() - t0)
     return loc.as_dict(time.monotonic())
 
 
@@ -166,8 +176,11 @@ async def stop(request: Request, caller: Annotated[Caller, Depends(require("stop
     requests (``wait=true`` approaches) can never delay it.
     """
     reason = (body or StopRequest()).reason
-    return await asyncio.get_running_loop().run_in_executor(
+    t0 = time.perf_counter()
+    out = await asyncio.get_running_loop().run_in_executor(
         None, cell_of(request).stop, caller.label, reason)
+    request.app.state.metrics.stop.observe(time.perf_counter() - t0)
+    return out
 
 
 @router.post("/gripper", response_model=GripperState, tags=["gripper"],
@@ -180,7 +193,7 @@ def gripper(request: Request, caller: Annotated[Caller, Depends(require("gripper
                                     body.speed_pct, body.force_pct, body.wait)
 
 
-@router.get("/camera/frame.png", tags=["vision"],
+@router.get("/camera/frame.png", tags=["vision"], response_class=PNGResponse,
             responses={200: {"content": {"image/png": {}}, "description": "PNG image"},
                        **UNAVAILABLE})
 def camera_frame(request: Request, caller: Stream, overlay_: Annotated[bool, Query(
@@ -199,7 +212,7 @@ def live_of(request: Request) -> LiveView:
     return live
 
 
-@router.get("/camera/frame.jpg", tags=["vision"],
+@router.get("/camera/frame.jpg", tags=["vision"], response_class=JPEGResponse,
             responses={200: {"content": {"image/jpeg": {}},
                              "description": "JPEG image; X-Frame-Age-S and X-Frame-Sequence "
                              "headers say how old it is and which camera frame it shows"},
@@ -216,7 +229,7 @@ def camera_frame_jpeg(request: Request, caller: Stream, overlay_: Annotated[bool
                              "X-Frame-Sequence": str(live.sequence)})
 
 
-@router.get("/camera/stream.mjpg", tags=["vision"],
+@router.get("/camera/stream.mjpg", tags=["vision"], response_class=MJPEGResponse,
             responses={200: {"content": {"multipart/x-mixed-replace": {}},
                              "description": "MJPEG stream of the live view"}})
 async def camera_stream(request: Request, caller: Stream, overlay_: Annotated[bool, Query(
@@ -250,7 +263,8 @@ async def camera_stream(request: Request, caller: Stream, overlay_: Annotated[bo
                              headers={"Cache-Control": "no-store"})
 
 
-@router.get("/events", tags=["status"], responses=SSE_RESPONSES)
+@router.get("/events", tags=["status"], responses=SSE_RESPONSES,
+            response_class=EventStreamResponse)
 async def events(request: Request, caller: Stream,
                  max_events: Annotated[int | None, Query(ge=1, le=100000)] = None
                  ) -> StreamingResponse:

@@ -19,6 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from api.auth import Caller, Read, Stream
 from api.errors import DEVICE_ERRORS, ERROR_RESPONSES, NOT_FOUND, ForbiddenError
+from api.media import EventStreamResponse
 from api.schemas import ApplyResult, Job, TaughtDeleted, TaughtList, TaughtPoseOut
 from api.sse import SSE_RESPONSES, sse_response
 from cell.calibration.routine import RoutineSettings
@@ -145,7 +146,8 @@ def apply_hand_eye(request: Request, caller: Operator, job_id: str,
                                        b.write_config, b.force)
 
 
-@router.get("/calibration/events", tags=["calibration"], responses=SSE_RESPONSES)
+@router.get("/calibration/events", tags=["calibration"], responses=SSE_RESPONSES,
+            response_class=EventStreamResponse)
 async def calibration_events(request: Request, caller: Stream,
                              max_events: Annotated[int | None, Query(ge=1, le=100000)] = None
                              ) -> StreamingResponse:

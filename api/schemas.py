@@ -310,7 +310,14 @@ class AuditEntry(_Out):
     ended_at: float
 
 
+AUDIT_EXAMPLE = {
+    "id": 41, "caller": "anonymous", "command": "POST /api/v1/approach",
+    "params": {"status": 401}, "outcome": "refused:unauthorized", "detail": "unknown token",
+    "job_id": None, "started_at": 1796200000.0, "ended_at": 1796200000.0}
+
+
 class AuditLog(_Out):
+    model_config = _examples({"entries": [AUDIT_EXAMPLE]})
     entries: list[AuditEntry]
 
 
@@ -385,6 +392,7 @@ class ImageEntry(_Out):
 
 
 class ImageList(_Out):
+    model_config = _examples({"images": [], "total": 0, "offset": 0, "enabled": True})
     images: list[ImageEntry]
     total: int
     offset: int
