@@ -17,7 +17,7 @@ from prometheus_client import CONTENT_TYPE_LATEST
 from api import errors, logs, metrics
 from api.auth import TokenTable, require
 from api.docs import mount_docs
-from api.guard import RequestGuard
+from api.guard import OPEN_PATHS, RequestGuard
 from api.live import LiveView
 from api.page import mount_page
 from api.routes import router, sim_router
@@ -82,6 +82,7 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False) -> FastAPI:
         return response
 
     public = bool(getattr(cell.config.api, "metrics_public", False))
+    app.state.open_paths = OPEN_PATHS | ({"/api/v1/metrics"} if public else set())
     guard = [] if public else [Depends(require("read"))]
     note = ("No token needed (`[api] metrics_public = true`)." if public else
             "Needs a token of any role (set `[api] metrics_public = true` to scrape "

@@ -44,10 +44,11 @@ class RequestGuard:
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         path = scope.get("path", "")
-        if scope["type"] != "http" or not path.startswith("/api/v1/") or path in OPEN_PATHS:
+        app: Any = scope.get("app")
+        open_paths = getattr(getattr(app, "state", None), "open_paths", OPEN_PATHS)
+        if scope["type"] != "http" or not path.startswith("/api/v1/") or path in open_paths:
             await self.app(scope, receive, send)
             return
-        app = scope["app"]
         method = scope["method"]
         headers = {k.decode("latin-1").lower(): v.decode("latin-1")
                    for k, v in scope.get("headers", [])}

@@ -135,6 +135,7 @@ class AlarmLog:
     def _run(self) -> None:
         sub = self.cell.events.subscribe()
         next_status = 0.0
+        last_error_s = -1e9
         try:
             while not self._stop.is_set():
                 ev = sub.get(self.poll_s)
@@ -149,7 +150,9 @@ class AlarmLog:
                 try:
                     self.check()
                 except Exception:  # a bad read must never end the watching
-                    log.exception("alarm check failed")
+                    if time.monotonic() - last_error_s > 60.0:  # and must not flood the log
+                        last_error_s = time.monotonic()
+                        log.exception("alarm check failed")
         finally:
             sub.close()
 

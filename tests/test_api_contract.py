@@ -149,4 +149,5 @@ def test_metrics_public_switch_and_job_durations(tmp_path: Path) -> None:
             time.sleep(0.1)
         assert 'cell_job_duration_seconds_count{kind="approach",outcome="succeeded"} 1.0' \
             in deadline_text
-        assert client.get("/api/v1/status").status_code == 401  # only /metrics is open
+        assert client.get("/api/v1/metrics").status_code == 200
+        assert client.get("/api/v1/status").status_code == 401  # only the metrics are open

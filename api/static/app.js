@@ -541,7 +541,13 @@ function wireCommands() {
 // Alarms: a banner that stays until each alarm is acknowledged (by the server, so every page
 // and the PLC see the same), and the alarm log with paging.
 
-const when = (t) => (Number.isFinite(t) ? new Date(t * 1000).toLocaleString() : "–");
+// Today's times as the clock shows them; older ones with their date.
+function when(t) {
+  if (!Number.isFinite(t)) return "–";
+  const d = new Date(t * 1000);
+  return d.toDateString() === new Date().toDateString()
+    ? d.toLocaleTimeString() : d.toLocaleString();
+}
 const mayAck = () => !!state.token && (state.permissions
   ? state.permissions.includes("alarm_ack") : state.role === "operator");
 
