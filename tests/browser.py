@@ -266,7 +266,8 @@ def recording_app(rec: RecordingApi) -> FastAPI:
     need = {
         "/api/v1/jog": "jog", "/api/v1/jog/heartbeat": "jog", "/api/v1/stop": "stop",
         "/api/v1/locate": "locate", "/api/v1/approach": "approach",
-        "/api/v1/gripper": "gripper",
+        "/api/v1/gripper": "gripper", "/api/v1/arm/home": "operator",
+        "/api/v1/arm/unlock": "operator",
     }
     schemas: dict[str, TypeAdapter[Any]] = {
         "/api/v1/jog": TypeAdapter(JogRequest),
@@ -289,7 +290,8 @@ def recording_app(rec: RecordingApi) -> FastAPI:
         role = STUB_TOKENS.get(request.headers.get("authorization", "").removeprefix("Bearer "))
         if role is None:
             return _error(401, "unauthorized", "unknown token")
-        if need.get(path, "read") not in stub_permissions(role):
+        granted = stub_permissions(role) | ({"operator"} if role == "operator" else set())
+        if need.get(path, "read") not in granted:
             return _error(403, "forbidden", f"role {role!r} may not {need.get(path, 'read')}")
         if path in schemas and body is not None:
             try:
@@ -357,8 +359,14 @@ def recording_app(rec: RecordingApi) -> FastAPI:
     def images() -> dict[str, Any]:
         return {"images": [], "total": 0, "offset": 0, "enabled": False}
 
-    for p in ("/api/v1/jog", "/api/v1/jog/heartbeat", "/api/v1/stop", "/api/v1/gripper"):
+    for p in ("/api/v1/jog", "/api/v1/jog/heartbeat", "/api/v1/stop", "/api/v1/gripper",
+              "/api/v1/arm/unlock"):
         app.post(p)(lambda: {"ok": True})
+
+    @app.post("/api/v1/arm/home")
+    def home() -> dict[str, Any]:
+        return {"id": "home0001", "kind": "home", "state": "running", "progress": {},
+                "result": None, "error": None}
 
     @app.post("/api/v1/locate")
     def locate() -> dict[str, Any]:
