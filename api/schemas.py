@@ -234,7 +234,7 @@ class RobotStatus(_Out):
 
 class CameraStatus(_Out):
     connected: bool
-    last_frame_age_s: float | None
+    last_frame_age_s: float | None = None
 
 
 class GripperState(_Out):
@@ -266,9 +266,9 @@ class Status(_Out):
     state: str
     robot: RobotStatus
     camera: CameraStatus
-    gripper: GripperState | None
-    job: Job | None
-    last_locate: Located | None
+    gripper: GripperState | None = Field(default=None, description="null: no gripper")
+    job: Job | None = Field(default=None, description="the running job, if any")
+    last_locate: Located | None = None
 
 
 class JogStepResult(_Out):
@@ -279,8 +279,8 @@ class JogStepResult(_Out):
 class JogInfo(_Out):
     model_config = _examples({"jogging": True, "frame": "base", "deadman_timeout_s": 0.2})
     jogging: bool
-    frame: Literal["base", "tool"]
-    deadman_timeout_s: float
+    frame: Literal["base", "tool"] | None = None
+    deadman_timeout_s: float | None = None
 
 
 class StopResult(_Out):
@@ -289,9 +289,9 @@ class StopResult(_Out):
     model_config = _examples({"stopped": True, "cancelled": "approach",
                               "job_id": "3f2a9c1b7d4e", "arm_error": None})
     stopped: bool
-    cancelled: str | None = Field(description="the motion that was cancelled, if any")
-    job_id: str | None
-    arm_error: str | None
+    cancelled: str | None = Field(default=None, description="the motion that was cancelled")
+    job_id: str | None = None
+    arm_error: str | None = None
 
 
 class AuditEntry(_Out):

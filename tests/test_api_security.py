@@ -223,3 +223,20 @@ def test_cell_serve_https(tmp_path: Path) -> None:
                          capture_output=True, text=True, timeout=60,
                          env={**os.environ, "PYTHONPATH": str(REPO)})
     assert bad.returncode == 2 and "--ssl-keyfile" in bad.stderr
+
+
+def test_a_flood_of_refusals_does_not_fill_the_audit_log(client: TestClient) -> None:
+    from api.guard import AUDIT_REFUSALS_PER_S, audit_refusal
+
+    app = client.app
+    for _ in range(3 * AUDIT_REFUSALS_PER_S):
+        audit_refusal(app, "anonymous", "GET", "/api/v1/flood", 401, "unauthorized", "x")
+    time.sleep(1.1)  # the next second: the next row says how many were not written
+    audit_refusal(app, "anonymous", "GET", "/api/v1/flood", 401, "unauthorized", "x")
+    rows = [e for e in cell_of(client).jobs.audit_log(1000)
+            if e.command == "GET /api/v1/flood"]
+    skipped = sum(e.params.get("refusals_not_written_before", 0) for e in rows)
+    print(f"{len(rows)} rows written, {skipped} counted as skipped")
+    assert len(rows) <= 2 * AUDIT_REFUSALS_PER_S + 1
+    assert len(rows) - 1 + skipped == 3 * AUDIT_REFUSALS_PER_S
+    assert skipped > 0
