@@ -30,6 +30,7 @@ from cell.service import Cell
 
 LATENCY_BUCKETS_S = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0,
                      10.0, 30.0, 60.0)
+JOBS_PER_SCRAPE = 200
 JOB_BUCKETS_S = (0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 30.0, 60.0, 120.0, 300.0, 600.0)
 
 
@@ -98,11 +99,9 @@ class Metrics:
         self.stop = Histogram("cell_stop_seconds", "POST /stop until the arm was told to stop",
                               buckets=LATENCY_BUCKETS_S, registry=self.registry)
         self._cell = cell
-        self._seen_jobs: dict[str, None] = {}
-        self._closing = threading.Event()
-        self._thread = threading.Thread(target=self._watch_jobs, name="metrics-jobs",
-                                        daemon=True)
-        self._thread.start()
+        self._seen_jobs: dict[str, None] = dict.fromkeys(
+            j.id for j in cell.jobs.list_jobs(JOBS_PER_SCRAPE) if j.finished)
+        self._lock = threading.Lock()
 
     def observe_http(self, method: str, route: str, status: int, seconds: float) -> None:
         self.http.labels(method, route, str(status)).observe(seconds)
@@ -118,16 +117,18 @@ class Metrics:
         self.job.labels(job.get("kind", "job"), job["state"]).observe(
             max(0.0, float(job["ended_at"]) - float(job["created_at"])))
 
-    def _watch_jobs(self) -> None:
-        with self._cell.events.subscribe() as sub:
-            while not self._closing.is_set():
-                ev = sub.get(0.5)
-                if ev is not None and ev["type"] == "job" and isinstance(ev.get("job"), dict):
-                    self.observe_job(ev["job"])
+    def _collect_jobs(self) -> None:
+        """Observe the jobs that ended since the last scrape (read from the job store at
+        scrape time: no thread, no event subscription, and nothing lost while nobody
+        scrapes, up to JOBS_PER_SCRAPE jobs between two scrapes)."""
+        for job in reversed(self._cell.jobs.list_jobs(JOBS_PER_SCRAPE)):
+            if job.finished:
+                self.observe_job(job.as_dict())
 
     def close(self) -> None:
-        self._closing.set()
-        self._thread.join(timeout=2.0)
+        """Nothing runs in the background; kept so the app can treat it like its peers."""
 
     def render(self) -> bytes:
-        return generate_latest(self.registry)
+        with self._lock:
+            self._collect_jobs()
+            return generate_latest(self.registry)
