@@ -240,3 +240,30 @@ def test_a_flood_of_refusals_does_not_fill_the_audit_log(client: TestClient) -> 
     assert len(rows) <= 2 * AUDIT_REFUSALS_PER_S + 1
     assert len(rows) - 1 + skipped == 3 * AUDIT_REFUSALS_PER_S
     assert skipped > 0
+
+
+def _raw_post(base_url: str, path: str, headers: dict[str, str]) -> bytes:
+    """Send only the head of a POST announcing a 10 MB body, then read the answer."""
+    host, port = base_url.removeprefix("http://").split(":")
+    head = f"POST {path} HTTP/1.1\r\nHost: {host}\r\nContent-Type: application/json\r\n" \
+           "Content-Length: 10000000\r\n" + "".join(f"{k}: {v}\r\n" for k, v in headers.items())
+    with socket.create_connection((host, int(port)), timeout=10) as s:
+        s.sendall(head.encode() + b"\r\n" + b"{" * 1000)  # a token of the body, no more
+        return s.recv(4096)
+
+
+def test_large_bodies_are_answered_before_they_are_sent(tmp_path: Path) -> None:
+    """The answer comes while the client still has 10 MB to send: the service never waited
+    for (or buffered) the body of an anonymous or oversized request."""
+    from tests.browser import serve_app
+
+    with running_cell(sim_config(tmp_path)) as cell, serve_app(create_app(cell)) as url:
+        t0 = time.monotonic()
+        anonymous = _raw_post(url, "/api/v1/approach", {})
+        authorised = _raw_post(url, "/api/v1/approach", {"Authorization": "Bearer sim-plc"})
+        elapsed = time.monotonic() - t0
+        assert cell.jobs.list_jobs() == []
+    print(f"answers in {elapsed:.3f} s: {anonymous.splitlines()[0]!r}, "
+          f"{authorised.splitlines()[0]!r}")
+    assert anonymous.startswith(b"HTTP/1.1 401")
+    assert authorised.startswith(b"HTTP/1.1 413")
