@@ -236,3 +236,13 @@ def test_mjpeg_stream_delivers_jpeg_parts(client: TestClient) -> None:
     start = body.index(b"\xff\xd8")
     assert cv2.imdecode(np.frombuffer(body[start:body.index(b"\xff\xd9", start) + 2], np.uint8),
                         cv2.IMREAD_COLOR) is not None
+
+
+def test_a_job_interrupted_by_a_crash_raises_an_alarm_on_restart(tmp_path: Path) -> None:
+    config = _config(tmp_path)
+    with running_cell(config) as cell, TestClient(create_app(cell)):
+        job = cell.jobs.create("approach", "plc(plc)", {"standoff_mm": 50})  # never finished
+    with running_cell(config) as cell, TestClient(create_app(cell)) as client:
+        alarm = wait_for(lambda: next((a for a in active_alarms(client)
+                                       if a["job_id"] == job.id), None), 10, "alarm")
+        assert alarm["code"] == "interrupted" and "interrupted" in alarm["message"]
