@@ -594,6 +594,18 @@ async function acknowledge(id) {
   refreshLogs();
 }
 
+async function acknowledgeAll() {
+  const ids = [...document.querySelectorAll('[data-testid="alarm"]')].map((li) => li.dataset.alarmId);
+  try {
+    for (const id of ids) await api("POST", `/alarms/${id}/ack`, {});
+    say(`${ids.length} alarm(s) acknowledged.`, "info");
+  } catch (e) {
+    say(`Acknowledge failed: ${e.message}`);
+  }
+  refreshAlarms();
+  refreshLogs();
+}
+
 async function refreshAlarms() {
   if (!state.token) { renderBanner({ alarms: [], active: 0 }); return; }
   try {
@@ -783,6 +795,7 @@ async function showImage(url) {
 
 function wireExtras() {
   $("alarm-count").addEventListener("click", () => $("alarm-banner").scrollIntoView());
+  $("alarm-ack-all").addEventListener("click", acknowledgeAll);
   for (const [prefix, key, refresh] of [["alarm-log", "alarmOffset", refreshAlarmLog],
     ["history", "historyOffset", refreshHistory]]) {
     $(`${prefix}-prev`).addEventListener("click", () => {
