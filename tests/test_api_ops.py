@@ -246,3 +246,14 @@ def test_a_job_interrupted_by_a_crash_raises_an_alarm_on_restart(tmp_path: Path)
         alarm = wait_for(lambda: next((a for a in active_alarms(client)
                                        if a["job_id"] == job.id), None), 10, "alarm")
         assert alarm["code"] == "interrupted" and "interrupted" in alarm["message"]
+
+
+def test_a_protective_stop_raises_an_alarm(client: TestClient) -> None:
+    cell = cell_of(client)
+    assert cell.sim is not None
+    cell.sim.trigger_protective_stop("test: collision")
+    alarm = wait_for(lambda: next((a for a in active_alarms(client)
+                                   if a["code"] == "protective_stop"), None), 10, "alarm")
+    assert alarm["source"] == "arm" and "protective stop" in alarm["message"]
+    events = client.get("/api/v1/alarms", headers=VIEW).json()
+    assert events["active"] >= 1
