@@ -6,11 +6,13 @@ Why a log of its own: a failed approach used to be visible only in the job list,
 fold; a production cell needs something that stays on screen until a person has seen it, and
 that survives a restart (the alarms live in the job database, table ``alarms``).
 
-The alarms are derived, not reported: the log watches the cell's event bus (``job`` events,
-and ``state`` events whose safety status or camera flag is bad wake it at once) and reads the
-cell's status twice a second, so no code path of the cell has to remember to raise one. A
-fault raises one alarm when it appears, not one per poll; it may be acknowledged while it
-lasts, and raises a new alarm when it comes back after clearing.
+The alarms are derived, not reported: twice a second the log reads the jobs that ended badly
+from the job table and the faults from the cell's status, so no code path of the cell has to
+remember to raise one. (It polls rather than subscribing to the event bus on purpose: a
+subscriber keeps the cell's monitor publishing state at camera rate, which costs CPU and GIL
+time the motion threads need on a small cell PC.) New alarms are published on the event bus
+(``alarm`` events). A fault raises one alarm when it appears, not one per poll; it may be
+acknowledged while it lasts, and raises a new alarm when it comes back after clearing.
 """
 
 from __future__ import annotations
@@ -133,28 +135,14 @@ class AlarmLog:
             self._db.close()
 
     def _run(self) -> None:
-        sub = self.cell.events.subscribe()
-        next_status = 0.0
         last_error_s = -1e9
-        try:
-            while not self._stop.is_set():
-                ev = sub.get(self.poll_s)
-                urgent = ev is not None and (
-                    ev["type"] == "job" or (ev["type"] == "state" and (
-                        ev.get("safety") not in (None, "NORMAL")
-                        or ev.get("camera_connected") is False)))
-                now = time.monotonic()
-                if ev is not None and not urgent and now < next_status:
-                    continue
-                next_status = now + self.poll_s
-                try:
-                    self.check()
-                except Exception:  # a bad read must never end the watching
-                    if time.monotonic() - last_error_s > 60.0:  # and must not flood the log
-                        last_error_s = time.monotonic()
-                        log.exception("alarm check failed")
-        finally:
-            sub.close()
+        while not self._stop.wait(self.poll_s):
+            try:
+                self.check()
+            except Exception:  # a bad read must never end the watching
+                if time.monotonic() - last_error_s > 60.0:  # and must not flood the log
+                    last_error_s = time.monotonic()
+                    log.exception("alarm check failed")
 
     def check(self) -> list[Alarm]:
         """Raise what is new: finished jobs that failed, faults that appeared."""

@@ -79,7 +79,9 @@ def test_failed_job_raises_an_alarm_until_acknowledged_and_it_survives_a_restart
         alarm = wait_for(lambda: next((a for a in active_alarms(client)
                                        if a["job_id"] == job_id), None), 5, "alarm")
         assert alarm["source"] == "job" and alarm["active"]
-        assert alarm["code"] in ("too_few_blobs", "no_correspondence", "target_behind_camera")
+        # usually the target is not located any more; on a loaded host the move may fail first
+        assert alarm["code"] == client.get(f"/api/v1/jobs/{job_id}",
+                                           headers=VIEW).json()["error"]["code"]
         assert job_id in alarm["message"] and "failed" in alarm["message"]
         # a viewer or the PLC may not acknowledge; a refusal is audited and changes nothing
         assert client.post(f"/api/v1/alarms/{alarm['id']}/ack", headers=PLC).status_code == 403
