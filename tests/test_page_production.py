@@ -133,12 +133,15 @@ def test_failed_approach_raises_an_alarm_until_acknowledged(
     away = {"position_mm": [-480.0, 320.0, 0.0], "rotvec_rad": [np.pi, 0.0, 0.0]}
     api(cell, "PUT", "/sim/target", json=away)  # the target leaves the view mid-approach
     try:
+        ended = wait_for(lambda: (j := api(cell, "GET", f"/jobs/{job_id}"))["state"] != "running"
+                         and j, 90, "approach end")
+        assert ended["state"] == "failed", ended
         banner = page.get_by_test_id("alarm-banner")
-        banner.wait_for(state="visible", timeout=40_000)
+        banner.wait_for(state="visible", timeout=20_000)
         alarm = page.locator(f'[data-testid="alarm"]:has-text("{job_id}")')
-        alarm.wait_for(timeout=10_000)
+        alarm.wait_for(timeout=20_000)
         text = alarm.inner_text()
-        assert "failed" in text and "target not located" in text, text
+        assert "failed" in text and ended["error"]["message"][:40] in text, text
         assert page.get_by_test_id("alarm-count").inner_text().endswith(("alarm", "alarms"))
         # the job and the Tasks line say how it ended, not "approach started"
         wait_for(lambda: "failed" in page.get_by_test_id("job").inner_text(), 10, "job failed")
@@ -171,7 +174,16 @@ def test_failed_approach_raises_an_alarm_until_acknowledged(
     assert page.get_by_test_id("alarm-count").is_hidden()
 
 
-def test_image_log_browser_shows_failed_locate_frames(page: Any, cell: str) -> None:
+def test_image_log_browser_shows_failed_locate_frames(
+        page: Any, cell: str, home_target: dict[str, Any]) -> None:
+    away = {"position_mm": [-480.0, 320.0, 0.0], "rotvec_rad": [np.pi, 0.0, 0.0]}
+    api(cell, "PUT", "/sim/target", json=away)
+    try:
+        time.sleep(0.3)  # frames without the target
+        r = httpx.post(f"{cell}/api/v1/locate", headers=HEAD, timeout=30.0)
+        assert r.status_code == 409, r.text
+    finally:
+        api(cell, "PUT", "/sim/target", json=home_target)
     login(page, cell, OPERATOR)
     entry = page.get_by_test_id("image-entry").first
     entry.wait_for(timeout=15_000)
