@@ -13,62 +13,94 @@ from contextlib import asynccontextmanager
 
 from fastapi import Depends, FastAPI, Request, Response
 from fastapi.responses import PlainTextResponse
+from prometheus_client import CONTENT_TYPE_LATEST
 
-from api import errors, metrics, openapi_limits
+from api import errors, logs, metrics, openapi_limits
 from api.auth import TokenTable, require
+from api.docs import mount_docs
+from api.guard import OPEN_PATHS, RequestGuard
+from api.live import LiveView
 from api.page import mount_page
 from api.routes import router, sim_router
 from api.routes_arm import router as arm_router
 from api.routes_calibration import install as install_calibration
+from api.routes_ops import install as install_ops
 from cell.service import Cell
+
+DESCRIPTION = """Vision-guided UR cell: locate the dot target, approach it with look-and-move,
+jog, stop, grip, calibrate; alarms, job history and camera settings for the operator page.
+
+- Poses are `{"position_mm": [x, y, z], "rotvec_rad": [rx, ry, rz]}`.
+- Errors are `{"error": {"code", "message"}}`; `code` is one of the `ErrorCode` enum.
+  401 missing/unknown token (answered before the body is read), 403 role, 404 unknown object,
+  409 refused in the current state (nothing moved), 413 body too large, 415 body not JSON,
+  422 malformed or outside a limit, 503 a device is unavailable.
+- Authorise with `Authorization: Bearer <token>`. Only the GET streaming routes (camera
+  frames, event streams) also take `?token=`; it is redacted from the logs.
+- `POST /approach` with `wait=true` answers 200 when the job ended, also when it failed or
+  was cancelled: read the job's `state` and `error`.
+"""
 
 
 def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False) -> FastAPI:
     """Build the API for ``cell``. Raises ConfigError when a sample token is configured on
     hardware other than the fakes."""
     tokens = TokenTable(list(cell.config.api.tokens), simulated=cell.hw.simulated)
+    logs.install()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        logs.install()  # uvicorn's handlers exist by now
         yield
+        alarms.close()
+        app.state.metrics.close()
         if close_cell_on_shutdown:
             cell.close()
 
-    app = FastAPI(
-        title="ur-vision-cell", version="0.1.0", lifespan=lifespan,
-        description="Vision-guided UR cell: locate the dot target, approach it with "
-        "look-and-move, jog, stop, grip. Poses are {position_mm, rotvec_rad}; errors are "
-        '{"error": {"code", "message"}}. Authorise with a bearer token.')
+    app = FastAPI(title="ur-vision-cell", version="0.2.0", lifespan=lifespan,
+                  description=DESCRIPTION, docs_url=None, redoc_url=None)
     app.state.cell = cell
     app.state.tokens = tokens
     app.state.closing = threading.Event()  # set at shutdown: streams end on their own
-    app.state.http_stats = metrics.HttpStats()
+    app.state.metrics = metrics.Metrics(cell)
+    app.state.live = LiveView(cell)
     errors.install(app)
     app.include_router(router)
     app.include_router(arm_router)  # operator recovery: home, unlock, power
     install_calibration(app)  # hand-eye routine and taught poses (issue 7)
+    alarms = install_ops(app)  # alarms, camera settings, image log (issue 16)
+    alarms.start()
     if cell.sim is not None:
         app.include_router(sim_router)
+    app.add_middleware(RequestGuard)
 
     @app.middleware("http")
-    async def _count(request: Request,
-                     call_next: Callable[[Request], Awaitable[Response]]) -> Response:
+    async def _measure(request: Request,
+                       call_next: Callable[[Request], Awaitable[Response]]) -> Response:
         t0 = time.perf_counter()
         response = await call_next(request)
         route = request.scope.get("route")
         path = getattr(route, "path", "unmatched")
-        app.state.http_stats.observe(request.method, path, response.status_code,
-                                     time.perf_counter() - t0)
+        app.state.metrics.observe_http(request.method, path, response.status_code,
+                                       time.perf_counter() - t0)
         return response
 
-    @app.get("/metrics", response_class=PlainTextResponse, tags=["status"],
-             dependencies=[Depends(require("read"))], responses=errors.ERROR_RESPONSES)
-    @app.get("/api/v1/metrics", response_class=PlainTextResponse, tags=["status"],
-             dependencies=[Depends(require("read"))], responses=errors.ERROR_RESPONSES)
-    def prometheus() -> str:
-        """Prometheus text format."""
-        return metrics.render(cell, app.state.http_stats)
+    public = bool(getattr(cell.config.api, "metrics_public", False))
+    app.state.open_paths = OPEN_PATHS | ({"/api/v1/metrics"} if public else set())
+    guard = [] if public else [Depends(require("read"))]
+    note = ("No token needed (`[api] metrics_public = true`)." if public else
+            "Needs a token of any role (set `[api] metrics_public = true` to scrape "
+            "without one).")
 
+    @app.get("/metrics", response_class=PlainTextResponse, tags=["status"],
+             dependencies=guard, responses=errors.ERROR_RESPONSES, description=note)
+    @app.get("/api/v1/metrics", response_class=PlainTextResponse, tags=["status"],
+             dependencies=guard, responses=errors.ERROR_RESPONSES, description=note)
+    def prometheus() -> Response:
+        """Prometheus text format."""
+        return Response(app.state.metrics.render(), media_type=CONTENT_TYPE_LATEST)
+
+    mount_docs(app)
     mount_page(app)
     openapi_limits.install(app, cell.config.limits)
     return app

@@ -1,25 +1,34 @@
 """Bearer tokens from config, each with a role; routes ask for a permission, not a role.
 
-Browsers cannot set headers on ``<img>`` and ``EventSource`` requests, so GET routes also accept
-the token as ``?token=`` (keep such URLs out of shared logs).
+Credentials come from the ``Authorization`` header. Only the GET streaming routes (camera
+frames, event streams) also accept ``?token=``, because browsers cannot set headers on
+``<img>`` and ``EventSource``; such URLs are redacted from every log line (api.logs). A token
+in the query of any other route, POST above all, is refused: a cross-site page can make a
+browser send a "simple" POST with a URL of its choosing, never with an Authorization header.
+
+Tokens are compared in constant time (``secrets.compare_digest``) against every configured
+token, so timing tells nothing about which or how much of one matched. A config may store a
+token as ``sha256`` = hex(sha256(salt + token)) with its ``salt`` instead of in the clear.
 """
 
 from __future__ import annotations
 
+import hashlib
+import secrets
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import Depends, Query, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from api.errors import AuthError, ForbiddenError
-from cell.config import SAMPLE_TOKENS, ConfigError, TokenConfig
+from cell.config import SAMPLE_TOKENS, ConfigError
 
 PERMISSIONS: dict[str, frozenset[str]] = {
     "viewer": frozenset({"read"}),
     "operator": frozenset({"read", "locate", "approach", "jog", "gripper", "sim_write",
-                           "recover"}),
+                           "recover", "camera", "alarm_ack"}),
     "plc": frozenset({"read", "locate", "approach"}),
 }
 # every valid token may stop the cell
@@ -43,42 +52,93 @@ class Caller:
         return f"{self.name or self.role}({self.role})"
 
 
+def token_digest(token: str, salt: str) -> str:
+    """What a config stores for a hashed token: hex sha256 of salt + token (UTF-8)."""
+    return hashlib.sha256((salt + token).encode()).hexdigest()
+
+
+@dataclass(frozen=True)
+class _Entry:
+    caller: Caller
+    secret: bytes  # the token itself, or its digest when hashed
+    salt: str | None  # None: ``secret`` is the token in the clear
+
+
 class TokenTable:
-    def __init__(self, tokens: list[TokenConfig], *, simulated: bool) -> None:
+    def __init__(self, tokens: list[Any], *, simulated: bool) -> None:
         if not simulated:
-            sample = sorted(t.token for t in tokens if t.token in SAMPLE_TOKENS)
+            sample = sorted(t.token for t in tokens if getattr(t, "token", None) in SAMPLE_TOKENS)
             if sample:
                 raise ConfigError(
                     f"api.tokens: the sample token(s) {', '.join(sample)} are not allowed with "
                     "real hardware; set your own secret tokens in the config")
-        self._by_token = {t.token: Caller(t.name or t.role, t.role) for t in tokens}
+        self._entries: list[_Entry] = []
+        for t in tokens:
+            caller = Caller(t.name or t.role, t.role)
+            digest = getattr(t, "sha256", None)
+            if digest:
+                self._entries.append(_Entry(caller, digest.lower().encode(),
+                                            getattr(t, "salt", "") or ""))
+            else:
+                self._entries.append(_Entry(caller, t.token.encode(), None))
 
     def lookup(self, token: str | None) -> Caller:
         if not token:
             raise AuthError("unauthorized", "missing bearer token (Authorization: Bearer ...)")
-        caller = self._by_token.get(token)
-        if caller is None:
+        given = token.encode()
+        found: Caller | None = None
+        for entry in self._entries:  # no early exit: every entry costs the same
+            candidate = given if entry.salt is None else \
+                token_digest(token, entry.salt).encode()
+            if secrets.compare_digest(candidate, entry.secret) and found is None:
+                found = entry.caller
+        if found is None:
             raise AuthError("unauthorized", "unknown token")
-        return caller
+        return found
+
+
+def _authorise(request: Request, token: str | None, permission: str) -> Caller:
+    table: TokenTable = request.app.state.tokens
+    caller = table.lookup(token)
+    request.state.caller = caller
+    if permission not in caller.permissions:
+        raise ForbiddenError("forbidden", f"role {caller.role!r} may not {permission}")
+    return caller
 
 
 def require(permission: str) -> Callable[..., Caller]:
-    """A dependency that authenticates the caller and checks one permission."""
+    """A dependency that authenticates the caller from the Authorization header only and
+    checks one permission."""
 
     def dependency(
         request: Request,
         credentials: HTTPAuthorizationCredentials | None = Depends(_bearer),  # noqa: B008
-        token: str | None = Query(default=None, description="alternative to the header"),
     ) -> Caller:
-        table: TokenTable = request.app.state.tokens
-        caller = table.lookup(credentials.credentials if credentials else token)
-        if permission not in caller.permissions:
-            raise ForbiddenError("forbidden", f"role {caller.role!r} may not {permission}")
-        request.state.caller = caller
-        return caller
+        if credentials is None and "token" in request.query_params:
+            raise AuthError("unauthorized", "this route takes the token only in the "
+                            "Authorization header (?token= is for the GET streaming routes)")
+        return _authorise(request, credentials.credentials if credentials else None,
+                          permission)
+
+    return dependency
+
+
+def require_stream(permission: str) -> Callable[..., Caller]:
+    """Like ``require`` but also accepts ``?token=``: for GET streaming routes only."""
+
+    def dependency(
+        request: Request,
+        credentials: HTTPAuthorizationCredentials | None = Depends(_bearer),  # noqa: B008
+        token: str | None = Query(default=None, description="alternative to the header, "
+                                  "for <img> and EventSource (redacted from the logs)"),
+    ) -> Caller:
+        return _authorise(request, credentials.credentials if credentials else token,
+                          permission)
 
     return dependency
 
 
 # The caller of a route any valid token may use.
 Read = Annotated[Caller, Depends(require("read"))]
+# The same, for the GET streaming routes that also take ``?token=``.
+Stream = Annotated[Caller, Depends(require_stream("read"))]

@@ -1,6 +1,8 @@
 """Every error leaves the API as ``{"error": {"code", "message"}}`` with a fitting status.
 
 The cell raises typed refusals with an abstract ``kind``; only this module knows HTTP.
+Refusals of the request itself (401, 403, 422) are written to the audit log with the route and
+the caller, or ``anonymous``; the cell audits its own refusals (409, 503) where it makes them.
 """
 
 from __future__ import annotations
@@ -22,16 +24,28 @@ STATUS = {
     "invalid": 422, "conflict": 409, "unavailable": 503, "not_found": 404,
     "unauthorized": 401, "forbidden": 403,
 }
+AUDITED = frozenset({401, 403, 422})
 
-# Documented on every route, so the OpenAPI schema tells clients what to expect.
+
+def _resp(text: str) -> dict[str, Any]:
+    return {"model": ErrorResponse, "description": text}
+
+
+# Documented on every /api/v1 route, so the OpenAPI schema tells clients what to expect.
 ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
-    status: {"model": ErrorResponse, "description": text} for status, text in (
-        (401, "missing or unknown token"), (403, "the token's role may not do this"),
-        (409, "refused in the cell's current state (busy, protective stop, stale pose, ...)"),
-        (422, "malformed request or outside a configured limit"),
-        (503, "a device the request needs is unavailable (camera lost, arm disconnected)"),
-    )
+    401: _resp("missing or unknown token (answered before the body is read)"),
+    403: _resp("the token's role may not do this"),
+    413: _resp("request body larger than the limit (64 KiB)"),
+    415: _resp("a request body that is not application/json"),
+    422: _resp("malformed request or outside a configured limit (code names which)"),
 }
+Responses = dict[int | str, dict[str, Any]]
+CONFLICT: Responses = {409: _resp("refused in the cell's current state (busy, protective "
+                                  "stop, stale pose, target not located, ...); nothing moved")}
+UNAVAILABLE: Responses = {503: _resp("a device the request needs is unavailable (camera_lost, "
+                          "arm_disconnected)")}
+NOT_FOUND: Responses = {404: _resp("no such object (job, taught pose, alarm, image)")}
+DEVICE_ERRORS: Responses = {**CONFLICT, **UNAVAILABLE}
 
 
 class AuthError(CellError):
@@ -54,16 +68,29 @@ def _validation_message(err: RequestValidationError) -> str:
     return "; ".join(parts) or "invalid request"
 
 
+def _audit(request: Request, status: int, code: str, message: str) -> None:
+    from api.guard import audit_refusal
+
+    caller = getattr(request.state, "caller", None)
+    route = getattr(request.scope.get("route"), "path", request.url.path)
+    audit_refusal(request.app, caller.label if caller is not None else "anonymous",
+                  request.method, route, status, code, message)
+
+
 def install(app: FastAPI) -> None:
     @app.exception_handler(CellError)
     async def _cell_error(request: Request, err: CellError) -> JSONResponse:
+        status = STATUS.get(err.kind, 409)
         headers = {"WWW-Authenticate": "Bearer"} if err.kind == "unauthorized" else None
-        return JSONResponse(error_body(err.code, err.message), STATUS.get(err.kind, 409),
-                            headers=headers)
+        if status in (401, 403):  # the cell audits its own 409/422/503 refusals
+            _audit(request, status, err.code, err.message)
+        return JSONResponse(error_body(err.code, err.message), status, headers=headers)
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, err: RequestValidationError) -> JSONResponse:
-        return JSONResponse(error_body("invalid_request", _validation_message(err)), 422)
+        message = _validation_message(err)
+        _audit(request, 422, "invalid_request", message)
+        return JSONResponse(error_body("invalid_request", message), 422)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, err: StarletteHTTPException) -> JSONResponse:

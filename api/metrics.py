@@ -1,79 +1,134 @@
-"""``/metrics`` in the Prometheus text format, written plainly (a handful of series does not
-need a client library): HTTP requests by route and status, locate outcomes and time, jobs by
-final state, refusals by code, dead-man stops, and the live arm/camera gauges."""
+"""``/metrics`` through ``prometheus_client``: one registry per app (tests build many).
+
+- ``cell_http_request_duration_seconds{method,route,status}``: latency histogram by route
+  template (``/api/v1/jobs/{job_id}``, never the raw path, so ids do not explode the labels);
+- ``cell_locate_request_seconds{outcome}``: POST /locate from request to answer;
+  ``cell_locate_total{outcome}`` / ``cell_locate_seconds`` every estimate the cell made;
+- ``cell_job_duration_seconds{kind,outcome}``: from start to end of every job;
+- ``cell_stop_seconds``: POST /stop until the arm was told to stop;
+- the cell's counters (jobs, refusals, dead-man stops, stops) and gauges (arm, camera);
+- ``process_*`` (CPU, memory, file descriptors) and ``python_info``.
+"""
 
 from __future__ import annotations
 
 import threading
-import time
-from collections import Counter, defaultdict
+from collections.abc import Iterator
 from typing import Any
+
+from prometheus_client import (
+    CollectorRegistry,
+    Histogram,
+    PlatformCollector,
+    ProcessCollector,
+    generate_latest,
+)
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
 
 from cell.service import Cell
 
+LATENCY_BUCKETS_S = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0,
+                     10.0, 30.0, 60.0)
+JOBS_PER_SCRAPE = 200
+JOB_BUCKETS_S = (0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 30.0, 60.0, 120.0, 300.0, 600.0)
 
-class HttpStats:
-    def __init__(self) -> None:
+
+class _CellCollector(Collector):
+    """The cell's own counters and gauges, read at scrape time."""
+
+    def __init__(self, cell: Cell) -> None:
+        self.cell = cell
+
+    def collect(self) -> Iterator[Metric]:
+        cell = self.cell
+        st = cell.stats
+        locates = CounterMetricFamily("cell_locate", "frames estimated by outcome",
+                                      labels=["outcome"])
+        for outcome, n in cell.locator.outcomes.items():
+            locates.add_metric([outcome], n)
+        yield locates
+        yield CounterMetricFamily("cell_locate_seconds", "CPU-side time spent estimating "
+                                  "successful frames", value=cell.locator.seconds_sum)
+        jobs = CounterMetricFamily("cell_jobs", "finished jobs by end state", labels=["state"])
+        for state, n in st.jobs.items():
+            jobs.add_metric([state], n)
+        yield jobs
+        refusals = CounterMetricFamily("cell_refusals", "refused commands by code",
+                                       labels=["code"])
+        for code, n in st.refusals.items():
+            refusals.add_metric([code], n)
+        yield refusals
+        yield CounterMetricFamily("cell_deadman_stops", "continuous jogs stopped by the "
+                                  "dead-man", value=st.deadman_stops)
+        yield CounterMetricFamily("cell_stops", "stop commands", value=st.stops)
+        health = cell.health()
+        yield GaugeMetricFamily("cell_arm_connected", "1 when the arm is connected",
+                                value=1 if health["arm_connected"] else 0)
+        yield GaugeMetricFamily("cell_camera_connected", "1 while frames flow",
+                                value=1 if health["camera_connected"] else 0)
+        try:
+            arm = cell.arm_state()
+            yield GaugeMetricFamily("cell_arm_moving", "1 while the arm moves",
+                                    value=1 if arm.moving else 0)
+            yield GaugeMetricFamily("cell_arm_protective_stop", "1 while protective-stopped",
+                                    value=1 if arm.protective_stop else 0)
+        except Exception:  # a disconnected arm: cell_arm_connected already says so
+            pass
+        yield GaugeMetricFamily("cell_started_time_seconds", "UNIX time the cell started",
+                                value=cell.started_at)
+
+
+class Metrics:
+    """The app's registry and the instruments routes and middleware observe."""
+
+    def __init__(self, cell: Cell) -> None:
+        self.registry = CollectorRegistry()
+        ProcessCollector(registry=self.registry)
+        PlatformCollector(registry=self.registry)
+        self.registry.register(_CellCollector(cell))
+        self.http = Histogram("cell_http_request_duration_seconds",
+                              "HTTP request latency by route template and status",
+                              ["method", "route", "status"], buckets=LATENCY_BUCKETS_S,
+                              registry=self.registry)
+        self.locate = Histogram("cell_locate_request_seconds", "POST /locate latency",
+                                ["outcome"], buckets=LATENCY_BUCKETS_S, registry=self.registry)
+        self.job = Histogram("cell_job_duration_seconds", "job duration by kind and outcome",
+                             ["kind", "outcome"], buckets=JOB_BUCKETS_S,
+                             registry=self.registry)
+        self.stop = Histogram("cell_stop_seconds", "POST /stop until the arm was told to stop",
+                              buckets=LATENCY_BUCKETS_S, registry=self.registry)
+        self._cell = cell
+        self._seen_jobs: dict[str, None] = dict.fromkeys(
+            j.id for j in cell.jobs.list_jobs(JOBS_PER_SCRAPE) if j.finished)
         self._lock = threading.Lock()
-        self.requests: Counter[tuple[str, str, int]] = Counter()
-        self.seconds: defaultdict[tuple[str, str], float] = defaultdict(float)
 
-    def observe(self, method: str, route: str, status: int, seconds: float) -> None:
+    def observe_http(self, method: str, route: str, status: int, seconds: float) -> None:
+        self.http.labels(method, route, str(status)).observe(seconds)
+
+    def observe_job(self, job: dict[str, Any]) -> None:
+        if job.get("state") in (None, "running") or job.get("ended_at") is None:
+            return
+        if job["id"] in self._seen_jobs:
+            return
+        self._seen_jobs[job["id"]] = None
+        if len(self._seen_jobs) > 1000:  # bounded: forget the oldest
+            self._seen_jobs.pop(next(iter(self._seen_jobs)))
+        self.job.labels(job.get("kind", "job"), job["state"]).observe(
+            max(0.0, float(job["ended_at"]) - float(job["created_at"])))
+
+    def _collect_jobs(self) -> None:
+        """Observe the jobs that ended since the last scrape (read from the job store at
+        scrape time: no thread, no event subscription, and nothing lost while nobody
+        scrapes, up to JOBS_PER_SCRAPE jobs between two scrapes)."""
+        for job in reversed(self._cell.jobs.list_jobs(JOBS_PER_SCRAPE)):
+            if job.finished:
+                self.observe_job(job.as_dict())
+
+    def close(self) -> None:
+        """Nothing runs in the background; kept so the app can treat it like its peers."""
+
+    def render(self) -> bytes:
         with self._lock:
-            self.requests[(method, route, status)] += 1
-            self.seconds[(method, route)] += seconds
-
-    def snapshot(self) -> tuple[dict[tuple[str, str, int], int], dict[tuple[str, str], float]]:
-        with self._lock:
-            return dict(self.requests), dict(self.seconds)
-
-
-def _esc(v: Any) -> str:
-    return str(v).replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
-
-
-def render(cell: Cell, http: HttpStats) -> str:
-    lines: list[str] = []
-
-    def metric(name: str, kind: str, help_text: str,
-               samples: list[tuple[dict[str, Any], float]]) -> None:
-        lines.append(f"# HELP {name} {help_text}")
-        lines.append(f"# TYPE {name} {kind}")
-        for labels, value in samples:
-            lab = ",".join(f'{k}="{_esc(v)}"' for k, v in labels.items())
-            lines.append(f"{name}{{{lab}}} {value}" if lab else f"{name} {value}")
-
-    requests, seconds = http.snapshot()
-    metric("cell_http_requests_total", "counter", "HTTP requests by route and status",
-           [({"method": m, "route": r, "status": s}, n) for (m, r, s), n in requests.items()])
-    metric("cell_http_request_seconds_total", "counter", "time spent answering, by route",
-           [({"method": m, "route": r}, v) for (m, r), v in seconds.items()])
-    st = cell.stats
-    metric("cell_locate_total", "counter", "frames estimated by outcome",
-           [({"outcome": k}, v) for k, v in cell.locator.outcomes.items()])
-    metric("cell_locate_seconds_total", "counter", "time spent estimating successful frames",
-           [({}, cell.locator.seconds_sum)])
-    metric("cell_jobs_total", "counter", "finished jobs by final state",
-           [({"state": k}, v) for k, v in st.jobs.items()])
-    metric("cell_refusals_total", "counter", "refused commands by code",
-           [({"code": k}, v) for k, v in st.refusals.items()])
-    metric("cell_deadman_stops_total", "counter", "continuous jogs stopped by the dead-man",
-           [({}, st.deadman_stops)])
-    metric("cell_stops_total", "counter", "stop commands", [({}, st.stops)])
-    status = cell.status()
-    robot = status.get("robot", {})
-    metric("cell_arm_connected", "gauge", "1 when the arm is connected",
-           [({}, 1 if robot.get("connected") else 0)])
-    metric("cell_arm_moving", "gauge", "1 while the arm moves", [({}, 1 if robot.get("moving")
-                                                                 else 0)])
-    metric("cell_arm_protective_stop", "gauge", "1 while protective-stopped",
-           [({}, 1 if robot.get("protective_stop") else 0)])
-    cam = status["camera"]
-    metric("cell_camera_connected", "gauge", "1 while frames flow",
-           [({}, 1 if cam["connected"] else 0)])
-    if cam["last_frame_age_s"] is not None:
-        metric("cell_camera_frame_age_seconds", "gauge", "age of the last frame served",
-               [({}, cam["last_frame_age_s"])])
-    metric("cell_uptime_seconds", "gauge", "since the service started",
-           [({}, time.time() - cell.started_at)])
-    return "\n".join(lines) + "\n"
+            self._collect_jobs()
+            return generate_latest(self.registry)

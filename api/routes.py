@@ -8,30 +8,43 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import AsyncIterator
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Depends, Query, Request, Response
 from fastapi.responses import StreamingResponse
 
 from api import overlay
-from api.auth import Caller, Read, require
-from api.errors import ERROR_RESPONSES
+from api.auth import Caller, Read, Stream, require
+from api.errors import CONFLICT, DEVICE_ERRORS, ERROR_RESPONSES, NOT_FOUND, UNAVAILABLE
+from api.live import LiveView
+from api.media import EventStreamResponse, JPEGResponse, MJPEGResponse, PNGResponse
 from api.routes_calibration import taught_target_tcp
 from api.schemas import (
     ApproachRequest,
+    AuditLog,
     GripperRequest,
+    GripperState,
+    Health,
     Job,
     JobList,
     JogContinuous,
+    JogInfo,
     JogRequest,
+    JogStepResult,
+    Located,
     LocateRequest,
     Me,
     Pose,
+    SimTarget,
+    SimTruth,
+    Status,
     StopRequest,
+    StopResult,
 )
 from api.sse import SSE_RESPONSES, sse_response
 from cell.hardware import SimWorld
-from cell.safety import NotFoundError
+from cell.safety import CellError, NotFoundError
 from cell.service import Cell
 from estimator.transforms import T_from_pose, pose_dict
 
@@ -51,7 +64,7 @@ def sim_of(request: Request) -> SimWorld:
     return sim
 
 
-@router.get("/health", tags=["status"])
+@router.get("/health", response_model=Health, tags=["status"])
 def health(request: Request) -> dict[str, Any]:
     """Liveness without auth: 200 while the process serves. ``status`` is ``ok`` with every
     device connected, ``degraded`` otherwise, and ``missing`` names the devices that are not
@@ -65,25 +78,41 @@ def me(caller: Read) -> Me:
     return Me(name=caller.name, role=caller.role, permissions=sorted(caller.permissions))
 
 
-@router.get("/status", tags=["status"])
+@router.get("/status", response_model=Status, tags=["status"])
 def status(request: Request, caller: Read) -> dict[str, Any]:
     """State, robot pose and mode, camera, gripper, current job, last locate."""
     return cell_of(request).status()
 
 
-@router.post("/locate", tags=["vision"])
+@router.post("/locate", response_model=Located, tags=["vision"], responses=DEVICE_ERRORS)
 def locate(request: Request, caller: Annotated[Caller, Depends(require("locate"))],
            body: Annotated[LocateRequest | None, Body()] = None) -> dict[str, Any]:
     """Locate the target now: ``T_base_target``, ``T_camera_target`` and quality."""
     cell = cell_of(request)
-    loc = cell.locate(caller.label, (body or LocateRequest()).n_frames)
+    t0 = time.perf_counter()
+    outcome = "error"
+    try:
+        loc = cell.locate(caller.label, (body or LocateRequest()).n_frames)
+        outcome = "ok"
+    except CellError as err:
+        outcome = err.code
+        raise
+    finally:
+        request.app.state.metrics.locate.labels(outcome).observe(time.perf_counter() - t0)
     return loc.as_dict(time.monotonic())
 
 
-@router.post("/approach", response_model=Job, tags=["motion"])
+@router.post("/approach", response_model=Job, tags=["motion"],
+             responses={**DEVICE_ERRORS, **NOT_FOUND})
 def approach(request: Request, caller: Annotated[Caller, Depends(require("approach"))],
              body: Annotated[ApproachRequest | None, Body()] = None) -> dict[str, Any]:
-    """Start a look-and-move approach job (``wait=true``: answer when it has ended)."""
+    """Start a look-and-move approach job.
+
+    ``wait=false`` (default): 200 with the running job at once. ``wait=true``: 200 when the
+    job has ended, whatever its end state: a failed or cancelled approach is still 200, with
+    ``state`` failed/cancelled and ``error`` {code, message}; check ``state``. Refusals
+    before anything moved are 404 (unknown taught pose), 409 (busy, protective stop, target
+    not located, stale pose), 422 (limits) or 503 (camera lost, arm disconnected)."""
     b = body or ApproachRequest()
     T = None if b.T_target_tcp is None else T_from_pose(b.T_target_tcp.position_mm,
                                                        b.T_target_tcp.rotvec_rad)
@@ -97,23 +126,29 @@ def approach(request: Request, caller: Annotated[Caller, Depends(require("approa
 
 @router.get("/jobs", response_model=JobList, tags=["jobs"])
 def jobs(request: Request, caller: Read,
-         limit: Annotated[int, Query(ge=1, le=500)] = 50) -> dict[str, Any]:
-    return {"jobs": [j.as_dict() for j in cell_of(request).jobs.list_jobs(limit)]}
+         limit: Annotated[int, Query(ge=1, le=500)] = 50,
+         offset: Annotated[int, Query(ge=0, le=10_000_000)] = 0) -> dict[str, Any]:
+    """Job history, newest first, ``limit`` per page from ``offset``."""
+    store = cell_of(request).jobs
+    return {"jobs": [j.as_dict() for j in store.list_jobs(limit, offset)],
+            "total": store.count_jobs(), "offset": offset}
 
 
-@router.get("/jobs/{job_id}", response_model=Job, tags=["jobs"])
+@router.get("/jobs/{job_id}", response_model=Job, tags=["jobs"], responses=NOT_FOUND)
 def job(request: Request, caller: Read, job_id: str) -> dict[str, Any]:
+    """One job (404 ``job_not_found`` for an unknown id)."""
     return cell_of(request).job(job_id).as_dict()
 
 
-@router.get("/audit", tags=["jobs"])
+@router.get("/audit", response_model=AuditLog, tags=["jobs"])
 def audit(request: Request, caller: Read,
           limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> dict[str, Any]:
     """The newest audit entries: every command with caller, parameters, outcome, times."""
     return {"entries": [e.as_dict() for e in cell_of(request).jobs.audit_log(limit)]}
 
 
-@router.post("/jog", tags=["motion"])
+@router.post("/jog", response_model=JogStepResult | JogInfo, tags=["motion"],
+             responses=DEVICE_ERRORS)
 def jog(request: Request, caller: Annotated[Caller, Depends(require("jog"))],
         body: Annotated[JogRequest, Body()]) -> dict[str, Any]:
     """A step (``mode: step``, returns when done) or a continuous jog (``mode: continuous``,
@@ -127,13 +162,14 @@ def jog(request: Request, caller: Annotated[Caller, Depends(require("jog"))],
     return {"T_base_tcp": pose_dict(T)}
 
 
-@router.post("/jog/heartbeat", tags=["motion"])
+@router.post("/jog/heartbeat", response_model=JogInfo, tags=["motion"], responses=CONFLICT)
 def heartbeat(request: Request,
               caller: Annotated[Caller, Depends(require("jog"))]) -> dict[str, Any]:
+    """Keep a continuous jog alive (409 ``not_jogging`` when none runs)."""
     return cell_of(request).heartbeat(caller.label)
 
 
-@router.post("/stop", tags=["motion"])
+@router.post("/stop", response_model=StopResult, tags=["motion"])
 async def stop(request: Request, caller: Annotated[Caller, Depends(require("stop"))],
                body: Annotated[StopRequest | None, Body()] = None) -> dict[str, Any]:
     """Always accepted: stops any motion now and cancels the running job.
@@ -142,20 +178,27 @@ async def stop(request: Request, caller: Annotated[Caller, Depends(require("stop
     requests (``wait=true`` approaches) can never delay it.
     """
     reason = (body or StopRequest()).reason
-    return await asyncio.get_running_loop().run_in_executor(
+    t0 = time.perf_counter()
+    out = await asyncio.get_running_loop().run_in_executor(
         None, cell_of(request).stop, caller.label, reason)
+    request.app.state.metrics.stop.observe(time.perf_counter() - t0)
+    return out
 
 
-@router.post("/gripper", tags=["gripper"])
+@router.post("/gripper", response_model=GripperState, tags=["gripper"],
+             responses=DEVICE_ERRORS)
 def gripper(request: Request, caller: Annotated[Caller, Depends(require("gripper"))],
             body: GripperRequest) -> dict[str, Any]:
+    """Open, close, move or activate; answers the gripper's status afterwards (503
+    ``gripper_unavailable`` when the cell has none)."""
     return cell_of(request).gripper(caller.label, body.action, body.position_mm,
                                     body.speed_pct, body.force_pct, body.wait)
 
 
-@router.get("/camera/frame.png", tags=["vision"],
-            responses={200: {"content": {"image/png": {}}, "description": "PNG image"}})
-def camera_frame(request: Request, caller: Read, overlay_: Annotated[bool, Query(
+@router.get("/camera/frame.png", tags=["vision"], response_class=PNGResponse,
+            responses={200: {"content": {"image/png": {}}, "description": "PNG image"},
+                       **UNAVAILABLE})
+def camera_frame(request: Request, caller: Stream, overlay_: Annotated[bool, Query(
         alias="overlay", description="draw detections, ids and target axes")] = False
                  ) -> Response:
     frame, result, error = cell_of(request).preview(overlay_)
@@ -166,8 +209,65 @@ def camera_frame(request: Request, caller: Read, overlay_: Annotated[bool, Query
                     headers={"Cache-Control": "no-store", "X-Frame-Age-S": f"{age:.3f}"})
 
 
-@router.get("/events", tags=["status"], responses=SSE_RESPONSES)
-async def events(request: Request, caller: Read,
+def live_of(request: Request) -> LiveView:
+    live: LiveView = request.app.state.live
+    return live
+
+
+@router.get("/camera/frame.jpg", tags=["vision"], response_class=JPEGResponse,
+            responses={200: {"content": {"image/jpeg": {}},
+                             "description": "JPEG image; X-Frame-Age-S and X-Frame-Sequence "
+                             "headers say how old it is and which camera frame it shows"},
+                       **UNAVAILABLE})
+def camera_frame_jpeg(request: Request, caller: Stream, overlay_: Annotated[bool, Query(
+        alias="overlay", description="draw detections, ids and target axes")] = True
+                      ) -> Response:
+    """The live view: the newest camera frame as JPEG, encoded once and shared by every
+    viewer (at most ``LIVE_MAX_FPS`` new frames per second; asking faster repeats one)."""
+    live = live_of(request).frame(overlay_)
+    age = max(0.0, time.monotonic() - live.timestamp_s)
+    return Response(live.jpeg, media_type="image/jpeg",
+                    headers={"Cache-Control": "no-store", "X-Frame-Age-S": f"{age:.3f}",
+                             "X-Frame-Sequence": str(live.sequence)})
+
+
+@router.get("/camera/stream.mjpg", tags=["vision"], response_class=MJPEGResponse,
+            responses={200: {"content": {"multipart/x-mixed-replace": {}},
+                             "description": "MJPEG stream of the live view"}})
+async def camera_stream(request: Request, caller: Stream, overlay_: Annotated[bool, Query(
+        alias="overlay", description="draw detections, ids and target axes")] = True,
+        max_frames: Annotated[int | None, Query(ge=1, le=1_000_000)] = None
+                        ) -> StreamingResponse:
+    """The live view as an MJPEG stream (for ``<img src>`` or a video client): the same
+    shared JPEG frames as ``frame.jpg``; ``max_frames`` ends it after that many."""
+    live = live_of(request)
+    loop = asyncio.get_running_loop()
+
+    async def parts() -> AsyncIterator[bytes]:
+        sent, last_seq = 0, -1
+        while max_frames is None or sent < max_frames:
+            if await request.is_disconnected():
+                break
+            try:
+                frame = await loop.run_in_executor(None, live.frame, overlay_)
+            except CellError:
+                await asyncio.sleep(0.5)
+                continue
+            if frame.sequence == last_seq:
+                await asyncio.sleep(live.min_period_s / 2)
+                continue
+            last_seq = frame.sequence
+            sent += 1
+            yield (b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: "
+                   + str(len(frame.jpeg)).encode() + b"\r\n\r\n" + frame.jpeg + b"\r\n")
+
+    return StreamingResponse(parts(), media_type="multipart/x-mixed-replace; boundary=frame",
+                             headers={"Cache-Control": "no-store"})
+
+
+@router.get("/events", tags=["status"], responses=SSE_RESPONSES,
+            response_class=EventStreamResponse)
+async def events(request: Request, caller: Stream,
                  max_events: Annotated[int | None, Query(ge=1, le=100000)] = None
                  ) -> StreamingResponse:
     """Server-sent events: ``state`` (pose and mode at camera rate), ``job``, ``jog``,
@@ -175,7 +275,7 @@ async def events(request: Request, caller: Read,
     return sse_response(request, cell_of(request).events.subscribe(), max_events)
 
 
-@sim_router.get("/truth")
+@sim_router.get("/truth", response_model=SimTruth)
 def sim_truth(request: Request, caller: Read) -> dict[str, Any]:
     """Ground truth of the simulated cell: where the target and the TCP really are."""
     sim = sim_of(request)
@@ -183,7 +283,7 @@ def sim_truth(request: Request, caller: Read) -> dict[str, Any]:
             "T_base_tcp": pose_dict(sim.true_T_base_tcp())}
 
 
-@sim_router.put("/target")
+@sim_router.put("/target", response_model=SimTarget)
 def sim_target(request: Request, caller: Annotated[Caller, Depends(require("sim_write"))],
                body: Pose) -> dict[str, Any]:
     """Place the simulated target at a pose in the base frame."""

@@ -21,7 +21,8 @@ Operator = Annotated[Caller, Depends(require("recover"))]
 
 
 class HomeRequest(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"speed_deg_s": 30.0, "wait": True}]})
     speed_deg_s: float | None = Field(
         default=None, gt=0, le=360, description="joint speed; default 30 deg/s or the "
         "configured limits.max_joint_speed_deg_s if lower")
@@ -29,17 +30,21 @@ class HomeRequest(BaseModel):
 
 
 class PowerRequest(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"on": True}]})
     on: bool = Field(description="true: power on and release the brakes; false: power off")
 
 
 class ArmReply(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"robot_mode": "RUNNING", "safety": "NORMAL", "ready": True}]})
     robot_mode: str
     safety: str
     ready: bool
 
 
 class UnlockReply(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"unlocked": True, "safety": "NORMAL", "ready": True}]})
     unlocked: bool = Field(description="a protective stop was there and is now unlocked")
     safety: str
     ready: bool

@@ -17,8 +17,10 @@ from fastapi.responses import StreamingResponse
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from api.auth import Caller, Read
-from api.errors import ERROR_RESPONSES, ForbiddenError
+from api.auth import Caller, Read, Stream
+from api.errors import DEVICE_ERRORS, ERROR_RESPONSES, NOT_FOUND, ForbiddenError
+from api.media import EventStreamResponse
+from api.schemas import ApplyResult, Job, TaughtDeleted, TaughtList, TaughtPoseOut
 from api.sse import SSE_RESPONSES, sse_response
 from cell.calibration.routine import RoutineSettings
 from cell.calibration.service import EVENT, CalibrationService
@@ -32,9 +34,7 @@ from cell.teach import (
     teach,
 )
 
-router = APIRouter(prefix="/api/v1", responses={
-    **ERROR_RESPONSES, 404: {"description": "unknown job or taught pose",
-                             "model": ERROR_RESPONSES[409]["model"]}})
+router = APIRouter(prefix="/api/v1", responses={**ERROR_RESPONSES, **NOT_FOUND})
 
 OPERATOR_ROLES = frozenset({"operator"})
 
@@ -112,7 +112,8 @@ def taught_target_tcp(request: Request, name: str, given: bool = False) -> NDArr
 
 
 # -- hand-eye --------------------------------------------------------------------------------
-@router.post("/calibration/hand-eye", tags=["calibration"])
+@router.post("/calibration/hand-eye", response_model=Job, tags=["calibration"],
+             responses=DEVICE_ERRORS)
 def start_hand_eye(request: Request, caller: Operator,
                    body: Annotated[HandEyeRequest | None, Body()] = None) -> dict[str, Any]:
     """Start the hand-eye routine around the arm's current pose (the target must be in view).
@@ -128,14 +129,15 @@ def start_hand_eye(request: Request, caller: Operator,
     return service.start(caller.label, settings).as_dict()
 
 
-@router.get("/calibration/hand-eye/{job_id}", tags=["calibration"])
+@router.get("/calibration/hand-eye/{job_id}", response_model=Job, tags=["calibration"])
 def hand_eye_job(request: Request, caller: Read, job_id: str) -> dict[str, Any]:
     """State and progress; when succeeded, ``result`` holds ``T_flange_camera`` per method
     (pose objects), the joint refinement, the residuals and the verdict."""
     return _calibration(request).job(job_id).as_dict()
 
 
-@router.post("/calibration/hand-eye/{job_id}/apply", tags=["calibration"])
+@router.post("/calibration/hand-eye/{job_id}/apply", response_model=ApplyResult,
+             tags=["calibration"], responses=DEVICE_ERRORS)
 def apply_hand_eye(request: Request, caller: Operator, job_id: str,
                    body: Annotated[ApplyRequest | None, Body()] = None) -> dict[str, Any]:
     """Use the result in the running cell and/or write it into the config file."""
@@ -144,8 +146,9 @@ def apply_hand_eye(request: Request, caller: Operator, job_id: str,
                                        b.write_config, b.force)
 
 
-@router.get("/calibration/events", tags=["calibration"], responses=SSE_RESPONSES)
-async def calibration_events(request: Request, caller: Read,
+@router.get("/calibration/events", tags=["calibration"], responses=SSE_RESPONSES,
+            response_class=EventStreamResponse)
+async def calibration_events(request: Request, caller: Stream,
                              max_events: Annotated[int | None, Query(ge=1, le=100000)] = None
                              ) -> StreamingResponse:
     """Server-sent ``calibration`` events: progress (stage, done, total), the finished job,
@@ -156,7 +159,8 @@ async def calibration_events(request: Request, caller: Read,
 
 
 # -- taught poses ----------------------------------------------------------------------------
-@router.post("/teach", tags=["teach"])
+@router.post("/teach", response_model=TaughtPoseOut, tags=["teach"],
+             responses=DEVICE_ERRORS)
 def teach_pose(request: Request, caller: Operator, body: TeachRequest) -> dict[str, Any]:
     """Store ``T_target_tcp`` of the arm's resting pose under ``name``: ``samples`` locates
     are averaged; their spread is reported and over the limit refused (409)."""
@@ -165,17 +169,17 @@ def teach_pose(request: Request, caller: Operator, body: TeachRequest) -> dict[s
                  body.max_spread_mm, body.max_spread_deg, body.replace).as_dict()
 
 
-@router.get("/teach", tags=["teach"])
+@router.get("/teach", response_model=TaughtList, tags=["teach"])
 def list_taught(request: Request, caller: Read) -> dict[str, Any]:
     return {"taught": [p.as_dict() for p in _taught(request).list()]}
 
 
-@router.get("/teach/{name}", tags=["teach"])
+@router.get("/teach/{name}", response_model=TaughtPoseOut, tags=["teach"])
 def get_taught(request: Request, caller: Read, name: str) -> dict[str, Any]:
     return _taught(request).get(name).as_dict()
 
 
-@router.delete("/teach/{name}", tags=["teach"])
+@router.delete("/teach/{name}", response_model=TaughtDeleted, tags=["teach"])
 def delete_taught(request: Request, caller: Operator, name: str) -> dict[str, Any]:
     cell: Cell = request.app.state.cell
     pose = _taught(request).delete(name)

@@ -10,6 +10,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from api.error_codes import ErrorCode
+
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Vec3 = tuple[Finite, Finite, Finite]
 
@@ -30,11 +32,16 @@ class Pose(_Body):
 
 
 class ErrorDetail(BaseModel):
-    code: str
-    message: str
+    code: ErrorCode = Field(description="stable machine-readable reason (enum)")
+    message: str = Field(description="the reason in words, for people")
 
 
 class ErrorResponse(BaseModel):
+    """The body of every error answer."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"error": {"code": "busy", "message": "the arm is busy (approach); wait for it to "
+                   "finish or stop it"}}]})
     error: ErrorDetail
 
 
@@ -53,7 +60,13 @@ class ApproachRequest(_Body):
     use_last_locate: bool = Field(
         default=False, description="start from the last /locate result instead of locating "
         "again (refused when older than limits.max_pose_age_s)")
-    wait: bool = False
+    wait: bool = Field(default=False, description=(
+        "false (default): answer 200 at once with the running job; follow it with GET "
+        "/jobs/{id} or /events. true: answer 200 when the job has ended, whatever its end "
+        "state: a failed or cancelled approach is still 200, with state 'failed' or "
+        "'cancelled' and error {code, message} in the job. Refusals before anything moved "
+        "are 4xx/5xx as usual. The wait is bounded; a job still running then is answered "
+        "with state 'running'."))
 
 
 _Lin = Annotated[float, Field(ge=-1000, le=1000)]
@@ -96,7 +109,50 @@ class StopRequest(_Body):
     reason: str = Field(default="requested", max_length=200)
 
 
-class Job(BaseModel):
+
+# -- responses ---------------------------------------------------------------------------------
+# Response models allow extra fields: a newer service may add some, and clients must ignore
+# what they do not know.
+
+
+class _Out(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+
+def _examples(*examples: dict[str, Any]) -> ConfigDict:
+    return ConfigDict(extra="allow", json_schema_extra={"examples": list(examples)})
+
+
+POSE_EXAMPLE = {"position_mm": [-480.0, -130.0, 350.0], "rotvec_rad": [3.1416, 0.0, 0.0]}
+
+
+class PoseOut(_Out):
+    """A pose: position in mm and rotation vector in rad."""
+
+    model_config = _examples(POSE_EXAMPLE)
+    position_mm: list[float]
+    rotvec_rad: list[float]
+
+
+class JobError(_Out):
+    code: str = Field(description="an ErrorCode value (see ErrorDetail)")
+    message: str
+
+
+JOB_EXAMPLE = {
+    "id": "3f2a9c1b7d4e", "kind": "approach", "caller": "plc(plc)",
+    "params": {"standoff_mm": 40.0, "speed_mm_s": 150.0},
+    "state": "failed", "progress": {"phase": "locate", "cycle": 1, "cycles": []},
+    "result": None,
+    "error": {"code": "too_few_blobs", "message": "target not located: 2 blobs, need 4"},
+    "created_at": 1796200000.0, "ended_at": 1796200002.5}
+
+
+class Job(_Out):
+    """A long-running command (approach, hand-eye calibration). ``result`` is set when it
+    succeeded, ``error`` when it failed, was cancelled or interrupted."""
+
+    model_config = _examples(JOB_EXAMPLE)
     id: str
     kind: str
     caller: str
@@ -104,16 +160,287 @@ class Job(BaseModel):
     state: Literal["running", "succeeded", "failed", "cancelled", "interrupted"]
     progress: dict[str, Any]
     result: dict[str, Any] | None
-    error: ErrorDetail | None
-    created_at: float
+    error: JobError | None
+    created_at: float = Field(description="UNIX seconds")
     ended_at: float | None
 
 
-class JobList(BaseModel):
+class JobList(_Out):
+    model_config = _examples({"jobs": [JOB_EXAMPLE], "total": 1, "offset": 0})
     jobs: list[Job]
+    total: int | None = Field(default=None, description="jobs stored (for paging)")
+    offset: int = 0
 
 
-class Me(BaseModel):
+class Me(_Out):
+    model_config = _examples({"name": "line-3-plc", "role": "plc",
+                              "permissions": ["approach", "locate", "read", "stop"]})
     name: str
     role: str
     permissions: list[str]
+
+
+class Health(_Out):
+    model_config = _examples(
+        {"status": "ok", "missing": [], "arm_connected": True, "camera_connected": True},
+        {"status": "degraded", "missing": ["arm"], "arm_connected": False,
+         "camera_connected": True})
+    status: Literal["ok", "degraded"] = Field(
+        description="ok: every device connected; degraded: the process serves, the devices "
+        "in `missing` are being reconnected")
+    missing: list[str] = Field(default_factory=list)
+    arm_connected: bool
+    camera_connected: bool
+
+
+class Quality(_Out):
+    rms_px: float
+    max_residual_px: float
+    ambiguous: bool
+    converged: bool
+    n_points: int
+    covariance: list[list[float]] | None
+    frame_age_s: float
+    n_frames: int
+    spread_mm: float
+
+
+LOCATED_EXAMPLE = {
+    "T_base_target": {"position_mm": [-480.1, -129.9, 0.1], "rotvec_rad": [0.0, 0.0, 0.001]},
+    "T_camera_target": {"position_mm": [1.2, -3.4, 350.2], "rotvec_rad": [3.14, 0.0, 0.0]},
+    "T_base_tcp": POSE_EXAMPLE,
+    "quality": {"rms_px": 0.12, "max_residual_px": 0.2, "ambiguous": False, "converged": True,
+                "n_points": 6, "covariance": None, "frame_age_s": 0.05, "n_frames": 1,
+                "spread_mm": 0.0},
+    "frame_sequence": 1234}
+
+
+class Located(_Out):
+    """Where the target is, in the base frame and the camera frame, and how well it fits."""
+
+    model_config = _examples(LOCATED_EXAMPLE)
+    T_base_target: PoseOut
+    T_camera_target: PoseOut
+    T_base_tcp: PoseOut = Field(description="the arm pose at the frame's capture time")
+    quality: Quality
+    frame_sequence: int
+
+
+class RobotStatus(_Out):
+    connected: bool
+    mode: str | None = None
+    safety: str | None = None
+    moving: bool | None = None
+    protective_stop: bool | None = None
+    T_base_tcp: PoseOut | None = None
+    joints_deg: list[float] | None = None
+    state_age_s: float | None = None
+    error: str | None = Field(default=None, description="why the arm cannot be read")
+
+
+class CameraStatus(_Out):
+    connected: bool
+    last_frame_age_s: float | None = None
+
+
+class GripperState(_Out):
+    """The gripper's status; ``stale`` when another command holds the line, ``error`` when
+    it cannot be read."""
+
+    model_config = _examples({"activated": True, "position_mm": 85.0, "object_detected": False,
+                              "moving": False, "fault": ""})
+    activated: bool | None = None
+    position_mm: float | None = None
+    object_detected: bool | None = None
+    moving: bool | None = None
+    fault: str | None = None
+    stale: bool | None = None
+    error: str | None = None
+
+
+class Status(_Out):
+    """The cell now: ``state`` is idle, the running motion (approach, jog, ...), or why the
+    arm cannot move (disconnected, emergency_stop, protective_stop, not_ready)."""
+
+    model_config = _examples({
+        "state": "idle",
+        "robot": {"connected": True, "mode": "RUNNING", "safety": "NORMAL", "moving": False,
+                  "protective_stop": False, "T_base_tcp": POSE_EXAMPLE,
+                  "joints_deg": [0.0, -90.0, 90.0, -90.0, -90.0, 0.0], "state_age_s": 0.004},
+        "camera": {"connected": True, "last_frame_age_s": 0.05},
+        "gripper": None, "job": None, "last_locate": None})
+    state: str
+    robot: RobotStatus
+    camera: CameraStatus
+    gripper: GripperState | None = Field(default=None, description="null: no gripper")
+    job: Job | None = Field(default=None, description="the running job, if any")
+    last_locate: Located | None = None
+
+
+class JogStepResult(_Out):
+    model_config = _examples({"T_base_tcp": POSE_EXAMPLE})
+    T_base_tcp: PoseOut = Field(description="the pose reached")
+
+
+class JogInfo(_Out):
+    model_config = _examples({"jogging": True, "frame": "base", "deadman_timeout_s": 0.2})
+    jogging: bool
+    frame: Literal["base", "tool"] | None = None
+    deadman_timeout_s: float | None = None
+
+
+class StopResult(_Out):
+    """``stopped`` is false only when the arm could not be told to stop (``arm_error``)."""
+
+    model_config = _examples({"stopped": True, "cancelled": "approach",
+                              "job_id": "3f2a9c1b7d4e", "arm_error": None})
+    stopped: bool
+    cancelled: str | None = Field(default=None, description="the motion that was cancelled")
+    job_id: str | None = None
+    arm_error: str | None = None
+
+
+class AuditEntry(_Out):
+    model_config = _examples({
+        "id": 41, "caller": "anonymous", "command": "POST /api/v1/approach",
+        "params": {"status": 401}, "outcome": "refused:unauthorized", "detail": "unknown token",
+        "job_id": None, "started_at": 1796200000.0, "ended_at": 1796200000.0})
+    id: int
+    caller: str
+    command: str
+    params: dict[str, Any]
+    outcome: str = Field(description="ok, refused:<code>, error, or a job's end state")
+    detail: str
+    job_id: str | None
+    started_at: float
+    ended_at: float
+
+
+AUDIT_EXAMPLE = {
+    "id": 41, "caller": "anonymous", "command": "POST /api/v1/approach",
+    "params": {"status": 401}, "outcome": "refused:unauthorized", "detail": "unknown token",
+    "job_id": None, "started_at": 1796200000.0, "ended_at": 1796200000.0}
+
+
+class AuditLog(_Out):
+    model_config = _examples({"entries": [AUDIT_EXAMPLE]})
+    entries: list[AuditEntry]
+
+
+class SimTruth(_Out):
+    model_config = _examples({"T_base_target": POSE_EXAMPLE, "T_base_tcp": POSE_EXAMPLE})
+    T_base_target: PoseOut
+    T_base_tcp: PoseOut
+
+
+class SimTarget(_Out):
+    model_config = _examples({"T_base_target": POSE_EXAMPLE})
+    T_base_target: PoseOut
+
+
+class Alarm(_Out):
+    """A fault or a failed job the operator must see; it stays active until acknowledged."""
+
+    model_config = _examples({
+        "id": 7, "code": "too_few_blobs", "source": "job", "job_id": "3f2a9c1b7d4e",
+        "message": "approach 3f2a9c1b7d4e failed: target not located: 2 blobs, need 4",
+        "raised_at": 1796200002.5, "active": True, "acknowledged_at": None,
+        "acknowledged_by": None})
+    id: int
+    code: str = Field(description="an ErrorCode value, or a fault: protective_stop, "
+                      "emergency_stop, arm_disconnected, camera_lost, gripper_fault")
+    source: Literal["job", "arm", "camera", "gripper"]
+    job_id: str | None
+    message: str
+    raised_at: float = Field(description="UNIX seconds")
+    active: bool = Field(description="true until acknowledged")
+    acknowledged_at: float | None
+    acknowledged_by: str | None
+
+
+class AlarmList(_Out):
+    model_config = _examples({"alarms": [], "active": 0, "total": 0, "offset": 0})
+    alarms: list[Alarm]
+    active: int = Field(description="alarms not yet acknowledged")
+    total: int = Field(description="alarms matching the query (for paging)")
+    offset: int
+
+
+class CameraSettingsOut(_Out):
+    """The settings in force; null for a control this camera does not have."""
+
+    model_config = _examples({"exposure_us": 4000, "iso": 100, "focus": None})
+    exposure_us: int | None
+    iso: int | None
+    focus: int | Literal["auto"] | None
+
+
+class CameraSettingsRequest(_Body):
+    """Settings to change; omitted (or null) ones stay as they are."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"exposure_us": 8000, "iso": 200}]})
+    exposure_us: int | None = Field(default=None, ge=1, le=1_000_000)
+    iso: int | None = Field(default=None, ge=1, le=100_000)
+    focus: Annotated[int, Field(ge=0, le=255)] | Literal["auto"] | None = None
+
+
+class ImageEntry(_Out):
+    model_config = _examples({
+        "name": "20261201T120000_000000001_1", "code": "too_few_blobs",
+        "message": "target not located: 2 blobs, need 4", "saved_at": 1796200000.0,
+        "url": "/api/v1/images/20261201T120000_000000001_1.png"})
+    name: str
+    code: str | None
+    message: str | None
+    saved_at: float
+    url: str
+
+
+class ImageList(_Out):
+    model_config = _examples({"images": [], "total": 0, "offset": 0, "enabled": True})
+    images: list[ImageEntry]
+    total: int
+    offset: int
+    enabled: bool = Field(description="false when [api] image_log_dir is not set")
+
+
+class ApplyResult(_Out):
+    model_config = _examples({"job_id": "3f2a9c1b7d4e", "T_flange_camera": POSE_EXAMPLE,
+                              "running": True, "written_config": None})
+    job_id: str
+    T_flange_camera: PoseOut
+    running: bool = Field(description="in use by the running cell now")
+    written_config: str | None = Field(description="the config file written, if any")
+
+
+TAUGHT_EXAMPLE = {
+    "name": "grasp-a", "T_target_tcp": {"position_mm": [0.0, 0.0, -20.0],
+                                        "rotvec_rad": [0.0, 0.0, 0.0]},
+    "samples": 5, "spread_mm": 0.03, "spread_deg": 0.01, "T_base_target": POSE_EXAMPLE,
+    "T_base_tcp": POSE_EXAMPLE, "taught_by": "op(operator)", "taught_at": 1796200000.0}
+
+
+class TaughtPoseOut(_Out):
+    """A taught tool pose in the target frame, with how it was taught."""
+
+    model_config = _examples(TAUGHT_EXAMPLE)
+    name: str
+    T_target_tcp: PoseOut
+    samples: int
+    spread_mm: float
+    spread_deg: float
+    T_base_target: PoseOut
+    T_base_tcp: PoseOut
+    taught_by: str
+    taught_at: float
+
+
+class TaughtList(_Out):
+    model_config = _examples({"taught": [TAUGHT_EXAMPLE]})
+    taught: list[TaughtPoseOut]
+
+
+class TaughtDeleted(_Out):
+    model_config = _examples({"deleted": TAUGHT_EXAMPLE})
+    deleted: TaughtPoseOut

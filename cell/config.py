@@ -219,9 +219,20 @@ Role = Literal["viewer", "operator", "plc"]
 
 
 class TokenConfig(_Strict):
-    token: str = Field(min_length=1)
+    """A token in the clear (``token``), or stored as ``sha256`` = hex sha256 of ``salt`` +
+    token (the service then never holds the token itself)."""
+
+    token: str = ""
     role: Role
     name: str = ""
+    sha256: str = Field(default="", pattern=r"^([0-9a-fA-F]{64})?$")
+    salt: str = ""
+
+    @model_validator(mode="after")
+    def _one_secret(self) -> TokenConfig:
+        if bool(self.token) == bool(self.sha256):
+            raise ValueError("give either token or sha256 (with its salt), not both or none")
+        return self
 
 
 SAMPLE_TOKENS = frozenset({"sim-viewer", "sim-operator", "sim-plc"})
@@ -251,6 +262,7 @@ class ApiConfig(_Strict):
     calibration_dir: str = "var/calibration"
     image_log_dir: str = ""  # empty: no image log of failed locates
     image_log_max: int = Field(default=50, ge=1)
+    metrics_public: bool = False  # true: /metrics answers without a token (for a scraper)
 
     @model_validator(mode="before")
     @classmethod
@@ -271,7 +283,7 @@ class ApiConfig(_Strict):
     @field_validator("tokens")
     @classmethod
     def _unique(cls, v: list[TokenConfig]) -> list[TokenConfig]:
-        if len({t.token for t in v}) != len(v):
+        if len({t.token or t.sha256.lower() for t in v}) != len(v):
             raise ValueError("tokens must be unique")
         return v
 

@@ -8,6 +8,7 @@ plus the detections is what a person needs to tell which. The ring keeps the new
 from __future__ import annotations
 
 import json
+import re
 import threading
 import time
 from pathlib import Path
@@ -46,3 +47,30 @@ class ImageLog:
         for old in pngs[: max(0, len(pngs) - self.max_entries)]:
             old.unlink(missing_ok=True)
             old.with_suffix(".json").unlink(missing_ok=True)
+
+    def page(self, offset: int = 0, limit: int = 20) -> tuple[list[dict[str, Any]], int]:
+        """Entries newest first with what was recorded about each, and how many there are."""
+        pngs = self.entries()[::-1]
+        out = []
+        for png in pngs[offset:offset + limit]:
+            try:
+                info = json.loads(png.with_suffix(".json").read_text())
+            except (OSError, ValueError):
+                info = {}
+            try:
+                saved_at = png.stat().st_mtime
+            except OSError:
+                continue  # trimmed meanwhile
+            out.append({"name": png.stem, "code": info.get("code"),
+                        "message": info.get("message"), "saved_at": saved_at, "info": info})
+        return out, len(pngs)
+
+    def image_path(self, name: str) -> Path | None:
+        """The PNG of entry ``name``, or None; names are checked, never joined blindly."""
+        if not _NAME.fullmatch(name):
+            return None
+        path = self.directory / f"{name}.png"
+        return path if path.is_file() else None
+
+
+_NAME = re.compile(r"[0-9T]{15}_[0-9]{9}_[0-9]+")

@@ -166,13 +166,17 @@ class JobStore:
             row = self._db.execute(f"{_SELECT_JOBS} WHERE id = ?", (job_id,)).fetchone()
         return None if row is None else _job(row)
 
-    def list_jobs(self, limit: int = 50) -> list[Job]:
-        """The newest ``limit`` jobs, newest first."""
+    def list_jobs(self, limit: int = 50, offset: int = 0) -> list[Job]:
+        """The newest ``limit`` jobs after skipping ``offset``, newest first."""
         with self._lock:
             rows = self._db.execute(
-                f"{_SELECT_JOBS} ORDER BY created_at DESC, rowid DESC LIMIT ?", (limit,)
-            ).fetchall()
+                f"{_SELECT_JOBS} ORDER BY created_at DESC, rowid DESC LIMIT ? OFFSET ?",
+                (limit, offset)).fetchall()
         return [_job(r) for r in rows]
+
+    def count_jobs(self) -> int:
+        with self._lock:
+            return int(self._db.execute("SELECT COUNT(*) FROM jobs").fetchone()[0])
 
     def audit(self, caller: str, command: str, params: dict[str, Any], outcome: str,
               detail: str = "", job_id: str | None = None, started_at: float | None = None,

@@ -35,6 +35,10 @@ def token_problems(config: CellConfig, simulated: bool) -> list[str]:
     problems = []
     for k, t in enumerate(config.api.tokens):
         key = f"api.tokens[{k}] ({t.name or t.role})"
+        if t.sha256:
+            if len(t.salt) < 8:
+                problems.append(f"{key}: a hashed token needs a salt of at least 8 characters")
+            continue  # the token itself is not here to judge; its hash is
         if t.token in SAMPLE_TOKENS:
             problems.append(f"{key}: the sample token {t.token!r} is not allowed with real "
                             "hardware; set your own secret token")

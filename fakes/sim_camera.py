@@ -18,6 +18,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -31,6 +32,12 @@ Matrix4 = NDArray[np.float64]
 PoseSource = Callable[[], tuple[Matrix4, float]]  # () -> (T_base_flange mm, time.monotonic())
 
 BLOCKED_LEVEL = 12.0  # grey level of a covered lens
+NOMINAL_ISO = 100
+MAX_ISO = 1600
+# The simulated lens has a focus motor (0..255, like the OAK's); the target is sharp at this
+# position and every step away adds defocus blur, as a real lens does.
+SHARP_FOCUS = 120
+DEFOCUS_PX_PER_STEP = 1.0 / 16.0
 
 
 @dataclass(frozen=True)
@@ -40,8 +47,9 @@ class _Exposure:
     sequence: int
     timestamp_s: float
     T_camera_target: Matrix4
-    gain: float
+    gain: float  # exposure x ISO relative to nominal, times the frame's jitter
     blocked: bool
+    blur_sigma_px: float  # the lens blur plus any defocus
 
 
 class SimCamera:
@@ -70,7 +78,9 @@ class SimCamera:
         self.lighting_gradient = lighting_gradient
         self.exposure_jitter = exposure_jitter
         self._rng = np.random.default_rng(seed)
-        self._iso = 100
+        self._iso = NOMINAL_ISO
+        self._nominal_exposure_s = exposure_s
+        self._focus: int | str = "auto"
         self._cond = threading.Condition()
         self._latest: _Exposure | None = None
         self._handed_out = -1
@@ -118,10 +128,15 @@ class SimCamera:
 
     # -- Camera interface --------------------------------------------------------------------
     def get_settings(self) -> CameraSettings:
-        """The simulated sensor has manual exposure and gain, and a fixed-focus lens."""
+        """The simulated sensor has manual exposure and gain and a motorised focus.
+
+        Exposure and ISO scale the image's brightness (the construction-time exposure at ISO
+        100 is nominal; too much saturates the dots into the plate, too little sinks them in
+        noise); a manual focus away from the sharp position blurs the image."""
         with self._cond:
+            focus = self._focus
             return CameraSettings(exposure_us=round(self.exposure_s * 1e6), iso=self._iso,
-                                  focus=None)
+                                  focus="auto" if focus == "auto" else int(focus))
 
     def apply_settings(self, settings: CameraSettings) -> CameraSettings:
         exposure_s = self.exposure_s
@@ -130,15 +145,31 @@ class SimCamera:
             if not 0 < exposure_s < 1.0 / self.fps:
                 raise ValueError(f"exposure_us must be within (0, {1e6 / self.fps:.0f}) at "
                                  f"{self.fps:g} fps, got {settings.exposure_us}")
-        if settings.iso is not None and not 100 <= settings.iso <= 1600:
-            raise ValueError(f"iso must be within [100, 1600], got {settings.iso}")
-        if settings.focus is not None:
-            raise ValueError("the simulated camera has a fixed-focus lens: focus cannot be set")
+        if settings.iso is not None and not NOMINAL_ISO <= settings.iso <= MAX_ISO:
+            raise ValueError(f"iso must be within [{NOMINAL_ISO}, {MAX_ISO}], got {settings.iso}")
+        focus = settings.focus
+        if focus is not None and focus != "auto" and (
+                isinstance(focus, bool) or not isinstance(focus, int) or not 0 <= focus <= 255):
+            raise ValueError(f"focus must be a lens position within [0, 255] or 'auto', got "
+                             f"{focus!r}")
         with self._cond:
             self.exposure_s = exposure_s
             if settings.iso is not None:
                 self._iso = settings.iso
+            if focus is not None:
+                self._focus = focus
         return self.get_settings()
+
+    def _brightness(self) -> float:
+        """Exposure x ISO relative to nominal (call with the lock held)."""
+        return (self.exposure_s / self._nominal_exposure_s) * (self._iso / NOMINAL_ISO)
+
+    def _blur_px(self) -> float:
+        """The lens blur plus the defocus of a manual focus (call with the lock held)."""
+        if self._focus == "auto":
+            return self.blur_sigma_px
+        defocus = abs(int(self._focus) - SHARP_FOCUS) * DEFOCUS_PX_PER_STEP
+        return float(np.hypot(self.blur_sigma_px, defocus))
 
     @property
     def is_connected(self) -> bool:
@@ -199,15 +230,15 @@ class SimCamera:
             image = np.clip(img, 0, 255).astype(np.uint8)
         elif exp.T_camera_target[2, 3] <= 0:  # target behind the camera: only the background
             image = render_target(self.camera, self.target, _far_away(),
-                                  blur_sigma_px=self.blur_sigma_px, noise_std=self.noise_std,
+                                  blur_sigma_px=exp.blur_sigma_px, noise_std=self.noise_std,
                                   lighting_gradient=0.0, rng=rng)
         else:
             image = render_target(
-                self.camera, self.target, exp.T_camera_target, blur_sigma_px=self.blur_sigma_px,
+                self.camera, self.target, exp.T_camera_target, blur_sigma_px=exp.blur_sigma_px,
                 noise_std=self.noise_std, lighting_gradient=self.lighting_gradient, rng=rng,
             )
-        if exp.gain != 1.0:
-            image = np.clip(image.astype(np.float32) * exp.gain, 0, 255).astype(np.uint8)
+        if exp.gain != 1.0:  # one saturating multiply-add pass, cheap at any size
+            image = np.asarray(cv2.convertScaleAbs(image, alpha=exp.gain), dtype=np.uint8)
         self._rendered = (exp.sequence, image)
         return image
 
@@ -223,10 +254,10 @@ class SimCamera:
                 self._drop_next = max(0, self._drop_next - 1)
                 self.frames_dropped += 1
                 return
-            gain = 1.0 + float(self._rng.normal(0.0, self.exposure_jitter))
+            gain = self._brightness() * (1.0 + float(self._rng.normal(0.0, self.exposure_jitter)))
             self._latest = _Exposure(
                 self._sequence, float(t_s), invert_T(T_base_camera) @ self._T_base_target,
-                gain, self._blocked,
+                gain, self._blocked, self._blur_px(),
             )
             self._cond.notify_all()
 

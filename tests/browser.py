@@ -140,7 +140,10 @@ def sim_config(workdir: Path) -> Path:
     tail, n_kind = re.subn(r'^kind = ".*"$', 'kind = "sim"', tail, count=1, flags=re.M)
     tail, n_db = re.subn(r'^job_db = ".*"$', f'job_db = "{workdir / "jobs.db"}"', tail,
                          flags=re.M)
-    assert n_kind == 1 and n_db == 1, "sim.toml no longer has [robot] kind / [api] job_db"
+    tail, n_img = re.subn(r'^image_log_dir = ".*"$', f'image_log_dir = "{workdir / "images"}"',
+                          tail, flags=re.M)
+    assert n_kind == 1 and n_db == 1 and n_img == 1, \
+        "sim.toml no longer has [robot] kind / [api] job_db / image_log_dir"
     path = workdir / "sim-page-test.toml"
     path.write_text(head + tail)
     return path
@@ -240,6 +243,13 @@ def _frame_png(n: int) -> bytes:
     return bytes(buf)
 
 
+def _frame_jpeg(n: int) -> bytes:
+    img = cv2.imdecode(np.frombuffer(_frame_png(n), np.uint8), cv2.IMREAD_COLOR)
+    ok, buf = cv2.imencode(".jpg", img)
+    assert ok
+    return bytes(buf)
+
+
 def recording_app(rec: RecordingApi) -> FastAPI:
     """The stub API plus the real page (``api.page.mount_page``).
 
@@ -256,7 +266,8 @@ def recording_app(rec: RecordingApi) -> FastAPI:
     need = {
         "/api/v1/jog": "jog", "/api/v1/jog/heartbeat": "jog", "/api/v1/stop": "stop",
         "/api/v1/locate": "locate", "/api/v1/approach": "approach",
-        "/api/v1/gripper": "gripper",
+        "/api/v1/gripper": "gripper", "/api/v1/arm/home": "operator",
+        "/api/v1/arm/unlock": "operator",
     }
     schemas: dict[str, TypeAdapter[Any]] = {
         "/api/v1/jog": TypeAdapter(JogRequest),
@@ -279,7 +290,8 @@ def recording_app(rec: RecordingApi) -> FastAPI:
         role = STUB_TOKENS.get(request.headers.get("authorization", "").removeprefix("Bearer "))
         if role is None:
             return _error(401, "unauthorized", "unknown token")
-        if need.get(path, "read") not in stub_permissions(role):
+        granted = stub_permissions(role) | ({"operator"} if role == "operator" else set())
+        if need.get(path, "read") not in granted:
             return _error(403, "forbidden", f"role {role!r} may not {need.get(path, 'read')}")
         if path in schemas and body is not None:
             try:
@@ -321,8 +333,40 @@ def recording_app(rec: RecordingApi) -> FastAPI:
         return Response(_frame_png(frames[0]), media_type="image/png",
                         headers={"X-Frame-Age-S": "0.040"})
 
-    for p in ("/api/v1/jog", "/api/v1/jog/heartbeat", "/api/v1/stop", "/api/v1/gripper"):
+    @app.get("/api/v1/camera/frame.jpg")
+    def frame_jpg() -> Response:
+        frames[0] += 1
+        return Response(_frame_jpeg(frames[0]), media_type="image/jpeg",
+                        headers={"X-Frame-Age-S": "0.040"})
+
+    @app.get("/api/v1/alarms")
+    def alarms() -> dict[str, Any]:
+        return {"alarms": [], "active": 0, "total": 0, "offset": 0}
+
+    @app.get("/api/v1/jobs")
+    def jobs() -> dict[str, Any]:
+        return {"jobs": [], "total": 0, "offset": 0}
+
+    @app.get("/api/v1/teach")
+    def taught() -> dict[str, Any]:
+        return {"taught": []}
+
+    @app.get("/api/v1/camera/settings")
+    def camera_settings() -> dict[str, Any]:
+        return {"exposure_us": 4000, "iso": 100, "focus": None}
+
+    @app.get("/api/v1/images")
+    def images() -> dict[str, Any]:
+        return {"images": [], "total": 0, "offset": 0, "enabled": False}
+
+    for p in ("/api/v1/jog", "/api/v1/jog/heartbeat", "/api/v1/stop", "/api/v1/gripper",
+              "/api/v1/arm/unlock"):
         app.post(p)(lambda: {"ok": True})
+
+    @app.post("/api/v1/arm/home")
+    def home() -> dict[str, Any]:
+        return {"id": "home0001", "kind": "home", "state": "running", "progress": {},
+                "result": None, "error": None}
 
     @app.post("/api/v1/locate")
     def locate() -> dict[str, Any]:

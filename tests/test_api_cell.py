@@ -286,9 +286,9 @@ def test_events_frame_metrics_health_and_roles(client: TestClient) -> None:
     assert client.put("/api/v1/sim/target", json=truth["T_base_target"],
                       headers=PLC).status_code == 403
     metrics = client.get("/metrics", headers=VIEW).text
-    assert 'cell_http_requests_total{method="GET",route="/api/v1/sim/truth",status="200"} 1' \
-        in metrics
-    assert "cell_arm_connected 1" in metrics
+    assert 'cell_http_request_duration_seconds_count{method="GET",route="/api/v1/sim/truth",' \
+        'status="200"} 1.0' in metrics
+    assert "cell_arm_connected 1.0" in metrics
     assert client.get("/metrics").status_code == 401
 
 
@@ -308,4 +308,4 @@ def test_failed_locates_go_to_the_image_log(client: TestClient) -> None:
     assert img is not None and img.shape == (800, 1280)
     assert "code" in entries[-1].with_suffix(".json").read_text()
     metrics = client.get("/metrics", headers=VIEW).text
-    assert 'cell_locate_total{outcome="failed"} 3' in metrics
+    assert 'cell_locate_total{outcome="failed"} 3.0' in metrics

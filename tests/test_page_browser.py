@@ -84,9 +84,11 @@ def _hold_start(page: Any, testid: str) -> None:
 # Against the recording API
 
 
-NEEDS = {  # control -> the API permission it uses (api.auth)
-    "locate": "locate", "approach": "approach", "standoff": "approach",
+NEEDS = {  # control -> the API permission it uses (api.auth); "operator": that role only
+    "locate": "locate", "approach": "approach", "standoff": "approach", "taught": "approach",
     "gripper-open": "gripper", "gripper-close": "gripper", **dict.fromkeys(JOG_BUTTONS, "jog"),
+    "cam-apply": "camera", "cam-iso": "camera", "home": "operator", "unlock": "operator",
+    "teach": "operator", "teach-name": "operator", "calib-start": "operator",
 }
 
 
@@ -96,13 +98,33 @@ def test_role_enables_only_its_controls(
 ) -> None:
     url, _ = stub
     login(page, url, f"tok-{role}")
-    granted = stub_permissions(role)
+    granted = stub_permissions(role) | ({"operator"} if role == "operator" else set())
     for testid, permission in sorted(NEEDS.items()):
         assert page.get_by_test_id(testid).is_enabled() == (permission in granted), testid
     assert page.get_by_test_id("stop").is_enabled()
     assert page.evaluate("sessionStorage.getItem('cell.token')") == f"tok-{role}"
     if role == "viewer":
         assert not any(NEEDS[t] in granted for t in NEEDS)  # reads only
+
+
+def test_home_and_unlock_call_the_arm_routes(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    url, _ = stub
+    login(page, url, "tok-operator")
+    page.get_by_test_id("home").click()
+    _wait_for(lambda: rec.of("/api/v1/arm/home"), what="home request")
+    _wait_for(lambda: "home0001" in page.get_by_test_id("job").inner_text(), what="home job")
+    page.get_by_test_id("unlock").click()
+    _wait_for(lambda: rec.of("/api/v1/arm/unlock"), what="unlock request")
+    _wait_for(lambda: "unlocked" in page.get_by_test_id("result").inner_text(), what="unlocked")
+    (home,) = rec.of("/api/v1/arm/home")
+    assert home.method == "POST" and home.body == {} and home.query == ""
+    rec.failures["/api/v1/arm/unlock"] = (409, "unlock_too_early",
+                                          "wait 5 s after a protective stop before unlocking")
+    page.get_by_test_id("unlock").click()
+    msg = page.get_by_test_id("message")
+    _wait_for(lambda: "wait 5 s" in msg.inner_text(), what="refusal in words")
 
 
 def test_bad_token_is_refused_in_words(
@@ -133,7 +155,7 @@ def test_camera_view_refreshes_with_overlay(
     print(f"camera view: {rate:.1f} frames/s")
     assert rate >= 2.0  # "several fps"; the page caps itself at ~6.7
     assert page.evaluate("document.querySelector('[data-testid=camera]').naturalWidth") == 320
-    frames = rec.of("/api/v1/camera/frame.png")
+    frames = rec.of("/api/v1/camera/frame.jpg")
     assert frames and all("overlay=true" in c.query for c in frames)
     assert page.get_by_test_id("quality-rms").inner_text() == "0.21 px"
 

@@ -10,16 +10,23 @@ const API = "/api/v1";
 const TOKEN_KEY = "cell.token";
 const HEARTBEAT_MS = 100;
 const STATUS_MS = 250;
-const FRAME_MIN_MS = 150; // at most ~6-7 camera frames per second: enough to watch, light on CPU
+// The live view is one JPEG per camera frame shared by every viewer (GET /camera/frame.jpg);
+// asking faster than the server produces frames only repeats one, so ~8 per second is enough.
+const FRAME_MIN_MS = 125;
+const ALARMS_MS = 1000;
+const LOGS_MS = 3000;
+const PAGE_ROWS = 8;
 const OFFLINE_AFTER_MS = 1500;
 
 // Fallback only: what each role may do besides reading (api.auth.PERMISSIONS); the live
 // answer comes from GET /me. STOP is not listed: every valid token may stop.
 const ROLE_ACTIONS = {
   viewer: [],
-  operator: ["jog", "locate", "approach", "gripper"],
+  operator: ["jog", "locate", "approach", "gripper", "camera", "alarm_ack"],
   plc: ["locate", "approach"],
 };
+// Controls marked data-needs="operator" (home, unlock, teach, calibration) need that role.
+const OPERATOR_ONLY = "operator";
 
 // Jog speed levels: linear mm/s -> angular deg/s for the rotation axes.
 const ANGULAR_DEG_S = { 5: 2, 20: 5, 50: 10 };
@@ -39,6 +46,11 @@ const state = {
   frameUrl: "",
   frameAgeS: NaN,
   lastJob: null, // the running job, or the last one this page saw, until it is shown finished
+  resultJobId: "", // the job whose outcome the Tasks result line follows
+  alarmOffset: 0,
+  historyOffset: 0,
+  calibJob: null,
+  settingsLoaded: false,
 };
 
 // ---------------------------------------------------------------------------------------------
@@ -140,12 +152,14 @@ setInterval(() => {
 // Login and role-based controls
 
 function applyRole() {
-  const everything = ["jog", "locate", "approach", "gripper"];
+  const everything = [...ROLE_ACTIONS.operator, OPERATOR_ONLY];
   const granted = state.permissions || (state.role ? ROLE_ACTIONS[state.role] || [] : everything);
   const allowed = new Set(state.token ? granted : []);
+  if (state.token && state.role === "operator") allowed.add(OPERATOR_ONLY);
   document.querySelectorAll("[data-needs]").forEach((el) => {
     el.disabled = !allowed.has(el.dataset.needs);
   });
+  if (!state.calibJob || state.calibJob.state !== "succeeded") $("calib-apply").disabled = true;
   $("role").textContent = state.token ? `role: ${state.role || "unknown"}` : "";
   $("logout").hidden = !state.token;
   $("login").hidden = !!state.token;
@@ -180,6 +194,11 @@ async function login(token) {
   sessionStorage.setItem(TOKEN_KEY, token);
   applyRole();
   say(state.role ? `Logged in as ${state.role}.` : "Logged in.", "info");
+  state.settingsLoaded = false;
+  loadTaught();
+  loadCameraSettings();
+  refreshLogs();
+  refreshImages();
   return true;
 }
 
@@ -245,6 +264,7 @@ async function refreshLastJob() {
   try {
     const job = await api("GET", `/jobs/${encodeURIComponent(id)}`);
     if (state.lastJob && state.lastJob.id === id) state.lastJob = job;
+    if (job.state !== "running") { refreshLogs(); refreshAlarms(); }
   } catch (e) { /* shown as it was; the next status poll retries */ }
   renderJob(state.lastJob);
 }
@@ -270,7 +290,9 @@ function renderJob(job) {
     if (Number.isFinite(r.reach_error_mm)) text += ` — reached within ${fmt(r.reach_error_mm, 2)} mm`;
   }
   $("job").textContent = text;
+  $("job").title = text;
   $("job").dataset.state = job.state;
+  if (job.id === state.resultJobId) $("result").textContent = text;
 }
 
 function renderQuality(cam, located) {
@@ -308,7 +330,7 @@ async function cameraLoop() {
     const t0 = Date.now();
     if (state.token && !document.hidden) {
       try {
-        const resp = await api("GET", "/camera/frame.png?overlay=true", undefined,
+        const resp = await api("GET", "/camera/frame.jpg?overlay=true", undefined,
           { raw: true, timeoutMs: 3000 });
         const age = Number(resp.headers.get("X-Frame-Age-S"));
         const url = URL.createObjectURL(await resp.blob());
@@ -477,11 +499,25 @@ function wireCommands() {
     if (!Number.isFinite(standoff) || $("standoff").value === "" || standoff < 0) {
       throw new ApiError("the standoff must be a distance in millimetres, 0 or more", 0, "input");
     }
-    const job = await api("POST", "/approach", { standoff_mm: standoff, wait: false });
+    const body = { standoff_mm: standoff, wait: false };
+    if ($("taught").value) body.taught = $("taught").value;
+    const job = await api("POST", "/approach", body);
     state.lastJob = job;
+    state.resultJobId = job.id;
     renderJob(job);
     return `approach started (job ${job.id})`;
   }));
+
+  $("home").addEventListener("click", () => command("Home", async () => {
+    const r = await api("POST", "/arm/home", {});
+    if (r && r.id) { state.lastJob = r; state.resultJobId = r.id; renderJob(r); }
+    return "moving to the home pose";
+  }));
+  $("unlock").addEventListener("click", () => command("Unlock", async () => {
+    await api("POST", "/arm/unlock", {});
+    return "protective stop unlocked";
+  }));
+  wireExtras();
 
   for (const action of ["open", "close"]) {
     $(`gripper-${action}`).addEventListener("click", () => command(`Gripper ${action}`, async () => {
@@ -500,6 +536,327 @@ function wireCommands() {
   $("logout").addEventListener("click", () => logout(""));
 }
 
+
+// ---------------------------------------------------------------------------------------------
+// Alarms: a banner that stays until each alarm is acknowledged (by the server, so every page
+// and the PLC see the same), and the alarm log with paging.
+
+// Today's times as the clock shows them; older ones with their date.
+function when(t) {
+  if (!Number.isFinite(t)) return "–";
+  const d = new Date(t * 1000);
+  return d.toDateString() === new Date().toDateString()
+    ? d.toLocaleTimeString() : d.toLocaleString();
+}
+const mayAck = () => !!state.token && (state.permissions
+  ? state.permissions.includes("alarm_ack") : state.role === "operator");
+
+function el(tag, props = {}, ...children) {
+  const e = document.createElement(tag);
+  for (const [k, v] of Object.entries(props)) {
+    if (k === "dataset") Object.assign(e.dataset, v);
+    else if (k in e) e[k] = v;
+    else e.setAttribute(k, v);
+  }
+  for (const c of children) e.append(c);
+  return e;
+}
+
+function renderBanner(list) {
+  const banner = $("alarm-banner");
+  const ul = $("alarm-list");
+  const key = `${mayAck()}:${list.alarms.map((a) => a.id).join(",")}`;
+  if (ul.dataset.key !== key) ul.dataset.key = key;
+  else list = { ...list, unchanged: true };
+  if (!list.unchanged) ul.replaceChildren(...list.alarms.map((a) => {
+    const ack = el("button", { type: "button", textContent: "Acknowledge", disabled: !mayAck(),
+      dataset: { testid: "alarm-ack", alarmId: String(a.id) } });
+    ack.addEventListener("click", () => acknowledge(a.id));
+    return el("li", { dataset: { testid: "alarm", alarmId: String(a.id), code: a.code } },
+      el("span", { className: "text" }, el("span", { className: "when", textContent: when(a.raised_at) }),
+        el("code", { textContent: a.code }), a.message), ack);
+  }));
+  banner.hidden = list.alarms.length === 0;
+  const count = $("alarm-count");
+  count.hidden = list.active === 0;
+  count.dataset.count = String(list.active);
+  count.textContent = `${list.active} alarm${list.active === 1 ? "" : "s"}`;
+}
+
+async function acknowledge(id) {
+  try {
+    await api("POST", `/alarms/${id}/ack`, {});
+    say("Alarm acknowledged.", "info");
+  } catch (e) {
+    say(`Acknowledge failed: ${e.message}`);
+  }
+  refreshAlarms();
+  refreshLogs();
+}
+
+async function acknowledgeAll() {
+  const ids = [...document.querySelectorAll('[data-testid="alarm"]')].map((li) => li.dataset.alarmId);
+  try {
+    for (const id of ids) await api("POST", `/alarms/${id}/ack`, {});
+    say(`${ids.length} alarm(s) acknowledged.`, "info");
+  } catch (e) {
+    say(`Acknowledge failed: ${e.message}`);
+  }
+  refreshAlarms();
+  refreshLogs();
+}
+
+async function refreshAlarms() {
+  if (!state.token) { renderBanner({ alarms: [], active: 0 }); return; }
+  try {
+    renderBanner(await api("GET", "/alarms?active=true&limit=20", undefined, { timeoutMs: 3000 }));
+  } catch (e) { /* the connection light tells; keep what is shown */ }
+}
+
+async function alarmLoop() {
+  for (;;) {
+    if (!document.hidden) await refreshAlarms();
+    await sleep(ALARMS_MS);
+  }
+}
+
+function pager(prefix, offset, shown, total) {
+  $(`${prefix}-page`).textContent = total ? `${offset + 1}–${offset + shown} of ${total}` : "none";
+  $(`${prefix}-prev`).disabled = offset <= 0;
+  $(`${prefix}-next`).disabled = offset + shown >= total;
+}
+
+async function refreshAlarmLog() {
+  const r = await api("GET", `/alarms?limit=${PAGE_ROWS}&offset=${state.alarmOffset}`);
+  $("alarm-log").replaceChildren(...r.alarms.map((a) => el("tr",
+    { dataset: { active: String(a.active), alarmId: String(a.id) } },
+    el("td", { textContent: when(a.raised_at) }), el("td", { textContent: a.code }),
+    el("td", { textContent: a.message }),
+    el("td", { textContent: a.active ? "open" : `${a.acknowledged_by} ${when(a.acknowledged_at)}` }))));
+  pager("alarm-log", state.alarmOffset, r.alarms.length, r.total);
+}
+
+async function refreshHistory() {
+  const r = await api("GET", `/jobs?limit=${PAGE_ROWS}&offset=${state.historyOffset}`);
+  $("history").replaceChildren(...r.jobs.map((j) => {
+    const res = j.result || {};
+    const detail = j.error ? j.error.message
+      : Number.isFinite(res.reach_error_mm) ? `reached within ${fmt(res.reach_error_mm, 2)} mm` : "";
+    return el("tr", { dataset: { state: j.state, jobId: j.id } },
+      el("td", { textContent: when(j.created_at) }), el("td", { textContent: `${j.kind} ${j.id}` }),
+      el("td", { textContent: j.state }), el("td", { textContent: j.caller }),
+      el("td", { textContent: detail }));
+  }));
+  pager("history", state.historyOffset, r.jobs.length, r.total || r.jobs.length);
+}
+
+async function refreshLogs() {
+  if (!state.token) return;
+  try {
+    await Promise.all([refreshAlarmLog(), refreshHistory(), refreshImages()]);
+  } catch (e) { /* retried on the next round */ }
+}
+
+async function logsLoop() {
+  for (;;) {
+    await sleep(LOGS_MS);
+    if (!document.hidden) await refreshLogs();
+  }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Taught poses, calibration, camera settings, image log
+
+async function loadTaught(select) {
+  if (!state.token) return;
+  try {
+    const r = await api("GET", "/teach");
+    const sel = $("taught");
+    const keep = select !== undefined ? select : sel.value;
+    sel.replaceChildren(el("option", { value: "", textContent: "default (config)" }),
+      ...r.taught.map((t) => el("option", { value: t.name, textContent: t.name })));
+    sel.value = r.taught.some((t) => t.name === keep) ? keep : "";
+    $("taught-list").replaceChildren(...r.taught.map((t) => el("li", {
+      textContent: `${t.name}: ${showPose(t.T_target_tcp)} (spread ${fmt(t.spread_mm, 2)} mm, `
+        + `${t.taught_by})` })));
+  } catch (e) { /* a service without taught poses: the default stays */ }
+}
+
+function showCalibration(job) {
+  state.calibJob = job;
+  const p = job.progress || {};
+  const bar = $("calib-progress");
+  $("calib-status").dataset.state = job.state;
+  if (job.state === "running") {
+    const total = p.total || 0;
+    bar.max = Math.max(1, total);
+    bar.value = p.done || 0;
+    $("calib-status").textContent = `running: ${p.stage || "starting"} ${p.done || 0} / ${total}`;
+  } else {
+    bar.max = 1;
+    bar.value = job.state === "succeeded" ? 1 : 0;
+    $("calib-status").textContent = `${job.state}${job.error ? `: ${job.error.message}` : ""}`;
+  }
+  const r = job.result;
+  if (r) {
+    const v = r.verdict || {};
+    const resid = r.residual || {};
+    $("calib-result").textContent = `verdict: ${v.text || (v.consistent ? "consistent" : "inconsistent")}\n`
+      + `T_flange_camera (${r.chosen}): ${showPose(r.T_flange_camera)}\n`
+      + (Number.isFinite(resid.mean_mm) ? `residual ${fmt(resid.mean_mm, 2)} mm / ${fmt(resid.mean_deg, 3)} °\n` : "")
+      + (r.change_from_current ? `change from current: ${fmt(r.change_from_current.distance_mm, 2)} mm / `
+        + `${fmt(r.change_from_current.distance_deg, 3)} °` : "");
+    $("calib-result").dataset.consistent = String(!!v.consistent);
+  } else {
+    $("calib-result").textContent = "";
+  }
+  $("calib-apply").disabled = job.state !== "succeeded" || state.role !== "operator";
+}
+
+async function followCalibration(id) {
+  for (;;) {
+    let job;
+    try {
+      job = await api("GET", `/calibration/hand-eye/${encodeURIComponent(id)}`);
+    } catch (e) {
+      await sleep(1000);
+      continue;
+    }
+    if (!state.calibJob || state.calibJob.id !== id) return;
+    showCalibration(job);
+    if (job.state !== "running") return;
+    await sleep(400);
+  }
+}
+
+async function loadCameraSettings() {
+  if (!state.token) return;
+  try {
+    showCameraSettings(await api("GET", "/camera/settings"));
+  } catch (e) {
+    $("cam-state").textContent = `camera settings not available: ${e.message}`;
+  }
+}
+
+function showCameraSettings(s) {
+  const put = (id, v) => {
+    $(id).value = v === null || v === undefined ? "" : String(v);
+    $(id).placeholder = v === null ? "not on this camera" : $(id).placeholder;
+    if (v === null) $(id).disabled = true;
+  };
+  put("cam-exposure", s.exposure_us);
+  put("cam-iso", s.iso);
+  put("cam-focus", s.focus);
+  $("cam-state").textContent = `in force: exposure ${s.exposure_us ?? "–"} µs, gain ISO ${s.iso ?? "–"}, `
+    + `focus ${s.focus === null ? "fixed" : s.focus}`;
+  state.settingsLoaded = true;
+}
+
+async function refreshImages() {
+  if (!state.token) return;
+  let r;
+  try {
+    r = await api("GET", "/images?limit=12");
+  } catch (e) {
+    $("images-note").textContent = e.message;
+    return;
+  }
+  if (!r.enabled) {
+    $("images-note").textContent = "The image log is off (set [api] image_log_dir in the config).";
+    $("images").replaceChildren();
+    $("images").dataset.key = "";
+    return;
+  }
+  $("images-note").textContent = r.total ? `${r.total} frame(s) whose locate failed, newest first`
+    : "No failed locates logged.";
+  const key = r.images.map((img) => img.name).join(",");
+  if ($("images").dataset.key === key) return;
+  $("images").dataset.key = key;
+  $("images").replaceChildren(...r.images.map((img) => {
+    const b = el("button", { type: "button", textContent: `${when(img.saved_at)} · ${img.code || "?"}: ${img.message || ""}`,
+      dataset: { testid: "image-entry", name: img.name } });
+    b.addEventListener("click", () => showImage(img.url));
+    return el("li", {}, b);
+  }));
+}
+
+async function showImage(url) {
+  try {
+    const resp = await fetch(url, { headers: { Authorization: `Bearer ${state.token}` }, cache: "no-store" });
+    if (!resp.ok) throw new ApiError("the image could not be loaded", resp.status, "");
+    const view = $("image-view");
+    if (view.src) URL.revokeObjectURL(view.src);
+    view.src = URL.createObjectURL(await resp.blob());
+    view.hidden = false;
+  } catch (e) {
+    say(e.message);
+  }
+}
+
+function wireExtras() {
+  $("alarm-count").addEventListener("click", () => $("alarm-banner").scrollIntoView());
+  $("alarm-ack-all").addEventListener("click", acknowledgeAll);
+  for (const [prefix, key, refresh] of [["alarm-log", "alarmOffset", refreshAlarmLog],
+    ["history", "historyOffset", refreshHistory]]) {
+    $(`${prefix}-prev`).addEventListener("click", () => {
+      state[key] = Math.max(0, state[key] - PAGE_ROWS);
+      refresh().catch((e) => say(e.message));
+    });
+    $(`${prefix}-next`).addEventListener("click", () => {
+      state[key] += PAGE_ROWS;
+      refresh().catch((e) => say(e.message));
+    });
+  }
+
+  $("teach").addEventListener("click", () => command("Teach", async () => {
+    const name = $("teach-name").value.trim();
+    if (!/^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$/.test(name)) {
+      throw new ApiError("give the pose a name of letters, digits, '_', '.' or '-'", 0, "input");
+    }
+    const t = await api("POST", "/teach", { name, samples: 3 }, { timeoutMs: 20000 });
+    await loadTaught(t.name);
+    return `taught ${t.name}: ${showPose(t.T_target_tcp)} (spread ${fmt(t.spread_mm, 2)} mm)`;
+  }));
+
+  $("calib-start").addEventListener("click", () => command("Calibration", async () => {
+    const views = Number($("calib-views").value);
+    if (!Number.isInteger(views) || views < 3 || views > 30) {
+      throw new ApiError("the number of views must be a whole number from 3 to 30", 0, "input");
+    }
+    const job = await api("POST", "/calibration/hand-eye", { views });
+    showCalibration(job);
+    followCalibration(job.id);
+    return `calibration started (job ${job.id})`;
+  }));
+
+  $("calib-apply").addEventListener("click", () => command("Apply calibration", async () => {
+    const job = state.calibJob;
+    if (!job) return undefined;
+    const r = await api("POST", `/calibration/hand-eye/${encodeURIComponent(job.id)}/apply`, {});
+    $("calib-status").textContent = `applied: the cell now uses ${showPose(r.T_flange_camera)}`;
+    $("calib-status").dataset.state = "applied";
+    return "calibration applied";
+  }));
+
+  $("cam-apply").addEventListener("click", () => command("Camera settings", async () => {
+    const body = {};
+    const num = (id, key) => {
+      const raw = $(id).value.trim();
+      if ($(id).disabled || raw === "") return;
+      const v = Number(raw);
+      if (!Number.isInteger(v) || v <= 0) throw new ApiError(`${key.replace("_us", "")} must be a positive whole number`, 0, "input");
+      body[key] = v;
+    };
+    num("cam-exposure", "exposure_us");
+    num("cam-iso", "iso");
+    const focus = $("cam-focus").value.trim();
+    if (!$("cam-focus").disabled && focus !== "") body.focus = focus === "auto" ? "auto" : Number(focus);
+    const s = await api("PUT", "/camera/settings", body);
+    showCameraSettings(s);
+    return "camera settings applied";
+  }));
+}
+
 const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
 
 function main() {
@@ -509,6 +866,8 @@ function main() {
   if (state.token) login(state.token);
   statusLoop();
   cameraLoop();
+  alarmLoop();
+  logsLoop();
 }
 
 main();

@@ -1,4 +1,5 @@
-"""``cell serve [--config FILE] [--host H] [--port N]``: the cell service and its HTTP API.
+"""``cell serve [--config FILE] [--host H] [--port N] [--ssl-certfile F --ssl-keyfile F]``:
+the cell service and its HTTP API (HTTPS when given a certificate and key).
 
 Without ``--config`` it serves the built-in simulated cell (simulated UR controller driven
 through ur_rtde, simulated camera, fake gripper on a pty). uvicorn imports the app factory by
@@ -27,6 +28,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--log-format", default="text", choices=["text", "json"],
                    help="json: one JSON object per line on stderr (for journald and log "
                         "shippers)")
+    p.add_argument("--ssl-certfile", default=None,
+                   help="serve HTTPS with this certificate (PEM); needs --ssl-keyfile")
+    p.add_argument("--ssl-keyfile", default=None, help="the certificate's private key (PEM)")
     p.set_defaults(func=_serve)
 
 
@@ -34,6 +38,11 @@ def _serve(args: argparse.Namespace) -> int:
     from cell.config import ConfigError, load_config
     from cell.runtime import check_startable
 
+    if bool(args.ssl_certfile) != bool(args.ssl_keyfile):
+        return fail("invalid_arguments", "--ssl-certfile and --ssl-keyfile go together", False)
+    for path in (args.ssl_certfile, args.ssl_keyfile):
+        if path and not os.path.isfile(path):
+            return fail("invalid_arguments", f"no such file: {path}", False)
     try:
         config = load_config(args.config)
         check_startable(config)  # before "serving", before any device is touched
@@ -61,11 +70,13 @@ def _serve(args: argparse.Namespace) -> int:
 
     # Compiled once per checkout (make install does it); loading takes a fraction of a second.
     say(f"estimator kernels ready in {warm_up():.1f} s")
-    say(f"serving the cell on http://{args.host}:{args.port} (docs at /docs); state in "
+    scheme = "https" if args.ssl_certfile else "http"
+    say(f"serving the cell on {scheme}://{args.host}:{args.port} (docs at /docs); state in "
         f"{os.path.dirname(os.path.abspath(config.api.job_db))}")
     server = _StopFirstServer(uvicorn.Config(
         "api.app:app_from_environment", factory=True, host=args.host, port=args.port,
         log_level=args.log_level, log_config=logging_config,
+        ssl_certfile=args.ssl_certfile, ssl_keyfile=args.ssl_keyfile,
         timeout_graceful_shutdown=SHUTDOWN_GRACE_S))
     server.run()
     return 0
