@@ -6,6 +6,7 @@ can build a cell, serve it, and inspect it directly.
 
 from __future__ import annotations
 
+import asyncio
 import threading
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
@@ -16,10 +17,12 @@ from fastapi.responses import PlainTextResponse
 
 from api import errors, metrics
 from api.auth import TokenTable, require
+from api.interfaces import Interfaces
 from api.page import mount_page
 from api.routes import router, sim_router
 from api.routes_arm import router as arm_router
 from api.routes_calibration import install as install_calibration
+from cell.endpoints import with_ports
 from cell.service import Cell
 
 # Called first thing on SIGTERM/SIGINT by ``cell serve`` (see cell.commands.serve), before
@@ -27,14 +30,20 @@ from cell.service import Cell
 SHUTDOWN_HOOKS: list[Callable[[], None]] = []
 
 
-def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False) -> FastAPI:
+def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False,
+               interfaces: bool = False) -> FastAPI:
     """Build the API for ``cell``. Raises ConfigError when a sample token is configured on
-    hardware other than the fakes."""
+    hardware other than the fakes. ``interfaces``: also serve the configured OPC UA server and
+    URScript XML-RPC endpoint (api.interfaces) while the app runs."""
     tokens = TokenTable(list(cell.config.api.tokens), simulated=cell.hw.simulated)
+    doors = Interfaces(cell)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        if interfaces:
+            await asyncio.to_thread(doors.start)
         yield
+        doors.close()
         if close_cell_on_shutdown:
             cell.close()
 
@@ -83,16 +92,20 @@ def app_from_environment() -> FastAPI:
     import os
     import sys
 
+    from cell.config import load_config
     from cell.runtime import start_cell
 
     try:
-        cell = start_cell(os.environ.get("CELL_CONFIG") or None)
+        config = with_ports(load_config(os.environ.get("CELL_CONFIG") or None),
+                            _port_from_environment("CELL_OPCUA_PORT"),
+                            _port_from_environment("CELL_XMLRPC_PORT"))
+        cell = start_cell(config)
     except Exception as err:  # a clear line instead of a traceback from inside uvicorn
         code = getattr(err, "code", "startup_failed")
         print(f"error ({code}): the cell could not start: {err}", file=sys.stderr)
         raise SystemExit(2) from err
     try:
-        app = create_app(cell, close_cell_on_shutdown=True)
+        app = create_app(cell, close_cell_on_shutdown=True, interfaces=True)
     except BaseException:
         cell.close()
         raise
@@ -103,3 +116,11 @@ def app_from_environment() -> FastAPI:
 
     SHUTDOWN_HOOKS.append(on_signal)
     return app
+
+
+def _port_from_environment(name: str) -> int | None:
+    """A port ``cell serve`` passed on (``--opcua-port``, ``--xmlrpc-port``), else None."""
+    import os
+
+    value = os.environ.get(name)
+    return int(value) if value else None

@@ -2,10 +2,11 @@
 
 Tables: ``[camera]``, ``[target]`` and ``[robot]`` (``kind`` required), ``[hand_eye]``,
 ``[tool]``, ``[approach]``, ``[limits]``, ``[api]``, ``[gripper]``, ``[sim]``, ``[opcua]``,
-``[urscript]``, ``[commissioning]``. A config with any real device must also state ``[limits]``, ``[tool]`` and
-``[hand_eye]`` (their defaults suit only the simulated cell). Types are strict (``width =
-"1280"`` is an error, not a coercion), an unknown key is answered with the closest valid name,
-and the commissioning checks (:mod:`cell.config_checks`) catch values in the wrong unit.
+``[urscript]``, ``[commissioning]``. A config with any real device must also state
+``[limits]``, ``[tool]`` and ``[hand_eye]`` (their defaults suit only the simulated cell).
+Types are strict (``width = "1280"`` is an error, not a coercion), an unknown key is answered
+with the closest valid name, and the commissioning checks (:mod:`cell.config_checks`) catch
+values in the wrong unit.
 Keys stay stable, because commissioned cells keep their files.
 Without a file every command uses the built-in simulated cell (``cell/configs/sim.toml``).
 """

@@ -1,4 +1,5 @@
-"""``cell serve [--config FILE] [--host H] [--port N]``: the cell service and its HTTP API.
+"""``cell serve [--config FILE] [--host H] [--port N] [--opcua-port N] [--xmlrpc-port N]``: the
+cell service: its HTTP API, and the OPC UA server and URScript XML-RPC endpoint it configures.
 
 Without ``--config`` it serves the built-in simulated cell (simulated UR controller driven
 through ur_rtde, simulated camera, fake gripper on a pty). uvicorn imports the app factory by
@@ -27,15 +28,23 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--log-format", default="text", choices=["text", "json"],
                    help="json: one JSON object per line on stderr (for journald and log "
                         "shippers)")
+    p.add_argument("--opcua-port", type=int, default=None, metavar="N",
+                   help="serve the [opcua] endpoint on this port instead (0: off)")
+    p.add_argument("--xmlrpc-port", type=int, default=None, metavar="N",
+                   help="serve the URScript XML-RPC endpoint on this port instead (0: off)")
     p.set_defaults(func=_serve)
 
 
 def _serve(args: argparse.Namespace) -> int:
     from cell.config import ConfigError, load_config
+    from cell.endpoints import endpoints, with_ports
     from cell.runtime import check_startable
 
+    for flag, port in (("--opcua-port", args.opcua_port), ("--xmlrpc-port", args.xmlrpc_port)):
+        if port is not None and not 0 <= port <= 65535:
+            return fail("invalid_argument", f"{flag} must be a port 0..65535, got {port}", False)
     try:
-        config = load_config(args.config)
+        config = with_ports(load_config(args.config), args.opcua_port, args.xmlrpc_port)
         check_startable(config)  # before "serving", before any device is touched
     except ConfigError as err:
         return fail(err.code, str(err), False)
@@ -43,6 +52,12 @@ def _serve(args: argparse.Namespace) -> int:
         os.environ["CELL_CONFIG"] = os.path.abspath(args.config)
     else:
         os.environ.pop("CELL_CONFIG", None)
+    for name, port in (("CELL_OPCUA_PORT", args.opcua_port),
+                       ("CELL_XMLRPC_PORT", args.xmlrpc_port)):
+        if port is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = str(port)
     import logging
     import logging.config
 
@@ -63,6 +78,8 @@ def _serve(args: argparse.Namespace) -> int:
     say(f"estimator kernels ready in {warm_up():.1f} s")
     say(f"serving the cell on http://{args.host}:{args.port} (docs at /docs); state in "
         f"{os.path.dirname(os.path.abspath(config.api.job_db))}")
+    for line in endpoints(config):
+        say(f"serving {line}")
     server = _StopFirstServer(uvicorn.Config(
         "api.app:app_from_environment", factory=True, host=args.host, port=args.port,
         log_level=args.log_level, log_config=logging_config,
