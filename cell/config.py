@@ -332,7 +332,7 @@ class OpcUaConfig(_Strict):
     endpoint: str = "opc.tcp://127.0.0.1:4840"
     namespace: str = "urn:ur-vision-cell"
     security_policies: list[OpcUaPolicy] = Field(
-        default_factory=lambda: ["Basic256Sha256"], min_length=1)
+        default_factory=lambda: list[OpcUaPolicy](["Basic256Sha256"]), min_length=1)
     certificate: str = ""
     private_key: str = ""
     users: list[OpcUaUserConfig] = Field(default_factory=list)
