@@ -206,7 +206,11 @@ class OpcUaServer:
             new_struct_field("rms_px", D), new_struct_field("max_residual_px", D),
             new_struct_field("ambiguous", ua.VariantType.Boolean),
             new_struct_field("n_points", ua.VariantType.Int32), new_struct_field("age_s", D)])
-        self._types = await server.load_data_type_definitions()
+        loaded = await server.load_data_type_definitions()
+        # asyncua registers each structure's class in ``ua`` once per process; a second server
+        # in the same process (tests) finds them there instead of in the returned dict.
+        self._types = {name: loaded.get(name) or getattr(ua, name)
+                       for name in ("Pose", "LocateQuality")}
         obj = await server.nodes.objects.add_object(idx, "Cell")
         S, B = ua.VariantType.String, ua.VariantType.Boolean
         zero = self._pose([0.0] * 3, [0.0] * 3)
