@@ -32,6 +32,8 @@ import uvicorn
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse, Response
 
+from tests.cell_testing import without_interfaces
+
 REPO = Path(__file__).resolve().parents[1]
 ARTIFACTS = REPO / "test-artifacts"
 CHROMIUM = Path(os.environ.get("CELL_CHROMIUM", "/usr/bin/chromium"))
@@ -142,7 +144,7 @@ def sim_config(workdir: Path) -> Path:
                          flags=re.M)
     assert n_kind == 1 and n_db == 1, "sim.toml no longer has [robot] kind / [api] job_db"
     path = workdir / "sim-page-test.toml"
-    path.write_text(head + tail)
+    path.write_text(without_interfaces(head + tail))
     return path
 
 

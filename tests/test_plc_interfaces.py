@@ -392,8 +392,10 @@ def test_xmlrpc_with_tokens_in_the_path(served: Served) -> None:
 def test_cell_serve_prints_and_serves_every_endpoint(tmp_path: Path) -> None:
     from tests.test_api_serve import _config
 
-    config = _config(tmp_path)
-    assert "[opcua]" in config.read_text()
+    config = _config(tmp_path)  # sim.toml with the interfaces off (their fixed ports) ...
+    text = config.read_text()
+    config.write_text(text.replace("\nenabled = false", "\nenabled = true", 1)
+                      .replace("xmlrpc_port = 0", "xmlrpc_port = 1"))  # ... on, moved below
     http_port, opcua_port, rpc_port = free_port(), free_port(), free_port()
     proc = subprocess.Popen(
         [sys.executable, "-m", "cell", "serve", "--config", str(config), "--port",
