@@ -363,7 +363,7 @@ class OpcUaConfig(_Strict):
             raise ValueError("certificate and private_key go together (both empty: a "
                              "self-signed pair is generated)")
         if self.enabled and not self.users:
-            raise ValueError("users: an enabled OPC UA server needs at least one user")
+            raise ValueError("users must list at least one user when the server is enabled")
         return self
 
 
