@@ -35,6 +35,8 @@ from asyncua import Server, ua
 from asyncua.common.structures104 import new_struct, new_struct_field
 from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from asyncua.crypto.permission_rules import USER_TYPES, SimpleRoleRuleset, User, UserRole
+from asyncua.crypto.truststore import TrustStore
+from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
 from asyncua.server.user_managers import UserManager
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
@@ -179,6 +181,12 @@ class OpcUaServer:
             cert, key = await self._key_pair()
             await server.load_certificate(str(cert))
             await server.load_private_key(str(key))
+        if cfg.trusted_client_certs_dir:
+            store = TrustStore([Path(cfg.trusted_client_certs_dir)], [])
+            await store.load()
+            server.set_certificate_validator(CertificateValidator(
+                CertificateValidatorOptions.TRUSTED_VALIDATION
+                | CertificateValidatorOptions.PEER_CLIENT, store))
         idx = await server.register_namespace(cfg.namespace)
         await self._model(server, idx)
         return server

@@ -325,7 +325,8 @@ class OpcUaConfig(_Strict):
     Basic256Sha256 needs a certificate: ``certificate`` (DER or PEM) and ``private_key`` (PEM),
     or, both empty, a self-signed pair generated at the first start into ``opcua/`` beside the
     job database and reused. Only the ``users`` may connect (user name and password; no
-    anonymous sessions); each has one of the API's roles.
+    anonymous sessions); each has one of the API's roles. ``trusted_client_certs_dir`` limits
+    Basic256Sha256 to the client certificates in it.
     """
 
     enabled: bool = False
@@ -336,6 +337,9 @@ class OpcUaConfig(_Strict):
     certificate: str = ""
     private_key: str = ""
     users: list[OpcUaUserConfig] = Field(default_factory=list)
+    # A folder of trusted client certificates (DER/PEM): with it, a Basic256Sha256 client whose
+    # certificate is not in it is refused; empty: any client certificate (users still log in).
+    trusted_client_certs_dir: str = ""
     update_period_s: float = Field(default=0.1, gt=0, le=10)  # how often variables refresh
 
     @field_validator("endpoint")

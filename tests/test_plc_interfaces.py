@@ -245,6 +245,16 @@ def test_opcua_roles_users_and_refusals(served: Served) -> None:
             assert (await plc.call("Gripper", "close", 0.0))[0] == "forbidden"
             code, _, _ = await viewer.call("Stop")  # every user may stop
             assert code == "ok"
+            operator = await Opc(opc_client(served.opcua_url, "operator")).open()
+            try:
+                code, message, job_id = await operator.call("Home")
+                assert code == "ok" and job_id, message
+                await operator.wait_for("JobState", lambda v: v == "succeeded", 60)
+                # this cell has no gripper: the API's code, in the answer
+                assert (await operator.call("Gripper", "open", 0.0))[0] == "gripper_unavailable"
+                assert (await operator.call("Gripper", "move", -3.0))[0] == "invalid_request"
+            finally:
+                await operator.close()
             # bad input: the cell's codes, nothing moves
             assert (await plc.call("Approach", -5.0, ""))[0] == "invalid_request"
             assert (await plc.call("Approach", float("nan"), ""))[0] == "invalid_request"
@@ -304,6 +314,47 @@ def test_opcua_basic256sha256_with_the_generated_certificate(served: Served,
 
     run(go())
     assert (opcua_cert_dir(served.cell.config) / "server-cert.der").is_file()
+
+
+def test_opcua_trusted_client_certificates_only(tmp_path: Path) -> None:
+    """With ``trusted_client_certs_dir``, Basic256Sha256 admits only the certificates in it."""
+    trusted_dir = tmp_path / "trusted"
+    trusted_dir.mkdir()
+    port = free_port()
+    config = sim_config(tmp_path, opcua={"endpoint": f"opc.tcp://127.0.0.1:{port}",
+                                         "security_policies": ["Basic256Sha256"],
+                                         "trusted_client_certs_dir": str(trusted_dir)})
+
+    async def client_cert(name: str) -> tuple[Path, Path]:
+        key, cert = tmp_path / f"{name}-key.pem", tmp_path / f"{name}-cert.der"
+        await setup_self_signed_certificate(
+            key, cert, f"urn:test:{name}", "localhost", [ExtendedKeyUsageOID.CLIENT_AUTH],
+            {"commonName": name})
+        return key, cert
+
+    async def read_state(name: str, key: Path, cert: Path) -> str:
+        client = opc_client(f"opc.tcp://127.0.0.1:{port}", "plc")
+        client.application_uri = f"urn:test:{name}"
+        await client.set_security(SecurityPolicyBasic256Sha256, str(cert), str(key),
+                                  mode=ua.MessageSecurityMode.SignAndEncrypt)
+        opc = await Opc(client).open()
+        try:
+            return str(await opc.read("State"))
+        finally:
+            await opc.close()
+
+    key_ok, cert_ok = run(client_cert("known"))
+    key_bad, cert_bad = run(client_cert("stranger"))
+    (trusted_dir / "known.der").write_bytes(cert_ok.read_bytes())
+    with running_cell(config) as cell:
+        server = OpcUaServer(cell, config.opcua, opcua_cert_dir(config))
+        server.start()
+        try:
+            assert run(read_state("known", key_ok, cert_ok)) == "idle"
+            with pytest.raises((ua.UaError, ConnectionError, OSError, TimeoutError)):
+                run(read_state("stranger", key_bad, cert_bad))
+        finally:
+            server.close()
 
 
 # -- XML-RPC -------------------------------------------------------------------------------------
