@@ -23,6 +23,7 @@ import contextvars
 import hmac
 import json
 import logging
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -196,7 +197,8 @@ class OpcUaServer:
             return Path(self.config.certificate), Path(self.config.private_key)
         self.cert_dir.mkdir(parents=True, exist_ok=True)
         cert, key = self.cert_dir / "server-cert.der", self.cert_dir / "server-key.pem"
-        host = urlparse(self.config.endpoint).hostname or "localhost"
+        # the machine's name, which asyncua (and some clients) look for among the DNS names
+        host = socket.gethostname() or urlparse(self.config.endpoint).hostname or "localhost"
         await setup_self_signed_certificate(
             key, cert, f"{self.config.namespace}:server", host,
             [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH],

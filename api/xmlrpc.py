@@ -7,7 +7,10 @@ A PolyScope program asks the cell with ``rpc = rpc_factory("xmlrpc", "http://HOS
   rad, which URScript reads as ``p[...]``);
 - ``approach_pose(standoff_mm)`` and ``taught_pose(name, standoff_mm=0)``: the TCP goal for the
   program's own ``movel`` (robot-program-driven mode: the cell locates but never moves the arm);
-- ``status()``: the cell's state (``idle``, ``approach``, ``protective_stop``, ...).
+- ``status()``: the cell's state (``idle``, ``approach``, ``protective_stop``, ...);
+- ``try_locate()``, ``try_approach_pose(standoff_mm)``, ``try_taught_pose(name, standoff_mm=0)``:
+  the same as a list ``[status, x, y, z, rx, ry, rz]`` (status 0, or the fault code the plain
+  call would give, with zeros), for a program that handles a refusal itself.
 
 A refusal is an XML-RPC fault whose code is the HTTP status the API would answer (403, 409,
 422, 503) and whose string starts with the cell's error code (``"stale_pose: ..."``); a malformed
@@ -68,6 +71,28 @@ class _Methods:
                                   taught=name)
         return ur_struct(goal)
 
+    def try_locate(self, caller: RemoteCaller) -> list[float]:
+        return self._tried(lambda: remote.locate(self.cell, caller).T_base_target)
+
+    def try_approach_pose(self, caller: RemoteCaller, standoff_mm: float) -> list[float]:
+        return self._tried(lambda: remote.tcp_goal(
+            self.cell, caller, "approach_pose", standoff_mm=standoff_mm)[0])
+
+    def try_taught_pose(self, caller: RemoteCaller, name: str,
+                        standoff_mm: float = 0.0) -> list[float]:
+        return self._tried(lambda: remote.tcp_goal(
+            self.cell, caller, "taught_pose", standoff_mm=standoff_mm, taught=name)[0])
+
+    @staticmethod
+    def _tried(work: Callable[[], NDArray[np.float64]]) -> list[float]:
+        """``[status, x, y, z, rx, ry, rz]``: status 0 and the pose, or the fault code the
+        plain call would raise and zeros. All numbers, so URScript can branch on ``r[0]``
+        where a fault would end the program."""
+        try:
+            return [0.0, *remote.ur_pose(work())]
+        except CellError as err:
+            return [float(remote.http_status(err))] + [0.0] * 6
+
     def status(self, caller: RemoteCaller) -> str:
         if not caller.may("read"):
             raise ForbiddenError("forbidden", f"role {caller.role!r} may not read")
@@ -75,7 +100,9 @@ class _Methods:
 
     def table(self) -> dict[str, Callable[..., Any]]:
         return {"locate": self.locate, "approach_pose": self.approach_pose,
-                "taught_pose": self.taught_pose, "status": self.status}
+                "taught_pose": self.taught_pose, "try_locate": self.try_locate,
+                "try_approach_pose": self.try_approach_pose,
+                "try_taught_pose": self.try_taught_pose, "status": self.status}
 
 
 class _Handler(SimpleXMLRPCRequestHandler):

@@ -384,6 +384,12 @@ def test_xmlrpc_locate_and_approach_pose_match_the_http_api(served: Served) -> N
         "grasp", T_target_tcp, 1, 0.0, 0.0, T_true, before, "test", time.time()))
     taught = struct_T(rpc.taught_pose("grasp", 25.0))
     assert close_to(taught, approach_tcp(T_http, T_target_tcp, 25.0))
+    # the list forms, for programs that branch on a refusal instead of faulting
+    tried = rpc.try_approach_pose(40.0)
+    assert tried[0] == 0 and close_to(T_from_ur_pose(tried[1:]), expected)
+    assert close_to(T_from_ur_pose(rpc.try_locate()[1:]), T_true)
+    assert rpc.try_taught_pose("nope") == [404.0] + [0.0] * 6
+    assert rpc.try_approach_pose(-1)[0] == 422
     # robot-program-driven: nothing was commanded, the arm did not move
     assert len(served.cell.commanded()) == commanded
     assert pose_distance(tcp(served.cell), before)[0] < 0.01
