@@ -45,7 +45,7 @@ class Interfaces:
     def _start(self, name: str, where: str, server: _Server) -> None:
         try:
             server.start()
-        except (OSError, TimeoutError) as err:
+        except Exception as err:  # a port in use, a bad certificate file, ...
             log.error("%s: cannot serve on %s: %s; the rest of the service runs without it",
                       name, where, err)
             server.close()

@@ -493,3 +493,27 @@ def test_cell_serve_prints_and_serves_every_endpoint(tmp_path: Path) -> None:
     assert f"serving URScript XML-RPC on http://127.0.0.1:{rpc_port}/RPC2" in text, text
     # uvicorn re-raises the SIGTERM it handled, after a clean shutdown
     assert proc.returncode in (0, -15), text
+
+
+def test_an_interface_whose_port_is_taken_is_left_out(tmp_path: Path,
+                                                      caplog: pytest.LogCaptureFixture) -> None:
+    from api.interfaces import Interfaces
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        busy = taken.getsockname()[1]
+        rpc_port = free_port()
+        config = sim_config(tmp_path, opcua={"endpoint": f"opc.tcp://127.0.0.1:{busy}",
+                                             "security_policies": ["None"]},
+                            urscript={"xmlrpc_port": rpc_port})
+        with running_cell(config) as cell:
+            doors = Interfaces(cell)
+            doors.start()
+            try:
+                assert set(doors.running) == {"xmlrpc"}
+                assert "opcua: cannot serve on" in caplog.text
+                assert xmlrpc.client.ServerProxy(
+                    f"http://127.0.0.1:{rpc_port}/RPC2").status() == "idle"
+            finally:
+                doors.close()
