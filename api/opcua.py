@@ -121,6 +121,9 @@ class OpcUaServer:
         return self.config.endpoint
 
     def start(self, timeout_s: float = 60.0) -> None:
+        library_log = logging.getLogger("asyncua")
+        if library_log.level == logging.NOTSET:  # it logs every request at INFO
+            library_log.setLevel(logging.WARNING)
         self._thread = threading.Thread(target=self._run, name="opcua", daemon=True)
         self._thread.start()
         if not self._ready.wait(timeout_s):
