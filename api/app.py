@@ -6,6 +6,7 @@ can build a cell, serve it, and inspect it directly.
 
 from __future__ import annotations
 
+import asyncio
 import threading
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
@@ -19,12 +20,14 @@ from api import errors, logs, metrics, openapi_limits
 from api.auth import TokenTable, require
 from api.docs import mount_docs
 from api.guard import OPEN_PATHS, RequestGuard
+from api.interfaces import Interfaces
 from api.live import LiveView
 from api.page import mount_page
 from api.routes import router, sim_router
 from api.routes_arm import router as arm_router
 from api.routes_calibration import install as install_calibration
 from api.routes_ops import install as install_ops
+from cell.endpoints import with_ports
 from cell.service import Cell
 
 DESCRIPTION = """Vision-guided UR cell: locate the dot target, approach it with look-and-move,
@@ -42,16 +45,22 @@ jog, stop, grip, calibrate; alarms, job history and camera settings for the oper
 """
 
 
-def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False) -> FastAPI:
+def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False,
+               interfaces: bool = False) -> FastAPI:
     """Build the API for ``cell``. Raises ConfigError when a sample token is configured on
-    hardware other than the fakes."""
+    hardware other than the fakes. ``interfaces``: also serve the configured OPC UA server and
+    URScript XML-RPC endpoint (api.interfaces) while the app runs."""
     tokens = TokenTable(list(cell.config.api.tokens), simulated=cell.hw.simulated)
     logs.install()
+    doors = Interfaces(cell)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         logs.install()  # uvicorn's handlers exist by now
+        if interfaces:
+            await asyncio.to_thread(doors.start)
         yield
+        doors.close()
         alarms.close()
         app.state.metrics.close()
         if close_cell_on_shutdown:
@@ -112,16 +121,20 @@ def app_from_environment() -> FastAPI:
     import os
     import sys
 
+    from cell.config import load_config
     from cell.runtime import SHUTDOWN_HOOKS, start_cell
 
     try:
-        cell = start_cell(os.environ.get("CELL_CONFIG") or None)
+        config = with_ports(load_config(os.environ.get("CELL_CONFIG") or None),
+                            _port_from_environment("CELL_OPCUA_PORT"),
+                            _port_from_environment("CELL_XMLRPC_PORT"))
+        cell = start_cell(config)
     except Exception as err:  # a clear line instead of a traceback from inside uvicorn
         code = getattr(err, "code", "startup_failed")
         print(f"error ({code}): the cell could not start: {err}", file=sys.stderr)
         raise SystemExit(2) from err
     try:
-        app = create_app(cell, close_cell_on_shutdown=True)
+        app = create_app(cell, close_cell_on_shutdown=True, interfaces=True)
     except BaseException:
         cell.close()
         raise
@@ -132,3 +145,11 @@ def app_from_environment() -> FastAPI:
 
     SHUTDOWN_HOOKS.append(on_signal)  # cell serve runs it on SIGTERM, before the HTTP drain
     return app
+
+
+def _port_from_environment(name: str) -> int | None:
+    """A port ``cell serve`` passed on (``--opcua-port``, ``--xmlrpc-port``), else None."""
+    import os
+
+    value = os.environ.get(name)
+    return int(value) if value else None

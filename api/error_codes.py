@@ -33,6 +33,7 @@ class ErrorCode(StrEnum):
     motion_timeout = "motion_timeout"
     unlock_too_early = "unlock_too_early"
     no_motion_slot = "no_motion_slot"  # an internal refusal: a motion without the slot
+    not_supported = "not_supported"  # a PLC interface method this cell does not offer
     target_not_visible = "target_not_visible"
     spread_too_large = "spread_too_large"
     calibration_inconsistent = "calibration_inconsistent"

@@ -1,11 +1,12 @@
 """Cell configuration: one TOML file, validated strictly; every error names the offending key.
 
 Tables: ``[camera]``, ``[target]`` and ``[robot]`` (``kind`` required), ``[hand_eye]``,
-``[tool]``, ``[approach]``, ``[limits]``, ``[api]``, ``[gripper]``, ``[sim]``,
-``[commissioning]``. A config with any real device must also state ``[limits]``, ``[tool]`` and
-``[hand_eye]`` (their defaults suit only the simulated cell). Types are strict (``width =
-"1280"`` is an error, not a coercion), an unknown key is answered with the closest valid name,
-and the commissioning checks (:mod:`cell.config_checks`) catch values in the wrong unit.
+``[tool]``, ``[approach]``, ``[limits]``, ``[api]``, ``[gripper]``, ``[sim]``, ``[opcua]``,
+``[urscript]``, ``[commissioning]``. A config with any real device must also state
+``[limits]``, ``[tool]`` and ``[hand_eye]`` (their defaults suit only the simulated cell).
+Types are strict (``width = "1280"`` is an error, not a coercion), an unknown key is answered
+with the closest valid name, and the commissioning checks (:mod:`cell.config_checks`) catch
+values in the wrong unit.
 Keys stay stable, because commissioned cells keep their files.
 Without a file every command uses the built-in simulated cell (``cell/configs/sim.toml``).
 """
@@ -18,6 +19,7 @@ import typing
 from importlib import resources
 from pathlib import Path, PurePosixPath
 from typing import Any, Literal
+from urllib.parse import urlparse
 
 import numpy as np
 from numpy.typing import NDArray
@@ -316,6 +318,84 @@ class SimConfig(_Strict):
     gripper_object_width_mm: float | None = Field(default=None, ge=0, le=85)
 
 
+SAMPLE_OPCUA_PASSWORDS = frozenset({"sim-viewer", "sim-operator", "sim-plc"})
+OpcUaPolicy = Literal["None", "Basic256Sha256"]
+
+
+class OpcUaUserConfig(_Strict):
+    """One OPC UA user: a name and password that map to one of the API's roles."""
+
+    name: str = Field(min_length=1)
+    password: str = Field(min_length=1)
+    role: Role
+
+
+class OpcUaConfig(_Strict):
+    """The OPC UA server inside the service (off unless ``enabled``), for cell PLCs.
+
+    ``security_policies``: ``"None"`` and/or ``"Basic256Sha256"`` (Sign and SignAndEncrypt).
+    Basic256Sha256 needs a certificate: ``certificate`` (DER or PEM) and ``private_key`` (PEM),
+    or, both empty, a self-signed pair generated at the first start into ``opcua/`` beside the
+    job database and reused. Only the ``users`` may connect (user name and password; no
+    anonymous sessions); each has one of the API's roles. ``trusted_client_certs_dir`` limits
+    Basic256Sha256 to the client certificates in it.
+    """
+
+    enabled: bool = False
+    endpoint: str = "opc.tcp://127.0.0.1:4840"
+    namespace: str = "urn:ur-vision-cell"
+    security_policies: list[OpcUaPolicy] = Field(
+        default_factory=lambda: list[OpcUaPolicy](["Basic256Sha256"]), min_length=1)
+    certificate: str = ""
+    private_key: str = ""
+    users: list[OpcUaUserConfig] = Field(default_factory=list)
+    # A folder of trusted client certificates (DER/PEM): with it, a Basic256Sha256 client whose
+    # certificate is not in it is refused; empty: any client certificate (users still log in).
+    trusted_client_certs_dir: str = ""
+    update_period_s: float = Field(default=0.1, gt=0, le=10)  # how often variables refresh
+
+    @field_validator("endpoint")
+    @classmethod
+    def _endpoint(cls, v: str) -> str:
+        url = urlparse(v)
+        try:
+            port = url.port
+        except ValueError as err:
+            raise ValueError(f"endpoint {v!r}: {err}") from err
+        if url.scheme != "opc.tcp" or not url.hostname or port is None:
+            raise ValueError(f"endpoint must look like opc.tcp://HOST:PORT, got {v!r}")
+        return v
+
+    @field_validator("users")
+    @classmethod
+    def _unique_users(cls, v: list[OpcUaUserConfig]) -> list[OpcUaUserConfig]:
+        if len({u.name for u in v}) != len(v):
+            raise ValueError("user names must be unique")
+        return v
+
+    @model_validator(mode="after")
+    def _key_pair(self) -> OpcUaConfig:
+        if bool(self.certificate) != bool(self.private_key):
+            raise ValueError("certificate and private_key go together (both empty: a "
+                             "self-signed pair is generated)")
+        if self.enabled and not self.users:
+            raise ValueError("users must list at least one user when the server is enabled")
+        return self
+
+
+class UrscriptConfig(_Strict):
+    """The XML-RPC endpoint a PolyScope program calls (``rpc_factory("xmlrpc", URL)``).
+
+    Off while ``xmlrpc_port`` is 0. With ``require_token`` the URL carries one of the
+    ``[api] tokens`` (``http://HOST:PORT/<token>/RPC2``) and the call has that token's role;
+    without it ``/RPC2`` acts with the ``plc`` role (simulated cells only).
+    """
+
+    xmlrpc_port: int = Field(default=0, ge=0, le=65535)
+    host: str = Field(default="127.0.0.1", min_length=1)
+    require_token: bool = True
+
+
 class CommissioningConfig(_Strict):
     """Keys whose unusual value is intended: the commissioning checks let them pass."""
 
@@ -339,6 +419,8 @@ class CellConfig(BaseModel):
     api: ApiConfig = ApiConfig()
     gripper: GripperConfig = GripperConfig()
     sim: SimConfig = SimConfig()
+    opcua: OpcUaConfig = OpcUaConfig()
+    urscript: UrscriptConfig = UrscriptConfig()
     commissioning: CommissioningConfig = CommissioningConfig()
 
     def has_real_device(self) -> bool:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from collections import Counter
 
-from cell.config import SAMPLE_TOKENS, CellConfig, ConfigError
+from cell.config import SAMPLE_OPCUA_PASSWORDS, SAMPLE_TOKENS, CellConfig, ConfigError
 
 MIN_TOKEN_LENGTH = 16
 MIN_TOKEN_BITS = 48.0
@@ -50,6 +50,22 @@ def token_problems(config: CellConfig, simulated: bool) -> list[str]:
         elif token_bits(t.token) < MIN_TOKEN_BITS:
             problems.append(f"{key}: the token is too predictable ({token_bits(t.token):.0f} "
                             f"bits of character entropy, at least {MIN_TOKEN_BITS:.0f} needed)")
+    problems.extend(interface_problems(config))
+    return problems
+
+
+def interface_problems(config: CellConfig) -> list[str]:
+    """The PLC and robot-program interfaces on real hardware: no sample OPC UA passwords, and
+    the XML-RPC endpoint only with a token in its URL."""
+    problems = []
+    if config.opcua.enabled:
+        for k, u in enumerate(config.opcua.users):
+            if u.password in SAMPLE_OPCUA_PASSWORDS or len(u.password) < MIN_TOKEN_LENGTH:
+                problems.append(f"opcua.users[{k}] ({u.name}): the password is a sample or "
+                                f"shorter than {MIN_TOKEN_LENGTH} characters; set your own")
+    if config.urscript.xmlrpc_port and not config.urscript.require_token:
+        problems.append("urscript.require_token: the XML-RPC endpoint needs a token in its URL "
+                        "on real hardware (http://HOST:PORT/<token>/RPC2)")
     return problems
 
 

@@ -32,6 +32,8 @@ import uvicorn
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse, Response
 
+from tests.cell_testing import without_interfaces
+
 REPO = Path(__file__).resolve().parents[1]
 ARTIFACTS = REPO / "test-artifacts"
 CHROMIUM = Path(os.environ.get("CELL_CHROMIUM", "/usr/bin/chromium"))
@@ -145,7 +147,7 @@ def sim_config(workdir: Path) -> Path:
     assert n_kind == 1 and n_db == 1 and n_img == 1, \
         "sim.toml no longer has [robot] kind / [api] job_db / image_log_dir"
     path = workdir / "sim-page-test.toml"
-    path.write_text(head + tail)
+    path.write_text(without_interfaces(head + tail))
     return path
 
 

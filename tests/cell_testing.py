@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -65,3 +66,14 @@ def settled_tcp(cell: Cell, timeout_s: float = 5.0) -> NDArray[np.float64]:
         if np.abs(now - prev).max() < 1e-4 or time.monotonic() > deadline:
             return now
         prev = now
+
+
+def without_interfaces(text: str) -> str:
+    """sim.toml's text with its OPC UA server and XML-RPC endpoint off: their ports are the
+    fixed 4840 and 8001, which parallel test runs (and a running ``make run``) would fight over.
+    Tests of those interfaces give ``cell serve --opcua-port N --xmlrpc-port N`` free ones."""
+    text, n_opcua = re.subn(r"(\[opcua\][^\[]*?)^enabled = true$", r"\1enabled = false", text,
+                            flags=re.M | re.S)
+    text, n_rpc = re.subn(r"^xmlrpc_port = \d+$", "xmlrpc_port = 0", text, flags=re.M)
+    assert n_opcua == 1 and n_rpc == 1, "sim.toml no longer has [opcua] enabled / xmlrpc_port"
+    return text

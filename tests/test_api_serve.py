@@ -17,7 +17,7 @@ from pathlib import Path
 
 import httpx
 
-from tests.cell_testing import AUTH
+from tests.cell_testing import AUTH, without_interfaces
 
 
 def _free_port() -> int:
@@ -34,7 +34,7 @@ def _config(tmp_path: Path) -> Path:
     text = re.sub(r'(\[gripper\]\s*)kind = "sim"', r'\1kind = "none"', text)
     text = text.replace('job_db = "var/cell_jobs.db"', f'job_db = "{tmp_path / "jobs.db"}"')
     path = tmp_path / "cell.toml"
-    path.write_text(text)
+    path.write_text(without_interfaces(text))
     return path
 
 

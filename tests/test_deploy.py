@@ -18,7 +18,7 @@ import pytest
 
 from cell.config import load_config
 from fakes.ur_controller.process import free_loopback_host
-from tests.cell_testing import AUTH
+from tests.cell_testing import AUTH, without_interfaces
 
 REPO = Path(__file__).resolve().parents[1]
 UNIT = REPO / "cell" / "deploy" / "ur-vision-cell.service"
@@ -78,7 +78,7 @@ def test_serve_log_format_json(tmp_path: Path) -> None:
     text = text.replace('job_db = "var/cell_jobs.db"', 'job_db = "jobs.db"').replace(
         "[api]\n", f'[api]\nstate_dir = "{tmp_path / "state"}"\n', 1)
     config = tmp_path / "cell.toml"
-    config.write_text(text)
+    config.write_text(without_interfaces(text))
     host = free_loopback_host()
     port = _free_port(host)
     proc = subprocess.Popen(

@@ -1,5 +1,6 @@
-"""``cell serve [--config FILE] [--host H] [--port N] [--ssl-certfile F --ssl-keyfile F]``:
-the cell service and its HTTP API (HTTPS when given a certificate and key).
+"""``cell serve [--config FILE] [--host H] [--port N] [--ssl-certfile F --ssl-keyfile F]
+[--opcua-port N] [--xmlrpc-port N]``: the cell service: its HTTP API (HTTPS when given a
+certificate and key), and the OPC UA server and URScript XML-RPC endpoint it configures.
 
 Without ``--config`` it serves the built-in simulated cell (simulated UR controller driven
 through ur_rtde, simulated camera, fake gripper on a pty). uvicorn imports the app factory by
@@ -31,11 +32,16 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--ssl-certfile", default=None,
                    help="serve HTTPS with this certificate (PEM); needs --ssl-keyfile")
     p.add_argument("--ssl-keyfile", default=None, help="the certificate's private key (PEM)")
+    p.add_argument("--opcua-port", type=int, default=None, metavar="N",
+                   help="serve the [opcua] endpoint on this port instead (0: off)")
+    p.add_argument("--xmlrpc-port", type=int, default=None, metavar="N",
+                   help="serve the URScript XML-RPC endpoint on this port instead (0: off)")
     p.set_defaults(func=_serve)
 
 
 def _serve(args: argparse.Namespace) -> int:
     from cell.config import ConfigError, load_config
+    from cell.endpoints import endpoints, with_ports
     from cell.runtime import check_startable
 
     if bool(args.ssl_certfile) != bool(args.ssl_keyfile):
@@ -43,8 +49,11 @@ def _serve(args: argparse.Namespace) -> int:
     for path in (args.ssl_certfile, args.ssl_keyfile):
         if path and not os.path.isfile(path):
             return fail("invalid_arguments", f"no such file: {path}", False)
+    for flag, port in (("--opcua-port", args.opcua_port), ("--xmlrpc-port", args.xmlrpc_port)):
+        if port is not None and not 0 <= port <= 65535:
+            return fail("invalid_argument", f"{flag} must be a port 0..65535, got {port}", False)
     try:
-        config = load_config(args.config)
+        config = with_ports(load_config(args.config), args.opcua_port, args.xmlrpc_port)
         check_startable(config)  # before "serving", before any device is touched
     except ConfigError as err:
         return fail(err.code, str(err), False)
@@ -52,6 +61,12 @@ def _serve(args: argparse.Namespace) -> int:
         os.environ["CELL_CONFIG"] = os.path.abspath(args.config)
     else:
         os.environ.pop("CELL_CONFIG", None)
+    for name, port in (("CELL_OPCUA_PORT", args.opcua_port),
+                       ("CELL_XMLRPC_PORT", args.xmlrpc_port)):
+        if port is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = str(port)
     import logging
     import logging.config
 
@@ -73,6 +88,8 @@ def _serve(args: argparse.Namespace) -> int:
     scheme = "https" if args.ssl_certfile else "http"
     say(f"serving the cell on {scheme}://{args.host}:{args.port} (docs at /docs); state in "
         f"{os.path.dirname(os.path.abspath(config.api.job_db))}")
+    for line in endpoints(config):
+        say(f"serving {line}")
     server = _StopFirstServer(uvicorn.Config(
         "api.app:app_from_environment", factory=True, host=args.host, port=args.port,
         log_level=args.log_level, log_config=logging_config,

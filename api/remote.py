@@ -1,0 +1,202 @@
+"""What the OPC UA server and the URScript XML-RPC endpoint share with the HTTP API.
+
+Both are thin adapters: a caller with one of the API's roles (:data:`api.auth.PERMISSIONS`),
+one call on the :class:`cell.service.Cell` facade (so the same guard, job runner and audit log
+as HTTP), and the cell's own error codes. A refusal by role is audited here, because it never
+reaches the facade; everything else is audited by the facade or by :func:`audited`.
+
+Track and the servo approach come from the servo issue; until the cell has them
+(``Cell.track``, ``Cell.approach(mode=...)``) the calls answer ``not_supported``.
+"""
+
+from __future__ import annotations
+
+import inspect
+import math
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from api.auth import ALWAYS, PERMISSIONS
+from api.errors import STATUS, ForbiddenError
+from cell.audit import AuditNote
+from cell.frames import approach_tcp
+from cell.jobs import Job
+from cell.locate import Located
+from cell.safety import CellError, LimitError, NotFoundError
+from cell.service import Cell
+from cell.teach import TaughtStore
+from estimator.transforms import pose_from_T
+
+Matrix4 = NDArray[np.float64]
+T = TypeVar("T")
+
+APPROACH_MODES = ("look_and_move", "servo")
+
+
+class NotSupportedError(CellError):
+    """The cell this service runs has no such command yet (e.g. track before the servo issue)."""
+
+    kind = "invalid"
+
+
+@dataclass(frozen=True)
+class RemoteCaller:
+    """A caller of one of the non-HTTP interfaces, with one of the API's roles."""
+
+    interface: str  # "opcua" or "xmlrpc": kept in the audit log
+    name: str
+    role: str
+
+    @property
+    def label(self) -> str:
+        """As in the audit log: ``opcua:plc(plc)``, next to HTTP's ``plc(plc)``."""
+        return f"{self.interface}:{self.name}({self.role})"
+
+    def may(self, permission: str) -> bool:
+        return permission in (PERMISSIONS.get(self.role, frozenset()) | ALWAYS)
+
+
+def require(cell: Cell, caller: RemoteCaller, permission: str, command: str,
+            params: dict[str, Any]) -> None:
+    """Refuse (and audit the refusal) when the caller's role lacks ``permission``."""
+    if caller.may(permission):
+        return
+    with cell.core.audit.command(caller.label, command, params):
+        raise ForbiddenError("forbidden", f"role {caller.role!r} may not {permission}")
+
+
+@contextmanager
+def audited(cell: Cell, caller: RemoteCaller, command: str,
+            params: dict[str, Any]) -> Iterator[AuditNote]:
+    """An audit row for a command the facade does not audit itself (approach_pose, ...)."""
+    with cell.core.audit.command(caller.label, command, params) as note:
+        yield note
+
+
+def http_status(err: CellError) -> int:
+    """The HTTP status the API would answer for ``err`` (XML-RPC fault codes use it)."""
+    return STATUS.get(err.kind, 409)
+
+
+def finite(name: str, value: Any, *, minimum: float | None = None) -> float:
+    """A float argument, or ``invalid_request`` (bools, NaN and infinities are refused)."""
+    if isinstance(value, bool) or not isinstance(value, int | float) \
+            or not math.isfinite(float(value)):
+        raise LimitError("invalid_request", f"{name} must be a finite number, got {value!r}")
+    if minimum is not None and value < minimum:
+        raise LimitError("invalid_request", f"{name} must be >= {minimum:g}, got {value!r}")
+    return float(value)
+
+
+# -- poses ------------------------------------------------------------------------------------
+def pose_mm_rad(T_base: Matrix4) -> tuple[list[float], list[float]]:
+    """(position_mm, rotvec_rad) of a pose, the project's JSON form."""
+    position_mm, rotvec_rad = pose_from_T(T_base)
+    return [float(v) for v in position_mm], [float(v) for v in rotvec_rad]
+
+
+def ur_pose(T_base: Matrix4) -> list[float]:
+    """A UR pose ``p[x, y, z, rx, ry, rz]``: metres and a rotation vector in radians."""
+    position_mm, rotvec_rad = pose_mm_rad(T_base)
+    return [v / 1000.0 for v in position_mm] + rotvec_rad
+
+
+# -- commands ---------------------------------------------------------------------------------
+def locate(cell: Cell, caller: RemoteCaller) -> Located:
+    require(cell, caller, "locate", "locate", {"n_frames": 1})
+    return cell.locate(caller.label)
+
+
+def approach(cell: Cell, caller: RemoteCaller, standoff_mm: Any, mode: str) -> Job:
+    """An approach job (not waited for). ``mode`` "" is the cell's default."""
+    params = {"standoff_mm": standoff_mm, "mode": mode}
+    require(cell, caller, "approach", "approach", params)
+    mode = mode or "look_and_move"
+    try:
+        standoff = finite("standoff_mm", standoff_mm, minimum=0.0)
+        if mode not in APPROACH_MODES:
+            raise LimitError("invalid_request", f"mode must be one of {', '.join(APPROACH_MODES)}"
+                             f" (or empty), got {mode!r}")
+        takes_mode = "mode" in inspect.signature(cell.approach).parameters
+        if mode != "look_and_move" and not takes_mode:
+            raise NotSupportedError("not_supported",
+                                    f"approach mode {mode!r} is not available in this cell")
+    except CellError:
+        with audited(cell, caller, "approach", params):
+            raise
+    start: Callable[..., Job] = cell.approach
+    if takes_mode:
+        return start(caller.label, standoff_mm=standoff, mode=mode)
+    return start(caller.label, standoff_mm=standoff)
+
+
+def track(cell: Cell, caller: RemoteCaller, standoff_mm: Any, duration_s: Any) -> Job:
+    params = {"standoff_mm": standoff_mm, "duration_s": duration_s}
+    require(cell, caller, "approach", "track", params)
+    run: Callable[..., Job] | None = getattr(cell, "track", None)
+    try:
+        standoff = finite("standoff_mm", standoff_mm, minimum=0.0)
+        duration = finite("duration_s", duration_s, minimum=0.0)
+        if run is None:
+            raise NotSupportedError("not_supported", "tracking is not available in this cell")
+    except CellError:
+        with audited(cell, caller, "track", params):
+            raise
+    return run(caller.label, standoff_mm=standoff, duration_s=duration)
+
+
+def stop(cell: Cell, caller: RemoteCaller) -> dict[str, Any]:
+    """Always allowed for a known caller; the cell's own stop path (audited there)."""
+    return cell.stop(caller.label, reason=f"{caller.interface} Stop")
+
+
+def home(cell: Cell, caller: RemoteCaller) -> Job:
+    require(cell, caller, "recover", "home", {})
+    return cell.home(caller.label)
+
+
+def gripper(cell: Cell, caller: RemoteCaller, action: str, width_mm: Any) -> dict[str, Any]:
+    params = {"action": action, "width_mm": width_mm}
+    require(cell, caller, "gripper", "gripper", params)
+    position = None
+    if action == "move":
+        try:
+            position = finite("width_mm", width_mm, minimum=0.0)
+        except CellError:
+            with audited(cell, caller, "gripper", params):
+                raise
+    return cell.gripper(caller.label, action, position_mm=position)
+
+
+def taught_T_target_tcp(cell: Cell, name: str) -> Matrix4:
+    """A taught tool pose from the store beside the job database (as the HTTP API reads it)."""
+    store = TaughtStore.beside_job_db(cell.config.api.job_db)
+    if not isinstance(name, str) or not name:
+        raise NotFoundError("taught_not_found", f"no taught pose named {name!r}")
+    return store.get(name).T_target_tcp
+
+
+def tcp_goal(cell: Cell, caller: RemoteCaller, command: str, *, standoff_mm: Any,
+             taught: str | None = None) -> tuple[Matrix4, Located]:
+    """Robot-program-driven mode: locate now and return the TCP goal for the program's own
+    move; nothing is commanded. The goal passes the cell's envelope and tilt checks (from the
+    current TCP), so a program gets the same refusal a cell-driven approach would."""
+    params: dict[str, Any] = {"standoff_mm": standoff_mm}
+    if taught is not None:
+        params["taught"] = taught
+    require(cell, caller, "locate", command, params)
+    with audited(cell, caller, command, params) as note:
+        standoff = finite("standoff_mm", standoff_mm, minimum=0.0)
+        T_target_tcp = cell.config.approach.T_target_tcp.T() if taught is None \
+            else taught_T_target_tcp(cell, taught)
+        loc = cell.locate(caller.label)
+        goal = approach_tcp(loc.T_base_target, T_target_tcp, standoff)
+        cell.arm.guard.check_goal(cell.arm_state().T_base_tcp, goal, "the program's goal")
+        position_mm, _ = pose_mm_rad(goal)
+        note.detail = "goal " + ", ".join(f"{v:.2f}" for v in position_mm) + " mm"
+        return goal, loc
