@@ -20,6 +20,7 @@ from api.page import mount_page
 from api.routes import router, sim_router
 from api.routes_arm import router as arm_router
 from api.routes_calibration import install as install_calibration
+from api.routes_servo import router as servo_router
 from cell.service import Cell
 
 # Called first thing on SIGTERM/SIGINT by ``cell serve`` (see cell.commands.serve), before
@@ -50,6 +51,7 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False) -> FastAPI:
     errors.install(app)
     app.include_router(router)
     app.include_router(arm_router)  # operator recovery: home, unlock, power
+    app.include_router(servo_router)  # POST /track (issue 15)
     install_calibration(app)  # hand-eye routine and taught poses (issue 7)
     if cell.sim is not None:
         app.include_router(sim_router)

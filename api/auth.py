@@ -18,9 +18,9 @@ from cell.config import SAMPLE_TOKENS, ConfigError, TokenConfig
 
 PERMISSIONS: dict[str, frozenset[str]] = {
     "viewer": frozenset({"read"}),
-    "operator": frozenset({"read", "locate", "approach", "jog", "gripper", "sim_write",
-                           "recover"}),
-    "plc": frozenset({"read", "locate", "approach"}),
+    "operator": frozenset({"read", "locate", "approach", "track", "jog", "gripper",
+                           "sim_write", "recover"}),
+    "plc": frozenset({"read", "locate", "approach", "track"}),
 }
 # every valid token may stop the cell
 ALWAYS = frozenset({"stop"})

@@ -10,6 +10,7 @@ import asyncio
 import time
 from typing import Annotated, Any
 
+import numpy as np
 from fastapi import APIRouter, Body, Depends, Query, Request, Response
 from fastapi.responses import StreamingResponse
 
@@ -26,7 +27,7 @@ from api.schemas import (
     JogRequest,
     LocateRequest,
     Me,
-    Pose,
+    SimTargetRequest,
     StopRequest,
 )
 from api.sse import SSE_RESPONSES, sse_response
@@ -83,7 +84,8 @@ def locate(request: Request, caller: Annotated[Caller, Depends(require("locate")
 @router.post("/approach", response_model=Job, tags=["motion"])
 def approach(request: Request, caller: Annotated[Caller, Depends(require("approach"))],
              body: Annotated[ApproachRequest | None, Body()] = None) -> dict[str, Any]:
-    """Start a look-and-move approach job (``wait=true``: answer when it has ended)."""
+    """Start an approach job, by servoing or look-and-move (``mode``; ``wait=true``: answer
+    when it has ended)."""
     b = body or ApproachRequest()
     T = None if b.T_target_tcp is None else T_from_pose(b.T_target_tcp.position_mm,
                                                        b.T_target_tcp.rotvec_rad)
@@ -91,7 +93,8 @@ def approach(request: Request, caller: Annotated[Caller, Depends(require("approa
         T = taught_target_tcp(request, b.taught, given=T is not None)
     job = cell_of(request).approach(caller.label, standoff_mm=b.standoff_mm,
                                     speed_mm_s=b.speed_mm_s, T_target_tcp=T,
-                                    use_last_locate=b.use_last_locate, wait=b.wait)
+                                    use_last_locate=b.use_last_locate, wait=b.wait,
+                                    mode=b.mode)
     return job.as_dict()
 
 
@@ -185,8 +188,14 @@ def sim_truth(request: Request, caller: Read) -> dict[str, Any]:
 
 @sim_router.put("/target")
 def sim_target(request: Request, caller: Annotated[Caller, Depends(require("sim_write"))],
-               body: Pose) -> dict[str, Any]:
-    """Place the simulated target at a pose in the base frame."""
+               body: SimTargetRequest) -> dict[str, Any]:
+    """Place the simulated target at a pose in the base frame; with ``velocity_mm_s`` and
+    ``angular_velocity_deg_s`` (base frame) it drifts from now on, like a conveyor."""
     T = T_from_pose(body.position_mm, body.rotvec_rad)
-    sim_of(request).set_target(T)
-    return {"T_base_target": pose_dict(T)}
+    v = None if body.velocity_mm_s is None else np.asarray(body.velocity_mm_s, dtype=float)
+    w = (None if body.angular_velocity_deg_s is None
+         else np.radians(np.asarray(body.angular_velocity_deg_s, dtype=float)))
+    sim_of(request).set_target(T, v, w)
+    return {"T_base_target": pose_dict(T),
+            "velocity_mm_s": list(body.velocity_mm_s or (0.0, 0.0, 0.0)),
+            "angular_velocity_deg_s": list(body.angular_velocity_deg_s or (0.0, 0.0, 0.0))}

@@ -28,7 +28,13 @@ class SimWorld(Protocol):
 
     def true_T_base_tcp(self) -> NDArray[np.float64]: ...
 
-    def set_target(self, T_base_target: NDArray[np.float64]) -> None: ...
+    def set_target(self, T_base_target: NDArray[np.float64],
+                   velocity_mm_s: NDArray[np.float64] | None = None,
+                   angular_velocity_rad_s: NDArray[np.float64] | None = None) -> None:
+        """Place the target now; with velocities (base frame) it drifts from now on."""
+
+    def set_camera_blocked(self, blocked: bool) -> None:
+        """Cover (True) or uncover the lens: frames come, the target is not in them."""
 
     def trigger_protective_stop(self, reason: str = "test") -> None: ...
 
