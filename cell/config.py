@@ -198,6 +198,9 @@ class ServoConfig(_Strict):
 
     gain_lin_per_s: float = Field(default=10.0, gt=0, le=50)
     gain_rot_per_s: float = Field(default=10.0, gt=0, le=50)
+    # tracking only: integral action on the error (1/s^2), its share capped at a fifth of
+    # the speed limits, against the steady lag of an arm slower than commanded
+    track_integral_per_s2: float = Field(default=20.0, ge=0, le=500)
     max_speed_mm_s: float = Field(default=250.0, gt=0)
     max_angular_speed_deg_s: float = Field(default=90.0, gt=0)
     accel_mm_s2: float = Field(default=1500.0, gt=0)

@@ -124,11 +124,15 @@ class _SimWorld:
         self._camera = camera
         self._gripper = gripper
 
-    def true_T_base_target(self) -> Matrix4:
-        return self._camera.T_base_target
+    def true_T_base_target(self, at_s: float | None = None) -> Matrix4:
+        return self._camera.target_at(time.monotonic() if at_s is None else at_s)
 
     def true_T_base_tcp(self) -> Matrix4:
         return self._truth.flange_and_tcp()[1]
+
+    def true_tcp_sample(self) -> tuple[Matrix4, float]:
+        _, T_tcp, t_s = self._truth.flange_and_tcp()
+        return T_tcp, t_s
 
     def set_target(self, T_base_target: Matrix4, velocity_mm_s: NDArray[np.float64] | None = None,
                    angular_velocity_rad_s: NDArray[np.float64] | None = None) -> None:

@@ -363,9 +363,11 @@ class GuardedArm:
             dt = SERVO_MIN_DT_S if prev is None else max(SERVO_MIN_DT_S, now - prev[0])
             if prev is not None and now - prev[0] > SERVO_REST_AFTER * watchdog_s:
                 refs.append(np.zeros(6))
-            dv, dw = min((float(np.linalg.norm(v[:3] - r[:3])) / dt,
-                          float(np.linalg.norm(v[3:] - r[3:])) / dt) for r in refs)
             a_cap = accel_mm_s2 * SERVO_ACCEL_MARGIN
+            # per reference: (linear, angular as mm/s^2-equivalent), judged by the worse one
+            changes = [(float(np.linalg.norm(v[:3] - r[:3])) / dt,
+                        float(np.linalg.norm(v[3:] - r[3:])) / dt) for r in refs]
+            dv, dw = min(changes, key=lambda c: max(c[0], c[1] * 1000.0))
             if dv > a_cap or dw * 1000.0 > a_cap:
                 raise LimitError("accel_limit", f"servo twist changes at {dv:.0f} mm/s^2 / "
                                  f"{np.degrees(dw):.0f} deg/s^2, above {accel_mm_s2} mm/s^2")

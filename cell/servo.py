@@ -31,7 +31,7 @@ from cell.frames import approach_tcp
 from cell.locate import Located
 from cell.motion import Motion
 from cell.safety import CellError, RefusedError, UnavailableError, linear_path
-from cell.servo_law import LawParams, goal_velocity, pbvs_twist
+from cell.servo_law import LawParams, goal_velocity, integrate, pbvs_twist, pose_error
 from cell.target_filter import ConstantVelocityFilter
 from drivers.errors import DriverError
 from estimator.transforms import pose_dict, pose_distance
@@ -151,6 +151,8 @@ class ServoRun:
         converged_s: float | None = None
         history: list[tuple[float, float, float]] = []
         last_est = (float("nan"), float("nan"))
+        ki = sc.track_integral_per_s2 if self.mode == "track" else 0.0
+        i_lin, i_rot = np.zeros(3), np.zeros(3)
         while True:
             tick = time.monotonic()
             self.motion.raise_if_cancelled("while servoing")
@@ -199,6 +201,11 @@ class ServoRun:
             dt = sc.tick_s if t_prev is None else min(t_cmd - t_prev, sc.tick_s)
             if t_prev is not None and t_cmd - t_prev > 0.75 * sc.watchdog_s:
                 prev = np.zeros(6)  # a late tick: the arm's watchdog may have braked it
+            if ki > 0:
+                e_p, e_r = pose_error(T_tcp, goal)
+                i_lin = integrate(i_lin, e_p, dt, ki, 0.2 * self.params.max_speed_mm_s)
+                i_rot = integrate(i_rot, e_r, dt, ki, 0.2 * self.params.max_angular_speed_rad_s)
+                ff = ff + ki * np.concatenate([i_lin, i_rot])
             twist = pbvs_twist(T_tcp, goal, ff, prev, dt, self.params)
             arm.servo_twist(twist, self.params.accel_mm_s2, sc.watchdog_s)
             prev, t_prev = twist, t_cmd

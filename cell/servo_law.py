@@ -87,3 +87,13 @@ def pbvs_twist(T_tcp: Matrix4, T_goal: Matrix4, feed_forward: Vec, previous: Vec
 def _clip_norm(x: Vec, limit: float) -> Vec:
     n = float(np.linalg.norm(x))
     return x * (limit / n) if n > limit else x
+
+
+def integrate(integral: Vec, error: Vec, dt_s: float, gain_per_s2: float, limit: float
+              ) -> Vec:
+    """One step of the integral term (tracking): ``integral + e dt``, clamped so that
+    ``gain * integral`` never exceeds ``limit`` (no wind-up). Added to the feed-forward, it
+    removes the steady lag an arm that runs a little slower than commanded would leave."""
+    out = integral + error * max(dt_s, 0.0)
+    n = float(np.linalg.norm(out)) * gain_per_s2
+    return out * (limit / n) if n > limit else out
