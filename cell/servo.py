@@ -86,6 +86,7 @@ class ServoRun:
         self._stale_frames = 0
         self._last_pose_s = time.monotonic()
         self._camera_error: CellError | None = None
+        self._last_error: CellError | None = None  # why the last frame gave no pose
         self._last_sequence = -1
         self._gaps: list[float] = []  # between poses arriving (s)
         self._lags: list[float] = []  # mid-exposure to pose in the filter (s)
@@ -114,7 +115,7 @@ class ServoRun:
             except CellError as err:
                 if err.code != "no_new_frame":
                     self._failed_frames += 1
-                    self._last_sequence = self._last_sequence  # the next frame may show it
+                    self._last_error = err
                 continue
             self._camera_error = None
             self._last_sequence = frame.sequence
@@ -261,10 +262,11 @@ class ServoRun:
 
     def _lost(self, silent_s: float) -> None:
         took = self._stop_still()
-        why = self._camera_error
+        why = self._camera_error or self._last_error
         self.core.runner.progress(self.job_id, {"phase": "target_lost",
                                                 "stopped_in_ms": round(took * 1000.0, 1)})
         raise RefusedError("target_lost", f"no target pose for {silent_s * 1000:.0f} ms "
                            f"(limit {self.sc.lost_after_s * 1000:.0f} ms"
                            + (f"; {why.message}" if why is not None else "")
+                           + f"; {self._failed_frames} frames without the target"
                            + f"); the arm stopped in {took * 1000:.0f} ms")
