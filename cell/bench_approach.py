@@ -17,6 +17,7 @@ API, so every command passes the guarded motion path. Errors are against simulat
 
 from __future__ import annotations
 
+import functools
 import os
 import statistics
 import tempfile
@@ -42,9 +43,12 @@ STANDOFF_MM = 50.0
 CALLER = "bench"
 
 
-def bench_config(state_dir: Path, host: str) -> CellConfig:
+def bench_config(state_dir: Path, host: str, lost_after_s: float | None = None
+                 ) -> CellConfig:
     """The built-in simulated cell on ``host``, its job database in ``state_dir``."""
     data = load_config().model_dump(mode="python")
+    if lost_after_s is not None:
+        data["servo"]["lost_after_s"] = lost_after_s
     data["robot"]["host"] = host
     data["gripper"]["kind"] = "none"
     data["api"]["job_db"] = str(state_dir / "jobs.db")
@@ -184,13 +188,14 @@ def _lost_target(cell: Cell, T_target_tcp: Matrix4, T_home_target: Matrix4) -> d
 
 def run_bench_approach(*, placements: int = 10, seed: int = 0,
                        speeds: tuple[float, ...] = (25.0, 50.0, 100.0), follow_s: float = 4.0,
-                       host: str | None = None, progress: Progress | None = None
-                       ) -> dict[str, Any]:
+                       host: str | None = None, progress: Progress | None = None,
+                       lost_after_s: float | None = None) -> dict[str, Any]:
     from fakes.ur_controller.process import free_loopback_host
 
     rng = np.random.default_rng(seed)
     with tempfile.TemporaryDirectory() as tmp:
-        cell = start_cell(bench_config(Path(tmp), host or free_loopback_host()))
+        cell = start_cell(bench_config(Path(tmp), host or free_loopback_host(), lost_after_s))
+        lost_after_s = cell.config.servo.lost_after_s
         try:
             T_tt = cell.config.approach.T_target_tcp.T()
             T_home_target = _sim(cell).true_T_base_target()
@@ -202,18 +207,34 @@ def run_bench_approach(*, placements: int = 10, seed: int = 0,
                     rows.append({"placement": i, **_approach(cell, mode, T, T_tt)})
                     if progress:
                         progress("approach", len(rows), steps)
-            tracks = []
+            tracks: list[dict[str, Any]] = []
             for speed in speeds:
-                tracks.append(_track(cell, speed, T_tt, T_home_target, follow_s))
+                run = functools.partial(_track, cell, speed, T_tt, T_home_target, follow_s)
+                tracks.append(_attempt(run, cell, {"speed_mm_s": speed, "rms_error_mm": None}))
                 if progress:
                     progress("approach", len(rows) + len(tracks), steps)
-            lost = _lost_target(cell, T_tt, T_home_target)
+            lost = _attempt(lambda: _lost_target(cell, T_tt, T_home_target), cell,
+                            {"job_stopped_in_ms": None, "truth_stop_ms": None})
             if progress:
                 progress("approach", steps, steps)
             _sim(cell).set_target(T_home_target)
         finally:
             cell.close()
-    return _report(rows, tracks, lost, placements, seed)
+    return _report(rows, tracks, lost, placements, seed, lost_after_s)
+
+
+def _attempt(run: Callable[[], dict[str, Any]], cell: Cell, empty: dict[str, Any]
+             ) -> dict[str, Any]:
+    """One bench section; a failure (e.g. a false target_lost on an overloaded machine) is
+    recorded with its reason instead of ending the run."""
+    try:
+        return run()
+    except Exception as err:
+        cell.stop(CALLER, reason="bench: section failed")
+        sim = _sim(cell)
+        sim.set_camera_blocked(False)
+        sim.set_target(sim.true_T_base_target())
+        return {**empty, "failed": f"{type(err).__name__}: {err}"}
 
 
 def _median(rows: list[dict[str, Any]], mode: str, key: str) -> float | None:
@@ -222,7 +243,7 @@ def _median(rows: list[dict[str, Any]], mode: str, key: str) -> float | None:
 
 
 def _report(rows: list[dict[str, Any]], tracks: list[dict[str, Any]], lost: dict[str, Any],
-            placements: int, seed: int) -> dict[str, Any]:
+            placements: int, seed: int, lost_after_s: float) -> dict[str, Any]:
     servo_t = _median(rows, "servo", "time_s")
     lam_t = _median(rows, "look_and_move", "time_s")
     out: dict[str, Any] = {
@@ -235,6 +256,7 @@ def _report(rows: list[dict[str, Any]], tracks: list[dict[str, Any]], lost: dict
         "servo_time_to_converge_s_median": _median(rows, "servo", "time_to_converge_s"),
         "speedup": (lam_t / servo_t) if servo_t and lam_t else None,
         "track_rms_error_mm": {f"{t['speed_mm_s']:g}": t["rms_error_mm"] for t in tracks},
+        "lost_after_s": lost_after_s,
         "lost_target_stop_ms": lost["job_stopped_in_ms"],
         "lost_target_truth_stop_ms": lost["truth_stop_ms"],
         "failures": [r for r in rows if r["state"] != "succeeded"],
@@ -248,8 +270,8 @@ def _report(rows: list[dict[str, Any]], tracks: list[dict[str, Any]], lost: dict
         "servo_4x_faster": bool(out["speedup"] and out["speedup"] >= 4.0),
         "servo_final_error_le_0.1mm_0.05deg": e_mm is not None and e_deg is not None
         and e_mm <= 0.1 and e_deg <= 0.05,
-        "track_50_le_0.5mm": rms.get("50", 1e9) <= 0.5,
-        "track_100_le_1.5mm": rms.get("100", 1e9) <= 1.5,
+        "track_50_le_0.5mm": (rms.get("50") or 1e9) <= 0.5,
+        "track_100_le_1.5mm": (rms.get("100") or 1e9) <= 1.5,
         "lost_target_still_within_100ms": lost["job_stopped_in_ms"] is not None
         and lost["job_stopped_in_ms"] <= 100.0,
     }
@@ -270,7 +292,7 @@ def format_report(r: dict[str, Any]) -> str:
         f"{f(r['look_and_move_final_error_deg_median'])} deg",
         f"  speed-up {f(r['speedup'], '.1f')}x; failures: {len(r['failures'])}",
         "conveyor tracking, RMS error after the first second:",
-        *(f"  {k} mm/s: {v:.3f} mm" for k, v in r["track_rms_error_mm"].items()),
+        *(f"  {k} mm/s: {f(v)} mm" for k, v in r["track_rms_error_mm"].items()),
         f"lost target: arm still {f(r['lost_target_stop_ms'], '.0f')} ms after the stop "
         f"(truth: {f(r['lost_target_truth_stop_ms'], '.0f')} ms after lost_after_s)",
         "targets: " + ", ".join(f"{k} {'yes' if v else 'NO'}"

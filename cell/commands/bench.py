@@ -30,6 +30,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                     "modes, conveyor tracking at 25/50/100 mm/s, then a lost-target stop.")
     a.add_argument("--placements", type=int, default=10, help="random placements (default 10)")
     a.add_argument("--seed", type=int, default=0, help="random seed")
+    a.add_argument("--lost-after-s", type=float, default=None,
+                   help="override [servo] lost_after_s (default: the config's, 0.1 s)")
     a.add_argument("--check", action="store_true",
                    help="exit with status 1 when a target is missed")
     a.set_defaults(func=_bench_approach)
@@ -45,7 +47,7 @@ def _bench_approach(args: argparse.Namespace) -> int:
         return fail("invalid_argument", "--placements must be at least 1", args.json)
     with progress_bars(not args.json) as progress:
         report = run_bench_approach(placements=args.placements, seed=args.seed,
-                                    progress=progress)
+                                    progress=progress, lost_after_s=args.lost_after_s)
     if args.json:
         print_json(report)
     else:
