@@ -34,8 +34,9 @@ from cell.config import CellConfig, load_config, parse_config
 from cell.frames import approach_tcp
 from cell.hardware import SimWorld
 from cell.runtime import start_cell
+from cell.safety import CellError
 from cell.service import Cell
-from estimator.transforms import make_T, pose_distance
+from estimator.transforms import make_T, pose_dict, pose_distance
 
 Progress = Callable[[str, int, int], None]
 Matrix4 = NDArray[np.float64]
@@ -84,9 +85,16 @@ def _approach(cell: Cell, mode: str, T_target: Matrix4, T_target_tcp: Matrix4
               ) -> dict[str, Any]:
     _home(cell)
     _sim(cell).set_target(T_target)
+    time.sleep(0.15)  # frames exposed before the placement are not this run's
     t0 = time.monotonic()
-    job = cell.approach(CALLER, standoff_mm=STANDOFF_MM, mode=mode,  # type: ignore[arg-type]
-                        wait=True, wait_timeout_s=120.0)
+    try:
+        job = cell.approach(CALLER, standoff_mm=STANDOFF_MM,
+                            mode=mode,  # type: ignore[arg-type]
+                            wait=True, wait_timeout_s=120.0)
+    except CellError as err:  # refused before it started (recorded, the run goes on)
+        return {"mode": mode, "state": "refused", "time_s": None, "error_mm": None,
+                "error_deg": None, "error": f"{err.code}: {err.message}",
+                "placement_T_base_target": pose_dict(T_target)}
     took = time.monotonic() - t0
     time.sleep(0.2)
     d_mm, d_deg = _true_error(cell, T_target_tcp)
