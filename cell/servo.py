@@ -134,6 +134,8 @@ class ServoRun:
     def run(self) -> dict[str, Any]:
         thread = threading.Thread(target=self._frame_loop, daemon=True,
                                   name=f"servo-frames-{self.job_id}")
+        with self._lock:  # the lost-target clock starts with the loop (the arm is still)
+            self._last_pose_s = max(self._last_pose_s, time.monotonic())
         thread.start()
         try:
             return self._control()
