@@ -19,8 +19,8 @@ from tests.cell_testing import AUTH, running_cell, sim_config, tcp
 
 @pytest.fixture
 def client(tmp_path: Path) -> Iterator[TestClient]:
-    with running_cell(sim_config(tmp_path, servo={"max_track_s": 60.0, "lost_after_s": 1.0})) as cell, \
-            TestClient(create_app(cell)) as c:
+    config = sim_config(tmp_path, servo={"max_track_s": 60.0, "lost_after_s": 1.0})
+    with running_cell(config) as cell, TestClient(create_app(cell)) as c:
         yield c
 
 
