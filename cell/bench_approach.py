@@ -4,8 +4,9 @@ On the built-in simulated cell through the real UR adapter and ur_rtde (the simu
 controller in its own process on a free loopback address), through the Cell facade like the
 API, so every command passes the guarded motion path. Errors are against simulator truth.
 
-1. The same ``placements`` seeded random target placements (+-40 mm, +-20 deg about z, +-4 deg
-   tilt) for both modes: home, place, approach to a 50 mm standoff; the time is the approach
+1. The same ``placements`` seeded random target placements (+-30 mm, +-15 deg about z, +-3 deg
+   tilt) for both modes, both at the cell's speed and acceleration limits: home, place,
+   approach to a 50 mm standoff; the time is the approach
    job's wall time (its initial locate included), the error is the true TCP against the true
    goal once the job has ended.
 2. Conveyor tracking at each speed along base x: the arm first holds the still target, then
@@ -54,12 +55,15 @@ def bench_config(state_dir: Path, host: str, lost_after_s: float | None = None
     data["gripper"]["kind"] = "none"
     data["api"]["job_db"] = str(state_dir / "jobs.db")
     data["api"]["calibration_dir"] = ""
+    # both modes at the cell's speed and acceleration limits (the servo's caps are those too)
+    data["approach"]["speed_mm_s"] = data["limits"]["max_speed_mm_s"]
+    data["approach"]["accel_mm_s2"] = data["limits"]["max_accel_mm_s2"]
     return parse_config(data)
 
 
 def placement(rng: np.random.Generator, T_home_target: Matrix4) -> Matrix4:
-    rot = np.radians([*rng.uniform(-4.0, 4.0, 2), rng.uniform(-20.0, 20.0)])
-    offset = make_T(Rotation.from_rotvec(rot).as_matrix(), np.r_[rng.uniform(-40, 40, 2), 0.0])
+    rot = np.radians([*rng.uniform(-3.0, 3.0, 2), rng.uniform(-15.0, 15.0)])
+    offset = make_T(Rotation.from_rotvec(rot).as_matrix(), np.r_[rng.uniform(-30, 30, 2), 0.0])
     return offset @ T_home_target
 
 

@@ -60,7 +60,6 @@ AT_GOAL_DEG = 0.1
 JOINT_PATH_STEP_DEG = 3.0  # sampling of a joint move for the envelope and tilt checks
 JOG_HORIZON_S = 0.15  # a continuous jog is checked this far ahead
 SERVO_ACCEL_MARGIN = 1.5  # tick timing jitter: the law's own dt and the guard's differ
-SERVO_REST_AFTER = 0.25  # of the watchdog: a pause after which a tick may also start from rest
 SERVO_MIN_DT_S = 0.008  # ticks closer than this are judged as this far apart (min tick)
 SETTLE_TIMEOUT_S = 10.0
 
@@ -357,12 +356,11 @@ class GuardedArm:
             self._holder("servo tick")
             now = time.monotonic()
             prev = self._last_twist
-            # the change is judged against the last tick; after a pause (a quarter of the
-            # watchdog: the arm may have been braking) also against rest, whichever is closer
-            refs = [np.zeros(6)] if prev is None else [prev[1]]
+            # the change is judged against the last tick or against rest, whichever is
+            # closer: a twist near rest is always safe to send (after a pause the arm's
+            # watchdog may have braked it, and the controller may have restarted from zero)
+            refs = [np.zeros(6)] if prev is None else [prev[1], np.zeros(6)]
             dt = SERVO_MIN_DT_S if prev is None else max(SERVO_MIN_DT_S, now - prev[0])
-            if prev is not None and now - prev[0] > SERVO_REST_AFTER * watchdog_s:
-                refs.append(np.zeros(6))
             a_cap = accel_mm_s2 * SERVO_ACCEL_MARGIN
             # per reference: (linear, angular as mm/s^2-equivalent), judged by the worse one
             changes = [(float(np.linalg.norm(v[:3] - r[:3])) / dt,
