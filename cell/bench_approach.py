@@ -151,7 +151,7 @@ def _track(cell: Cell, speed_mm_s: float, T_target_tcp: Matrix4, T_home_target: 
     _wait_end(cell, job_id, 10.0)
     job = cell.job(job_id)
     tail = [s for s in samples if s[0] >= 1.0]
-    out = {"speed_mm_s": speed_mm_s, "state_while_following": state,
+    out: dict[str, Any] = {"speed_mm_s": speed_mm_s, "state_while_following": state,
            "rms_error_mm": float(np.sqrt(np.mean([s[1] ** 2 for s in tail]))),
            "max_error_mm": max(s[1] for s in tail),
            "rms_error_deg": float(np.sqrt(np.mean([s[2] ** 2 for s in tail])))}
