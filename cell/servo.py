@@ -40,6 +40,8 @@ Matrix4 = NDArray[np.float64]
 ServoMode = Literal["approach", "track"]
 HISTORY_POINTS = 100  # the error history in a job's result is downsampled to this
 STILL_TIMEOUT_S = 2.0
+INTEGRATE_WITHIN_MM = 5.0  # tracking's integral term runs only this close to the goal
+INTEGRATE_WITHIN_DEG = 2.0
 
 
 @dataclass(frozen=True)
@@ -88,6 +90,7 @@ class ServoRun:
         self._camera_error: CellError | None = None
         self._last_error: CellError | None = None  # why the last frame gave no pose
         self._last_sequence = -1
+        self._gated = 0  # poses rejected by the validation gate
         self._gaps: list[float] = []  # between poses arriving (s)
         self._lags: list[float] = []  # mid-exposure to pose in the filter (s)
         if first is not None:
@@ -124,6 +127,13 @@ class ServoRun:
                 continue
             now = time.monotonic()
             with self._lock:
+                d_mm, d_deg = self.filter.innovation(frame.timestamp_s, T_bt)
+                if d_mm > self.sc.gate_mm or d_deg > self.sc.gate_deg:
+                    self._gated += 1  # not this target's motion: a wrong match
+                    self._last_error = RefusedError(
+                        "pose_jump", f"a pose {d_mm:.1f} mm / {d_deg:.1f} deg from the "
+                        "prediction was not used")
+                    continue
                 self.filter.update(frame.timestamp_s, T_bt)
                 self._gaps.append(now - self._last_pose_s)
                 self._lags.append(now - frame.timestamp_s)
@@ -206,8 +216,12 @@ class ServoRun:
                 prev = np.zeros(6)  # a late tick: the arm's watchdog may have braked it
             if ki > 0:
                 e_p, e_r = pose_error(T_tcp, goal)
-                i_lin = integrate(i_lin, e_p, dt, ki, 0.2 * self.params.max_speed_mm_s)
-                i_rot = integrate(i_rot, e_r, dt, ki, 0.2 * self.params.max_angular_speed_rad_s)
+                # integrate only near the goal: the pull-in transient would wind it up
+                if np.linalg.norm(e_p) < INTEGRATE_WITHIN_MM:
+                    i_lin = integrate(i_lin, e_p, dt, ki, 0.2 * self.params.max_speed_mm_s)
+                if np.degrees(np.linalg.norm(e_r)) < INTEGRATE_WITHIN_DEG:
+                    i_rot = integrate(i_rot, e_r, dt, ki,
+                                      0.2 * self.params.max_angular_speed_rad_s)
                 ff = ff + ki * np.concatenate([i_lin, i_rot])
             twist = pbvs_twist(T_tcp, goal, ff, prev, dt, self.params)
             arm.servo_twist(twist, self.params.accel_mm_s2, sc.watchdog_s)
@@ -224,7 +238,7 @@ class ServoRun:
         out: dict[str, Any] = {
             "mode": "servo" if self.mode == "approach" else "track",
             "frames": self._frames, "failed_frames": self._failed_frames,
-            "stale_frames": self._stale_frames,
+            "stale_frames": self._stale_frames, "gated_frames": self._gated,
             "T_base_target": pose_dict(est.T_base_target),
             "goal_T_base_tcp": pose_dict(goal),
             "reached_T_base_tcp": pose_dict(reached),

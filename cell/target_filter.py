@@ -77,6 +77,16 @@ class ConstantVelocityFilter:
         self._t = t_s
         self.updates += 1
 
+    def innovation(self, t_s: float, T_meas: Matrix4) -> tuple[float, float]:
+        """How far a measurement lies from the prediction: (mm, deg). (0, 0) before the
+        first measurement. For a validation gate: a pose that jumps is not this target."""
+        if self._t is None:
+            return 0.0, 0.0
+        T = self.predict(t_s).T_base_target
+        d_mm = float(np.linalg.norm(np.asarray(T_meas[:3, 3]) - T[:3, 3]))
+        r = Rotation.from_matrix(np.asarray(T_meas[:3, :3]) @ T[:3, :3].T).magnitude()
+        return d_mm, float(np.degrees(r))
+
     def predict(self, t_s: float) -> TargetEstimate:
         """The pose at ``t_s`` extrapolated at the estimated velocity (RuntimeError before
         the first measurement). Velocity is reported as zero until two measurements."""
