@@ -139,3 +139,16 @@ def test_filter_ignores_old_measurements_and_restarts_after_a_gap() -> None:
     est = f.predict(2.0)
     assert pose_distance(est.T_base_target, far)[0] < 1e-9
     assert not np.any(est.velocity_mm_s)
+
+
+def test_innovation_measures_a_jump_from_the_prediction() -> None:
+    f = ConstantVelocityFilter(0.5, 0.1)
+    assert f.innovation(0.0, _moving(0.0, np.zeros(3), np.zeros(3))) == (0.0, 0.0)
+    for k in range(10):
+        f.update(k / 30.0, _moving(k / 30.0, np.array([30.0, 0, 0]), np.zeros(3)))
+    ok = f.innovation(10 / 30.0, _moving(10 / 30.0, np.array([30.0, 0, 0]), np.zeros(3)))
+    assert ok[0] < 0.5 and ok[1] < 0.01
+    jump = _moving(10 / 30.0, np.array([30.0, 0, 0]), np.zeros(3)) @ make_T(
+        Rotation.from_rotvec([0, 0, 0.1]).as_matrix(), np.array([0.0, 40.0, 0.0]))
+    d_mm, d_deg = f.innovation(10 / 30.0, jump)
+    assert d_mm > 35 and d_deg == pytest.approx(np.degrees(0.1), abs=0.05)
