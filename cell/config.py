@@ -215,8 +215,8 @@ class ServoConfig(_Strict):
     filter_beta: float = Field(default=0.1, ge=0, le=1)
     # validation gate: a pose this far from the filter's prediction is not used (a wrong
     # match, a reflection); only poses that pass count as "a pose arrived"
-    gate_mm: float = Field(default=15.0, gt=0)
-    gate_deg: float = Field(default=5.0, gt=0)
+    gate_mm: float = Field(default=30.0, gt=0)
+    gate_deg: float = Field(default=10.0, gt=0)
     approach_timeout_s: float = Field(default=30.0, gt=0)
     max_track_s: float = Field(default=600.0, gt=0)  # the cap on a track job's duration_s
 
