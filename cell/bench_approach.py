@@ -63,9 +63,11 @@ def bench_config(state_dir: Path, host: str, lost_after_s: float | None = None
 
 
 def placement(rng: np.random.Generator, T_home_target: Matrix4) -> Matrix4:
+    """The home target moved in the base frame and turned about its own origin."""
     rot = np.radians([*rng.uniform(-3.0, 3.0, 2), rng.uniform(-15.0, 15.0)])
-    offset = make_T(Rotation.from_rotvec(rot).as_matrix(), np.r_[rng.uniform(-30, 30, 2), 0.0])
-    return offset @ T_home_target
+    R = Rotation.from_rotvec(rot).as_matrix()
+    return make_T(R @ T_home_target[:3, :3],
+                  T_home_target[:3, 3] + np.r_[rng.uniform(-30, 30, 2), 0.0])
 
 
 def _sim(cell: Cell) -> SimWorld:

@@ -95,10 +95,9 @@ def test_servo_approach_from_random_placements(client: TestClient, home: None,
                                                seed: int) -> None:
     cell = _cell(client)
     rng = np.random.default_rng(seed)
-    offset = make_T(Rotation.from_rotvec(np.radians([*rng.uniform(-4, 4, 2),
-                                                     rng.uniform(-20, 20)])).as_matrix(),
-                    np.r_[rng.uniform(-40, 40, 2), 0.0])
-    T_true = offset @ HOME_TARGET
+    R = Rotation.from_rotvec(np.radians([*rng.uniform(-4, 4, 2), rng.uniform(-20, 20)]))
+    T_true = make_T(R.as_matrix() @ HOME_TARGET[:3, :3],  # turned about its own origin
+                    HOME_TARGET[:3, 3] + np.r_[rng.uniform(-40, 40, 2), 0.0])
     _place(client, T_true)
     t0 = time.monotonic()
     r = client.post("/api/v1/approach", json={"standoff_mm": 50, "mode": "servo", "wait": True},
