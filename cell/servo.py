@@ -40,6 +40,8 @@ Matrix4 = NDArray[np.float64]
 ServoMode = Literal["approach", "track"]
 HISTORY_POINTS = 100  # the error history in a job's result is downsampled to this
 STILL_TIMEOUT_S = 2.0
+GATE_GROWTH_MM_S = 250.0  # the validation gate widens this fast while poses are refused
+GATE_GROWTH_DEG_S = 90.0
 INTEGRATE_WITHIN_MM = 5.0  # tracking's integral term runs only this close to the goal
 INTEGRATE_WITHIN_DEG = 2.0
 
@@ -128,7 +130,13 @@ class ServoRun:
             now = time.monotonic()
             with self._lock:
                 d_mm, d_deg = self.filter.innovation(frame.timestamp_s, T_bt)
-                if d_mm > self.sc.gate_mm or d_deg > self.sc.gate_deg:
+                # the gate widens with the time since the last pose it let in, by what the
+                # target could have moved meanwhile, so it cannot lock a moving target out
+                silent_s = max(0.0, frame.timestamp_s - self.filter.predict(
+                    frame.timestamp_s).measured_at_s)
+                gate_mm = self.sc.gate_mm + GATE_GROWTH_MM_S * silent_s
+                gate_deg = self.sc.gate_deg + GATE_GROWTH_DEG_S * silent_s
+                if d_mm > gate_mm or d_deg > gate_deg:
                     self._gated += 1  # not this target's motion: a wrong match
                     self._last_error = RefusedError(
                         "pose_jump", f"a pose {d_mm:.1f} mm / {d_deg:.1f} deg from the "
@@ -277,10 +285,12 @@ class ServoRun:
         return time.monotonic() - t0
 
     def _lost(self, silent_s: float) -> None:
+        declared_s = time.monotonic()
         took = self._stop_still()
         why = self._camera_error or self._last_error
         self.core.runner.progress(self.job_id, {"phase": "target_lost",
-                                                "stopped_in_ms": round(took * 1000.0, 1)})
+                                                "stopped_in_ms": round(took * 1000.0, 1),
+                                                "lost_at_monotonic_s": declared_s})
         raise RefusedError("target_lost", f"no target pose for {silent_s * 1000:.0f} ms "
                            f"(limit {self.sc.lost_after_s * 1000:.0f} ms"
                            + (f"; {why.message}" if why is not None else "")
