@@ -40,6 +40,8 @@ Matrix4 = NDArray[np.float64]
 ServoMode = Literal["approach", "track"]
 HISTORY_POINTS = 100  # the error history in a job's result is downsampled to this
 STILL_TIMEOUT_S = 2.0
+PROGRESS_PERIOD_S = 0.25  # the job's progress carries the live error this often
+PLOT_POINTS = 60
 GATE_GROWTH_MM_S = 250.0  # the validation gate widens this fast while poses are refused
 GATE_GROWTH_DEG_S = 90.0
 INTEGRATE_WITHIN_MM = 5.0  # tracking's integral term runs only this close to the goal
@@ -172,6 +174,7 @@ class ServoRun:
         converged_s: float | None = None
         history: list[tuple[float, float, float]] = []
         last_est = (float("nan"), float("nan"))
+        shown_s = 0.0
         ki = sc.track_integral_per_s2 if self.mode == "track" else 0.0
         i_lin, i_rot = np.zeros(3), np.zeros(3)
         while True:
@@ -200,6 +203,12 @@ class ServoRun:
                 core.events.publish("servo", {"job_id": self.job_id, "mode": self.mode,
                                               "t_s": tick - t0, "error_mm": e_mm,
                                               "error_deg": e_deg})
+                if tick - shown_s >= PROGRESS_PERIOD_S:  # the page plots the live error
+                    shown_s = tick
+                    core.runner.progress(self.job_id, {
+                        "phase": self.mode, "t_s": round(tick - t0, 3), "error_mm": e_mm,
+                        "error_deg": e_deg, "recent": downsample(history[-PLOT_POINTS:],
+                                                                 PLOT_POINTS)})
                 if self.mode == "approach":
                     ok = e_mm < sc.tolerance_mm and e_deg < sc.tolerance_deg
                     consecutive = consecutive + 1 if ok else 0

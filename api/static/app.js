@@ -17,8 +17,8 @@ const OFFLINE_AFTER_MS = 1500;
 // answer comes from GET /me. STOP is not listed: every valid token may stop.
 const ROLE_ACTIONS = {
   viewer: [],
-  operator: ["jog", "locate", "approach", "gripper"],
-  plc: ["locate", "approach"],
+  operator: ["jog", "locate", "approach", "track", "gripper"],
+  plc: ["locate", "approach", "track"],
 };
 
 // Jog speed levels: linear mm/s -> angular deg/s for the rotation axes.
@@ -140,7 +140,7 @@ setInterval(() => {
 // Login and role-based controls
 
 function applyRole() {
-  const everything = ["jog", "locate", "approach", "gripper"];
+  const everything = ["jog", "locate", "approach", "track", "gripper"];
   const granted = state.permissions || (state.role ? ROLE_ACTIONS[state.role] || [] : everything);
   const allowed = new Set(state.token ? granted : []);
   document.querySelectorAll("[data-needs]").forEach((el) => {
@@ -271,6 +271,31 @@ function renderJob(job) {
   }
   $("job").textContent = text;
   $("job").dataset.state = job.state;
+  renderServo(p);
+}
+
+// The live servo error (approach mode "servo", tracking): the job's progress carries the
+// newest error and a short history, plotted as a line (mm).
+function renderServo(p) {
+  const recent = Array.isArray(p.recent) ? p.recent : [];
+  if (!Number.isFinite(p.error_mm)) return;
+  $("servo-error").textContent = `error ${fmt(p.error_mm, 2)} mm / ${fmt(p.error_deg, 2)} deg`;
+  const c = $("servo-plot");
+  const g = c.getContext("2d");
+  g.clearRect(0, 0, c.width, c.height);
+  if (recent.length < 2) return;
+  const t0 = recent[0].t_s, t1 = recent[recent.length - 1].t_s;
+  const top = Math.max(...recent.map((r) => r.error_mm), 0.1);
+  g.beginPath();
+  recent.forEach((r, i) => {
+    const x = ((r.t_s - t0) / Math.max(t1 - t0, 1e-3)) * (c.width - 1);
+    const y = c.height - 1 - (r.error_mm / top) * (c.height - 2);
+    if (i === 0) g.moveTo(x, y); else g.lineTo(x, y);
+  });
+  g.strokeStyle = "#2a7";
+  g.stroke();
+  g.fillStyle = "#888";
+  g.fillText(`${fmt(top, 1)} mm`, 2, 10);
 }
 
 function renderQuality(cam, located) {
@@ -477,10 +502,27 @@ function wireCommands() {
     if (!Number.isFinite(standoff) || $("standoff").value === "" || standoff < 0) {
       throw new ApiError("the standoff must be a distance in millimetres, 0 or more", 0, "input");
     }
-    const job = await api("POST", "/approach", { standoff_mm: standoff, wait: false });
+    const mode = $("approach-mode").value;
+    const job = await api("POST", "/approach", { standoff_mm: standoff, mode, wait: false });
     state.lastJob = job;
     renderJob(job);
-    return `approach started (job ${job.id})`;
+    return `${mode} approach started (job ${job.id})`;
+  }));
+
+  $("track-start").addEventListener("click", () => command("Track", async () => {
+    const standoff = Number($("standoff").value);
+    if (!Number.isFinite(standoff) || $("standoff").value === "" || standoff < 0) {
+      throw new ApiError("the standoff must be a distance in millimetres, 0 or more", 0, "input");
+    }
+    const job = await api("POST", "/track", { standoff_mm: standoff, duration_s: 600 });
+    state.lastJob = job;
+    renderJob(job);
+    return `tracking started (job ${job.id}); Stop tracking or STOP ends it`;
+  }));
+
+  $("track-stop").addEventListener("click", () => command("Stop tracking", async () => {
+    await api("POST", "/stop", { reason: "stop tracking (operator page)" });
+    return "tracking stopped";
   }));
 
   for (const action of ["open", "close"]) {
