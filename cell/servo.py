@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from cell.core import CellCore
 from cell.frames import approach_tcp
 from cell.locate import Located
-from cell.motion import Motion
+from cell.motion import SERVO_MIN_DT_S, Motion
 from cell.safety import CellError, RefusedError, UnavailableError, linear_path
 from cell.servo_law import LawParams, goal_velocity, integrate, pbvs_twist, pose_error
 from cell.target_filter import ConstantVelocityFilter
@@ -228,7 +228,7 @@ class ServoRun:
             # the step the law may take: never more than one tick's worth of acceleration,
             # so the guard (which judges ticks at least SERVO_MIN_DT_S apart) agrees
             t_cmd = time.monotonic()  # the guard judges the change by send times too
-            dt = sc.tick_s if t_prev is None else min(t_cmd - t_prev, sc.tick_s)
+            dt = SERVO_MIN_DT_S if t_prev is None else min(t_cmd - t_prev, sc.tick_s)
             if t_prev is not None and t_cmd - t_prev > 0.75 * sc.watchdog_s:
                 prev = np.zeros(6)  # a late tick: the arm's watchdog may have braked it
             if ki > 0:
