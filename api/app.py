@@ -27,6 +27,7 @@ from api.routes import router, sim_router
 from api.routes_arm import router as arm_router
 from api.routes_calibration import install as install_calibration
 from api.routes_ops import install as install_ops
+from api.routes_servo import router as servo_router
 from cell.endpoints import with_ports
 from cell.service import Cell
 
@@ -76,6 +77,7 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False,
     errors.install(app)
     app.include_router(router)
     app.include_router(arm_router)  # operator recovery: home, unlock, power
+    app.include_router(servo_router)  # POST /track (issue 15)
     install_calibration(app)  # hand-eye routine and taught poses (issue 7)
     alarms = install_ops(app)  # alarms, camera settings, image log (issue 16)
     alarms.start()

@@ -27,9 +27,9 @@ from cell.config import SAMPLE_TOKENS, ConfigError
 
 PERMISSIONS: dict[str, frozenset[str]] = {
     "viewer": frozenset({"read"}),
-    "operator": frozenset({"read", "locate", "approach", "jog", "gripper", "sim_write",
-                           "recover", "camera", "alarm_ack"}),
-    "plc": frozenset({"read", "locate", "approach"}),
+    "operator": frozenset({"read", "locate", "approach", "track", "jog", "gripper",
+                           "sim_write", "recover", "camera", "alarm_ack"}),
+    "plc": frozenset({"read", "locate", "approach", "track"}),
 }
 # every valid token may stop the cell
 ALWAYS = frozenset({"stop"})

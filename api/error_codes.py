@@ -34,6 +34,12 @@ class ErrorCode(StrEnum):
     unlock_too_early = "unlock_too_early"
     no_motion_slot = "no_motion_slot"  # an internal refusal: a motion without the slot
     not_supported = "not_supported"  # a PLC interface method this cell does not offer
+    # servoing and tracking
+    target_lost = "target_lost"
+    pose_jump = "pose_jump"
+    no_new_frame = "no_new_frame"
+    servo_timeout = "servo_timeout"
+    duration_limit = "duration_limit"
     target_not_visible = "target_not_visible"
     spread_too_large = "spread_too_large"
     calibration_inconsistent = "calibration_inconsistent"

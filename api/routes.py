@@ -11,6 +11,7 @@ import time
 from collections.abc import AsyncIterator
 from typing import Annotated, Any
 
+import numpy as np
 from fastapi import APIRouter, Body, Depends, Query, Request, Response
 from fastapi.responses import StreamingResponse
 
@@ -35,8 +36,8 @@ from api.schemas import (
     Located,
     LocateRequest,
     Me,
-    Pose,
     SimTarget,
+    SimTargetRequest,
     SimTruth,
     Status,
     StopRequest,
@@ -106,7 +107,8 @@ def locate(request: Request, caller: Annotated[Caller, Depends(require("locate")
              responses={**DEVICE_ERRORS, **NOT_FOUND})
 def approach(request: Request, caller: Annotated[Caller, Depends(require("approach"))],
              body: Annotated[ApproachRequest | None, Body()] = None) -> dict[str, Any]:
-    """Start a look-and-move approach job.
+    """Start an approach job, by servoing on every frame or by look-and-move (``mode``;
+    default: the config's ``[approach] mode``).
 
     ``wait=false`` (default): 200 with the running job at once. ``wait=true``: 200 when the
     job has ended, whatever its end state: a failed or cancelled approach is still 200, with
@@ -120,7 +122,8 @@ def approach(request: Request, caller: Annotated[Caller, Depends(require("approa
         T = taught_target_tcp(request, b.taught, given=T is not None)
     job = cell_of(request).approach(caller.label, standoff_mm=b.standoff_mm,
                                     speed_mm_s=b.speed_mm_s, T_target_tcp=T,
-                                    use_last_locate=b.use_last_locate, wait=b.wait)
+                                    use_last_locate=b.use_last_locate, wait=b.wait,
+                                    mode=b.mode)
     return job.as_dict()
 
 
@@ -285,8 +288,14 @@ def sim_truth(request: Request, caller: Read) -> dict[str, Any]:
 
 @sim_router.put("/target", response_model=SimTarget)
 def sim_target(request: Request, caller: Annotated[Caller, Depends(require("sim_write"))],
-               body: Pose) -> dict[str, Any]:
-    """Place the simulated target at a pose in the base frame."""
+               body: SimTargetRequest) -> dict[str, Any]:
+    """Place the simulated target at a pose in the base frame; with ``velocity_mm_s`` and
+    ``angular_velocity_deg_s`` (base frame) it drifts from now on, like a conveyor."""
     T = T_from_pose(body.position_mm, body.rotvec_rad)
-    sim_of(request).set_target(T)
-    return {"T_base_target": pose_dict(T)}
+    v = None if body.velocity_mm_s is None else np.asarray(body.velocity_mm_s, dtype=float)
+    w = (None if body.angular_velocity_deg_s is None
+         else np.radians(np.asarray(body.angular_velocity_deg_s, dtype=float)))
+    sim_of(request).set_target(T, v, w)
+    return {"T_base_target": pose_dict(T),
+            "velocity_mm_s": list(body.velocity_mm_s or (0.0, 0.0, 0.0)),
+            "angular_velocity_deg_s": list(body.angular_velocity_deg_s or (0.0, 0.0, 0.0))}

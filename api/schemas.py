@@ -60,6 +60,9 @@ class ApproachRequest(_Body):
     use_last_locate: bool = Field(
         default=False, description="start from the last /locate result instead of locating "
         "again (refused when older than limits.max_pose_age_s)")
+    mode: Literal["servo", "look_and_move"] | None = Field(
+        default=None, description="servo: closed loop on every frame; look_and_move: stop, "
+        "locate, correct; default: the config's [approach] mode")
     wait: bool = Field(default=False, description=(
         "false (default): answer 200 at once with the running job; follow it with GET "
         "/jobs/{id} or /events. true: answer 200 when the job has ended, whatever its end "
@@ -67,6 +70,27 @@ class ApproachRequest(_Body):
         "'cancelled' and error {code, message} in the job. Refusals before anything moved "
         "are 4xx/5xx as usual. The wait is bounded; a job still running then is answered "
         "with state 'running'."))
+
+
+class TrackRequest(_Body):
+    standoff_mm: float = Field(ge=0, le=500)
+    duration_s: float = Field(gt=0, le=86400, description="capped by [servo] max_track_s")
+    T_target_tcp: Pose | None = Field(
+        default=None, description="tool pose in the target frame; default from config")
+    taught: str | None = Field(default=None, min_length=1, max_length=64,
+                               description="use the T_target_tcp taught under this name")
+    wait: bool = False
+
+
+_Vel = Annotated[float, Field(ge=-1000, le=1000)]
+_AngVel = Annotated[float, Field(ge=-360, le=360)]
+
+
+class SimTargetRequest(Pose):
+    """A target pose and, optionally, the drift it starts now (base frame)."""
+
+    velocity_mm_s: tuple[_Vel, _Vel, _Vel] | None = None
+    angular_velocity_deg_s: tuple[_AngVel, _AngVel, _AngVel] | None = None
 
 
 _Lin = Annotated[float, Field(ge=-1000, le=1000)]

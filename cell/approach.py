@@ -1,4 +1,5 @@
-"""Approach by look-and-move: observe, locate, correct, repeat, then the final move.
+"""Approach: by look-and-move (observe, locate, correct, repeat, then the final move) or by
+closed-loop servoing (``mode="servo"``, :mod:`cell.servo`).
 
 The goal is ``T_base_target @ T_target_tcp @ translate(0, 0, -standoff_mm)``. The arm first
 goes to an observation pose in front of the target with the goal's orientation (so the final
@@ -12,7 +13,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -23,6 +24,7 @@ from cell.jobs import Job
 from cell.locate import Located
 from cell.motion import Motion
 from cell.safety import LimitError, RefusedError, UnavailableError
+from cell.servo import ServoGoal, ServoRun
 from estimator.transforms import pose_dict, pose_distance
 
 Matrix4 = NDArray[np.float64]
@@ -54,9 +56,15 @@ def locate(core: CellCore, n_frames: int = 1, after_s: float | None = None) -> L
 def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = None,
                    speed_mm_s: float | None = None, T_target_tcp: Matrix4 | None = None,
                    use_last_locate: bool = False, wait: bool = False,
-                   wait_timeout_s: float = 120.0) -> Job:
-    """Start a look-and-move approach job; with ``wait`` return when it has ended."""
+                   wait_timeout_s: float = 120.0,
+                   mode: Literal["servo", "look_and_move"] | None = None) -> Job:
+    """Start an approach job (``mode`` default: ``[approach] mode``); with ``wait`` return
+    when it has ended."""
     ac = core.config.approach
+    how = ac.mode if mode is None else mode
+    if how not in ("servo", "look_and_move"):
+        raise RefusedError("invalid_request", f"approach mode must be 'servo' or "
+                           f"'look_and_move', got {mode!r}")
     plan = ApproachPlan(
         standoff_mm=ac.standoff_mm if standoff_mm is None else float(standoff_mm),
         speed_mm_s=ac.speed_mm_s if speed_mm_s is None else float(speed_mm_s),
@@ -64,7 +72,8 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
         T_target_tcp=ac.T_target_tcp.T() if T_target_tcp is None
         else np.asarray(T_target_tcp, dtype=float))
     params = {"standoff_mm": plan.standoff_mm, "speed_mm_s": plan.speed_mm_s,
-              "T_target_tcp": pose_dict(plan.T_target_tcp), "use_last_locate": use_last_locate}
+              "T_target_tcp": pose_dict(plan.T_target_tcp), "use_last_locate": use_last_locate,
+              "mode": how}
     first: list[Located] = []
 
     def check(motion: Motion) -> None:
@@ -76,14 +85,20 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
             raise UnavailableError("camera_lost", "the camera is lost: approach needs it "
                                    "(jogging is still possible)")
         loc = _last_locate(core) if use_last_locate else locate(core, ac.frames_per_locate)
-        # Both goals are checked now, so that a refusal moves nothing.
-        T_obs = observation_tcp(core, loc.T_base_target, plan.T_target_tcp)
-        core.arm.guard.check_goal(st.T_base_tcp, T_obs, "observation pose")
         goal = approach_tcp(loc.T_base_target, plan.T_target_tcp, plan.standoff_mm)
-        core.arm.guard.check_goal(T_obs, goal, "approach goal")
+        if how == "servo":  # the servo moves straight at the goal: that path is checked
+            core.arm.guard.check_goal(st.T_base_tcp, goal, "approach goal")
+        else:  # both goals are checked now, so that a refusal moves nothing
+            T_obs = observation_tcp(core, loc.T_base_target, plan.T_target_tcp)
+            core.arm.guard.check_goal(st.T_base_tcp, T_obs, "observation pose")
+            core.arm.guard.check_goal(T_obs, goal, "approach goal")
         first.append(loc)
 
     def work(job_id: str, motion: Motion) -> dict[str, Any]:
+        if how == "servo":
+            run = ServoRun(core, job_id, motion, ServoGoal(plan.T_target_tcp, plan.standoff_mm),
+                           "approach", first=first[0])
+            return run.run()
         return look_and_move(core, job_id, motion, first[0], plan)
 
     return core.runner.start("approach", caller, params, work, check=check, needs_camera=True,
@@ -134,6 +149,7 @@ def look_and_move(core: CellCore, job_id: str, motion: Motion, loc: Located,
     reach_mm, reach_deg = pose_distance(reached, goal)
     last = cycles[-1]
     return {
+        "mode": "look_and_move",
         "converged": converged,
         "cycles": cycles,
         "T_base_target": pose_dict(loc.T_base_target),

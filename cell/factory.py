@@ -124,14 +124,22 @@ class _SimWorld:
         self._camera = camera
         self._gripper = gripper
 
-    def true_T_base_target(self) -> Matrix4:
-        return self._camera.T_base_target
+    def true_T_base_target(self, at_s: float | None = None) -> Matrix4:
+        return self._camera.target_at(time.monotonic() if at_s is None else at_s)
 
     def true_T_base_tcp(self) -> Matrix4:
         return self._truth.flange_and_tcp()[1]
 
-    def set_target(self, T_base_target: Matrix4) -> None:
-        self._camera.set_target_pose(T_base_target)
+    def true_tcp_sample(self) -> tuple[Matrix4, float]:
+        _, T_tcp, t_s = self._truth.flange_and_tcp()
+        return T_tcp, t_s
+
+    def set_target(self, T_base_target: Matrix4, velocity_mm_s: NDArray[np.float64] | None = None,
+                   angular_velocity_rad_s: NDArray[np.float64] | None = None) -> None:
+        self._camera.set_target_pose(T_base_target, velocity_mm_s, angular_velocity_rad_s)
+
+    def set_camera_blocked(self, blocked: bool) -> None:
+        self._camera.set_blocked(blocked)
 
     def trigger_protective_stop(self, reason: str = "test") -> None:
         self._truth.protective_stop(reason)

@@ -24,11 +24,21 @@ from drivers.gripper import Gripper
 class SimWorld(Protocol):
     """Ground truth and fault switches of a simulated cell."""
 
-    def true_T_base_target(self) -> NDArray[np.float64]: ...
+    def true_T_base_target(self, at_s: float | None = None) -> NDArray[np.float64]:
+        """The true target pose now, or at monotonic time ``at_s`` (a moving target)."""
 
     def true_T_base_tcp(self) -> NDArray[np.float64]: ...
 
-    def set_target(self, T_base_target: NDArray[np.float64]) -> None: ...
+    def true_tcp_sample(self) -> tuple[NDArray[np.float64], float]:
+        """The true TCP pose and the monotonic time the simulator had it."""
+
+    def set_target(self, T_base_target: NDArray[np.float64],
+                   velocity_mm_s: NDArray[np.float64] | None = None,
+                   angular_velocity_rad_s: NDArray[np.float64] | None = None) -> None:
+        """Place the target now; with velocities (base frame) it drifts from now on."""
+
+    def set_camera_blocked(self, blocked: bool) -> None:
+        """Cover (True) or uncover the lens: frames come, the target is not in them."""
 
     def trigger_protective_stop(self, reason: str = "test") -> None: ...
 

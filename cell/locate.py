@@ -147,6 +147,23 @@ class Locator:
         self.last = loc
         return loc
 
+    def measure(self, after_sequence: int, timeout_s: float = 0.5
+                ) -> tuple[Frame, Matrix4, Matrix4]:
+        """One frame newer than ``after_sequence``, estimated (tracking mode after the first),
+        mapped into the base frame with the arm pose at its mid-exposure time: ``(frame,
+        T_base_target, T_base_tcp)``. For the servo loop: no averaging, no waiting for the
+        arm to rest. CellError when the frame does not show the target."""
+        try:
+            frame = self.camera.latest_frame(timeout_s=timeout_s)
+        except DriverError as err:
+            raise UnavailableError("camera_lost", f"no camera frame: {err}") from err
+        self.last_frame = frame
+        if frame.sequence <= after_sequence:
+            raise RefusedError("no_new_frame", "no frame newer than the last one")
+        T_base_tcp = self._pose_at(frame)
+        result = self._estimate(frame)
+        return frame, self.frames.T_base_target(T_base_tcp, result.T_camera_target), T_base_tcp
+
     def _pose_at(self, frame: Frame) -> Matrix4:
         try:
             return self.arm.pose_at(frame.timestamp_s)

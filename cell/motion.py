@@ -34,7 +34,14 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from cell.config import LimitsConfig
-from cell.safety import CellError, RefusedError, SafetyGuard, UnavailableError
+from cell.safety import (
+    CellError,
+    LimitError,
+    RefusedError,
+    SafetyGuard,
+    UnavailableError,
+    linear_path,
+)
 from drivers.arm import Arm, ArmState, JogFrame
 from drivers.errors import (
     ConnectionLostError,
@@ -52,6 +59,8 @@ AT_GOAL_MM = 0.2  # a move that ends further than this from its goal has failed
 AT_GOAL_DEG = 0.1
 JOINT_PATH_STEP_DEG = 3.0  # sampling of a joint move for the envelope and tilt checks
 JOG_HORIZON_S = 0.15  # a continuous jog is checked this far ahead
+SERVO_ACCEL_MARGIN = 1.5  # tick timing jitter: the law's own dt and the guard's differ
+SERVO_MIN_DT_S = 0.008  # ticks closer than this are judged as this far apart (min tick)
 SETTLE_TIMEOUT_S = 10.0
 
 
@@ -141,7 +150,7 @@ class MotionSlot:
         return motion
 
 
-CommandKind = Literal["move_linear", "move_joint", "jog", "stop"]
+CommandKind = Literal["move_linear", "move_joint", "jog", "servo", "stop"]
 
 
 @dataclass(frozen=True)
@@ -167,6 +176,10 @@ class GuardedArm:
         self.slot = slot if slot is not None else MotionSlot()
         self._commanded: deque[Commanded] = deque(maxlen=history)
         self._lock = threading.Lock()
+        # a streamed tick and a stop never interleave: once stop() has the lock (after the
+        # slot's holder was cancelled), no tick can reach the arm after the stop
+        self._stream_lock = threading.Lock()
+        self._last_twist: tuple[float, NDArray[np.float64]] | None = None  # (t, twist)
 
     @property
     def limits(self) -> LimitsConfig:
@@ -224,8 +237,10 @@ class GuardedArm:
 
     def stop(self, decel_mm_s2: float = 2000.0) -> None:
         """Always passed on: stopping is never refused."""
-        self._record(Commanded(time.monotonic(), "stop", None))
-        self._arm.stop(decel_mm_s2)
+        with self._stream_lock:
+            self._last_twist = None
+            self._record(Commanded(time.monotonic(), "stop", None))
+            self._arm.stop(decel_mm_s2)
 
     # -- checks ------------------------------------------------------------------------------
     def ready_state(self) -> ArmState:
@@ -313,6 +328,61 @@ class GuardedArm:
             self.settle()
             raise driver_error(err, "jogging") from err
 
+    def servo_twist(self, velocity: NDArray[np.float64], accel_mm_s2: float,
+                    watchdog_s: float) -> None:
+        """One checked tick of a streamed base-frame twist (closed-loop control).
+
+        Checked every tick: the slot's holder is not cancelled; the arm is ready and fresh;
+        linear and angular speed under the caps; the change from the previous tick within
+        ``accel_mm_s2`` (itself under the cap); and where the twist leads if it ran on until
+        the watchdog fires and the arm then braked (``watchdog_s + |v| / 2a``) stays in the
+        box and the tilt limit. Recorded with that pose ahead.
+        """
+        v = np.asarray(velocity, dtype=float).reshape(-1)
+        if v.shape != (6,) or not np.all(np.isfinite(v)):
+            raise RefusedError("invalid_request", "a servo twist needs 6 finite values")
+        lim = self.limits
+        if not 0 < accel_mm_s2 <= lim.max_accel_mm_s2:
+            raise LimitError("accel_limit", f"servo acceleration {accel_mm_s2} mm/s^2 is "
+                             f"outside (0, {lim.max_accel_mm_s2}]")
+        lin, ang_deg = float(np.linalg.norm(v[:3])), float(np.degrees(np.linalg.norm(v[3:])))
+        if lin > lim.max_speed_mm_s * (1 + 1e-9):
+            raise LimitError("speed_limit", f"servo speed {lin:.1f} mm/s is above "
+                             f"limits.max_speed_mm_s = {lim.max_speed_mm_s}")
+        if ang_deg > lim.max_angular_speed_deg_s * (1 + 1e-9):
+            raise LimitError("speed_limit", f"servo rotation {ang_deg:.1f} deg/s is above "
+                             f"limits.max_angular_speed_deg_s = {lim.max_angular_speed_deg_s}")
+        with self._stream_lock:
+            self._holder("servo tick")
+            now = time.monotonic()
+            prev = self._last_twist
+            # the change is judged against the last tick or against rest, whichever is
+            # closer: a twist near rest is always safe to send (after a pause the arm's
+            # watchdog may have braked it, and the controller may have restarted from zero)
+            refs = [np.zeros(6)] if prev is None else [prev[1], np.zeros(6)]
+            dt = SERVO_MIN_DT_S if prev is None else max(SERVO_MIN_DT_S, now - prev[0])
+            a_cap = accel_mm_s2 * SERVO_ACCEL_MARGIN
+            # per reference: (linear, angular as mm/s^2-equivalent), judged by the worse one
+            changes = [(float(np.linalg.norm(v[:3] - r[:3])) / dt,
+                        float(np.linalg.norm(v[3:] - r[3:])) / dt) for r in refs]
+            dv, dw = min(changes, key=lambda c: max(c[0], c[1] * 1000.0))
+            if dv > a_cap or dw * 1000.0 > a_cap:
+                raise LimitError("accel_limit", f"servo twist changes at {dv:.0f} mm/s^2 / "
+                                 f"{np.degrees(dw):.0f} deg/s^2, above {accel_mm_s2} mm/s^2")
+            st = self.ready_state()
+            T_ahead = servo_ahead(st.T_base_tcp, v, accel_mm_s2, watchdog_s)
+            path = linear_path(st.T_base_tcp, T_ahead)
+            self.guard.check_path(path, "servo motion")
+            self._record(Commanded(now, "servo", T_ahead, v.copy(), "base",
+                                   T_from=st.T_base_tcp.copy(), path=(path[0], path[-1])))
+            try:
+                self._arm.servo_twist(v, accel_mm_s2, watchdog_s)
+            except DriverError as err:
+                self._last_twist = None
+                self._arm.stop()
+                raise driver_error(err, "servoing") from err
+            self._last_twist = (now, v.copy())
+
     def _run(self, motion: Motion, what: str, T_goal: Matrix4, send: Callable[[], None],
              wait: bool) -> None:
         """Send a checked move; with ``wait`` verify how it ended (see module doc)."""
@@ -366,3 +436,15 @@ def jog_ahead(T: Matrix4, velocity: NDArray[np.float64], frame: JogFrame,
     if frame == "tool":
         return make_T(T[:3, :3] @ dR, T[:3, 3] + T[:3, :3] @ v * horizon_s)
     return make_T(dR @ T[:3, :3], T[:3, 3] + v * horizon_s)
+
+
+def servo_ahead(T: Matrix4, twist: NDArray[np.float64], accel_mm_s2: float,
+                watchdog_s: float) -> Matrix4:
+    """Where a streamed twist leads in the worst case: held until the watchdog fires, then
+    braked at ``accel_mm_s2`` (and ``accel_mm_s2 / 1000`` rad/s^2), translation and
+    rotation each over its own braking time."""
+    v, w = twist[:3], twist[3:]
+    t_lin = watchdog_s + float(np.linalg.norm(v)) / (2.0 * accel_mm_s2)
+    t_rot = watchdog_s + float(np.linalg.norm(w)) / (2e-3 * accel_mm_s2)
+    dR = Rotation.from_rotvec(w * t_rot).as_matrix()
+    return make_T(dR @ T[:3, :3], T[:3, 3] + v * t_lin)

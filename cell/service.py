@@ -5,7 +5,8 @@ wires together, each with one responsibility:
 
 - :mod:`cell.motion`: the one guarded path to the arm and the one-motion-at-a-time slot;
 - :mod:`cell.jobrunner`: the lifecycle of every job; :mod:`cell.audit`: the audit log;
-- :mod:`cell.approach`, :mod:`cell.jog`, :mod:`cell.recovery`: what moves the arm;
+- :mod:`cell.approach`, :mod:`cell.track` (:mod:`cell.servo`), :mod:`cell.jog`,
+  :mod:`cell.recovery`: what moves the arm;
 - :mod:`cell.links`: devices that drop and come back; :mod:`cell.status`: what is reported;
 - :mod:`cell.gripper_ops`: gripper commands and its cached status.
 
@@ -18,13 +19,13 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cell import approach as approach_mod
-from cell import recovery, status
+from cell import recovery, status, track
 from cell.audit import Auditor
 from cell.config import CellConfig, HandEyeConfig, PoseConfig
 from cell.core import CellCore
@@ -167,11 +168,20 @@ class Cell:
     def approach(self, caller: str, *, standoff_mm: float | None = None,
                  speed_mm_s: float | None = None, T_target_tcp: Matrix4 | None = None,
                  use_last_locate: bool = False, wait: bool = False,
-                 wait_timeout_s: float = 120.0) -> Job:
+                 wait_timeout_s: float = 120.0,
+                 mode: Literal["servo", "look_and_move"] | None = None) -> Job:
+        """Approach job; ``mode`` None: ``[approach] mode`` (see cell.approach)."""
         return approach_mod.start_approach(
             self.core, caller, standoff_mm=standoff_mm, speed_mm_s=speed_mm_s,
             T_target_tcp=T_target_tcp, use_last_locate=use_last_locate, wait=wait,
-            wait_timeout_s=wait_timeout_s)
+            wait_timeout_s=wait_timeout_s, mode=mode)
+
+    def track(self, caller: str, *, standoff_mm: float, T_target_tcp: Matrix4 | None = None,
+              duration_s: float, wait: bool = False, wait_timeout_s: float = 120.0) -> Job:
+        """Track job: hold the TCP at the standoff pose on a moving target (cell.track)."""
+        return track.start_track(self.core, caller, standoff_mm=standoff_mm,
+                                 duration_s=duration_s, T_target_tcp=T_target_tcp, wait=wait,
+                                 wait_timeout_s=wait_timeout_s)
 
     def jog_step(self, caller: str, *, frame: JogFrame, translation_mm: Any,
                  rotation_deg: Any, speed_mm_s: float | None = None) -> Matrix4:

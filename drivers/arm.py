@@ -99,6 +99,16 @@ class Arm(Protocol):
         for longer than the adapter's watchdog period.
         """
 
+    def servo_twist(
+        self, velocity: NDArray[np.float64], accel_mm_s2: float, watchdog_s: float,
+    ) -> None:
+        """Streamed base-frame TCP twist ``[vx, vy, vz (mm/s), wx, wy, wz (rad/s)]``.
+
+        For closed-loop control: sent every control tick, reached with ``accel_mm_s2`` (and
+        ``accel_mm_s2 / 1000`` rad/s^2). When no new command arrives within ``watchdog_s``
+        the arm brakes to a stop on its own, so a controller that dies cannot leave it moving.
+        """
+
     def stop(self, decel_mm_s2: float = 2000.0) -> None:
         """Stop any motion now. Always accepted, also when nothing moves."""
 

@@ -538,6 +538,25 @@ class URArm:
         self._jog_decel_m_s2 = max(a, 0.5)
         self._jog_deadline_s = time.monotonic() + self.watchdog_s
 
+    def servo_twist(
+        self, velocity: NDArray[np.float64], accel_mm_s2: float, watchdog_s: float,
+    ) -> None:
+        """Streamed base-frame twist through ur_rtde's speedL (measured against servoL on the
+        simulated controller, see cell/bench_approach.py): velocity commands need no pose
+        interpolation on the controller, so a late tick only keeps the last velocity instead
+        of stalling the arm. The monitor's watchdog brakes when ticks stop."""
+        twist = np.asarray(velocity, dtype=float).reshape(-1)
+        if twist.shape != (6,) or not np.all(np.isfinite(twist)):
+            raise MotionError(f"servo twist must be 6 finite values, got {velocity!r}")
+        a = _positive(accel_mm_s2, "accel") / 1000.0
+        watchdog = _positive(watchdog_s, "watchdog")
+        self._ready_for_motion()
+        xd = [*map(float, twist[:3] / 1000.0), *map(float, twist[3:])]
+        if not self._ctrl("speedL", xd, a, 0.0):
+            self._raise_command_failure("speedL")
+        self._jog_decel_m_s2 = max(a, 0.5)
+        self._jog_deadline_s = time.monotonic() + watchdog
+
     def _end_jog(self) -> None:
         if self._jog_deadline_s is None:
             return

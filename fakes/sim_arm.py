@@ -207,6 +207,18 @@ class SimArm:
         with _driver_errors():
             self.engine.jog_start(speeds, frame, accel_mm_s2 / 1000.0, self.jog_watchdog_s)
 
+    def servo_twist(
+        self, velocity: NDArray[np.float64], accel_mm_s2: float, watchdog_s: float,
+    ) -> None:
+        """Base-frame twist on the engine's speedl; it brakes by itself after ``watchdog_s``."""
+        self._require_connected()
+        v = np.asarray(velocity, dtype=float).reshape(-1)
+        if v.shape != (6,) or not np.all(np.isfinite(v)):
+            raise MotionError("servo twist must be 6 finite values [vx, vy, vz, wx, wy, wz]")
+        speeds = [*(v[:3] / 1000.0).tolist(), *v[3:].tolist()]
+        with _driver_errors():
+            self.engine.speed_l(speeds, accel_mm_s2 / 1000.0, watchdog_s)
+
     def stop(self, decel_mm_s2: float = 2000.0) -> None:
         with _driver_errors():
             self.engine.stop_l(max(decel_mm_s2, 1.0) / 1000.0)

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from drivers.camera import CameraSettings, Frame
 from drivers.errors import ConnectionLostError, DeviceTimeoutError
@@ -70,6 +71,10 @@ class SimCamera:
         self.target = target
         self.T_flange_camera = np.array(T_flange_camera, dtype=float)
         self._T_base_target = np.array(T_base_target, dtype=float)
+        # the target's drift (a conveyor): base-frame velocity and angular velocity from t0
+        self._target_t0_s = time.monotonic()
+        self._target_v_mm_s = np.zeros(3)
+        self._target_w_rad_s = np.zeros(3)
         self.pose_source = pose_source
         self.fps = fps
         self.exposure_s = exposure_s
@@ -98,16 +103,31 @@ class SimCamera:
     # -- scene and faults --------------------------------------------------------------------
     @property
     def T_base_target(self) -> Matrix4:
-        """The true target pose (ground truth for tests)."""
-        with self._cond:
-            return self._T_base_target.copy()
+        """The true target pose now (ground truth for tests)."""
+        return self.target_at(time.monotonic())
 
-    def set_target_pose(self, T_base_target: Matrix4) -> None:
+    def target_at(self, t_s: float) -> Matrix4:
+        """The true target pose at monotonic time ``t_s``: where it was placed, moved on at
+        its velocity (translation of its origin, rotation about it, base frame)."""
+        with self._cond:
+            return self._target_locked(t_s)
+
+    def set_target_pose(self, T_base_target: Matrix4,
+                        velocity_mm_s: NDArray[np.float64] | None = None,
+                        angular_velocity_rad_s: NDArray[np.float64] | None = None) -> None:
+        """Place the target now; with velocities it drifts from this instant on."""
         T = np.array(T_base_target, dtype=float)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise ValueError("T_base_target must be a finite 4x4 transform")
+        v = np.zeros(3) if velocity_mm_s is None else np.asarray(velocity_mm_s, dtype=float)
+        w = (np.zeros(3) if angular_velocity_rad_s is None
+             else np.asarray(angular_velocity_rad_s, dtype=float))
+        if v.shape != (3,) or w.shape != (3,) or not np.all(np.isfinite(np.r_[v, w])):
+            raise ValueError("target velocities must be 3 finite values each")
         with self._cond:
             self._T_base_target = T
+            self._target_v_mm_s, self._target_w_rad_s = v.copy(), w.copy()
+            self._target_t0_s = time.monotonic()
 
     def drop_frames(self, count: int = 1, probability: float | None = None) -> None:
         """Skip the next ``count`` exposures; with ``probability``, drop that share from now on."""
@@ -256,10 +276,18 @@ class SimCamera:
                 return
             gain = self._brightness() * (1.0 + float(self._rng.normal(0.0, self.exposure_jitter)))
             self._latest = _Exposure(
-                self._sequence, float(t_s), invert_T(T_base_camera) @ self._T_base_target,
+                self._sequence, float(t_s), invert_T(T_base_camera) @ self._target_locked(t_s),
                 gain, self._blocked, self._blur_px(),
             )
             self._cond.notify_all()
+
+    def _target_locked(self, t_s: float) -> Matrix4:
+        dt = t_s - self._target_t0_s
+        T = self._T_base_target.copy()
+        if np.any(self._target_w_rad_s):
+            T[:3, :3] = Rotation.from_rotvec(self._target_w_rad_s * dt).as_matrix() @ T[:3, :3]
+        T[:3, 3] += self._target_v_mm_s * dt
+        return T
 
     def _run(self) -> None:
         period = 1.0 / self.fps

@@ -23,8 +23,10 @@ AUTH = {role: {"Authorization": f"Bearer sim-{role}"} for role in ("viewer", "op
 def sim_config(tmp_path: Path, *, robot: str = "sim", host: str = "127.0.0.1",
                gripper: str = "none", **tables: dict[str, Any]) -> CellConfig:
     """The built-in sim config with the in-process arm (or the controller at ``host``), a job
-    database under ``tmp_path`` and any table values overridden."""
+    database under ``tmp_path`` and any table values overridden. Approaches default to
+    look-and-move here (the tests written for it); servo tests ask for ``mode="servo"``."""
     data = load_config().model_dump(mode="python")
+    data["approach"]["mode"] = "look_and_move"
     data["robot"].update(kind=robot, host=host)
     data["sim"]["ur_controller"] = robot == "ur"
     data["gripper"]["kind"] = gripper

@@ -22,8 +22,8 @@ const OFFLINE_AFTER_MS = 1500;
 // answer comes from GET /me. STOP is not listed: every valid token may stop.
 const ROLE_ACTIONS = {
   viewer: [],
-  operator: ["jog", "locate", "approach", "gripper", "camera", "alarm_ack"],
-  plc: ["locate", "approach"],
+  operator: ["jog", "locate", "approach", "track", "gripper", "camera", "alarm_ack"],
+  plc: ["locate", "approach", "track"],
 };
 // Controls marked data-needs="operator" (home, unlock, teach, calibration) need that role.
 const OPERATOR_ONLY = "operator";
@@ -293,6 +293,31 @@ function renderJob(job) {
   $("job").title = text;
   $("job").dataset.state = job.state;
   if (job.id === state.resultJobId) $("result").textContent = text;
+  renderServo(p);
+}
+
+// The live servo error (approach mode "servo", tracking): the job's progress carries the
+// newest error and a short history, plotted as a line (mm).
+function renderServo(p) {
+  const recent = Array.isArray(p.recent) ? p.recent : [];
+  if (!Number.isFinite(p.error_mm)) return;
+  $("servo-error").textContent = `error ${fmt(p.error_mm, 2)} mm / ${fmt(p.error_deg, 2)} deg`;
+  const c = $("servo-plot");
+  const g = c.getContext("2d");
+  g.clearRect(0, 0, c.width, c.height);
+  if (recent.length < 2) return;
+  const t0 = recent[0].t_s, t1 = recent[recent.length - 1].t_s;
+  const top = Math.max(...recent.map((r) => r.error_mm), 0.1);
+  g.beginPath();
+  recent.forEach((r, i) => {
+    const x = ((r.t_s - t0) / Math.max(t1 - t0, 1e-3)) * (c.width - 1);
+    const y = c.height - 1 - (r.error_mm / top) * (c.height - 2);
+    if (i === 0) g.moveTo(x, y); else g.lineTo(x, y);
+  });
+  g.strokeStyle = "#2a7";
+  g.stroke();
+  g.fillStyle = "#888";
+  g.fillText(`${fmt(top, 1)} mm`, 2, 10);
 }
 
 function renderQuality(cam, located) {
@@ -499,13 +524,29 @@ function wireCommands() {
     if (!Number.isFinite(standoff) || $("standoff").value === "" || standoff < 0) {
       throw new ApiError("the standoff must be a distance in millimetres, 0 or more", 0, "input");
     }
-    const body = { standoff_mm: standoff, wait: false };
+    const body = { standoff_mm: standoff, mode: $("approach-mode").value, wait: false };
     if ($("taught").value) body.taught = $("taught").value;
     const job = await api("POST", "/approach", body);
     state.lastJob = job;
     state.resultJobId = job.id;
     renderJob(job);
-    return `approach started (job ${job.id})`;
+    return `${mode} approach started (job ${job.id})`;
+  }));
+
+  $("track-start").addEventListener("click", () => command("Track", async () => {
+    const standoff = Number($("standoff").value);
+    if (!Number.isFinite(standoff) || $("standoff").value === "" || standoff < 0) {
+      throw new ApiError("the standoff must be a distance in millimetres, 0 or more", 0, "input");
+    }
+    const job = await api("POST", "/track", { standoff_mm: standoff, duration_s: 600 });
+    state.lastJob = job;
+    renderJob(job);
+    return `tracking started (job ${job.id}); Stop tracking or STOP ends it`;
+  }));
+
+  $("track-stop").addEventListener("click", () => command("Stop tracking", async () => {
+    await api("POST", "/stop", { reason: "stop tracking (operator page)" });
+    return "tracking stopped";
   }));
 
   $("home").addEventListener("click", () => command("Home", async () => {

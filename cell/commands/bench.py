@@ -22,6 +22,42 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--check", action="store_true",
                    help="exit with status 1 when a target is missed")
     p.set_defaults(func=_bench)
+    what = p.add_subparsers(dest="bench_command", required=False, metavar="WHAT")
+    a = what.add_parser(
+        "approach", help="servo vs look-and-move approach, conveyor tracking, lost target",
+        description="On the simulated cell through the UR adapter and ur_rtde (see "
+                    "cell/bench_approach.py): the same seeded placements for both approach "
+                    "modes, conveyor tracking at 25/50/100 mm/s, then a lost-target stop.")
+    a.add_argument("--placements", type=int, default=10, help="random placements (default 10)")
+    a.add_argument("--seed", type=int, default=0, help="random seed")
+    a.add_argument("--lost-after-s", type=float, default=None,
+                   help="override [servo] lost_after_s (default: the config's, 0.1 s)")
+    a.add_argument("--check", action="store_true",
+                   help="exit with status 1 when a target is missed")
+    a.set_defaults(func=_bench_approach)
+
+
+def _bench_approach(args: argparse.Namespace) -> int:
+    import sys
+
+    from cell.bench_approach import format_report, run_bench_approach
+    from cell.commands.common import EXIT_NO, EXIT_OK, fail, print_json, progress_bars
+
+    if args.placements < 1:
+        return fail("invalid_argument", "--placements must be at least 1", args.json)
+    with progress_bars(not args.json) as progress:
+        report = run_bench_approach(placements=args.placements, seed=args.seed,
+                                    progress=progress, lost_after_s=args.lost_after_s)
+    if args.json:
+        print_json(report)
+    else:
+        print(format_report(report))
+    missed = [k for k, met in report["targets_met"].items() if not met]
+    if args.check and missed:
+        if not args.json:
+            print(f"targets missed: {', '.join(missed)}", file=sys.stderr)
+        return EXIT_NO
+    return EXIT_OK
 
 
 def _bench(args: argparse.Namespace) -> int:
