@@ -6,7 +6,6 @@ camera waits) and must not stall the event loop that serves /stop and /events.
 
 from __future__ import annotations
 
-import asyncio
 import time
 from typing import Annotated, Any
 
@@ -30,9 +29,11 @@ from api.schemas import (
     StopRequest,
 )
 from api.sse import SSE_RESPONSES, sse_response
+from api.stop import ReadNow, StopCaller, stop_now
 from cell.hardware import SimWorld
 from cell.safety import NotFoundError
 from cell.service import Cell
+from cell.snapshot import with_age
 from estimator.transforms import T_from_pose, pose_dict
 
 router = APIRouter(prefix="/api/v1", responses=ERROR_RESPONSES)
@@ -52,10 +53,10 @@ def sim_of(request: Request) -> SimWorld:
 
 
 @router.get("/health", tags=["status"])
-def health(request: Request) -> dict[str, Any]:
+async def health(request: Request) -> dict[str, Any]:
     """Liveness without auth: 200 while the process serves. ``status`` is ``ok`` with every
     device connected, ``degraded`` otherwise, and ``missing`` names the devices that are not
-    (the cell reconnects them by itself)."""
+    (the cell reconnects them by itself). From the cell's snapshot: never waits."""
     return cell_of(request).health()
 
 
@@ -65,10 +66,16 @@ def me(caller: Read) -> Me:
     return Me(name=caller.name, role=caller.role, permissions=sorted(caller.permissions))
 
 
-@router.get("/status", tags=["status"])
-def status(request: Request, caller: Read) -> dict[str, Any]:
-    """State, robot pose and mode, camera, gripper, current job, last locate."""
-    return cell_of(request).status()
+@router.get("/status", tags=["status"], response_class=Response,
+            responses={200: {"content": {"application/json": {}},
+                             "description": "the cell's snapshot"}})
+async def status(request: Request, caller: ReadNow) -> Response:
+    """State, robot pose and mode, camera, gripper, current job, last locate, and
+    ``snapshot_age_s`` (the snapshot is refreshed at camera rate; reading it never waits on
+    a device)."""
+    snap = cell_of(request).snapshot.current()
+    return Response(with_age(snap.status_json, snap.age_s()), media_type="application/json",
+                    headers={"Cache-Control": "no-store"})
 
 
 @router.post("/locate", tags=["vision"])
@@ -134,16 +141,16 @@ def heartbeat(request: Request,
 
 
 @router.post("/stop", tags=["motion"])
-async def stop(request: Request, caller: Annotated[Caller, Depends(require("stop"))],
+async def stop(request: Request, caller: StopCaller,
                body: Annotated[StopRequest | None, Body()] = None) -> dict[str, Any]:
     """Always accepted: stops any motion now and cancels the running job.
 
-    Runs on asyncio's own executor, not the request thread pool, so a pool full of waiting
-    requests (``wait=true`` approaches) can never delay it.
+    Checked and handed over on the event loop (no worker thread) to the cell's own stop
+    thread, so no queue of other requests can delay it; ``commanded_monotonic_s`` is when the
+    arm adapter was told (host ``time.monotonic()``).
     """
     reason = (body or StopRequest()).reason
-    return await asyncio.get_running_loop().run_in_executor(
-        None, cell_of(request).stop, caller.label, reason)
+    return await stop_now(cell_of(request), caller.label, reason)
 
 
 @router.post("/gripper", tags=["gripper"])
@@ -167,7 +174,7 @@ def camera_frame(request: Request, caller: Read, overlay_: Annotated[bool, Query
 
 
 @router.get("/events", tags=["status"], responses=SSE_RESPONSES)
-async def events(request: Request, caller: Read,
+async def events(request: Request, caller: ReadNow,
                  max_events: Annotated[int | None, Query(ge=1, le=100000)] = None
                  ) -> StreamingResponse:
     """Server-sent events: ``state`` (pose and mode at camera rate), ``job``, ``jog``,

@@ -1,0 +1,63 @@
+"""What the routes that must never queue behind other requests share: STOP, status, health,
+events.
+
+FastAPI runs a plain ``def`` dependency (as :func:`api.auth.require` is) in the same worker
+thread pool as every blocking handler, so under load a STOP waited for a pool thread just to
+check its token. These dependencies are ``async``: the token is checked on the event loop in
+microseconds. The STOP itself is handed to the cell's stop thread (:mod:`cell.stop`), which
+shares nothing with the pool; the handler only awaits its answer. Reads answer from the cell's
+snapshot (:mod:`cell.snapshot`), JSON encoded once per refresh.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Awaitable, Callable
+from typing import Annotated, Any
+
+from fastapi import Depends, Query, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from api.auth import Caller, TokenTable
+from api.errors import ForbiddenError
+from cell.service import Cell
+
+_bearer = HTTPBearer(auto_error=False, description="a token from the [api] table of the config")
+
+
+def require_now(permission: str) -> Callable[..., Awaitable[Caller]]:
+    """:func:`api.auth.require`, checked on the event loop (no thread pool)."""
+
+    async def dependency(
+        request: Request,
+        credentials: HTTPAuthorizationCredentials | None = Depends(_bearer),  # noqa: B008
+        token: str | None = Query(default=None, description="alternative to the header"),
+    ) -> Caller:
+        table: TokenTable = request.app.state.tokens
+        caller = table.lookup(credentials.credentials if credentials else token)
+        if permission not in caller.permissions:
+            raise ForbiddenError("forbidden", f"role {caller.role!r} may not {permission}")
+        request.state.caller = caller
+        return caller
+
+    return dependency
+
+
+ReadNow = Annotated[Caller, Depends(require_now("read"))]
+StopCaller = Annotated[Caller, Depends(require_now("stop"))]
+
+
+async def stop_now(cell: Cell, caller: str, reason: str) -> dict[str, Any]:
+    """Hand the stop to the cell's stop thread and await its answer on the event loop."""
+    loop = asyncio.get_running_loop()
+    answer: asyncio.Future[dict[str, Any]] = loop.create_future()
+
+    def settle(result: dict[str, Any]) -> None:
+        if not answer.done():
+            answer.set_result(result)
+
+    def done(result: dict[str, Any]) -> None:
+        loop.call_soon_threadsafe(settle, result)
+
+    cell.stopper.submit(caller, reason, done)
+    return await answer
