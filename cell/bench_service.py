@@ -294,6 +294,7 @@ def _pct(values: list[float], q: float) -> float | None:
 
 def run_service_bench(cfg: ServiceBenchConfig | None = None) -> dict[str, Any]:
     cfg = cfg or ServiceBenchConfig()
+    loadavg_before = round(os.getloadavg()[0], 2)  # other work on the host skews every number
     with serving() as (base, proc):
         time.sleep(2.0)  # let the start settle (kernels, first frames, gripper activation)
         pids = service_processes(proc.pid)
@@ -311,7 +312,9 @@ def run_service_bench(cfg: ServiceBenchConfig | None = None) -> dict[str, Any]:
         def measure_load_cpu() -> None:
             while time.monotonic() < start_s:
                 time.sleep(0.01)
-            cpu_load.update(cpu_percent(pids, max(1.0, cfg.duration_s - 1.0)))
+            assert load.pid is not None
+            cpu_load.update(cpu_percent({**pids, "bench_clients": load.pid},
+                                        max(1.0, cfg.duration_s - 1.0)))
 
         meter = threading.Thread(target=measure_load_cpu, daemon=True)
         meter.start()
@@ -346,7 +349,9 @@ def run_service_bench(cfg: ServiceBenchConfig | None = None) -> dict[str, Any]:
         "health_after": health.get("status"),
         "load": {"duration_s": cfg.duration_s, "pollers": cfg.pollers,
                  "status_period_s": STATUS_PERIOD_S, "streams": cfg.streams,
-                 "viewers": cfg.viewers, "cores": os.cpu_count()},
+                 "viewers": cfg.viewers, "cores": os.cpu_count(),
+                 "host_loadavg_1min_before": loadavg_before,
+                 "host_loadavg_1min_after": round(os.getloadavg()[0], 2)},
     }
     return report
 
@@ -358,7 +363,8 @@ def format_report(r: dict[str, Any]) -> str:
     return "\n".join([
         f"load: {lo['pollers']} status pollers every {lo['status_period_s']} s, "
         f"{lo['streams']} SSE streams, {lo['viewers']} live views, {lo['duration_s']} s, "
-        f"{lo['cores']} cores",
+        f"{lo['cores']} cores, host load average {lo['host_loadavg_1min_before']} before, "
+        f"{lo['host_loadavg_1min_after']} after",
         f"stop (request -> arm commanded): p50 {r['stop_ms_p50']} ms, p99 {r['stop_ms_p99']} ms,"
         f" max {r['stop_ms_max']} ms over {r['stops']} stops "
         f"({r['stops_while_jogging']} while jogging); round trip p99 {r['stop_http_ms_p99']} ms",
