@@ -5,7 +5,9 @@ newest :class:`Snap`, so a read costs a dictionary lookup (and the HTTP answer i
 once per refresh, not once per client), and no read ever waits on a device: the snapshot is
 built from the adapters' cached state (see :mod:`cell.status`).
 
-Fresh enough for anyone: a background thread refreshes it every camera period, and a reader
+Fresh enough for anyone: a background thread refreshes it every camera period (and rests
+while nobody has read or listened for ``IDLE_AFTER_S``: an idle service costs nothing), and a
+reader
 that finds it older than one period, or taken before the motion slot last changed hands (a jog
 step or a job that just ended), refreshes it on the spot; concurrent readers share that one
 refresh instead of each building their own.
@@ -29,6 +31,7 @@ from cell.links import LinkSupervisor
 
 log = logging.getLogger(__name__)
 MAX_RATE_HZ = 30.0  # a faster camera does not make the reports faster than this
+IDLE_AFTER_S = 2.0  # nobody read or listened for this long: the background refresh rests
 
 
 def _plain(obj: Any) -> Any:
@@ -71,6 +74,7 @@ class CellSnapshot:
         self.gripper = gripper
         self.period_s = 1.0 / min(core.config.camera.fps, MAX_RATE_HZ)
         self._snap: Snap | None = None
+        self._last_read_s = 0.0
         self._refresh_lock = threading.Lock()
         self._closing = threading.Event()
         self._thread: threading.Thread | None = None
@@ -89,6 +93,7 @@ class CellSnapshot:
     def current(self) -> Snap:
         """The newest snapshot, refreshed first when it is older than one period or older
         than the last change of the motion slot."""
+        self._last_read_s = time.monotonic()
         snap = self._snap
         if snap is None or self._stale(snap):
             return self.refresh(unless_newer_than=snap)
@@ -143,9 +148,11 @@ class CellSnapshot:
         while not self._closing.is_set():
             next_s += self.period_s
             try:
-                snap = self.refresh(unless_newer_than=self._snap)
-                if snap.state is not None and self.core.events.n_subscribers:
-                    self.core.events.publish("state", snap.state)
+                listeners = self.core.events.n_subscribers
+                if listeners or time.monotonic() - self._last_read_s < IDLE_AFTER_S:
+                    snap = self.refresh(unless_newer_than=self._snap)
+                    if snap.state is not None and listeners:
+                        self.core.events.publish("state", snap.state)
             except Exception:  # the reports must outlive any one bad read
                 log.exception("snapshot refresh failed")
             delay = next_s - time.monotonic()
