@@ -29,7 +29,7 @@ from api.schemas import (
     StopRequest,
 )
 from api.sse import SSE_RESPONSES, sse_response
-from api.stop import ReadNow, StopCaller, stop_now
+from api.stop import ReadNow, StopCaller, snapshot_now, stop_now
 from cell.hardware import SimWorld
 from cell.safety import NotFoundError
 from cell.service import Cell
@@ -57,7 +57,7 @@ async def health(request: Request) -> dict[str, Any]:
     """Liveness without auth: 200 while the process serves. ``status`` is ``ok`` with every
     device connected, ``degraded`` otherwise, and ``missing`` names the devices that are not
     (the cell reconnects them by itself). From the cell's snapshot: never waits."""
-    return cell_of(request).health()
+    return dict((await snapshot_now(cell_of(request))).health)
 
 
 @router.get("/me", response_model=Me, tags=["status"])
@@ -73,7 +73,7 @@ async def status(request: Request, caller: ReadNow) -> Response:
     """State, robot pose and mode, camera, gripper, current job, last locate, and
     ``snapshot_age_s`` (the snapshot is refreshed at camera rate; reading it never waits on
     a device)."""
-    snap = cell_of(request).snapshot.current()
+    snap = await snapshot_now(cell_of(request))
     return Response(with_age(snap.status_json, snap.age_s()), media_type="application/json",
                     headers={"Cache-Control": "no-store"})
 

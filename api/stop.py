@@ -17,10 +17,12 @@ from typing import Annotated, Any
 
 from fastapi import Depends, Query, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from starlette.concurrency import run_in_threadpool
 
 from api.auth import Caller, TokenTable
 from api.errors import ForbiddenError
 from cell.service import Cell
+from cell.snapshot import Snap
 
 _bearer = HTTPBearer(auto_error=False, description="a token from the [api] table of the config")
 
@@ -61,3 +63,12 @@ async def stop_now(cell: Cell, caller: str, reason: str) -> dict[str, Any]:
 
     cell.stopper.submit(caller, reason, done)
     return await answer
+
+
+async def snapshot_now(cell: Cell) -> Snap:
+    """The cell's snapshot without blocking the event loop: the fresh one at once, or (rarely:
+    the refresh thread is late, or a motion just ended) refreshed in a worker thread."""
+    snap = cell.snapshot.fresh()
+    if snap is None:
+        snap = await run_in_threadpool(cell.snapshot.current)
+    return snap

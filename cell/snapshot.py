@@ -99,6 +99,13 @@ class CellSnapshot:
             return self.refresh(unless_newer_than=snap)
         return snap
 
+    def fresh(self) -> Snap | None:
+        """The newest snapshot when it needs no refresh, else None; never blocks (for an
+        event loop, which must not wait for a refresh another thread is building)."""
+        self._last_read_s = time.monotonic()
+        snap = self._snap
+        return None if snap is None or self._stale(snap) else snap
+
     def status(self) -> dict[str, Any]:
         snap = self.current()
         return {**snap.status, "snapshot_age_s": snap.age_s()}
