@@ -13,7 +13,10 @@ its own job database), then
 
 STOP latency is measured from the moment the request is sent to the moment the cell handed
 the stop to the arm adapter (``commanded_monotonic_s`` in the answer; ``time.monotonic`` is
-one clock for every process on the host); ``stop_http_ms_*`` is the whole round trip.
+one clock for every process on the host); ``stop_adapter_ms_*`` is how long the adapter's stop
+calls took (ur_rtde's speedStop and stopL, each acknowledged by the control script), and
+``stop_http_ms_*`` the whole round trip. Every number depends on what else the host runs:
+the report carries the host's load average before and after.
 """
 
 from __future__ import annotations
@@ -244,9 +247,11 @@ def _load_main(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float,
 # -- STOP with an arm moving -------------------------------------------------------------------
 
 def _stops(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float
-           ) -> tuple[list[float], list[float], list[str], int]:
-    """Jog, stop, repeat; (stop ms, round-trip ms, errors, stops with the arm moving)."""
+           ) -> tuple[list[float], list[float], list[float], list[str], int]:
+    """Jog, stop, repeat; (stop ms, adapter ms, round-trip ms, errors, stops with the arm
+    moving)."""
     stop_ms: list[float] = []
+    adapter_ms: list[float] = []
     http_ms: list[float] = []
     errors: list[str] = []
     moving_at_stop = 0
@@ -284,8 +289,10 @@ def _stops(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float
             if body.get("cancelled") == "jog":
                 moving_at_stop += 1
             stop_ms.append(1000.0 * (float(commanded) - t0))
+            if body.get("sent_monotonic_s") is not None:
+                adapter_ms.append(1000.0 * (float(body["sent_monotonic_s"]) - float(commanded)))
             http_ms.append(1000.0 * (t1 - t0))
-    return stop_ms, http_ms, errors, moving_at_stop
+    return stop_ms, adapter_ms, http_ms, errors, moving_at_stop
 
 
 def _pct(values: list[float], q: float) -> float | None:
@@ -318,7 +325,7 @@ def run_service_bench(cfg: ServiceBenchConfig | None = None) -> dict[str, Any]:
 
         meter = threading.Thread(target=measure_load_cpu, daemon=True)
         meter.start()
-        stop_ms, http_ms, errors, moving = _stops(base, cfg, start_s, end_s)
+        stop_ms, adapter_ms, http_ms, errors, moving = _stops(base, cfg, start_s, end_s)
         try:
             loaded = queue.get(timeout=cfg.duration_s + 60.0)
         except Exception as err:
@@ -332,6 +339,7 @@ def run_service_bench(cfg: ServiceBenchConfig | None = None) -> dict[str, Any]:
     report: dict[str, Any] = {
         "stop_ms_p50": _pct(stop_ms, 50), "stop_ms_p99": _pct(stop_ms, 99),
         "stop_ms_max": _pct(stop_ms, 100),
+        "stop_adapter_ms_p50": _pct(adapter_ms, 50), "stop_adapter_ms_p99": _pct(adapter_ms, 99),
         "stop_http_ms_p50": _pct(http_ms, 50), "stop_http_ms_p99": _pct(http_ms, 99),
         "stops": len(stop_ms), "stops_while_jogging": moving,
         "status_ms_p50": _pct(loaded.get("status_ms", []), 50),
@@ -367,7 +375,9 @@ def format_report(r: dict[str, Any]) -> str:
         f"{lo['host_loadavg_1min_after']} after",
         f"stop (request -> arm commanded): p50 {r['stop_ms_p50']} ms, p99 {r['stop_ms_p99']} ms,"
         f" max {r['stop_ms_max']} ms over {r['stops']} stops "
-        f"({r['stops_while_jogging']} while jogging); round trip p99 {r['stop_http_ms_p99']} ms",
+        f"({r['stops_while_jogging']} while jogging); the adapter's stop calls p50 "
+        f"{r['stop_adapter_ms_p50']} ms, p99 {r['stop_adapter_ms_p99']} ms; round trip p99 "
+        f"{r['stop_http_ms_p99']} ms",
         f"status: p50 {r['status_ms_p50']} ms, p99 {r['status_ms_p99']} ms "
         f"({r['status_polls']} polls)",
         f"SSE state events: max gap {r['sse_gap_ms_max']} ms, p99 {r['sse_gap_ms_p99']} ms "
