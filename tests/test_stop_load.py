@@ -209,3 +209,20 @@ def test_the_snapshot_is_fresh_and_reads_do_not_call_the_arm(tmp_path: Path) -> 
         assert n_reads > 20
         refreshes = elapsed / period
         assert calls[0] < 3 * refreshes + elapsed / 0.1 + 10, (calls[0], n_reads)
+
+
+def test_the_dead_man_stops_through_the_stop_path(tmp_path: Path) -> None:
+    with running_cell(sim_config(tmp_path)) as cell:
+        cell.jog_start("test", frame="base", linear_mm_s=[0.0, 0.0, 30.0],
+                       angular_deg_s=[0.0, 0.0, 0.0])
+        deadline = time.monotonic() + 5.0
+        while cell.status()["state"] == "jog":  # no heartbeats: the dead-man ends it
+            assert time.monotonic() < deadline, "the dead-man never stopped the jog"
+            time.sleep(0.02)
+        stops = [e for e in cell.jobs.audit_log(50) if e.command == "stop"]
+        assert stops and "dead-man" in stops[0].params["reason"], stops
+        assert stops[0].outcome == "ok"
+        assert any(c.kind == "stop" for c in cell.commanded())
+        still = tcp(cell)
+        time.sleep(0.3)
+        assert pose_distance(still, tcp(cell))[0] < 0.05
