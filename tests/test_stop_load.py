@@ -8,6 +8,7 @@ import socket
 import threading
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +65,25 @@ def ur_served(tmp_path: Path) -> Iterator[tuple[Cell, str]]:
         yield cell, base
 
 
+@contextmanager
+def _heartbeats(base: str) -> Iterator[None]:
+    """Dead-man heartbeats every 50 ms while the block runs (refusals after a stop are fine)."""
+    done = threading.Event()
+
+    def beat() -> None:
+        with httpx.Client(timeout=10.0) as c:
+            while not done.wait(0.05):
+                c.post(f"{base}/api/v1/jog/heartbeat", headers=AUTH["operator"])
+
+    t = threading.Thread(target=beat, daemon=True)
+    t.start()
+    try:
+        yield
+    finally:
+        done.set()
+        t.join(timeout=10.0)
+
+
 def _wait_moving(cell: Cell, start: np.ndarray, mm: float, timeout_s: float) -> None:
     deadline = time.monotonic() + timeout_s
     while pose_distance(tcp(cell), start)[0] < mm:
@@ -79,10 +99,11 @@ def test_stop_under_load_reaches_the_arm(ur_served: tuple[Cell, str]) -> None:
                 "mode": "continuous", "linear_mm_s": [0.0, 40.0 * sign, 0.0]})
             assert r.status_code == 200, r.text
             start = tcp(cell)
-            _wait_moving(cell, start, 0.5, timeout_s=5.0)
-            t_sent = time.monotonic()
-            r = c.post(f"{base}/api/v1/stop", headers=AUTH["operator"],
-                       json={"reason": "test under load"})
+            with _heartbeats(base):  # the dead-man must not end the jog before the stop
+                _wait_moving(cell, start, 0.5, timeout_s=5.0)
+                t_sent = time.monotonic()
+                r = c.post(f"{base}/api/v1/stop", headers=AUTH["operator"],
+                           json={"reason": "test under load"})
             assert r.status_code == 200, r.text
             out = r.json()
             assert out["stopped"] and out["cancelled"] == "jog", out
