@@ -178,6 +178,7 @@ def _load_main(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float,
 
     status_ms: list[float] = []
     gaps_ms: list[float] = []
+    publish_gaps_ms: list[float] = []  # between the server's publish times of the same events
     frames = [0]
     events = [0]
     errors: list[str] = []
@@ -201,6 +202,8 @@ def _load_main(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float,
 
     async def stream(client: httpx.AsyncClient) -> None:
         last: float | None = None
+        last_published: float | None = None
+        is_state = False
         try:
             async with client.stream("GET", f"{base}/api/v1/events", headers=VIEWER,
                                      timeout=httpx.Timeout(10.0)) as r:
@@ -208,8 +211,15 @@ def _load_main(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float,
                     now = time.monotonic()
                     if now >= end_s:
                         break
+                    if is_state and line.startswith("data: "):
+                        is_state = False
+                        published = float(json.loads(line[6:])["time"])
+                        if last_published is not None and now >= start_s:
+                            publish_gaps_ms.append(1000.0 * (published - last_published))
+                        last_published = published
                     if line != "event: state":
                         continue
+                    is_state = True
                     events[0] += 1
                     if last is not None and last >= start_s:
                         gaps_ms.append(1000.0 * (now - last))
@@ -240,7 +250,8 @@ def _load_main(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float,
                 *(poller(client, i) for i in range(cfg.pollers)))
 
     asyncio.run(main())
-    out.put({"status_ms": status_ms, "gaps_ms": gaps_ms, "frames": frames[0],
+    out.put({"status_ms": status_ms, "gaps_ms": gaps_ms, "publish_gaps_ms": publish_gaps_ms,
+             "frames": frames[0],
              "events": events[0], "errors": errors})
 
 
@@ -347,6 +358,7 @@ def run_service_bench(cfg: ServiceBenchConfig | None = None) -> dict[str, Any]:
         "status_polls": len(loaded.get("status_ms", [])),
         "sse_gap_ms_max": None if not gaps else round(max(gaps), 1),
         "sse_gap_ms_p99": _pct(gaps, 99),
+        "sse_publish_gap_ms_max": _pct(loaded.get("publish_gaps_ms", []), 100),
         "sse_state_events": loaded.get("events", 0),
         "frames_viewed": loaded.get("frames", 0),
         "idle_cpu_pct": idle,
@@ -381,7 +393,8 @@ def format_report(r: dict[str, Any]) -> str:
         f"status: p50 {r['status_ms_p50']} ms, p99 {r['status_ms_p99']} ms "
         f"({r['status_polls']} polls)",
         f"SSE state events: max gap {r['sse_gap_ms_max']} ms, p99 {r['sse_gap_ms_p99']} ms "
-        f"({r['sse_state_events']} events)",
+        f"({r['sse_state_events']} events; max gap between their publish times "
+        f"{r['sse_publish_gap_ms_max']} ms)",
         f"idle CPU (% of one core): {idle}; service + ur_client "
         f"{r['idle_cpu_pct_service_plus_ur_client']}%",
         f"CPU under load: {load}",
