@@ -7,7 +7,7 @@ its own job database), then
    and the simulated controller, read from ``/proc`` (percent of one core);
 2. load for ``duration_s``: ``pollers`` clients polling ``GET /status`` every 250 ms (as the
    operator page does), ``streams`` clients reading ``GET /events``, ``viewers`` clients
-   fetching ``/camera/frame.png?overlay=true`` back to back, all in a separate process, while
+   fetching ``/camera/frame.png?overlay=true`` back to back (one process for each kind), while
    this process starts a continuous jog, lets the arm move for ``move_s`` and sends
    ``POST /api/v1/stop``, at least ``min_stops`` times.
 
@@ -34,7 +34,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -242,12 +242,19 @@ def _load_main(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float,
             await asyncio.sleep(max(0.0, VIEWER_MIN_PERIOD_S - (time.monotonic() - t0)))
 
     async def main() -> None:
-        limits = httpx.Limits(max_connections=None, max_keepalive_connections=None)
-        async with httpx.AsyncClient(limits=limits, timeout=httpx.Timeout(10.0)) as client:
+        # one client (one connection) each, as separate browsers would be; a shared pool of
+        # 60 connections costs the client more CPU per request than the server spends
+        n = cfg.streams + cfg.viewers + cfg.pollers
+        clients = [httpx.AsyncClient(timeout=httpx.Timeout(10.0)) for _ in range(n)]
+        try:
+            it = iter(clients)
             await asyncio.gather(
-                *(stream(client) for _ in range(cfg.streams)),
-                *(viewer(client) for _ in range(cfg.viewers)),
-                *(poller(client, i) for i in range(cfg.pollers)))
+                *(stream(next(it)) for _ in range(cfg.streams)),
+                *(viewer(next(it)) for _ in range(cfg.viewers)),
+                *(poller(next(it), i) for i in range(cfg.pollers)))
+        finally:
+            for c in clients:
+                await c.aclose()
 
     asyncio.run(main())
     out.put({"status_ms": status_ms, "gaps_ms": gaps_ms, "publish_gaps_ms": publish_gaps_ms,
@@ -321,27 +328,38 @@ def run_service_bench(cfg: ServiceBenchConfig | None = None) -> dict[str, Any]:
         end_s = start_s + cfg.duration_s
         ctx = mp.get_context("spawn")
         queue: mp.Queue[dict[str, Any]] = ctx.Queue()
-        load = ctx.Process(target=_load_main, args=(base, cfg, start_s, end_s, queue),
-                           daemon=True)
-        load.start()
-        loaded: dict[str, Any] = {}
+        # one process per kind of client, so a live view's megabyte frames do not hold up
+        # the status pollers' own event loop (that would be measured as status latency)
+        roles = [replace(cfg, streams=0, viewers=0), replace(cfg, pollers=0, viewers=0),
+                 replace(cfg, pollers=0, streams=0)]
+        loads = [ctx.Process(target=_load_main, args=(base, role, start_s, end_s, queue),
+                             daemon=True) for role in roles]
+        for load in loads:
+            load.start()
+        loaded: dict[str, Any] = {"status_ms": [], "gaps_ms": [], "publish_gaps_ms": [],
+                                  "frames": 0, "events": 0, "errors": []}
         cpu_load: dict[str, float | None] = {}
 
         def measure_load_cpu() -> None:
             while time.monotonic() < start_s:
                 time.sleep(0.01)
-            assert load.pid is not None
-            cpu_load.update(cpu_percent({**pids, "bench_clients": load.pid},
-                                        max(1.0, cfg.duration_s - 1.0)))
+            clients = {f"bench_{name}": load.pid for name, load in
+                       zip(("pollers", "streams", "viewers"), loads, strict=True)
+                       if load.pid is not None}
+            cpu_load.update(cpu_percent({**pids, **clients}, max(1.0, cfg.duration_s - 1.0)))
 
         meter = threading.Thread(target=measure_load_cpu, daemon=True)
         meter.start()
         stop_ms, adapter_ms, http_ms, errors, moving = _stops(base, cfg, start_s, end_s)
         try:
-            loaded = queue.get(timeout=cfg.duration_s + 60.0)
+            for _ in loads:
+                part = queue.get(timeout=cfg.duration_s + 60.0)
+                for key, value in part.items():
+                    loaded[key] = loaded[key] + value
         except Exception as err:
             errors.append(f"load process: {err!r}")
-        load.join(timeout=10.0)
+        for load in loads:
+            load.join(timeout=10.0)
         meter.join(timeout=cfg.duration_s + 5.0)
         health = httpx.get(f"{base}/api/v1/health", timeout=5.0).json()
     errors += loaded.get("errors", [])
