@@ -7,10 +7,10 @@ built from the adapters' cached state (see :mod:`cell.status`).
 
 Fresh enough for anyone: a background thread refreshes it every camera period (and rests
 while nobody has read or listened for ``IDLE_AFTER_S``: an idle service costs nothing), and a
-reader
-that finds it older than one period, or taken before the motion slot last changed hands (a jog
-step or a job that just ended), refreshes it on the spot; concurrent readers share that one
-refresh instead of each building their own.
+reader that finds it older than one period, or taken before the motion slot last changed hands
+(a jog step or a job that just ended), refreshes it on the spot; concurrent readers share that
+one refresh instead of each building their own. An event loop never waits for a refresh
+(:meth:`CellSnapshot.fresh`): it hands a late one to a worker thread.
 """
 
 from __future__ import annotations
