@@ -34,7 +34,7 @@ PERMISSIONS: dict[str, frozenset[str]] = {
 # every valid token may stop the cell
 ALWAYS = frozenset({"stop"})
 
-_bearer = HTTPBearer(auto_error=False, description="a token from the [api] table of the config")
+bearer = HTTPBearer(auto_error=False, description="a token from the [api] table of the config")
 
 
 @dataclass(frozen=True)
@@ -97,7 +97,7 @@ class TokenTable:
         return found
 
 
-def _authorise(request: Request, token: str | None, permission: str) -> Caller:
+def authorise(request: Request, token: str | None, permission: str) -> Caller:
     table: TokenTable = request.app.state.tokens
     caller = table.lookup(token)
     request.state.caller = caller
@@ -112,12 +112,12 @@ def require(permission: str) -> Callable[..., Caller]:
 
     def dependency(
         request: Request,
-        credentials: HTTPAuthorizationCredentials | None = Depends(_bearer),  # noqa: B008
+        credentials: HTTPAuthorizationCredentials | None = Depends(bearer),  # noqa: B008
     ) -> Caller:
         if credentials is None and "token" in request.query_params:
             raise AuthError("unauthorized", "this route takes the token only in the "
                             "Authorization header (?token= is for the GET streaming routes)")
-        return _authorise(request, credentials.credentials if credentials else None,
+        return authorise(request, credentials.credentials if credentials else None,
                           permission)
 
     return dependency
@@ -128,11 +128,11 @@ def require_stream(permission: str) -> Callable[..., Caller]:
 
     def dependency(
         request: Request,
-        credentials: HTTPAuthorizationCredentials | None = Depends(_bearer),  # noqa: B008
+        credentials: HTTPAuthorizationCredentials | None = Depends(bearer),  # noqa: B008
         token: str | None = Query(default=None, description="alternative to the header, "
                                   "for <img> and EventSource (redacted from the logs)"),
     ) -> Caller:
-        return _authorise(request, credentials.credentials if credentials else token,
+        return authorise(request, credentials.credentials if credentials else token,
                           permission)
 
     return dependency

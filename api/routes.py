@@ -44,9 +44,11 @@ from api.schemas import (
     StopResult,
 )
 from api.sse import SSE_RESPONSES, sse_response
+from api.stop import ReadNow, StopCaller, StreamNow, snapshot_now, stop_now
 from cell.hardware import SimWorld
 from cell.safety import CellError, NotFoundError
 from cell.service import Cell
+from cell.snapshot import with_age
 from estimator.transforms import T_from_pose, pose_dict
 
 router = APIRouter(prefix="/api/v1", responses=ERROR_RESPONSES)
@@ -66,11 +68,11 @@ def sim_of(request: Request) -> SimWorld:
 
 
 @router.get("/health", response_model=Health, tags=["status"])
-def health(request: Request) -> dict[str, Any]:
+async def health(request: Request) -> dict[str, Any]:
     """Liveness without auth: 200 while the process serves. ``status`` is ``ok`` with every
     device connected, ``degraded`` otherwise, and ``missing`` names the devices that are not
-    (the cell reconnects them by itself)."""
-    return cell_of(request).health()
+    (the cell reconnects them by itself). From the cell's snapshot: never waits."""
+    return dict((await snapshot_now(cell_of(request))).health)
 
 
 @router.get("/me", response_model=Me, tags=["status"])
@@ -79,10 +81,16 @@ def me(caller: Read) -> Me:
     return Me(name=caller.name, role=caller.role, permissions=sorted(caller.permissions))
 
 
-@router.get("/status", response_model=Status, tags=["status"])
-def status(request: Request, caller: Read) -> dict[str, Any]:
-    """State, robot pose and mode, camera, gripper, current job, last locate."""
-    return cell_of(request).status()
+@router.get("/status", tags=["status"], response_class=Response,
+            responses={200: {"model": Status, "content": {"application/json": {}},
+                             "description": "the cell's snapshot"}})
+async def status(request: Request, caller: ReadNow) -> Response:
+    """State, robot pose and mode, camera, gripper, current job, last locate, and
+    ``snapshot_age_s`` (the snapshot is refreshed at camera rate; reading it never waits on
+    a device)."""
+    snap = await snapshot_now(cell_of(request))
+    return Response(with_age(snap.status_json, snap.age_s()), media_type="application/json",
+                    headers={"Cache-Control": "no-store"})
 
 
 @router.post("/locate", response_model=Located, tags=["vision"], responses=DEVICE_ERRORS)
@@ -173,17 +181,17 @@ def heartbeat(request: Request,
 
 
 @router.post("/stop", response_model=StopResult, tags=["motion"])
-async def stop(request: Request, caller: Annotated[Caller, Depends(require("stop"))],
+async def stop(request: Request, caller: StopCaller,
                body: Annotated[StopRequest | None, Body()] = None) -> dict[str, Any]:
     """Always accepted: stops any motion now and cancels the running job.
 
-    Runs on asyncio's own executor, not the request thread pool, so a pool full of waiting
-    requests (``wait=true`` approaches) can never delay it.
+    Checked and handed over on the event loop (no worker thread) to the cell's own stop
+    thread, so no queue of other requests can delay it; ``commanded_monotonic_s`` is when the
+    arm adapter was told (host ``time.monotonic()``).
     """
     reason = (body or StopRequest()).reason
     t0 = time.perf_counter()
-    out = await asyncio.get_running_loop().run_in_executor(
-        None, cell_of(request).stop, caller.label, reason)
+    out = await stop_now(cell_of(request), caller.label, reason)
     request.app.state.metrics.stop.observe(time.perf_counter() - t0)
     return out
 
@@ -270,7 +278,7 @@ async def camera_stream(request: Request, caller: Stream, overlay_: Annotated[bo
 
 @router.get("/events", tags=["status"], responses=SSE_RESPONSES,
             response_class=EventStreamResponse)
-async def events(request: Request, caller: Stream,
+async def events(request: Request, caller: StreamNow,
                  max_events: Annotated[int | None, Query(ge=1, le=100000)] = None
                  ) -> StreamingResponse:
     """Server-sent events: ``state`` (pose and mode at camera rate), ``job``, ``jog``,

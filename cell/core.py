@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,6 +28,9 @@ from drivers.camera import Camera
 from drivers.gripper import Gripper
 from estimator import Target
 
+if TYPE_CHECKING:
+    from cell.stop import StopLine
+
 
 @dataclass
 class CellCore:
@@ -43,6 +47,7 @@ class CellCore:
     frames: CellFrames
     target: Target
     lock: threading.RLock = field(default_factory=threading.RLock)
+    stopper: StopLine | None = None  # the one stop path (cell.stop); set by the Cell
 
     @property
     def camera(self) -> Camera:

@@ -10,6 +10,7 @@ import contextlib
 import queue
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 
@@ -17,6 +18,8 @@ class Subscription:
     def __init__(self, bus: EventBus, maxsize: int) -> None:
         self._bus = bus
         self.queue: queue.Queue[dict[str, Any]] = queue.Queue(maxsize=maxsize)
+        # told after each event is queued (an event loop's waker: streams wait, not poll)
+        self.notify: Callable[[], None] | None = None
 
     def get(self, timeout_s: float) -> dict[str, Any] | None:
         try:
@@ -68,3 +71,9 @@ class EventBus:
                 except queue.Full:
                     with contextlib.suppress(queue.Empty):
                         sub.queue.get_nowait()
+            notify = sub.notify
+            if notify is not None:
+                try:
+                    notify()
+                except RuntimeError:  # its event loop has closed: the stream is gone
+                    sub.notify = None

@@ -126,6 +126,8 @@ class Jogger:
                 if time.monotonic() - jog.last_heartbeat_s > timeout_s:
                     reason = "dead-man: heartbeat expired"
                     core.stats.count_deadman_stop()
+                    if core.stopper is not None:  # the one stop path, as /stop takes
+                        core.stopper.stop("service", reason)
                     break
                 core.arm.jog(jog.velocity, jog.frame, accel_mm_s2=self._accel())
         except CellError as err:

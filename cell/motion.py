@@ -114,6 +114,11 @@ class MotionSlot:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._motion: Motion | None = None
+        self._generation = 0  # counts claims and releases: readers of cached state compare it
+
+    @property
+    def generation(self) -> int:
+        return self._generation
 
     @property
     def current(self) -> Motion | None:
@@ -127,12 +132,14 @@ class MotionSlot:
                 raise RefusedError("busy", f"the arm is busy ({self._motion.name}); wait for it "
                                    "to finish or stop it")
             self._motion = Motion(name, needs_camera=needs_camera)
+            self._generation += 1
             return self._motion
 
     def release(self, motion: Motion) -> None:
         with self._lock:
             if self._motion is motion:
                 self._motion = None
+                self._generation += 1
 
     @contextmanager
     def hold(self, name: str, *, needs_camera: bool = False) -> Iterator[Motion]:

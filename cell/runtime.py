@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -24,6 +25,14 @@ def check_startable(config: CellConfig) -> None:
     check_tokens(config, all_simulated(config))
 
 
+# How long a Python thread may hold the GIL while another waits (default 5 ms). The service
+# mixes CPU-heavy threads (rendering, estimating, encoding frames) with threads that must
+# answer at once (the event loop, the stop thread, the snapshot); each of those takes the GIL
+# many times per request, and at 5 ms a turn a STOP or a status read waited tens of ms behind
+# one live view.
+GIL_SWITCH_INTERVAL_S = 0.001
+
+
 def start_cell(config: CellConfig | str | Path | None = None) -> Cell:
     """Validate, build and start the cell; on failure everything built so far is released.
 
@@ -31,6 +40,7 @@ def start_cell(config: CellConfig | str | Path | None = None) -> Cell:
     (``/health``: degraded) and reconnects it in the background."""
     cfg = config if isinstance(config, CellConfig) else load_config(config)
     check_startable(cfg)
+    sys.setswitchinterval(min(sys.getswitchinterval(), GIL_SWITCH_INTERVAL_S))
     hw = build_hardware(cfg)
     try:
         jobs = JobStore(cfg.api.job_db)

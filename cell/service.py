@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell import approach as approach_mod
-from cell import recovery, status, track
+from cell import recovery, track
 from cell.audit import Auditor
 from cell.config import CellConfig, HandEyeConfig, PoseConfig
 from cell.core import CellCore
@@ -41,10 +41,12 @@ from cell.links import LinkSupervisor
 from cell.locate import Located, Locator
 from cell.motion import GuardedArm, MotionSlot, driver_error
 from cell.safety import NotFoundError
+from cell.snapshot import CellSnapshot
 from cell.stats import CellStats
+from cell.stop import StopLine
 from drivers.arm import ArmState, JogFrame
 from drivers.camera import Frame
-from drivers.errors import ConnectionLostError, DriverError
+from drivers.errors import DriverError
 from estimator import PoseResult
 from estimator.transforms import pose_from_T
 
@@ -75,8 +77,10 @@ class Cell:
                              locator, self.stats, frames, target)
         self.links = LinkSupervisor(self.core)
         self.gripper_ops = GripperService(hardware.gripper, audit, self.events)
+        self.stopper = StopLine(self.core)
+        self.core.stopper = self.stopper
         self.jogger = Jogger(self.core)
-        self._publisher = status.StatePublisher(self.core)
+        self.snapshot = CellSnapshot(self.core, self.links, self.gripper_ops)
         self.started_at = time.time()
 
     # -- what other modules read ---------------------------------------------------------------
@@ -110,7 +114,7 @@ class Cell:
         self.links.connect_all()
         self.gripper_ops.start()
         self.links.start()
-        self._publisher.start()
+        self.snapshot.start()
 
     def close(self) -> None:
         """Stop the arm first, then everything else."""
@@ -120,8 +124,9 @@ class Cell:
             log.exception("stop at shutdown failed")
         self.links.close()
         self.core.runner.join(timeout_s=5.0)
-        self._publisher.close()
+        self.snapshot.close()
         self.gripper_ops.close()
+        self.stopper.close()
         self.hw.close()
         self.jobs.close()
 
@@ -133,10 +138,12 @@ class Cell:
             raise driver_error(err, "reading the arm state") from err
 
     def health(self) -> dict[str, Any]:
-        return status.health(self.core, self.links)
+        """From the snapshot (cell.snapshot): never waits on a device."""
+        return self.snapshot.health()
 
     def status(self) -> dict[str, Any]:
-        return status.status(self.core, self.links, self.gripper_ops)
+        """From the snapshot (cell.snapshot): never waits on a device."""
+        return self.snapshot.status()
 
     def job(self, job_id: str) -> Job:
         job = self.jobs.get(job_id)
@@ -213,31 +220,10 @@ class Cell:
         return self.gripper_ops.command(caller, action, position_mm, speed_pct, force_pct, wait)
 
     def stop(self, caller: str, reason: str = "requested") -> dict[str, Any]:
-        """Always accepted: the motion slot's holder is cancelled (a flag: no new command
-        can pass the guard from then on), then the arm is told to stop; audited after."""
-        t0 = time.time()
-        motion = self.core.slot.cancel()
-        self.stats.count_stop()
-        arm_error = self._stop_arm()
-        job_id = None if motion is None else motion.job_id
-        out = {"stopped": arm_error is None, "cancelled": None if motion is None else motion.name,
-               "job_id": job_id, "arm_error": arm_error}
-        self.core.audit.record(caller, "stop", {"reason": reason},
-                               "ok" if arm_error is None else "arm_error", arm_error or "",
-                               job_id, t0)
-        self.events.publish("stop", out)
-        return out
-
-    def _stop_arm(self) -> str | None:
-        """Stop the arm now; the driver's error text if it could not, else None."""
-        try:
-            self.core.arm.stop(decel_mm_s2=2000.0)
-        except ConnectionLostError as err:
-            return (f"{err}; the link is down, and the cell tells the controller to stop as "
-                    "soon as it answers again, before anything else")
-        except DriverError as err:
-            return str(err)
-        return None
+        """Always accepted, through the one stop path (cell.stop): the motion slot's holder
+        is cancelled (a flag: no new command can pass the guard from then on), the stop
+        thread tells the arm to stop, then the job is cancelled and the stop audited."""
+        return self.stopper.stop(caller, reason)
 
     # -- configuration changes ------------------------------------------------------------------
     def set_hand_eye(self, T_flange_camera: Matrix4) -> None:

@@ -1,4 +1,5 @@
-"""What the cell reports about itself: ``/status``, ``/health`` and the ``state`` events.
+"""What the cell reports about itself: ``/status``, ``/health`` and the ``state`` events
+(served from :mod:`cell.snapshot`, which calls these once per camera period).
 
 Nothing here waits on a slow device: the arm state is the adapter's cached stream sample, the
 gripper's status is the last one its poller read, links come from the supervisor.
@@ -6,7 +7,6 @@ gripper's status is the last one its poller read, links come from the supervisor
 
 from __future__ import annotations
 
-import threading
 import time
 from typing import Any
 
@@ -66,46 +66,12 @@ def status(core: CellCore, links: LinkSupervisor, gripper: GripperService) -> di
     return out
 
 
-def health(core: CellCore, links: LinkSupervisor) -> dict[str, Any]:
+def health_from(missing: list[str]) -> dict[str, Any]:
     """``ok`` when every device is connected, else ``degraded`` naming what is missing; the
     process answers either way (a liveness probe must not fail because a device did)."""
-    missing = links.missing()
     return {"status": "degraded" if missing else "ok", "missing": missing,
             "arm_connected": "arm" not in missing, "camera_connected": "camera" not in missing}
 
 
-class StatePublisher:
-    """Publishes pose and state at camera rate while anyone listens."""
-
-    def __init__(self, core: CellCore) -> None:
-        self.core = core
-        self._closing = threading.Event()
-        self._thread: threading.Thread | None = None
-
-    def start(self) -> None:
-        self._thread = threading.Thread(target=self._loop, name="cell-state", daemon=True)
-        self._thread.start()
-
-    def close(self) -> None:
-        self._closing.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-
-    def _loop(self) -> None:
-        core = self.core
-        period = 1.0 / min(core.config.camera.fps, 30.0)
-        while not self._closing.wait(period):
-            if core.events.n_subscribers == 0:
-                continue
-            try:
-                st = core.arm.state()
-            except DriverError:
-                continue
-            motion = core.slot.current
-            core.events.publish("state", {
-                "state": motion.name if motion else arm_state_name(st),
-                "robot_mode": st.robot_mode, "safety": st.safety_status, "moving": st.moving,
-                "T_base_tcp": pose_dict(st.T_base_tcp),
-                "job_id": motion.job_id if motion else None,
-                "camera_connected": bool(core.camera.is_connected),
-            })
+def health(core: CellCore, links: LinkSupervisor) -> dict[str, Any]:
+    return health_from(links.missing())

@@ -12,8 +12,11 @@ wire. The adapter guards against the ways ur_rtde can hang a caller:
 - moves are sent asynchronously and then watched through the RTDE stream, so a controller
   that dies or freezes mid-move ends in ConnectionLostError within ``stale_after_s``.
 
-A monitor thread samples the stream into a :class:`PoseHistory` (host ``time.monotonic()``),
-notices a stalled or closed stream, and stops a jog whose commands stop arriving.
+The child pushes a state sample whenever the RTDE data changed (at most every
+``PUSH_PERIOD_S``, and once after every call, before its reply); reads take the newest pushed
+sample and cost no round trip, and each new one goes into a :class:`PoseHistory` (host
+``time.monotonic()``). A monitor thread, idle most of the time, notices a stalled or closed
+stream and stops a jog whose commands stop arriving.
 """
 
 from __future__ import annotations
@@ -50,6 +53,7 @@ from drivers.ur_client_process import (
     Request,
     Sample,
     StateSample,
+    Subscribe,
 )
 from drivers.ur_modes import (
     ESTOP_BITS,
@@ -68,6 +72,9 @@ RTDE_PORT = 30004
 DASHBOARD_PORT = 29999
 MOVING_QD_RAD_S = 5e-3  # below this the arm counts as standing (controllers report jitter)
 UNLOCK_DELAY_S = 5.0  # a UR refuses to unlock a protective stop for this long after it
+PUSH_PERIOD_S = 0.008  # pushed samples at most at 125 Hz: plenty for the pose history
+PUSH_FRESH_S = 0.25  # a pushed sample older than this is not trusted: ask the child instead
+MONITOR_PERIOD_S = 0.02  # stale-stream and jog-watchdog checks
 
 
 def dashboard_stop(host: str, timeout_s: float) -> str:
@@ -135,6 +142,10 @@ class URArm:
         self._last_ts_change_s = 0.0
         self._stop_monitor = threading.Event()
         self._monitor: threading.Thread | None = None
+        self._samples = threading.Condition()  # guards the newest sample
+        self._latest: StateSample | None = None
+        self._latest_rx_s = 0.0
+        self._subscribed = False
 
     # -- the client process ------------------------------------------------------------------
     def _request(self, req: Request, timeout_s: float | None = None) -> Any:
@@ -171,12 +182,20 @@ class URArm:
             raise ConnectionLostError(f"dashboard {method} on {self.host}: {exc}") from exc
 
     def _sample(self) -> StateSample:
+        """The newest state: the last pushed sample, or (not subscribed yet, or pushes
+        lagging) one asked for."""
         self._check_link()
-        try:
-            sample: StateSample = self._request(Sample())
-        except RemoteError as exc:
-            self._mark_lost(f"state: {exc}")
-            raise ConnectionLostError(f"state of {self.host}: {exc}") from exc
+        with self._samples:
+            sample, rx_s = self._latest, self._latest_rx_s
+        if sample is None or not self._subscribed or time.monotonic() - rx_s > PUSH_FRESH_S:
+            client = self._client
+            try:
+                sample = self._request(Sample())
+            except RemoteError as exc:
+                self._mark_lost(f"state: {exc}")
+                raise ConnectionLostError(f"state of {self.host}: {exc}") from exc
+            assert sample is not None
+            self._accept(sample, client)
         if not sample.connected:
             self._mark_lost("the RTDE stream was closed by the controller")
             self._check_link()
@@ -197,7 +216,10 @@ class URArm:
         probe_rtde(self.host, self.connect_timeout_s)
         if self._client is not None:
             self._client.kill("replaced")
-        self._client = ClientProcess(self.host)
+        client = self._client = ClientProcess(self.host)
+        with self._samples:
+            self._latest, self._subscribed = None, False
+        client.on_push = lambda s: self._accept(s, client)
         # Readers in other threads see "connecting" (not connected) until the receive client
         # exists; only then is the link up.
         self._lost_reason = "connecting"
@@ -208,6 +230,8 @@ class URArm:
                 raise NotReadyError(f"UR controller at {self.host} is not in remote control: "
                                     "switch the pendant to Remote")
             self._request(Create("recv"), timeout_s=self.connect_timeout_s + 5.0)
+            self._request(Subscribe(PUSH_PERIOD_S))
+            self._subscribed = True
         except RemoteError as exc:
             self._lost_reason = f"connect failed: {exc}"
             raise ConnectionLostError(f"cannot connect to {self.host}: {exc}") from exc
@@ -286,9 +310,28 @@ class URArm:
                                          name=f"ur-monitor-{self.host}")
         self._monitor.start()
 
+    def _accept(self, sample: StateSample, client: ClientProcess | None) -> None:
+        """Keep ``sample`` when it is newer than the one kept (and from the current child);
+        new RTDE data also goes into the pose history."""
+        if client is not self._client:
+            return  # a replaced child's last words
+        now = time.monotonic()
+        with self._samples:
+            latest = self._latest
+            if latest is not None and sample.seq <= latest.seq:
+                return
+            self._latest, self._latest_rx_s = sample, now
+            if sample.timestamp_s != self._last_ts:
+                # when the child first saw it: staleness counts from the data, not the pipe
+                seen_s = sample.seen_s if 0.0 < sample.seen_s <= now else now
+                self._last_ts, self._last_ts_change_s = sample.timestamp_s, seen_s
+                self.history.add(seen_s, T_from_ur_pose(list(sample.tcp_pose)))
+            self._samples.notify_all()
+
     def _monitor_loop(self) -> None:
-        """Pose history, stale-stream detection and the jog watchdog."""
-        while not self._stop_monitor.wait(self.poll_period_s):
+        """Stale-stream detection and the jog watchdog (the pose history fills from the
+        pushed samples, see ``_accept``)."""
+        while not self._stop_monitor.wait(self._monitor_wait_s()):
             if self._lost_reason is not None:
                 continue
             try:
@@ -296,10 +339,7 @@ class URArm:
             except DriverError:
                 continue
             now = time.monotonic()
-            if sample.timestamp_s != self._last_ts:
-                self._last_ts, self._last_ts_change_s = sample.timestamp_s, now
-                self.history.add(now, T_from_ur_pose(list(sample.tcp_pose)))
-            elif now - self._last_ts_change_s > self.stale_after_s:
+            if now - self._last_ts_change_s > self.stale_after_s:
                 self._mark_lost(f"no RTDE data for {now - self._last_ts_change_s:.2f} s")
                 continue
             self._note_protective_stop(sample, now)
@@ -308,6 +348,12 @@ class URArm:
                     self._end_jog()
                 except DriverError as exc:
                     log.warning("%s: jog watchdog could not stop the arm: %s", self.host, exc)
+
+    def _monitor_wait_s(self) -> float:
+        """Until the next check: a period, or less when the stream would turn stale sooner
+        (so a stalled stream is noticed right at ``stale_after_s``)."""
+        due_s = self._last_ts_change_s + self.stale_after_s - time.monotonic()
+        return max(0.001, min(MONITOR_PERIOD_S, due_s + 0.0005))
 
     def _note_protective_stop(self, s: StateSample, now: float) -> None:
         if s.safety_bits & SafetyBits.PROTECTIVE_STOPPED:

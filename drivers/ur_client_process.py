@@ -7,27 +7,39 @@ reconnects from inside its own receive thread and can crash the process. In a ch
 ended with SIGKILL and a crash is a closed pipe: both become ConnectionLostError in the parent.
 
 Frames are length-prefixed pickles of the typed messages below (both ends are this module):
-requests are :class:`Create`, :class:`Call`, :class:`Sample` and :class:`Drop`; a sample comes
-back as a :class:`StateSample`. Requests are served concurrently, so a long move does not
-block the state sampling that watches it.
+requests are :class:`Create`, :class:`Call`, :class:`Sample`, :class:`Subscribe` and
+:class:`Drop`; a sample comes back as a :class:`StateSample`. Requests are served
+concurrently, so a long move does not block the state sampling that watches it.
+
+After :class:`Subscribe` the child pushes samples (reply id 0) instead of being polled: its
+pusher thread sleeps between looks at the receive client's package timestamp and sends a
+sample only when the RTDE data changed (at most the subscribed rate), and after every call it
+sends one before the call's reply, so a sample read after a command's reply reflects the
+command. Samples carry a sequence number in the order they were taken.
 """
 
 from __future__ import annotations
 
 import contextlib
 import itertools
+import logging
 import os
 import pickle
 import struct
 import subprocess
 import sys
 import threading
+import time
+from collections.abc import Callable
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass
 from typing import IO, Any, Literal
 
 _LEN = struct.Struct(">I")
+PUSH_ID = 0  # the reply id of pushed samples (request ids start at 1)
+RECV_FREQUENCY_HZ = 125.0  # the receive client's RTDE rate: enough for the pose history
+PUSH_CHECK_S = 0.004  # how often the pusher looks at the package timestamp (two cheap reads)
 
 ClientName = Literal["dash", "recv", "ctrl"]
 
@@ -54,13 +66,20 @@ class Sample:
 
 
 @dataclass(frozen=True)
+class Subscribe:
+    """Push samples from now on, whenever the RTDE data changed, at most every ``period_s``."""
+
+    period_s: float
+
+
+@dataclass(frozen=True)
 class Drop:
     """Forget a client (after its connection is known to be gone)."""
 
     client: ClientName
 
 
-Request = Create | Call | Sample | Drop
+Request = Create | Call | Sample | Subscribe | Drop
 
 
 @dataclass(frozen=True)
@@ -78,6 +97,8 @@ class StateSample:
     runtime_state: int
     async_running: bool = False  # ur_rtde's async operation (moveL/moveJ/path) under way
     async_progress: int = -1
+    seq: int = 0  # order in which the child took its samples (later = larger)
+    seen_s: float = 0.0  # host time.monotonic() when the child first saw this package
 
 
 def describe(req: Request) -> str:
@@ -86,6 +107,8 @@ def describe(req: Request) -> str:
         return f"{req.client}.{req.method}"
     if isinstance(req, Sample):
         return "sample"
+    if isinstance(req, Subscribe):
+        return "subscribe"
     return f"{type(req).__name__.lower()} {req.client}"
 
 
@@ -128,6 +151,10 @@ class _Clients:
         self.host = host
         self.objects: dict[str, Any] = {}
         self.locks = {name: threading.Lock() for name in ("dash", "recv", "ctrl")}
+        self._seq = itertools.count(1)
+        self._seq_lock = threading.Lock()
+        self.push_period_s: float | None = None  # set by Subscribe
+        self._seen = (-1.0, 0.0)  # (package timestamp, when it was first seen)
 
     def create(self, name: ClientName) -> None:
         import dashboard_client
@@ -137,7 +164,10 @@ class _Clients:
         factories = {"dash": dashboard_client.DashboardClient,
                      "recv": rtde_receive.RTDEReceiveInterface,
                      "ctrl": rtde_control.RTDEControlInterface}
-        self.objects[name] = factories[name](self.host)
+        if name == "recv":  # the adapter needs no more than this; fewer packages to parse
+            self.objects[name] = factories[name](self.host, RECV_FREQUENCY_HZ)
+        else:
+            self.objects[name] = factories[name](self.host)
 
     def call(self, name: ClientName, method: str, args: tuple[Any, ...]) -> Any:
         obj = self.objects.get(name)
@@ -151,6 +181,10 @@ class _Clients:
         recv = self.objects.get("recv")
         if recv is None:
             raise RuntimeError("no receive client")
+        with self._seq_lock:
+            seq = next(self._seq)
+        timestamp_s = float(recv.getTimestamp())
+        seen_s = self._note_seen(timestamp_s)
         running, progress = False, -1
         ctrl = self.objects.get("ctrl")
         if ctrl is not None:
@@ -158,7 +192,7 @@ class _Clients:
             running, progress = bool(status.isAsyncOperationRunning()), int(status.progress())
         return StateSample(
             connected=bool(recv.isConnected()),
-            timestamp_s=float(recv.getTimestamp()),
+            timestamp_s=timestamp_s,
             tcp_pose=tuple(recv.getActualTCPPose()),
             q_rad=tuple(recv.getActualQ()),
             qd_rad_s=tuple(recv.getActualQd()),
@@ -168,7 +202,15 @@ class _Clients:
             runtime_state=int(recv.getRuntimeState()),
             async_running=running,
             async_progress=progress,
+            seq=seq,
+            seen_s=seen_s,
         )
+
+    def _note_seen(self, timestamp_s: float) -> float:
+        with self._seq_lock:
+            if timestamp_s != self._seen[0]:
+                self._seen = (timestamp_s, time.monotonic())
+            return self._seen[1]
 
     def handle(self, req: Request) -> Any:
         if isinstance(req, Create):
@@ -178,7 +220,20 @@ class _Clients:
         if isinstance(req, Drop):
             self.objects.pop(req.client, None)
             return None
+        if isinstance(req, Subscribe):
+            self.push_period_s = max(0.001, float(req.period_s))
+            return None
         return self.call(req.client, req.method, req.args)
+
+    def data_key(self) -> tuple[float, bool] | None:
+        """What tells whether the RTDE data changed (cheap: two reads), None without a
+        receive client."""
+        recv = self.objects.get("recv")
+        if recv is None:
+            return None
+        timestamp_s = float(recv.getTimestamp())
+        self._note_seen(timestamp_s)
+        return timestamp_s, bool(recv.isConnected())
 
 
 def child_main(host: str) -> None:
@@ -192,13 +247,45 @@ def child_main(host: str) -> None:
     clients = _Clients(host)
     lock = threading.Lock()
 
+    def push() -> None:
+        """One sample to the parent, when subscribed and there is something to sample."""
+        if clients.push_period_s is None:
+            return
+        try:
+            sample = clients.sample()
+        except Exception:  # no receive client (yet, or any more): nothing to push
+            return
+        with contextlib.suppress(OSError, ValueError):
+            _write(stdout, (PUSH_ID, True, sample), lock)
+
     def serve(req_id: int, req: Request) -> None:
         try:
             reply: tuple[Any, ...] = (req_id, True, clients.handle(req))
         except Exception as exc:
             reply = (req_id, False, (type(exc).__name__, str(exc)))
+        if isinstance(req, Call):
+            push()  # before the reply: what the parent reads next reflects the call
         with contextlib.suppress(OSError, ValueError):
             _write(stdout, reply, lock)
+        if isinstance(req, Subscribe):
+            threading.Thread(target=pusher, daemon=True, name="pusher").start()
+
+    def pusher() -> None:
+        """Look whether the RTDE data changed every ``PUSH_CHECK_S`` (sleeping between), and
+        push when it did, at most once per subscribed period."""
+        last: tuple[float, bool] | None = None
+        last_push_s = 0.0
+        while True:
+            time.sleep(PUSH_CHECK_S)
+            try:
+                key = clients.data_key()
+            except Exception:
+                key = None
+            now = time.monotonic()
+            if key is None or key == last or now - last_push_s < (clients.push_period_s or 0.0):
+                continue
+            last, last_push_s = key, now
+            push()
 
     while True:
         try:
@@ -225,6 +312,8 @@ class ClientProcess:
         self._lock = threading.Lock()
         self._write_lock = threading.Lock()
         self.dead_reason: str | None = None
+        # told of every pushed sample (see Subscribe), from the reader thread
+        self.on_push: Callable[[StateSample], None] | None = None
         threading.Thread(target=self._read_replies, daemon=True,
                          name=f"ur-client-{host}").start()
 
@@ -235,6 +324,14 @@ class ClientProcess:
                 req_id, ok, value = _read(self._proc.stdout)
             except (EOFError, OSError, pickle.UnpicklingError):
                 break
+            if req_id == PUSH_ID:
+                on_push = self.on_push
+                if on_push is not None and ok:
+                    try:
+                        on_push(value)
+                    except Exception:  # the reader must outlive a bad consumer
+                        logging.getLogger(__name__).exception("pushed sample not taken")
+                continue
             with self._lock:
                 fut = self._pending.pop(req_id, None)
             if fut is not None:

@@ -52,8 +52,10 @@ def test_layering() -> None:
 
 
 # Business code never asks whether hardware is simulated: only the hardware factory builds fakes
-# (and the benchmark renders its scenes with the fake renderer).
-MAY_IMPORT_FAKES = {"cell/factory.py", "cell/bench.py"}
+# (and the benchmarks: the estimator's renders its scenes with the fake renderer, the approach
+# and service benchmarks run the simulated cell on a free loopback address).
+MAY_IMPORT_FAKES = {"cell/factory.py", "cell/bench.py", "cell/bench_approach.py",
+                    "cell/bench_service.py"}
 
 
 def test_only_the_factory_builds_fakes() -> None:

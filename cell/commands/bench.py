@@ -22,7 +22,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--check", action="store_true",
                    help="exit with status 1 when a target is missed")
     p.set_defaults(func=_bench)
-    what = p.add_subparsers(dest="bench_command", required=False, metavar="WHAT")
+    what = p.add_subparsers(dest="bench_command", required=False, metavar="{approach,service}")
     a = what.add_parser(
         "approach", help="servo vs look-and-move approach, conveyor tracking, lost target",
         description="On the simulated cell through the UR adapter and ur_rtde (see "
@@ -35,6 +35,18 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     a.add_argument("--check", action="store_true",
                    help="exit with status 1 when a target is missed")
     a.set_defaults(func=_bench_approach)
+    svc = what.add_parser(
+        "service", help="the simulated cell service under load: STOP, status, SSE, idle CPU",
+        description="Serves the simulated cell, measures idle CPU by process, then runs 50 "
+                    "status pollers, 10 SSE streams and 2 live views while STOP is sent 100+ "
+                    "times with the arm jogging (see cell/bench_service.py).")
+    svc.add_argument("--duration", type=float, default=20.0, help="load seconds (default 20)")
+    svc.add_argument("--idle", type=float, default=5.0, help="idle seconds (default 5)")
+    svc.add_argument("--pollers", type=int, default=50)
+    svc.add_argument("--streams", type=int, default=10)
+    svc.add_argument("--viewers", type=int, default=2)
+    svc.add_argument("--stops", type=int, default=100, help="at least this many stops")
+    svc.set_defaults(func=_bench_service)
 
 
 def _bench_approach(args: argparse.Namespace) -> int:
@@ -85,4 +97,25 @@ def _bench(args: argparse.Namespace) -> int:
         if not args.json:
             print(f"targets missed: {', '.join(missed)}", file=sys.stderr)
         return EXIT_NO
+    return EXIT_OK
+
+
+def _bench_service(args: argparse.Namespace) -> int:
+    from cell.bench_service import ServiceBenchConfig, format_report, run_service_bench
+    from cell.commands.common import EXIT_OK, fail, print_json
+
+    if min(args.duration, args.idle) <= 0 or min(args.pollers, args.streams, args.viewers,
+                                                 args.stops) < 0:
+        return fail("invalid_argument", "durations must be positive and counts not negative",
+                    args.json)
+    cfg = ServiceBenchConfig(duration_s=args.duration, idle_s=args.idle, pollers=args.pollers,
+                             streams=args.streams, viewers=args.viewers, min_stops=args.stops)
+    try:
+        report = run_service_bench(cfg)
+    except RuntimeError as err:
+        return fail("bench_failed", str(err), args.json)
+    if args.json:
+        print_json(report)
+    else:
+        print(format_report(report))
     return EXIT_OK

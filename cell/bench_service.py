@@ -1,0 +1,425 @@
+"""``cell bench service``: the simulated cell service under the load an operator floor gives it.
+
+What runs: ``cell serve`` on the built-in simulated cell (its own loopback address and port,
+its own job database), then
+
+1. idle: nobody connected for ``idle_s``; CPU time of the service, the ur_rtde client child
+   and the simulated controller, read from ``/proc`` (percent of one core);
+2. load for ``duration_s``: ``pollers`` clients polling ``GET /status`` every 250 ms (as the
+   operator page does), ``streams`` clients reading ``GET /events``, ``viewers`` clients
+   fetching ``/camera/frame.png?overlay=true`` back to back (one process for each kind), while
+   this process starts a continuous jog, lets the arm move for ``move_s`` and sends
+   ``POST /api/v1/stop``, at least ``min_stops`` times.
+
+STOP latency is measured from the moment the request is sent to the moment the cell handed
+the stop to the arm adapter (``commanded_monotonic_s`` in the answer; ``time.monotonic`` is
+one clock for every process on the host); ``stop_adapter_ms_*`` is how long the adapter's stop
+calls took (ur_rtde's speedStop and stopL, each acknowledged by the control script), and
+``stop_http_ms_*`` the whole round trip. Every number depends on what else the host runs:
+the report carries the host's load average before and after.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import multiprocessing as mp
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+STATUS_PERIOD_S = 0.25  # the operator page's status poll
+VIEWER_MIN_PERIOD_S = 0.15  # the operator page's camera loop
+OPERATOR = {"Authorization": "Bearer sim-operator"}
+VIEWER = {"Authorization": "Bearer sim-viewer"}
+
+
+@dataclass(frozen=True)
+class ServiceBenchConfig:
+    duration_s: float = 20.0
+    idle_s: float = 5.0
+    pollers: int = 50
+    streams: int = 10
+    viewers: int = 2
+    min_stops: int = 100
+    move_s: float = 0.08
+
+
+# -- /proc ---------------------------------------------------------------------------------
+
+def _cpu_ticks(pid: int) -> int | None:
+    """utime + stime of a process (clock ticks), None when it is gone."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return int(fields[11]) + int(fields[12])  # fields 14 and 15 of proc(5)
+
+
+def _children(pid: int) -> list[tuple[int, str]]:
+    """(pid, command line) of the direct children of ``pid``."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+            if ppid != pid:
+                continue
+            with open(f"/proc/{entry}/cmdline", "rb") as f:
+                cmd = f.read().replace(b"\0", b" ").decode("utf-8", "replace")
+        except (OSError, ValueError, IndexError):
+            continue
+        out.append((int(entry), cmd))
+    return out
+
+
+def service_processes(pid: int) -> dict[str, int]:
+    """The service's processes by role: service, ur_client, controller."""
+    procs = {"service": pid}
+    for child, cmd in _children(pid):
+        if "ur_client_process" in cmd:
+            procs["ur_client"] = child
+        elif "ur_controller" in cmd:
+            procs["controller"] = child
+    return procs
+
+
+def cpu_percent(pids: dict[str, int], seconds: float) -> dict[str, float | None]:
+    """Percent of one core each process used over the next ``seconds``."""
+    hz = os.sysconf("SC_CLK_TCK")
+    t0, before = time.monotonic(), {k: _cpu_ticks(p) for k, p in pids.items()}
+    time.sleep(seconds)
+    t1, after = time.monotonic(), {k: _cpu_ticks(p) for k, p in pids.items()}
+    out: dict[str, float | None] = {}
+    for k in pids:
+        b, a = before[k], after[k]
+        out[k] = None if a is None or b is None else round(100.0 * (a - b) / hz / (t1 - t0), 1)
+    return out
+
+
+# -- the service ------------------------------------------------------------------------------
+
+def _free_port(host: str) -> int:
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def _config_text(host: str, state_dir: Path) -> str:
+    """The built-in simulated cell on its own controller address and state directory."""
+    from cell.configs import __file__ as configs_init
+
+    text = (Path(configs_init).parent / "sim.toml").read_text()
+    text = re.sub(r'(?m)^host = ".*"$', f'host = "{host}"', text)
+    text = re.sub(r'(?m)^job_db = ".*"$', f'job_db = "{state_dir / "jobs.db"}"', text)
+    return re.sub(r'(?m)^calibration_dir = "[^"]*"',
+                  f'calibration_dir = "{state_dir / "calibration"}"', text)
+
+
+@contextlib.contextmanager
+def serving(timeout_s: float = 90.0) -> Iterator[tuple[str, subprocess.Popen[bytes]]]:
+    """``cell serve`` on a free loopback address; yields (base URL, process)."""
+    from fakes.ur_controller.process import free_loopback_host
+
+    host = free_loopback_host()
+    port = _free_port(host)
+    with tempfile.TemporaryDirectory(prefix="cell-bench-") as tmp:
+        cfg = Path(tmp) / "cell.toml"
+        cfg.write_text(_config_text(host, Path(tmp)))
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "cell", "serve", "--config", str(cfg), "--host", host,
+             "--port", str(port), "--log-level", "warning"],
+            stdout=subprocess.DEVNULL, stderr=open(Path(tmp) / "serve.log", "wb"))  # noqa: SIM115
+        base = f"http://{host}:{port}"
+        try:
+            deadline = time.monotonic() + timeout_s
+            while True:
+                if proc.poll() is not None:
+                    raise RuntimeError("cell serve exited: "
+                                       + (Path(tmp) / "serve.log").read_text()[-2000:])
+                with contextlib.suppress(httpx.HTTPError):
+                    r = httpx.get(f"{base}/api/v1/health", timeout=2.0)
+                    if r.status_code == 200 and r.json().get("status") == "ok":
+                        break
+                if time.monotonic() > deadline:
+                    raise RuntimeError("cell serve did not become healthy in time")
+                time.sleep(0.2)
+            yield base, proc
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout=15.0)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+# -- the load (in its own process) ----------------------------------------------------------------
+
+def _load_main(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float,
+               out: mp.Queue[dict[str, Any]]) -> None:
+    import asyncio
+
+    status_ms: list[float] = []
+    gaps_ms: list[float] = []
+    publish_gaps_ms: list[float] = []  # between the server's publish times of the same events
+    frames = [0]
+    events = [0]
+    errors: list[str] = []
+
+    async def poller(client: httpx.AsyncClient, i: int) -> None:
+        await asyncio.sleep(STATUS_PERIOD_S * i / max(1, cfg.pollers))
+        while time.monotonic() < end_s:
+            t0 = time.monotonic()
+            try:
+                r = await client.get(f"{base}/api/v1/status", headers=VIEWER)
+                if r.status_code != 200:
+                    errors.append(f"status {r.status_code}")
+                else:
+                    r.json()
+            except httpx.HTTPError as err:
+                errors.append(f"status: {err!r}")
+            t1 = time.monotonic()
+            if t0 >= start_s:
+                status_ms.append(1000.0 * (t1 - t0))
+            await asyncio.sleep(max(0.0, STATUS_PERIOD_S - (t1 - t0)))
+
+    async def stream(client: httpx.AsyncClient) -> None:
+        last: float | None = None
+        last_published: float | None = None
+        is_state = False
+        try:
+            async with client.stream("GET", f"{base}/api/v1/events", headers=VIEWER,
+                                     timeout=httpx.Timeout(10.0)) as r:
+                async for line in r.aiter_lines():
+                    now = time.monotonic()
+                    if now >= end_s:
+                        break
+                    if is_state and line.startswith("data: "):
+                        is_state = False
+                        published = float(json.loads(line[6:])["time"])
+                        if last_published is not None and now >= start_s:
+                            publish_gaps_ms.append(1000.0 * (published - last_published))
+                        last_published = published
+                    if line != "event: state":
+                        continue
+                    is_state = True
+                    events[0] += 1
+                    if last is not None and last >= start_s:
+                        gaps_ms.append(1000.0 * (now - last))
+                    last = now
+        except httpx.HTTPError as err:
+            errors.append(f"events: {err!r}")
+
+    async def viewer(client: httpx.AsyncClient) -> None:
+        while time.monotonic() < end_s:
+            t0 = time.monotonic()
+            try:
+                r = await client.get(f"{base}/api/v1/camera/frame.png",
+                                     params={"overlay": "true"}, headers=VIEWER)
+                if r.status_code != 200:
+                    errors.append(f"frame {r.status_code}")
+                elif t0 >= start_s:
+                    frames[0] += 1
+            except httpx.HTTPError as err:
+                errors.append(f"frame: {err!r}")
+            await asyncio.sleep(max(0.0, VIEWER_MIN_PERIOD_S - (time.monotonic() - t0)))
+
+    async def main() -> None:
+        # one client (one connection) each, as separate browsers would be; a shared pool of
+        # 60 connections costs the client more CPU per request than the server spends
+        n = cfg.streams + cfg.viewers + cfg.pollers
+        clients = [httpx.AsyncClient(timeout=httpx.Timeout(10.0)) for _ in range(n)]
+        try:
+            it = iter(clients)
+            await asyncio.gather(
+                *(stream(next(it)) for _ in range(cfg.streams)),
+                *(viewer(next(it)) for _ in range(cfg.viewers)),
+                *(poller(next(it), i) for i in range(cfg.pollers)))
+        finally:
+            for c in clients:
+                await c.aclose()
+
+    asyncio.run(main())
+    out.put({"status_ms": status_ms, "gaps_ms": gaps_ms, "publish_gaps_ms": publish_gaps_ms,
+             "frames": frames[0],
+             "events": events[0], "errors": errors})
+
+
+# -- STOP with an arm moving -------------------------------------------------------------------
+
+def _stops(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float
+           ) -> tuple[list[float], list[float], list[float], list[str], int]:
+    """Jog, stop, repeat; (stop ms, adapter ms, round-trip ms, errors, stops with the arm
+    moving)."""
+    stop_ms: list[float] = []
+    adapter_ms: list[float] = []
+    http_ms: list[float] = []
+    errors: list[str] = []
+    moving_at_stop = 0
+    sign = 1.0
+    with httpx.Client(timeout=httpx.Timeout(10.0)) as client:
+        while time.monotonic() < start_s:
+            time.sleep(0.01)
+        while len(stop_ms) < cfg.min_stops or time.monotonic() < end_s:
+            if time.monotonic() > end_s + 60.0:
+                errors.append("stops: not enough stops within a minute past the load")
+                break
+            r = client.post(f"{base}/api/v1/jog", headers=OPERATOR, json={
+                "mode": "continuous", "linear_mm_s": [40.0 * sign, 0.0, 0.0]})
+            if r.status_code == 409:  # the last jog is still settling: try again shortly
+                time.sleep(0.01)
+                continue
+            if r.status_code != 200:
+                errors.append(f"jog {r.status_code}: {r.text[:200]}")
+                time.sleep(0.1)
+                continue
+            sign = -sign
+            time.sleep(cfg.move_s)
+            t0 = time.monotonic()
+            r = client.post(f"{base}/api/v1/stop", headers=OPERATOR,
+                            json={"reason": "bench"})
+            t1 = time.monotonic()
+            if r.status_code != 200:
+                errors.append(f"stop {r.status_code}: {r.text[:200]}")
+                continue
+            body = r.json()
+            commanded = body.get("commanded_monotonic_s")
+            if commanded is None:
+                errors.append("stop: no commanded_monotonic_s in the answer")
+                continue
+            if body.get("cancelled") == "jog":
+                moving_at_stop += 1
+            stop_ms.append(1000.0 * (float(commanded) - t0))
+            if body.get("sent_monotonic_s") is not None:
+                adapter_ms.append(1000.0 * (float(body["sent_monotonic_s"]) - float(commanded)))
+            http_ms.append(1000.0 * (t1 - t0))
+    return stop_ms, adapter_ms, http_ms, errors, moving_at_stop
+
+
+def _pct(values: list[float], q: float) -> float | None:
+    return None if not values else round(float(np.percentile(values, q)), 1)
+
+
+def run_service_bench(cfg: ServiceBenchConfig | None = None) -> dict[str, Any]:
+    cfg = cfg or ServiceBenchConfig()
+    loadavg_before = round(os.getloadavg()[0], 2)  # other work on the host skews every number
+    with serving() as (base, proc):
+        time.sleep(2.0)  # let the start settle (kernels, first frames, gripper activation)
+        pids = service_processes(proc.pid)
+        idle = cpu_percent(pids, cfg.idle_s)
+        start_s = time.monotonic() + 2.0  # the load's clients connect first
+        end_s = start_s + cfg.duration_s
+        ctx = mp.get_context("spawn")
+        queue: mp.Queue[dict[str, Any]] = ctx.Queue()
+        # one process per kind of client, so a live view's megabyte frames do not hold up
+        # the status pollers' own event loop (that would be measured as status latency)
+        roles = [replace(cfg, streams=0, viewers=0), replace(cfg, pollers=0, viewers=0),
+                 replace(cfg, pollers=0, streams=0)]
+        loads = [ctx.Process(target=_load_main, args=(base, role, start_s, end_s, queue),
+                             daemon=True) for role in roles]
+        for load in loads:
+            load.start()
+        loaded: dict[str, Any] = {"status_ms": [], "gaps_ms": [], "publish_gaps_ms": [],
+                                  "frames": 0, "events": 0, "errors": []}
+        cpu_load: dict[str, float | None] = {}
+
+        def measure_load_cpu() -> None:
+            while time.monotonic() < start_s:
+                time.sleep(0.01)
+            clients = {f"bench_{name}": load.pid for name, load in
+                       zip(("pollers", "streams", "viewers"), loads, strict=True)
+                       if load.pid is not None}
+            cpu_load.update(cpu_percent({**pids, **clients}, max(1.0, cfg.duration_s - 1.0)))
+
+        meter = threading.Thread(target=measure_load_cpu, daemon=True)
+        meter.start()
+        stop_ms, adapter_ms, http_ms, errors, moving = _stops(base, cfg, start_s, end_s)
+        try:
+            for _ in loads:
+                part = queue.get(timeout=cfg.duration_s + 60.0)
+                for key, value in part.items():
+                    loaded[key] = loaded[key] + value
+        except Exception as err:
+            errors.append(f"load process: {err!r}")
+        for load in loads:
+            load.join(timeout=10.0)
+        meter.join(timeout=cfg.duration_s + 5.0)
+        health = httpx.get(f"{base}/api/v1/health", timeout=5.0).json()
+    errors += loaded.get("errors", [])
+    gaps = loaded.get("gaps_ms", [])
+    idle_total = sum(v for k, v in idle.items() if k in ("service", "ur_client") and v)
+    report: dict[str, Any] = {
+        "stop_ms_p50": _pct(stop_ms, 50), "stop_ms_p99": _pct(stop_ms, 99),
+        "stop_ms_max": _pct(stop_ms, 100),
+        "stop_adapter_ms_p50": _pct(adapter_ms, 50), "stop_adapter_ms_p99": _pct(adapter_ms, 99),
+        "stop_http_ms_p50": _pct(http_ms, 50), "stop_http_ms_p99": _pct(http_ms, 99),
+        "stops": len(stop_ms), "stops_while_jogging": moving,
+        "status_ms_p50": _pct(loaded.get("status_ms", []), 50),
+        "status_ms_p99": _pct(loaded.get("status_ms", []), 99),
+        "status_polls": len(loaded.get("status_ms", [])),
+        "sse_gap_ms_max": None if not gaps else round(max(gaps), 1),
+        "sse_gap_ms_p99": _pct(gaps, 99),
+        "sse_publish_gap_ms_max": _pct(loaded.get("publish_gaps_ms", []), 100),
+        "sse_state_events": loaded.get("events", 0),
+        "frames_viewed": loaded.get("frames", 0),
+        "idle_cpu_pct": idle,
+        "idle_cpu_pct_service_plus_ur_client": round(idle_total, 1),
+        "load_cpu_pct": cpu_load,
+        "errors": len(errors),
+        "error_samples": errors[:10],
+        "health_after": health.get("status"),
+        "load": {"duration_s": cfg.duration_s, "pollers": cfg.pollers,
+                 "status_period_s": STATUS_PERIOD_S, "streams": cfg.streams,
+                 "viewers": cfg.viewers, "cores": os.cpu_count(),
+                 "host_loadavg_1min_before": loadavg_before,
+                 "host_loadavg_1min_after": round(os.getloadavg()[0], 2)},
+    }
+    return report
+
+
+def format_report(r: dict[str, Any]) -> str:
+    idle = ", ".join(f"{k} {v}%" for k, v in r["idle_cpu_pct"].items())
+    load = ", ".join(f"{k} {v}%" for k, v in r["load_cpu_pct"].items())
+    lo = r["load"]
+    return "\n".join([
+        f"load: {lo['pollers']} status pollers every {lo['status_period_s']} s, "
+        f"{lo['streams']} SSE streams, {lo['viewers']} live views, {lo['duration_s']} s, "
+        f"{lo['cores']} cores, host load average {lo['host_loadavg_1min_before']} before, "
+        f"{lo['host_loadavg_1min_after']} after",
+        f"stop (request -> arm commanded): p50 {r['stop_ms_p50']} ms, p99 {r['stop_ms_p99']} ms,"
+        f" max {r['stop_ms_max']} ms over {r['stops']} stops "
+        f"({r['stops_while_jogging']} while jogging); the adapter's stop calls p50 "
+        f"{r['stop_adapter_ms_p50']} ms, p99 {r['stop_adapter_ms_p99']} ms; round trip p99 "
+        f"{r['stop_http_ms_p99']} ms",
+        f"status: p50 {r['status_ms_p50']} ms, p99 {r['status_ms_p99']} ms "
+        f"({r['status_polls']} polls)",
+        f"SSE state events: max gap {r['sse_gap_ms_max']} ms, p99 {r['sse_gap_ms_p99']} ms "
+        f"({r['sse_state_events']} events; max gap between their publish times "
+        f"{r['sse_publish_gap_ms_max']} ms)",
+        f"idle CPU (% of one core): {idle}; service + ur_client "
+        f"{r['idle_cpu_pct_service_plus_ur_client']}%",
+        f"CPU under load: {load}",
+        f"errors: {r['errors']}" + (f" ({'; '.join(r['error_samples'])})"
+                                     if r["errors"] else ""),
+    ])
+
+
+if __name__ == "__main__":
+    print(json.dumps(run_service_bench(), indent=2))
