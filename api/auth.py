@@ -106,6 +106,20 @@ def authorise(request: Request, token: str | None, permission: str) -> Caller:
     return caller
 
 
+def header_token(request: Request, credentials: HTTPAuthorizationCredentials | None
+                 ) -> str | None:
+    """The token of a route that takes it only in the Authorization header: a ``?token=``
+    there is refused, not ignored (it would end up in proxies' and browsers' logs)."""
+    if credentials is None and "token" in request.query_params:
+        raise AuthError("unauthorized", "this route takes the token only in the "
+                        "Authorization header (?token= is for the GET streaming routes)")
+    return credentials.credentials if credentials else None
+
+
+QUERY_TOKEN = Query(default=None, description="alternative to the header, for <img> and "
+                    "EventSource (redacted from the logs)")
+
+
 def require(permission: str) -> Callable[..., Caller]:
     """A dependency that authenticates the caller from the Authorization header only and
     checks one permission."""
@@ -114,11 +128,7 @@ def require(permission: str) -> Callable[..., Caller]:
         request: Request,
         credentials: HTTPAuthorizationCredentials | None = Depends(bearer),  # noqa: B008
     ) -> Caller:
-        if credentials is None and "token" in request.query_params:
-            raise AuthError("unauthorized", "this route takes the token only in the "
-                            "Authorization header (?token= is for the GET streaming routes)")
-        return authorise(request, credentials.credentials if credentials else None,
-                          permission)
+        return authorise(request, header_token(request, credentials), permission)
 
     return dependency
 
@@ -129,11 +139,10 @@ def require_stream(permission: str) -> Callable[..., Caller]:
     def dependency(
         request: Request,
         credentials: HTTPAuthorizationCredentials | None = Depends(bearer),  # noqa: B008
-        token: str | None = Query(default=None, description="alternative to the header, "
-                                  "for <img> and EventSource (redacted from the logs)"),
+        token: str | None = QUERY_TOKEN,
     ) -> Caller:
         return authorise(request, credentials.credentials if credentials else token,
-                          permission)
+                         permission)
 
     return dependency
 

@@ -15,12 +15,11 @@ import asyncio
 from collections.abc import Awaitable, Callable
 from typing import Annotated, Any
 
-from fastapi import Depends, Query, Request
+from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials
 from starlette.concurrency import run_in_threadpool
 
-from api.auth import Caller, authorise, bearer
-from api.errors import AuthError
+from api.auth import QUERY_TOKEN, Caller, authorise, bearer, header_token
 from cell.service import Cell
 from cell.snapshot import Snap
 
@@ -32,10 +31,7 @@ def require_now(permission: str) -> Callable[..., Awaitable[Caller]]:
         request: Request,
         credentials: HTTPAuthorizationCredentials | None = Depends(bearer),  # noqa: B008
     ) -> Caller:
-        if credentials is None and "token" in request.query_params:
-            raise AuthError("unauthorized", "this route takes the token only in the "
-                            "Authorization header (?token= is for the GET streaming routes)")
-        return authorise(request, credentials.credentials if credentials else None, permission)
+        return authorise(request, header_token(request, credentials), permission)
 
     return dependency
 
@@ -46,8 +42,7 @@ def require_stream_now(permission: str) -> Callable[..., Awaitable[Caller]]:
     async def dependency(
         request: Request,
         credentials: HTTPAuthorizationCredentials | None = Depends(bearer),  # noqa: B008
-        token: str | None = Query(default=None, description="alternative to the header, "
-                                  "for <img> and EventSource (redacted from the logs)"),
+        token: str | None = QUERY_TOKEN,
     ) -> Caller:
         return authorise(request, credentials.credentials if credentials else token,
                          permission)

@@ -7,6 +7,8 @@ missed (the report is printed either way), so a CI job or an integrator's script
 from __future__ import annotations
 
 import argparse
+import sys
+from typing import Any
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -50,33 +52,22 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def _bench_approach(args: argparse.Namespace) -> int:
-    import sys
 
     from cell.bench_approach import format_report, run_bench_approach
-    from cell.commands.common import EXIT_NO, EXIT_OK, fail, print_json, progress_bars
+    from cell.commands.common import fail, progress_bars
 
     if args.placements < 1:
         return fail("invalid_argument", "--placements must be at least 1", args.json)
     with progress_bars(not args.json) as progress:
         report = run_bench_approach(placements=args.placements, seed=args.seed,
                                     progress=progress, lost_after_s=args.lost_after_s)
-    if args.json:
-        print_json(report)
-    else:
-        print(format_report(report))
-    missed = [k for k, met in report["targets_met"].items() if not met]
-    if args.check and missed:
-        if not args.json:
-            print(f"targets missed: {', '.join(missed)}", file=sys.stderr)
-        return EXIT_NO
-    return EXIT_OK
+    return _report(args, report, format_report(report))
 
 
 def _bench(args: argparse.Namespace) -> int:
-    import sys
 
     from cell.bench import format_report, run_bench
-    from cell.commands.common import EXIT_NO, EXIT_OK, fail, print_json, progress_bars
+    from cell.commands.common import fail, progress_bars
     from cell.config import ConfigError, load_config
 
     if args.frames < 1 or args.scenes < 1:
@@ -88,10 +79,17 @@ def _bench(args: argparse.Namespace) -> int:
     with progress_bars(not args.json) as progress:
         report = run_bench(camera, frames=args.frames, scenes=args.scenes, seed=args.seed,
                            progress=progress)
+    return _report(args, report, format_report(report))
+
+
+def _report(args: argparse.Namespace, report: dict[str, Any], text: str) -> int:
+    """Print a benchmark's report (JSON or text); with ``--check``, exit 1 on a missed target."""
+    from cell.commands.common import EXIT_NO, EXIT_OK, print_json
+
     if args.json:
         print_json(report)
     else:
-        print(format_report(report))
+        print(text)
     missed = [k for k, met in report["targets_met"].items() if not met]
     if args.check and missed:
         if not args.json:
