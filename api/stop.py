@@ -12,47 +12,19 @@ snapshot (:mod:`cell.snapshot`), JSON encoded once per refresh.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Awaitable, Callable
 from typing import Annotated, Any
 
-from fastapi import Depends, Request
-from fastapi.security import HTTPAuthorizationCredentials
+from fastapi import Depends
 from starlette.concurrency import run_in_threadpool
 
-from api.auth import QUERY_TOKEN, Caller, authorise, bearer, header_token
+from api.auth import Caller, Read, Stream, require
 from cell.service import Cell
 from cell.snapshot import Snap
 
-
-def require_now(permission: str) -> Callable[..., Awaitable[Caller]]:
-    """:func:`api.auth.require` (the Authorization header only), checked on the event loop."""
-
-    async def dependency(
-        request: Request,
-        credentials: HTTPAuthorizationCredentials | None = Depends(bearer),  # noqa: B008
-    ) -> Caller:
-        return authorise(request, header_token(request, credentials), permission)
-
-    return dependency
-
-
-def require_stream_now(permission: str) -> Callable[..., Awaitable[Caller]]:
-    """:func:`api.auth.require_stream` (header or ``?token=``), checked on the event loop."""
-
-    async def dependency(
-        request: Request,
-        credentials: HTTPAuthorizationCredentials | None = Depends(bearer),  # noqa: B008
-        token: str | None = QUERY_TOKEN,
-    ) -> Caller:
-        return authorise(request, credentials.credentials if credentials else token,
-                         permission)
-
-    return dependency
-
-
-ReadNow = Annotated[Caller, Depends(require_now("read"))]
-StreamNow = Annotated[Caller, Depends(require_stream_now("read"))]
-StopCaller = Annotated[Caller, Depends(require_now("stop"))]
+# Aliases kept for the routes that must never queue: api.auth's dependencies are async.
+ReadNow = Read
+StreamNow = Stream
+StopCaller = Annotated[Caller, Depends(require("stop"))]
 
 
 async def stop_now(cell: Cell, caller: str, reason: str) -> dict[str, Any]:
