@@ -556,6 +556,7 @@ function wireCommands() {
   }));
   $("unlock").addEventListener("click", () => command("Unlock", async () => {
     await api("POST", "/arm/unlock", {});
+    state.resultJobId = "";  // the result line is the unlock's now, not the last job's
     return "protective stop unlocked";
   }));
   wireExtras();
