@@ -36,10 +36,17 @@ from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass
 from typing import IO, Any, Literal
 
+from drivers.timer_slack import set_timer_slack, timer_slack
+
 _LEN = struct.Struct(">I")
 PUSH_ID = 0  # the reply id of pushed samples (request ids start at 1)
 RECV_FREQUENCY_HZ = 125.0  # the receive client's RTDE rate: enough for the pose history
 PUSH_CHECK_S = 0.004  # how often the pusher looks at the package timestamp (two cheap reads)
+# Timer slack of the clients' own threads (see drivers.timer_slack): a package is read at most
+# this much later, for a fifth of the idle CPU. The receive client's packages come every 8 ms,
+# the control client's every 2 ms.
+TIMER_SLACK_S: dict[str, float] = {"recv": 0.002, "ctrl": 0.001, "dash": 0.002}
+PUSHER_TIMER_SLACK_S = 0.001
 
 ClientName = Literal["dash", "recv", "ctrl"]
 
@@ -164,10 +171,11 @@ class _Clients:
         factories = {"dash": dashboard_client.DashboardClient,
                      "recv": rtde_receive.RTDEReceiveInterface,
                      "ctrl": rtde_control.RTDEControlInterface}
-        if name == "recv":  # the adapter needs no more than this; fewer packages to parse
-            self.objects[name] = factories[name](self.host, RECV_FREQUENCY_HZ)
-        else:
-            self.objects[name] = factories[name](self.host)
+        with timer_slack(TIMER_SLACK_S[name]):  # the client's threads start in here
+            if name == "recv":  # the adapter needs no more than this; fewer packages to parse
+                self.objects[name] = factories[name](self.host, RECV_FREQUENCY_HZ)
+            else:
+                self.objects[name] = factories[name](self.host)
 
     def call(self, name: ClientName, method: str, args: tuple[Any, ...]) -> Any:
         obj = self.objects.get(name)
@@ -275,6 +283,7 @@ def child_main(host: str) -> None:
         push when it did, at most once per subscribed period."""
         last: tuple[float, bool] | None = None
         last_push_s = 0.0
+        set_timer_slack(PUSHER_TIMER_SLACK_S)
         while True:
             time.sleep(PUSH_CHECK_S)
             try:
