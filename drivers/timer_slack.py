@@ -35,6 +35,12 @@ def set_timer_slack(slack_s: float) -> bool:
     return _prctl(_PR_SET_TIMERSLACK, max(1, round(slack_s * 1e9))) == 0
 
 
+def timer_slack_s() -> float | None:
+    """The calling thread's timer slack; None where it cannot be read."""
+    ns = _prctl(_PR_GET_TIMERSLACK, 0)
+    return ns / 1e9 if ns > 0 else None
+
+
 @contextlib.contextmanager
 def timer_slack(slack_s: float) -> Iterator[None]:
     """The calling thread's timer slack set for the block (threads started in it keep it)."""

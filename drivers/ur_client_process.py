@@ -47,6 +47,12 @@ PUSH_CHECK_S = 0.004  # how often the pusher looks at the package timestamp (two
 # the control client's every 2 ms.
 TIMER_SLACK_S: dict[str, float] = {"recv": 0.002, "ctrl": 0.001, "dash": 0.002}
 PUSHER_TIMER_SLACK_S = 0.001
+# A standing arm (see _PushState): one sample per QUIET_PUSH_S, well inside the adapter's
+# PUSH_FRESH_S; the deadbands are far below what the cell resolves (1e-5 rad is 10 um at 1 m)
+QUIET_PUSH_S = 0.1
+STILL_DEADBAND_RAD = 1e-5
+STILL_DEADBAND_RAD_S = 1e-4
+STILL_DEADBAND_M_RAD = 1e-5
 
 ClientName = Literal["dash", "recv", "ctrl"]
 
@@ -244,6 +250,63 @@ class _Clients:
         return timestamp_s, bool(recv.isConnected())
 
 
+class _PushState:
+    """Which samples the pusher sends: every change of the arm's state, and a still arm's
+    samples only every ``QUIET_PUSH_S``.
+
+    The parent would take 125 identical samples a second from a standing arm (2.4 % of a core
+    for unpickling and the pose history). Held back instead, the last of them is sent just
+    before the first sample that differs, so the parent's pose history still knows the arm
+    stood until then and latency compensation interpolates nothing across the hold. Joint
+    and TCP values within a deadband count as the same, so encoder noise of a real arm does
+    not defeat this; a slow creep is still sent once it adds up to the deadband.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._last: StateSample | None = None  # the last sample sent
+        self._last_s = 0.0
+        self._held: StateSample | None = None  # the newest one not sent
+
+    def due(self, now_s: float, period_s: float | None) -> bool:
+        with self._lock:
+            return period_s is not None and now_s - self._last_s >= period_s
+
+    def pushed(self, sample: StateSample, now_s: float) -> None:
+        """``sample`` went to the parent outside the pusher (after a call)."""
+        with self._lock:
+            self._last, self._last_s, self._held = sample, now_s, None
+
+    def offer(self, sample: StateSample, now_s: float) -> list[StateSample]:
+        """The samples to send now for a new package, oldest first."""
+        with self._lock:
+            last = self._last
+            if last is not None and now_s - self._last_s < QUIET_PUSH_S and unchanged(last, sample):
+                self._held = sample
+                return []
+            out = [sample]
+            if self._held is not None and not unchanged(self._held, sample):
+                out.insert(0, self._held)
+            self._last, self._last_s, self._held = sample, now_s, None
+            return out
+
+
+def unchanged(a: StateSample, b: StateSample) -> bool:
+    """The same arm state for the adapter: modes, bits and async state equal, joints and TCP
+    within the deadband (only the package's timestamp moved on)."""
+    return (a.connected == b.connected and a.robot_mode == b.robot_mode
+            and a.safety_mode == b.safety_mode and a.safety_bits == b.safety_bits
+            and a.runtime_state == b.runtime_state and a.async_running == b.async_running
+            and a.async_progress == b.async_progress
+            and _within(a.q_rad, b.q_rad, STILL_DEADBAND_RAD)
+            and _within(a.qd_rad_s, b.qd_rad_s, STILL_DEADBAND_RAD_S)
+            and _within(a.tcp_pose, b.tcp_pose, STILL_DEADBAND_M_RAD))
+
+
+def _within(a: tuple[float, ...], b: tuple[float, ...], tol: float) -> bool:
+    return len(a) == len(b) and all(abs(x - y) <= tol for x, y in zip(a, b, strict=True))
+
+
 def child_main(host: str) -> None:
     """Serve requests from stdin until it closes; replies go to stdout."""
     stdin = sys.stdin.buffer
@@ -255,16 +318,22 @@ def child_main(host: str) -> None:
     clients = _Clients(host)
     lock = threading.Lock()
 
+    pusher_state = _PushState()
+
+    def send(sample: StateSample) -> None:
+        with contextlib.suppress(OSError, ValueError):
+            _write(stdout, (PUSH_ID, True, sample), lock)
+
     def push() -> None:
-        """One sample to the parent, when subscribed and there is something to sample."""
+        """One sample to the parent now, when subscribed and there is something to sample."""
         if clients.push_period_s is None:
             return
         try:
             sample = clients.sample()
         except Exception:  # no receive client (yet, or any more): nothing to push
             return
-        with contextlib.suppress(OSError, ValueError):
-            _write(stdout, (PUSH_ID, True, sample), lock)
+        pusher_state.pushed(sample, time.monotonic())
+        send(sample)
 
     def serve(req_id: int, req: Request) -> None:
         try:
@@ -280,9 +349,9 @@ def child_main(host: str) -> None:
 
     def pusher() -> None:
         """Look whether the RTDE data changed every ``PUSH_CHECK_S`` (sleeping between), and
-        push when it did, at most once per subscribed period."""
+        push when it did, at most once per subscribed period; a still arm's samples only every
+        ``QUIET_PUSH_S`` (see :class:`_PushState`)."""
         last: tuple[float, bool] | None = None
-        last_push_s = 0.0
         set_timer_slack(PUSHER_TIMER_SLACK_S)
         while True:
             time.sleep(PUSH_CHECK_S)
@@ -291,10 +360,15 @@ def child_main(host: str) -> None:
             except Exception:
                 key = None
             now = time.monotonic()
-            if key is None or key == last or now - last_push_s < (clients.push_period_s or 0.0):
+            if key is None or key == last or not pusher_state.due(now, clients.push_period_s):
                 continue
-            last, last_push_s = key, now
-            push()
+            last = key
+            try:
+                sample = clients.sample()
+            except Exception:
+                continue
+            for out in pusher_state.offer(sample, now):
+                send(out)
 
     while True:
         try:

@@ -388,8 +388,12 @@ def test_jog_start_and_stop_in_tool_frame(ctl: ControllerProcess, clients: tuple
     t1 = time.monotonic()
     assert c.jogStop()
     t2 = time.monotonic()
-    p1 = np.array(r.getActualTCPPose())
+    # the receive client is another connection: its next packages (2 ms apart) show the stop
+    deadline = t2 + 0.1
+    while np.linalg.norm(r.getActualTCPSpeed()[:3]) >= 1e-3 and time.monotonic() < deadline:
+        time.sleep(0.002)
     assert np.linalg.norm(r.getActualTCPSpeed()[:3]) < 1e-3
+    p1 = np.array(r.getActualTCPPose())
     tool_z = T_from_ur_pose(p0)[:3, 2]
     moved_mm = 1000.0 * (p1[:3] - p0[:3])
     along = float(moved_mm @ tool_z)
