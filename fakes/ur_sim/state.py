@@ -1,6 +1,6 @@
-"""Types of the simulated UR controller: modes and status bits as RTDE reports them, limits,
-the engine's state snapshot, command outcomes and errors. Shared by the engine, its commands and
-the protocol servers.
+"""Types of the simulated UR controller: modes (UR's codes, from :mod:`drivers.ur_modes`) and
+status bits as RTDE reports them, limits, the engine's state snapshot, command outcomes and
+errors. Shared by the engine, its commands and the protocol servers.
 """
 
 from __future__ import annotations
@@ -14,36 +14,11 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+# UR's published codes, one definition for both sides of the wire
+from drivers.ur_modes import RobotMode, SafetyMode
+
 NUM_JOINTS = 6
 CYCLE_S = 0.002  # 500 Hz, the e-Series control rate
-
-
-class RobotMode(IntEnum):
-    """UR RobotMode as RTDE ``robot_mode`` reports it."""
-
-    NO_CONTROLLER = -1
-    DISCONNECTED = 0
-    CONFIRM_SAFETY = 1
-    BOOTING = 2
-    POWER_OFF = 3
-    POWER_ON = 4
-    IDLE = 5
-    BACKDRIVE = 6
-    RUNNING = 7
-
-
-class SafetyMode(IntEnum):
-    """UR SafetyMode as RTDE ``safety_mode`` reports it."""
-
-    NORMAL = 1
-    REDUCED = 2
-    PROTECTIVE_STOP = 3
-    RECOVERY = 4
-    SAFEGUARD_STOP = 5
-    SYSTEM_EMERGENCY_STOP = 6
-    ROBOT_EMERGENCY_STOP = 7
-    VIOLATION = 8
-    FAULT = 9
 
 
 class SafetyStatusBit(IntEnum):
