@@ -195,9 +195,9 @@ class ServoConfig(_Strict):
 
     The law is ``twist = feed-forward + gain * error`` with the speed capped by
     ``max_speed_mm_s`` / ``max_angular_speed_deg_s`` and by braking room, and its change per
-    tick by ``accel_mm_s2``. Converged: the estimated error under ``tolerance_mm`` /
-    ``tolerance_deg`` on ``converge_frames`` consecutive frames. No pose for ``lost_after_s``:
-    the arm stops and the job fails ``target_lost``.
+    tick by ``accel_mm_s2`` / ``angular_accel_deg_s2``. Converged: the estimated error under
+    ``tolerance_mm`` / ``tolerance_deg`` on ``converge_frames`` consecutive frames. No pose
+    for ``lost_after_s``: the arm stops and the job fails ``target_lost``.
     """
 
     gain_lin_per_s: float = Field(default=10.0, gt=0, le=50)
@@ -208,6 +208,9 @@ class ServoConfig(_Strict):
     max_speed_mm_s: float = Field(default=250.0, gt=0)
     max_angular_speed_deg_s: float = Field(default=90.0, gt=0)
     accel_mm_s2: float = Field(default=1500.0, gt=0)
+    # the rotation's own acceleration (a 90 deg tool turn at 1.5 rad/s^2, UR's speedl rule of
+    # one number for both, took >= 2 s alone); capped by limits.max_angular_accel_deg_s2
+    angular_accel_deg_s2: float = Field(default=450.0, gt=0)
     stop_decel_mm_s2: float = Field(default=3000.0, gt=0)
     tolerance_mm: float = Field(default=0.05, gt=0)
     tolerance_deg: float = Field(default=0.03, gt=0)
@@ -240,6 +243,9 @@ class LimitsConfig(_Strict):
     max_jog_speed_mm_s: float = Field(default=100.0, gt=0)
     max_jog_speed_deg_s: float = Field(default=30.0, gt=0)
     max_angular_speed_deg_s: float = Field(default=90.0, gt=0)  # streamed (servo) twists
+    # a streamed twist's rotation (10.5 rad/s^2; the translation's cap is max_accel_mm_s2):
+    # URScript's speedl takes it as its own aRot, which defaults to the linear value
+    max_angular_accel_deg_s2: float = Field(default=600.0, gt=0)
     max_jog_step_mm: float = Field(default=200.0, gt=0)  # one jog step, translation
     max_jog_step_deg: float = Field(default=45.0, gt=0)  # one jog step, rotation
     tilt_limit_deg: float = Field(default=60.0, gt=0, le=180)

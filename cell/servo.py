@@ -107,7 +107,9 @@ class ServoRun:
                                     sc.max_angular_speed_deg_s,
                                     core.config.limits.max_angular_speed_deg_s))),
                                 min(sc.accel_mm_s2, core.config.limits.max_accel_mm_s2),
-                                sc.watchdog_s)
+                                sc.watchdog_s, float(np.radians(min(
+                                    sc.angular_accel_deg_s2,
+                                    core.config.limits.max_angular_accel_deg_s2))))
 
     # -- the frame thread ----------------------------------------------------------------------
     def _frame_loop(self) -> None:
@@ -241,7 +243,8 @@ class ServoRun:
                                       0.2 * self.params.max_angular_speed_rad_s)
                 ff = ff + ki * np.concatenate([i_lin, i_rot])
             twist = pbvs_twist(T_tcp, goal, ff, prev, dt, self.params)
-            arm.servo_twist(twist, self.params.accel_mm_s2, sc.watchdog_s)
+            arm.servo_twist(twist, self.params.accel_mm_s2, sc.watchdog_s,
+                            self.params.accel_rad_s2)
             prev, t_prev = twist, t_cmd
             rest = tick + sc.tick_s - time.monotonic()
             if rest > 0:
