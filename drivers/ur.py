@@ -42,7 +42,7 @@ from drivers.errors import (
     ProtectiveStopError,
     UnlockTooEarlyError,
 )
-from drivers.pose_history import PoseHistory
+from drivers.pose_history import ControllerClock, PoseHistory
 from drivers.ur_client_process import (
     Call,
     ClientDied,
@@ -130,6 +130,7 @@ class URArm:
         self.stale_after_s = stale_after_s
         self.poll_period_s = poll_period_s
         self.history = PoseHistory(history_samples)
+        self._clock = ControllerClock()  # the history is stamped on the controller's clock
         self._client: ClientProcess | None = None
         self._has_control = False
         self._lost_reason: str | None = "not connected"
@@ -240,6 +241,7 @@ class URArm:
             raise
         self._lost_reason = None
         self._last_ts = -1.0
+        self._clock = ControllerClock()  # maybe another controller (or clock) now
         self._last_ts_change_s = time.monotonic()
         self._start_monitor()
         sample = self._sample()
@@ -325,7 +327,8 @@ class URArm:
                 # when the child first saw it: staleness counts from the data, not the pipe
                 seen_s = sample.seen_s if 0.0 < sample.seen_s <= now else now
                 self._last_ts, self._last_ts_change_s = sample.timestamp_s, seen_s
-                self.history.add(seen_s, T_from_ur_pose(list(sample.tcp_pose)))
+                self.history.add(self._clock.host_time(sample.timestamp_s, seen_s),
+                                 T_from_ur_pose(list(sample.tcp_pose)))
             self._samples.notify_all()
 
     def _monitor_loop(self) -> None:
