@@ -200,8 +200,9 @@ class ServoConfig(_Strict):
     for ``lost_after_s``: the arm stops and the job fails ``target_lost``.
     """
 
-    gain_lin_per_s: float = Field(default=10.0, gt=0, le=50)
-    gain_rot_per_s: float = Field(default=10.0, gt=0, le=50)
+    # 12.5/s = 1 / watchdog_s: near the goal braking room caps the rate there anyway
+    gain_lin_per_s: float = Field(default=12.5, gt=0, le=50)
+    gain_rot_per_s: float = Field(default=12.5, gt=0, le=50)
     # tracking only: integral action on the error (1/s^2), its share capped at a fifth of
     # the speed limits, against the steady lag of an arm slower than commanded
     track_integral_per_s2: float = Field(default=20.0, ge=0, le=500)
@@ -215,7 +216,10 @@ class ServoConfig(_Strict):
     tolerance_mm: float = Field(default=0.05, gt=0)
     tolerance_deg: float = Field(default=0.03, gt=0)
     converge_frames: int = Field(default=4, ge=1, le=100)
-    lost_after_s: float = Field(default=0.1, gt=0, le=5)
+    lost_after_s: float = Field(default=0.1, gt=0, le=5)  # of camera time (exposures)
+    # the lost-target clock starts from a pose's exposure plus the pipeline's recent latency
+    # (the largest of the last 8 poses), at most this much (cell/servo.py: _silent_s)
+    latency_allowance_s: float = Field(default=0.15, ge=0, le=1)
     tick_s: float = Field(default=0.008, ge=0.008, le=0.1)  # control period
     watchdog_s: float = Field(default=0.08, gt=0, le=1)  # the arm brakes when ticks stop
     filter_alpha: float = Field(default=0.5, gt=0, le=1)

@@ -142,3 +142,35 @@ def test_the_guard_refuses_rotation_beyond_its_acceleration(sim: SimArm) -> None
     assert len(ticks) == 1 and ticks[0].T_from is not None and ticks[0].velocity is not None
     assert np.allclose(ticks[0].T_base_tcp,
                        servo_ahead(ticks[0].T_from, ticks[0].velocity, 1000.0, 0.08, alpha))
+
+
+def test_lost_clock_runs_on_exposure_time_plus_the_recent_latency() -> None:
+    from collections import deque
+
+    from cell.servo import latency_allowance_s, silent_s
+
+    rng = np.random.default_rng(2)
+    lags: deque[float] = deque(maxlen=8)
+    last_exposure, worst = 0.0, 0.0
+    # every frame (30 fps) shows the target, but each pose reaches the filter 40-95 ms after
+    # its exposure (a loaded host): checked every 8 ms, it is never silent for 0.1 s
+    arrivals = sorted((k / 30.0 + rng.uniform(0.04, 0.095), k / 30.0) for k in range(90))
+    t, i = 0.0, 0
+    while t < 3.0:
+        while i < len(arrivals) and arrivals[i][0] <= t:
+            lags.append(arrivals[i][0] - arrivals[i][1])
+            last_exposure = max(last_exposure, arrivals[i][1])
+            i += 1
+        if i > 8:
+            worst = max(worst, silent_s(t, last_exposure, latency_allowance_s(lags, 0.15),
+                                        0.0))
+        t += 0.008
+    assert worst < 0.1, worst
+    # then the lens is covered after the exposure at 3.0 s: lost 0.1 s after its latency
+    lost_at = 3.0 + latency_allowance_s(lags, 0.15) + 0.1
+    assert silent_s(lost_at - 0.01, 3.0, latency_allowance_s(lags, 0.15), 0.0) < 0.1
+    assert silent_s(lost_at + 0.01, 3.0, latency_allowance_s(lags, 0.15), 0.0) > 0.1
+    # a pipeline far behind gets no more than the cap; the loop's start is the floor
+    assert latency_allowance_s([0.5, 0.02], 0.15) == pytest.approx(0.15)
+    assert latency_allowance_s([], 0.15) == 0.0
+    assert silent_s(10.0, 1.0, 0.05, 9.95) == pytest.approx(0.05)
