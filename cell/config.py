@@ -183,10 +183,11 @@ class ApproachConfig(_Strict):
     observe_distance_mm: float = Field(default=300.0, gt=0)
     settle_s: float = Field(default=0.05, ge=0)
     frames_per_locate: int = Field(default=3, ge=1, le=10)  # averaged inside look-and-move
-    # POST /approach without "mode". Servo is faster and more accurate when it converges, but
-    # on a loaded 2-core host it converged in 5 of 10 bench runs at the default
-    # [servo] lost_after_s (look-and-move: 10 of 10), so look-and-move stays the default until
-    # servo holds under load (README: Servo benchmark).
+    # POST /approach without "mode" (and OPC UA / XML-RPC's empty mode, the page's first
+    # choice). Servo is 3.75x faster at an equal final error (cell bench approach), but on a
+    # loaded 2-core host 3-5 of 10 servo runs still end target_lost at the default
+    # [servo] lost_after_s (look-and-move: 10 of 10), so look-and-move stays the default
+    # until servo holds under load (README: Servo benchmark).
     mode: Literal["servo", "look_and_move"] = "look_and_move"
 
 
@@ -200,9 +201,8 @@ class ServoConfig(_Strict):
     for ``lost_after_s``: the arm stops and the job fails ``target_lost``.
     """
 
-    # 12.5/s = 1 / watchdog_s: near the goal braking room caps the rate there anyway
-    gain_lin_per_s: float = Field(default=12.5, gt=0, le=50)
-    gain_rot_per_s: float = Field(default=12.5, gt=0, le=50)
+    gain_lin_per_s: float = Field(default=10.0, gt=0, le=50)
+    gain_rot_per_s: float = Field(default=10.0, gt=0, le=50)
     # tracking only: integral action on the error (1/s^2), its share capped at a fifth of
     # the speed limits, against the steady lag of an arm slower than commanded
     track_integral_per_s2: float = Field(default=20.0, ge=0, le=500)
