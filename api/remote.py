@@ -116,7 +116,7 @@ def approach(cell: Cell, caller: RemoteCaller, standoff_mm: Any, mode: str) -> J
     """An approach job (not waited for). ``mode`` "" is the cell's default."""
     params = {"standoff_mm": standoff_mm, "mode": mode}
     require(cell, caller, "approach", "approach", params)
-    mode = mode or "look_and_move"
+    mode = mode or cell.config.approach.mode  # "" is the cell's default
     try:
         standoff = finite("standoff_mm", standoff_mm, minimum=0.0)
         if mode not in APPROACH_MODES:

@@ -84,7 +84,9 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
         if not core.camera.is_connected:
             raise UnavailableError("camera_lost", "the camera is lost: approach needs it "
                                    "(jogging is still possible)")
-        loc = _last_locate(core) if use_last_locate else locate(core, ac.frames_per_locate)
+        # the servo re-estimates from every frame: one frame to start from is enough
+        n_frames = 1 if how == "servo" else ac.frames_per_locate
+        loc = _last_locate(core) if use_last_locate else locate(core, n_frames)
         goal = approach_tcp(loc.T_base_target, plan.T_target_tcp, plan.standoff_mm)
         if how == "servo":  # the servo moves straight at the goal: that path is checked
             core.arm.guard.check_goal(st.T_base_tcp, goal, "approach goal")

@@ -183,10 +183,11 @@ class ApproachConfig(_Strict):
     observe_distance_mm: float = Field(default=300.0, gt=0)
     settle_s: float = Field(default=0.05, ge=0)
     frames_per_locate: int = Field(default=3, ge=1, le=10)  # averaged inside look-and-move
-    # POST /approach without "mode". Servo is faster and more accurate when it converges, but
-    # on a loaded 2-core host it converged in 5 of 10 bench runs at the default
-    # [servo] lost_after_s (look-and-move: 10 of 10), so look-and-move stays the default until
-    # servo holds under load (README: Servo benchmark).
+    # POST /approach without "mode" (and OPC UA / XML-RPC's empty mode, the page's first
+    # choice). Servo is 3.75x faster at an equal final error (cell bench approach), but on a
+    # loaded 2-core host 3-5 of 10 servo runs still end target_lost at the default
+    # [servo] lost_after_s (look-and-move: 10 of 10), so look-and-move stays the default
+    # until servo holds under load (README: Servo benchmark).
     mode: Literal["servo", "look_and_move"] = "look_and_move"
 
 
@@ -195,9 +196,9 @@ class ServoConfig(_Strict):
 
     The law is ``twist = feed-forward + gain * error`` with the speed capped by
     ``max_speed_mm_s`` / ``max_angular_speed_deg_s`` and by braking room, and its change per
-    tick by ``accel_mm_s2``. Converged: the estimated error under ``tolerance_mm`` /
-    ``tolerance_deg`` on ``converge_frames`` consecutive frames. No pose for ``lost_after_s``:
-    the arm stops and the job fails ``target_lost``.
+    tick by ``accel_mm_s2`` / ``angular_accel_deg_s2``. Converged: the estimated error under
+    ``tolerance_mm`` / ``tolerance_deg`` on ``converge_frames`` consecutive frames. No pose
+    for ``lost_after_s``: the arm stops and the job fails ``target_lost``.
     """
 
     gain_lin_per_s: float = Field(default=10.0, gt=0, le=50)
@@ -208,11 +209,17 @@ class ServoConfig(_Strict):
     max_speed_mm_s: float = Field(default=250.0, gt=0)
     max_angular_speed_deg_s: float = Field(default=90.0, gt=0)
     accel_mm_s2: float = Field(default=1500.0, gt=0)
+    # the rotation's own acceleration (a 90 deg tool turn at 1.5 rad/s^2, UR's speedl rule of
+    # one number for both, took >= 2 s alone); capped by limits.max_angular_accel_deg_s2
+    angular_accel_deg_s2: float = Field(default=450.0, gt=0)
     stop_decel_mm_s2: float = Field(default=3000.0, gt=0)
     tolerance_mm: float = Field(default=0.05, gt=0)
     tolerance_deg: float = Field(default=0.03, gt=0)
     converge_frames: int = Field(default=4, ge=1, le=100)
-    lost_after_s: float = Field(default=0.1, gt=0, le=5)
+    lost_after_s: float = Field(default=0.1, gt=0, le=5)  # of camera time (exposures)
+    # the lost-target clock starts from a pose's exposure plus the pipeline's recent latency
+    # (the largest of the last 8 poses), at most this much (cell/servo.py: _silent_s)
+    latency_allowance_s: float = Field(default=0.15, ge=0, le=1)
     tick_s: float = Field(default=0.008, ge=0.008, le=0.1)  # control period
     watchdog_s: float = Field(default=0.08, gt=0, le=1)  # the arm brakes when ticks stop
     filter_alpha: float = Field(default=0.5, gt=0, le=1)
@@ -240,6 +247,9 @@ class LimitsConfig(_Strict):
     max_jog_speed_mm_s: float = Field(default=100.0, gt=0)
     max_jog_speed_deg_s: float = Field(default=30.0, gt=0)
     max_angular_speed_deg_s: float = Field(default=90.0, gt=0)  # streamed (servo) twists
+    # a streamed twist's rotation (10.5 rad/s^2; the translation's cap is max_accel_mm_s2):
+    # URScript's speedl takes it as its own aRot, which defaults to the linear value
+    max_angular_accel_deg_s2: float = Field(default=600.0, gt=0)
     max_jog_step_mm: float = Field(default=200.0, gt=0)  # one jog step, translation
     max_jog_step_deg: float = Field(default=45.0, gt=0)  # one jog step, rotation
     tilt_limit_deg: float = Field(default=60.0, gt=0, le=180)

@@ -336,14 +336,16 @@ class GuardedArm:
             raise driver_error(err, "jogging") from err
 
     def servo_twist(self, velocity: NDArray[np.float64], accel_mm_s2: float,
-                    watchdog_s: float) -> None:
+                    watchdog_s: float, angular_accel_rad_s2: float | None = None) -> None:
         """One checked tick of a streamed base-frame twist (closed-loop control).
 
         Checked every tick: the slot's holder is not cancelled; the arm is ready and fresh;
-        linear and angular speed under the caps; the change from the previous tick within
-        ``accel_mm_s2`` (itself under the cap); and where the twist leads if it ran on until
-        the watchdog fires and the arm then braked (``watchdog_s + |v| / 2a``) stays in the
-        box and the tilt limit. Recorded with that pose ahead.
+        linear and angular speed under the caps; both accelerations under their caps
+        (``angular_accel_rad_s2`` None: ``accel_mm_s2 / 1000`` rad/s^2, UR's rule); the
+        change from the previous tick within them, translation and rotation each against its
+        own; and where the twist leads if it ran on until the watchdog fires and the arm then
+        braked (``watchdog_s + |v| / 2a``, per part) stays in the box and the tilt limit.
+        Recorded with that pose ahead.
         """
         v = np.asarray(velocity, dtype=float).reshape(-1)
         if v.shape != (6,) or not np.all(np.isfinite(v)):
@@ -352,6 +354,13 @@ class GuardedArm:
         if not 0 < accel_mm_s2 <= lim.max_accel_mm_s2:
             raise LimitError("accel_limit", f"servo acceleration {accel_mm_s2} mm/s^2 is "
                              f"outside (0, {lim.max_accel_mm_s2}]")
+        alpha = accel_mm_s2 / 1000.0 if angular_accel_rad_s2 is None \
+            else float(angular_accel_rad_s2)
+        if not (np.isfinite(alpha) and 0 < np.degrees(alpha)
+                <= lim.max_angular_accel_deg_s2 * (1 + 1e-9)):
+            raise LimitError("accel_limit", f"servo angular acceleration "
+                             f"{np.degrees(alpha):.0f} deg/s^2 is outside (0, "
+                             f"{lim.max_angular_accel_deg_s2}]")
         lin, ang_deg = float(np.linalg.norm(v[:3])), float(np.degrees(np.linalg.norm(v[3:])))
         if lin > lim.max_speed_mm_s * (1 + 1e-9):
             raise LimitError("speed_limit", f"servo speed {lin:.1f} mm/s is above "
@@ -368,22 +377,20 @@ class GuardedArm:
             # watchdog may have braked it, and the controller may have restarted from zero)
             refs = [np.zeros(6)] if prev is None else [prev[1], np.zeros(6)]
             dt = SERVO_MIN_DT_S if prev is None else max(SERVO_MIN_DT_S, now - prev[0])
-            a_cap = accel_mm_s2 * SERVO_ACCEL_MARGIN
-            # per reference: (linear, angular as mm/s^2-equivalent), judged by the worse one
-            changes = [(float(np.linalg.norm(v[:3] - r[:3])) / dt,
-                        float(np.linalg.norm(v[3:] - r[3:])) / dt) for r in refs]
-            dv, dw = min(changes, key=lambda c: max(c[0], c[1] * 1000.0))
-            if dv > a_cap or dw * 1000.0 > a_cap:
+            dv, dw = min((twist_change(v, r, dt) for r in refs),
+                         key=lambda c: max(c[0] / accel_mm_s2, c[1] / alpha))
+            if not servo_change_ok(dv, dw, accel_mm_s2, alpha):
                 raise LimitError("accel_limit", f"servo twist changes at {dv:.0f} mm/s^2 / "
-                                 f"{np.degrees(dw):.0f} deg/s^2, above {accel_mm_s2} mm/s^2")
+                                 f"{np.degrees(dw):.0f} deg/s^2, above {accel_mm_s2} mm/s^2 "
+                                 f"/ {np.degrees(alpha):.0f} deg/s^2")
             st = self.ready_state()
-            T_ahead = servo_ahead(st.T_base_tcp, v, accel_mm_s2, watchdog_s)
+            T_ahead = servo_ahead(st.T_base_tcp, v, accel_mm_s2, watchdog_s, alpha)
             path = linear_path(st.T_base_tcp, T_ahead)
             self.guard.check_path(path, "servo motion")
             self._record(Commanded(now, "servo", T_ahead, v.copy(), "base",
                                    T_from=st.T_base_tcp.copy(), path=(path[0], path[-1])))
             try:
-                self._arm.servo_twist(v, accel_mm_s2, watchdog_s)
+                self._arm.servo_twist(v, accel_mm_s2, watchdog_s, alpha)
             except DriverError as err:
                 self._last_twist = None
                 self._arm.stop()
@@ -445,13 +452,29 @@ def jog_ahead(T: Matrix4, velocity: NDArray[np.float64], frame: JogFrame,
     return make_T(dR @ T[:3, :3], T[:3, 3] + v * horizon_s)
 
 
+def twist_change(v: NDArray[np.float64], ref: NDArray[np.float64], dt_s: float
+                 ) -> tuple[float, float]:
+    """``(linear mm/s^2, angular rad/s^2)``: how fast a twist changes from ``ref`` in ``dt_s``."""
+    return (float(np.linalg.norm(v[:3] - ref[:3])) / dt_s,
+            float(np.linalg.norm(v[3:] - ref[3:])) / dt_s)
+
+
+def servo_change_ok(dv_mm_s2: float, dw_rad_s2: float, accel_mm_s2: float,
+                    accel_rad_s2: float) -> bool:
+    """A tick's change within both accelerations, with ``SERVO_ACCEL_MARGIN`` for the tick
+    timing jitter between the law and the guard."""
+    return (dv_mm_s2 <= accel_mm_s2 * SERVO_ACCEL_MARGIN
+            and dw_rad_s2 <= accel_rad_s2 * SERVO_ACCEL_MARGIN)
+
+
 def servo_ahead(T: Matrix4, twist: NDArray[np.float64], accel_mm_s2: float,
-                watchdog_s: float) -> Matrix4:
+                watchdog_s: float, accel_rad_s2: float | None = None) -> Matrix4:
     """Where a streamed twist leads in the worst case: held until the watchdog fires, then
-    braked at ``accel_mm_s2`` (and ``accel_mm_s2 / 1000`` rad/s^2), translation and
-    rotation each over its own braking time."""
+    braked at ``accel_mm_s2`` and ``accel_rad_s2`` (None: ``accel_mm_s2 / 1000``),
+    translation and rotation each over its own braking time."""
+    alpha = accel_mm_s2 / 1000.0 if accel_rad_s2 is None else accel_rad_s2
     v, w = twist[:3], twist[3:]
     t_lin = watchdog_s + float(np.linalg.norm(v)) / (2.0 * accel_mm_s2)
-    t_rot = watchdog_s + float(np.linalg.norm(w)) / (2e-3 * accel_mm_s2)
+    t_rot = watchdog_s + float(np.linalg.norm(w)) / (2.0 * alpha)
     dR = Rotation.from_rotvec(w * t_rot).as_matrix()
     return make_T(dR @ T[:3, :3], T[:3, 3] + v * t_lin)

@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -38,6 +40,7 @@ from estimator.transforms import pose_dict, pose_distance
 
 Matrix4 = NDArray[np.float64]
 ServoMode = Literal["approach", "track"]
+RECENT_LAGS = 8  # the lost-target clock allows for the largest latency of the last poses
 HISTORY_POINTS = 100  # the error history in a job's result is downsampled to this
 STILL_TIMEOUT_S = 2.0
 PROGRESS_PERIOD_S = 0.25  # the job's progress carries the live error this often
@@ -74,6 +77,23 @@ def _stats_ms(xs: list[float]) -> dict[str, float] | None:
             "max": round(float(a.max()), 1)}
 
 
+def latency_allowance_s(recent_lags_s: Iterable[float], cap_s: float) -> float:
+    """The largest recent exposure-to-filter latency, at most ``cap_s``."""
+    return min(max(recent_lags_s, default=0.0), cap_s)
+
+
+def silent_s(now_s: float, last_exposure_s: float, allowance_s: float, floor_s: float
+             ) -> float:
+    """How long the target has gone unseen, on the camera's clock.
+
+    Counted from the mid-exposure time of the last pose plus the pipeline's recent latency
+    (render or transfer, estimate), not from when that pose reached the filter: on a loaded
+    host every pose arrives late and in jitter while every frame still shows the target, and
+    that delay is not the target's absence. A covered lens or a stalled camera still counts
+    from its last good exposure. Never from before ``floor_s`` (the loop's start)."""
+    return now_s - max(last_exposure_s + allowance_s, floor_s)
+
+
 class ServoRun:
     """One servo job's loop (see module doc). ``run`` returns the job's result."""
 
@@ -90,7 +110,10 @@ class ServoRun:
         self._frames = 0
         self._failed_frames = 0
         self._stale_frames = 0
-        self._last_pose_s = time.monotonic()
+        self._last_pose_s = time.monotonic()  # host time the last pose went into the filter
+        self._last_exposure_s = time.monotonic()  # that pose's mid-exposure time
+        self._clock_floor_s = time.monotonic()  # the lost-target clock runs from here at least
+        self._recent_lags: deque[float] = deque(maxlen=RECENT_LAGS)
         self._camera_error: CellError | None = None
         self._last_error: CellError | None = None  # why the last frame gave no pose
         self._last_sequence = -1
@@ -100,6 +123,7 @@ class ServoRun:
         if first is not None:
             self.filter.update(first.frame_timestamp_s, first.T_base_target)
             self._last_pose_s = first.located_at_s
+            self._last_exposure_s = first.frame_timestamp_s
             self._last_sequence = first.frame_sequence
         self.params = LawParams(sc.gain_lin_per_s, sc.gain_rot_per_s,
                                 min(sc.max_speed_mm_s, core.config.limits.max_speed_mm_s),
@@ -107,7 +131,9 @@ class ServoRun:
                                     sc.max_angular_speed_deg_s,
                                     core.config.limits.max_angular_speed_deg_s))),
                                 min(sc.accel_mm_s2, core.config.limits.max_accel_mm_s2),
-                                sc.watchdog_s)
+                                sc.watchdog_s, float(np.radians(min(
+                                    sc.angular_accel_deg_s2,
+                                    core.config.limits.max_angular_accel_deg_s2))))
 
     # -- the frame thread ----------------------------------------------------------------------
     def _frame_loop(self) -> None:
@@ -147,7 +173,9 @@ class ServoRun:
                 self.filter.update(frame.timestamp_s, T_bt)
                 self._gaps.append(now - self._last_pose_s)
                 self._lags.append(now - frame.timestamp_s)
+                self._recent_lags.append(now - frame.timestamp_s)
                 self._last_pose_s = now
+                self._last_exposure_s = frame.timestamp_s
                 self._frames += 1
 
     # -- the control loop ----------------------------------------------------------------------
@@ -156,6 +184,7 @@ class ServoRun:
                                   name=f"servo-frames-{self.job_id}")
         with self._lock:  # the lost-target clock starts with the loop (the arm is still)
             self._last_pose_s = max(self._last_pose_s, time.monotonic())
+            self._clock_floor_s = time.monotonic()
         thread.start()
         try:
             return self._control()
@@ -181,10 +210,10 @@ class ServoRun:
             tick = time.monotonic()
             self.motion.raise_if_cancelled("while servoing")
             with self._lock:
-                last_pose_s, frames = self._last_pose_s, self._frames
+                silent_s, frames = self._silent_s(tick), self._frames
                 est = self.filter.predict(tick)
-            if tick - last_pose_s > sc.lost_after_s:
-                self._lost(tick - last_pose_s)
+            if silent_s > sc.lost_after_s:
+                self._lost(silent_s)
             if tick - est.measured_at_s > max_age:
                 self._stop_still()
                 raise RefusedError("stale_pose", f"the newest target pose is "
@@ -241,7 +270,8 @@ class ServoRun:
                                       0.2 * self.params.max_angular_speed_rad_s)
                 ff = ff + ki * np.concatenate([i_lin, i_rot])
             twist = pbvs_twist(T_tcp, goal, ff, prev, dt, self.params)
-            arm.servo_twist(twist, self.params.accel_mm_s2, sc.watchdog_s)
+            arm.servo_twist(twist, self.params.accel_mm_s2, sc.watchdog_s,
+                            self.params.accel_rad_s2)
             prev, t_prev = twist, t_cmd
             rest = tick + sc.tick_s - time.monotonic()
             if rest > 0:
@@ -275,6 +305,14 @@ class ServoRun:
                        target_velocity_mm_s=est.velocity_mm_s.tolist())
         return out
 
+    def _latency_allowance_s(self) -> float:
+        return latency_allowance_s(self._recent_lags, self.sc.latency_allowance_s)
+
+    def _silent_s(self, now: float) -> float:
+        """How long the target has gone unseen (call with the lock): see :func:`silent_s`."""
+        return silent_s(now, self._last_exposure_s, self._latency_allowance_s(),
+                        self._clock_floor_s)
+
     def _stop_still(self) -> float:
         """Command the stop and wait until the arm stands; seconds it took."""
         t0 = time.monotonic()
@@ -297,11 +335,14 @@ class ServoRun:
         declared_s = time.monotonic()
         took = self._stop_still()
         why = self._camera_error or self._last_error
+        with self._lock:
+            allowance_s = self._latency_allowance_s()
         self.core.runner.progress(self.job_id, {"phase": "target_lost",
                                                 "stopped_in_ms": round(took * 1000.0, 1),
                                                 "lost_at_monotonic_s": declared_s})
         raise RefusedError("target_lost", f"no target pose for {silent_s * 1000:.0f} ms "
-                           f"(limit {self.sc.lost_after_s * 1000:.0f} ms"
+                           f"(limit {self.sc.lost_after_s * 1000:.0f} ms after the pipeline's "
+                           f"{allowance_s * 1000:.0f} ms latency"
                            + (f"; {why.message}" if why is not None else "")
                            + f"; {self._failed_frames} frames without the target"
                            + f"); the arm stopped in {took * 1000:.0f} ms")

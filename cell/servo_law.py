@@ -8,7 +8,14 @@ law ``gain * e``, whose speed is capped three ways: by the configured maximum, b
 (the speed ``v`` with ``v * watchdog + v^2 / 2a = |e|``: held until the arm's watchdog would
 fire and then braked, it still stops at the goal, so it never overshoots and never leads the
 guard's look-ahead past the goal) and by the acceleration from the previous tick (the
-commanded twist never jumps).
+commanded twist never jumps). Translation and rotation have their own acceleration: a tool
+turn is limited by the wrist joints, not by how fast the TCP may gather speed.
+
+Braking room is planned at ``BRAKE_SHARE`` of the acceleration the per-tick rate limit allows:
+the rate limit grants at most one nominal tick's change per tick, and ticks come later than
+nominal (sleep granularity, a loaded host), so the acceleration actually reached is lower.
+Planned at the full value, the commanded speed fell behind the braking curve on every long
+deceleration and overshot the goal (measured: 7 deg past a 104 deg turn).
 """
 
 from __future__ import annotations
@@ -29,8 +36,18 @@ class LawParams:
     gain_rot_per_s: float  # 1/s: the same for the rotation error
     max_speed_mm_s: float
     max_angular_speed_rad_s: float
-    accel_mm_s2: float  # linear; the angular limit is accel_mm_s2 / 1000 rad/s^2 (UR's rule)
+    accel_mm_s2: float  # linear
     watchdog_s: float = 0.0  # how long the arm keeps a twist when ticks stop
+    # angular; None: accel_mm_s2 / 1000 rad/s^2 (UR's rule for speedl's aRot)
+    angular_accel_rad_s2: float | None = None
+
+    @property
+    def accel_rad_s2(self) -> float:
+        a = self.angular_accel_rad_s2
+        return self.accel_mm_s2 / 1000.0 if a is None else a
+
+
+BRAKE_SHARE = 0.75  # braking room is planned at this share of the acceleration (module doc)
 
 
 def pose_error(T_tcp: Matrix4, T_goal: Matrix4) -> tuple[Vec, Vec]:
@@ -71,11 +88,11 @@ def pbvs_twist(T_tcp: Matrix4, T_goal: Matrix4, feed_forward: Vec, previous: Vec
                p: LawParams) -> Vec:
     """The twist ``[vx, vy, vz mm/s, wx, wy, wz rad/s]`` to command now (see module doc)."""
     e_p, e_r = pose_error(T_tcp, T_goal)
-    a_lin, a_rot = p.accel_mm_s2, p.accel_mm_s2 / 1000.0
-    v = feed_forward[:3] + _capped(e_p, p.gain_lin_per_s, p.max_speed_mm_s, a_lin,
-                                   p.watchdog_s)
-    w = feed_forward[3:] + _capped(e_r, p.gain_rot_per_s, p.max_angular_speed_rad_s, a_rot,
-                                   p.watchdog_s)
+    a_lin, a_rot = p.accel_mm_s2, p.accel_rad_s2
+    v = feed_forward[:3] + _capped(e_p, p.gain_lin_per_s, p.max_speed_mm_s,
+                                   BRAKE_SHARE * a_lin, p.watchdog_s)
+    w = feed_forward[3:] + _capped(e_r, p.gain_rot_per_s, p.max_angular_speed_rad_s,
+                                   BRAKE_SHARE * a_rot, p.watchdog_s)
     v = _clip_norm(v, p.max_speed_mm_s)
     w = _clip_norm(w, p.max_angular_speed_rad_s)
     dt = max(float(dt_s), 0.0)

@@ -101,12 +101,15 @@ class Arm(Protocol):
 
     def servo_twist(
         self, velocity: NDArray[np.float64], accel_mm_s2: float, watchdog_s: float,
+        angular_accel_rad_s2: float | None = None,
     ) -> None:
         """Streamed base-frame TCP twist ``[vx, vy, vz (mm/s), wx, wy, wz (rad/s)]``.
 
-        For closed-loop control: sent every control tick, reached with ``accel_mm_s2`` (and
-        ``accel_mm_s2 / 1000`` rad/s^2). When no new command arrives within ``watchdog_s``
-        the arm brakes to a stop on its own, so a controller that dies cannot leave it moving.
+        For closed-loop control: sent every control tick, reached with at least
+        ``accel_mm_s2`` and ``angular_accel_rad_s2`` (None: ``accel_mm_s2 / 1000`` rad/s^2,
+        UR's rule); an arm with one acceleration for both takes the larger. When no new
+        command arrives within ``watchdog_s`` the arm brakes to a stop on its own, so a
+        controller that dies cannot leave it moving.
         """
 
     def stop(self, decel_mm_s2: float = 2000.0) -> None:
@@ -115,3 +118,10 @@ class Arm(Protocol):
     def recover_protective_stop(self) -> None:
         """Unlock a protective stop. UnlockTooEarlyError (with ``retry_in_s``) while the
         controller still refuses, as a real UR does for the first 5 s after the stop."""
+
+
+def speedl_accel(accel_mm_s2: float, angular_accel_rad_s2: float | None) -> float:
+    """The one acceleration URScript's speedl gets when only ``a`` is sent (its aRot then
+    takes the same number in rad/s^2): ``a`` in m/s^2, large enough for both parts."""
+    a = accel_mm_s2 / 1000.0
+    return a if angular_accel_rad_s2 is None else max(a, float(angular_accel_rad_s2))

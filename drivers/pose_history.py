@@ -72,3 +72,38 @@ class PoseHistory:
         slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([A[:3, :3], B[:3, :3]])))
         out[:3, :3] = slerp([w]).as_matrix()[0]
         return out
+
+
+class ControllerClock:
+    """Maps a controller's sample timestamps to this host's ``time.monotonic()``.
+
+    A sample is seen on the host some time after the controller took it: transport plus
+    however long the reader took to look (it polls). Stamping the pose history with the
+    moment it was seen therefore dates every pose late, by a varying few ms, and a frame
+    paired with it gets the pose the arm had a few ms *earlier* (measured on the simulated
+    cell: 4-6 ms, 1-2 mm / 0.4-0.7 deg of target error while the arm moves fast). The
+    controller's own clock has no such jitter: ``host = controller + offset``, the offset being
+    the smallest ``seen - controller`` over the last ``window_s`` (the sample that was
+    looked at soonest bounds the delay from above and is the best estimate of it). The
+    window lets the offset follow clock drift; a timestamp that goes backwards (a restarted
+    controller) starts over.
+    """
+
+    def __init__(self, window_s: float = 2.0) -> None:
+        self.window_s = window_s
+        self._offsets: deque[tuple[float, float]] = deque()  # (seen, offset), offsets rising
+        self._last_controller_s: float | None = None
+
+    def host_time(self, controller_s: float, seen_s: float) -> float:
+        """The host time the sample was taken (never later than when it was seen)."""
+        if self._last_controller_s is not None and controller_s < self._last_controller_s:
+            self._offsets.clear()
+        self._last_controller_s = controller_s
+        offset = seen_s - controller_s
+        q = self._offsets
+        while q and q[-1][1] >= offset:  # a smaller offset makes larger older ones useless
+            q.pop()
+        q.append((seen_s, offset))
+        while q[0][0] < seen_s - self.window_s:
+            q.popleft()
+        return min(controller_s + q[0][1], seen_s)

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.arm import ArmState, JogFrame
+from drivers.arm import ArmState, JogFrame, speedl_accel
 from drivers.errors import (
     ConnectionLostError,
     DriverError,
@@ -42,7 +42,7 @@ from drivers.errors import (
     ProtectiveStopError,
     UnlockTooEarlyError,
 )
-from drivers.pose_history import PoseHistory
+from drivers.pose_history import ControllerClock, PoseHistory
 from drivers.ur_client_process import (
     Call,
     ClientDied,
@@ -130,6 +130,7 @@ class URArm:
         self.stale_after_s = stale_after_s
         self.poll_period_s = poll_period_s
         self.history = PoseHistory(history_samples)
+        self._clock = ControllerClock()  # the history is stamped on the controller's clock
         self._client: ClientProcess | None = None
         self._has_control = False
         self._lost_reason: str | None = "not connected"
@@ -240,6 +241,7 @@ class URArm:
             raise
         self._lost_reason = None
         self._last_ts = -1.0
+        self._clock = ControllerClock()  # maybe another controller (or clock) now
         self._last_ts_change_s = time.monotonic()
         self._start_monitor()
         sample = self._sample()
@@ -325,7 +327,8 @@ class URArm:
                 # when the child first saw it: staleness counts from the data, not the pipe
                 seen_s = sample.seen_s if 0.0 < sample.seen_s <= now else now
                 self._last_ts, self._last_ts_change_s = sample.timestamp_s, seen_s
-                self.history.add(seen_s, T_from_ur_pose(list(sample.tcp_pose)))
+                self.history.add(self._clock.host_time(sample.timestamp_s, seen_s),
+                                 T_from_ur_pose(list(sample.tcp_pose)))
             self._samples.notify_all()
 
     def _monitor_loop(self) -> None:
@@ -586,15 +589,21 @@ class URArm:
 
     def servo_twist(
         self, velocity: NDArray[np.float64], accel_mm_s2: float, watchdog_s: float,
+        angular_accel_rad_s2: float | None = None,
     ) -> None:
         """Streamed base-frame twist through ur_rtde's speedL (measured against servoL on the
         simulated controller, see cell/bench_approach.py): velocity commands need no pose
         interpolation on the controller, so a late tick only keeps the last velocity instead
-        of stalling the arm. The monitor's watchdog brakes when ticks stop."""
+        of stalling the arm. The monitor's watchdog brakes when ticks stop.
+
+        ur_rtde's speedL sends one acceleration, which URScript's speedl also takes as the
+        rotational one (aRot defaults to a): the larger of the two goes, so both parts reach
+        their commanded speed at least as fast as asked (the caller's per-tick ramp sets the
+        real acceleration), and the watchdog brakes both at least that hard."""
         twist = np.asarray(velocity, dtype=float).reshape(-1)
         if twist.shape != (6,) or not np.all(np.isfinite(twist)):
             raise MotionError(f"servo twist must be 6 finite values, got {velocity!r}")
-        a = _positive(accel_mm_s2, "accel") / 1000.0
+        a = speedl_accel(_positive(accel_mm_s2, "accel"), angular_accel_rad_s2)
         watchdog = _positive(watchdog_s, "watchdog")
         self._ready_for_motion()
         xd = [*map(float, twist[:3] / 1000.0), *map(float, twist[3:])]

@@ -234,9 +234,9 @@ def render_target(
         direction = rng.uniform(0.0, 2.0 * np.pi)
         gx = np.linspace(-1.0, 1.0, w, dtype=np.float32) * np.float32(np.cos(direction))
         gy = np.linspace(-1.0, 1.0, h, dtype=np.float32) * np.float32(np.sin(direction))
-        img *= 1.0 + np.float32(lighting_gradient) * (gy[:, None] + gx[None, :]) / np.float32(
-            np.sqrt(2.0)
-        )
+        # 1 + g (gy + gx) / sqrt 2 as one outer sum: one full-image pass instead of four
+        k = np.float32(lighting_gradient) / np.float32(np.sqrt(2.0))
+        np.multiply(img, np.add((np.float32(1.0) + k * gy)[:, None], (k * gx)[None, :]), out=img)
     if blur_sigma_px > 0:
         img = np.asarray(cv2.GaussianBlur(img, (0, 0), blur_sigma_px), dtype=np.float32)
     if noise_std > 0:
@@ -244,7 +244,9 @@ def render_target(
         cv2.setRNGSeed(int(rng.integers(0, 2**31 - 1)))
         cv2.randn(noise, np.zeros(1), np.full(1, float(noise_std)))
         img += noise
-    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+    np.add(img, np.float32(0.5), out=img)  # round half up; in place (np.clip copies twice)
+    np.clip(img, 0, 255, out=img)
+    return img.astype(np.uint8)
 
 
 def ellipse_centre_px(

@@ -14,7 +14,7 @@ from contextlib import contextmanager
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.arm import ArmState, JogFrame
+from drivers.arm import ArmState, JogFrame, speedl_accel
 from drivers.errors import (
     ConnectionLostError,
     DriverError,
@@ -209,15 +209,18 @@ class SimArm:
 
     def servo_twist(
         self, velocity: NDArray[np.float64], accel_mm_s2: float, watchdog_s: float,
+        angular_accel_rad_s2: float | None = None,
     ) -> None:
-        """Base-frame twist on the engine's speedl; it brakes by itself after ``watchdog_s``."""
+        """Base-frame twist on the engine's speedl; it brakes by itself after ``watchdog_s``.
+        speedl has one acceleration (m/s^2 and, as aRot, rad/s^2): the larger of the two."""
         self._require_connected()
         v = np.asarray(velocity, dtype=float).reshape(-1)
         if v.shape != (6,) or not np.all(np.isfinite(v)):
             raise MotionError("servo twist must be 6 finite values [vx, vy, vz, wx, wy, wz]")
         speeds = [*(v[:3] / 1000.0).tolist(), *v[3:].tolist()]
         with _driver_errors():
-            self.engine.speed_l(speeds, accel_mm_s2 / 1000.0, watchdog_s)
+            self.engine.speed_l(speeds, speedl_accel(accel_mm_s2, angular_accel_rad_s2),
+                                watchdog_s)
 
     def stop(self, decel_mm_s2: float = 2000.0) -> None:
         with _driver_errors():

@@ -255,8 +255,8 @@ def test_api_refusals_are_shown_in_words(
     _wait_for(lambda: "camera cannot see" in msg.inner_text(), what="refusal message")
     text = msg.inner_text()
     assert "409" not in text and "camera_lost" not in text
-    assert rec.of("/api/v1/approach")[0].body == {"standoff_mm": 40, "mode": "look_and_move",
-                                                      "wait": False}
+    # the mode list starts with "default mode (config)": no mode, the cell's [approach] mode
+    assert rec.of("/api/v1/approach")[0].body == {"standoff_mm": 40, "wait": False}
 
     page.get_by_test_id("standoff").fill("-5")
     page.get_by_test_id("approach").click()

@@ -524,13 +524,16 @@ function wireCommands() {
     if (!Number.isFinite(standoff) || $("standoff").value === "" || standoff < 0) {
       throw new ApiError("the standoff must be a distance in millimetres, 0 or more", 0, "input");
     }
-    const body = { standoff_mm: standoff, mode: $("approach-mode").value, wait: false };
+    // "" (the first option): no mode in the body, so the config's [approach] mode applies
+    const body = { standoff_mm: standoff, mode: $("approach-mode").value || undefined,
+                   wait: false };
     if ($("taught").value) body.taught = $("taught").value;
     const job = await api("POST", "/approach", body);
     state.lastJob = job;
     state.resultJobId = job.id;
     renderJob(job);
-    return `${mode} approach started (job ${job.id})`;
+    const how = (job.params && job.params.mode) || body.mode || "default";
+    return `${how} approach started (job ${job.id})`;
   }));
 
   $("track-start").addEventListener("click", () => command("Track", async () => {
