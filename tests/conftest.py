@@ -21,12 +21,13 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 # ``make test`` runs the suite on two xdist workers (``--dist loadgroup``): each file is one
 # unit of work, so its module fixtures, servers and CPU burners stay in one process.
-# The files that drive the simulated UR controller in real time through ur_rtde, two of them with
-# CPU burners, form one group and run one after another on one worker: together they would load
-# both cores far past the "loaded 2-core host" their bounds are written for (measured: a
-# 0.4 s late speedL, 1.6 s without RTDE data, with two of them at once beside other engineers).
+# The files that drive the simulated UR controller in real time through ur_rtde (three of them
+# with CPU burners or a dozen pollers) form one group and run one after another on one worker:
+# together they would load both cores far past the "loaded 2-core host" their bounds are
+# written for (measured: a 0.4 s late speedL, 1.6 s without RTDE data, with two of them at once
+# beside other engineers' runs).
 REALTIME_UR = ("test_links.py", "test_peer_clients.py", "test_ur_protocol.py",
-               "test_ur_faults.py", "test_ur_driver.py")
+               "test_ur_faults.py", "test_ur_driver.py", "test_stop_load.py")
 # The other files that take longest (seconds of simulated motion in real time, measured with
 # ``--durations``), longest first, after the real-time group: handing out the long work first
 # (``--no-loadscope-reorder`` keeps this order) keeps one worker from starting a 2-minute file
