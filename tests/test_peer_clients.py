@@ -472,13 +472,12 @@ def test_realtime_port_streams_the_1116_byte_package(ctl: ControllerProcess) -> 
 def test_secondary_state_message_layout(ctl: ControllerProcess) -> None:
     with socket.create_connection((ctl.host, 30002), timeout=3.0) as s:
         buf = b""
-        while True:
+        while len(buf) < 5 or len(buf) < struct.unpack_from(">i", buf)[0]:
             buf += s.recv(65536)
-            size, kind = struct.unpack_from(">iB", buf, 0)
-            if len(buf) >= size and kind == 20:  # the version message comes first
-                assert buf[5 + 8 + 2] == len(b"URControl")
-                buf = buf[size:]
-                break
+        size, kind = struct.unpack_from(">iB", buf, 0)
+        assert kind == 20, kind  # the version message comes first
+        assert buf[5 + 8 + 2] == len(b"URControl")
+        buf = buf[size:]
         while len(buf) < 5 or len(buf) < struct.unpack_from(">i", buf)[0]:
             buf += s.recv(65536)
         size, kind = struct.unpack_from(">iB", buf, 0)
