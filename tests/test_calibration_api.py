@@ -79,9 +79,11 @@ def test_hand_eye_routine_end_to_end(client: TestClient, tmp_path: Path) -> None
     error_before = locate_error_mm(client)
     start = tcp(cell)
 
-    # 12 views (the CLI's default): with 8 the rotation error is ~0.02 deg but noise alone can
-    # approach the 0.05 deg requirement on a loaded machine.
-    r = client.post(BASE, json={"views": 12, "speed_mm_s": 250}, headers=OP)
+    # 8 views (two spare above the 6 the routine needs): this test checks the HTTP flow
+    # (progress, busy, apply, backup, refusal) and the result against the truth within a looser
+    # bound (6 views measured 0.02-0.06 mm / 0.015 deg); the 0.2 mm / 0.05 deg requirement is
+    # checked with 12 views by test_calibrate_cli.py's test_routine_recovers_the_simulated_hand_eye.
+    r = client.post(BASE, json={"views": 8, "speed_mm_s": 250}, headers=OP)
     assert r.status_code == 200, r.text
     job_id = r.json()["id"]
     assert r.json()["state"] == "running" and r.json()["kind"] == "hand_eye_calibration"
@@ -113,7 +115,7 @@ def test_hand_eye_routine_end_to_end(client: TestClient, tmp_path: Path) -> None
     d_mm, d_deg = pose_distance(T_from_pose_dict(result["T_flange_camera"]), truth)
     print(f"hand-eye via API: {d_mm:.3f} mm / {d_deg:.4f} deg from the truth "
           f"(guess was {pose_distance(guess, truth)[0]:.2f} mm off)")
-    assert d_mm < 0.2 and d_deg < 0.05
+    assert d_mm < 0.3 and d_deg < 0.1
     assert pose_distance(tcp(cell), start)[0] < 0.2  # back at its start pose
     # the views are kept as a dataset that re-solves offline to the same answer
     saved = result["dataset"]
@@ -130,7 +132,7 @@ def test_hand_eye_routine_end_to_end(client: TestClient, tmp_path: Path) -> None
     r = client.post(f"{BASE}/{job_id}/apply", json={"write_config": True}, headers=OP)
     assert r.status_code == 200, r.text
     applied = T_from_pose_dict(r.json()["T_flange_camera"])
-    assert pose_distance(applied, truth)[0] < 0.2
+    assert pose_distance(applied, truth)[0] < 0.3
     assert np.allclose(cell.frames.T_flange_camera, applied)
     assert np.allclose(cell.config.hand_eye.T_flange_camera.T(), applied)
     written = load_config(tmp_path / "cell.toml")

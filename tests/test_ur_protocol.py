@@ -11,7 +11,7 @@ import math
 import socket
 import struct
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import dashboard_client
 import numpy as np
@@ -37,6 +37,17 @@ def profile_time(distance: float, v: float, a: float) -> float:
     if distance >= v * v / a:
         return distance / v + v / a
     return 2.0 * math.sqrt(distance / a)
+
+
+def wait_until(pred: Callable[[], bool], timeout_s: float = 3.0, poll_s: float = 0.005) -> bool:
+    """Poll ``pred`` until it holds or ``timeout_s`` passes: on a loaded host the receive
+    stream may be some packages behind the control one."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(poll_s)
+    return pred()
 
 
 def assert_about(measured_s: float, expected_s: float) -> None:
@@ -263,7 +274,8 @@ def test_async_path_reports_progress(ctl: ControllerProcess, clients: tuple) -> 
         time.sleep(0.005)
     assert seen == [0, 1, 2]
     assert c.getAsyncOperationProgress() < 0  # finished
-    assert np.allclose(r.getActualTCPPose(), waypoints[-1][:6], atol=1e-6)
+    assert wait_until(lambda: np.allclose(r.getActualTCPPose(), waypoints[-1][:6], atol=1e-6)), \
+        (r.getActualTCPPose(), waypoints[-1][:6])
 
 
 def test_speed_servo_and_stops(ctl: ControllerProcess, clients: tuple) -> None:
@@ -271,18 +283,20 @@ def test_speed_servo_and_stops(ctl: ControllerProcess, clients: tuple) -> None:
     p0 = r.getActualTCPPose()
     t0 = time.monotonic()
     assert c.speedL([0.05, 0.0, 0.0, 0.0, 0.0, 0.0], 0.5, 0.0)
-    time.sleep(0.5)
-    assert r.getActualTCPSpeed()[0] == pytest.approx(0.05, abs=1e-3)
+    # at speed after the 0.1 s ramp (later only when the loaded host delays the stream)
+    assert wait_until(lambda: r.getActualTCPSpeed()[0] == pytest.approx(0.05, abs=1e-3)), \
+        r.getActualTCPSpeed()
+    t_at_speed = time.monotonic()
     time.sleep(0.5)  # speedL keeps going, as the real control script's speed thread does
     assert r.getActualTCPSpeed()[0] == pytest.approx(0.05, abs=1e-3)
     t1 = time.monotonic()
     assert c.speedStop(1.0)
     t2 = time.monotonic()
-    time.sleep(0.05)  # the receive stream may be a package or two behind the control one
-    assert abs(r.getActualTCPSpeed()[0]) < 1e-3
+    assert wait_until(lambda: abs(r.getActualTCPSpeed()[0]) < 1e-3), r.getActualTCPSpeed()
     moved = r.getActualTCPPose()[0] - p0[0]
-    # 50 mm/s between the two commands, less the 0.1 s ramp up, plus the braking
-    assert 0.05 * (t1 - t0) - 0.01 < moved < 0.05 * (t2 - t0) + 0.005
+    # 50 mm/s at least from when the stream showed full speed to the stop command, and at most
+    # from the speedL command to the stop's return, plus the braking
+    assert 0.05 * (t1 - t_at_speed) - 0.005 < moved < 0.05 * (t2 - t0) + 0.005
 
     q = r.getActualQ()
     for i in range(100):  # 0.05 rad on joint 0 in 0.2 s, streamed at 500 Hz
@@ -291,8 +305,8 @@ def test_speed_servo_and_stops(ctl: ControllerProcess, clients: tuple) -> None:
         t = c.initPeriod()
         c.servoJ(target, 0.0, 0.0, 0.008, 0.1, 300)
         c.waitPeriod(t)
-    time.sleep(0.1)
-    assert r.getActualQ()[0] == pytest.approx(q[0] + 0.05, abs=5e-3)
+    assert wait_until(lambda: r.getActualQ()[0] == pytest.approx(q[0] + 0.05, abs=5e-3)), \
+        (r.getActualQ()[0], q[0] + 0.05)
     assert c.servoStop(2.0)
 
     start = r.getActualTCPPose()
@@ -301,7 +315,7 @@ def test_speed_servo_and_stops(ctl: ControllerProcess, clients: tuple) -> None:
     assert c.moveL(far, 0.1, 0.5, True)
     time.sleep(0.5)
     c.stopL(2.0)  # returns nothing
-    time.sleep(0.05)
+    assert wait_until(lambda: max(map(abs, r.getActualTCPSpeed())) < 1e-6), r.getActualTCPSpeed()
     stopped_at = r.getActualTCPPose()[2]
     time.sleep(0.3)
     assert r.getActualTCPPose()[2] == pytest.approx(stopped_at, abs=1e-6)

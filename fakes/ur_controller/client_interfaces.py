@@ -131,15 +131,17 @@ class ClientSession:
         self._on_program = on_program
         self._greeting = greeting
         self._buffer = ""
-        self._pending = b""
+        # The greeting is queued before the session is registered, so the controller cycle's
+        # first state package cannot overtake it (it did on a loaded host: the session is
+        # published to from the moment it is accepted, on_open runs later in its own thread).
+        self._pending = greeting or b""
         self._lock = threading.Lock()
         self.closed = False
         self.next_due_s = 0.0
         self.dropped = 0
 
     def on_open(self) -> None:
-        if self._greeting is not None:
-            self.send(self._greeting)
+        self.send(b"")  # flush the queued greeting, if the controller cycle has not already
 
     def feed(self, data: bytes) -> bool:
         self._buffer += data.decode(errors="replace")
