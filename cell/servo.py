@@ -78,8 +78,11 @@ def _stats_ms(xs: list[float]) -> dict[str, float] | None:
 
 
 def latency_allowance_s(recent_lags_s: Iterable[float], cap_s: float) -> float:
-    """The largest recent exposure-to-filter latency, at most ``cap_s``."""
-    return min(max(recent_lags_s, default=0.0), cap_s)
+    """The largest recent exposure-to-filter latency, at most ``cap_s``; ``cap_s`` before any
+    pose has been timed: the loop's first frame waits for the camera and is estimated from a
+    full search (60-200 ms), and its latency is not yet known (without this the first pose
+    could be declared lost before it had any chance to arrive)."""
+    return min(max(recent_lags_s, default=cap_s), cap_s)
 
 
 def silent_s(now_s: float, last_exposure_s: float, allowance_s: float, floor_s: float
@@ -310,8 +313,11 @@ class ServoRun:
 
     def _silent_s(self, now: float) -> float:
         """How long the target has gone unseen (call with the lock): see :func:`silent_s`."""
-        return silent_s(now, self._last_exposure_s, self._latency_allowance_s(),
-                        self._clock_floor_s)
+        allowance = self._latency_allowance_s()
+        # before the loop's first pose the floor moves on by the allowance too: that first
+        # frame's wait and full search is the latency not yet measured
+        floor = self._clock_floor_s + (allowance if not self._recent_lags else 0.0)
+        return silent_s(now, self._last_exposure_s, allowance, floor)
 
     def _stop_still(self) -> float:
         """Command the stop and wait until the arm stands; seconds it took."""
