@@ -95,11 +95,13 @@ def test_stop_under_load_reaches_the_arm(ur_served: tuple[Cell, str]) -> None:
     cell, base = ur_served
     with Pollers(base, 12) as pollers, httpx.Client(timeout=10.0) as c:
         for sign in (1.0, -1.0, 1.0):
-            r = c.post(f"{base}/api/v1/jog", headers=AUTH["operator"], json={
-                "mode": "continuous", "linear_mm_s": [0.0, 40.0 * sign, 0.0]})
-            assert r.status_code == 200, r.text
             start = tcp(cell)
-            with _heartbeats(base):  # the dead-man must not end the jog before the stop
+            # the dead-man must not end the jog before the stop: heartbeats run from before
+            # the jog starts (begun after it, a loaded host let the 0.2 s dead-man expire first)
+            with _heartbeats(base):
+                r = c.post(f"{base}/api/v1/jog", headers=AUTH["operator"], json={
+                    "mode": "continuous", "linear_mm_s": [0.0, 40.0 * sign, 0.0]})
+                assert r.status_code == 200, r.text
                 _wait_moving(cell, start, 0.5, timeout_s=5.0)
                 t_sent = time.monotonic()
                 r = c.post(f"{base}/api/v1/stop", headers=AUTH["operator"],
