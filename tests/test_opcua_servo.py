@@ -13,7 +13,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-from asyncua import Client
 from fastapi.testclient import TestClient
 from scipy.spatial.transform import Rotation
 
@@ -24,8 +23,8 @@ from cell.frames import approach_tcp
 from cell.service import Cell
 from estimator.transforms import make_T, pose_dict, pose_distance
 from tests.cell_testing import AUTH, running_cell, settled_tcp, sim_config, world
+from tests.opcua_testing import Opc, opc_client
 
-NS = "urn:ur-vision-cell"
 STANDOFF_MM = 50.0
 
 
@@ -56,43 +55,6 @@ def served(tmp_path: Path) -> Iterator[Served]:
             yield Served(cell, http, f"opc.tcp://127.0.0.1:{port}")
         finally:
             server.close()
-
-
-class Opc:
-    """An asyncua session on the Cell object, as the PLC user."""
-
-    def __init__(self, url: str, user: str = "plc") -> None:
-        self.client = Client(url, timeout=30)
-        self.client.set_user(user)
-        self.client.set_password(f"sim-{user}")
-        self.idx = 0
-        self.cell: Any = None
-
-    async def __aenter__(self) -> Opc:
-        await self.client.connect()
-        await self.client.load_data_type_definitions()
-        self.idx = await self.client.get_namespace_index(NS)
-        self.cell = await self.client.nodes.objects.get_child(f"{self.idx}:Cell")
-        return self
-
-    async def __aexit__(self, *exc: object) -> None:
-        await self.client.disconnect()
-
-    async def read(self, name: str) -> Any:
-        return await (await self.cell.get_child(f"{self.idx}:{name}")).read_value()
-
-    async def call(self, name: str, *args: Any) -> list[Any]:
-        out = await self.cell.call_method(f"{self.idx}:{name}", *args)
-        return out if isinstance(out, list) else [out]
-
-    async def wait_for(self, name: str, predicate: Any, timeout_s: float) -> Any:
-        deadline = time.monotonic() + timeout_s
-        while True:
-            value = await self.read(name)
-            if predicate(value):
-                return value
-            assert time.monotonic() < deadline, f"{name} = {value!r} after {timeout_s} s"
-            await asyncio.sleep(0.05)
 
 
 def _job(s: Served, job_id: str) -> dict[str, Any]:
@@ -131,7 +93,7 @@ def test_opcua_servo_approach_reaches_the_moved_target(served: Served) -> None:
     time.sleep(0.2)  # frames exposed before the placement are not this run's
 
     async def go() -> str:
-        async with Opc(served.url) as opc:
+        async with Opc(opc_client(served.url, "plc")) as opc:
             code, message, job_id = await opc.call("Approach", STANDOFF_MM, "servo")
             assert code == "ok", message
             await opc.wait_for("JobId", lambda v: v == job_id, 10)
@@ -159,7 +121,7 @@ def test_opcua_track_follows_a_moving_target_until_stop(served: Served) -> None:
     start_x = world(cell).true_T_base_tcp()[0, 3]
 
     async def go() -> str:
-        async with Opc(served.url) as opc:
+        async with Opc(opc_client(served.url, "plc")) as opc:
             code, message, job_id = await opc.call("Track", STANDOFF_MM, 30.0)
             assert code == "ok", message
             await opc.wait_for("JobKind", lambda v: v == "track", 10)
@@ -200,7 +162,7 @@ def test_opcua_servo_and_track_refusals_are_answers_and_move_nothing(served: Ser
     before = world(cell).true_T_base_tcp()
 
     async def go() -> None:
-        async with Opc(served.url) as opc:
+        async with Opc(opc_client(served.url, "plc")) as opc:
             code, message, job_id = await opc.call("Track", STANDOFF_MM, 61.0)
             assert code == "duration_limit" and job_id == "", message
             code, message, job_id = await opc.call("Track", STANDOFF_MM, -1.0)
@@ -208,7 +170,7 @@ def test_opcua_servo_and_track_refusals_are_answers_and_move_nothing(served: Ser
             code, message, job_id = await opc.call("Approach", STANDOFF_MM, "closed_loop")
             assert code == "invalid_request" and job_id == "", message
             assert await opc.read("State") == "idle"
-        async with Opc(served.url, "viewer") as opc:
+        async with Opc(opc_client(served.url, "viewer")) as opc:
             code, message, job_id = await opc.call("Track", STANDOFF_MM, 5.0)
             assert code != "ok" and job_id == "", message
             code, message, job_id = await opc.call("Approach", STANDOFF_MM, "servo")

@@ -19,7 +19,7 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
-from asyncua import Client, ua
+from asyncua import ua
 from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
@@ -34,8 +34,8 @@ from cell.service import Cell
 from cell.teach import TaughtPose, TaughtStore
 from estimator.transforms import T_from_pose, T_from_pose_dict, T_from_ur_pose, pose_distance
 from tests.cell_testing import AUTH, running_cell, settled_tcp, sim_config, tcp
+from tests.opcua_testing import Opc, opc_client
 
-NS = "urn:ur-vision-cell"
 METHODS = ("Locate", "Approach", "Track", "Stop", "Home", "Gripper")
 VARIABLES = ("State", "RobotMode", "SafetyStatus", "TcpPose", "TcpPoseUR", "LastLocatePose",
              "LastLocatePoseUR", "LastLocateQuality", "JobId", "JobKind", "JobState",
@@ -96,49 +96,6 @@ def truth(s: Served) -> dict[str, Any]:
 def audit(s: Served) -> list[dict[str, Any]]:
     r = s.http.get("/api/v1/audit", params={"limit": 500}, headers=AUTH["viewer"])
     return list(r.json()["entries"])
-
-
-class Opc:
-    """An asyncua client session on the Cell object."""
-
-    def __init__(self, client: Client) -> None:
-        self.client = client
-        self.idx = 0
-        self.cell: Any = None
-
-    async def open(self) -> Opc:
-        await self.client.connect()
-        await self.client.load_data_type_definitions()
-        self.idx = await self.client.get_namespace_index(NS)
-        self.cell = await self.client.nodes.objects.get_child(f"{self.idx}:Cell")
-        return self
-
-    async def read(self, name: str) -> Any:
-        return await (await self.cell.get_child(f"{self.idx}:{name}")).read_value()
-
-    async def call(self, name: str, *args: Any) -> list[Any]:
-        out = await self.cell.call_method(f"{self.idx}:{name}", *args)
-        return out if isinstance(out, list) else [out]
-
-    async def wait_for(self, name: str, predicate: Any, timeout_s: float) -> Any:
-        deadline = time.monotonic() + timeout_s
-        while True:
-            value = await self.read(name)
-            if predicate(value):
-                return value
-            assert time.monotonic() < deadline, f"{name} = {value!r} after {timeout_s} s"
-            await asyncio.sleep(0.1)
-
-    async def close(self) -> None:
-        await self.client.disconnect()
-
-
-def opc_client(url: str, user: str | None, password: str | None = None) -> Client:
-    c = Client(url, timeout=30)
-    if user is not None:
-        c.set_user(user)
-        c.set_password(password or f"sim-{user}")
-    return c
 
 
 def close_to(T_a: np.ndarray, T_b: np.ndarray, mm: float = 0.5, deg: float = 0.1) -> bool:
