@@ -8,11 +8,10 @@ from __future__ import annotations
 
 import asyncio
 import threading
-import time
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
-from fastapi import Depends, FastAPI, Request, Response
+from fastapi import Depends, FastAPI, Response
 from fastapi.responses import PlainTextResponse
 from prometheus_client import CONTENT_TYPE_LATEST
 
@@ -23,6 +22,7 @@ from api.guard import OPEN_PATHS, RequestGuard
 from api.interfaces import Interfaces
 from api.live import LiveView
 from api.page import mount_page
+from api.request_timer import RequestTimer
 from api.routes import router, sim_router
 from api.routes_arm import router as arm_router
 from api.routes_calibration import install as install_calibration
@@ -84,17 +84,7 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False,
     if cell.sim is not None:
         app.include_router(sim_router)
     app.add_middleware(RequestGuard)
-
-    @app.middleware("http")
-    async def _measure(request: Request,
-                       call_next: Callable[[Request], Awaitable[Response]]) -> Response:
-        t0 = time.perf_counter()
-        response = await call_next(request)
-        route = request.scope.get("route")
-        path = getattr(route, "path", "unmatched")
-        app.state.metrics.observe_http(request.method, path, response.status_code,
-                                       time.perf_counter() - t0)
-        return response
+    app.add_middleware(RequestTimer)  # outermost: times the guard's refusals too
 
     public = bool(getattr(cell.config.api, "metrics_public", False))
     app.state.open_paths = OPEN_PATHS | ({"/api/v1/metrics"} if public else set())
