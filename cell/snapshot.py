@@ -5,11 +5,14 @@ newest :class:`Snap`, so a read costs a dictionary lookup (and the HTTP answer i
 once per refresh, not once per client), and no read ever waits on a device: the snapshot is
 built from the adapters' cached state (see :mod:`cell.status`).
 
-Fresh enough for anyone: a background thread refreshes it every camera period (and rests
-while nobody has read or listened for ``IDLE_AFTER_S``: an idle service costs nothing), and a
-reader that finds it older than one period, or taken before the motion slot last changed hands
-(a jog step or a job that just ended), refreshes it on the spot; concurrent readers share that
-one refresh instead of each building their own. An event loop never waits for a refresh
+Fresh enough for anyone: a reader that finds it older than one period, or taken before the
+motion slot last changed hands (a jog step or a job that just ended), refreshes it on the spot;
+concurrent readers share that one refresh instead of each building their own. A background
+thread refreshes it ahead, every camera period, only while that saves work: while SSE clients
+listen, or while reads come in two periods running (a crowd of pollers). A sparse reader (the
+OPC UA server's 10 Hz update, the alarm watch, an operator page polling at 4 Hz) would find a
+refresh made ahead already stale, so it refreshes on its own and an idle service builds
+nothing it does not hand out. An event loop never waits for a refresh
 (:meth:`CellSnapshot.fresh`): it hands a late one to a worker thread.
 """
 
@@ -31,7 +34,6 @@ from cell.links import LinkSupervisor
 
 log = logging.getLogger(__name__)
 MAX_RATE_HZ = 30.0  # a faster camera does not make the reports faster than this
-IDLE_AFTER_S = 2.0  # nobody read or listened for this long: the background refresh rests
 
 
 def _plain(obj: Any) -> Any:
@@ -74,7 +76,7 @@ class CellSnapshot:
         self.gripper = gripper
         self.period_s = 1.0 / min(core.config.camera.fps, MAX_RATE_HZ)
         self._snap: Snap | None = None
-        self._last_read_s = 0.0
+        self._reads = 0  # counted, not locked: a lost increment only delays a refresh ahead
         self._refresh_lock = threading.Lock()
         self._closing = threading.Event()
         self._thread: threading.Thread | None = None
@@ -93,7 +95,7 @@ class CellSnapshot:
     def current(self) -> Snap:
         """The newest snapshot, refreshed first when it is older than one period or older
         than the last change of the motion slot."""
-        self._last_read_s = time.monotonic()
+        self._reads += 1
         snap = self._snap
         if snap is None or self._stale(snap):
             return self.refresh(unless_newer_than=snap)
@@ -102,7 +104,7 @@ class CellSnapshot:
     def fresh(self) -> Snap | None:
         """The newest snapshot when it needs no refresh, else None; never blocks (for an
         event loop, which must not wait for a refresh another thread is building)."""
-        self._last_read_s = time.monotonic()
+        self._reads += 1
         snap = self._snap
         return None if snap is None or self._stale(snap) else snap
 
@@ -152,14 +154,18 @@ class CellSnapshot:
 
     def _loop(self) -> None:
         next_s = time.monotonic()
+        seen_reads, read_last_period = self._reads, False
         while not self._closing.is_set():
             next_s += self.period_s
             try:
+                reads = self._reads
+                read_this_period, seen_reads = reads != seen_reads, reads
                 listeners = self.core.events.n_subscribers
-                if listeners or time.monotonic() - self._last_read_s < IDLE_AFTER_S:
+                if listeners or (read_this_period and read_last_period):
                     snap = self.refresh(unless_newer_than=self._snap)
                     if snap.state is not None and listeners:
                         self.core.events.publish("state", snap.state)
+                read_last_period = read_this_period
             except Exception:  # the reports must outlive any one bad read
                 log.exception("snapshot refresh failed")
             delay = next_s - time.monotonic()
