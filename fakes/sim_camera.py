@@ -5,6 +5,10 @@ mid-exposure from ``pose_source`` (the simulated controller's engine), so a movi
 what the camera sees exactly as on a real cell. The image itself is rendered only when someone
 asks for the frame (:func:`fakes.render.render_target`, ~40 ms at 1280x800): the scene at that
 instant is kept, so the result is the same as rendering eagerly but the idle cell burns no CPU.
+Nor does it sample the pose 30 times a second for nobody: once no frame has been taken for
+``IDLE_AFTER_S`` the sensor exposes only every ``IDLE_PERIOD_S`` (enough to notice a pose
+source that went away), and the next ``latest_frame`` wakes it and gets a fresh exposure
+(taken after the call), at most an exposure later than a streaming camera's newest frame.
 
 Faults as an integrator meets them: dropped frames (sequence gaps), a lost device
 (``latest_frame`` raises ConnectionLostError until restored) and a blocked view (a dark,
@@ -39,6 +43,8 @@ MAX_ISO = 1600
 # position and every step away adds defocus blur, as a real lens does.
 SHARP_FOCUS = 120
 DEFOCUS_PX_PER_STEP = 1.0 / 16.0
+IDLE_AFTER_S = 2.0  # no frame taken for this long: the sensor rests
+IDLE_PERIOD_S = 0.5  # a resting sensor's exposures
 
 
 @dataclass(frozen=True)
@@ -99,6 +105,8 @@ class SimCamera:
         self.frames_dropped = 0
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
+        self._wake = threading.Event()  # a reader wants a frame from a resting sensor
+        self._last_taken_s = time.monotonic()
 
     # -- scene and faults --------------------------------------------------------------------
     @property
@@ -203,12 +211,15 @@ class SimCamera:
             if self._thread is not None:
                 return
             self._stop.clear()
+            self._wake.clear()
             self._error = None
+            self._last_taken_s = time.monotonic()
             self._thread = threading.Thread(target=self._run, name="sim-camera", daemon=True)
             self._thread.start()
 
     def disconnect(self) -> None:
         self._stop.set()
+        self._wake.set()
         thread, self._thread = self._thread, None
         if thread is not None:
             thread.join(timeout=2.0)
@@ -217,8 +228,14 @@ class SimCamera:
             self._cond.notify_all()
 
     def latest_frame(self, timeout_s: float = 1.0) -> Frame:
-        deadline = time.monotonic() + timeout_s
+        now = time.monotonic()
+        deadline = now + timeout_s
         with self._cond:
+            min_sequence = 0
+            if now - self._last_taken_s > IDLE_AFTER_S:  # resting: its newest frame is old
+                min_sequence = self._sequence + 1
+                self._wake.set()
+            self._last_taken_s = now
             while True:
                 if self._thread is None:
                     raise ConnectionLostError("simulated camera is not connected")
@@ -227,7 +244,8 @@ class SimCamera:
                 if self._error is not None:
                     raise ConnectionLostError(f"simulated camera stopped: {self._error}")
                 exp = self._latest
-                if exp is not None and exp.sequence != self._handed_out:
+                if (exp is not None and exp.sequence != self._handed_out
+                        and exp.sequence >= min_sequence):
                     self._handed_out = exp.sequence
                     break
                 remaining = deadline - time.monotonic()
@@ -289,10 +307,20 @@ class SimCamera:
         T[:3, 3] += self._target_v_mm_s * dt
         return T
 
+    def _resting(self) -> bool:
+        with self._cond:
+            return time.monotonic() - self._last_taken_s > IDLE_AFTER_S
+
     def _run(self) -> None:
         period = 1.0 / self.fps
         next_start = time.monotonic()
         while not self._stop.is_set():
+            if self._resting():
+                self._wake.wait(IDLE_PERIOD_S)
+                self._wake.clear()
+                if self._stop.is_set():
+                    break
+                next_start = time.monotonic()
             mid = next_start + self.exposure_s / 2.0
             if self._stop.wait(max(0.0, mid - time.monotonic())):
                 break

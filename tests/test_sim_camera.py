@@ -241,3 +241,41 @@ def test_closed_loop_estimator_sees_the_arm_move() -> None:
     assert np.linalg.norm((T_base_camera1 @ after)[:3, 3] - T_base_target[:3, 3]) < 0.5
     moved = np.linalg.norm(after[:3, 3] - before[:3, 3])
     assert moved == pytest.approx(np.linalg.norm([30.0, -20.0, 10.0]), abs=0.5)
+
+
+class CountingPose(StaticPose):
+    def __init__(self, T: NDArray[np.float64]) -> None:
+        super().__init__(T)
+        self.calls = 0
+
+    def __call__(self) -> tuple[NDArray[np.float64], float]:
+        self.calls += 1
+        return super().__call__()
+
+
+def test_a_resting_sensor_samples_rarely_and_wakes_with_a_fresh_frame(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Nobody takes frames: the sensor stops sampling the pose at frame rate; the next reader
+    gets an exposure made after it asked, not the resting sensor's old one."""
+    import fakes.sim_camera as sim_camera
+
+    monkeypatch.setattr(sim_camera, "IDLE_AFTER_S", 0.3)
+    pose = CountingPose(T_BASE_FLANGE0)
+    cam = make_camera(pose, fps=60.0)
+    cam.connect()
+    try:
+        cam.latest_frame(timeout_s=2.0)
+        time.sleep(0.6)  # 0.3 s streaming, then resting
+        before = pose.calls
+        time.sleep(1.0)
+        resting_calls = pose.calls - before
+        asked_s = time.monotonic()
+        frame = cam.latest_frame(timeout_s=2.0)
+        assert resting_calls <= 1.0 / sim_camera.IDLE_PERIOD_S + 1  # 60 while streaming
+        assert frame.timestamp_s >= asked_s
+        assert centre_error_px(frame, T_BASE_FLANGE0) < 0.5
+        nxt = cam.latest_frame(timeout_s=2.0)  # streaming again: the next one comes at rate
+        assert nxt.sequence == frame.sequence + 1
+        assert nxt.timestamp_s - frame.timestamp_s == pytest.approx(1 / 60.0, abs=0.05)
+    finally:
+        cam.disconnect()
