@@ -42,6 +42,10 @@ _LEN = struct.Struct(">I")
 PUSH_ID = 0  # the reply id of pushed samples (request ids start at 1)
 RECV_FREQUENCY_HZ = 125.0  # the receive client's RTDE rate: enough for the pose history
 PUSH_CHECK_S = 0.004  # how often the pusher looks at the package timestamp (two cheap reads)
+# ... and while the arm has stood still, with no call made, for RESTING_AFTER_S: a motion the
+# cell did not command (the pendant, a protective stop) is seen at most this much later.
+RESTING_CHECK_S = 0.016
+RESTING_AFTER_S = 0.5
 # Timer slack of the clients' own threads (see drivers.timer_slack): a package is read at most
 # this much later, for a fifth of the idle CPU. The receive client's packages come every 8 ms,
 # the control client's every 2 ms.
@@ -267,6 +271,12 @@ class _PushState:
         self._last: StateSample | None = None  # the last sample sent
         self._last_s = 0.0
         self._held: StateSample | None = None  # the newest one not sent
+        self._active_s = 0.0  # when the state last changed or a call was made
+
+    def resting(self, now_s: float) -> bool:
+        """The arm has not changed and no call was made for ``RESTING_AFTER_S``."""
+        with self._lock:
+            return now_s - self._active_s > RESTING_AFTER_S
 
     def due(self, now_s: float, period_s: float | None) -> bool:
         with self._lock:
@@ -276,6 +286,7 @@ class _PushState:
         """``sample`` went to the parent outside the pusher (after a call)."""
         with self._lock:
             self._last, self._last_s, self._held = sample, now_s, None
+            self._active_s = now_s
 
     def offer(self, sample: StateSample, now_s: float) -> list[StateSample]:
         """The samples to send now for a new package, oldest first."""
@@ -284,6 +295,8 @@ class _PushState:
             if last is not None and now_s - self._last_s < QUIET_PUSH_S and unchanged(last, sample):
                 self._held = sample
                 return []
+            if last is None or not unchanged(last, sample):
+                self._active_s = now_s
             out = [sample]
             if self._held is not None and not unchanged(self._held, sample):
                 out.insert(0, self._held)
@@ -319,6 +332,7 @@ def child_main(host: str) -> None:
     lock = threading.Lock()
 
     pusher_state = _PushState()
+    wake_pusher = threading.Event()  # a call was made: look at the arm at full rate again
 
     def send(sample: StateSample) -> None:
         with contextlib.suppress(OSError, ValueError):
@@ -342,19 +356,22 @@ def child_main(host: str) -> None:
             reply = (req_id, False, (type(exc).__name__, str(exc)))
         if isinstance(req, Call):
             push()  # before the reply: what the parent reads next reflects the call
+            wake_pusher.set()
         with contextlib.suppress(OSError, ValueError):
             _write(stdout, reply, lock)
         if isinstance(req, Subscribe):
             threading.Thread(target=pusher, daemon=True, name="pusher").start()
 
     def pusher() -> None:
-        """Look whether the RTDE data changed every ``PUSH_CHECK_S`` (sleeping between), and
-        push when it did, at most once per subscribed period; a still arm's samples only every
-        ``QUIET_PUSH_S`` (see :class:`_PushState`)."""
+        """Look whether the RTDE data changed every ``PUSH_CHECK_S`` (``RESTING_CHECK_S``
+        while the arm rests), and push when it did, at most once per subscribed period; a
+        still arm's samples only every ``QUIET_PUSH_S`` (see :class:`_PushState`)."""
         last: tuple[float, bool] | None = None
         set_timer_slack(PUSHER_TIMER_SLACK_S)
         while True:
-            time.sleep(PUSH_CHECK_S)
+            resting = pusher_state.resting(time.monotonic())
+            if wake_pusher.wait(RESTING_CHECK_S if resting else PUSH_CHECK_S):
+                wake_pusher.clear()
             try:
                 key = clients.data_key()
             except Exception:

@@ -13,6 +13,7 @@ import pytest
 from drivers.timer_slack import set_timer_slack, timer_slack, timer_slack_s
 from drivers.ur_client_process import (
     QUIET_PUSH_S,
+    RESTING_AFTER_S,
     STILL_DEADBAND_RAD,
     StateSample,
     _PushState,
@@ -44,6 +45,20 @@ def test_the_held_sample_goes_out_before_the_first_change() -> None:
     assert [s.seq for s in out] == [3, 4]
     # moving: every package goes out
     assert [s.seq for s in ps.offer(sample(5, x_m=0.402), 0.040)] == [5]
+
+
+def test_the_pusher_rests_only_while_the_arm_stands_and_no_call_is_made() -> None:
+    ps = _PushState()
+    ps.offer(sample(1), 0.0)
+    assert not ps.resting(0.1)
+    for i in range(2, 100):  # standing
+        ps.offer(sample(i), i * 0.008)
+    assert ps.resting(RESTING_AFTER_S + 0.01)
+    ps.offer(sample(100, x_m=0.401), 0.8)  # it moved
+    assert not ps.resting(0.81)
+    assert ps.resting(0.8 + RESTING_AFTER_S + 0.01)
+    ps.pushed(sample(101, x_m=0.401), 2.0)  # a call was made: motion may follow
+    assert not ps.resting(2.01)
 
 
 def test_a_mode_change_is_pushed_at_once() -> None:
