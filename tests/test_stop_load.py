@@ -108,7 +108,8 @@ def test_stop_under_load_reaches_the_arm(ur_served: tuple[Cell, str]) -> None:
                            json={"reason": "test under load"})
             assert r.status_code == 200, r.text
             out = r.json()
-            assert out["stopped"] and out["cancelled"] == "jog", out
+            ended = [e.detail for e in cell.jobs.audit_log(20) if e.command == "jog_end"]
+            assert out["stopped"] and out["cancelled"] == "jog", (out, "jog ends:", ended)
             # handed to the adapter promptly (bound: a loaded 2-core machine)
             assert out["commanded_monotonic_s"] - t_sent < 1.0, out
             assert out["sent_monotonic_s"] >= out["commanded_monotonic_s"]
