@@ -112,6 +112,7 @@ class OpcUaServer:
         self._error: BaseException | None = None
         self._last_job_id = ""
         self._nodes: dict[str, Any] = {}
+        self._written: dict[str, ua.Variant] = {}  # the last value written to each node
         self._types: dict[str, Any] = {}
         self._calls = ThreadPoolExecutor(4, thread_name_prefix="opcua-call")
         self._stops = ThreadPoolExecutor(2, thread_name_prefix="opcua-stop")
@@ -240,6 +241,7 @@ class OpcUaServer:
             ("JobPhase", "", S, None), ("JobProgress", "{}", S, None),
             ("CameraConnected", False, B, None), ("Alarms", [], S, None),
         ]
+        self._written = {}
         for name, value, vtype, datatype in variables:
             node = await obj.add_variable(idx, name, ua.Variant(value, vtype), datatype=datatype)
             self._nodes[name] = node
@@ -347,7 +349,10 @@ class OpcUaServer:
             self._quality(None if last is None else last["quality"]),
             ua.VariantType.ExtensionObject)
         for name, value in values.items():
+            if self._written.get(name) == value:
+                continue  # unchanged: no write, no data-change notification (OPC UA's way)
             await self._nodes[name].write_value(value)
+            self._written[name] = value
 
     # -- methods --------------------------------------------------------------------------------
     def _caller(self) -> RemoteCaller | None:

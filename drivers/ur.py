@@ -74,7 +74,8 @@ MOVING_QD_RAD_S = 5e-3  # below this the arm counts as standing (controllers rep
 UNLOCK_DELAY_S = 5.0  # a UR refuses to unlock a protective stop for this long after it
 PUSH_PERIOD_S = 0.008  # pushed samples at most at 125 Hz: plenty for the pose history
 PUSH_FRESH_S = 0.25  # a pushed sample older than this is not trusted: ask the child instead
-MONITOR_PERIOD_S = 0.02  # stale-stream and jog-watchdog checks
+MONITOR_PERIOD_S = 0.02  # jog-watchdog checks while a jog or a servo twist runs
+IDLE_MONITOR_PERIOD_S = 0.25  # otherwise only the stale-stream check (woken when it is due)
 
 
 def dashboard_stop(host: str, timeout_s: float) -> str:
@@ -142,6 +143,7 @@ class URArm:
         self._last_ts = -1.0
         self._last_ts_change_s = 0.0
         self._stop_monitor = threading.Event()
+        self._kick_monitor = threading.Event()  # a jog started: watch its deadline from now
         self._monitor: threading.Thread | None = None
         self._samples = threading.Condition()  # guards the newest sample
         self._latest: StateSample | None = None
@@ -274,6 +276,7 @@ class URArm:
 
     def disconnect(self) -> None:
         self._stop_monitor.set()
+        self._kick_monitor.set()
         if self._monitor is not None and self._monitor is not threading.current_thread():
             self._monitor.join(timeout=1.0)
         self._monitor = None
@@ -307,9 +310,10 @@ class URArm:
         self.connect()
 
     def _start_monitor(self) -> None:
-        self._stop_monitor = threading.Event()
-        self._monitor = threading.Thread(target=self._monitor_loop, daemon=True,
-                                         name=f"ur-monitor-{self.host}")
+        self._stop_monitor, self._kick_monitor = threading.Event(), threading.Event()
+        self._monitor = threading.Thread(
+            target=self._monitor_loop, args=(self._stop_monitor, self._kick_monitor),
+            daemon=True, name=f"ur-monitor-{self.host}")
         self._monitor.start()
 
     def _accept(self, sample: StateSample, client: ClientProcess | None) -> None:
@@ -323,6 +327,7 @@ class URArm:
             if latest is not None and sample.seq <= latest.seq:
                 return
             self._latest, self._latest_rx_s = sample, now
+            self._note_protective_stop(sample, now)
             if sample.timestamp_s != self._last_ts:
                 # when the child first saw it: staleness counts from the data, not the pipe
                 seen_s = sample.seen_s if 0.0 < sample.seen_s <= now else now
@@ -331,10 +336,15 @@ class URArm:
                                  T_from_ur_pose(list(sample.tcp_pose)))
             self._samples.notify_all()
 
-    def _monitor_loop(self) -> None:
+    def _monitor_loop(self, stop: threading.Event, kick: threading.Event) -> None:
         """Stale-stream detection and the jog watchdog (the pose history fills from the
-        pushed samples, see ``_accept``)."""
-        while not self._stop_monitor.wait(self._monitor_wait_s()):
+        pushed samples, see ``_accept``). Between jogs it sleeps until the stream would turn
+        stale (at most ``IDLE_MONITOR_PERIOD_S``); a jog's first command kicks it awake."""
+        while True:
+            kick.wait(self._monitor_wait_s())
+            kick.clear()
+            if stop.is_set():
+                break
             if self._lost_reason is not None:
                 continue
             try:
@@ -355,8 +365,13 @@ class URArm:
     def _monitor_wait_s(self) -> float:
         """Until the next check: a period, or less when the stream would turn stale sooner
         (so a stalled stream is noticed right at ``stale_after_s``)."""
-        due_s = self._last_ts_change_s + self.stale_after_s - time.monotonic()
-        return max(0.001, min(MONITOR_PERIOD_S, due_s + 0.0005))
+        if self._lost_reason is not None:  # nothing to watch until the next connect
+            return IDLE_MONITOR_PERIOD_S
+        now = time.monotonic()
+        due_s = self._last_ts_change_s + self.stale_after_s - now
+        deadline_s = self._jog_deadline_s
+        period_s = IDLE_MONITOR_PERIOD_S if deadline_s is None else MONITOR_PERIOD_S
+        return max(0.001, min(period_s, due_s + 0.0005))
 
     def _note_protective_stop(self, s: StateSample, now: float) -> None:
         if s.safety_bits & SafetyBits.PROTECTIVE_STOPPED:
@@ -585,7 +600,7 @@ class URArm:
         if not self._ctrl("speedL", xd, a, 0.0):
             self._raise_command_failure("jog")
         self._jog_decel_m_s2 = max(a, 0.5)
-        self._jog_deadline_s = time.monotonic() + self.watchdog_s
+        self._arm_watchdog(self.watchdog_s)
 
     def servo_twist(
         self, velocity: NDArray[np.float64], accel_mm_s2: float, watchdog_s: float,
@@ -610,7 +625,15 @@ class URArm:
         if not self._ctrl("speedL", xd, a, 0.0):
             self._raise_command_failure("speedL")
         self._jog_decel_m_s2 = max(a, 0.5)
-        self._jog_deadline_s = time.monotonic() + watchdog
+        self._arm_watchdog(watchdog)
+
+    def _arm_watchdog(self, watchdog_s: float) -> None:
+        """The twist just sent runs until ``watchdog_s`` from now unless renewed; the monitor
+        is woken when it was not watching a deadline already."""
+        idle = self._jog_deadline_s is None
+        self._jog_deadline_s = time.monotonic() + watchdog_s
+        if idle:
+            self._kick_monitor.set()
 
     def _end_jog(self) -> None:
         if self._jog_deadline_s is None:

@@ -44,7 +44,7 @@ RECV_FREQUENCY_HZ = 125.0  # the receive client's RTDE rate: enough for the pose
 PUSH_CHECK_S = 0.004  # how often the pusher looks at the package timestamp (two cheap reads)
 # ... and while the arm has stood still, with no call made, for RESTING_AFTER_S: a motion the
 # cell did not command (the pendant, a protective stop) is seen at most this much later.
-RESTING_CHECK_S = 0.016
+RESTING_CHECK_S = 0.032
 RESTING_AFTER_S = 0.5
 # Timer slack of the clients' own threads (see drivers.timer_slack): a package is read at most
 # this much later, for a fifth of the idle CPU. The receive client's packages come every 8 ms,
