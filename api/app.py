@@ -18,6 +18,7 @@ from prometheus_client import CONTENT_TYPE_LATEST
 from api import errors, logs, metrics, openapi_limits
 from api.auth import TokenTable, require
 from api.docs import mount_docs
+from api.fast_lane import FastLane
 from api.guard import OPEN_PATHS, RequestGuard
 from api.interfaces import Interfaces
 from api.live import LiveView
@@ -84,7 +85,8 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False,
     if cell.sim is not None:
         app.include_router(sim_router)
     app.add_middleware(RequestGuard)
-    app.add_middleware(RequestTimer)  # outermost: times the guard's refusals too
+    app.add_middleware(RequestTimer)  # times the guard's refusals too
+    app.add_middleware(FastLane)  # outermost: plain /status and /stop skip the rest
 
     public = bool(getattr(cell.config.api, "metrics_public", False))
     app.state.open_paths = OPEN_PATHS | ({"/api/v1/metrics"} if public else set())

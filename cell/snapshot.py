@@ -5,7 +5,7 @@ newest :class:`Snap`, so a read costs a dictionary lookup (and the HTTP answer i
 once per refresh, not once per client), and no read ever waits on a device: the snapshot is
 built from the adapters' cached state (see :mod:`cell.status`).
 
-Fresh enough for anyone: a reader that finds it older than one period, or taken before the
+Fresh enough for anyone: a reader that finds it older than 1.5 periods, or taken before the
 motion slot last changed hands (a jog step or a job that just ended), refreshes it on the spot;
 concurrent readers share that one refresh instead of each building their own. A background
 thread refreshes it ahead, every camera period, only while that saves work: while SSE clients
@@ -34,6 +34,10 @@ from cell.links import LinkSupervisor
 
 log = logging.getLogger(__name__)
 MAX_RATE_HZ = 30.0  # a faster camera does not make the reports faster than this
+# A reader takes a snapshot up to this many periods old: the refresh thread, late by a few ms
+# on a loaded host, would otherwise send every read arriving just past one period to a
+# worker thread for a refresh of its own.
+READ_TOLERANCE_PERIODS = 1.5
 
 
 def _plain(obj: Any) -> Any:
@@ -93,7 +97,7 @@ class CellSnapshot:
 
     # -- reads --------------------------------------------------------------------------------
     def current(self) -> Snap:
-        """The newest snapshot, refreshed first when it is older than one period or older
+        """The newest snapshot, refreshed first when it is older than 1.5 periods or older
         than the last change of the motion slot."""
         self._reads += 1
         snap = self._snap
@@ -116,7 +120,7 @@ class CellSnapshot:
         return dict(self.current().health)
 
     def _stale(self, snap: Snap) -> bool:
-        return (time.monotonic() - snap.taken_s > self.period_s
+        return (time.monotonic() - snap.taken_s > READ_TOLERANCE_PERIODS * self.period_s
                 or snap.slot_generation != self.core.slot.generation)
 
     # -- building -------------------------------------------------------------------------------
