@@ -7,7 +7,9 @@ its own job database), then
    and the simulated controller, read from ``/proc`` (percent of one core);
 2. load for ``duration_s``: ``pollers`` clients polling ``GET /status`` every 250 ms (as the
    operator page does), ``streams`` clients reading ``GET /events``, ``viewers`` clients
-   fetching ``/camera/frame.png?overlay=true`` back to back (one process for each kind), while
+   showing the live view as the page does (``/camera/frame.jpg?overlay=true`` every 150 ms;
+   ``viewer_image="png"``: the full-size ``frame.png``, encoded per request, as runs before
+   2026-12-01 23:30 did) (one process for each kind), while
    this process starts a continuous jog, lets the arm move for ``move_s`` and sends
    ``POST /api/v1/stop``, at least ``min_stops`` times.
 
@@ -56,6 +58,7 @@ class ServiceBenchConfig:
     viewers: int = 2
     min_stops: int = 100
     move_s: float = 0.08
+    viewer_image: str = "jpg"  # "jpg": the page's shared live view; "png": a still per request
 
 
 # -- /proc ---------------------------------------------------------------------------------
@@ -231,7 +234,7 @@ def _load_main(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float,
         while time.monotonic() < end_s:
             t0 = time.monotonic()
             try:
-                r = await client.get(f"{base}/api/v1/camera/frame.png",
+                r = await client.get(f"{base}/api/v1/camera/frame.{cfg.viewer_image}",
                                      params={"overlay": "true"}, headers=VIEWER)
                 if r.status_code != 200:
                     errors.append(f"frame {r.status_code}")
@@ -387,7 +390,8 @@ def run_service_bench(cfg: ServiceBenchConfig | None = None) -> dict[str, Any]:
         "health_after": health.get("status"),
         "load": {"duration_s": cfg.duration_s, "pollers": cfg.pollers,
                  "status_period_s": STATUS_PERIOD_S, "streams": cfg.streams,
-                 "viewers": cfg.viewers, "cores": os.cpu_count(),
+                 "viewers": cfg.viewers, "viewer_image": cfg.viewer_image,
+                 "cores": os.cpu_count(),
                  "host_loadavg_1min_before": loadavg_before,
                  "host_loadavg_1min_after": round(os.getloadavg()[0], 2)},
     }

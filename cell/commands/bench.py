@@ -47,6 +47,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     svc.add_argument("--pollers", type=int, default=50)
     svc.add_argument("--streams", type=int, default=10)
     svc.add_argument("--viewers", type=int, default=2)
+    svc.add_argument("--viewer-image", choices=("jpg", "png"), default="jpg",
+                     help="jpg: the live view as the operator page shows it (default); png: a "
+                          "full-size still encoded per request")
     svc.add_argument("--stops", type=int, default=100, help="at least this many stops")
     svc.set_defaults(func=_bench_service)
 
@@ -107,7 +110,8 @@ def _bench_service(args: argparse.Namespace) -> int:
         return fail("invalid_argument", "durations must be positive and counts not negative",
                     args.json)
     cfg = ServiceBenchConfig(duration_s=args.duration, idle_s=args.idle, pollers=args.pollers,
-                             streams=args.streams, viewers=args.viewers, min_stops=args.stops)
+                             streams=args.streams, viewers=args.viewers, min_stops=args.stops,
+                             viewer_image=args.viewer_image)
     try:
         report = run_service_bench(cfg)
     except RuntimeError as err:
