@@ -9,10 +9,10 @@ Fresh enough for anyone: a reader that finds it older than 1.5 periods, or taken
 motion slot last changed hands (a jog step or a job that just ended), refreshes it on the spot;
 concurrent readers share that one refresh instead of each building their own. A background
 thread refreshes it ahead, every camera period, only while that saves work: while SSE clients
-listen, or while reads come in two periods running (a crowd of pollers). A sparse reader (the
-OPC UA server's 10 Hz update, the alarm watch, an operator page polling at 4 Hz) would find a
-refresh made ahead already stale, so it refreshes on its own and an idle service builds
-nothing it does not hand out. An event loop never waits for a refresh
+listen, or while more than ``DENSE_READS_PER_PERIOD`` reads come per period (a crowd of
+pollers). A sparse reader (the OPC UA server's 10 Hz update, the alarm watch, an operator
+page polling at 4 Hz) would find a refresh made ahead already stale, so it refreshes on its
+own and an idle service builds nothing it does not hand out. An event loop never waits for a refresh
 (:meth:`CellSnapshot.fresh`): it hands a late one to a worker thread.
 """
 
@@ -38,6 +38,10 @@ MAX_RATE_HZ = 30.0  # a faster camera does not make the reports faster than this
 # on a loaded host, would otherwise send every read arriving just past one period to a
 # worker thread for a refresh of its own.
 READ_TOLERANCE_PERIODS = 1.5
+# Refreshing ahead pays from this many reads per period on (a crowd of pollers); until then
+# the thread only looks every IDLE_TICK_S whether it does.
+DENSE_READS_PER_PERIOD = 2.0
+IDLE_TICK_S = 0.1
 
 
 def _plain(obj: Any) -> Any:
@@ -157,21 +161,22 @@ class CellSnapshot:
         return Snap(now, generation, st, health, state, encode(st), encode(health))
 
     def _loop(self) -> None:
-        next_s = time.monotonic()
-        seen_reads, read_last_period = self._reads, False
+        next_s = last_s = time.monotonic()
+        seen_reads, ahead = self._reads, False
         while not self._closing.is_set():
-            next_s += self.period_s
             try:
-                reads = self._reads
-                read_this_period, seen_reads = reads != seen_reads, reads
+                now = time.monotonic()
+                reads, seen_reads = self._reads - seen_reads, self._reads
+                rate_hz, last_s = reads / max(now - last_s, 1e-3), now
                 listeners = self.core.events.n_subscribers
-                if listeners or (read_this_period and read_last_period):
+                ahead = bool(listeners) or rate_hz >= DENSE_READS_PER_PERIOD / self.period_s
+                if ahead:
                     snap = self.refresh(unless_newer_than=self._snap)
                     if snap.state is not None and listeners:
                         self.core.events.publish("state", snap.state)
-                read_last_period = read_this_period
             except Exception:  # the reports must outlive any one bad read
                 log.exception("snapshot refresh failed")
+            next_s += self.period_s if ahead else IDLE_TICK_S
             delay = next_s - time.monotonic()
             if delay < -self.period_s:  # fell behind (loaded host): do not burst
                 next_s, delay = time.monotonic(), 0.0
