@@ -111,6 +111,7 @@ class OpcUaServer:
         self._ready = threading.Event()
         self._error: BaseException | None = None
         self._last_job_id = ""
+        self._ended_job: dict[str, Any] | None = None  # the last job, as it ended
         self._nodes: dict[str, Any] = {}
         self._written: dict[str, ua.Variant] = {}  # the last value written to each node
         self._types: dict[str, Any] = {}
@@ -296,15 +297,21 @@ class OpcUaServer:
         return out
 
     def _snapshot(self) -> dict[str, Any]:
-        """What the variables show (runs in a worker thread: the cell's reads take locks)."""
+        """What the variables show: the cell's snapshot (built from cached device state, it
+        never waits on a device, so it is read on the server's loop) and the job running,
+        or the last one as it ended (read from the job store once)."""
         st = self.cell.status()
         health = self.cell.health()
         job = st.get("job")
         if job is not None:
-            self._last_job_id = job["id"]
+            self._last_job_id, self._ended_job = job["id"], None
         elif self._last_job_id:
-            j = self.cell.jobs.get(self._last_job_id)
-            job = None if j is None else j.as_dict()
+            job = self._ended_job
+            if job is None or job["id"] != self._last_job_id:
+                j = self.cell.jobs.get(self._last_job_id)
+                job = None if j is None else j.as_dict()
+                # kept once its record has ended (the slot may be free a moment before)
+                self._ended_job = job if job is not None and job.get("ended_at") else None
         robot = st.get("robot", {})
         alarms = [f"{name}_disconnected" for name in health.get("missing", [])]
         if robot.get("protective_stop"):
@@ -317,7 +324,7 @@ class OpcUaServer:
         return {"status": st, "job": job, "alarms": alarms}
 
     async def _update(self) -> None:
-        snap = await asyncio.to_thread(self._snapshot)
+        snap = self._snapshot()
         st, job = snap["status"], snap["job"]
         robot = st.get("robot", {})
         S, D = ua.VariantType.String, ua.VariantType.Double
