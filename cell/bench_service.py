@@ -45,6 +45,7 @@ import numpy as np
 
 STATUS_PERIOD_S = 0.25  # the operator page's status poll
 VIEWER_MIN_PERIOD_S = 0.15  # the operator page's camera loop
+LAG_PROBE_S = 0.005  # the load processes' event-loop lag probe
 OPERATOR = {"Authorization": "Bearer sim-operator"}
 VIEWER = {"Authorization": "Bearer sim-viewer"}
 
@@ -59,6 +60,10 @@ class ServiceBenchConfig:
     min_stops: int = 100
     move_s: float = 0.08
     viewer_image: str = "jpg"  # "jpg": the page's shared live view; "png": a still per request
+    poller_processes: int = 2  # the pollers' HTTP clients cost more CPU than the service does
+    # set per load process: its first poller and the pollers of all, for the poll phases
+    poller_first: int = 0
+    poller_phase_of: int = 0
 
 
 # -- /proc ---------------------------------------------------------------------------------
@@ -185,9 +190,19 @@ def _load_main(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float,
     frames = [0]
     events = [0]
     errors: list[str] = []
+    lag_ms: list[float] = []  # how late this process's own event loop woke (client-side delay)
+
+    async def lag_meter() -> None:
+        while time.monotonic() < end_s:
+            t0 = time.monotonic()
+            await asyncio.sleep(LAG_PROBE_S)
+            if t0 >= start_s:
+                lag_ms.append(1000.0 * (time.monotonic() - t0 - LAG_PROBE_S))
+
+    total_pollers = cfg.poller_phase_of or cfg.pollers
 
     async def poller(client: httpx.AsyncClient, i: int) -> None:
-        await asyncio.sleep(STATUS_PERIOD_S * i / max(1, cfg.pollers))
+        await asyncio.sleep(STATUS_PERIOD_S * (cfg.poller_first + i) / max(1, total_pollers))
         while time.monotonic() < end_s:
             t0 = time.monotonic()
             try:
@@ -252,6 +267,7 @@ def _load_main(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float,
         try:
             it = iter(clients)
             await asyncio.gather(
+                lag_meter(),
                 *(stream(next(it)) for _ in range(cfg.streams)),
                 *(viewer(next(it)) for _ in range(cfg.viewers)),
                 *(poller(next(it), i) for i in range(cfg.pollers)))
@@ -260,7 +276,9 @@ def _load_main(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float,
                 await c.aclose()
 
     asyncio.run(main())
+    role = "pollers" if cfg.pollers else "streams" if cfg.streams else "viewers"
     out.put({"status_ms": status_ms, "gaps_ms": gaps_ms, "publish_gaps_ms": publish_gaps_ms,
+             f"{role}_lag_ms": lag_ms,
              "frames": frames[0],
              "events": events[0], "errors": errors})
 
@@ -333,23 +351,32 @@ def run_service_bench(cfg: ServiceBenchConfig | None = None) -> dict[str, Any]:
         queue: mp.Queue[dict[str, Any]] = ctx.Queue()
         # one process per kind of client, so a live view's megabyte frames do not hold up
         # the status pollers' own event loop (that would be measured as status latency)
-        roles = [replace(cfg, streams=0, viewers=0), replace(cfg, pollers=0, viewers=0),
-                 replace(cfg, pollers=0, streams=0)]
+        n_proc = max(1, min(cfg.poller_processes, cfg.pollers))
+        split = [cfg.pollers * k // n_proc for k in range(n_proc + 1)]
+        roles = [*(replace(cfg, streams=0, viewers=0, pollers=split[k + 1] - split[k],
+                           poller_first=split[k], poller_phase_of=cfg.pollers)
+                   for k in range(n_proc)),
+                 replace(cfg, pollers=0, viewers=0), replace(cfg, pollers=0, streams=0)]
+        names = [*(f"pollers{k}" for k in range(n_proc)), "streams", "viewers"]
         loads = [ctx.Process(target=_load_main, args=(base, role, start_s, end_s, queue),
                              daemon=True) for role in roles]
         for load in loads:
             load.start()
         loaded: dict[str, Any] = {"status_ms": [], "gaps_ms": [], "publish_gaps_ms": [],
-                                  "frames": 0, "events": 0, "errors": []}
+                                  "pollers_lag_ms": [], "streams_lag_ms": [],
+                                  "viewers_lag_ms": [], "frames": 0, "events": 0, "errors": []}
         cpu_load: dict[str, float | None] = {}
 
         def measure_load_cpu() -> None:
             while time.monotonic() < start_s:
                 time.sleep(0.01)
-            clients = {f"bench_{name}": load.pid for name, load in
-                       zip(("pollers", "streams", "viewers"), loads, strict=True)
+            clients = {f"bench_{name}": load.pid for name, load in zip(names, loads, strict=True)
                        if load.pid is not None}
-            cpu_load.update(cpu_percent({**pids, **clients}, max(1.0, cfg.duration_s - 1.0)))
+            used = cpu_percent({**pids, **clients}, max(1.0, cfg.duration_s - 1.0))
+            pollers = [v for k, v in used.items() if k.startswith("bench_pollers")]
+            cpu_load.update({k: v for k, v in used.items() if not k.startswith("bench_pollers")})
+            cpu_load["bench_pollers"] = None if None in pollers else round(
+                sum(v for v in pollers if v is not None), 1)
 
         meter = threading.Thread(target=measure_load_cpu, daemon=True)
         meter.start()
@@ -381,6 +408,10 @@ def run_service_bench(cfg: ServiceBenchConfig | None = None) -> dict[str, Any]:
         "sse_gap_ms_p99": _pct(gaps, 99),
         "sse_publish_gap_ms_max": _pct(loaded.get("publish_gaps_ms", []), 100),
         "sse_state_events": loaded.get("events", 0),
+        # the load's own event loops: how late they woke; a status or SSE delay this large
+        # was spent in the (starved) client, not in the service
+        "client_loop_lag_ms_p99": {role: _pct(loaded.get(f"{role}_lag_ms", []), 99)
+                                   for role in ("pollers", "streams", "viewers")},
         "frames_viewed": loaded.get("frames", 0),
         "idle_cpu_pct": idle,
         "idle_cpu_pct_service_plus_ur_client": round(idle_total, 1),
