@@ -69,6 +69,8 @@ from fakes.ur_sim.state import (
     positive_number,
 )
 
+Floats = tuple[float, ...]  # a pose or twist as a snapshot carries it
+
 # The engine module is where callers import the simulator's types from.
 __all__ = [
     "HOME_Q_RAD",
@@ -153,6 +155,8 @@ class MotionEngine:
         self._hook: Callable[[], None] | None = None
         self._servo_ik: tuple[Vec, Vec] | None = None  # last servol pose and its IK
         self._snap_cache: tuple[tuple[object, ...], EngineSnapshot] | None = None
+        # (joints, speeds, TCP offset) -> TCP pose and speed (see _tcp_state)
+        self._tcp_cache: tuple[tuple[object, ...], Floats, Floats] | None = None
         self.contact_planes: tuple[SafetyPlane, ...] = ()
         self._hook_wants: Callable[[], bool] | None = None
         self._idle_period_s = 0.02
@@ -433,12 +437,24 @@ class MotionEngine:
         self._snap_cache = (key, snap)
         return snap
 
+    def _tcp_state(self, q: Vec, qd: Vec) -> tuple[Floats, Floats]:
+        """TCP pose (UR) and speed of joints ``q``, ``qd``: the kinematics are most of a
+        cycle's cost, so a standing arm's are computed once, not 500 times a second."""
+        key = (q.tobytes(), qd.tobytes(), tuple(self._tcp_offset))
+        cached = self._tcp_cache
+        if cached is not None and cached[0] == key:
+            return cached[1], cached[2]
+        pose = tuple(map(float, ur_pose_from_T(self._kin.forward_tcp(q))))
+        twist = self._kin.jacobian_tcp(q) @ qd
+        twist[:3] /= 1000.0
+        speed = tuple(map(float, twist))
+        self._tcp_cache = (key, pose, speed)
+        return pose, speed
+
     def _build_snapshot(self) -> EngineSnapshot:
         now = self._now()
         q, qd = self._q, self._qd
-        pose = tuple(ur_pose_from_T(self._kin.forward_tcp(q)))
-        twist = self._kin.jacobian_tcp(q) @ qd
-        twist[:3] /= 1000.0
+        pose, twist = self._tcp_state(q, qd)
         safety = self._safety_mode
         sbits = sum(1 << int(b) for b in _SAFETY_BITS[safety])
         rbits = (1 << RobotStatusBit.POWER_ON) if self._robot_mode in _POWERED else 0
@@ -461,9 +477,9 @@ class MotionEngine:
             target_qd=tuple(map(float, qd)),
             target_qdd=tuple(map(float, self._qdd)),
             tcp_pose=pose,
-            tcp_speed=tuple(map(float, twist)),
+            tcp_speed=twist,
             target_tcp_pose=pose,
-            target_tcp_speed=tuple(map(float, twist)),
+            target_tcp_speed=twist,
             tcp_offset=tuple(self._tcp_offset),
             tcp_force=(0.0,) * 6,
             joint_temperatures_c=temps,
