@@ -48,10 +48,10 @@ RESTING_CHECK_S = 0.032
 RESTING_AFTER_S = 0.5
 # Timer slack of the clients' own threads (see drivers.timer_slack): a package is read at most
 # this much later, for a fifth of the idle CPU. The receive client's packages come every 8 ms,
-# the control client's every 2 ms; ur_rtde reads what has arrived, so a late look falls
-# behind nothing (measured after 60 s at 2 and 4 ms: speedStop acknowledged in 22-25 ms as at
-# 1 ms). Equal slacks let the kernel wake both threads together.
-TIMER_SLACK_S: dict[str, float] = {"recv": 0.002, "ctrl": 0.002, "dash": 0.002}
+# the control client's every 2 ms: its slack stays at 1 ms (with 2 ms an idle minute showed no
+# lag, but the servo benchmark's tracking fell apart: 30-77 mm RMS, the arm still 1.2 s after
+# a lost target).
+TIMER_SLACK_S: dict[str, float] = {"recv": 0.002, "ctrl": 0.001, "dash": 0.002}
 PUSHER_TIMER_SLACK_S = 0.001
 # A standing arm (see _PushState): one sample per QUIET_PUSH_S, well inside the adapter's
 # PUSH_FRESH_S; the deadbands are far below what the cell resolves (1e-5 rad is 10 um at 1 m)
