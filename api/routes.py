@@ -86,7 +86,7 @@ def me(caller: Read) -> Me:
                              "description": "the cell's snapshot"}})
 async def status(request: Request, caller: ReadNow) -> Response:
     """State, robot pose and mode, camera, gripper, current job, last locate, and
-    ``snapshot_age_s`` (the snapshot is refreshed at camera rate; reading it never waits on
+    ``snapshot_age_s`` (the snapshot is at most 1.5 camera periods old; reading it never waits on
     a device)."""
     snap = await snapshot_now(cell_of(request))
     return Response(with_age(snap.status_json, snap.age_s()), media_type="application/json",

@@ -1,4 +1,4 @@
-"""One snapshot of the cell, refreshed at camera rate, behind every read.
+"""One snapshot of the cell behind every read, never much older than a camera period.
 
 ``/status``, ``/health``, the SSE ``state`` event and the metrics gauges all come from the
 newest :class:`Snap`, so a read costs a dictionary lookup (and the HTTP answer is JSON encoded
