@@ -138,7 +138,20 @@ def app_from_environment() -> FastAPI:
         cell.stop("service", reason="shutdown: the service is stopping")
 
     SHUTDOWN_HOOKS.append(on_signal)  # cell serve runs it on SIGTERM, before the HTTP drain
+    freeze_startup_objects()
     return app
+
+
+def freeze_startup_objects() -> None:
+    """Move everything alive after start-up (modules, kernels, the cell, the app) out of the
+    garbage collector's reach. A full collection walked all of it: 105 ms with every thread
+    stopped, measured in the simulated cell's service, so STOP, status and SSE all waited
+    whenever one ran (the service benchmark's p99 tails). Collected first, so no garbage is
+    frozen with it; objects made later are collected as usual."""
+    import gc
+
+    gc.collect()
+    gc.freeze()
 
 
 def _port_from_environment(name: str) -> int | None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import logging
 import os
 import signal
@@ -40,6 +41,11 @@ def main(argv: list[str] | None = None) -> int:
             ctl.engine.brake_release()
         if args.protective_stop_after is not None:
             ctl.faults.protective_stop(args.protective_stop_after)
+        # A full garbage collection walked every start-up object with the 500 Hz clock
+        # stopped (59 ms measured): freeze them out of its reach, as a real controller's
+        # cycle never pauses for its own housekeeping.
+        gc.collect()
+        gc.freeze()
         print(f"UR controller simulator ready on {args.host} "
               "(dashboard 29999, script 30003, RTDE 30004)", flush=True)
         if args.control:
