@@ -97,6 +97,11 @@ class TokenTable:
         return found
 
 
+def bearer_of(authorization: str) -> str | None:
+    """The token of an ``Authorization: Bearer <token>`` value, None for any other scheme."""
+    return authorization[7:].strip() if authorization[:7].lower() == "bearer " else None
+
+
 def authorise(request: Request, token: str | None, permission: str) -> Caller:
     table: TokenTable = request.app.state.tokens
     caller = table.lookup(token)

@@ -21,6 +21,7 @@ from typing import Any
 from pydantic import ValidationError
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from api.auth import bearer_of
 from api.guard import MAX_BODY_BYTES
 from api.schemas import StopRequest, StopResult
 from api.stop import snapshot_now, stop_now
@@ -102,10 +103,11 @@ def _caller(scope: Scope, app: Any, permission: str) -> Any | None:
     """The caller of a valid bearer token that has ``permission``, else None."""
     for key, value in scope.get("headers", []):
         if key == b"authorization":
-            if value[:7].lower() != b"bearer ":
+            token = bearer_of(value.decode("latin-1"))
+            if token is None:
                 return None
             try:
-                caller = app.state.tokens.lookup(value[7:].strip().decode("latin-1"))
+                caller = app.state.tokens.lookup(token)
             except CellError:
                 return None
             return caller if permission in caller.permissions else None

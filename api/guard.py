@@ -17,6 +17,7 @@ from typing import Any
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from api.auth import bearer_of
 from api.errors import error_body
 from cell.safety import CellError
 
@@ -91,11 +92,8 @@ class RequestGuard:
         method = scope["method"]
         headers = {k.decode("latin-1").lower(): v.decode("latin-1")
                    for k, v in scope.get("headers", [])}
-        auth = headers.get("authorization", "")
-        token: str | None = None
-        if auth[:7].lower() == "bearer ":
-            token = auth[7:].strip()
-        elif method in ("GET", "HEAD"):
+        token = bearer_of(headers.get("authorization", ""))
+        if token is None and method in ("GET", "HEAD"):
             token = _query_token(scope)  # the routes decide whether they accept it
         try:
             caller = app.state.tokens.lookup(token)

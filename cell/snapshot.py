@@ -12,8 +12,8 @@ thread refreshes it ahead, every camera period, only while that saves work: whil
 listen, or while more than ``DENSE_READS_PER_PERIOD`` reads come per period (a crowd of
 pollers). A sparse reader (the OPC UA server's 10 Hz update, the alarm watch, an operator
 page polling at 4 Hz) would find a refresh made ahead already stale, so it refreshes on its
-own and an idle service builds nothing it does not hand out. An event loop never waits for a refresh
-(:meth:`CellSnapshot.fresh`): it hands a late one to a worker thread.
+own and an idle service builds nothing it does not hand out. An event loop never waits for a
+refresh (:meth:`CellSnapshot.fresh`): it hands a late one to a worker thread.
 """
 
 from __future__ import annotations

@@ -348,14 +348,13 @@ class URArm:
             if self._lost_reason is not None:
                 continue
             try:
-                sample = self._sample()
+                self._sample()  # asks the child itself when the pushes lag
             except DriverError:
                 continue
             now = time.monotonic()
             if now - self._last_ts_change_s > self.stale_after_s:
                 self._mark_lost(f"no RTDE data for {now - self._last_ts_change_s:.2f} s")
                 continue
-            self._note_protective_stop(sample, now)
             if self._jog_deadline_s is not None and now > self._jog_deadline_s:
                 try:
                     self._end_jog()
@@ -367,10 +366,8 @@ class URArm:
         (so a stalled stream is noticed right at ``stale_after_s``)."""
         if self._lost_reason is not None:  # nothing to watch until the next connect
             return IDLE_MONITOR_PERIOD_S
-        now = time.monotonic()
-        due_s = self._last_ts_change_s + self.stale_after_s - now
-        deadline_s = self._jog_deadline_s
-        period_s = IDLE_MONITOR_PERIOD_S if deadline_s is None else MONITOR_PERIOD_S
+        due_s = self._last_ts_change_s + self.stale_after_s - time.monotonic()
+        period_s = IDLE_MONITOR_PERIOD_S if self._jog_deadline_s is None else MONITOR_PERIOD_S
         return max(0.001, min(period_s, due_s + 0.0005))
 
     def _note_protective_stop(self, s: StateSample, now: float) -> None:

@@ -294,10 +294,11 @@ class _PushState:
         """The samples to send now for a new package, oldest first."""
         with self._lock:
             last = self._last
-            if last is not None and now_s - self._last_s < QUIET_PUSH_S and unchanged(last, sample):
+            same = last is not None and unchanged(last, sample)
+            if same and now_s - self._last_s < QUIET_PUSH_S:
                 self._held = sample
                 return []
-            if last is None or not unchanged(last, sample):
+            if not same:
                 self._active_s = now_s
             out = [sample]
             if self._held is not None and not unchanged(self._held, sample):

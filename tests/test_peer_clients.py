@@ -14,7 +14,7 @@ import math
 import socket
 import struct
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
@@ -29,17 +29,9 @@ dashboard_client = pytest.importorskip("dashboard_client")
 from fakes.gripper import FakeGripper  # noqa: E402
 from fakes.ur_controller.load import cpu_burners  # noqa: E402
 from fakes.ur_controller.process import ControllerProcess  # noqa: E402
+from tests.ur_testing import wait_until  # noqa: E402
 
 HOME_Q = [0.0, -1.571, 1.571, -1.571, -1.571, 0.0]
-
-
-def wait_until(pred: Callable[[], bool], timeout_s: float, poll_s: float = 0.01) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(poll_s)
-    return pred()
 
 
 @pytest.fixture(scope="module", autouse=True)

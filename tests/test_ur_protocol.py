@@ -11,7 +11,7 @@ import math
 import socket
 import struct
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import dashboard_client
 import numpy as np
@@ -26,6 +26,7 @@ from fakes.ur_controller import rtde
 from fakes.ur_controller.process import ControllerProcess
 from fakes.ur_controller.script import parse_program
 from fakes.ur_controller.urscript import split_programs
+from tests.ur_testing import wait_until
 
 # The ur_rtde clients run in this process and block inside C++ (movePath waits for the program
 # without a deadline): a signal cannot interrupt them, a watchdog thread can end the run.
@@ -37,17 +38,6 @@ def profile_time(distance: float, v: float, a: float) -> float:
     if distance >= v * v / a:
         return distance / v + v / a
     return 2.0 * math.sqrt(distance / a)
-
-
-def wait_until(pred: Callable[[], bool], timeout_s: float = 3.0, poll_s: float = 0.005) -> bool:
-    """Poll ``pred`` until it holds or ``timeout_s`` passes: on a loaded host the receive
-    stream may be some packages behind the control one."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(poll_s)
-    return pred()
 
 
 def assert_about(measured_s: float, expected_s: float) -> None:
