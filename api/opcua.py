@@ -33,6 +33,7 @@ from typing import Any
 from urllib.parse import urlparse
 
 from asyncua import Server, ua
+from asyncua.common.callback import CallbackType
 from asyncua.common.structures104 import new_struct, new_struct_field
 from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from asyncua.crypto.permission_rules import USER_TYPES, SimpleRoleRuleset, User, UserRole
@@ -49,6 +50,7 @@ from cell.service import Cell
 
 log = logging.getLogger(__name__)
 
+IDLE_CHECK_S = 1.0  # with nobody subscribed, the update loop looks this often anyway
 _CURRENT_USER: contextvars.ContextVar[User | None] = contextvars.ContextVar(
     "opcua_user", default=None)
 # Read, browse, subscribe, call: what an authenticated user may send. Writes are not allowed
@@ -61,6 +63,14 @@ _POLICIES: dict[str, list[ua.SecurityPolicyType]] = {
     "Basic256Sha256": [ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt,
                        ua.SecurityPolicyType.Basic256Sha256_Sign],
 }
+
+
+def _has_subscriptions(server: Server) -> bool:
+    """Whether a client monitors anything (its data changes come from the update's
+    writes); an asyncua without the table counts as yes, so updates never stop silently."""
+    service = getattr(server.iserver, "subscription_service", None)
+    subscriptions = getattr(service, "subscriptions", None)
+    return subscriptions is None or bool(subscriptions)
 
 
 class _Users(UserManager):
@@ -108,12 +118,14 @@ class OpcUaServer:
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop: asyncio.Event | None = None
+        self._wake: asyncio.Event | None = None
         self._ready = threading.Event()
         self._error: BaseException | None = None
         self._last_job_id = ""
         self._ended_job: dict[str, Any] | None = None  # the last job, as it ended
         self._nodes: dict[str, Any] = {}
         self._written: dict[str, ua.Variant] = {}  # the last value written to each node
+        self._updated_s = 0.0  # time.monotonic() of the last variable update
         self._types: dict[str, Any] = {}
         self._calls = ThreadPoolExecutor(4, thread_name_prefix="opcua-call")
         self._stops = ThreadPoolExecutor(2, thread_name_prefix="opcua-stop")
@@ -134,10 +146,12 @@ class OpcUaServer:
             raise self._error
 
     def close(self) -> None:
-        loop, stop = self._loop, self._stop
+        loop, stop, wake = self._loop, self._stop, self._wake
         if loop is not None and stop is not None and not loop.is_closed():
             with contextlib.suppress(RuntimeError):  # the loop has ended meanwhile
                 loop.call_soon_threadsafe(stop.set)
+                if wake is not None:
+                    loop.call_soon_threadsafe(wake.set)
         if self._thread is not None:
             self._thread.join(timeout=10.0)
         self._calls.shutdown(wait=False, cancel_futures=True)
@@ -159,19 +173,39 @@ class OpcUaServer:
         self._loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
         server = await self._build()
+        self._wake = wake = asyncio.Event()  # set by close() and by a new subscription
+        server.subscribe_server_callback(CallbackType.PreRead, self._before_read)
+        server.subscribe_server_callback(CallbackType.ItemSubscriptionCreated,
+                                         lambda event, dispatcher: wake.set())
         await server.start()
         try:
-            await self._update()  # the first values before anyone reads
+            await self._refresh()  # the first values before anyone reads
             self._ready.set()
             while not self._stop.is_set():
+                # with nobody subscribed the update rests (a Read refreshes for itself)
+                subscribed = _has_subscriptions(server)
+                wake.clear()
                 with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(self._stop.wait(), self.config.update_period_s)
-                try:
-                    await self._update()
-                except Exception:
-                    log.exception("OPC UA variable update failed")
+                    await asyncio.wait_for(wake.wait(), self.config.update_period_s
+                                           if subscribed else IDLE_CHECK_S)
+                if not self._stop.is_set() and _has_subscriptions(server):
+                    await self._refresh()
         finally:
             await server.stop()
+
+    async def _refresh(self) -> None:
+        self._updated_s = time.monotonic()
+        try:
+            await self._update()
+        except Exception:
+            log.exception("OPC UA variable update failed")
+
+    async def _before_read(self, event: Any, dispatcher: Any) -> None:
+        """A client's Read finds the variables at most one update period old: with nobody
+        subscribed the periodic update rests (an idle cell PC builds nothing for nobody),
+        so a polling PLC's read refreshes them first."""
+        if time.monotonic() - self._updated_s >= self.config.update_period_s:
+            await self._refresh()
 
     async def _build(self) -> Server:
         cfg = self.config

@@ -9,6 +9,7 @@ import inspect
 import socket
 import subprocess
 import sys
+import threading
 import time
 import xmlrpc.client
 from collections.abc import Iterator
@@ -185,6 +186,56 @@ def test_opcua_approach_succeeds_then_stop_mid_approach_leaves_the_arm_still(
     rows = [(e["command"], e["outcome"]) for e in audit(served)
             if e["caller"] == "opcua:plc(plc)"]
     assert ("stop", "ok") in rows and rows.count(("approach", "ok")) >= 2
+
+
+def test_opcua_rests_without_subscribers_and_subscribers_see_the_arm_move(
+        served: Served, monkeypatch: pytest.MonkeyPatch) -> None:
+    builds: list[float] = []  # the OPC UA thread's status reads
+    status = served.cell.status
+
+    def counted() -> dict[str, Any]:
+        if threading.current_thread().name == "opcua":
+            builds.append(time.monotonic())
+        return status()
+
+    monkeypatch.setattr(served.cell, "status", counted)
+    time.sleep(1.0)
+    assert len(builds) <= 1, "the update ran with nobody connected"
+
+    class Changes:
+        def __init__(self) -> None:
+            self.poses: list[Any] = []
+
+        def datachange_notification(self, node: Any, value: Any, data: Any) -> None:
+            self.poses.append(value)
+
+    async def go() -> None:
+        async with Opc(opc_client(served.opcua_url, "plc")) as opc:
+            # a read is fresh although nothing ran periodically: the read refreshed first
+            t = T_from_pose_dict(truth(served)["T_base_tcp"])
+            pose = await opc.read("TcpPose")
+            assert close_to(T_from_pose(pose.position_mm, pose.rotvec_rad), t, 1.0, 0.2)
+            changes = Changes()
+            sub = await opc.client.create_subscription(50, changes)
+            await sub.subscribe_data_change(await opc.cell.get_child(f"{opc.idx}:TcpPose"))
+            r = served.http.post("/api/v1/jog", headers=AUTH["operator"], json={
+                "mode": "continuous", "linear_mm_s": [40.0, 0.0, 0.0]})
+            assert r.status_code == 200, r.text
+            for _ in range(10):  # the dead-man heartbeat keeps the jog going for a second
+                await asyncio.sleep(0.1)
+                assert served.http.post("/api/v1/jog/heartbeat",
+                                        headers=AUTH["operator"]).status_code == 200
+            assert served.http.post("/api/v1/stop", headers=AUTH["operator"],
+                                    json={"reason": "test"}).status_code == 200
+            still = settled_tcp(served.cell)
+            await asyncio.sleep(0.5)
+            xs = [p.position_mm[0] for p in changes.poses]
+            assert len(xs) >= 5 and xs[-1] - xs[0] > 20.0, xs  # ~40 mm in the jog's second
+            last = changes.poses[-1]
+            assert close_to(T_from_pose(last.position_mm, last.rotvec_rad), still, 0.5, 0.1)
+            await sub.delete()
+
+    run(go())
 
 
 def test_opcua_roles_users_and_refusals(served: Served) -> None:
