@@ -9,7 +9,10 @@ its own job database), then
    operator page does), ``streams`` clients reading ``GET /events``, ``viewers`` clients
    showing the live view as the page does (``/camera/frame.jpg?overlay=true`` every 150 ms;
    ``viewer_image="png"``: the full-size ``frame.png``, encoded per request, as runs before
-   2026-12-01 23:30 did) (one process for each kind), while
+   2026-12-01 23:30 did) (one process for each kind; aiohttp clients, one connection each,
+   as separate browsers; httpx, used before 2026-12-02 02:00, cost the host 3-4x the CPU per
+   request, 50 % of a core for the pollers alone, and its own delays were measured as the
+   service's), while
    this process starts a continuous jog, lets the arm move for ``move_s`` and sends
    ``POST /api/v1/stop``, at least ``min_stops`` times.
 
@@ -40,7 +43,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-import httpx
+import httpx  # the STOP sender: one synchronous client
 import numpy as np
 
 STATUS_PERIOD_S = 0.25  # the operator page's status poll
@@ -184,6 +187,8 @@ def _load_main(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float,
                out: mp.Queue[dict[str, Any]]) -> None:
     import asyncio
 
+    import aiohttp
+
     status_ms: list[float] = []
     gaps_ms: list[float] = []
     publish_gaps_ms: list[float] = []  # between the server's publish times of the same events
@@ -201,31 +206,32 @@ def _load_main(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float,
 
     total_pollers = cfg.poller_phase_of or cfg.pollers
 
-    async def poller(client: httpx.AsyncClient, i: int) -> None:
+    async def poller(client: aiohttp.ClientSession, i: int) -> None:
         await asyncio.sleep(STATUS_PERIOD_S * (cfg.poller_first + i) / max(1, total_pollers))
         while time.monotonic() < end_s:
             t0 = time.monotonic()
             try:
-                r = await client.get(f"{base}/api/v1/status", headers=VIEWER)
-                if r.status_code != 200:
-                    errors.append(f"status {r.status_code}")
-                else:
-                    r.json()
-            except httpx.HTTPError as err:
+                async with client.get(f"{base}/api/v1/status", headers=VIEWER) as r:
+                    body = await r.read()
+                    if r.status != 200:
+                        errors.append(f"status {r.status}")
+                    else:
+                        json.loads(body)
+            except (aiohttp.ClientError, TimeoutError) as err:
                 errors.append(f"status: {err!r}")
             t1 = time.monotonic()
             if t0 >= start_s:
                 status_ms.append(1000.0 * (t1 - t0))
             await asyncio.sleep(max(0.0, STATUS_PERIOD_S - (t1 - t0)))
 
-    async def stream(client: httpx.AsyncClient) -> None:
+    async def stream(client: aiohttp.ClientSession) -> None:
         last: float | None = None
         last_published: float | None = None
         is_state = False
         try:
-            async with client.stream("GET", f"{base}/api/v1/events", headers=VIEWER,
-                                     timeout=httpx.Timeout(10.0)) as r:
-                async for line in r.aiter_lines():
+            async with client.get(f"{base}/api/v1/events", headers=VIEWER) as r:
+                async for raw in r.content:
+                    line = raw.decode().rstrip("\r\n")
                     now = time.monotonic()
                     if now >= end_s:
                         break
@@ -242,28 +248,31 @@ def _load_main(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float,
                     if last is not None and last >= start_s:
                         gaps_ms.append(1000.0 * (now - last))
                     last = now
-        except httpx.HTTPError as err:
+        except (aiohttp.ClientError, TimeoutError) as err:
             errors.append(f"events: {err!r}")
 
-    async def viewer(client: httpx.AsyncClient) -> None:
+    async def viewer(client: aiohttp.ClientSession) -> None:
         while time.monotonic() < end_s:
             t0 = time.monotonic()
             try:
-                r = await client.get(f"{base}/api/v1/camera/frame.{cfg.viewer_image}",
-                                     params={"overlay": "true"}, headers=VIEWER)
-                if r.status_code != 200:
-                    errors.append(f"frame {r.status_code}")
-                elif t0 >= start_s:
-                    frames[0] += 1
-            except httpx.HTTPError as err:
+                async with client.get(f"{base}/api/v1/camera/frame.{cfg.viewer_image}",
+                                      params={"overlay": "true"}, headers=VIEWER) as r:
+                    await r.read()
+                    if r.status != 200:
+                        errors.append(f"frame {r.status}")
+                    elif t0 >= start_s:
+                        frames[0] += 1
+            except (aiohttp.ClientError, TimeoutError) as err:
                 errors.append(f"frame: {err!r}")
             await asyncio.sleep(max(0.0, VIEWER_MIN_PERIOD_S - (time.monotonic() - t0)))
 
     async def main() -> None:
-        # one client (one connection) each, as separate browsers would be; a shared pool of
-        # 60 connections costs the client more CPU per request than the server spends
+        # one session (one connection) each, as separate browsers would be
         n = cfg.streams + cfg.viewers + cfg.pollers
-        clients = [httpx.AsyncClient(timeout=httpx.Timeout(10.0)) for _ in range(n)]
+        timeout = aiohttp.ClientTimeout(total=None, sock_read=10.0, sock_connect=10.0)
+        clients = [aiohttp.ClientSession(timeout=timeout,
+                                         connector=aiohttp.TCPConnector(limit=1))
+                   for _ in range(n)]
         try:
             it = iter(clients)
             await asyncio.gather(
@@ -273,7 +282,7 @@ def _load_main(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float,
                 *(poller(next(it), i) for i in range(cfg.pollers)))
         finally:
             for c in clients:
-                await c.aclose()
+                await c.close()
 
     asyncio.run(main())
     role = "pollers" if cfg.pollers else "streams" if cfg.streams else "viewers"

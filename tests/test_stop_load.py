@@ -250,3 +250,21 @@ def test_the_dead_man_stops_through_the_stop_path(tmp_path: Path) -> None:
         still = tcp(cell)
         time.sleep(0.3)
         assert pose_distance(still, tcp(cell))[0] < 0.05
+
+
+def test_the_service_bench_runs_its_load_and_reports_every_key() -> None:
+    """``cell bench service``, shortened: the simulated cell served, idle CPU read, the load's
+    clients (pollers in two processes, streams, a viewer) answered, STOP sent while jogging.
+    Numbers are not judged here (a benchmark's job); only that every client got its answers."""
+    from cell.bench_service import ServiceBenchConfig, run_service_bench
+
+    r = run_service_bench(ServiceBenchConfig(duration_s=3.0, idle_s=1.0, pollers=6,
+                                             streams=2, viewers=1, min_stops=5))
+    assert r["errors"] == 0, r["error_samples"]
+    assert r["stops"] >= 5 and r["stops_while_jogging"] >= 1
+    assert r["status_polls"] >= 6 * 3 * 0.5  # 4 Hz each, over 3 s, on a slow host
+    assert r["sse_state_events"] >= 2 * 10 and r["frames_viewed"] >= 3
+    for key in ("stop_ms_p50", "stop_ms_p99", "status_ms_p99", "sse_gap_ms_max"):
+        assert isinstance(r[key], float) and r[key] >= 0.0, (key, r[key])
+    assert set(r["idle_cpu_pct"]) == {"service", "ur_client", "controller"}
+    assert r["health_after"] in ("ok", "degraded")
