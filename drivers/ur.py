@@ -148,6 +148,7 @@ class URArm:
         self._samples = threading.Condition()  # guards the newest sample
         self._latest: StateSample | None = None
         self._latest_rx_s = 0.0
+        self._latest_host_s = 0.0  # host time the newest RTDE package was taken (mapped)
         self._subscribed = False
 
     # -- the client process ------------------------------------------------------------------
@@ -185,11 +186,14 @@ class URArm:
             raise ConnectionLostError(f"dashboard {method} on {self.host}: {exc}") from exc
 
     def _sample(self) -> StateSample:
+        return self._timed_sample()[0]
+
+    def _timed_sample(self) -> tuple[StateSample, float]:
         """The newest state: the last pushed sample, or (not subscribed yet, or pushes
-        lagging) one asked for."""
+        lagging) one asked for; with the host time its RTDE package was taken."""
         self._check_link()
         with self._samples:
-            sample, rx_s = self._latest, self._latest_rx_s
+            sample, rx_s, host_s = self._latest, self._latest_rx_s, self._latest_host_s
         if sample is None or not self._subscribed or time.monotonic() - rx_s > PUSH_FRESH_S:
             client = self._client
             try:
@@ -199,10 +203,12 @@ class URArm:
                 raise ConnectionLostError(f"state of {self.host}: {exc}") from exc
             assert sample is not None
             self._accept(sample, client)
+            with self._samples:
+                host_s = self._latest_host_s if self._latest is sample else time.monotonic()
         if not sample.connected:
             self._mark_lost("the RTDE stream was closed by the controller")
             self._check_link()
-        return sample
+        return sample, host_s
 
     # -- connection ----------------------------------------------------------------------------
     def connect(self) -> None:
@@ -332,8 +338,8 @@ class URArm:
                 # when the child first saw it: staleness counts from the data, not the pipe
                 seen_s = sample.seen_s if 0.0 < sample.seen_s <= now else now
                 self._last_ts, self._last_ts_change_s = sample.timestamp_s, seen_s
-                self.history.add(self._clock.host_time(sample.timestamp_s, seen_s),
-                                 T_from_ur_pose(list(sample.tcp_pose)))
+                self._latest_host_s = self._clock.host_time(sample.timestamp_s, seen_s)
+                self.history.add(self._latest_host_s, T_from_ur_pose(list(sample.tcp_pose)))
             self._samples.notify_all()
 
     def _monitor_loop(self, stop: threading.Event, kick: threading.Event) -> None:
@@ -363,11 +369,18 @@ class URArm:
 
     def _monitor_wait_s(self) -> float:
         """Until the next check: a period, or less when the stream would turn stale sooner
-        (so a stalled stream is noticed right at ``stale_after_s``)."""
+        (so a stalled stream is noticed right at ``stale_after_s``) or a jog's or servo
+        twist's watchdog runs out sooner (so the arm holds a twist for the watchdog time the
+        servo law plans with, not up to a period longer)."""
         if self._lost_reason is not None:  # nothing to watch until the next connect
             return IDLE_MONITOR_PERIOD_S
-        due_s = self._last_ts_change_s + self.stale_after_s - time.monotonic()
-        period_s = IDLE_MONITOR_PERIOD_S if self._jog_deadline_s is None else MONITOR_PERIOD_S
+        now = time.monotonic()
+        due_s = self._last_ts_change_s + self.stale_after_s - now
+        deadline_s = self._jog_deadline_s
+        if deadline_s is None:
+            period_s = IDLE_MONITOR_PERIOD_S
+        else:
+            period_s = min(MONITOR_PERIOD_S, deadline_s - now + 0.0005)
         return max(0.001, min(period_s, due_s + 0.0005))
 
     def _note_protective_stop(self, s: StateSample, now: float) -> None:
@@ -421,8 +434,10 @@ class URArm:
             time.sleep(0.02)
 
     def state(self) -> ArmState:
+        """The newest RTDE state; its ``timestamp_s`` is when the controller took it (host
+        clock), so a consumer knows how old the pose is (a servo loop extrapolates it)."""
         try:
-            s = self._sample()
+            s, taken_s = self._timed_sample()
         except ConnectionLostError:
             span = self.history.span()
             T_last = self.history.at(span[1]) if span else np.eye(4)
@@ -435,7 +450,7 @@ class URArm:
             moving=self._moving(s),
             T_base_tcp=T_from_ur_pose(list(s.tcp_pose)),
             joints_rad=np.asarray(s.q_rad, dtype=float),
-            timestamp_s=time.monotonic(),
+            timestamp_s=taken_s,
         )
 
     def tcp_pose(self) -> NDArray[np.float64]:

@@ -129,6 +129,25 @@ def test_jog_stops_when_commands_stop(ur_ctl: ControllerProcess, ur_arm: URArm) 
     assert np.linalg.norm(moved - along * tool_z) < 0.5
 
 
+def test_a_servo_twist_is_held_for_its_watchdog_time_then_braked(
+        ur_ctl: ControllerProcess, ur_arm: URArm) -> None:
+    """The servo law plans with holding a twist for ``watchdog_s`` before braking: the
+    monitor wakes at that deadline (not on its next 20 ms check), so the arm's truth moves
+    ``v * watchdog`` plus the braking distance after the last tick, and no more."""
+    v_mm_s, accel, watchdog_s = 100.0, 2000.0, 0.05
+    for _ in range(40):  # 0.32 s of 8 ms ticks: at speed
+        ur_arm.servo_twist(np.array([v_mm_s, 0.0, 0.0, 0.0, 0.0, 0.0]), accel, watchdog_s)
+        time.sleep(0.008)
+    x_last = true_T_base_tcp(ur_ctl)[0, 3]
+    time.sleep(0.5)
+    assert not ur_arm.is_moving()
+    travelled = true_T_base_tcp(ur_ctl)[0, 3] - x_last
+    braking = v_mm_s ** 2 / (2.0 * accel)
+    # generous for a loaded host: 30 ms late at most
+    assert v_mm_s * watchdog_s * 0.5 < travelled < v_mm_s * (watchdog_s + 0.03) + braking, (
+        f"{travelled:.2f} mm after the last tick")
+
+
 def test_set_tcp_changes_the_reported_pose(ur_ctl: ControllerProcess, ur_arm: URArm) -> None:
     T_flange_tool0 = ur_arm.tcp_pose()
     T_flange_tcp = make_T(np.eye(3), [0.0, 0.0, 100.0])

@@ -95,8 +95,14 @@ def test_controller_dying_mid_move_is_a_typed_error_not_a_hang(
 
 def test_stalled_stream_then_reconnect(ur_ctl: ControllerProcess, ur_arm: URArm) -> None:
     assert ur_arm.stale_after_s == 1.5  # the default: a loaded cell PC must not trip it
+    fresh = ur_arm.state()
+    assert 0.0 <= time.monotonic() - fresh.timestamp_s < 0.5  # when the pose was taken
     ur_ctl.stall_stream(2.5)
     t0 = time.monotonic()
+    time.sleep(0.6)
+    # until the link is declared lost, the state says how old its pose is (the guard's
+    # max_pose_age_s and a servo loop's extrapolation go by it), not when it was asked for
+    assert time.monotonic() - ur_arm.state().timestamp_s > 0.5
     with pytest.raises(ConnectionLostError, match="no RTDE data"):
         while time.monotonic() - t0 < 4.0:
             ur_arm.is_moving()
