@@ -201,8 +201,8 @@ class ServoConfig(_Strict):
     for ``lost_after_s``: the arm stops and the job fails ``target_lost``.
     """
 
-    gain_lin_per_s: float = Field(default=10.0, gt=0, le=50)
-    gain_rot_per_s: float = Field(default=10.0, gt=0, le=50)
+    gain_lin_per_s: float = Field(default=20.0, gt=0, le=50)
+    gain_rot_per_s: float = Field(default=20.0, gt=0, le=50)
     # tracking only: integral action on the error (1/s^2), its share capped at a fifth of
     # the speed limits, against the steady lag of an arm slower than commanded
     track_integral_per_s2: float = Field(default=20.0, ge=0, le=500)
@@ -221,7 +221,7 @@ class ServoConfig(_Strict):
     # (the largest of the last 8 poses), at most this much (cell/servo.py: _silent_s)
     latency_allowance_s: float = Field(default=0.15, ge=0, le=1)
     tick_s: float = Field(default=0.008, ge=0.008, le=0.1)  # control period
-    watchdog_s: float = Field(default=0.08, gt=0, le=1)  # the arm brakes when ticks stop
+    watchdog_s: float = Field(default=0.05, gt=0, le=1)  # the arm brakes when ticks stop
     filter_alpha: float = Field(default=0.5, gt=0, le=1)
     filter_beta: float = Field(default=0.1, ge=0, le=1)
     # validation gate: a pose this far from the filter's prediction is not used (a wrong

@@ -33,7 +33,14 @@ from cell.frames import approach_tcp
 from cell.locate import Located
 from cell.motion import SERVO_MIN_DT_S, Motion
 from cell.safety import CellError, RefusedError, UnavailableError, linear_path
-from cell.servo_law import LawParams, goal_velocity, integrate, pbvs_twist, pose_error
+from cell.servo_law import (
+    LawParams,
+    extrapolate_tcp,
+    goal_velocity,
+    integrate,
+    pbvs_twist,
+    pose_error,
+)
 from cell.target_filter import ConstantVelocityFilter
 from drivers.errors import DriverError
 from estimator.transforms import pose_dict, pose_distance
@@ -49,6 +56,7 @@ GATE_GROWTH_MM_S = 250.0  # the validation gate widens this fast while poses are
 GATE_GROWTH_DEG_S = 90.0
 INTEGRATE_WITHIN_MM = 5.0  # tracking's integral term runs only this close to the goal
 INTEGRATE_WITHIN_DEG = 2.0
+MAX_EXTRAPOLATE_S = 0.05  # an arm state older than this is moved on by this much only
 
 
 @dataclass(frozen=True)
@@ -223,9 +231,12 @@ class ServoRun:
                                    f"{tick - est.measured_at_s:.2f} s old (limit {max_age} s)")
             goal = self.goal.tcp(est.T_base_target)
             try:
-                T_tcp = arm.state().T_base_tcp
+                state = arm.state()
             except DriverError as err:
                 raise UnavailableError("arm_disconnected", f"reading the arm: {err}") from err
+            # the TCP now: the reading moved on by the twist last sent (it is a few ms old)
+            T_tcp = extrapolate_tcp(state.T_base_tcp, prev, min(
+                tick - state.timestamp_s, MAX_EXTRAPOLATE_S))
             if frames != seen:  # a new measurement: a new goal to check, and a verdict
                 seen = frames
                 arm.guard.check_path(linear_path(T_tcp, goal), "servo goal")

@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 from cell.servo_law import (
     LawParams,
     braking_speed,
+    extrapolate_tcp,
     goal_velocity,
     integrate,
     pbvs_twist,
@@ -81,6 +82,42 @@ def test_feed_forward_follows_a_moving_goal_without_error() -> None:
         T_target = _step(T_target, np.r_[v_t, w_t], dt)
     d_mm, d_deg = pose_distance(T, T_target @ offset)
     assert d_mm < 0.05 and d_deg < 0.01
+
+
+def test_extrapolate_tcp_moves_a_reading_on_by_the_twist() -> None:
+    rng = np.random.default_rng(3)
+    T = _pose(rng, 200, 60)
+    tw = np.r_[40.0, -10.0, 5.0, np.radians([5.0, -20.0, 30.0])]
+    out = extrapolate_tcp(T, tw, 0.012)
+    d_mm, d_deg = pose_distance(out, _step(T, tw, 0.012))
+    assert d_mm < 1e-9 and d_deg < 1e-6
+    assert pose_distance(extrapolate_tcp(T, tw, -1.0), T) == (0.0, 0.0)  # never backwards
+
+
+@pytest.mark.parametrize("extrapolate", [True, False])
+def test_a_reading_as_old_as_a_package_costs_no_tracking_error(extrapolate: bool) -> None:
+    """The law reads the TCP ``age`` late (as the arm's RTDE state is): moved on by the
+    twist last sent, the TCP stays on a goal moving at 50 mm/s; read as it is, the loop
+    settles with the TCP ahead of the goal by speed * age."""
+    v_t, age, dt = np.array([-50.0, 0.0, 0.0]), 0.012, 0.004
+    lag = round(age / dt)
+    T_target = make_T(np.eye(3), np.array([-480.0, -100.0, 0.0]))
+    offset = make_T(np.eye(3), np.array([0.0, 0.0, 50.0]))
+    T, prev = T_target @ offset, goal_velocity(T_target, T_target @ offset, v_t, np.zeros(3))
+    past = [T] * (lag + 1)
+    for _ in range(750):
+        G = T_target @ offset
+        seen = past[-1 - lag]
+        T_now = extrapolate_tcp(seen, prev, age) if extrapolate else seen
+        tw = pbvs_twist(T_now, G, goal_velocity(T_target, G, v_t, np.zeros(3)), prev, dt, P)
+        T, prev = _step(T, tw, dt), tw
+        past.append(T)
+        T_target = _step(T_target, np.r_[v_t, np.zeros(3)], dt)
+    d_mm = pose_distance(T, T_target @ offset)[0]
+    if extrapolate:
+        assert d_mm < 0.01
+    else:
+        assert d_mm == pytest.approx(50.0 * age, rel=0.1)
 
 
 def test_integral_is_clamped() -> None:
