@@ -42,6 +42,7 @@ from cell.safety import (
     UnavailableError,
     linear_path,
 )
+from cell.servo_law import extrapolate_tcp
 from drivers.arm import Arm, ArmState, JogFrame
 from drivers.errors import (
     ConnectionLostError,
@@ -242,6 +243,14 @@ class GuardedArm:
     def recover_protective_stop(self) -> None:
         self._arm.recover_protective_stop()
 
+    @property
+    def last_twist_s(self) -> float | None:
+        """When the last servo tick was accepted (``time.monotonic()``; None: none since the
+        last stop). A loop that takes its acceleration step over the time since then agrees
+        with the check, which judges the change over the time since then too."""
+        last = self._last_twist
+        return None if last is None else last[0]
+
     def stop(self, decel_mm_s2: float = 2000.0) -> None:
         """Always passed on: stopping is never refused."""
         with self._stream_lock:
@@ -384,11 +393,16 @@ class GuardedArm:
                                  f"{np.degrees(dw):.0f} deg/s^2, above {accel_mm_s2} mm/s^2 "
                                  f"/ {np.degrees(alpha):.0f} deg/s^2")
             st = self.ready_state()
-            T_ahead = servo_ahead(st.T_base_tcp, v, accel_mm_s2, watchdog_s, alpha)
-            path = linear_path(st.T_base_tcp, T_ahead)
+            T_now = st.T_base_tcp
+            if prev is not None:
+                # the reading is a few ms old (more on a loaded host): the arm has gone on at
+                # the last twist since, for at most the watchdog time (then it brakes)
+                T_now = extrapolate_tcp(T_now, prev[1], min(now - st.timestamp_s, watchdog_s))
+            T_ahead = servo_ahead(T_now, v, accel_mm_s2, watchdog_s, alpha)
+            path = linear_path(T_now, T_ahead)
             self.guard.check_path(path, "servo motion")
             self._record(Commanded(now, "servo", T_ahead, v.copy(), "base",
-                                   T_from=st.T_base_tcp.copy(), path=(path[0], path[-1])))
+                                   T_from=T_now.copy(), path=(path[0], path[-1])))
             try:
                 self._arm.servo_twist(v, accel_mm_s2, watchdog_s, alpha)
             except DriverError as err:

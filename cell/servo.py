@@ -268,10 +268,15 @@ class ServoRun:
                 break
             ff = goal_velocity(est.T_base_target, goal, est.velocity_mm_s,
                                est.angular_velocity_rad_s)
-            # the step the law may take: never more than one tick's worth of acceleration,
-            # so the guard (which judges ticks at least SERVO_MIN_DT_S apart) agrees
-            t_cmd = time.monotonic()  # the guard judges the change by send times too
-            dt = SERVO_MIN_DT_S if t_prev is None else min(t_cmd - t_prev, sc.tick_s)
+            # the step the law may take: the acceleration over the time since the guard
+            # accepted the last tick, which the guard (judging by its own clock, ticks at
+            # least SERVO_MIN_DT_S apart) sees as at least as long; capped at two ticks.
+            # (One nominal tick per tick lost a sixth of the acceleration: ticks come every
+            # ~9.5 ms, not 8.)
+            t_cmd = time.monotonic()
+            accepted_s = arm.last_twist_s
+            dt = SERVO_MIN_DT_S if t_prev is None or accepted_s is None else min(
+                max(t_cmd - accepted_s, SERVO_MIN_DT_S), 2.0 * sc.tick_s)
             if t_prev is not None and t_cmd - t_prev > 0.75 * sc.watchdog_s:
                 prev = np.zeros(6)  # a late tick: the arm's watchdog may have braked it
             if ki > 0:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ import pytest
 from cell.config import LimitsConfig
 from cell.motion import GuardedArm, servo_ahead
 from cell.safety import CellError
+from drivers.arm import ArmState
 from estimator.transforms import pose_distance
 from fakes.sim_arm import SimArm
 from fakes.ur_sim import SimLimits
@@ -107,3 +109,43 @@ def test_the_arm_stops_by_itself_when_ticks_stop(sim: SimArm) -> None:
         assert sim.is_moving()
         _still(sim)  # no stop was sent: the watchdog braked it
         assert time.monotonic() - t_last < 1.0
+
+
+class _LateReadings:
+    """The simulated arm, read ``lag_s`` late (as a loaded host gets its RTDE state): its
+    state is the pose of ``lag_s`` ago, stamped with that time."""
+
+    def __init__(self, sim: SimArm, lag_s: float) -> None:
+        self._sim, self.lag_s = sim, lag_s
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._sim, name)
+
+    def state(self) -> ArmState:
+        st = self._sim.state()
+        taken_s = st.timestamp_s - self.lag_s
+        return replace(st, T_base_tcp=self._sim.pose_at(taken_s), timestamp_s=taken_s)
+
+
+def test_the_look_ahead_starts_where_the_arm_is_now_not_where_it_was_read(
+        sim: SimArm) -> None:
+    """Ramping towards the ceiling with every reading 40 ms old: the check moves the
+    reading on by the last twist over its age, so the refused tick comes as early as with
+    fresh readings, and the arm, left to its watchdog (no stop sent, as if the host
+    stalled), stays inside."""
+    late = _LateReadings(sim, 0.04)
+    arm = GuardedArm(late, _guarded(sim).limits)  # type: ignore[arg-type]
+    z_max = arm.limits.workspace_max_mm[2]
+    v, refused = 0.0, None
+    with arm.slot.hold("servo"):
+        for _ in range(400):
+            v = min(v + 1000.0 * 0.008, 200.0)
+            try:
+                arm.servo_twist(np.array([0.0, 0.0, v, 0.0, 0.0, 0.0]), 1000.0, 0.08)
+            except CellError as err:
+                refused = err
+                break
+            time.sleep(0.008)
+    assert refused is not None and refused.code == "outside_envelope"
+    _still(sim)
+    assert sim.tcp_pose()[2, 3] <= z_max
