@@ -50,7 +50,7 @@ from cell.service import Cell
 
 log = logging.getLogger(__name__)
 
-IDLE_CHECK_S = 1.0  # with nobody subscribed, the update loop looks this often anyway
+IDLE_CHECK_S = 1.0  # with nobody subscribed, the variables are updated this often
 _CURRENT_USER: contextvars.ContextVar[User | None] = contextvars.ContextVar(
     "opcua_user", default=None)
 # Read, browse, subscribe, call: what an authenticated user may send. Writes are not allowed
@@ -176,19 +176,20 @@ class OpcUaServer:
         self._wake = wake = asyncio.Event()  # set by close() and by a new subscription
         server.subscribe_server_callback(CallbackType.PreRead, self._before_read)
         server.subscribe_server_callback(CallbackType.ItemSubscriptionCreated,
-                                         lambda event, dispatcher: wake.set())
+                                         self._subscribed)
         await server.start()
         try:
             await self._refresh()  # the first values before anyone reads
             self._ready.set()
             while not self._stop.is_set():
-                # with nobody subscribed the update rests (a Read refreshes for itself)
+                # with nobody subscribed the update slows to IDLE_CHECK_S (a Read refreshes
+                # for itself first), so an idle cell PC builds almost nothing for nobody
                 subscribed = _has_subscriptions(server)
                 wake.clear()
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(wake.wait(), self.config.update_period_s
                                            if subscribed else IDLE_CHECK_S)
-                if not self._stop.is_set() and _has_subscriptions(server):
+                if not self._stop.is_set():
                     await self._refresh()
         finally:
             await server.stop()
@@ -199,6 +200,13 @@ class OpcUaServer:
             await self._update()
         except Exception:
             log.exception("OPC UA variable update failed")
+
+    async def _subscribed(self, event: Any, dispatcher: Any) -> None:
+        """A new monitored item: fresh values now, and the periodic update back to its
+        rate."""
+        await self._before_read(event, dispatcher)
+        if self._wake is not None:
+            self._wake.set()
 
     async def _before_read(self, event: Any, dispatcher: Any) -> None:
         """A client's Read finds the variables at most one update period old: with nobody

@@ -230,6 +230,9 @@ def _load_main(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float,
         is_state = False
         try:
             async with client.get(f"{base}/api/v1/events", headers=VIEWER) as r:
+                if r.status != 200:
+                    errors.append(f"events {r.status}")
+                    return
                 async for raw in r.content:
                     line = raw.decode().rstrip("\r\n")
                     now = time.monotonic()
@@ -248,8 +251,8 @@ def _load_main(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float,
                     if last is not None and last >= start_s:
                         gaps_ms.append(1000.0 * (now - last))
                     last = now
-        except (aiohttp.ClientError, TimeoutError) as err:
-            errors.append(f"events: {err!r}")
+        except (aiohttp.ClientError, TimeoutError, ValueError) as err:  # ValueError: a
+            errors.append(f"events: {err!r}")  # line longer than aiohttp's read limit
 
     async def viewer(client: aiohttp.ClientSession) -> None:
         while time.monotonic() < end_s:

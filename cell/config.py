@@ -254,7 +254,9 @@ class LimitsConfig(_Strict):
     max_jog_step_deg: float = Field(default=45.0, gt=0)  # one jog step, rotation
     tilt_limit_deg: float = Field(default=60.0, gt=0, le=180)
     max_move_mm: float = Field(default=800.0, gt=0)
-    max_pose_age_s: float = Field(default=2.0, gt=0)
+    # the arm's state and a target pose older than this are not used; at least 0.5 s: a
+    # standing UR arm's state comes every 0.1 s (quiet pushes) and a pose takes ~0.1 s
+    max_pose_age_s: float = Field(default=2.0, ge=0.5)
     deadman_timeout_s: float = Field(default=0.2, gt=0, le=0.25)
 
     @model_validator(mode="after")

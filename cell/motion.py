@@ -170,7 +170,7 @@ class Commanded:
     T_base_tcp: Matrix4 | None  # goal of a move (for a joint move: its FK), None for stop
     velocity: NDArray[np.float64] | None = None  # jog twist [mm/s, rad/s]
     frame: JogFrame = "base"
-    T_from: Matrix4 | None = None  # where the arm was when the command was checked
+    T_from: Matrix4 | None = None  # where the arm was when checked (servo: the reading moved on)
     path: tuple[Matrix4, ...] = ()  # the sampled path it was checked on
 
 
@@ -393,14 +393,18 @@ class GuardedArm:
                                  f"{np.degrees(dw):.0f} deg/s^2, above {accel_mm_s2} mm/s^2 "
                                  f"/ {np.degrees(alpha):.0f} deg/s^2")
             st = self.ready_state()
-            T_now = st.T_base_tcp
+            T_read = T_now = st.T_base_tcp
             if prev is not None:
-                # the reading is a few ms old (more on a loaded host): the arm has gone on at
-                # the last twist since, for at most the watchdog time (then it brakes)
-                T_now = extrapolate_tcp(T_now, prev[1], min(now - st.timestamp_s, watchdog_s))
+                # the reading is a few ms old (more on a loaded host): since it was taken the
+                # arm has gone on at the last twist, until that twist's watchdog ran out
+                moved_s = min(time.monotonic(), prev[0] + watchdog_s) - st.timestamp_s
+                T_now = extrapolate_tcp(T_read, prev[1], min(max(moved_s, 0.0), watchdog_s))
             T_ahead = servo_ahead(T_now, v, accel_mm_s2, watchdog_s, alpha)
             path = linear_path(T_now, T_ahead)
             self.guard.check_path(path, "servo motion")
+            if T_now is not T_read:  # and from the reading itself: never less careful
+                self.guard.check_path(linear_path(T_read, servo_ahead(
+                    T_read, v, accel_mm_s2, watchdog_s, alpha)), "servo motion")
             self._record(Commanded(now, "servo", T_ahead, v.copy(), "base",
                                    T_from=T_now.copy(), path=(path[0], path[-1])))
             try:

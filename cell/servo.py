@@ -234,9 +234,12 @@ class ServoRun:
                 state = arm.state()
             except DriverError as err:
                 raise UnavailableError("arm_disconnected", f"reading the arm: {err}") from err
-            # the TCP now: the reading moved on by the twist last sent (it is a few ms old)
-            T_tcp = extrapolate_tcp(state.T_base_tcp, prev, min(
-                tick - state.timestamp_s, MAX_EXTRAPOLATE_S))
+            # the TCP now: the reading (a few ms old) moved on by the twist last sent, for as
+            # long as the arm kept that twist (its watchdog brakes it after watchdog_s)
+            held_s = 0.0 if t_prev is None else min(tick, t_prev + sc.watchdog_s) \
+                - state.timestamp_s
+            T_tcp = extrapolate_tcp(state.T_base_tcp, prev, min(max(held_s, 0.0),
+                                                                MAX_EXTRAPOLATE_S))
             if frames != seen:  # a new measurement: a new goal to check, and a verdict
                 seen = frames
                 arm.guard.check_path(linear_path(T_tcp, goal), "servo goal")

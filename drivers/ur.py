@@ -203,8 +203,12 @@ class URArm:
                 raise ConnectionLostError(f"state of {self.host}: {exc}") from exc
             assert sample is not None
             self._accept(sample, client)
-            with self._samples:
-                host_s = self._latest_host_s if self._latest is sample else time.monotonic()
+            with self._samples:  # the newest kept (a concurrent reply may have overtaken)
+                if self._latest is not None:
+                    sample, host_s = self._latest, self._latest_host_s
+                else:  # nothing kept (a replaced child's reply): when the child saw it
+                    now = time.monotonic()
+                    host_s = sample.seen_s if 0.0 < sample.seen_s <= now else now
         if not sample.connected:
             self._mark_lost("the RTDE stream was closed by the controller")
             self._check_link()

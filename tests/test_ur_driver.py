@@ -136,8 +136,8 @@ def test_a_servo_twist_is_held_for_its_watchdog_time_then_braked(
     ``v * watchdog`` plus the braking distance after the last tick, and no more."""
     v_mm_s, accel, watchdog_s = 100.0, 2000.0, 0.05
     for _ in range(40):  # 0.32 s of 8 ms ticks: at speed
-        ur_arm.servo_twist(np.array([v_mm_s, 0.0, 0.0, 0.0, 0.0, 0.0]), accel, watchdog_s)
         time.sleep(0.008)
+        ur_arm.servo_twist(np.array([v_mm_s, 0.0, 0.0, 0.0, 0.0, 0.0]), accel, watchdog_s)
     x_last = true_T_base_tcp(ur_ctl)[0, 3]
     time.sleep(0.5)
     assert not ur_arm.is_moving()
@@ -146,6 +146,9 @@ def test_a_servo_twist_is_held_for_its_watchdog_time_then_braked(
     # generous for a loaded host: 30 ms late at most
     assert v_mm_s * watchdog_s * 0.5 < travelled < v_mm_s * (watchdog_s + 0.03) + braking, (
         f"{travelled:.2f} mm after the last tick")
+    # a deadline 5 ms away: the monitor's next wake-up is that deadline, not its 20 ms check
+    ur_arm._jog_deadline_s = time.monotonic() + 0.005
+    assert ur_arm._monitor_wait_s() <= 0.006
 
 
 def test_set_tcp_changes_the_reported_pose(ur_ctl: ControllerProcess, ur_arm: URArm) -> None:
