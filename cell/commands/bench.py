@@ -51,6 +51,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                      help="jpg: the live view as the operator page shows it (default); png: a "
                           "full-size still encoded per request")
     svc.add_argument("--stops", type=int, default=100, help="at least this many stops")
+    svc.add_argument("--service-nice", type=int, default=-5,
+                     help="the service's nice value, as the systemd unit sets it (default -5; "
+                          "applied when the host allows it, see the report's \"nice\")")
+    svc.add_argument("--inherit-nice", action="store_true",
+                     help="serve at this process's own nice value instead")
     svc.set_defaults(func=_bench_service)
 
 
@@ -111,7 +116,8 @@ def _bench_service(args: argparse.Namespace) -> int:
                     args.json)
     cfg = ServiceBenchConfig(duration_s=args.duration, idle_s=args.idle, pollers=args.pollers,
                              streams=args.streams, viewers=args.viewers, min_stops=args.stops,
-                             viewer_image=args.viewer_image)
+                             viewer_image=args.viewer_image,
+                             service_nice=None if args.inherit_nice else args.service_nice)
     try:
         report = run_service_bench(cfg)
     except RuntimeError as err:
