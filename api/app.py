@@ -30,6 +30,7 @@ from api.routes_calibration import install as install_calibration
 from api.routes_ops import install as install_ops
 from api.routes_servo import router as servo_router
 from cell.endpoints import with_ports
+from cell.runtime import freeze_startup_objects
 from cell.service import Cell
 
 DESCRIPTION = """Vision-guided UR cell: locate the dot target, approach it with look-and-move,
@@ -140,18 +141,6 @@ def app_from_environment() -> FastAPI:
     SHUTDOWN_HOOKS.append(on_signal)  # cell serve runs it on SIGTERM, before the HTTP drain
     freeze_startup_objects()
     return app
-
-
-def freeze_startup_objects() -> None:
-    """Move everything alive after start-up (modules, kernels, the cell, the app) out of the
-    garbage collector's reach. A full collection walked all of it: 105 ms with every thread
-    stopped, measured in the simulated cell's service, so STOP, status and SSE all waited
-    whenever one ran (the service benchmark's p99 tails). Collected first, so no garbage is
-    frozen with it; objects made later are collected as usual."""
-    import gc
-
-    gc.collect()
-    gc.freeze()
 
 
 def _port_from_environment(name: str) -> int | None:

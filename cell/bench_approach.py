@@ -36,7 +36,7 @@ from scipy.spatial.transform import Rotation
 from cell.config import CellConfig, load_config, parse_config
 from cell.frames import approach_tcp
 from cell.hardware import SimWorld
-from cell.runtime import start_cell
+from cell.runtime import freeze_startup_objects, start_cell
 from cell.safety import CellError
 from cell.service import Cell
 from estimator.transforms import make_T, pose_dict, pose_distance
@@ -219,6 +219,7 @@ def run_bench_approach(*, placements: int = 10, seed: int = 0,
     rng = np.random.default_rng(seed)
     with tempfile.TemporaryDirectory() as tmp:
         cell = start_cell(bench_config(Path(tmp), host or free_loopback_host(), lost_after_s))
+        freeze_startup_objects()  # as cell serve does: no full collection stalls the loop
         lost_after_s = cell.config.servo.lost_after_s
         try:
             T_tt = cell.config.approach.T_target_tcp.T()
