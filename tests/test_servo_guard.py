@@ -68,22 +68,28 @@ def test_refusals_send_nothing(sim: SimArm) -> None:
     assert pose_distance(T0, sim.tcp_pose())[0] < 1e-6
 
 
+def _ramp_up_until_refused(arm: GuardedArm) -> CellError | None:
+    """Servo ticks along +z, speeding up at 1000 mm/s^2 to 200 mm/s, until one is refused
+    (the refusal), at most 400 ticks (None)."""
+    v = 0.0
+    for _ in range(400):
+        v = min(v + 1000.0 * 0.008, 200.0)
+        try:
+            arm.servo_twist(np.array([0.0, 0.0, v, 0.0, 0.0, 0.0]), 1000.0, 0.08)
+        except CellError as err:
+            return err
+        time.sleep(0.008)
+    return None
+
+
 def test_ramp_is_recorded_and_the_look_ahead_stops_it_before_the_box(sim: SimArm) -> None:
     """Ramping up towards the box's ceiling 30 mm above: ticks pass until the twist, held
     for the watchdog and then braked, would cross it; that one is refused, and the arm
     (stopped) stays inside."""
     arm = _guarded(sim)
     z_max = arm.limits.workspace_max_mm[2]
-    v, refused = 0.0, None
     with arm.slot.hold("servo"):
-        for _ in range(400):
-            v = min(v + 1000.0 * 0.008, 200.0)
-            try:
-                arm.servo_twist(np.array([0.0, 0.0, v, 0.0, 0.0, 0.0]), 1000.0, 0.08)
-            except CellError as err:
-                refused = err
-                break
-            time.sleep(0.008)
+        refused = _ramp_up_until_refused(arm)
         arm.stop(1000.0)
     assert refused is not None and refused.code == "outside_envelope"
     _still(sim)
@@ -136,16 +142,8 @@ def test_the_look_ahead_starts_where_the_arm_is_now_not_where_it_was_read(
     late = _LateReadings(sim, 0.04)
     arm = GuardedArm(late, _guarded(sim).limits)  # type: ignore[arg-type]
     z_max = arm.limits.workspace_max_mm[2]
-    v, refused = 0.0, None
     with arm.slot.hold("servo"):
-        for _ in range(400):
-            v = min(v + 1000.0 * 0.008, 200.0)
-            try:
-                arm.servo_twist(np.array([0.0, 0.0, v, 0.0, 0.0, 0.0]), 1000.0, 0.08)
-            except CellError as err:
-                refused = err
-                break
-            time.sleep(0.008)
+        refused = _ramp_up_until_refused(arm)
     assert refused is not None and refused.code == "outside_envelope"
     _still(sim)
     assert sim.tcp_pose()[2, 3] <= z_max
