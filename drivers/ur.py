@@ -44,11 +44,14 @@ from drivers.errors import (
 )
 from drivers.pose_history import ControllerClock, PoseHistory
 from drivers.ur_client_process import (
+    CONTROLLER_WATCHDOG_HZ,
+    PARENT_LEASE_S,
     Call,
     ClientDied,
     ClientName,
     ClientProcess,
     Create,
+    Guard,
     RemoteError,
     Request,
     Sample,
@@ -269,6 +272,7 @@ class URArm:
         while True:
             try:
                 self._request(Create("ctrl"), timeout_s=self.connect_timeout_s + 10.0)
+                self._request(Guard(CONTROLLER_WATCHDOG_HZ, PARENT_LEASE_S))
                 self._has_control = True
                 break
             except RemoteError as exc:

@@ -21,10 +21,12 @@ command. Samples carry a sequence number in the order they were taken.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import itertools
 import logging
 import os
 import pickle
+import signal
 import struct
 import subprocess
 import sys
@@ -59,6 +61,16 @@ QUIET_PUSH_S = 0.1
 STILL_DEADBAND_RAD = 1e-5
 STILL_DEADBAND_RAD_S = 1e-4
 STILL_DEADBAND_M_RAD = 1e-5
+
+# The controller's own watchdog (ur_rtde's setWatchdog): its control script stops the program,
+# braking the arm, when no RTDE input arrives for 1 / CONTROLLER_WATCHDOG_HZ. The child kicks it
+# every KICK_PERIOD_S, but only while the parent has been heard from within PARENT_LEASE_S (its
+# heartbeat comes every HEARTBEAT_S): a frozen child and a frozen parent both stop the arm.
+CONTROLLER_WATCHDOG_HZ = 12.5
+KICK_PERIOD_S = 0.02
+PARENT_LEASE_S = 0.06
+HEARTBEAT_S = 0.02
+PR_SET_PDEATHSIG = 1
 
 ClientName = Literal["dash", "recv", "ctrl"]
 
@@ -98,7 +110,21 @@ class Drop:
     client: ClientName
 
 
-Request = Create | Call | Sample | Subscribe | Drop
+@dataclass(frozen=True)
+class Guard:
+    """Arm the controller's watchdog at ``min_frequency_hz`` (again after every script upload)
+    and kick it while the parent's heartbeats keep coming within ``parent_lease_s``."""
+
+    min_frequency_hz: float
+    parent_lease_s: float
+
+
+@dataclass(frozen=True)
+class Heartbeat:
+    """The parent is alive (handled inline, no reply)."""
+
+
+Request = Create | Call | Sample | Subscribe | Drop | Guard
 
 
 @dataclass(frozen=True)
@@ -174,6 +200,31 @@ class _Clients:
         self._seq_lock = threading.Lock()
         self.push_period_s: float | None = None  # set by Subscribe
         self._seen = (-1.0, 0.0)  # (package timestamp, when it was first seen)
+        self.guard: Guard | None = None
+        self.parent_seen_s = time.monotonic()  # the parent's last message
+        self.ctrl_touched_s = 0.0  # a control call last started or ended
+
+    def arm_watchdog(self) -> None:
+        """setWatchdog on the control script (a new script starts without one)."""
+        ctrl, guard = self.objects.get("ctrl"), self.guard
+        if ctrl is not None and guard is not None:
+            with self.locks["ctrl"]:
+                ctrl.setWatchdog(guard.min_frequency_hz)
+
+    def kick(self) -> None:
+        """One kick of the controller's watchdog, when armed and the parent is alive.
+        Not under the call lock: a blocking move holds it for seconds, and the script waits
+        in that move without reading the command register the kick writes."""
+        ctrl, guard = self.objects.get("ctrl"), self.guard
+        if ctrl is None or guard is None:
+            return
+        now = time.monotonic()
+        if now - self.parent_seen_s > guard.parent_lease_s:
+            return  # the parent stalled: let the controller stop the arm
+        if now - self.ctrl_touched_s < KICK_PERIOD_S:
+            return  # a call just wrote the register (a kick now could hide its command)
+        with contextlib.suppress(Exception):
+            ctrl.kickWatchdog()
 
     def create(self, name: ClientName) -> None:
         import dashboard_client
@@ -194,7 +245,16 @@ class _Clients:
         if obj is None:
             raise RuntimeError(f"no {name} client")
         with self.locks[name]:  # one call at a time per client object
-            return getattr(obj, method)(*args)
+            if name == "ctrl":
+                self.ctrl_touched_s = time.monotonic()
+            try:
+                result = getattr(obj, method)(*args)
+            finally:
+                if name == "ctrl":
+                    self.ctrl_touched_s = time.monotonic()
+        if name == "ctrl" and method == "reuploadScript" and result:
+            self.arm_watchdog()
+        return result
 
     def sample(self) -> StateSample:
         """Everything the adapter watches, read from the clients' cached state."""
@@ -242,6 +302,10 @@ class _Clients:
             return None
         if isinstance(req, Subscribe):
             self.push_period_s = max(0.001, float(req.period_s))
+            return None
+        if isinstance(req, Guard):
+            self.guard = req
+            self.arm_watchdog()
             return None
         return self.call(req.client, req.method, req.args)
 
@@ -323,8 +387,20 @@ def _within(a: tuple[float, ...], b: tuple[float, ...], tol: float) -> bool:
     return len(a) == len(b) and all(abs(x - y) <= tol for x, y in zip(a, b, strict=True))
 
 
-def child_main(host: str) -> None:
+def _bind_to_parent() -> None:
+    """The child dies with its parent (Linux: PR_SET_PDEATHSIG) and ignores the terminal's
+    Ctrl-C: the parent stops the arm first and then closes this process itself."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+
+
+def child_main(host: str, parent_pid: int | None = None) -> None:
     """Serve requests from stdin until it closes; replies go to stdout."""
+    _bind_to_parent()
+    if parent_pid is not None and os.getppid() != parent_pid:
+        os._exit(0)  # the parent died before the death signal was set
     stdin = sys.stdin.buffer
     # ur_rtde prints to file descriptor 1: keep the reply stream on a private copy of it and
     # send fd 1 (and Python's stdout) to stderr.
@@ -390,11 +466,24 @@ def child_main(host: str) -> None:
             for out in pusher_state.offer(sample, now):
                 send(out)
 
+    def kicker() -> None:
+        """Kick the controller's watchdog while the parent lives (see Guard)."""
+        set_timer_slack(PUSHER_TIMER_SLACK_S)
+        while True:
+            time.sleep(KICK_PERIOD_S)
+            if parent_pid is not None and os.getppid() != parent_pid:
+                os._exit(0)  # orphaned: the controller's watchdog stops the arm
+            clients.kick()
+
+    threading.Thread(target=kicker, daemon=True, name="kicker").start()
     while True:
         try:
             req = _read(stdin)
         except (EOFError, OSError):
             break
+        clients.parent_seen_s = time.monotonic()
+        if isinstance(req[1], Heartbeat):
+            continue
         threading.Thread(target=serve, args=req, daemon=True).start()
     stdout.flush()
     os._exit(0)  # skip ur_rtde destructors: the parent has already closed what it wanted
@@ -408,7 +497,7 @@ class ClientProcess:
     def __init__(self, host: str) -> None:
         self.host = host
         self._proc = subprocess.Popen(
-            [sys.executable, "-m", "drivers.ur_client_process", host],
+            [sys.executable, "-m", "drivers.ur_client_process", host, str(os.getpid())],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE)
         self._ids = itertools.count(1)
         self._pending: dict[int, Future[Any]] = {}
@@ -419,6 +508,18 @@ class ClientProcess:
         self.on_push: Callable[[StateSample], None] | None = None
         threading.Thread(target=self._read_replies, daemon=True,
                          name=f"ur-client-{host}").start()
+        threading.Thread(target=self._heartbeat, daemon=True,
+                         name=f"ur-heartbeat-{host}").start()
+
+    def _heartbeat(self) -> None:
+        """Tell the child this process lives (it kicks the controller's watchdog only then)."""
+        while self.dead_reason is None:
+            try:
+                assert self._proc.stdin is not None
+                _write(self._proc.stdin, (0, Heartbeat()), self._write_lock)
+            except (OSError, ValueError):
+                return
+            time.sleep(HEARTBEAT_S)
 
     def _read_replies(self) -> None:
         assert self._proc.stdout is not None
@@ -498,4 +599,4 @@ if __name__ == "__main__":
     # module name) are the very ones ``handle`` checks against.
     from drivers.ur_client_process import child_main as _child_main
 
-    _child_main(sys.argv[1])
+    _child_main(sys.argv[1], int(sys.argv[2]) if len(sys.argv) > 2 else None)
