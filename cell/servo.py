@@ -369,5 +369,6 @@ class ServoRun:
                            f"(limit {self.sc.lost_after_s * 1000:.0f} ms after the pipeline's "
                            f"{allowance_s * 1000:.0f} ms latency"
                            + (f"; {why.message}" if why is not None else "")
-                           + f"; {self._failed_frames} frames without the target"
+                           + f"; {self._failed_frames} frames without the target, "
+                           f"{self._gated} gated as jumps, {self._stale_frames} too old"
                            + f"); the arm stopped in {took * 1000:.0f} ms")

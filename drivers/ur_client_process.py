@@ -498,7 +498,8 @@ class ClientProcess:
         self.host = host
         self._proc = subprocess.Popen(
             [sys.executable, "-m", "drivers.ur_client_process", host, str(os.getpid())],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+            process_group=0)  # the terminal's Ctrl-C goes to the parent, which stops the arm
         self._ids = itertools.count(1)
         self._pending: dict[int, Future[Any]] = {}
         self._lock = threading.Lock()

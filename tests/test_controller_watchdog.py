@@ -110,3 +110,20 @@ def test_frozen_host_process_stops_the_arm_and_its_child_dies_with_it() -> None:
         finally:
             if host.poll() is None:
                 host.kill()
+
+
+def test_ctrl_c_does_not_reach_the_client_process() -> None:
+    with ControllerProcess(powered=True) as ctl:
+        arm = URArm(ctl.host)
+        arm.connect()
+        try:
+            child = arm._client
+            assert child is not None
+            os.killpg(os.getpgid(os.getpid()), 0)  # we are in a group of our own making
+            assert os.getpgid(child._proc.pid) != os.getpgid(os.getpid())
+            os.kill(child._proc.pid, signal.SIGINT)  # even sent to it directly: ignored
+            time.sleep(0.5)
+            assert child._proc.poll() is None
+            assert arm.state().connected
+        finally:
+            arm.disconnect()

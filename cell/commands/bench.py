@@ -24,7 +24,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--check", action="store_true",
                    help="exit with status 1 when a target is missed")
     p.set_defaults(func=_bench)
-    what = p.add_subparsers(dest="bench_command", required=False, metavar="{approach,service}")
+    what = p.add_subparsers(dest="bench_command", required=False,
+                            metavar="{approach,service,freeze}")
     a = what.add_parser(
         "approach", help="servo vs look-and-move approach, conveyor tracking, lost target",
         description="On the simulated cell through the UR adapter and ur_rtde (see "
@@ -57,6 +58,16 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     svc.add_argument("--inherit-nice", action="store_true",
                      help="serve at this process's own nice value instead")
     svc.set_defaults(func=_bench_service)
+    frz = what.add_parser(
+        "freeze", help="freeze the service or its ur_rtde child while the arm moves",
+        description="Streams 50 mm/s twists to the simulated controller, freezes the host "
+                    "process or its ur_rtde child for 2 s (SIGSTOP), and measures from the "
+                    "controller's own state when the arm stood and how far it went (see "
+                    "cell/bench_freeze.py).")
+    frz.add_argument("--runs", type=int, default=3, help="freezes of each process (default 3)")
+    frz.add_argument("--check", action="store_true",
+                     help="exit with status 1 when a target is missed")
+    frz.set_defaults(func=_bench_freeze)
 
 
 def _bench_approach(args: argparse.Namespace) -> int:
@@ -69,6 +80,16 @@ def _bench_approach(args: argparse.Namespace) -> int:
     with progress_bars(not args.json) as progress:
         report = run_bench_approach(placements=args.placements, seed=args.seed,
                                     progress=progress, lost_after_s=args.lost_after_s)
+    return _report(args, report, format_report(report))
+
+
+def _bench_freeze(args: argparse.Namespace) -> int:
+    from cell.bench_freeze import format_report, run_bench_freeze
+    from cell.commands.common import fail
+
+    if args.runs < 1:
+        return fail("invalid_argument", "--runs must be at least 1", args.json)
+    report = run_bench_freeze(runs=args.runs)
     return _report(args, report, format_report(report))
 
 
