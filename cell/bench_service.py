@@ -148,19 +148,24 @@ def _config_text(host: str, state_dir: Path) -> str:
 
 
 @contextlib.contextmanager
-def serving(timeout_s: float = 90.0, nice: int | None = None
+def serving(timeout_s: float = 90.0, nice: int | None = None, stop_log: Path | None = None
             ) -> Iterator[tuple[str, subprocess.Popen[bytes]]]:
-    """``cell serve`` on a free loopback address; yields (base URL, process)."""
+    """``cell serve`` on a free loopback address; yields (base URL, process). With
+    ``stop_log`` the simulated controller appends each stop command's receive time there."""
     from fakes.ur_controller.process import free_loopback_host
+    from fakes.ur_controller.script import STOP_LOG_ENV
 
     host = free_loopback_host()
     port = _free_port(host)
     with tempfile.TemporaryDirectory(prefix="cell-bench-") as tmp:
         cfg = Path(tmp) / "cell.toml"
         cfg.write_text(_config_text(host, Path(tmp)))
+        env = dict(os.environ)
+        if stop_log is not None:  # the simulated controller notes each stop's arrival here
+            env[STOP_LOG_ENV] = str(stop_log)
         proc = subprocess.Popen(
             [sys.executable, "-m", "cell", "serve", "--config", str(cfg), "--host", host,
-             "--port", str(port), "--log-level", "warning"],
+             "--port", str(port), "--log-level", "warning"], env=env,
             stdout=subprocess.DEVNULL, stderr=open(Path(tmp) / "serve.log", "wb"))  # noqa: SIM115
         if nice is not None:  # before it starts its own processes, which inherit it
             with contextlib.suppress(PermissionError):
@@ -305,10 +310,36 @@ def _load_main(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float,
 
 # -- STOP with an arm moving -------------------------------------------------------------------
 
-def _stops(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float
+STOP_RECEIPT_WAIT_S = 1.0  # a stop the controller has not received by then failed
+
+
+def controller_receipts(stop_log: Path | None) -> list[float]:
+    """The controller's receive times of stop commands so far (host monotonic seconds)."""
+    if stop_log is None or not stop_log.exists():
+        return []
+    return [float(line.split()[0]) for line in stop_log.read_text().splitlines()
+            if line.strip()]
+
+
+def to_controller_ms(sent_s: float, stop_log: Path | None) -> float | None:
+    """From a stop's send to the controller's first receipt of a stop command after it;
+    None when none arrived within STOP_RECEIPT_WAIT_S (a failed stop)."""
+    deadline = time.monotonic() + STOP_RECEIPT_WAIT_S
+    while True:
+        after = [t for t in controller_receipts(stop_log) if t >= sent_s]
+        if after:
+            return 1000.0 * (min(after) - sent_s)
+        if time.monotonic() > deadline:
+            return None
+        time.sleep(0.005)
+
+
+def _stops(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float,
+           stop_log: Path | None = None, to_controller: list[float] | None = None,
            ) -> tuple[list[float], list[float], list[float], list[str], int]:
     """Jog, stop, repeat; (stop ms, adapter ms, round-trip ms, errors, stops with the arm
-    moving)."""
+    moving). With ``stop_log``, each stop's time to the controller goes to ``to_controller``
+    (infinite when it never arrived)."""
     stop_ms: list[float] = []
     adapter_ms: list[float] = []
     http_ms: list[float] = []
@@ -337,6 +368,9 @@ def _stops(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float
             r = client.post(f"{base}/api/v1/stop", headers=OPERATOR,
                             json={"reason": "bench"})
             t1 = time.monotonic()
+            if stop_log is not None and to_controller is not None:
+                ms = to_controller_ms(t0, stop_log)
+                to_controller.append(float("inf") if ms is None else ms)
             if r.status_code != 200:
                 errors.append(f"stop {r.status_code}: {r.text[:200]}")
                 continue
@@ -354,6 +388,14 @@ def _stops(base: str, cfg: ServiceBenchConfig, start_s: float, end_s: float
     return stop_ms, adapter_ms, http_ms, errors, moving_at_stop
 
 
+def _pct_failed(values: list[float], q: float) -> float | None:
+    """A percentile where a failed stop (inf) counts as the slowest; None when it is one."""
+    if not values:
+        return None
+    v = float(np.percentile(values, q, method="higher"))
+    return None if v == float("inf") else round(v, 1)
+
+
 def _pct(values: list[float], q: float) -> float | None:
     return None if not values else round(float(np.percentile(values, q)), 1)
 
@@ -361,7 +403,10 @@ def _pct(values: list[float], q: float) -> float | None:
 def run_service_bench(cfg: ServiceBenchConfig | None = None) -> dict[str, Any]:
     cfg = cfg or ServiceBenchConfig()
     loadavg_before = round(os.getloadavg()[0], 2)  # other work on the host skews every number
-    with serving(nice=cfg.service_nice) as (base, proc):
+    stop_dir = tempfile.TemporaryDirectory(prefix="cell-bench-stops-")
+    stop_log = Path(stop_dir.name) / "stops.log"
+    to_controller: list[float] = []
+    with stop_dir, serving(nice=cfg.service_nice, stop_log=stop_log) as (base, proc):
         time.sleep(2.0)  # let the start settle (kernels, first frames, gripper activation)
         pids = service_processes(proc.pid)
         nices: dict[str, int] = {}
@@ -404,7 +449,8 @@ def run_service_bench(cfg: ServiceBenchConfig | None = None) -> dict[str, Any]:
 
         meter = threading.Thread(target=measure_load_cpu, daemon=True)
         meter.start()
-        stop_ms, adapter_ms, http_ms, errors, moving = _stops(base, cfg, start_s, end_s)
+        stop_ms, adapter_ms, http_ms, errors, moving = _stops(base, cfg, start_s, end_s,
+                                                        stop_log, to_controller)
         try:
             for _ in loads:
                 part = queue.get(timeout=cfg.duration_s + 60.0)
@@ -419,7 +465,13 @@ def run_service_bench(cfg: ServiceBenchConfig | None = None) -> dict[str, Any]:
     errors += loaded.get("errors", [])
     gaps = loaded.get("gaps_ms", [])
     idle_total = sum(v for k, v in idle.items() if k in ("service", "ur_client") and v)
+    reached = [ms for ms in to_controller if ms != float("inf")]
     report: dict[str, Any] = {
+        # the least kind figure first: send -> the controller has the stop (failed: never)
+        "stop_to_controller_ms_p99": _pct_failed(to_controller, 99),
+        "stop_to_controller_ms_p50": _pct_failed(to_controller, 50),
+        "stop_to_controller_ms_max": _pct_failed(to_controller, 100),
+        "stop_to_controller_failed": len(to_controller) - len(reached),
         "stop_ms_p50": _pct(stop_ms, 50), "stop_ms_p99": _pct(stop_ms, 99),
         "stop_ms_max": _pct(stop_ms, 100),
         "stop_adapter_ms_p50": _pct(adapter_ms, 50), "stop_adapter_ms_p99": _pct(adapter_ms, 99),
@@ -464,6 +516,8 @@ def format_report(r: dict[str, Any]) -> str:
         f"{lo['cores']} cores, host load average {lo['host_loadavg_1min_before']} before, "
         f"{lo['host_loadavg_1min_after']} after; nice "
         + ", ".join(f"{k} {v}" for k, v in r["nice"].items()),
+        f"stop (send -> controller has it): p99 {r['stop_to_controller_ms_p99']} ms, p50 "
+        f"{r['stop_to_controller_ms_p50']} ms, {r['stop_to_controller_failed']} failed\n"
         f"stop (request -> arm commanded): p50 {r['stop_ms_p50']} ms, p99 {r['stop_ms_p99']} ms,"
         f" max {r['stop_ms_max']} ms over {r['stops']} stops "
         f"({r['stops_while_jogging']} while jogging); the adapter's stop calls p50 "

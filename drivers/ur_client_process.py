@@ -154,6 +154,8 @@ def describe(req: Request) -> str:
         return "sample"
     if isinstance(req, Subscribe):
         return "subscribe"
+    if isinstance(req, Guard):
+        return "guard"
     return f"{type(req).__name__.lower()} {req.client}"
 
 

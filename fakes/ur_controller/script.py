@@ -12,6 +12,7 @@ a refused command) stop the program with a text message, as on the real controll
 from __future__ import annotations
 
 import logging
+import os
 import re
 import time
 from collections.abc import Callable
@@ -36,6 +37,23 @@ STOP_SCRIPT = 255
 # mailbox commands the simulator refuses (see MailboxInterpreter.refuse), by ur_rtde's names
 REFUSED_CMDS = {6: "forceMode", 12: "servoC", 25: "toolContact", 28: "getTargetWaypoint"}
 REFUSE_RESUME_S = 0.3
+# speedStop, servoStop, stopL, stopJ: their receive times go to the stop log (see StopLog)
+STOP_CMDS = {15: "speedStop", 16: "servoStop", 33: "stopL", 34: "stopJ"}
+STOP_LOG_ENV = "UR_SIM_STOP_LOG"
+
+
+class StopLog:
+    """Where the controller notes when each stop command arrived: the RTDE receive time of the
+    package that carried it (host ``time.monotonic()``, shared by every process on the host),
+    one line per stop, appended to the file named by ``$UR_SIM_STOP_LOG`` (nothing without
+    it). Benchmarks time a stop to this moment, the moment the controller has it."""
+
+    def __init__(self, path: str | None) -> None:
+        self._file = open(path, "a", buffering=1) if path else None  # noqa: SIM115
+
+    def note(self, name: str, received_s: float) -> None:
+        if self._file is not None:
+            self._file.write(f"{received_s:.6f} {name}\n")
 _MOVE = re.compile(
     r"^\s*(movej|movel|movep)\((p?)\[([^\]]*)\],a=([^,]+),v=([^,]+),r=([^)]+)\)\s*$")
 
@@ -117,6 +135,7 @@ class MailboxInterpreter:
         self.hand_guiding = False  # teach or freedrive mode
         self._ignore: tuple[int, float] | None = None  # (command, write time) refused
         self._contact: dict[str, Any] | None = None  # a moveUntilContact under way
+        self.stop_log = StopLog(os.environ.get(STOP_LOG_ENV))
 
     # -- program lifecycle ---------------------------------------------------------------------
     def start(self, prog: ControlProgram) -> None:
@@ -218,6 +237,9 @@ class MailboxInterpreter:
                     cmd = 0  # the refused command, still in the register: not run again
                 else:
                     self._ignore = None
+            if cmd in STOP_CMDS and not self._executing:
+                self.stop_log.note(STOP_CMDS[cmd],
+                                   self.regs.in_int_written_s[self._prog.int_offset])
             try:
                 if cmd in REALTIME_CMDS:
                     self._process(cmd, snap)
