@@ -70,6 +70,7 @@ CONTROLLER_WATCHDOG_HZ = 12.5
 KICK_PERIOD_S = 0.02
 PARENT_LEASE_S = 0.06
 HEARTBEAT_S = 0.02
+CALL_SETTLED_S = 0.04
 PR_SET_PDEATHSIG = 1
 
 ClientName = Literal["dash", "recv", "ctrl"]
@@ -204,7 +205,7 @@ class _Clients:
         self._seen = (-1.0, 0.0)  # (package timestamp, when it was first seen)
         self.guard: Guard | None = None
         self.parent_seen_s = time.monotonic()  # the parent's last message
-        self.ctrl_touched_s = 0.0  # a control call last started or ended
+        self.ctrl_started_s = 0.0  # when the control call under way (if any) began
 
     def arm_watchdog(self) -> None:
         """setWatchdog on the control script (a new script starts without one)."""
@@ -215,18 +216,26 @@ class _Clients:
 
     def kick(self) -> None:
         """One kick of the controller's watchdog, when armed and the parent is alive.
-        Not under the call lock: a blocking move holds it for seconds, and the script waits
-        in that move without reading the command register the kick writes."""
+
+        A kick writes the script's command register, so it must not land between a call's
+        command and the script's first look at it (the command would be lost): it is sent
+        between calls, or during a call that has run for CALL_SETTLED_S (a blocking stop
+        waiting for the arm to rest; the script has taken its command long before)."""
         ctrl, guard = self.objects.get("ctrl"), self.guard
         if ctrl is None or guard is None:
             return
-        now = time.monotonic()
-        if now - self.parent_seen_s > guard.parent_lease_s:
+        if time.monotonic() - self.parent_seen_s > guard.parent_lease_s:
             return  # the parent stalled: let the controller stop the arm
-        if now - self.ctrl_touched_s < KICK_PERIOD_S:
-            return  # a call just wrote the register (a kick now could hide its command)
-        with contextlib.suppress(Exception):
-            ctrl.kickWatchdog()
+        lock = self.locks["ctrl"]
+        if lock.acquire(blocking=False):
+            try:
+                with contextlib.suppress(Exception):
+                    ctrl.kickWatchdog()
+            finally:
+                lock.release()
+        elif time.monotonic() - self.ctrl_started_s > CALL_SETTLED_S:
+            with contextlib.suppress(Exception):
+                ctrl.kickWatchdog()
 
     def create(self, name: ClientName) -> None:
         import dashboard_client
@@ -246,14 +255,10 @@ class _Clients:
         obj = self.objects.get(name)
         if obj is None:
             raise RuntimeError(f"no {name} client")
+        if name == "ctrl":  # before the lock: a kick that sees it holds back
+            self.ctrl_started_s = time.monotonic()
         with self.locks[name]:  # one call at a time per client object
-            if name == "ctrl":
-                self.ctrl_touched_s = time.monotonic()
-            try:
-                result = getattr(obj, method)(*args)
-            finally:
-                if name == "ctrl":
-                    self.ctrl_touched_s = time.monotonic()
+            result = getattr(obj, method)(*args)
         if name == "ctrl" and method == "reuploadScript" and result:
             self.arm_watchdog()
         return result
