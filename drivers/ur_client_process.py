@@ -70,7 +70,7 @@ CONTROLLER_WATCHDOG_HZ = 12.5
 KICK_PERIOD_S = 0.02
 PARENT_LEASE_S = 0.06
 HEARTBEAT_S = 0.02
-CALL_SETTLED_S = 0.04
+QUIET_AFTER_CALL_S = 0.02
 PR_SET_PDEATHSIG = 1
 
 ClientName = Literal["dash", "recv", "ctrl"]
@@ -205,7 +205,7 @@ class _Clients:
         self._seen = (-1.0, 0.0)  # (package timestamp, when it was first seen)
         self.guard: Guard | None = None
         self.parent_seen_s = time.monotonic()  # the parent's last message
-        self.ctrl_started_s = 0.0  # when the control call under way (if any) began
+        self.ctrl_ended_s = 0.0  # when the last control call returned
 
     def arm_watchdog(self) -> None:
         """setWatchdog on the control script (a new script starts without one)."""
@@ -217,25 +217,26 @@ class _Clients:
     def kick(self) -> None:
         """One kick of the controller's watchdog, when armed and the parent is alive.
 
-        A kick writes the script's command register, so it must not land between a call's
-        command and the script's first look at it (the command would be lost): it is sent
-        between calls, or during a call that has run for CALL_SETTLED_S (a blocking stop
-        waiting for the arm to rest; the script has taken its command long before)."""
+        A kick writes the script's command register, so it must not land before the script
+        has taken a call's command (that command would be lost, and a call waiting for its
+        answer would hang): kicks go out only between calls, and not within QUIET_AFTER_CALL_S
+        of one (streamed commands return at once, before the script's next cycle). A
+        blocking call (a stop waiting for the arm to rest) is not kicked through: if it lasts
+        longer than the watchdog, the controller brakes the arm itself, the safe way round."""
         ctrl, guard = self.objects.get("ctrl"), self.guard
         if ctrl is None or guard is None:
             return
         if time.monotonic() - self.parent_seen_s > guard.parent_lease_s:
             return  # the parent stalled: let the controller stop the arm
         lock = self.locks["ctrl"]
-        if lock.acquire(blocking=False):
-            try:
+        if not lock.acquire(blocking=False):
+            return
+        try:
+            if time.monotonic() - self.ctrl_ended_s >= QUIET_AFTER_CALL_S:
                 with contextlib.suppress(Exception):
                     ctrl.kickWatchdog()
-            finally:
-                lock.release()
-        elif time.monotonic() - self.ctrl_started_s > CALL_SETTLED_S:
-            with contextlib.suppress(Exception):
-                ctrl.kickWatchdog()
+        finally:
+            lock.release()
 
     def create(self, name: ClientName) -> None:
         import dashboard_client
@@ -255,10 +256,12 @@ class _Clients:
         obj = self.objects.get(name)
         if obj is None:
             raise RuntimeError(f"no {name} client")
-        if name == "ctrl":  # before the lock: a kick that sees it holds back
-            self.ctrl_started_s = time.monotonic()
         with self.locks[name]:  # one call at a time per client object
-            result = getattr(obj, method)(*args)
+            try:
+                result = getattr(obj, method)(*args)
+            finally:
+                if name == "ctrl":
+                    self.ctrl_ended_s = time.monotonic()
         if name == "ctrl" and method == "reuploadScript" and result:
             self.arm_watchdog()
         return result
