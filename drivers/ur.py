@@ -472,6 +472,8 @@ class URArm:
         q = np.asarray(joints_rad, dtype=float).reshape(-1)
         if q.shape != (6,) or not np.all(np.isfinite(q)):
             raise MotionError(f"joints must be 6 finite values, got {joints_rad!r}")
+        if self._has_control:  # the script may have stopped (its watchdog, a stop, an error)
+            self._ensure_program()
         pose = self._ctrl("getForwardKinematics", q.tolist(), self._tcp_pose or [0.0] * 6)
         return T_from_ur_pose(list(pose))
 
