@@ -229,6 +229,33 @@ def test_io_and_speed_slider(ctl: ControllerProcess) -> None:
         r.disconnect()
 
 
+def test_io_example_back_to_back_writes_land_in_the_same_few_cycles(
+        ctl: ControllerProcess) -> None:
+    """io_example sets a standard and a tool output one call after the other and reads both
+    back 10 ms later. Each write is its own RTDE data package; the controller applies inputs
+    every 2 ms cycle, so both show within a few cycles of each other (in controller time, so
+    a stalled poller cannot make this pass or fail: a stall only shrinks the gap)."""
+    io = rtde_io.RTDEIOInterface(ctl.host)
+    r = rtde_receive.RTDEReceiveInterface(ctl.host)
+    try:
+        for level in (True, False, True):
+            assert io.setStandardDigitalOut(7, level)
+            assert io.setToolDigitalOut(0, level)
+            seen: dict[int, float] = {}
+            deadline = time.monotonic() + 5.0
+            while len(seen) < 2 and time.monotonic() < deadline:
+                stamp = r.getTimestamp()
+                for bit in (7, 16):
+                    if bit not in seen and r.getDigitalOutState(bit) == level:
+                        seen[bit] = stamp
+                time.sleep(0.0005)
+            assert len(seen) == 2, seen
+            assert abs(seen[16] - seen[7]) < 0.010, seen  # was 0.042 s: delayed TCP ACKs
+    finally:
+        io.disconnect()
+        r.disconnect()
+
+
 def test_record_data_timestamps_are_the_controllers_500_hz(ctl: ControllerProcess,
                                                            tmp_path: Path) -> None:
     r = rtde_receive.RTDEReceiveInterface(ctl.host, 500.0)
