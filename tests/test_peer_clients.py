@@ -468,6 +468,30 @@ def test_urx_reads_the_pose_and_sends_a_movel(ctl: ControllerProcess) -> None:
         rob.close()
 
 
+def test_urx_set_tcp_during_its_movej_replaces_the_program(ctl: ControllerProcess) -> None:
+    """urx's set_tcp sends a one-line program; on a controller a new main program replaces
+    the running one: the movej stops, then the TCP is set (no runtime error)."""
+    urx = pytest.importorskip("urx")
+    rob = urx.URRobot(ctl.host)
+    try:
+        q = list(rob.getj())
+        target = list(q)
+        target[0] += 0.8
+        rob.movej(target, acc=0.5, vel=0.3, wait=False)
+        assert wait_until(lambda: abs(truth_q(ctl)[0] - q[0]) > 0.02, 5.0)
+        rob.set_tcp((0.0, 0.0, 0.1, 0.0, 0.0, 0.0))
+        assert wait_until(lambda: np.allclose(ctl.state()["tcp_offset"],
+                                              [0, 0, 0.1, 0, 0, 0]), 5.0)
+        stopped_at = truth_q(ctl)[0]
+        assert abs(stopped_at - target[0]) > 0.3  # the move did not go on to its target
+        time.sleep(0.3)
+        assert truth_q(ctl)[0] == pytest.approx(stopped_at, abs=1e-9)
+        assert not any("Runtime error" in m for m in ctl.state()["messages"])
+        no_stop(ctl)
+    finally:
+        rob.close()
+
+
 def test_realtime_port_streams_the_1116_byte_package(ctl: ControllerProcess) -> None:
     with socket.create_connection((ctl.host, 30003), timeout=3.0) as s:
         buf = b""
