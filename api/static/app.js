@@ -53,6 +53,8 @@ const state = {
   settingsLoaded: false,
   busy: false, // a job is running: motion controls are disabled
   frameQuality: null, // what the overlay of the frame on screen says (X-Locate-* headers)
+  statusCamera: {}, // the last status's camera and last_locate, for the quality row
+  lastLocate: null,
 };
 
 // ---------------------------------------------------------------------------------------------
@@ -272,7 +274,9 @@ function renderStatus(s) {
   $("protective-stop").textContent = pstop ? "PROTECTIVE STOP" : "no";
   $("protective-stop").classList.toggle("bad", pstop);
   $("gripper-state").textContent = describeGripper(s.gripper);
-  renderQuality(s.camera || {}, s.last_locate);
+  state.statusCamera = s.camera || {};
+  state.lastLocate = s.last_locate;
+  renderQuality(state.statusCamera, state.lastLocate);
   if (s.job) {
     state.lastJob = s.job;
     renderJob(s.job);
@@ -427,7 +431,7 @@ async function cameraLoop() {
         countFps();
         $("camera-note").textContent = "";
         state.frameQuality = frameQuality(resp.headers);
-        renderQuality({}, null);
+        renderQuality(state.statusCamera, state.lastLocate);
         if (resp.headers.has("X-Frame-Age-S") && Number.isFinite(age)) {
           state.frameAgeS = age;
           $("quality-age").textContent = `${Math.round(age * 1000)} ms`;
