@@ -351,10 +351,10 @@ def test_job_line_shows_the_whole_reason(
                              "progress": {}, "error": {"code": "target_lost",
                                                        "message": reason}}
     login(page, url, "tok-operator")
+    job = page.get_by_test_id("job")
+    _wait_for(lambda: "end of reason" in job.inner_text(), what="job line")
     for width in (1366, 390):
         page.set_viewport_size({"width": width, "height": 800})
-        job = page.get_by_test_id("job")
-        _wait_for(lambda: "end of reason" in job.inner_text(), what="job line")
         # nothing of it is hidden: the box holds all its text, no ellipsis, no clamp
         fits = job.evaluate("e => e.scrollHeight <= e.clientHeight + 1 "
                             "&& e.scrollWidth <= e.clientWidth + 1")
