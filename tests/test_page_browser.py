@@ -430,7 +430,7 @@ def test_quality_row_follows_the_overlay_of_the_frame_on_screen(
     rms = page.get_by_test_id("quality-rms")
     _wait_for(lambda: "not located" in rms.inner_text(), what="not located")
     time.sleep(0.6)  # status rounds (last locate: rms 0.21, unique) do not overwrite it
-    assert "only 3 of 7" in rms.inner_text()
+    assert rms.inner_text() == "not located" and "only 3 of 7" in rms.get_attribute("title")
     assert page.get_by_test_id("quality-ambiguity").inner_text() == "–"
     r.frame_headers.update({"X-Located": "true", "X-Locate-Rms-Px": "0.0420",
                             "X-Locate-Ambiguous": "false"})

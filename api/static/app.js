@@ -235,7 +235,12 @@ function logout(reason) {
 // Status (robot state, pose, job) by polling: one small GET every 250 ms works through any
 // proxy and lets the page notice a dead connection quickly.
 
-const fmt = (v, digits = 1) => (Number.isFinite(v) ? v.toFixed(digits) : "–");
+// A value that rounds to zero reads "0.0", never "-0.0" (a sign that means nothing).
+const fmt = (v, digits = 1) => {
+  if (!Number.isFinite(v)) return "–";
+  const t = v.toFixed(digits);
+  return /^-0(\.0*)?$/.test(t) ? t.slice(1) : t;
+};
 const deg = (rad) => (rad * 180) / Math.PI;
 
 // One rotation has many rotation vectors: angle theta about u equals 2 pi - theta about -u,
@@ -377,9 +382,11 @@ function renderQuality(cam, located) {
   const row = $("quality-rms");
   row.dataset.source = live ? "live" : "last-locate";
   if (live && !live.located) {
-    row.textContent = live.error ? `not located: ${live.error}` : "not located";
+    row.textContent = "not located"; // the reason in full is on the image, and on hover
+    row.title = live.error || "";
     $("quality-ambiguity").textContent = "–";
   } else {
+    row.title = "";
     const rms = Number.isFinite(q.rms_px) ? `${fmt(q.rms_px, 2)} px` : "–";
     row.textContent = live || rms === "–" ? rms : `${rms} (last locate)`;
     $("quality-ambiguity").textContent = q.ambiguous === undefined || q.ambiguous === null ? "–"
