@@ -438,6 +438,27 @@ def test_quality_row_follows_the_overlay_of_the_frame_on_screen(
     assert page.get_by_test_id("quality-ambiguity").inner_text() == "unique"
 
 
+def test_overlay_text_wraps_inside_the_image() -> None:
+    """The overlay's "not located: ..." line is drawn in full, every line inside the frame."""
+    import cv2
+
+    from api.overlay import draw, wrap
+
+    reason = ("found 0 blob(s), need at least 5: check that the target is in view, lit, in "
+              "focus, and that the polarity and size filters fit the dots (the target has 6 "
+              "dark dots) " + "x" * 120)
+    lines = wrap(f"not located: {reason}", 620, 0.6, 1)
+    assert " ".join(lines).replace(" ", "") == f"not located: {reason}".replace(" ", "")
+    for line in lines:
+        (w, _), _ = cv2.getTextSize(line, cv2.FONT_HERSHEY_SIMPLEX, 0.6, 1)
+        assert w <= 620, line
+    image = np.zeros((400, 640), np.uint8)
+    out = draw(image, None, None, reason, 0.05)
+    rows = np.flatnonzero(out[:, :, 2].max(axis=1) > 0)  # red text
+    assert rows.size and rows.max() > 24 + 22 * (len(lines) - 2)  # every line was drawn
+    assert out[:, 631:, 2].max() == 0  # nothing reaches the right edge's last columns
+
+
 # ------------------------------------------------------------------------------------------
 # End to end against the simulated cell (``cell serve``)
 
