@@ -31,6 +31,24 @@ class LiveFrame:
     timestamp_s: float  # its capture time (time.monotonic())
     overlay: bool
     produced_s: float  # when it was encoded (time.monotonic())
+    # What the overlay says (None without one): located or not, and the estimate's quality or
+    # why not. The page's quality row shows these, so it never disagrees with the image.
+    located: bool | None = None
+    rms_px: float | None = None
+    ambiguous: bool | None = None
+    error: str | None = None
+
+    def headers(self) -> dict[str, str]:
+        """``X-Located``, ``X-Locate-Rms-Px``, ``X-Locate-Ambiguous``, ``X-Locate-Error``."""
+        if self.located is None:
+            return {}
+        if not self.located:
+            words = (self.error or "").encode("ascii", "replace").decode()
+            return {"X-Located": "false", "X-Locate-Error": " ".join(words.split())[:200]}
+        out = {"X-Located": "true", "X-Locate-Ambiguous": str(bool(self.ambiguous)).lower()}
+        if self.rms_px is not None:
+            out["X-Locate-Rms-Px"] = f"{self.rms_px:.4f}"
+        return out
 
 
 def encode_jpeg(image: NDArray[np.uint8], quality: int = JPEG_QUALITY) -> bytes:
@@ -65,8 +83,13 @@ class LiveView:
                 image = overlay.draw(frame.image, frame.camera, result, error, age_s)
             else:
                 image = frame.image
-            live = LiveFrame(encode_jpeg(image), frame.sequence, frame.timestamp_s,
-                             with_overlay, time.monotonic())
+            live = LiveFrame(
+                encode_jpeg(image), frame.sequence, frame.timestamp_s, with_overlay,
+                time.monotonic(),
+                located=(result is not None) if with_overlay else None,
+                rms_px=float(result.rms_px) if result is not None else None,
+                ambiguous=bool(result.ambiguous) if result is not None else None,
+                error=error if with_overlay else None)
             self.encodes += 1
             self._latest[with_overlay] = live
             return live

@@ -39,9 +39,38 @@ def draw(image: NDArray[np.uint8], camera: Any, result: Any, error: str | None,
     else:
         text = f"not located: {error}" if error else f"age {frame_age_s * 1000:.0f}ms"
         colour = (0, 0, 255) if error else (255, 255, 255)
-    cv2.putText(out, text[:90], (10, 24 * scale), cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale,
-                colour, scale)
+    font_scale = 0.6 * scale
+    for k, line in enumerate(wrap(text, out.shape[1] - 20, font_scale, scale)):
+        cv2.putText(out, line, (10, (24 + 22 * k) * scale), cv2.FONT_HERSHEY_SIMPLEX,
+                    font_scale, colour, scale)
     return np.asarray(out, dtype=np.uint8)
+
+
+def wrap(text: str, width_px: int, font_scale: float, thickness: int) -> list[str]:
+    """``text`` in lines that each fit ``width_px`` in the overlay's font: the whole reason a
+    locate failed is shown, never cut at the image's edge (a word longer than a line is split)."""
+    def fits(s: str) -> bool:
+        (w, _), _ = cv2.getTextSize(s, cv2.FONT_HERSHEY_SIMPLEX, font_scale, thickness)
+        return bool(w <= width_px)
+
+    lines: list[str] = []
+    line = ""
+    for word in text.split():
+        while not fits(word):  # split a word wider than the image
+            cut = max((n for n in range(1, len(word)) if fits(word[:n])), default=1)
+            lines.extend([line] if line else [])
+            line = ""
+            lines.append(word[:cut])
+            word = word[cut:]
+        candidate = f"{line} {word}" if line else word
+        if fits(candidate):
+            line = candidate
+        else:
+            lines.append(line)
+            line = word
+    if line:
+        lines.append(line)
+    return lines
 
 
 def png(image: NDArray[np.uint8]) -> bytes:

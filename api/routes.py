@@ -228,7 +228,9 @@ def live_of(request: Request) -> LiveView:
 @router.get("/camera/frame.jpg", tags=["vision"], response_class=JPEGResponse,
             responses={200: {"content": {"image/jpeg": {}},
                              "description": "JPEG image; X-Frame-Age-S and X-Frame-Sequence "
-                             "headers say how old it is and which camera frame it shows"},
+                             "headers say how old it is and which camera frame it shows; "
+                             "with the overlay, X-Located, X-Locate-Rms-Px, "
+                             "X-Locate-Ambiguous and X-Locate-Error what the overlay says"},
                        **UNAVAILABLE})
 def camera_frame_jpeg(request: Request, caller: Stream, overlay_: Annotated[bool, Query(
         alias="overlay", description="draw detections, ids and target axes")] = True
@@ -239,7 +241,7 @@ def camera_frame_jpeg(request: Request, caller: Stream, overlay_: Annotated[bool
     age = max(0.0, time.monotonic() - live.timestamp_s)
     return Response(live.jpeg, media_type="image/jpeg",
                     headers={"Cache-Control": "no-store", "X-Frame-Age-S": f"{age:.3f}",
-                             "X-Frame-Sequence": str(live.sequence)})
+                             "X-Frame-Sequence": str(live.sequence), **live.headers()})
 
 
 @router.get("/camera/stream.mjpg", tags=["vision"], response_class=MJPEGResponse,

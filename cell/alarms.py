@@ -1,4 +1,4 @@
-"""Alarms: every failed, cancelled or interrupted job and every fault (protective or emergency
+"""Alarms: every failed, fault-cancelled or interrupted job and every fault (protective or emergency
 stop, arm or camera lost, gripper fault) becomes an alarm that stays until an operator
 acknowledges it.
 
@@ -33,6 +33,10 @@ log = logging.getLogger(__name__)
 
 EVENT = "alarm"
 ALARMED_JOB_STATES = ("failed", "cancelled", "interrupted")
+# A job a person (or PLC) stopped on purpose ends "cancelled" with this code: an info event
+# in the job history, the audit log and the ``stop`` event, not an alarm to acknowledge.
+# A stop forced by a fault carries the fault's code and stays an alarm.
+STOPPED_ON_REQUEST_CODE = "cancelled"
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS alarms (
@@ -168,13 +172,16 @@ class AlarmLog:
         if str(self.cell.jobs.path) == ":memory:":
             return [(j.id, j.kind, j.state, j.error_code, j.error_message, j.ended_at)
                     for j in self.cell.jobs.list_jobs(50)
-                    if j.state in ALARMED_JOB_STATES and (j.ended_at or 0) >= self._jobs_since]
+                    if j.state in ALARMED_JOB_STATES and (j.ended_at or 0) >= self._jobs_since
+                    and not (j.state == "cancelled"
+                             and j.error_code == STOPPED_ON_REQUEST_CODE)]
         with self._lock:
             return self._db.execute(
                 "SELECT id, kind, state, error_code, error_message, ended_at FROM jobs "
                 "WHERE state IN ('failed', 'cancelled', 'interrupted') AND ended_at >= ? "
+                "AND NOT (state = 'cancelled' AND IFNULL(error_code, '') = ?) "
                 "AND 'job:' || id NOT IN (SELECT key FROM alarms WHERE source = 'job') "
-                "ORDER BY ended_at", (self._jobs_since,)).fetchall()
+                "ORDER BY ended_at", (self._jobs_since, STOPPED_ON_REQUEST_CODE)).fetchall()
 
     def _raise(self, key: str, source: str, code: str, message: str,
                job_id: str | None = None, at: float | None = None) -> Alarm | None:

@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.config import CellConfig, ConfigError
+from cell.config_checks import Problem
 from cell.hardware import Hardware
 from drivers.arm import Arm
 from drivers.camera import Camera, CameraSettings
@@ -183,8 +184,7 @@ def _make_camera(config: CellConfig, truth: _EngineTruth | _ProcessTruth | None
     cc, sim = config.camera, config.sim
     if cc.kind == "sim":
         if truth is None:
-            raise ConfigError("camera.kind = \"sim\" needs a simulated robot (robot.kind = "
-                              "\"sim\" or sim.ur_controller = true)")
+            raise ConfigError(SIM_CAMERA_NEEDS_SIM_ARM)
         T_flange_camera = (sim.T_flange_camera or config.hand_eye.T_flange_camera).T()
         sim_camera = SimCamera(
             cc.model(), config.target.model(), sim.T_base_target.T(), T_flange_camera,
@@ -199,6 +199,36 @@ def _make_camera(config: CellConfig, truth: _EngineTruth | _ProcessTruth | None
     from drivers.oak import OakCamera
 
     return OakCamera(oak_settings(config)), None
+
+
+SIM_CAMERA_NEEDS_SIM_ARM = ("camera.kind = \"sim\" needs a simulated robot (robot.kind = "
+                            "\"sim\" or sim.ur_controller = true)")
+ROBOTIQ_NEEDS_PORT = "gripper.port: a serial device is needed for kind = \"robotiq\""
+
+
+def hardware_problems(config: CellConfig) -> list[Problem]:
+    """Every reason :func:`build_hardware` would refuse this config, found without building
+    or touching anything: the same rules, so ``cell config check`` fails on what ``cell serve``
+    refuses."""
+    problems: list[Problem] = []
+    cc = config.camera
+    if cc.kind == "sim":
+        if config.robot.kind == "ur" and not config.sim.ur_controller:
+            problems.append(Problem("camera.kind", SIM_CAMERA_NEEDS_SIM_ARM))
+        if cc.exposure_us is not None or cc.iso is not None or cc.focus is not None:
+            try:
+                SimCamera.check_settings(CameraSettings(cc.exposure_us, cc.iso, cc.focus),
+                                         cc.fps)
+            except ValueError as err:
+                problems.append(Problem("camera", str(err)))
+    else:
+        try:
+            oak_settings(config)
+        except ConfigError as err:
+            problems.append(Problem("camera", str(err)))
+    if config.gripper.kind == "robotiq" and not config.gripper.port:
+        problems.append(Problem("gripper.port", ROBOTIQ_NEEDS_PORT))
+    return problems
 
 
 def oak_settings(config: CellConfig) -> OakSettings:
@@ -308,7 +338,7 @@ def _build(config: CellConfig, closers: list[Callable[[], None]]) -> Hardware:
         closers.append(gripper.disconnect)
     elif gc.kind == "robotiq":
         if not gc.port:
-            raise ConfigError("gripper.port: a serial device is needed for kind = \"robotiq\"")
+            raise ConfigError(ROBOTIQ_NEEDS_PORT)
         gripper = robotiq_gripper(config, gc.port)
         closers.append(gripper.disconnect)
 

@@ -6,12 +6,12 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from cell.config import CellConfig, load_config
-from cell.factory import all_simulated, build_hardware
+from cell.config import CellConfig, ConfigError, load_config
+from cell.config_checks import startup_problems
+from cell.factory import build_hardware
 from cell.imagelog import ImageLog
 from cell.jobs import JobStore
 from cell.service import Cell
-from cell.tokens import check_tokens
 
 # Called first thing on SIGTERM/SIGINT by ``cell serve`` (see cell.commands.serve), before the
 # HTTP server waits for open connections: the arm must not wait for an SSE client to leave.
@@ -21,8 +21,12 @@ SHUTDOWN_HOOKS: list[Callable[[], None]] = []
 
 def check_startable(config: CellConfig) -> None:
     """Everything about the config that can refuse a start, before any device is touched
-    (ConfigError): a token refusal after the arm was powered on would be too late."""
-    check_tokens(config, all_simulated(config))
+    (ConfigError): a token refusal after the arm was powered on would be too late. The same
+    list is what ``cell config check`` fails on."""
+    problems = startup_problems(config)
+    if problems:
+        raise ConfigError("cannot start with this config:\n  "
+                          + "\n  ".join(str(p) for p in problems), problems)
 
 
 # How long a Python thread may hold the GIL while another waits (default 5 ms). The service

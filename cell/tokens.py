@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from collections import Counter
 
-from cell.config import SAMPLE_OPCUA_PASSWORDS, SAMPLE_TOKENS, CellConfig, ConfigError
+from cell.config import SAMPLE_OPCUA_PASSWORDS, SAMPLE_TOKENS, CellConfig
 
 MIN_TOKEN_LENGTH = 16
 MIN_TOKEN_BITS = 48.0
@@ -67,9 +67,3 @@ def interface_problems(config: CellConfig) -> list[str]:
         problems.append("urscript.require_token: the XML-RPC endpoint needs a token in its URL "
                         "on real hardware (http://HOST:PORT/<token>/RPC2)")
     return problems
-
-
-def check_tokens(config: CellConfig, simulated: bool) -> None:
-    problems = token_problems(config, simulated)
-    if problems:
-        raise ConfigError("invalid API tokens:\n  " + "\n  ".join(problems))

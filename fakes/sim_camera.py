@@ -166,13 +166,12 @@ class SimCamera:
             return CameraSettings(exposure_us=round(self.exposure_s * 1e6), iso=self._iso,
                                   focus="auto" if focus == "auto" else int(focus))
 
-    def apply_settings(self, settings: CameraSettings) -> CameraSettings:
-        exposure_s = self.exposure_s
-        if settings.exposure_us is not None:
-            exposure_s = settings.exposure_us * 1e-6
-            if not 0 < exposure_s < 1.0 / self.fps:
-                raise ValueError(f"exposure_us must be within (0, {1e6 / self.fps:.0f}) at "
-                                 f"{self.fps:g} fps, got {settings.exposure_us}")
+    @staticmethod
+    def check_settings(settings: CameraSettings, fps: float) -> None:
+        """ValueError naming the first setting this camera cannot take at ``fps``."""
+        if settings.exposure_us is not None and not 0 < settings.exposure_us * 1e-6 < 1.0 / fps:
+            raise ValueError(f"exposure_us must be within (0, {1e6 / fps:.0f}) at "
+                             f"{fps:g} fps, got {settings.exposure_us}")
         if settings.iso is not None and not NOMINAL_ISO <= settings.iso <= MAX_ISO:
             raise ValueError(f"iso must be within [{NOMINAL_ISO}, {MAX_ISO}], got {settings.iso}")
         focus = settings.focus
@@ -180,6 +179,13 @@ class SimCamera:
                 isinstance(focus, bool) or not isinstance(focus, int) or not 0 <= focus <= 255):
             raise ValueError(f"focus must be a lens position within [0, 255] or 'auto', got "
                              f"{focus!r}")
+
+    def apply_settings(self, settings: CameraSettings) -> CameraSettings:
+        self.check_settings(settings, self.fps)
+        exposure_s = self.exposure_s
+        if settings.exposure_us is not None:
+            exposure_s = settings.exposure_us * 1e-6
+        focus = settings.focus
         with self._cond:
             self.exposure_s = exposure_s
             if settings.iso is not None:

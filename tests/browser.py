@@ -227,6 +227,10 @@ class RecordingApi:
     calls: list[Call] = field(default_factory=list)
     failures: dict[str, tuple[int, str, str]] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
+    status_extra: dict[str, Any] = field(default_factory=dict)  # merged into GET /status
+    robot_extra: dict[str, Any] = field(default_factory=dict)  # merged into its "robot"
+    jobs: list[dict[str, Any]] = field(default_factory=list)  # GET /jobs
+    frame_headers: dict[str, str] = field(default_factory=dict)  # added to frame.jpg
 
     def of(self, path: str) -> list[Call]:
         with self.lock:
@@ -320,13 +324,15 @@ def recording_app(rec: RecordingApi) -> FastAPI:
             "robot": {"connected": True, "mode": "RUNNING", "safety": "NORMAL",
                       "moving": False, "protective_stop": False,
                       "T_base_tcp": {"position_mm": [-480.0, -100.0, 400.0],
-                                     "rotvec_rad": [3.14159, 0.0, 0.0]}},
+                                     "rotvec_rad": [3.14159, 0.0, 0.0]},
+                      **rec.robot_extra},
             "camera": {"connected": True, "last_frame_age_s": 0.05},
             "gripper": {"activated": True, "position_mm": 85.0, "object_detected": False,
                         "moving": False, "fault": ""},
             "job": None,
             "last_locate": {"quality": {"rms_px": 0.21, "ambiguous": False,
                                         "frame_age_s": 1.5}},
+            **rec.status_extra,
         }
 
     @app.get("/api/v1/camera/frame.png")
@@ -339,7 +345,7 @@ def recording_app(rec: RecordingApi) -> FastAPI:
     def frame_jpg() -> Response:
         frames[0] += 1
         return Response(_frame_jpeg(frames[0]), media_type="image/jpeg",
-                        headers={"X-Frame-Age-S": "0.040"})
+                        headers={"X-Frame-Age-S": "0.040", **rec.frame_headers})
 
     @app.get("/api/v1/alarms")
     def alarms() -> dict[str, Any]:
@@ -347,7 +353,12 @@ def recording_app(rec: RecordingApi) -> FastAPI:
 
     @app.get("/api/v1/jobs")
     def jobs() -> dict[str, Any]:
-        return {"jobs": [], "total": 0, "offset": 0}
+        return {"jobs": rec.jobs, "total": len(rec.jobs), "offset": 0}
+
+    @app.get("/api/v1/jobs/{job_id}")
+    def job(job_id: str) -> Any:
+        found = [j for j in rec.jobs if j["id"] == job_id]
+        return found[0] if found else _error(404, "not_found", f"no job {job_id}")
 
     @app.get("/api/v1/teach")
     def taught() -> dict[str, Any]:

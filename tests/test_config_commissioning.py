@@ -253,16 +253,70 @@ def test_config_check_lists_every_problem_and_exits_2(
 
 def test_config_check_passes_the_shipped_configs_without_hardware(tmp_path: Path) -> None:
     for name, real in (("real-cell.example.toml", True), ("sim.toml", False)):
+        path = REPO / "cell" / "configs" / name
+        if real:  # as an integrator must: own tokens instead of the samples
+            path = _write(tmp_path.parent, _own_tokens(REAL), "real-own-tokens.toml")
         out = subprocess.run([sys.executable, "-m", "cell", "config", "check",
-                              str(REPO / "cell" / "configs" / name), "--json"],
+                              str(path), "--json"],
                              capture_output=True, text=True, cwd=tmp_path, timeout=60)
         assert out.returncode == 0, out.stdout + out.stderr
         info = json.loads(out.stdout)
         assert info["ok"] is True and info["real_hardware"] is real
-        # the example still holds the sample tokens, which only `cell serve` refuses
-        assert [w.split(":")[0] for w in info["warnings"]] == (["api.tokens"] if real else [])
+        assert info["warnings"] == []
     # nothing was created in the working directory (no job database, no state)
     assert list(tmp_path.iterdir()) == []
+
+
+def _own_tokens(text: str) -> str:
+    for role in ("viewer", "operator", "plc"):
+        text = _edit(text, f'token = "sim-{role}"', f'token = "Zq8-{role}-x7Pn2kVw9LrT4bYc"')
+    return text
+
+
+# Configs each of which ``cell serve`` refuses: (name, how to make it from the example, key)
+REFUSED = [
+    ("sample tokens on real hardware", lambda t: t, "api.tokens[0] (hmi)"),
+    ("simulated camera on a real arm",
+     lambda t: _edit(_own_tokens(t), 'kind = "oak"', 'kind = "sim"'), "camera.kind"),
+    ("robotiq without a port", lambda t: _edit(_own_tokens(t), 'port = "/dev/ttyUSB0"',
+                                               'port = ""'), "gripper.port"),
+]
+
+
+@pytest.mark.parametrize(("make", "key"), [(m, k) for _, m, k in REFUSED],
+                         ids=[n for n, _, _ in REFUSED])
+def test_every_refusal_of_serve_is_a_check_failure(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], make: object, key: str) -> None:
+    from cell.runtime import start_cell
+
+    assert callable(make)
+    path = _write(tmp_path, make(REAL))
+    assert main(["config", "check", str(path), "--json"]) == 2
+    out = json.loads(capsys.readouterr().out)
+    assert out["ok"] is False
+    assert key in [p["key"] for p in out["error"]["problems"]], out
+    # serve refuses before "serving" and before any device is built, with the same problem
+    assert main(["serve", "--config", str(path), "--port", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "serving" not in err and key in err, err
+    with pytest.raises(ConfigError) as refused:
+        start_cell(load_config(path))
+    assert key in [p.key for p in refused.value.problems]
+
+
+def test_the_factory_refuses_exactly_what_the_check_reports(tmp_path: Path) -> None:
+    """Building the hardware (not connecting it) fails iff the shared rules report a problem."""
+    from cell.factory import build_hardware, hardware_problems
+
+    text = _edit(_own_tokens(REAL), 'kind = "oak"', 'kind = "sim"')
+    for simulated_controller in (False, True):
+        data = text if not simulated_controller else text + "\n[sim]\nur_controller = true\n"
+        config = load_config(_write(tmp_path, data))
+        problems = hardware_problems(config)
+        assert bool(problems) is not simulated_controller
+        if problems:
+            with pytest.raises(ConfigError, match="needs a simulated robot"):
+                build_hardware(config)
 
 
 def test_sim_config_helper_still_builds_a_valid_config(tmp_path: Path) -> None:

@@ -64,6 +64,10 @@ def rec(stub: tuple[str, RecordingApi]) -> RecordingApi:
     with r.lock:
         r.calls.clear()
     r.failures.clear()
+    r.status_extra.clear()
+    r.robot_extra.clear()
+    r.jobs.clear()
+    r.frame_headers.clear()
     return r
 
 
@@ -157,7 +161,8 @@ def test_camera_view_refreshes_with_overlay(
     assert page.evaluate("document.querySelector('[data-testid=camera]').naturalWidth") == 320
     frames = rec.of("/api/v1/camera/frame.jpg")
     assert frames and all("overlay=true" in c.query for c in frames)
-    assert page.get_by_test_id("quality-rms").inner_text() == "0.21 px"
+    # the stub's frames carry no X-Located: the row falls back to the last locate, said so
+    assert page.get_by_test_id("quality-rms").inner_text() == "0.21 px (last locate)"
 
 
 def test_held_jog_heartbeats_then_stops_on_release(
@@ -287,6 +292,171 @@ def test_tablet_portrait_keeps_stop_in_view(
         box = page.get_by_test_id(testid).bounding_box()
         assert box is not None and box["height"] >= 48 and box["width"] >= 48
     screenshot(page, "operator-page-tablet")
+
+
+def test_a_new_attempt_clears_the_earlier_error_line(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    url, r = stub
+    login(page, url, "tok-operator")
+    msg = page.get_by_test_id("message")
+    r.failures["/api/v1/approach"] = (409, "camera_lost", "The camera cannot see the target.")
+    page.get_by_test_id("approach").click()
+    _wait_for(lambda: "cannot see" in msg.inner_text(), what="first failure")
+    r.failures["/api/v1/approach"] = (503, "arm_disconnected", "The arm is not connected.")
+    page.get_by_test_id("approach").click()
+    _wait_for(lambda: "not connected" in msg.inner_text(), what="second failure")
+    assert "cannot see" not in msg.inner_text()
+    del r.failures["/api/v1/approach"]
+    page.get_by_test_id("approach").click()  # this one starts: no failure is left on screen
+    _wait_for(lambda: len(rec.of("/api/v1/approach")) == 3, what="third approach")
+    _wait_for(lambda: msg.is_hidden() or msg.get_attribute("data-kind") != "error",
+              what="error line cleared")
+
+
+def test_motion_controls_are_disabled_while_a_job_runs(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    url, r = stub
+    long_reason = ("the target left the camera's view during the approach; the arm stopped "
+                   "80.0 mm short of the standoff pose after 3 look-and-move cycles, put the "
+                   "target back in view and approach again")
+    r.status_extra["job"] = {"id": "0badf00d", "kind": "approach", "state": "running",
+                             "progress": {"phase": "moving", "cycle": 2}}
+    login(page, url, "tok-operator")
+    motion = ["approach", "home", "track-start", "calib-start", "teach", *JOG_BUTTONS]
+    _wait_for(lambda: page.get_by_test_id("approach").is_disabled(), what="approach disabled")
+    for testid in motion:
+        assert page.get_by_test_id(testid).is_disabled(), testid
+    for testid in ("stop", "track-stop", "locate", "gripper-open", "unlock"):
+        assert page.get_by_test_id(testid).is_enabled(), testid
+    screenshot(page, "operator-page-job-running")
+    r.status_extra["job"] = None
+    r.jobs[:] = [{"id": "0badf00d", "kind": "approach", "state": "failed", "caller": "op",
+                  "created_at": time.time(), "error": {"code": "target_lost",
+                                                       "message": long_reason}}]
+    _wait_for(lambda: page.get_by_test_id("approach").is_enabled(), what="approach enabled")
+    for testid in motion:
+        assert page.get_by_test_id(testid).is_enabled(), testid
+
+
+def test_job_line_shows_the_whole_reason(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    url, r = stub
+    reason = ("the target left the camera's view during the approach; the arm stopped 80.0 mm "
+              "short of the standoff pose after 3 look-and-move cycles: put the target back "
+              "in view and approach again (end of reason)")
+    r.status_extra["job"] = {"id": "0badf00d", "kind": "approach", "state": "failed",
+                             "progress": {}, "error": {"code": "target_lost",
+                                                       "message": reason}}
+    login(page, url, "tok-operator")
+    job = page.get_by_test_id("job")
+    _wait_for(lambda: "end of reason" in job.inner_text(), what="job line")
+    for width in (1366, 390):
+        page.set_viewport_size({"width": width, "height": 800})
+        # nothing of it is hidden: the box holds all its text, no ellipsis, no clamp
+        fits = job.evaluate("e => e.scrollHeight <= e.clientHeight + 1 "
+                            "&& e.scrollWidth <= e.clientWidth + 1")
+        assert fits, f"job line clipped at {width} px"
+        assert job.evaluate("e => getComputedStyle(e).webkitLineClamp") in ("none", "")
+
+
+def test_phone_layout_has_no_horizontal_overflow(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    url, r = stub
+    now = time.time()
+    r.jobs[:] = [{"id": f"{k:08x}deadbeef", "kind": "approach", "state": "failed",
+                  "caller": "operator (operator page)", "created_at": now - 60 * k,
+                  "error": {"code": "target_lost",
+                            "message": "target_lost_while_servoing_at_standoff_80_mm"}}
+                 for k in range(8)]
+    page.set_viewport_size({"width": 390, "height": 844})
+    login(page, url, "tok-operator")
+    page.locator('[data-testid="history"] tr').first.wait_for(timeout=10_000)
+    doc_width = page.evaluate("() => document.documentElement.scrollWidth")
+    assert doc_width <= 390, f"the page is {doc_width} px wide on a 390 px phone"
+    # the table may be wider than the phone: it scrolls inside its own panel
+    panel = page.locator(".history-panel")
+    assert panel.evaluate("e => e.getBoundingClientRect().right") <= 390
+    assert panel.evaluate("e => getComputedStyle(e).overflowX") == "auto"
+    screenshot(page, "operator-page-phone-history")
+
+
+def test_login_screen_shows_no_broken_image(page: Any, stub: tuple[str, RecordingApi]) -> None:
+    url, _ = stub
+    page.goto(url + "/")
+    page.get_by_test_id("token").wait_for()
+    camera = page.get_by_test_id("camera")
+    assert camera.get_attribute("src") is None
+    assert camera.evaluate("e => getComputedStyle(e).visibility") == "hidden"
+    assert page.get_by_test_id("image-view").is_hidden()
+    screenshot(page, "operator-page-login")
+
+
+def test_tcp_rotation_is_one_canonical_rotation_vector(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    """The same pose at angle pi, reported with either axis sign, and the same rotation past
+    pi, all read the same: angle in [0, pi], at pi the first non-zero axis component > 0."""
+    url, r = stub
+    s = np.sqrt(0.5)
+    login(page, url, "tok-operator")
+    shown = []
+    past_pi = np.pi + 5e-7  # a hair past pi about -u: pi - 5e-7 about +u
+    for rotvec in ([-np.pi * s, -np.pi * s, 0.0], [np.pi * s, np.pi * s, 0.0],
+                   [-past_pi * s, -past_pi * s, 0.0]):
+        r.robot_extra["T_base_tcp"] = {"position_mm": [1.0, 2.0, 3.0],
+                                       "rotvec_rad": [float(v) for v in rotvec]}
+        time.sleep(0.8)  # a few status rounds
+        shown.append(" ".join(page.get_by_test_id("tcp-pose").inner_text().split()))
+    assert len(set(shown)) == 1, shown
+    assert "rx 127.3 ry 127.3 rz 0.0" in shown[0], shown[0]
+    # past pi: 200 deg about +z is 160 deg about -z
+    r.robot_extra["T_base_tcp"] = {"position_mm": [1.0, 2.0, 3.0],
+                                   "rotvec_rad": [0.0, 0.0, float(np.radians(200.0))]}
+    _wait_for(lambda: "rz -160.0" in page.get_by_test_id("tcp-pose").inner_text(),
+              what="canonical angle")
+
+
+def test_quality_row_follows_the_overlay_of_the_frame_on_screen(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    url, r = stub
+    r.frame_headers.update({"X-Located": "false",
+                            "X-Locate-Error": "only 3 of 7 dots found"})
+    login(page, url, "tok-operator")
+    rms = page.get_by_test_id("quality-rms")
+    _wait_for(lambda: "not located" in rms.inner_text(), what="not located")
+    time.sleep(0.6)  # status rounds (last locate: rms 0.21, unique) do not overwrite it
+    assert rms.inner_text() == "not located" and "only 3 of 7" in rms.get_attribute("title")
+    assert page.get_by_test_id("quality-ambiguity").inner_text() == "–"
+    r.frame_headers.update({"X-Located": "true", "X-Locate-Rms-Px": "0.0420",
+                            "X-Locate-Ambiguous": "false"})
+    _wait_for(lambda: rms.inner_text() == "0.04 px", what="live rms")
+    assert page.get_by_test_id("quality-ambiguity").inner_text() == "unique"
+
+
+def test_overlay_text_wraps_inside_the_image() -> None:
+    """The overlay's "not located: ..." line is drawn in full, every line inside the frame."""
+    import cv2
+
+    from api.overlay import draw, wrap
+
+    reason = ("found 0 blob(s), need at least 5: check that the target is in view, lit, in "
+              "focus, and that the polarity and size filters fit the dots (the target has 6 "
+              "dark dots) " + "x" * 120)
+    lines = wrap(f"not located: {reason}", 620, 0.6, 1)
+    assert " ".join(lines).replace(" ", "") == f"not located: {reason}".replace(" ", "")
+    for line in lines:
+        (w, _), _ = cv2.getTextSize(line, cv2.FONT_HERSHEY_SIMPLEX, 0.6, 1)
+        assert w <= 620, line
+    image = np.zeros((400, 640), np.uint8)
+    out = draw(image, None, None, reason, 0.05)
+    rows = np.flatnonzero(out[:, :, 2].max(axis=1) > 0)  # red text
+    assert rows.size and rows.max() > 24 + 22 * (len(lines) - 2)  # every line was drawn
+    assert out[:, 631:, 2].max() == 0  # nothing reaches the right edge's last columns
 
 
 # ------------------------------------------------------------------------------------------

@@ -174,6 +174,62 @@ def test_failed_approach_raises_an_alarm_until_acknowledged(
     assert page.get_by_test_id("alarm-count").is_hidden()
 
 
+def test_operators_own_stop_is_an_info_event_not_an_alarm(
+        page: Any, cell: str, home_target: dict[str, Any]) -> None:
+    page.set_viewport_size({"width": 1366, "height": 768})
+    login(page, cell, OPERATOR)
+    wait_idle(cell)
+    before = {a["id"] for a in api(cell, "GET", "/alarms")["alarms"]}
+    page.get_by_test_id("standoff").fill("80")
+    page.get_by_test_id("approach").click()
+    job_id = wait_for(lambda: (api(cell, "GET", "/status")["job"] or {}).get("id"), 10, "job")
+    # while it runs, nothing else that moves the arm can be started from the page
+    wait_for(lambda: page.get_by_test_id("approach").is_disabled(), 5, "approach disabled")
+    assert page.get_by_test_id("home").is_disabled()
+    assert page.get_by_test_id("jog-z-plus").is_disabled()
+    page.get_by_test_id("stop").click()
+    wait_for(lambda: api(cell, "GET", f"/jobs/{job_id}")["state"] == "cancelled", 20,
+             "cancelled")
+    message = page.get_by_test_id("message")
+    wait_for(lambda: "Stopped" in message.inner_text(), 5, "info line")
+    assert message.get_attribute("data-kind") == "info"
+    wait_for(lambda: "cancelled" in page.get_by_test_id("job").inner_text(), 10, "job line")
+    time.sleep(2.5)  # several rounds of the alarm watcher
+    new = [a for a in api(cell, "GET", "/alarms")["alarms"] if a["id"] not in before]
+    assert new == [], new
+    assert page.get_by_test_id("alarm-banner").is_hidden()
+    page.locator(f'[data-testid="history"] tr[data-job-id="{job_id}"][data-state="cancelled"]'
+                 ).wait_for(timeout=10_000)
+    wait_for(lambda: page.get_by_test_id("approach").is_enabled(), 10, "approach enabled")
+    screenshot(page, "operator-page-stopped")
+
+
+def test_quality_row_and_overlay_agree(page: Any, cell: str,
+                                       home_target: dict[str, Any]) -> None:
+    page.set_viewport_size({"width": 1366, "height": 768})
+    login(page, cell, OPERATOR)
+    wait_idle(cell)
+    api(cell, "POST", "/locate", json={})  # a good last locate: rms and "unique"
+    away = {"position_mm": [-480.0, 320.0, 0.0], "rotvec_rad": [np.pi, 0.0, 0.0]}
+    api(cell, "PUT", "/sim/target", json=away)
+    try:
+        def frame_says() -> dict[str, str]:
+            r = httpx.get(f"{cell}/api/v1/camera/frame.jpg", headers=HEAD, timeout=10.0)
+            return {k: v for k, v in r.headers.items() if k.lower().startswith("x-locat")}
+
+        wait_for(lambda: frame_says().get("x-located") == "false", 20, "overlay: not located")
+        rms = page.get_by_test_id("quality-rms")
+        wait_for(lambda: "not located" in rms.inner_text(), 10, "quality row: not located")
+        assert page.get_by_test_id("quality-ambiguity").inner_text() == "–"
+        screenshot(page, "operator-page-not-located")
+    finally:
+        api(cell, "PUT", "/sim/target", json=home_target)
+    wait_for(lambda: frame_says().get("x-located") == "true", 20, "overlay: located")
+    wait_for(lambda: rms.inner_text().endswith(" px")
+             and page.get_by_test_id("quality-ambiguity").inner_text() in (
+                 "unique", "AMBIGUOUS: two poses fit"), 10, "quality row: located")
+
+
 def test_image_log_browser_shows_failed_locate_frames(
         page: Any, cell: str, home_target: dict[str, Any]) -> None:
     away = {"position_mm": [-480.0, 320.0, 0.0], "rotvec_rad": [np.pi, 0.0, 0.0]}

@@ -229,6 +229,33 @@ def test_io_and_speed_slider(ctl: ControllerProcess) -> None:
         r.disconnect()
 
 
+def test_io_example_back_to_back_writes_land_in_the_same_few_cycles(
+        ctl: ControllerProcess) -> None:
+    """io_example sets a standard and a tool output one call after the other and reads both
+    back 10 ms later. Each write is its own RTDE data package; the controller applies inputs
+    every 2 ms cycle, so both show within a few cycles of each other (in controller time, so
+    a stalled poller cannot make this pass or fail: a stall only shrinks the gap)."""
+    io = rtde_io.RTDEIOInterface(ctl.host)
+    r = rtde_receive.RTDEReceiveInterface(ctl.host)
+    try:
+        for level in (True, False, True):
+            assert io.setStandardDigitalOut(7, level)
+            assert io.setToolDigitalOut(0, level)
+            seen: dict[int, float] = {}
+            deadline = time.monotonic() + 5.0
+            while len(seen) < 2 and time.monotonic() < deadline:
+                stamp = r.getTimestamp()
+                for bit in (7, 16):
+                    if bit not in seen and r.getDigitalOutState(bit) == level:
+                        seen[bit] = stamp
+                time.sleep(0.0005)
+            assert len(seen) == 2, seen
+            assert abs(seen[16] - seen[7]) < 0.010, seen  # was 0.042 s: delayed TCP ACKs
+    finally:
+        io.disconnect()
+        r.disconnect()
+
+
 def test_record_data_timestamps_are_the_controllers_500_hz(ctl: ControllerProcess,
                                                            tmp_path: Path) -> None:
     r = rtde_receive.RTDEReceiveInterface(ctl.host, 500.0)
@@ -437,6 +464,30 @@ def test_urx_reads_the_pose_and_sends_a_movel(ctl: ControllerProcess) -> None:
         r = rtde_receive.RTDEReceiveInterface(ctl.host)
         assert wait_until(lambda: r.getDigitalOutState(3), 3.0)
         r.disconnect()
+    finally:
+        rob.close()
+
+
+def test_urx_set_tcp_during_its_movej_replaces_the_program(ctl: ControllerProcess) -> None:
+    """urx's set_tcp sends a one-line program; on a controller a new main program replaces
+    the running one: the movej stops, then the TCP is set (no runtime error)."""
+    urx = pytest.importorskip("urx")
+    rob = urx.URRobot(ctl.host)
+    try:
+        q = list(rob.getj())
+        target = list(q)
+        target[0] += 0.8
+        rob.movej(target, acc=0.5, vel=0.3, wait=False)
+        assert wait_until(lambda: abs(truth_q(ctl)[0] - q[0]) > 0.02, 5.0)
+        rob.set_tcp((0.0, 0.0, 0.1, 0.0, 0.0, 0.0))
+        assert wait_until(lambda: np.allclose(ctl.state()["tcp_offset"],
+                                              [0, 0, 0.1, 0, 0, 0]), 5.0)
+        stopped_at = truth_q(ctl)[0]
+        assert abs(stopped_at - target[0]) > 0.3  # the move did not go on to its target
+        time.sleep(0.3)
+        assert truth_q(ctl)[0] == pytest.approx(stopped_at, abs=1e-9)
+        assert not any("Runtime error" in m for m in ctl.state()["messages"])
+        no_stop(ctl)
     finally:
         rob.close()
 

@@ -325,6 +325,29 @@ def test_not_in_remote_control_is_refused(ctl: ControllerProcess) -> None:
         rtde_control.RTDEControlInterface(ctl.host)
 
 
+def test_unpowered_controller_says_why_the_control_script_did_not_start() -> None:
+    """The standalone controller starts powered off: ur_rtde only reports "Failed to start
+    control script"; the reason goes to every streaming RTDE client as an error-level text
+    message (protocol 2: message, source, warning level)."""
+    with ControllerProcess() as unpowered:
+        c = RawRTDE(unpowered.host)
+        try:
+            assert c.request(rtde.REQUEST_PROTOCOL_VERSION, struct.pack(">H", 2)) == b"\x01"
+            c.request(rtde.CONTROL_PACKAGE_SETUP_OUTPUTS, struct.pack(">d", 10.0) + b"timestamp")
+            assert c.request(rtde.CONTROL_PACKAGE_START) == b"\x01"
+            with pytest.raises(RuntimeError, match="Failed to start control script"):
+                rtde_control.RTDEControlInterface(unpowered.host)
+            _, payload = c.next(rtde.TEXT_MESSAGE)
+            n = payload[0]
+            message = payload[1:1 + n].decode()
+            source = payload[2 + n:2 + n + payload[1 + n]].decode()
+            level = payload[-1]
+            assert source == "URControl" and level == rtde.LEVEL_ERROR
+            assert "POWER_OFF" in message and "power on" in message, message
+        finally:
+            c.close()
+
+
 def test_io_interface_and_protective_stop_program_state(
         ctl: ControllerProcess, clients: tuple) -> None:
     c, r = clients

@@ -51,6 +51,10 @@ const state = {
   historyOffset: 0,
   calibJob: null,
   settingsLoaded: false,
+  busy: false, // a job is running: motion controls are disabled
+  frameQuality: null, // what the overlay of the frame on screen says (X-Locate-* headers)
+  statusCamera: {}, // the last status's camera and last_locate, for the quality row
+  lastLocate: null,
 };
 
 // ---------------------------------------------------------------------------------------------
@@ -131,6 +135,17 @@ function say(words, kind = "error") {
   messageTimer = setTimeout(() => { el.hidden = true; }, kind === "error" ? 15000 : 5000);
 }
 
+// A new attempt makes an earlier failure's words stale: they go as the next command starts,
+// so a second failure is never read next to the first one's reason.
+function clearError() {
+  const el = $("message");
+  if (el.dataset.kind !== "error") return;
+  clearTimeout(messageTimer);
+  el.hidden = true;
+  el.textContent = "";
+  el.dataset.kind = "";
+}
+
 function markOnline() {
   state.lastOk = Date.now();
   if (!state.online) setOnline(true);
@@ -156,8 +171,12 @@ function applyRole() {
   const granted = state.permissions || (state.role ? ROLE_ACTIONS[state.role] || [] : everything);
   const allowed = new Set(state.token ? granted : []);
   if (state.token && state.role === "operator") allowed.add(OPERATOR_ONLY);
+  // While a job runs, nothing else may start the arm (the cell would refuse it as busy):
+  // only STOP, Stop tracking and the non-motion controls stay live. A held jog button keeps
+  // its state so its release still stops the jog.
   document.querySelectorAll("[data-needs]").forEach((el) => {
-    el.disabled = !allowed.has(el.dataset.needs);
+    const busy = state.busy && "motion" in el.dataset && !(state.jog && state.jog.btn === el);
+    el.disabled = !allowed.has(el.dataset.needs) || busy;
   });
   if (!state.calibJob || state.calibJob.state !== "succeeded") $("calib-apply").disabled = true;
   $("role").textContent = state.token ? `role: ${state.role || "unknown"}` : "";
@@ -216,14 +235,37 @@ function logout(reason) {
 // Status (robot state, pose, job) by polling: one small GET every 250 ms works through any
 // proxy and lets the page notice a dead connection quickly.
 
-const fmt = (v, digits = 1) => (Number.isFinite(v) ? v.toFixed(digits) : "–");
+// A value that rounds to zero reads "0.0", never "-0.0" (a sign that means nothing).
+const fmt = (v, digits = 1) => {
+  if (!Number.isFinite(v)) return "–";
+  const t = v.toFixed(digits);
+  return /^-0(\.0*)?$/.test(t) ? t.slice(1) : t;
+};
 const deg = (rad) => (rad * 180) / Math.PI;
+
+// One rotation has many rotation vectors: angle theta about u equals 2 pi - theta about -u,
+// and at exactly pi both u and -u. The page shows one: angle in [0, pi], and at pi (within
+// 1e-6 rad) the axis whose first non-zero component is positive, so the same pose never
+// reads once as rx -127.3 ry -127.3 and once as +127.3 +127.3.
+function canonicalRotvec(r) {
+  let theta = Math.hypot(...r);
+  if (!Number.isFinite(theta) || theta < 1e-12) return [0, 0, 0];
+  let u = r.map((v) => v / theta);
+  theta %= 2 * Math.PI;
+  if (theta > Math.PI) { theta = 2 * Math.PI - theta; u = u.map((v) => -v); }
+  if (Math.PI - theta < 1e-6) {
+    theta = Math.PI;
+    const lead = u.find((v) => Math.abs(v) > 1e-9) || 1;
+    if (lead < 0) u = u.map((v) => -v);
+  }
+  return u.map((v) => v * theta);
+}
 
 function showPose(pose) {
   if (!pose || !pose.position_mm) return "–";
   const [x, y, z] = pose.position_mm;
   // Rotation vector shown in degrees (same axis-angle as the pendant), not converted to RPY.
-  const [rx, ry, rz] = pose.rotvec_rad.map(deg);
+  const [rx, ry, rz] = canonicalRotvec(pose.rotvec_rad).map(deg);
   return `x ${fmt(x)}  y ${fmt(y)}  z ${fmt(z)} mm · rx ${fmt(rx)}  ry ${fmt(ry)}  rz ${fmt(rz)} °`;
 }
 
@@ -237,7 +279,9 @@ function renderStatus(s) {
   $("protective-stop").textContent = pstop ? "PROTECTIVE STOP" : "no";
   $("protective-stop").classList.toggle("bad", pstop);
   $("gripper-state").textContent = describeGripper(s.gripper);
-  renderQuality(s.camera || {}, s.last_locate);
+  state.statusCamera = s.camera || {};
+  state.lastLocate = s.last_locate;
+  renderQuality(state.statusCamera, state.lastLocate);
   if (s.job) {
     state.lastJob = s.job;
     renderJob(s.job);
@@ -274,6 +318,7 @@ function renderJob(job) {
   if (!job) {
     $("job").textContent = "none";
     bar.value = 0;
+    setBusy(false);
     return;
   }
   const p = job.progress || {};
@@ -291,9 +336,17 @@ function renderJob(job) {
   }
   $("job").textContent = text;
   $("job").title = text;
+  setBusy(job.state === "running");
   $("job").dataset.state = job.state;
   if (job.id === state.resultJobId) $("result").textContent = text;
   renderServo(p);
+}
+
+function setBusy(busy) {
+  if (state.busy === busy) return;
+  state.busy = busy;
+  document.body.dataset.busy = String(busy);
+  applyRole();
 }
 
 // The live servo error (approach mode "servo", tracking): the job's progress carries the
@@ -320,11 +373,25 @@ function renderServo(p) {
   g.fillText(`${fmt(top, 1)} mm`, 2, 10);
 }
 
+// The quality row says what the overlay of the frame on screen says (the live view's
+// X-Locate-* headers: the same estimate that drew it); only without a live view does it fall
+// back to the last locate's quality, labelled as such.
 function renderQuality(cam, located) {
-  const q = (located && located.quality) || {};
-  $("quality-rms").textContent = Number.isFinite(q.rms_px) ? `${fmt(q.rms_px, 2)} px` : "–";
-  $("quality-ambiguity").textContent = q.ambiguous === undefined ? "–"
-    : q.ambiguous ? "AMBIGUOUS: two poses fit" : "unique";
+  const live = state.frameQuality;
+  const q = live ? live : (located && located.quality) || {};
+  const row = $("quality-rms");
+  row.dataset.source = live ? "live" : "last-locate";
+  if (live && !live.located) {
+    row.textContent = "not located"; // the reason in full is on the image, and on hover
+    row.title = live.error || "";
+    $("quality-ambiguity").textContent = "–";
+  } else {
+    row.title = "";
+    const rms = Number.isFinite(q.rms_px) ? `${fmt(q.rms_px, 2)} px` : "–";
+    row.textContent = live || rms === "–" ? rms : `${rms} (last locate)`;
+    $("quality-ambiguity").textContent = q.ambiguous === undefined || q.ambiguous === null ? "–"
+      : q.ambiguous ? "AMBIGUOUS: two poses fit" : "unique";
+  }
   // Age of the frame on screen when the camera view gave it, else the cell's newest frame.
   const age = Number.isFinite(state.frameAgeS) ? state.frameAgeS : cam.last_frame_age_s;
   $("quality-age").textContent = Number.isFinite(age) ? `${Math.round(age * 1000)} ms`
@@ -370,18 +437,32 @@ async function cameraLoop() {
         img.dataset.frames = String(state.frames);
         countFps();
         $("camera-note").textContent = "";
+        state.frameQuality = frameQuality(resp.headers);
+        renderQuality(state.statusCamera, state.lastLocate);
         if (resp.headers.has("X-Frame-Age-S") && Number.isFinite(age)) {
           state.frameAgeS = age;
           $("quality-age").textContent = `${Math.round(age * 1000)} ms`;
         }
       } catch (e) {
         state.frameAgeS = NaN;
+        state.frameQuality = null;
         $("camera-note").textContent = e.message;
         await sleep(500);
       }
     }
     await sleep(Math.max(0, FRAME_MIN_MS - (Date.now() - t0)));
   }
+}
+
+function frameQuality(headers) {
+  const located = headers.get("X-Located");
+  if (located === null) return null;
+  if (located !== "true") {
+    return { located: false, error: headers.get("X-Locate-Error") || "" };
+  }
+  const amb = headers.get("X-Locate-Ambiguous");
+  return { located: true, rms_px: Number(headers.get("X-Locate-Rms-Px")),
+           ambiguous: amb === null ? undefined : amb === "true" };
 }
 
 function countFps() {
@@ -492,6 +573,7 @@ function wireJogButtons() {
 // Commands
 
 async function command(label, fn) {
+  clearError();
   try {
     const result = await fn();
     if (result !== undefined) $("result").textContent = result;

@@ -1,9 +1,9 @@
 """``cell config check FILE``: validate a cell config without touching any hardware.
 
-What an integrator runs after every edit of a real cell's file: the strict schema and the
-commissioning checks (:mod:`cell.config_checks`), every problem listed with its key. Exit 0 when
-the file loads (with warnings for what only ``cell serve`` refuses, such as the sample API
-tokens on real hardware), 2 otherwise.
+What an integrator runs after every edit of a real cell's file: the strict schema, the
+commissioning checks and every rule a start refuses on (:mod:`cell.config_checks`: sample or
+weak API tokens on real hardware, device combinations the factory cannot build), every problem
+listed with its key. Exit 0 when ``cell serve`` would start with the file, 2 otherwise.
 """
 
 from __future__ import annotations
@@ -23,12 +23,21 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def run_check(args: argparse.Namespace) -> int:
+    import os
     import sys
 
-    from cell.config import SAMPLE_TOKENS, ConfigError, load_config
+    # An OAK's settings are validated by its adapter, whose depthai import warns on stdout when
+    # no USB is reachable; no device is touched here, and the warning would corrupt --json.
+    os.environ.setdefault("DEPTHAI_LEVEL", "error")
+
+    from cell.config import ConfigError, load_config
+    from cell.config_checks import startup_problems
 
     try:
         config = load_config(args.file)
+        problems = startup_problems(config)
+        if problems:
+            raise ConfigError(f"{args.file}: cell serve refuses this config", problems)
     except ConfigError as err:
         if args.json:
             print_json({"file": args.file, "ok": False, "error": {
@@ -43,11 +52,7 @@ def run_check(args: argparse.Namespace) -> int:
                                              if config.robot.kind == "ur"
                                              and config.sim.ur_controller else ""),
                "camera": config.camera.kind, "gripper": config.gripper.kind}
-    warnings = []
-    sample = sorted(t.token for t in config.api.tokens if t.token in SAMPLE_TOKENS)
-    if sample and config.has_real_device():
-        warnings.append(f"api.tokens: sample token(s) {', '.join(sample)}: `cell serve` refuses "
-                        "them with real hardware; configure your own secret tokens")
+    warnings: list[str] = []
     out = {"file": args.file, "ok": True, "real_hardware": config.has_real_device(),
            "devices": devices, "accepted": list(config.commissioning.accept),
            "warnings": warnings,

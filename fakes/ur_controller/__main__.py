@@ -1,4 +1,11 @@
-"""``python -m fakes.ur_controller --host 127.0.0.2``: serve one simulated controller."""
+"""``python -m fakes.ur_controller --host 127.0.0.2``: serve one simulated UR5e controller.
+
+It starts as a real controller boots: powered off, brakes on. ur_rtde's RTDEControlInterface
+(and every ur_rtde example that moves) then fails with "Failed to start control script", and
+the controller says why in an RTDE text message. Start it with --powered, or power it on
+as on a real cell: dashboard (port 29999) "power on", then "brake release" (~2 s). Reading
+clients (RTDEReceiveInterface, the dashboard, the secondary and real-time ports) work either
+way. See docs/simulator.md."""
 
 from __future__ import annotations
 
@@ -16,7 +23,8 @@ from fakes.ur_controller.server import URController
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m fakes.ur_controller", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m fakes.ur_controller", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--host", default="127.0.0.2",
                         help="loopback address to serve (the ports are fixed by ur_rtde)")
     parser.add_argument("--local-control", action="store_true",
@@ -48,6 +56,9 @@ def main(argv: list[str] | None = None) -> int:
         gc.freeze()
         print(f"UR controller simulator ready on {args.host} "
               "(dashboard 29999, script 30003, RTDE 30004)", flush=True)
+        if not args.powered and not args.control:  # --control: stdout is the JSON channel
+            print("powered off, brakes on: ur_rtde control fails until the dashboard gets "
+                  "'power on' and 'brake release' (or start with --powered)", flush=True)
         if args.control:
             threading.Thread(target=_control, args=(ctl, stop), daemon=True).start()
         stop.wait()

@@ -23,6 +23,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from fakes.ur_controller.registers import RegisterFile
+from fakes.ur_controller.rtde import LEVEL_ERROR
 from fakes.ur_sim import EngineError, EngineSnapshot, MotionEngine, RobotMode, SafetyMode
 from fakes.ur_sim.engine import CommandOutcome, CommandRejectedError, PathEntry
 
@@ -114,7 +115,7 @@ class MailboxInterpreter:
     """ur_rtde's control script, as a state machine stepped once per controller cycle."""
 
     def __init__(self, engine: MotionEngine, regs: RegisterFile,
-                 on_message: Callable[[str], None]) -> None:
+                 on_message: Callable[..., None]) -> None:
         self.engine = engine
         self.regs = regs
         self._message = on_message
@@ -144,8 +145,12 @@ class MailboxInterpreter:
         self.hand_guiding = False
         snap = self.engine.snapshot()
         if snap.robot_mode != RobotMode.RUNNING or snap.safety_mode != SafetyMode.NORMAL:
-            self._message("Program not started: the robot is not running (power on, release "
-                          "the brakes and clear safety stops first)")
+            # An error-level RTDE text message to every streaming client: the only place a
+            # client that sees "Failed to start control script" can learn why.
+            self._message(f"Program not started: the robot is {snap.robot_mode.name} in "
+                          f"safety mode {snap.safety_mode.name}, not RUNNING (power on, "
+                          "release the brakes and clear safety stops first: dashboard "
+                          "'power on', 'brake release')", LEVEL_ERROR)
             self.running = False
             return
         self._prog = prog

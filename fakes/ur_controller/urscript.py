@@ -203,6 +203,9 @@ def _num(v: Value, what: str) -> float:
     return v
 
 
+PROGRAM_SWITCH_TIMEOUT_S = 3.0  # a 3 rad/s^2 stop from 180 deg/s takes about 1 s
+
+
 class ScriptRunner:
     """Runs one compiled program on its own thread against the engine and the registers."""
 
@@ -244,6 +247,12 @@ class ScriptRunner:
 
     def _run(self) -> None:
         try:
+            if not self.program.secondary:
+                # A main program that replaces a running one starts once the old one has
+                # stopped the arm, as a real controller's program passes through STOPPING
+                # first: urx's set_tcp (a one-line program) sent during its own movej
+                # stops the move and then sets the TCP.
+                self.engine.wait_until_idle(PROGRAM_SWITCH_TIMEOUT_S)
             for call in self.program.calls:
                 if self._stop.is_set():
                     break
