@@ -122,7 +122,8 @@ def app_from_environment() -> FastAPI:
     try:
         config = with_ports(load_config(os.environ.get("CELL_CONFIG") or None),
                             _port_from_environment("CELL_OPCUA_PORT"),
-                            _port_from_environment("CELL_XMLRPC_PORT"))
+                            _port_from_environment("CELL_XMLRPC_PORT"),
+                            _port_from_environment("CELL_MODBUS_PORT"))
         cell = start_cell(config)
     except Exception as err:  # a clear line instead of a traceback from inside uvicorn
         code = getattr(err, "code", "startup_failed")
