@@ -122,6 +122,9 @@ ERROR_NUMBERS: dict[str, int] = {
     "outside_envelope": 14, "tilt_limit": 14, "move_too_far": 14, "speed_limit": 15,
     "accel_limit": 15, "gripper_unavailable": 16, "forbidden": 17, "not_supported": 18,
     "target_lost": 19, "pose_jump": 19, "recipe_store_unreadable": 20,
+    "recipe_store_write_failed": 20, "not_ready": 21, "recipe_prepared": 22,
+    "recipe_number_taken": 23, "invalid_recipe": 24, "unauthorized": 17,
+    "result_not_found": 25,
     "internal_error": 99,
 }
 ERROR_BY_KIND: dict[str, int] = {"invalid": 90, "conflict": 91, "unavailable": 92,

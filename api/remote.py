@@ -73,6 +73,16 @@ def require(cell: Cell, caller: RemoteCaller, permission: str, command: str,
         raise ForbiddenError("forbidden", f"role {caller.role!r} may not {permission}")
 
 
+def require_operator(cell: Cell, caller: RemoteCaller, command: str,
+                     params: dict[str, Any]) -> None:
+    """Changing recipes changes what later jobs do: operators only (as teaching)."""
+    if caller.role == "operator":
+        return
+    with cell.core.audit.command(caller.label, command, params):
+        raise ForbiddenError("forbidden", f"role {caller.role!r} may not change recipes; "
+                             "use an operator's account")
+
+
 @contextmanager
 def audited(cell: Cell, caller: RemoteCaller, command: str,
             params: dict[str, Any]) -> Iterator[AuditNote]:

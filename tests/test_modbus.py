@@ -22,7 +22,6 @@ from api.modbus import (
     ERROR_NUMBERS,
     Alarm,
     Command,
-    Hr,
     Ir,
     ModbusServer,
     State,
