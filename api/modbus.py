@@ -244,7 +244,8 @@ class ModbusServer:
     def port(self) -> int:
         if self._server is not None and self._server.transport is not None:
             with contextlib.suppress(Exception):
-                return int(self._server.transport.sockets[0].getsockname()[1])
+                sock = self._server.transport.get_extra_info("socket")
+                return int(sock.getsockname()[1])
         return self.config.port
 
     @property

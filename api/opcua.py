@@ -325,7 +325,7 @@ class OpcUaServer:
             idx, "JobEndedEventType", ua.ObjectIds.BaseEventType,
             [("JobId", ua.VariantType.String), ("JobState", ua.VariantType.String),
              ("ErrorCode", ua.VariantType.String)])
-        self._event_gen = await server.get_event_generator(event_type, obj)
+        self._event_gen = await server.get_event_generator(event_type, obj.nodeid)
         pose_arg = pose_type.nodeid
         code = [_arg("Code", S, '"ok" or the error code of the HTTP API'),
                 _arg("Message", S, "what happened, in words")]

@@ -18,6 +18,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+import builtins
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
@@ -161,7 +162,7 @@ class RecipeStore:
         with self._lock:
             return sorted((v[-1] for v in self._versions.values()), key=lambda r: r.number)
 
-    def versions(self, name: str) -> list[Recipe]:
+    def versions(self, name: str) -> builtins.list[Recipe]:
         self._usable()
         with self._lock:
             found = list(self._versions.get(name, []))
@@ -223,7 +224,7 @@ class RecipeStore:
     def _missing(ref: str | int) -> NotFoundError:
         return NotFoundError("recipe_not_found", f"no recipe {ref!r}; see GET /api/v1/recipes")
 
-    def _write(self, versions: dict[str, list[Recipe]]) -> None:
+    def _write(self, versions: dict[str, builtins.list[Recipe]]) -> None:
         """Replace the file atomically; on failure the file and the memory stay as they were."""
         if self.path is None:
             return

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+
 from api.opcua import OpcUaServer
 from cell.endpoints import opcua_cert_dir
 from cell.service import Cell
