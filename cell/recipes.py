@@ -12,13 +12,13 @@ atomically; an unreadable file refuses recipe jobs and is never overwritten.
 
 from __future__ import annotations
 
+import builtins
 import json
 import os
 import tempfile
 import threading
 import time
 from pathlib import Path
-import builtins
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator

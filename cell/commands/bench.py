@@ -24,7 +24,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--check", action="store_true",
                    help="exit with status 1 when a target is missed")
     p.set_defaults(func=_bench)
-    what = p.add_subparsers(dest="bench_command", required=False, metavar="{approach,service,modbus}")
+    what = p.add_subparsers(dest="bench_command", required=False,
+                            metavar="{approach,service,modbus}")
     a = what.add_parser(
         "approach", help="servo vs look-and-move approach, conveyor tracking, lost target",
         description="On the simulated cell through the UR adapter and ur_rtde (see "
