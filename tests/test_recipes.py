@@ -91,3 +91,36 @@ def test_http_recipes_and_an_approach_with_one(tmp_path: Path) -> None:
         d_mm, _ = pose_distance(settled_tcp(cell), goal)
         assert d_mm < 1.5, d_mm
         assert json.loads(json.dumps(job.params))["standoff_mm"] == 65.0
+
+
+def test_xmlrpc_recipe_pose_is_the_goal_for_the_recipes_standoff(tmp_path: Path) -> None:
+    import socket
+    import xmlrpc.client
+
+    from api import remote
+    from api.xmlrpc import XmlRpcServer
+    from estimator.transforms import T_from_ur_pose
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = int(s.getsockname()[1])
+    config = sim_config(tmp_path, urscript={"xmlrpc_port": port})
+    with running_cell(config) as cell:
+        remote.recipe_store(cell).save(parse_spec(spec(config, number=4, standoff_mm=80.0)),
+                                       "test")
+        server = XmlRpcServer(cell, config.urscript)
+        server.start()
+        try:
+            rpc = xmlrpc.client.ServerProxy(f"http://127.0.0.1:{port}/RPC2")
+            p = rpc.recipe_pose(4)
+            assert cell.sim is not None
+            goal = approach_tcp(cell.sim.true_T_base_target(),
+                                config.approach.T_target_tcp.T(), 80.0)
+            T = T_from_ur_pose([p[k] for k in ("x", "y", "z", "rx", "ry", "rz")])
+            assert pose_distance(T, goal)[0] < 1.0
+            with pytest.raises(xmlrpc.client.Fault) as err:
+                rpc.recipe_pose("nope")
+            assert err.value.faultString.startswith("recipe_not_found")
+            assert not cell.commanded()
+        finally:
+            server.close()
