@@ -32,6 +32,7 @@ def sim_config(tmp_path: Path, *, robot: str = "sim", host: str = "127.0.0.1",
     data["gripper"]["kind"] = gripper
     data["api"]["job_db"] = str(tmp_path / "jobs.db")
     data["api"]["calibration_dir"] = str(tmp_path / "calibration")
+    data["modbus"]["port"] = 0  # sim.toml's fixed 1502 would be fought over; tests pick one
     for name, values in tables.items():
         data[name].update(values)
     return parse_config(data)
