@@ -18,7 +18,7 @@ from api.auth import Caller, require
 from api.errors import ERROR_RESPONSES
 from api.remote import RemoteCaller
 from api.schemas import Job
-from cell.recipes import RecipeSpec
+from cell.recipes import EXAMPLE, Recipe, RecipeSpec
 from cell.service import Cell
 
 router = APIRouter(prefix="/api/v1", tags=["recipes"], responses=ERROR_RESPONSES)
@@ -32,11 +32,23 @@ class RecipeApproachRequest(BaseModel):
                                       description="default: the target's standoff")
 
 
+class RecipeList(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{"recipes": [EXAMPLE]}]})
+
+    recipes: list[Recipe] = Field(description="the newest version of every recipe, by number")
+
+
+class RecipeVersions(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{"versions": [EXAMPLE]}]})
+
+    versions: list[Recipe] = Field(description="every stored version, oldest first")
+
+
 def _remote(caller: Caller) -> RemoteCaller:
     return RemoteCaller("http", caller.name or caller.role, caller.role)
 
 
-@router.get("/recipes")
+@router.get("/recipes", response_model=RecipeList)
 def list_recipes(request: Request,
                  caller: Annotated[Caller, Depends(require("read"))]) -> dict[str, Any]:
     """The newest version of every recipe, by number."""
@@ -44,7 +56,7 @@ def list_recipes(request: Request,
     return {"recipes": [r.model_dump() for r in remote.recipe_store(cell).list()]}
 
 
-@router.get("/recipes/{name}")
+@router.get("/recipes/{name}", response_model=RecipeVersions)
 def recipe_versions(request: Request, name: str,
                     caller: Annotated[Caller, Depends(require("read"))]) -> dict[str, Any]:
     """Every stored version of one recipe, oldest first."""
@@ -52,7 +64,7 @@ def recipe_versions(request: Request, name: str,
     return {"versions": [r.model_dump() for r in remote.recipe_store(cell).versions(name)]}
 
 
-@router.put("/recipes")
+@router.put("/recipes", response_model=Recipe)
 def save_recipe(request: Request, body: RecipeSpec,
                 caller: Annotated[Caller, Depends(require("read"))]) -> dict[str, Any]:
     """Save a recipe as its next version (version 1 for a new name); operators only."""
@@ -65,7 +77,7 @@ def save_recipe(request: Request, body: RecipeSpec,
     return recipe.model_dump()
 
 
-@router.delete("/recipes/{name}")
+@router.delete("/recipes/{name}", response_model=Recipe)
 def delete_recipe(request: Request, name: str,
                   caller: Annotated[Caller, Depends(require("read"))]) -> dict[str, Any]:
     """Remove a recipe and its history (jobs keep their record of it); operators only."""

@@ -29,6 +29,12 @@ from estimator.target import Target, layout_problem
 STORE_NAME = "recipes.json"
 FORMAT_VERSION = 1
 MAX_RECIPE_NUMBER = 65535  # one Modbus register
+EXAMPLE: dict[str, Any] = {
+    "name": "plate-a", "number": 3, "description": "4-dot plate, dark dots",
+    "targets": [{"name": "main", "points_mm": [[0, 0, 0], [40, 0, 0], [0, 30, 0], [40, 30, 0]],
+                 "dot_diameter_mm": 6.0, "polarity": "dark", "taught": "",
+                 "standoff_mm": 50.0, "mode": "look_and_move", "speed_mm_s": 150.0}],
+    "version": 2, "saved_by": "operator(operator)", "saved_at": 1760000000.0}
 
 
 class RecipeStoreError(CellError):
@@ -85,6 +91,9 @@ class RecipeSpec(BaseModel):
 
 class Recipe(RecipeSpec):
     """One stored version of a recipe."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False,
+                              json_schema_extra={"examples": [EXAMPLE]})
 
     version: int = Field(ge=1)
     saved_by: str = ""
