@@ -28,6 +28,7 @@ from api.routes import router, sim_router
 from api.routes_arm import router as arm_router
 from api.routes_calibration import install as install_calibration
 from api.routes_ops import install as install_ops
+from api.routes_recipes import router as recipes_router
 from api.routes_servo import router as servo_router
 from cell.endpoints import with_ports
 from cell.runtime import freeze_startup_objects
@@ -80,6 +81,7 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False,
     app.include_router(router)
     app.include_router(arm_router)  # operator recovery: home, unlock, power
     app.include_router(servo_router)  # POST /track (issue 15)
+    app.include_router(recipes_router)  # recipes (products) and approaches with one
     install_calibration(app)  # hand-eye routine and taught poses (issue 7)
     alarms = install_ops(app)  # alarms, camera settings, image log (issue 16)
     alarms.start()
@@ -122,7 +124,8 @@ def app_from_environment() -> FastAPI:
     try:
         config = with_ports(load_config(os.environ.get("CELL_CONFIG") or None),
                             _port_from_environment("CELL_OPCUA_PORT"),
-                            _port_from_environment("CELL_XMLRPC_PORT"))
+                            _port_from_environment("CELL_XMLRPC_PORT"),
+                            _port_from_environment("CELL_MODBUS_PORT"))
         cell = start_cell(config)
     except Exception as err:  # a clear line instead of a traceback from inside uvicorn
         code = getattr(err, "code", "startup_failed")

@@ -1,4 +1,5 @@
-"""The service's other doors, next to HTTP: the OPC UA server and the URScript XML-RPC endpoint.
+"""The service's other doors, next to HTTP: the OPC UA server, the URScript XML-RPC endpoint
+and the Modbus TCP server.
 
 ``cell serve`` starts them with the app (``create_app(cell, interfaces=True)``) and stops them
 before the cell closes. One that cannot listen (its port is taken) is logged and left out; the
@@ -41,6 +42,11 @@ class Interfaces:
 
             self._start("xmlrpc", f"{config.urscript.host}:{config.urscript.xmlrpc_port}",
                         XmlRpcServer(self.cell, config.urscript))
+        if config.modbus.port:
+            from api.modbus import ModbusServer
+
+            self._start("modbus", f"{config.modbus.host}:{config.modbus.port}",
+                        ModbusServer(self.cell, config.modbus))
 
     def _start(self, name: str, where: str, server: _Server) -> None:
         try:

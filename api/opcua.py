@@ -3,11 +3,19 @@
 One object ``Cell`` under Objects holds the variables (``State``, ``RobotMode``,
 ``SafetyStatus``, ``TcpPose``/``TcpPoseUR``, ``LastLocatePose``/``LastLocatePoseUR``,
 ``LastLocateQuality``, ``JobId``, ``JobKind``, ``JobState``, ``JobPhase``, ``JobProgress``,
-``CameraConnected``, ``Alarms``) and the methods ``Locate()``, ``Approach(standoff_mm, mode)``,
+``CameraConnected``, ``Alarms``, ``JobResult``, ``JobErrorCode``) and the methods ``Locate()``,
+``Approach(standoff_mm, mode)``, ``ApproachRecipe(recipe, target, standoff_mm)``,
 ``Track(standoff_mm, duration_s)``, ``Stop()``, ``Home()``, ``Gripper(action, width_mm)``. Every
 method answers ``Code`` ("ok" or the HTTP API's error code) and ``Message`` first; a refusal is
 an answer, not an OPC UA fault, so a PLC reads one place. Poses are the structure ``Pose``
 (``position_mm``, ``rotvec_rad``) and, as ``...UR``, a UR pose (m, rotation vector).
+
+Jobs are consistent at a method's return: before the answer of a method that starts a job is
+sent, ``JobId``, ``JobKind`` and ``JobState`` (``running``) hold that job. A job's end is
+written in one service call with its result (``JobResult``, JSON carrying the ``job_id``) and
+``JobErrorCode``, and raised as a ``JobEndedEventType`` event (``JobId``, ``JobState``,
+``ErrorCode``) from the ``Cell`` object. The OPC UA Machine Vision subset (``VisionSystem``)
+is built by :mod:`api.opcua_machine_vision`.
 
 The server runs its own asyncio loop in its own thread, so the HTTP server's load does not
 delay a PLC's Stop; cell calls run in worker threads. The calling user reaches the method
@@ -127,6 +135,11 @@ class OpcUaServer:
         self._written: dict[str, ua.Variant] = {}  # the last value written to each node
         self._updated_s = 0.0  # time.monotonic() of the last variable update
         self._types: dict[str, Any] = {}
+        self._server: Server | None = None
+        self._job_created_at = 0.0  # of the job _last_job_id names
+        self._ended_sent: str = ""  # the last job whose JobEnded event was raised
+        self._event_gen: Any = None
+        self.machine_vision: Any = None
         self._calls = ThreadPoolExecutor(4, thread_name_prefix="opcua-call")
         self._stops = ThreadPoolExecutor(2, thread_name_prefix="opcua-stop")
 
@@ -173,7 +186,9 @@ class OpcUaServer:
         self._loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
         server = await self._build()
-        self._wake = wake = asyncio.Event()  # set by close() and by a new subscription
+        self._server = server
+        self._wake = wake = asyncio.Event()  # set by close(), a new subscription, a job event
+        threading.Thread(target=self._watch_jobs, name="opcua-jobs", daemon=True).start()
         server.subscribe_server_callback(CallbackType.PreRead, self._before_read)
         server.subscribe_server_callback(CallbackType.ItemSubscriptionCreated,
                                          self._subscribed)
@@ -193,6 +208,19 @@ class OpcUaServer:
                     await self._refresh()
         finally:
             await server.stop()
+
+    def _watch_jobs(self) -> None:
+        """Wakes the update at every job start and end, so an end (and its event) is shown
+        at once rather than at the next period."""
+        with self.cell.events.subscribe() as sub:
+            while self._stop is not None and not self._stop.is_set():
+                event = sub.get(timeout_s=0.5)
+                if event is None or event.get("type") != "job":
+                    continue
+                loop, wake = self._loop, self._wake
+                if loop is not None and wake is not None and not loop.is_closed():
+                    with contextlib.suppress(RuntimeError):
+                        loop.call_soon_threadsafe(wake.set)
 
     async def _refresh(self) -> None:
         self._updated_s = time.monotonic()
@@ -237,6 +265,10 @@ class OpcUaServer:
                 | CertificateValidatorOptions.PEER_CLIENT, store))
         idx = await server.register_namespace(cfg.namespace)
         await self._model(server, idx)
+        from api.opcua_machine_vision import MachineVision
+
+        self.machine_vision = MachineVision(self, server, idx)
+        await self.machine_vision.build()
         return server
 
     async def _key_pair(self) -> tuple[Path, Path]:
@@ -283,11 +315,17 @@ class OpcUaServer:
             ("JobId", "", S, None), ("JobKind", "", S, None), ("JobState", "", S, None),
             ("JobPhase", "", S, None), ("JobProgress", "{}", S, None),
             ("CameraConnected", False, B, None), ("Alarms", [], S, None),
+            ("JobResult", "{}", S, None), ("JobErrorCode", "", S, None),
         ]
         self._written = {}
         for name, value, vtype, datatype in variables:
             node = await obj.add_variable(idx, name, ua.Variant(value, vtype), datatype=datatype)
             self._nodes[name] = node
+        event_type = await server.create_custom_event_type(
+            idx, "JobEndedEventType", ua.ObjectIds.BaseEventType,
+            [("JobId", ua.VariantType.String), ("JobState", ua.VariantType.String),
+             ("ErrorCode", ua.VariantType.String)])
+        self._event_gen = await server.get_event_generator(event_type, obj.nodeid)
         pose_arg = pose_type.nodeid
         code = [_arg("Code", S, '"ok" or the error code of the HTTP API'),
                 _arg("Message", S, "what happened, in words")]
@@ -300,6 +338,11 @@ class OpcUaServer:
             ("Approach", self._approach, [
                 _arg("standoff_mm", D, "distance back from the taught tool pose"),
                 _arg("mode", S, '"look_and_move" (default when empty) or "servo"')], job),
+            ("ApproachRecipe", self._approach_recipe, [
+                _arg("recipe", S, "the recipe's name or number"),
+                _arg("target", S, "the recipe's target (empty: its first)"),
+                _arg("standoff_mm", D, "distance back from the taught pose (< 0: the "
+                     "recipe's)")], job),
             ("Track", self._track, [
                 _arg("standoff_mm", D, "distance kept from the target"),
                 _arg("duration_s", D, "how long to follow it")], job),
@@ -345,8 +388,12 @@ class OpcUaServer:
         st = self.cell.status()
         health = self.cell.health()
         job = st.get("job")
+        if job is not None and job["id"] != self._last_job_id \
+                and float(job.get("created_at") or 0.0) < self._job_created_at:
+            job = None  # an older snapshot than the job a method has just started
         if job is not None:
             self._last_job_id, self._ended_job = job["id"], None
+            self._job_created_at = float(job.get("created_at") or 0.0)
         elif self._last_job_id:
             job = self._ended_job
             if job is None or job["id"] != self._last_job_id:
@@ -384,6 +431,7 @@ class OpcUaServer:
                                    str((job.get("progress") or {}).get("phase", "")), S),
             "JobProgress": ua.Variant("{}" if job is None else
                                       json.dumps(job.get("progress") or {}, default=str), S),
+            **self._job_end_values(job),
         }
         if "T_base_tcp" in robot:
             values["TcpPose"] = ua.Variant(self._pose_of(robot["T_base_tcp"]),
@@ -397,11 +445,82 @@ class OpcUaServer:
         values["LastLocateQuality"] = ua.Variant(
             self._quality(None if last is None else last["quality"]),
             ua.VariantType.ExtensionObject)
-        for name, value in values.items():
-            if self._written.get(name) == value:
-                continue  # unchanged: no write, no data-change notification (OPC UA's way)
-            await self._nodes[name].write_value(value)
-            self._written[name] = value
+        await self._write(values)
+        if job is not None and job.get("ended_at") and job["id"] != self._ended_sent:
+            await self._job_ended(job)
+        if self.machine_vision is not None:
+            await self.machine_vision.update(st, job)
+
+    @staticmethod
+    def _job_end_values(job: dict[str, Any] | None) -> dict[str, ua.Variant]:
+        """The job's result and error code: empty while it runs, set with its end state."""
+        S = ua.VariantType.String
+        if job is None or not job.get("ended_at"):
+            return {"JobResult": ua.Variant("{}", S), "JobErrorCode": ua.Variant("", S)}
+        error = job.get("error") or {}
+        result = {"job_id": job["id"], "kind": job["kind"], "state": job["state"],
+                  "result": job.get("result"), "error": job.get("error"),
+                  "recipe": (job.get("params") or {}).get("recipe")}
+        return {"JobResult": ua.Variant(json.dumps(result, default=str), S),
+                "JobErrorCode": ua.Variant(str(error.get("code") or ""), S)}
+
+    async def _write(self, values: dict[str, ua.Variant]) -> None:
+        """Every changed value in ONE write service call, so a client's Read (served on this
+        loop) sees all of them or none: a job's end never without its result. Unchanged values
+        are not written (no data-change notification, OPC UA's way)."""
+        changed = {n: v for n, v in values.items() if self._written.get(n) != v}
+        if not changed:
+            return
+        results = await self._write_nodes({self._nodes[n]: v for n, v in changed.items()})
+        for (name, value), good in zip(changed.items(), results, strict=True):
+            if good:
+                self._written[name] = value
+
+    async def _write_nodes(self, values: dict[Any, ua.Variant]) -> list[bool]:
+        """One Write service call for all of ``values`` (node -> value); which were written."""
+        params = ua.WriteParameters()
+        for node, value in values.items():
+            wv = ua.WriteValue()
+            wv.NodeId = node.nodeid
+            wv.AttributeId = ua.AttributeIds.Value
+            wv.Value = ua.DataValue(value)
+            params.NodesToWrite.append(wv)
+        assert self._server is not None
+        results = await self._server.iserver.isession.write(params)
+        for node, status in zip(values, results, strict=True):
+            if not status.is_good():
+                log.warning("OPC UA write of %s failed: %s", node.nodeid, status)
+        return [status.is_good() for status in results]
+
+    async def _job_ended(self, job: dict[str, Any]) -> None:
+        self._ended_sent = job["id"]
+        if self._event_gen is None:
+            return
+        error = job.get("error") or {}
+        gen = self._event_gen
+        gen.event.JobId = job["id"]
+        gen.event.JobState = job["state"]
+        gen.event.ErrorCode = str(error.get("code") or "")
+        gen.event.Severity = 100 if job["state"] == "succeeded" else 500
+        await gen.trigger(message=f"{job['kind']} job {job['id']} {job['state']}")
+
+    async def show_started(self, job_id: str) -> None:
+        """Before a method's answer leaves: the job it started in JobId/JobKind/JobState."""
+        if not job_id:
+            return
+        j = self.cell.jobs.get(job_id)
+        if j is None:
+            return
+        job = j.as_dict()
+        self._last_job_id, self._job_created_at = job["id"], float(job["created_at"])
+        self._ended_job = job if job.get("ended_at") else None
+        S = ua.VariantType.String
+        await self._write({
+            "JobId": ua.Variant(job["id"], S), "JobKind": ua.Variant(job["kind"], S),
+            "JobState": ua.Variant(job["state"], S),
+            "JobPhase": ua.Variant(str((job.get("progress") or {}).get("phase", "")), S),
+            "JobProgress": ua.Variant(json.dumps(job.get("progress") or {}, default=str), S),
+            **self._job_end_values(job)})
 
     # -- methods --------------------------------------------------------------------------------
     def _caller(self) -> RemoteCaller | None:
@@ -440,10 +559,16 @@ class OpcUaServer:
         return (vals + [None] * n)[:n]
 
     def _job_answer(self, job_id: str, state: str) -> list[ua.Variant]:
-        if job_id:
-            self._last_job_id = job_id
         return self._ok(f"job {job_id} {state}" if job_id else state,
                         ua.Variant(job_id, ua.VariantType.String))
+
+    async def _job_call(self, work: Callable[[RemoteCaller], list[ua.Variant]]
+                        ) -> list[ua.Variant]:
+        """A method that starts a job: its answer leaves once the variables show the job."""
+        out = await self._answer(work, [ua.Variant("", ua.VariantType.String)])
+        if out[0].Value == "ok":
+            await self.show_started(str(out[2].Value))
+        return out
 
     async def _locate(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
         D = ua.VariantType.Double
@@ -468,7 +593,18 @@ class OpcUaServer:
             job = remote.approach(self.cell, caller, standoff_mm, mode or "")
             return self._job_answer(job.id, job.state)
 
-        return await self._answer(work, [ua.Variant("", ua.VariantType.String)])
+        return await self._job_call(work)
+
+    async def _approach_recipe(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
+        recipe, target, standoff_mm = self._values(args, 3)
+
+        def work(caller: RemoteCaller) -> list[ua.Variant]:
+            standoff = None if isinstance(standoff_mm, float) and standoff_mm < 0 \
+                else standoff_mm
+            job = remote.approach_recipe(self.cell, caller, recipe, str(target or ""), standoff)
+            return self._job_answer(job.id, job.state)
+
+        return await self._job_call(work)
 
     async def _track(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
         standoff_mm, duration_s = self._values(args, 2)
@@ -477,7 +613,7 @@ class OpcUaServer:
             job = remote.track(self.cell, caller, standoff_mm, duration_s)
             return self._job_answer(job.id, job.state)
 
-        return await self._answer(work, [ua.Variant("", ua.VariantType.String)])
+        return await self._job_call(work)
 
     async def _stop_call(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
         S = ua.VariantType.String
@@ -501,7 +637,7 @@ class OpcUaServer:
             job = remote.home(self.cell, caller)
             return self._job_answer(job.id, job.state)
 
-        return await self._answer(work, [ua.Variant("", ua.VariantType.String)])
+        return await self._job_call(work)
 
     async def _gripper(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
         action, width_mm = self._values(args, 2)

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import inspect
 import math
+import threading
+import weakref
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -27,6 +29,7 @@ from cell.audit import AuditNote
 from cell.frames import approach_tcp
 from cell.jobs import Job
 from cell.locate import Located
+from cell.recipes import Recipe, RecipeStore, RecipeTarget
 from cell.safety import CellError, LimitError, NotFoundError
 from cell.service import Cell
 from cell.teach import TaughtStore
@@ -68,6 +71,16 @@ def require(cell: Cell, caller: RemoteCaller, permission: str, command: str,
         return
     with cell.core.audit.command(caller.label, command, params):
         raise ForbiddenError("forbidden", f"role {caller.role!r} may not {permission}")
+
+
+def require_operator(cell: Cell, caller: RemoteCaller, command: str,
+                     params: dict[str, Any]) -> None:
+    """Changing recipes changes what later jobs do: operators only (as teaching)."""
+    if caller.role == "operator":
+        return
+    with cell.core.audit.command(caller.label, command, params):
+        raise ForbiddenError("forbidden", f"role {caller.role!r} may not change recipes; "
+                             "use an operator's account")
 
 
 @contextmanager
@@ -133,6 +146,57 @@ def approach(cell: Cell, caller: RemoteCaller, standoff_mm: Any, mode: str) -> J
     if takes_mode:
         return start(caller.label, standoff_mm=standoff, mode=mode)
     return start(caller.label, standoff_mm=standoff)
+
+
+# -- recipes ----------------------------------------------------------------------------------
+_STORES: weakref.WeakKeyDictionary[Cell, RecipeStore] = weakref.WeakKeyDictionary()
+_STORES_LOCK = threading.Lock()
+
+
+def recipe_store(cell: Cell) -> RecipeStore:
+    """The one recipe store of a cell (beside its job database), shared by every interface."""
+    with _STORES_LOCK:
+        store = _STORES.get(cell)
+        if store is None:
+            store = _STORES[cell] = RecipeStore.beside_job_db(cell.config.api.job_db)
+        return store
+
+
+def recipe_ref(value: Any) -> str | int:
+    """A recipe named by its name or its number (a digit string is a number)."""
+    if isinstance(value, bool) or not isinstance(value, str | int) or value in ("", 0):
+        raise LimitError("invalid_request", f"recipe must be a name or a number, got {value!r}")
+    if isinstance(value, str) and value.isdigit():
+        return int(value)
+    return value
+
+
+def prepare_recipe(cell: Cell, ref: str | int, target: str = "",
+                   version: int | None = None) -> tuple[Recipe, RecipeTarget]:
+    """The recipe's target, its dot layout now the one the locator looks for."""
+    recipe = recipe_store(cell).get(ref, version)
+    chosen = recipe.target(target)
+    cell.core.locator.use_target(chosen.model())
+    return recipe, chosen
+
+
+def approach_recipe(cell: Cell, caller: RemoteCaller, ref: Any, target: str = "",
+                    standoff_mm: Any = None) -> Job:
+    """An approach job with a recipe's target: its layout, taught pose, standoff (unless one
+    is given), mode and speed; the job records the recipe, its version and the target."""
+    params = {"recipe": ref, "target": target, "standoff_mm": standoff_mm}
+    require(cell, caller, "approach", "approach", params)
+    try:
+        recipe, chosen = prepare_recipe(cell, recipe_ref(ref), target)
+        standoff = chosen.standoff_mm if standoff_mm is None \
+            else finite("standoff_mm", standoff_mm, minimum=0.0)
+        T_target_tcp = taught_T_target_tcp(cell, chosen.taught) if chosen.taught else None
+    except CellError:
+        with audited(cell, caller, "approach", params):
+            raise
+    return cell.approach(caller.label, standoff_mm=standoff, speed_mm_s=chosen.speed_mm_s,
+                         T_target_tcp=T_target_tcp, mode=chosen.mode,
+                         recipe=recipe.record(chosen))
 
 
 def track(cell: Cell, caller: RemoteCaller, standoff_mm: Any, duration_s: Any) -> Job:

@@ -7,6 +7,8 @@ A PolyScope program asks the cell with ``rpc = rpc_factory("xmlrpc", "http://HOS
   rad, which URScript reads as ``p[...]``);
 - ``approach_pose(standoff_mm)`` and ``taught_pose(name, standoff_mm=0)``: the TCP goal for the
   program's own ``movel`` (robot-program-driven mode: the cell locates but never moves the arm);
+- ``recipe_pose(recipe, standoff_mm=-1)``: the same for a recipe's first target (its name or
+  number; its dot layout, taught pose and, for a negative standoff, its standoff);
 - ``status()``: the cell's state (``idle``, ``approach``, ``protective_stop``, ...);
 - ``try_locate()``, ``try_approach_pose(standoff_mm)``, ``try_taught_pose(name, standoff_mm=0)``:
   the same as a list ``[status, x, y, z, rx, ry, rz]`` (status 0, or the fault code the plain
@@ -71,6 +73,20 @@ class _Methods:
                                   taught=name)
         return ur_struct(goal)
 
+    def recipe_pose(self, caller: RemoteCaller, recipe: str | int,
+                    standoff_mm: float = -1.0) -> dict[str, float]:
+        return ur_struct(self._recipe_goal(caller, recipe, standoff_mm))
+
+    def _recipe_goal(self, caller: RemoteCaller, recipe: str | int,
+                     standoff_mm: float) -> NDArray[np.float64]:
+        remote.require(self.cell, caller, "locate", "recipe_pose", {"recipe": recipe})
+        _, target = remote.prepare_recipe(self.cell, remote.recipe_ref(recipe))
+        standoff = target.standoff_mm if isinstance(standoff_mm, int | float) \
+            and not isinstance(standoff_mm, bool) and standoff_mm < 0 else standoff_mm
+        goal, _ = remote.tcp_goal(self.cell, caller, "recipe_pose", standoff_mm=standoff,
+                                  taught=target.taught or None)
+        return goal
+
     def try_locate(self, caller: RemoteCaller) -> list[float]:
         return self._tried(lambda: remote.locate(self.cell, caller).T_base_target)
 
@@ -102,7 +118,8 @@ class _Methods:
         return {"locate": self.locate, "approach_pose": self.approach_pose,
                 "taught_pose": self.taught_pose, "try_locate": self.try_locate,
                 "try_approach_pose": self.try_approach_pose,
-                "try_taught_pose": self.try_taught_pose, "status": self.status}
+                "try_taught_pose": self.try_taught_pose, "recipe_pose": self.recipe_pose,
+                "status": self.status}
 
 
 class _Handler(SimpleXMLRPCRequestHandler):

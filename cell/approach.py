@@ -57,9 +57,10 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
                    speed_mm_s: float | None = None, T_target_tcp: Matrix4 | None = None,
                    use_last_locate: bool = False, wait: bool = False,
                    wait_timeout_s: float = 120.0,
-                   mode: Literal["servo", "look_and_move"] | None = None) -> Job:
+                   mode: Literal["servo", "look_and_move"] | None = None,
+                   recipe: dict[str, Any] | None = None) -> Job:
     """Start an approach job (``mode`` default: ``[approach] mode``); with ``wait`` return
-    when it has ended."""
+    when it has ended. ``recipe``: the recipe record the job keeps (cell.recipes)."""
     ac = core.config.approach
     how = ac.mode if mode is None else mode
     if how not in ("servo", "look_and_move"):
@@ -74,6 +75,8 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
     params = {"standoff_mm": plan.standoff_mm, "speed_mm_s": plan.speed_mm_s,
               "T_target_tcp": pose_dict(plan.T_target_tcp), "use_last_locate": use_last_locate,
               "mode": how}
+    if recipe is not None:
+        params["recipe"] = recipe
     first: list[Located] = []
 
     def check(motion: Motion) -> None:

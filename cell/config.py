@@ -449,6 +449,32 @@ class UrscriptConfig(_Strict):
     require_token: bool = True
 
 
+class ModbusConfig(_Strict):
+    """The Modbus TCP server for PLCs without OPC UA (off while ``port`` is 0); unit id 1.
+
+    ``clients``: the addresses (or networks, ``192.168.1.0/24``) that may write commands;
+    empty: any. Every other client may still write the stop command. The commands act with
+    ``role`` (one of the API's roles). The register map is in docs/plc.md.
+    """
+
+    port: int = Field(default=0, ge=0, le=65535)
+    host: str = Field(default="127.0.0.1", min_length=1)
+    clients: list[str] = Field(default_factory=list)
+    role: str = "plc"
+
+    @field_validator("clients")
+    @classmethod
+    def _networks(cls, v: list[str]) -> list[str]:
+        import ipaddress
+
+        for c in v:
+            try:
+                ipaddress.ip_network(c, strict=False)
+            except ValueError as err:
+                raise ValueError(f"modbus client {c!r} is not an address or network") from err
+        return v
+
+
 class CommissioningConfig(_Strict):
     """Keys whose unusual value is intended: the commissioning checks let them pass."""
 
@@ -475,6 +501,7 @@ class CellConfig(BaseModel):
     sim: SimConfig = SimConfig()
     opcua: OpcUaConfig = OpcUaConfig()
     urscript: UrscriptConfig = UrscriptConfig()
+    modbus: ModbusConfig = ModbusConfig()
     commissioning: CommissioningConfig = CommissioningConfig()
 
     def has_real_device(self) -> bool:

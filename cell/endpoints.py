@@ -14,9 +14,10 @@ from cell.config import CellConfig
 
 
 def with_ports(config: CellConfig, opcua_port: int | None,
-               xmlrpc_port: int | None) -> CellConfig:
-    """The config with the OPC UA endpoint's port and the XML-RPC port replaced (``cell serve
-    --opcua-port N --xmlrpc-port N``); 0 turns that interface off."""
+               xmlrpc_port: int | None, modbus_port: int | None = None) -> CellConfig:
+    """The config with the OPC UA endpoint's port, the XML-RPC port and the Modbus port
+    replaced (``cell serve --opcua-port N --xmlrpc-port N --modbus-port N``); 0 turns that
+    interface off."""
     update: dict[str, Any] = {}
     if opcua_port is not None:
         url = urlparse(config.opcua.endpoint)
@@ -25,6 +26,8 @@ def with_ports(config: CellConfig, opcua_port: int | None,
             "endpoint": endpoint, "enabled": config.opcua.enabled and opcua_port != 0})
     if xmlrpc_port is not None:
         update["urscript"] = config.urscript.model_copy(update={"xmlrpc_port": xmlrpc_port})
+    if modbus_port is not None:
+        update["modbus"] = config.modbus.model_copy(update={"port": modbus_port})
     return config.model_copy(update=update)
 
 
@@ -45,4 +48,9 @@ def endpoints(config: CellConfig) -> list[str]:
     if u.xmlrpc_port:
         path = "/<token>/RPC2" if u.require_token else "/RPC2"
         lines.append(f"URScript XML-RPC on http://{u.host}:{u.xmlrpc_port}{path}")
+    m = config.modbus
+    if m.port:
+        who = ", ".join(m.clients) if m.clients else "any client"
+        lines.append(f"Modbus TCP on {m.host}:{m.port} (unit 1; writes from {who}; STOP from "
+                     "any)")
     return lines

@@ -94,6 +94,21 @@ class Locator:
         self.frames = frames
         self.last = None
 
+    def use_target(self, target: Target) -> bool:
+        """Look for another dot layout from now on (a recipe's target); the last locate was
+        of the old one, so it is dropped. False when it is the layout already in use."""
+        same = (target.polarity == self.target.polarity
+                and target.dot_diameter_mm == self.target.dot_diameter_mm
+                and np.array_equal(target.points_mm, self.target.points_mm))
+        if same:
+            return False
+        with self._estimator_lock, self._preview_lock:
+            self.target = target
+            self._estimator = Estimator(self.camera_model, target)
+            self._preview = Estimator(self.camera_model, target)
+        self.last = None
+        return True
+
     def latest_frame(self) -> Frame:
         try:
             frame = self.camera.latest_frame(timeout_s=1.0)

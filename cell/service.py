@@ -176,12 +176,14 @@ class Cell:
                  speed_mm_s: float | None = None, T_target_tcp: Matrix4 | None = None,
                  use_last_locate: bool = False, wait: bool = False,
                  wait_timeout_s: float = 120.0,
-                 mode: Literal["servo", "look_and_move"] | None = None) -> Job:
-        """Approach job; ``mode`` None: ``[approach] mode`` (see cell.approach)."""
+                 mode: Literal["servo", "look_and_move"] | None = None,
+                 recipe: dict[str, Any] | None = None) -> Job:
+        """Approach job; ``mode`` None: ``[approach] mode`` (see cell.approach); ``recipe``:
+        the recipe record the job keeps."""
         return approach_mod.start_approach(
             self.core, caller, standoff_mm=standoff_mm, speed_mm_s=speed_mm_s,
             T_target_tcp=T_target_tcp, use_last_locate=use_last_locate, wait=wait,
-            wait_timeout_s=wait_timeout_s, mode=mode)
+            wait_timeout_s=wait_timeout_s, mode=mode, recipe=recipe)
 
     def track(self, caller: str, *, standoff_mm: float, T_target_tcp: Matrix4 | None = None,
               duration_s: float, wait: bool = False, wait_timeout_s: float = 120.0) -> Job:

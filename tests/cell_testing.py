@@ -32,6 +32,7 @@ def sim_config(tmp_path: Path, *, robot: str = "sim", host: str = "127.0.0.1",
     data["gripper"]["kind"] = gripper
     data["api"]["job_db"] = str(tmp_path / "jobs.db")
     data["api"]["calibration_dir"] = str(tmp_path / "calibration")
+    data["modbus"]["port"] = 0  # sim.toml's fixed 1502 would be fought over; tests pick one
     for name, values in tables.items():
         data[name].update(values)
     return parse_config(data)
@@ -71,11 +72,15 @@ def settled_tcp(cell: Cell, timeout_s: float = 5.0) -> NDArray[np.float64]:
 
 
 def without_interfaces(text: str) -> str:
-    """sim.toml's text with its OPC UA server and XML-RPC endpoint off: their ports are the
-    fixed 4840 and 8001, which parallel test runs (and a running ``make run``) would fight over.
-    Tests of those interfaces give ``cell serve --opcua-port N --xmlrpc-port N`` free ones."""
+    """sim.toml's text with its OPC UA server, XML-RPC endpoint and Modbus server off: their
+    ports are the fixed 4840, 8001 and 1502, which parallel test runs (and a running ``make
+    run``) would fight over. Tests of those interfaces give ``cell serve --opcua-port N
+    --xmlrpc-port N --modbus-port N`` free ones."""
     text, n_opcua = re.subn(r"(\[opcua\][^\[]*?)^enabled = true$", r"\1enabled = false", text,
                             flags=re.M | re.S)
     text, n_rpc = re.subn(r"^xmlrpc_port = \d+$", "xmlrpc_port = 0", text, flags=re.M)
-    assert n_opcua == 1 and n_rpc == 1, "sim.toml no longer has [opcua] enabled / xmlrpc_port"
+    text, n_modbus = re.subn(r"(\[modbus\][^\[]*?)^port = \d+$", r"\1port = 0", text,
+                             flags=re.M | re.S)
+    assert n_opcua == 1 and n_rpc == 1 and n_modbus == 1, \
+        "sim.toml no longer has [opcua] enabled / xmlrpc_port / [modbus] port"
     return text

@@ -73,6 +73,8 @@ def test_ports_move_and_zero_turns_an_interface_off() -> None:
     moved = with_ports(sim, 48400, 18001)
     assert moved.opcua.endpoint == "opc.tcp://127.0.0.1:48400" and moved.opcua.enabled
     assert moved.urscript.xmlrpc_port == 18001
-    off = with_ports(sim, 0, 0)
-    assert not off.opcua.enabled and off.urscript.xmlrpc_port == 0 and endpoints(off) == []
+    assert with_ports(sim, None, None, 15020).modbus.port == 15020
+    off = with_ports(sim, 0, 0, 0)
+    assert not off.opcua.enabled and off.urscript.xmlrpc_port == 0 and off.modbus.port == 0
+    assert endpoints(off) == []
     assert with_ports(sim, None, None) == sim

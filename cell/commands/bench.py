@@ -25,7 +25,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="exit with status 1 when a target is missed")
     p.set_defaults(func=_bench)
     what = p.add_subparsers(dest="bench_command", required=False,
-                            metavar="{approach,service,freeze}")
+                            metavar="{approach,service,freeze,modbus}")
     a = what.add_parser(
         "approach", help="servo vs look-and-move approach, conveyor tracking, lost target",
         description="On the simulated cell through the UR adapter and ur_rtde (see "
@@ -68,6 +68,14 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     frz.add_argument("--check", action="store_true",
                      help="exit with status 1 when a target is missed")
     frz.set_defaults(func=_bench_freeze)
+    mb = what.add_parser(
+        "modbus", help="STOP written over Modbus TCP to the simulated arm's receipt",
+        description="A pymodbus client starts approaches over the handshake and stops each "
+                    "mid-motion (see cell/bench_modbus.py).")
+    mb.add_argument("--stops", type=int, default=100, help="stops (default 100)")
+    mb.add_argument("--check", action="store_true",
+                    help="exit with status 1 when the 20 ms p99 target is missed")
+    mb.set_defaults(func=_bench_modbus)
 
 
 def _bench_approach(args: argparse.Namespace) -> int:
@@ -148,3 +156,13 @@ def _bench_service(args: argparse.Namespace) -> int:
     else:
         print(format_report(report))
     return EXIT_OK
+
+
+def _bench_modbus(args: argparse.Namespace) -> int:
+    import json
+
+    from cell.bench_modbus import run
+
+    report = run(args.stops)
+    print(json.dumps(report, indent=2))
+    return 1 if args.check and not report["met"] else 0

@@ -1,6 +1,7 @@
 """``cell serve [--config FILE] [--host H] [--port N] [--ssl-certfile F --ssl-keyfile F]
-[--opcua-port N] [--xmlrpc-port N]``: the cell service: its HTTP API (HTTPS when given a
-certificate and key), and the OPC UA server and URScript XML-RPC endpoint it configures.
+[--opcua-port N] [--xmlrpc-port N] [--modbus-port N]``: the cell service: its HTTP API (HTTPS
+when given a certificate and key), and the OPC UA server, URScript XML-RPC endpoint and Modbus
+TCP server it configures.
 
 Without ``--config`` it serves the built-in simulated cell (simulated UR controller driven
 through ur_rtde, simulated camera, fake gripper on a pty). uvicorn imports the app factory by
@@ -36,6 +37,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="serve the [opcua] endpoint on this port instead (0: off)")
     p.add_argument("--xmlrpc-port", type=int, default=None, metavar="N",
                    help="serve the URScript XML-RPC endpoint on this port instead (0: off)")
+    p.add_argument("--modbus-port", type=int, default=None, metavar="N",
+                   help="serve Modbus TCP on this port instead of [modbus] port (0: off)")
     p.set_defaults(func=_serve)
 
 
@@ -49,11 +52,13 @@ def _serve(args: argparse.Namespace) -> int:
     for path in (args.ssl_certfile, args.ssl_keyfile):
         if path and not os.path.isfile(path):
             return fail("invalid_arguments", f"no such file: {path}", False)
-    for flag, port in (("--opcua-port", args.opcua_port), ("--xmlrpc-port", args.xmlrpc_port)):
+    for flag, port in (("--opcua-port", args.opcua_port), ("--xmlrpc-port", args.xmlrpc_port),
+                       ("--modbus-port", args.modbus_port)):
         if port is not None and not 0 <= port <= 65535:
             return fail("invalid_argument", f"{flag} must be a port 0..65535, got {port}", False)
     try:
-        config = with_ports(load_config(args.config), args.opcua_port, args.xmlrpc_port)
+        config = with_ports(load_config(args.config), args.opcua_port, args.xmlrpc_port,
+                            args.modbus_port)
         check_startable(config)  # before "serving", before any device is touched
     except ConfigError as err:
         return fail(err.code, str(err), False)
@@ -62,7 +67,8 @@ def _serve(args: argparse.Namespace) -> int:
     else:
         os.environ.pop("CELL_CONFIG", None)
     for name, port in (("CELL_OPCUA_PORT", args.opcua_port),
-                       ("CELL_XMLRPC_PORT", args.xmlrpc_port)):
+                       ("CELL_XMLRPC_PORT", args.xmlrpc_port),
+                       ("CELL_MODBUS_PORT", args.modbus_port)):
         if port is None:
             os.environ.pop(name, None)
         else:
