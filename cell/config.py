@@ -165,7 +165,8 @@ class HandEyeConfig(_Strict):
     T_base_camera: PoseConfig | None = None
 
     def stated(self, key: str) -> bool:
-        """Whether the file gave ``key`` (the default eye-in-hand mount is not a statement)."""
+        """Whether the file gave ``key``; a fixed camera refuses a (non-identity)
+        ``T_flange_camera``, since only the mount the camera has may be stated."""
         return key in self.model_fields_set
 
 
@@ -503,7 +504,7 @@ class CellConfig(BaseModel):
             if he.T_base_camera is None:
                 raise ValueError("hand_eye.T_base_camera is required with camera.mount = "
                                  "\"fixed\" (the fixed camera's pose in the robot base frame)")
-            if he.stated("T_flange_camera"):
+            if he.stated("T_flange_camera") and he.T_flange_camera != PoseConfig():
                 raise ValueError("hand_eye.T_flange_camera is for a camera on the flange; "
                                  "with camera.mount = \"fixed\" give T_base_camera only")
             if self.sim.T_flange_camera is not None:
