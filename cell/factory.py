@@ -32,8 +32,8 @@ from drivers.camera import Camera, CameraSettings
 from drivers.gripper import Gripper
 from drivers.robotiq import RobotiqGripper
 from estimator.transforms import T_from_ur_pose, invert_T
-from fakes.gripper import FakeGripper, LineFault
 from fakes.fixed_camera import FixedSimCamera
+from fakes.gripper import FakeGripper, LineFault
 from fakes.sim_arm import SimArm
 from fakes.sim_camera import SimCamera
 from fakes.ur_controller.process import ControllerProcess
