@@ -4,13 +4,16 @@ OpenCV's own solver), and the simulated fixed-camera cell locating and approachi
 from __future__ import annotations
 
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from fastapi.testclient import TestClient
 from scipy.spatial.transform import Rotation
 
+from api.app import create_app
 from cell.approach import start_approach
 from cell.calibration.solve import solve_observations
 from cell.config import ConfigError, load_config, parse_config
@@ -19,6 +22,7 @@ from cell.runtime import start_cell
 from estimator import CameraModel
 from estimator.calib.eye_to_hand import eye_to_hand_poses
 from estimator.transforms import invert_T, make_T, pose_distance
+from tests.cell_testing import running_cell
 
 FIXED = Path(__file__).parent.parent / "cell" / "configs" / "sim-fixed.toml"
 
@@ -126,3 +130,31 @@ def test_fixed_cell_locates_and_approaches_without_an_observation_pose() -> None
                 assert d_mm < 0.1, d_mm
         finally:
             cell.close()
+
+
+# The API tests that need no eye-in-hand view, run here against the fixed-camera cell: pytest
+# collects them in this module, where ``client`` is the sim-fixed.toml cell. (The random-placement
+# locate test is left out: it bounds the frame's age at 1 s, and two 12 MP frames rendered and
+# estimated on a loaded 2-core host take 1.2 s; accuracy is checked above.)
+from tests.test_api_cell import (  # noqa: E402
+    test_busy_stop_during_approach_and_protective_stop as test_fixed_busy_stop_and_protective_stop,
+)
+from tests.test_api_cell import (  # noqa: E402
+    test_camera_lost_refuses_approach_but_jogging_works as test_fixed_camera_lost,
+)
+from tests.test_api_cell import (  # noqa: E402
+    test_continuous_jog_with_dead_man as test_fixed_continuous_jog_with_dead_man,
+)
+from tests.test_api_cell import test_refusals_move_nothing as test_fixed_refusals  # noqa: E402
+
+__all__ = ["test_fixed_busy_stop_and_protective_stop", "test_fixed_camera_lost",
+           "test_fixed_continuous_jog_with_dead_man", "test_fixed_refusals"]
+
+
+@pytest.fixture
+def client(tmp_path: Path) -> Iterator[TestClient]:
+    data = fixed_data(tmp_path)
+    data["limits"]["max_pose_age_s"] = 1.0
+    data["approach"].update(speed_mm_s=250.0, accel_mm_s2=1200.0)
+    with running_cell(parse_config(data)) as cell, TestClient(create_app(cell)) as c:
+        yield c
