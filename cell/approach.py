@@ -23,7 +23,7 @@ from cell.frames import approach_tcp, observation_camera
 from cell.jobs import Job
 from cell.locate import Located
 from cell.motion import Motion
-from cell.safety import LimitError, RefusedError, UnavailableError
+from cell.safety import CellError, LimitError, RefusedError, UnavailableError
 from cell.servo import ServoGoal, ServoRun
 from estimator.transforms import pose_dict, pose_distance
 
@@ -78,6 +78,7 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
     if recipe is not None:
         params["recipe"] = recipe
     first: list[Located] = []
+    seen: dict[str, Any] = {}  # how a fixed camera's pose was had (live or before occlusion)
 
     def check(motion: Motion) -> None:
         if not np.isfinite(plan.standoff_mm) or plan.standoff_mm < 0:
@@ -89,9 +90,14 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
                                    "(jogging is still possible)")
         # the servo re-estimates from every frame: one frame to start from is enough
         n_frames = 1 if how == "servo" else ac.frames_per_locate
-        loc = _last_locate(core) if use_last_locate else locate(core, n_frames)
+        if use_last_locate:
+            loc = _last_locate(core)
+        elif core.frames.is_fixed:
+            loc = _fixed_locate(core, n_frames, seen)
+        else:
+            loc = locate(core, n_frames)
         goal = approach_tcp(loc.T_base_target, plan.T_target_tcp, plan.standoff_mm)
-        if how == "servo":  # the servo moves straight at the goal: that path is checked
+        if how == "servo" or core.frames.is_fixed:  # straight at the goal: that path is checked
             core.arm.guard.check_goal(st.T_base_tcp, goal, "approach goal")
         else:  # both goals are checked now, so that a refusal moves nothing
             T_obs = observation_tcp(core, loc.T_base_target, plan.T_target_tcp)
@@ -104,6 +110,8 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
             run = ServoRun(core, job_id, motion, ServoGoal(plan.T_target_tcp, plan.standoff_mm),
                            "approach", first=first[0])
             return run.run()
+        if core.frames.is_fixed:
+            return fixed_look_and_move(core, job_id, motion, first[0], plan, seen)
         return look_and_move(core, job_id, motion, first[0], plan)
 
     return core.runner.start("approach", caller, params, work, check=check, needs_camera=True,
@@ -120,6 +128,86 @@ def _last_locate(core: CellCore) -> Located:
         raise RefusedError("stale_pose", f"the last located pose is {age:.1f} s old (limit "
                            f"{limit} s); locate again")
     return loc
+
+
+def _fixed_locate(core: CellCore, n_frames: int, seen: dict[str, Any]) -> Located:
+    """Locate with a fixed camera; when the target is not found, the arm may be standing
+    between the camera and the target: then the last pose seen (before the arm entered the
+    view) is used, and the result says so. Without an earlier pose the error stands."""
+    try:
+        loc = locate(core, n_frames)
+    except CellError as err:
+        last = core.locator.last
+        if last is None or err.code in ("camera_lost", "camera_stalled"):
+            raise
+        seen.update(pose_source="last_seen", occluded=True, reason=err.message,
+                    pose_age_s=time.monotonic() - last.frame_timestamp_s)
+        return last
+    seen.update(pose_source="live", occluded=False)
+    return loc
+
+
+def fixed_look_and_move(core: CellCore, job_id: str, motion: Motion, loc: Located,
+                        plan: ApproachPlan, seen: dict[str, Any]) -> dict[str, Any]:
+    """Look-and-move with a fixed camera: no observation pose (the camera does not move with
+    the arm); straight to the goal, then, while the camera still sees the target past the
+    arm, locate again at rest and correct until under the tolerance. Once the arm hides the
+    target the goal stays the one from the last pose seen, and the result says so."""
+    ac = core.config.approach
+    arm = core.arm
+    cycles: list[dict[str, Any]] = []
+    converged = False
+    goal = approach_tcp(loc.T_base_target, plan.T_target_tcp, plan.standoff_mm)
+    occluded_at_goal = False
+    for cycle in range(1, ac.max_cycles + 1):
+        core.runner.progress(job_id, {"phase": "move", "cycle": cycle, "cycles": cycles})
+        arm.move_linear(goal, plan.speed_mm_s, plan.accel_mm_s2, what="approach goal")
+        arrived = time.monotonic()
+        if ac.settle_s:
+            time.sleep(ac.settle_s)
+        motion.raise_if_cancelled("at the approach goal")
+        try:
+            new = locate(core, ac.frames_per_locate, after_s=arrived + ac.settle_s)
+        except CellError as err:
+            if err.code in ("camera_lost", "camera_stalled"):
+                raise
+            occluded_at_goal = True
+            seen.setdefault("reason", err.message)
+            break
+        new_goal = approach_tcp(new.T_base_target, plan.T_target_tcp, plan.standoff_mm)
+        d_mm, d_deg = pose_distance(goal, new_goal)
+        cycles.append({"cycle": cycle, "correction_mm": d_mm, "correction_deg": d_deg,
+                       "rms_px": float(new.result.rms_px), "spread_mm": new.spread_mm})
+        loc, goal = new, new_goal
+        if d_mm < ac.tolerance_mm and d_deg < ac.tolerance_deg:
+            converged = True
+            break
+    if not converged:
+        arm.move_linear(goal, plan.speed_mm_s, plan.accel_mm_s2, what="approach goal")
+    reached = arm.state().T_base_tcp
+    reach_mm, reach_deg = pose_distance(reached, goal)
+    last_mm = cycles[-1]["correction_mm"] if cycles else 0.0
+    last_deg = cycles[-1]["correction_deg"] if cycles else 0.0
+    return {
+        "mode": "look_and_move",
+        "camera_mount": "fixed",
+        "converged": converged,
+        "cycles": cycles,
+        # the pose the goal came from: "live" (seen at the start or at the goal) or
+        # "last_seen" (the arm hid the target: the last pose before it entered the view)
+        "pose_source": seen.get("pose_source", "live"),
+        "occluded": bool(seen.get("occluded", False)) or occluded_at_goal,
+        "occluded_at_goal": occluded_at_goal,
+        "pose_age_s": seen.get("pose_age_s"),
+        "occlusion_reason": seen.get("reason"),
+        "T_base_target": pose_dict(loc.T_base_target),
+        "goal_T_base_tcp": pose_dict(goal),
+        "reached_T_base_tcp": pose_dict(reached),
+        "reach_error_mm": reach_mm,
+        "reach_error_deg": reach_deg,
+        "estimated_error_mm": float(np.hypot(last_mm, reach_mm)),
+        "estimated_error_deg": float(np.hypot(last_deg, reach_deg)),
+    }
 
 
 def look_and_move(core: CellCore, job_id: str, motion: Motion, loc: Located,

@@ -61,6 +61,9 @@ class CameraConfig(_Strict):
     # Which device, its frame rate, and (OAK) which one and how it exposes. The output size is
     # ``width`` x ``height``. Unset sensor settings keep the device's defaults.
     kind: Literal["sim", "oak"] = "sim"
+    # Where the camera is: on the flange ("hand", eye-in-hand; [hand_eye] T_flange_camera) or
+    # fixed in the cell ("fixed", eye-to-hand; [hand_eye] T_base_camera).
+    mount: Literal["hand", "fixed"] = "hand"
     fps: float = Field(default=15.0, gt=0, le=120)
     device_id: str = ""  # OAK serial number (MxId) or IP address; empty: the first device found
     socket: Literal["CAM_A", "CAM_B", "CAM_C", "CAM_D"] = "CAM_B"  # CAM_B: OAK-D's left mono
@@ -154,9 +157,17 @@ class RobotConfig(_Strict):
 
 
 class HandEyeConfig(_Strict):
-    """Eye-in-hand calibration result: the camera's pose on the flange."""
+    """The hand-eye calibration result: the camera's pose on the flange (eye-in-hand,
+    ``[camera] mount = "hand"``) or in the robot base frame (eye-to-hand, ``mount = "fixed"``).
+    Exactly the one the mount needs may be given (checked by :class:`CellConfig`)."""
 
     T_flange_camera: PoseConfig = PoseConfig()
+    T_base_camera: PoseConfig | None = None
+
+    def stated(self, key: str) -> bool:
+        """Whether the file gave ``key``; a fixed camera refuses a (non-identity)
+        ``T_flange_camera``, since only the mount the camera has may be stated."""
+        return key in self.model_fields_set
 
 
 class ToolConfig(_Strict):
@@ -362,6 +373,15 @@ class SimConfig(_Strict):
     T_base_target: PoseConfig = PoseConfig(position_mm=(-480.0, -130.0, 0.0))
     # The true camera mount; None means the [hand_eye] value is exact.
     T_flange_camera: PoseConfig | None = None
+    # The true pose of a fixed camera ([camera] mount = "fixed"); None: [hand_eye] is exact.
+    T_base_camera: PoseConfig | None = None
+    # A calibration plate (the target's dot layout) clamped to the tool at this pose on the
+    # flange, for the eye-to-hand routine; the fixed camera then sees it instead of the
+    # work target (which is off the table meanwhile). None: the tool carries no plate.
+    T_flange_board: PoseConfig | None = None
+    # The simulated tool body that hides what lies behind it from a fixed camera: a cylinder
+    # of this radius from the wrist to the TCP (0: the arm is transparent).
+    tool_radius_mm: float = Field(default=30.0, ge=0)
     ur_controller: bool = False  # kind="ur": start the simulated controller at robot.host
     # False: it is not running when the service starts (SimWorld.start_controller starts it),
     # as when a cell PC boots before its controller.
@@ -504,6 +524,34 @@ class CellConfig(BaseModel):
     modbus: ModbusConfig = ModbusConfig()
     commissioning: CommissioningConfig = CommissioningConfig()
 
+    @model_validator(mode="after")
+    def _mount_matches_hand_eye(self) -> CellConfig:
+        he = self.hand_eye
+        if self.camera.mount == "fixed":
+            if he.T_base_camera is None:
+                raise ValueError("hand_eye.T_base_camera is required with camera.mount = "
+                                 "\"fixed\" (the fixed camera's pose in the robot base frame)")
+            if he.stated("T_flange_camera") and he.T_flange_camera != PoseConfig():
+                raise ValueError("hand_eye.T_flange_camera is for a camera on the flange; "
+                                 "with camera.mount = \"fixed\" give T_base_camera only")
+            if self.sim.T_flange_camera is not None:
+                raise ValueError("sim.T_flange_camera is for a camera on the flange; with "
+                                 "camera.mount = \"fixed\" use sim.T_base_camera")
+        else:
+            if he.T_base_camera is not None:
+                raise ValueError("hand_eye.T_base_camera is for a fixed camera; with "
+                                 "camera.mount = \"hand\" (the default) give T_flange_camera, "
+                                 "or set camera.mount = \"fixed\"")
+            if self.sim.T_base_camera is not None or self.sim.T_flange_board is not None:
+                raise ValueError("sim.T_base_camera and sim.T_flange_board belong to a fixed "
+                                 "camera: set camera.mount = \"fixed\"")
+        return self
+
+    @property
+    def fixed_camera(self) -> bool:
+        """The camera is fixed in the cell (eye-to-hand), not on the flange."""
+        return self.camera.mount == "fixed"
+
     def has_real_device(self) -> bool:
         """Any device that is not simulated (then the commissioning rules apply)."""
         return ((self.robot.kind == "ur" and not self.sim.ur_controller)
@@ -566,7 +614,7 @@ def _schema_problems(err: ValidationError) -> list[Problem]:
             # a table-level check whose message starts with the key it is about: name that key
             model = _model_at(loc)
             first = msg.split(" ", 1)[0]
-            if model is not None and first in model.model_fields:
+            if model is not None and first.split(".", 1)[0] in model.model_fields:
                 key = f"{key}.{first}" if key else first
         problems.append(Problem(key, msg))
     return problems

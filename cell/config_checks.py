@@ -29,7 +29,8 @@ REAL_REQUIRED_TABLES: dict[str, str] = {
     "hand_eye": "the default camera mount is the flange origin (identity T_flange_camera)",
 }
 
-POSITION_KEYS = ("tool.T_flange_tcp.position_mm", "hand_eye.T_flange_camera.position_mm")
+POSITION_KEYS = ("tool.T_flange_tcp.position_mm", "hand_eye.T_flange_camera.position_mm",
+                 "hand_eye.T_base_camera.position_mm")
 SPEED_KEYS = ("approach.speed_mm_s", "limits.max_speed_mm_s", "limits.max_jog_speed_mm_s")
 ACCEL_KEYS = ("approach.accel_mm_s2", "limits.max_accel_mm_s2")
 JOINT_KEYS = ("robot.home_joints_deg",)

@@ -33,6 +33,7 @@ from drivers.camera import Camera, CameraSettings
 from drivers.gripper import Gripper
 from drivers.robotiq import RobotiqGripper
 from estimator.transforms import T_from_ur_pose, invert_T
+from fakes.fixed_camera import FixedSimCamera
 from fakes.gripper import FakeGripper, LineFault
 from fakes.sim_arm import SimArm
 from fakes.sim_camera import SimCamera
@@ -139,6 +140,12 @@ class _SimWorld:
                    angular_velocity_rad_s: NDArray[np.float64] | None = None) -> None:
         self._camera.set_target_pose(T_base_target, velocity_mm_s, angular_velocity_rad_s)
 
+    def set_tool_board(self, T_flange_board: Matrix4 | None) -> None:
+        """Clamp the calibration plate to the tool (None: take it off); fixed cameras only."""
+        if not isinstance(self._camera, FixedSimCamera):
+            raise RuntimeError("only a simulated fixed camera sees a plate on the tool")
+        self._camera.set_tool_board(T_flange_board)
+
     def set_camera_blocked(self, blocked: bool) -> None:
         self._camera.set_blocked(blocked)
 
@@ -185,11 +192,15 @@ def _make_camera(config: CellConfig, truth: _EngineTruth | _ProcessTruth | None
     if cc.kind == "sim":
         if truth is None:
             raise ConfigError(SIM_CAMERA_NEEDS_SIM_ARM)
-        T_flange_camera = (sim.T_flange_camera or config.hand_eye.T_flange_camera).T()
-        sim_camera = SimCamera(
-            cc.model(), config.target.model(), sim.T_base_target.T(), T_flange_camera,
-            _pose_source(truth), fps=cc.fps, noise_std=sim.noise_std,
-            blur_sigma_px=sim.blur_sigma_px)
+        sim_camera: SimCamera
+        if config.fixed_camera:
+            sim_camera = _fixed_sim_camera(config, truth)
+        else:
+            T_flange_camera = (sim.T_flange_camera or config.hand_eye.T_flange_camera).T()
+            sim_camera = SimCamera(
+                cc.model(), config.target.model(), sim.T_base_target.T(), T_flange_camera,
+                _pose_source(truth), fps=cc.fps, noise_std=sim.noise_std,
+                blur_sigma_px=sim.blur_sigma_px)
         if cc.exposure_us is not None or cc.iso is not None or cc.focus is not None:
             try:
                 sim_camera.apply_settings(CameraSettings(cc.exposure_us, cc.iso, cc.focus))
@@ -229,6 +240,19 @@ def hardware_problems(config: CellConfig) -> list[Problem]:
     if config.gripper.kind == "robotiq" and not config.gripper.port:
         problems.append(Problem("gripper.port", ROBOTIQ_NEEDS_PORT))
     return problems
+
+
+def _fixed_sim_camera(config: CellConfig, truth: _EngineTruth | _ProcessTruth
+                      ) -> FixedSimCamera:
+    """The simulated fixed camera at its true pose, watching the simulated arm's tool."""
+    sim, he = config.sim, config.hand_eye
+    true_pose = sim.T_base_camera or he.T_base_camera
+    assert true_pose is not None  # the config requires T_base_camera with a fixed mount
+    return FixedSimCamera(
+        config.camera.model(), config.target.model(), sim.T_base_target.T(), true_pose.T(),
+        _pose_source(truth), config.tool.T_flange_tcp.T(), tool_radius_mm=sim.tool_radius_mm,
+        T_flange_board=None if sim.T_flange_board is None else sim.T_flange_board.T(),
+        fps=config.camera.fps, noise_std=sim.noise_std, blur_sigma_px=sim.blur_sigma_px)
 
 
 def oak_settings(config: CellConfig) -> OakSettings:

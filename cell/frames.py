@@ -2,12 +2,14 @@
 
 Every place that turns an estimate into a robot pose goes through here, so the chain is
 written once: ``T_base_target = T_base_tcp(t) @ inv(T_flange_tcp) @ T_flange_camera @
-T_camera_target`` where ``t`` is the frame's capture time.
+T_camera_target`` where ``t`` is the frame's capture time, or, for a fixed camera,
+``T_base_target = T_base_camera @ T_camera_target`` whatever the arm does.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -15,21 +17,54 @@ from scipy.spatial.transform import Rotation
 
 from estimator.transforms import invert_T, make_T, translation_T
 
+if TYPE_CHECKING:
+    from cell.config import CellConfig
+
 Matrix4 = NDArray[np.float64]
+
+
+class FixedCameraError(ValueError):
+    """A flange-camera operation (an observation pose) asked of a fixed camera."""
 
 
 @dataclass(frozen=True)
 class CellFrames:
-    """Calibrated mounts on the flange: the camera (hand-eye) and the tool centre point."""
+    """Calibrated mounts: the camera (hand-eye) and the tool centre point on the flange.
+
+    An eye-in-hand camera rides on the flange (``T_flange_camera``); a fixed camera
+    (``fixed_T_base_camera`` set, eye-to-hand) stands in the cell, so its pose does not
+    depend on the arm's and ``T_flange_camera`` is unused.
+    """
 
     T_flange_camera: Matrix4
     T_flange_tcp: Matrix4
+    fixed_T_base_camera: Matrix4 | None = None
+
+    @classmethod
+    def fixed(cls, T_base_camera: ArrayLike, T_flange_tcp: ArrayLike) -> CellFrames:
+        return cls(np.eye(4), np.asarray(T_flange_tcp, dtype=float),
+                   np.asarray(T_base_camera, dtype=float))
+
+    @property
+    def is_fixed(self) -> bool:
+        return self.fixed_T_base_camera is not None
+
+    @property
+    def T_camera_mount(self) -> Matrix4:
+        """The calibrated mount: ``T_base_camera`` (fixed) or ``T_flange_camera`` (hand)."""
+        if self.fixed_T_base_camera is not None:
+            return self.fixed_T_base_camera
+        return self.T_flange_camera
 
     @property
     def T_tcp_camera(self) -> Matrix4:
+        if self.fixed_T_base_camera is not None:
+            raise FixedCameraError("a fixed camera has no pose on the tool")
         return invert_T(self.T_flange_tcp) @ self.T_flange_camera
 
     def T_base_camera(self, T_base_tcp: ArrayLike) -> Matrix4:
+        if self.fixed_T_base_camera is not None:
+            return self.fixed_T_base_camera
         return np.asarray(T_base_tcp, dtype=float) @ self.T_tcp_camera
 
     def T_base_target(self, T_base_tcp: ArrayLike, T_camera_target: ArrayLike) -> Matrix4:
@@ -41,6 +76,14 @@ class CellFrames:
     def tcp_for_camera(self, T_base_camera: ArrayLike) -> Matrix4:
         """The TCP pose that puts the camera at ``T_base_camera``."""
         return np.asarray(T_base_camera, dtype=float) @ invert_T(self.T_tcp_camera)
+
+
+def cell_frames(config: CellConfig) -> CellFrames:
+    """The frames a config states: the camera on the flange or fixed in the cell."""
+    he = config.hand_eye
+    if config.fixed_camera and he.T_base_camera is not None:
+        return CellFrames.fixed(he.T_base_camera.T(), config.tool.T_flange_tcp.T())
+    return CellFrames(he.T_flange_camera.T(), config.tool.T_flange_tcp.T())
 
 
 def approach_tcp(T_base_target: ArrayLike, T_target_tcp: ArrayLike, standoff_mm: float) -> Matrix4:

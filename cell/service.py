@@ -30,7 +30,7 @@ from cell.audit import Auditor
 from cell.config import CellConfig, HandEyeConfig, PoseConfig
 from cell.core import CellCore
 from cell.events import EventBus
-from cell.frames import CellFrames
+from cell.frames import CellFrames, cell_frames
 from cell.gripper_ops import GripperService
 from cell.hardware import Hardware, SimWorld
 from cell.imagelog import ImageLog
@@ -67,7 +67,7 @@ class Cell:
         self.stats = CellStats()
         slot = MotionSlot()
         arm = GuardedArm(hardware.arm, config.limits, slot)
-        frames = CellFrames(config.hand_eye.T_flange_camera.T(), config.tool.T_flange_tcp.T())
+        frames = cell_frames(config)
         target = config.target.model()
         locator = Locator(config.camera.model(), target, hardware.camera, arm, frames,
                           config.camera.fps, image_log)
@@ -228,19 +228,25 @@ class Cell:
         return self.stopper.stop(caller, reason)
 
     # -- configuration changes ------------------------------------------------------------------
-    def set_hand_eye(self, T_flange_camera: Matrix4) -> None:
-        """Use a new camera mount from now on (after a calibration is applied).
+    def set_hand_eye(self, T_camera: Matrix4) -> None:
+        """Use a new camera mount from now on (after a calibration is applied):
+        ``T_flange_camera`` for a camera on the flange, ``T_base_camera`` for a fixed one.
 
         The last locate is forgotten: it was mapped into the base frame with the old mount.
         """
-        position_mm, rotvec_rad = pose_from_T(T_flange_camera)
+        position_mm, rotvec_rad = pose_from_T(T_camera)
         pose = PoseConfig(position_mm=(position_mm[0], position_mm[1], position_mm[2]),
                           rotvec_rad=(rotvec_rad[0], rotvec_rad[1], rotvec_rad[2]))
         with self.core.lock:
-            frames = CellFrames(np.asarray(T_flange_camera, dtype=float),
-                                self.core.frames.T_flange_tcp)
+            T = np.asarray(T_camera, dtype=float)
+            T_flange_tcp = self.core.frames.T_flange_tcp
+            if self.config.fixed_camera:
+                frames = CellFrames.fixed(T, T_flange_tcp)
+                hand_eye = HandEyeConfig(T_base_camera=pose)
+            else:
+                frames = CellFrames(T, T_flange_tcp)
+                hand_eye = HandEyeConfig(T_flange_camera=pose)
             self.core.frames = frames
-            self.config = self.config.model_copy(
-                update={"hand_eye": HandEyeConfig(T_flange_camera=pose)})
+            self.config = self.config.model_copy(update={"hand_eye": hand_eye})
             self.core.config = self.config
             self.core.locator.set_frames(frames)

@@ -57,6 +57,7 @@ class _Exposure:
     gain: float  # exposure x ISO relative to nominal, times the frame's jitter
     blocked: bool
     blur_sigma_px: float  # the lens blur plus any defocus
+    T_base_flange: Matrix4 | None = None  # the arm's flange then (what a fixed camera may see)
 
 
 class SimCamera:
@@ -289,7 +290,7 @@ class SimCamera:
     def _expose(self) -> None:
         """Take one exposure: sample the pose at mid-exposure and keep the scene."""
         T_base_flange, t_s = self.pose_source()
-        T_base_camera = np.asarray(T_base_flange, dtype=float) @ self.T_flange_camera
+        T_base_flange = np.asarray(T_base_flange, dtype=float)
         with self._cond:
             self._sequence += 1
             drop = self._drop_next > 0 or (
@@ -299,11 +300,17 @@ class SimCamera:
                 self.frames_dropped += 1
                 return
             gain = self._brightness() * (1.0 + float(self._rng.normal(0.0, self.exposure_jitter)))
+            T_base_camera, T_base_seen = self._view(T_base_flange, float(t_s))
             self._latest = _Exposure(
-                self._sequence, float(t_s), invert_T(T_base_camera) @ self._target_locked(t_s),
-                gain, self._blocked, self._blur_px(),
+                self._sequence, float(t_s), invert_T(T_base_camera) @ T_base_seen,
+                gain, self._blocked, self._blur_px(), T_base_flange,
             )
             self._cond.notify_all()
+
+    def _view(self, T_base_flange: Matrix4, t_s: float) -> tuple[Matrix4, Matrix4]:
+        """``(T_base_camera, T_base_target)`` of one exposure (call with the lock held): the
+        camera rides on the flange; a fixed camera (:mod:`fakes.fixed_camera`) overrides."""
+        return T_base_flange @ self.T_flange_camera, self._target_locked(t_s)
 
     def _target_locked(self, t_s: float) -> Matrix4:
         dt = t_s - self._target_t0_s

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.config import ConfigError, parse_config
+from cell.config import CellConfig, ConfigError, parse_config
 from estimator.transforms import pose_dict, pose_distance, pose_from_T
 
 TABLE = "hand_eye"
@@ -72,16 +72,25 @@ class ConfigChange:
                 f"  moved {d_mm:.3f} mm / {d_deg:.4f} deg; the old file is kept as {self.backup}")
 
 
-def hand_eye_table(T_flange_camera: NDArray[np.float64], comment: str = "") -> str:
+def hand_eye_table(T_flange_camera: NDArray[np.float64], comment: str = "",
+                   key: str = "T_flange_camera") -> str:
+    """The ``[hand_eye]`` table; ``key`` is ``T_base_camera`` for a fixed camera."""
     position_mm, rotvec_rad = pose_from_T(T_flange_camera)
     lines = [f"[{TABLE}]"]
     if comment:
         lines += [f"# {line}" for line in comment.splitlines()]
     lines.append(
-        "T_flange_camera = { position_mm = [" + ", ".join(repr(v) for v in position_mm)
+        f"{key} = {{ position_mm = [" + ", ".join(repr(v) for v in position_mm)
         + "], rotvec_rad = [" + ", ".join(repr(v) for v in rotvec_rad) + "] }"
     )
     return "\n".join(lines) + "\n"
+
+
+def _mount_T(config: CellConfig) -> NDArray[np.float64]:
+    """The calibrated camera mount the config states (flange or base frame)."""
+    if config.fixed_camera and config.hand_eye.T_base_camera is not None:
+        return config.hand_eye.T_base_camera.T()
+    return config.hand_eye.T_flange_camera.T()
 
 
 def write_hand_eye(
@@ -102,11 +111,13 @@ def write_hand_eye(
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as err:
         raise ConfigWriteError(f"cannot update {p}: it is not readable TOML ({err})") from err
     try:
-        old_T = parse_config(old, str(p)).hand_eye.T_flange_camera.T()
+        old_config = parse_config(old, str(p))
+        old_T = _mount_T(old_config)
     except ConfigError as err:
         raise ConfigWriteError(f"cannot update {p}: it is not a valid cell config ({err}); fix "
                                "it first (`cell config check FILE`)") from err
-    table = hand_eye_table(T_flange_camera, comment)
+    key = "T_base_camera" if old_config.fixed_camera else "T_flange_camera"
+    table = hand_eye_table(T_flange_camera, comment, key)
     new_text = _replace_table(old_text, table)
     try:
         new = tomllib.loads(new_text)
@@ -118,7 +129,7 @@ def write_hand_eye(
             "(inline or dotted keys); move it into its own [hand_eye] table"
         )
     try:
-        written = parse_config(new, str(p)).hand_eye.T_flange_camera.T()
+        written = _mount_T(parse_config(new, str(p)))
     except ConfigError as err:
         raise ConfigWriteError(f"the updated {p} would not be a valid cell config: {err}") \
             from err

@@ -8,6 +8,7 @@ chosen method, a diagnostic refinement with free intrinsics, and the verdict.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -17,6 +18,7 @@ from cell.calibration.observe import ObservationError, dot_target_observer
 from cell.calibration.report import HandEyeReport, MethodResult, judge
 from estimator import CameraModel
 from estimator.calib.board import Board, board_pose, detect_board
+from estimator.calib.eye_to_hand import eye_to_hand_poses
 from estimator.calib.handeye import SOLVERS, HandEyeError, board_spread, refine_joint
 
 Progress = Callable[[str, int, int], None]  # (stage, done, total)
@@ -38,11 +40,19 @@ def solve_dataset(
     chosen: str = DEFAULT_METHOD,
     refine: bool = True,
     progress: Progress | None = None,
+    fixed_camera: bool = False,
 ) -> HandEyeReport:
     """Find the pattern in every view's image (views without it are skipped), then solve:
     a board's features go to :func:`solve_views`, the dot target's observations (the same the
-    guided routine makes) to :func:`solve_observations`."""
+    guided routine makes) to :func:`solve_observations`. With ``fixed_camera`` the views are
+    of a plate held by the tool before a fixed camera: the flange poses are inverted
+    (:mod:`estimator.calib.eye_to_hand`) and the report's ``T_flange_camera`` is
+    ``T_base_camera``."""
     report = progress or _quiet
+    if fixed_camera:
+        inverted = eye_to_hand_poses([v.T_base_flange for v in dataset.views])
+        dataset = replace(dataset, views=tuple(
+            replace(v, T_base_flange=T) for v, T in zip(dataset.views, inverted, strict=True)))
     total = len(dataset.views)
     if dataset.board is None:
         return _solve_target_dataset(dataset, chosen, refine, report)

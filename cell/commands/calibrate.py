@@ -43,6 +43,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                          "existing, valid cell config; a timestamped backup is kept)")
     he.add_argument("--force", action="store_true",
                     help="write the config even when the verdict is that the data disagree")
+    he.add_argument("--config", metavar="FILE",
+                    help="cell config whose [camera] mount says how to solve (\"fixed\": a "
+                         "plate on the tool before a fixed camera, giving T_base_camera); "
+                         "default: --write-config's file, else eye-in-hand")
     he.set_defaults(func=run_hand_eye)
 
     it = what.add_parser("intrinsics", help="fx, fy, cx, cy and distortion from board images")
@@ -128,6 +132,19 @@ def _method(args: argparse.Namespace) -> str:
     return "tsai" if getattr(args, "no_refine", False) else DEFAULT_METHOD
 
 
+def _fixed_mount(args: argparse.Namespace) -> bool:
+    """The camera mount of ``--config`` (else ``--write-config``'s file): fixed or on the hand."""
+    from cell.config import ConfigError, load_config
+
+    path = getattr(args, "config", None) or getattr(args, "write_config", None)
+    if not path:
+        return False
+    try:
+        return load_config(path).fixed_camera
+    except ConfigError:
+        return False  # the write step reports the file's problem
+
+
 def run_hand_eye(args: argparse.Namespace) -> int:
     from cell.calibration.dataset import DatasetError, load_dataset
     from cell.calibration.solve import solve_dataset
@@ -137,7 +154,7 @@ def run_hand_eye(args: argparse.Namespace) -> int:
         dataset = load_dataset(args.folder)
         with progress_bars(not args.json) as progress:
             report = solve_dataset(dataset, _method(args), refine=not args.no_refine,
-                                   progress=progress)
+                                   progress=progress, fixed_camera=_fixed_mount(args))
     except DatasetError as err:
         return fail(err.code, err.message, args.json)
     except HandEyeError as err:
