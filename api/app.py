@@ -80,10 +80,10 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False,
     errors.install(app)
     app.include_router(router)
     app.include_router(arm_router)  # operator recovery: home, unlock, power
-    app.include_router(servo_router)  # POST /track (issue 15)
+    app.include_router(servo_router)  # POST /track
     app.include_router(recipes_router)  # recipes (products) and approaches with one
-    install_calibration(app)  # hand-eye routine and taught poses (issue 7)
-    alarms = install_ops(app)  # alarms, camera settings, image log (issue 16)
+    install_calibration(app)  # hand-eye routine and taught poses
+    alarms = install_ops(app)  # alarms, camera settings, image log
     alarms.start()
     if cell.sim is not None:
         app.include_router(sim_router)

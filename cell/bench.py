@@ -534,7 +534,7 @@ def format_report(r: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-# --- Scenes beyond the 5-8 dot frames: symmetric, grid, oblique (issue 14) -----------------
+# --- Scenes beyond the 5-8 dot frames: symmetric, grid, oblique -----------------
 
 GRID_CAMERA = CameraModel(600.0, 600.0, 319.5, 239.5, (), 640, 480)
 

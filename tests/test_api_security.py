@@ -1,4 +1,4 @@
-"""Security of the HTTP API on the simulated cell (issue 16 item 7, audit issue items 6 and 7):
+"""Security of the HTTP API on the simulated cell (roles, limits, TLS, token rules):
 header-only credentials on motion routes, JSON-only bodies, authentication before the body is
 read, a body cap, audited refusals, constant-time and hashed tokens, no token in any log line,
 HTTPS from ``cell serve``."""

@@ -1,4 +1,4 @@
-"""The guarded motion path on the in-process simulated cell: each audit finding (issue 20)
+"""The guarded motion path on the in-process simulated cell: each audit finding
 reproduced, and what moved (simulator truth, the guard's commanded paths) asserted."""
 
 from __future__ import annotations

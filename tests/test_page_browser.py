@@ -471,7 +471,7 @@ def sim_cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     probe = subprocess.run([sys.executable, "-m", "cell", "serve", "--help"],
                            capture_output=True, text=True, timeout=60)
     if probe.returncode != 0:
-        pytest.skip("`cell serve` is not available yet (issue 5)")
+        pytest.skip("`cell serve` is not available")
     with serve_sim_cell(tmp_path_factory.mktemp("cell")) as url:
         yield url
 

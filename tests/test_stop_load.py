@@ -1,5 +1,5 @@
 """STOP cuts through load, reads come from a fresh snapshot, a stalled SSE client blocks only
-itself (issue 19). Served by real uvicorn in a thread and driven over real sockets; the
+itself. Served by real uvicorn in a thread and driven over real sockets; the
 timing bounds are generous (a loaded 2-core machine) and the outcomes are the arm's truth."""
 
 from __future__ import annotations
