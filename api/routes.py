@@ -289,7 +289,7 @@ async def events(request: Request, caller: StreamNow,
 @sim_router.get("/truth", response_model=SimTruth)
 def sim_truth(request: Request, caller: Read) -> dict[str, Any]:
     """Ground truth of the simulated cell: where the target and the TCP really are, and the
-    camera's true mount and lens (which commissioning must recover; the cell's config may differ)."""
+    camera's true mount and lens (commissioning must recover them; the config may differ)."""
     sim = sim_of(request)
     true = sim.truth_values()
     cam = true.camera

@@ -25,8 +25,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.config import CellConfig, ConfigError
 from cell import sim_truth
+from cell.config import CellConfig, ConfigError
 from cell.hardware import Hardware
 from drivers.arm import Arm
 from drivers.camera import Camera, CameraSettings
