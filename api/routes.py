@@ -290,10 +290,16 @@ async def events(request: Request, caller: StreamNow,
 
 @sim_router.get("/truth", response_model=SimTruth)
 def sim_truth(request: Request, caller: Read) -> dict[str, Any]:
-    """Ground truth of the simulated cell: where the target and the TCP really are."""
+    """Ground truth of the simulated cell: where the target and the TCP really are, and the
+    camera's true mount and lens (commissioning must recover them; the config may differ)."""
     sim = sim_of(request)
+    true = sim.truth_values()
+    cam = true.camera
     return {"T_base_target": pose_dict(sim.true_T_base_target()),
-            "T_base_tcp": pose_dict(sim.true_T_base_tcp())}
+            "T_base_tcp": pose_dict(sim.true_T_base_tcp()),
+            "world": true.world, "T_flange_camera": pose_dict(true.T_flange_camera),
+            "camera": {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
+                       "dist": list(cam.dist), "width": cam.width, "height": cam.height}}
 
 
 @sim_router.put("/target", response_model=SimTarget)

@@ -351,10 +351,29 @@ class AuditLog(_Out):
     entries: list[AuditEntry]
 
 
+class SimCameraTruthOut(_Out):
+    """The simulated lens as it really is: intrinsics (px), Brown-Conrady k1 k2 p1 p2 k3."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    dist: list[float]
+    width: int
+    height: int
+
+
 class SimTruth(_Out):
-    model_config = _examples({"T_base_target": POSE_EXAMPLE, "T_base_tcp": POSE_EXAMPLE})
+    model_config = _examples({
+        "T_base_target": POSE_EXAMPLE, "T_base_tcp": POSE_EXAMPLE, "world": "realistic",
+        "T_flange_camera": POSE_EXAMPLE,
+        "camera": {"fx": 1008.0, "fy": 1007.0, "cx": 643.5, "cy": 397.5,
+                   "dist": [-0.045, 0.012, 0.0004, -0.0003, 0.0], "width": 1280, "height": 800}})
     T_base_target: PoseOut
     T_base_tcp: PoseOut
+    world: str
+    T_flange_camera: PoseOut
+    camera: SimCameraTruthOut
 
 
 class SimTarget(_Out):

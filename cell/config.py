@@ -367,9 +367,34 @@ class GripperConfig(_Strict):
     activation_timeout_s: float = Field(default=10.0, gt=0)
 
 
-class SimConfig(_Strict):
-    """Ground truth of the simulated cell; used only by the hardware factory and /sim routes."""
+class SimCameraTruth(_Strict):
+    """The simulated lens's true intrinsics (px) and Brown-Conrady distortion (k1 k2 p1 p2 k3);
+    each unset value comes from the ``world`` preset, apart from what ``[camera]`` believes."""
 
+    fx: float | None = Field(default=None, gt=0)
+    fy: float | None = Field(default=None, gt=0)
+    cx: float | None = None
+    cy: float | None = None
+    dist: list[float] | None = None
+
+    @field_validator("dist")
+    @classmethod
+    def _dist(cls, v: list[float] | None) -> list[float] | None:
+        if v is not None and len(v) not in (4, 5):
+            raise ValueError(f"dist is k1 k2 p1 p2 [k3]: 4 or 5 values, got {len(v)}")
+        return v
+
+
+class SimConfig(_Strict):
+    """Ground truth of the simulated cell; used only by the hardware factory and /sim routes.
+
+    ``world``: ``"ideal"`` (the truth is the cell's config: only the estimator errs) or
+    ``"realistic"`` (lens and mount differ from the config by typical commissioning-day
+    amounts; see docs/simulator.md). Explicit values here win over the preset.
+    """
+
+    world: Literal["ideal", "realistic"] = "ideal"
+    camera: SimCameraTruth = SimCameraTruth()
     T_base_target: PoseConfig = PoseConfig(position_mm=(-480.0, -130.0, 0.0))
     # The true camera mount; None means the [hand_eye] value is exact.
     T_flange_camera: PoseConfig | None = None

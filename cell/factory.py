@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from cell import sim_truth
 from cell.config import CellConfig, ConfigError
 from cell.config_checks import Problem
 from cell.hardware import Hardware
@@ -121,10 +122,15 @@ class _SimWorld:
     """Ground truth and fault switches over the simulated arm and camera."""
 
     def __init__(self, truth: _EngineTruth | _ProcessTruth, camera: SimCamera,
-                 gripper: FakeGripper | None = None) -> None:
+                 gripper: FakeGripper | None = None, world: str = "ideal") -> None:
         self._truth = truth
         self._camera = camera
         self._gripper = gripper
+        self._world = world
+
+    def truth_values(self) -> sim_truth.SimTruthValues:
+        return sim_truth.SimTruthValues(self._world, self._camera.camera,
+                                        self._camera.T_flange_camera.copy())
 
     def true_T_base_target(self, at_s: float | None = None) -> Matrix4:
         return self._camera.target_at(time.monotonic() if at_s is None else at_s)
@@ -196,9 +202,9 @@ def _make_camera(config: CellConfig, truth: _EngineTruth | _ProcessTruth | None
         if config.fixed_camera:
             sim_camera = _fixed_sim_camera(config, truth)
         else:
-            T_flange_camera = (sim.T_flange_camera or config.hand_eye.T_flange_camera).T()
+            true = sim_truth.resolve(config)
             sim_camera = SimCamera(
-                cc.model(), config.target.model(), sim.T_base_target.T(), T_flange_camera,
+                true.camera, config.target.model(), sim.T_base_target.T(), true.T_flange_camera,
                 _pose_source(truth), fps=cc.fps, noise_std=sim.noise_std,
                 blur_sigma_px=sim.blur_sigma_px)
         if cc.exposure_us is not None or cc.iso is not None or cc.focus is not None:
@@ -369,7 +375,7 @@ def _build(config: CellConfig, closers: list[Callable[[], None]]) -> Hardware:
     simulated = all_simulated(config)
     world = None
     if simulated and truth is not None and sim_camera is not None:
-        world = _SimWorld(truth, sim_camera, fake)
+        world = _SimWorld(truth, sim_camera, fake, config.sim.world)
     hw = Hardware(arm=arm, camera=camera, gripper=gripper, simulated=simulated, sim=world,
                   closers=list(closers))
     closers.clear()

@@ -16,6 +16,7 @@ from typing import Literal, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from cell.sim_truth import SimTruthValues
 from drivers.arm import Arm
 from drivers.camera import Camera
 from drivers.gripper import Gripper
@@ -28,6 +29,9 @@ class SimWorld(Protocol):
         """The true target pose now, or at monotonic time ``at_s`` (a moving target)."""
 
     def true_T_base_tcp(self) -> NDArray[np.float64]: ...
+
+    def truth_values(self) -> SimTruthValues:
+        """The simulated camera's true lens and mount (apart from the cell's config)."""
 
     def true_tcp_sample(self) -> tuple[NDArray[np.float64], float]:
         """The true TCP pose and the monotonic time the simulator had it."""
