@@ -148,10 +148,12 @@ def _config_text(host: str, state_dir: Path) -> str:
 
 
 @contextlib.contextmanager
-def serving(timeout_s: float = 90.0, nice: int | None = None, stop_log: Path | None = None
+def serving(timeout_s: float = 90.0, nice: int | None = None, stop_log: Path | None = None,
+            extra_args: list[str] | None = None
             ) -> Iterator[tuple[str, subprocess.Popen[bytes]]]:
     """``cell serve`` on a free loopback address; yields (base URL, process). With
-    ``stop_log`` the simulated controller appends each stop command's receive time there."""
+    ``stop_log`` the simulated controller appends each stop command's receive time there;
+    ``extra_args`` go to ``cell serve`` (e.g. ``--modbus-port N``)."""
     from fakes.ur_controller.process import free_loopback_host
     from fakes.ur_controller.script import STOP_LOG_ENV
 
@@ -165,7 +167,7 @@ def serving(timeout_s: float = 90.0, nice: int | None = None, stop_log: Path | N
             env[STOP_LOG_ENV] = str(stop_log)
         proc = subprocess.Popen(
             [sys.executable, "-m", "cell", "serve", "--config", str(cfg), "--host", host,
-             "--port", str(port), "--log-level", "warning"], env=env,
+             "--port", str(port), "--log-level", "warning", *(extra_args or [])], env=env,
             stdout=subprocess.DEVNULL, stderr=open(Path(tmp) / "serve.log", "wb"))  # noqa: SIM115
         if nice is not None:  # before it starts its own processes, which inherit it
             with contextlib.suppress(PermissionError):

@@ -52,10 +52,11 @@ def test_layering() -> None:
 
 
 # Business code never asks whether hardware is simulated: only the hardware factory builds fakes
-# (and the benchmarks: the estimator's renders its scenes with the fake renderer, the approach
-# and service benchmarks run the simulated cell on a free loopback address).
+# (and the benchmarks: the estimator's renders its scenes with the fake renderer, the approach,
+# service and freeze benchmarks run the simulated cell or controller on a free loopback
+# address, the fixed-camera one renders its views with the fixed simulated camera).
 MAY_IMPORT_FAKES = {"cell/factory.py", "cell/bench.py", "cell/bench_approach.py",
-                    "cell/bench_service.py"}
+                    "cell/bench_service.py", "cell/bench_freeze.py", "cell/bench_fixed.py"}
 
 
 def test_only_the_factory_builds_fakes() -> None:
