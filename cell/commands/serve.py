@@ -11,6 +11,7 @@ name (``api.app:app_from_environment``) so the cell package does not depend on t
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 from types import FrameType
@@ -101,7 +102,8 @@ def _serve(args: argparse.Namespace) -> int:
         log_level=args.log_level, log_config=logging_config,
         ssl_certfile=args.ssl_certfile, ssl_keyfile=args.ssl_keyfile,
         timeout_graceful_shutdown=SHUTDOWN_GRACE_S))
-    server.run()
+    with contextlib.suppress(KeyboardInterrupt):  # uvicorn re-raises the Ctrl-C it handled
+        server.run()
     return 0
 
 

@@ -43,7 +43,11 @@ def main(argv: list[str] | None = None) -> int:
     _raise_priority()
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    # Under --control a program owns this controller (the cell's factory, a test): a terminal's
+    # Ctrl-C is for that program, which stops the arm and then ends the controller itself. A
+    # controller that died first would leave the cell a lost arm and a false alarm.
+    signal.signal(signal.SIGINT,
+                  signal.SIG_IGN if args.control else (lambda *_: stop.set()))
     with URController(args.host, remote_control=not args.local_control) as ctl:
         if args.powered:
             ctl.engine.brake_release()
