@@ -27,6 +27,7 @@ from typing import Any
 import pytest
 
 from api.opcua import OpcUaServer
+from cell.config import CellConfig
 from cell.endpoints import opcua_cert_dir
 from cell.frames import approach_tcp
 from cell.service import Cell
@@ -203,16 +204,35 @@ def _recipe_content(cell: Cell, standoff_mm: float, dot_diameter_mm: float | Non
         "standoff_mm": standoff_mm}]})
 
 
-def test_machine_vision_continuous_job_tracks_until_stop(served: Served) -> None:
+@contextlib.contextmanager
+def _service(config: CellConfig) -> Iterator[Cell]:
+    """The cell and its OPC UA server, as ``cell serve`` runs them."""
+    with running_cell(config) as cell:
+        server = OpcUaServer(cell, config.opcua, opcua_cert_dir(config))
+        server.start()
+        try:
+            yield cell
+        finally:
+            server.close()
+
+
+def test_machine_vision_continuous_job_tracks_until_stop(tmp_path: Path) -> None:
     """StartContinuousJob is tracking with the prepared recipe: ContinuousExecution while the
     track job runs (the arm held at the recipe's standoff from the true target), a single job
     meanwhile refused as busy, Stop ends it and the state machine is Ready again, with the
-    job's result (cancelled, recipe and version) under its id."""
-    cell = served.cell
+    job's result (cancelled, recipe and version) under its id. The target may go unseen for
+    1 s here (0.1 s by default): a loaded shared test host must not end the tracking."""
+    port = free_port()
+    config = sim_config(tmp_path, opcua={"endpoint": f"opc.tcp://127.0.0.1:{port}"},
+                        servo={"lost_after_s": 1.0})
+    with _service(config) as cell:
+        _continuous_job(cell, f"opc.tcp://127.0.0.1:{port}")
+
+
+def _continuous_job(cell: Cell, url: str) -> None:
 
     async def go() -> None:
-        async with opc_client(served.url, "operator") as op, \
-                opc_client(served.url, "plc") as plc:
+        async with opc_client(url, "operator") as op, opc_client(url, "plc") as plc:
             mv = await _vision(plc)
             ns, auto = mv["ns"], mv["auto"]
             op_recipes = op.get_node(mv["recipes"].nodeid)
@@ -266,15 +286,8 @@ def test_machine_vision_mode_and_recipe_survive_a_restart(tmp_path: Path) -> Non
     config = sim_config(tmp_path, opcua={"endpoint": f"opc.tcp://127.0.0.1:{port}"})
     url = f"opc.tcp://127.0.0.1:{port}"
 
-    @contextlib.contextmanager
-    def service() -> Iterator[Cell]:
-        with running_cell(config) as cell:
-            server = OpcUaServer(cell, config.opcua, opcua_cert_dir(config))
-            server.start()
-            try:
-                yield cell
-            finally:
-                server.close()
+    def service() -> contextlib.AbstractContextManager[Cell]:
+        return _service(config)
 
     async def states() -> tuple[str, str, str]:
         async with opc_client(url, "plc") as plc:

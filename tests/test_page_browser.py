@@ -344,11 +344,11 @@ def test_recipe_choice_approaches_with_the_recipe_and_no_recipe_is_the_plain_app
     assert "plate-a was removed" in page.get_by_test_id("message").inner_text()
 
 
-def test_recipe_choice_is_off_while_a_job_runs_only_for_motion(
+def test_a_running_recipe_job_names_its_recipe_and_blocks_only_motion(
     page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
 ) -> None:
     url, r = stub
-    r.recipes[:] = [_stub_recipe("plate-a", 3, 2)]
+    r.recipes[:] = [_stub_recipe("plate-a", 3, 2, {})]
     r.status_extra["job"] = {"id": "0badf00d", "kind": "approach", "state": "running",
                              "params": {"recipe": {"name": "plate-a", "number": 3,
                                                    "version": 2, "target": "main"}},
@@ -359,6 +359,7 @@ def test_recipe_choice_is_off_while_a_job_runs_only_for_motion(
     _wait_for(lambda: page.get_by_test_id("approach").is_disabled(), what="approach disabled")
     assert "recipe plate-a v2, target main" in page.get_by_test_id("job").inner_text()
     assert page.get_by_test_id("approach-mode").is_disabled()  # the recipe's, not the page's
+    assert page.get_by_test_id("recipe").is_enabled()  # choosing is not motion
     r.status_extra["job"] = None
     r.jobs[:] = [{"id": "0badf00d", "kind": "approach", "state": "succeeded", "caller": "op",
                   "created_at": time.time(), "params": {"recipe": {
