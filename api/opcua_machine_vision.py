@@ -105,8 +105,7 @@ class MachineVision:
                         "prepared", name, err)
 
     def _remember(self) -> None:
-        """Keeps the mode and the prepared recipe; an explicit mode choice ends the wait to
-        resume automatic mode after a restart."""
+        """Writes the mode and the prepared recipe for the next start (after each change)."""
         self.memory.save(Remembered(self.automatic, self.prepared))
 
     # -- the address space ----------------------------------------------------------------------
