@@ -8,8 +8,9 @@ strings, and every method answers the standard's ``Error`` (Int32, 0: done) last
 - ``VisionSystem/VisionStateMachine``: ``CurrentState`` (Preoperational, Halted, Error,
   Operational), the methods ``SelectModeAutomatic``, ``Halt`` (stops the arm), ``Reset``, and
   the sub-machine ``VisionAutomaticModeStateMachine`` with ``CurrentState`` (Initialized,
-  Ready, SingleExecution, ContinuousExecution) and ``StartSingleJob(MeasId, PartId, RecipeId,
-  ProductId)`` -> ``JobId``, ``Stop``, ``Abort``;
+  Ready, SingleExecution, ContinuousExecution), ``StartSingleJob(MeasId, PartId, RecipeId,
+  ProductId)`` -> ``JobId`` (an approach), ``StartContinuousJob`` (same arguments; tracking
+  until stopped), ``Stop``, ``Abort``;
 - ``VisionSystem/RecipeManagement``: ``AddRecipe(ExternalId, ProductId, Content)`` ->
   ``InternalId``, ``PrepareRecipe(ExternalId)`` -> ``InternalId``, ``UnprepareRecipe``,
   ``RemoveRecipe``, ``GetRecipeListFiltered`` -> ``RecipeIds``, and ``PreparedRecipe``;
@@ -18,8 +19,16 @@ strings, and every method answers the standard's ``Error`` (Int32, 0: done) last
 
 A single job is an approach with the prepared recipe (its target, taught pose, standoff, mode);
 its result (``ResultId`` = ``r-<JobId>``) carries the JobId, the recipe and its version, the
-located pose and the job's error. The error numbers are those of the Modbus table
-(:data:`api.modbus.ERROR_NUMBERS`), so both PLC doors speak the same numbers.
+located pose and the job's error. A continuous job is tracking with the prepared recipe
+(its target, taught pose, standoff) for up to ``[servo] max_track_s``: ContinuousExecution while
+it runs, Ready again when it ends (Stop, Abort, a lost target, the time cap). The error numbers
+are those of the Modbus table (:data:`api.modbus.ERROR_NUMBERS`), so both PLC doors speak the
+same numbers.
+
+The selected mode and the prepared recipe survive a restart
+(:mod:`api.machine_vision_memory`): the system starts Preoperational with the remembered recipe
+prepared again, and enters Operational (Initialized, or Ready with the recipe) by itself once
+the arm and the camera are connected, if automatic mode was the last choice.
 """
 
 from __future__ import annotations
@@ -33,6 +42,7 @@ from typing import TYPE_CHECKING, Any
 from asyncua import Server, ua
 
 from api import remote
+from api.machine_vision_memory import MachineVisionMemory, Remembered
 from api.modbus import UNKNOWN_ERROR, error_number
 from api.remote import RemoteCaller
 from cell.recipes import parse_spec
@@ -78,6 +88,25 @@ class MachineVision:
         self.running_job = ""
         self.results: dict[str, dict[str, Any]] = {}
         self._nodes: dict[str, Any] = {}
+        self.automatic = False  # automatic mode was selected (and not halted or reset since)
+        self.memory = MachineVisionMemory.beside_job_db(opc.cell.config.api.job_db)
+        remembered = self.memory.load()
+        self._resume_automatic = remembered.automatic  # once the arm and camera are up
+        if remembered.prepared:
+            self._prepare_again(remembered.prepared)
+
+    def _prepare_again(self, name: str) -> None:
+        """The remembered recipe, prepared again (its layout loaded); gone: none prepared."""
+        try:
+            recipe, _ = remote.prepare_recipe(self.opc.cell, name)
+            self.prepared = recipe.name
+        except CellError as err:
+            log.warning("the remembered recipe %r cannot be prepared again (%s): none is "
+                        "prepared", name, err)
+
+    def _remember(self) -> None:
+        """Writes the mode and the prepared recipe for the next start (after each change)."""
+        self.memory.save(Remembered(self.automatic, self.prepared))
 
     # -- the address space ----------------------------------------------------------------------
     async def build(self) -> None:
@@ -105,6 +134,12 @@ class MachineVision:
                 _arg("RecipeId", S, "empty: the prepared recipe; else one to prepare first"),
                 _arg("ProductId", S, "the product's id (kept in the result)")],
              [_arg("JobId", S, "the job started"), ERROR_OUT]),
+            (auto, "StartContinuousJob", self._start_continuous_job, [
+                _arg("MeasId", S, "the PLC's measurement id (kept in the result)"),
+                _arg("PartId", S, "the part's id (kept in the result)"),
+                _arg("RecipeId", S, "empty: the prepared recipe; else one to prepare first"),
+                _arg("ProductId", S, "the product's id (kept in the result)")],
+             [_arg("JobId", S, "the tracking job started"), ERROR_OUT]),
             (auto, "Stop", self._stop, [], [ERROR_OUT]),
             (auto, "Abort", self._stop, [], [ERROR_OUT]),
             (recipes, "AddRecipe", self._add_recipe, [
@@ -134,8 +169,15 @@ class MachineVision:
         await self._nodes["prepared"].write_value(self.prepared)
 
     async def update(self, status: dict[str, Any], job: dict[str, Any] | None) -> None:
-        """Follows the cell: an arm fault is Error; a single job's end is its result."""
+        """Follows the cell: automatic mode resumes once the devices are up after a restart;
+        an arm fault is Error; a single or continuous job's end is its result."""
         robot = status.get("robot", {})
+        if self._resume_automatic and self.state == PREOPERATIONAL \
+                and robot.get("connected") and (status.get("camera") or {}).get("connected"):
+            self._resume_automatic = False
+            self.automatic, self.state = True, OPERATIONAL
+            self.sub_state = READY if self.prepared else INITIALIZED
+            log.info("the vision system resumed automatic mode (%s)", self.sub_state)
         fault = bool(robot.get("protective_stop")) \
             or "EMERGENCY_STOP" in str(robot.get("safety", ""))
         if fault and self.state == OPERATIONAL:
@@ -195,8 +237,10 @@ class MachineVision:
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             remote.require(self.opc.cell, caller, "approach", "select_mode_automatic", {})
             self._need(PREOPERATIONAL, OPERATIONAL)
-            self.state = OPERATIONAL
-            self.sub_state = READY if self.prepared else INITIALIZED
+            if self.state == PREOPERATIONAL:
+                self.sub_state = READY if self.prepared else INITIALIZED
+            self.state, self.automatic, self._resume_automatic = OPERATIONAL, True, False
+            self._remember()
             return []
 
         out = await self._call(work, [])
@@ -207,6 +251,8 @@ class MachineVision:
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             remote.stop(self.opc.cell, caller)
             self.state, self.sub_state = HALTED, ""
+            self.automatic = self._resume_automatic = False
+            self._remember()
             return []
 
         out = await self._call(work, [])
@@ -218,6 +264,8 @@ class MachineVision:
             remote.require(self.opc.cell, caller, "recover", "reset", {})
             self._need(HALTED, ERROR, PREOPERATIONAL)
             self.state, self.sub_state = PREOPERATIONAL, ""
+            self.automatic = self._resume_automatic = False
+            self._remember()
             return []
 
         out = await self._call(work, [])
@@ -232,20 +280,31 @@ class MachineVision:
         return await self._call(work, [])
 
     async def _start_single_job(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
+        return await self._start_job(SINGLE, args)
+
+    async def _start_continuous_job(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
+        return await self._start_job(CONTINUOUS, args)
+
+    async def _start_job(self, kind: str, args: tuple[Any, ...]) -> list[ua.Variant]:
+        """A single job (an approach) or a continuous one (tracking until stopped) with the
+        prepared recipe, or with ``RecipeId`` prepared first."""
         meas_id, part_id, recipe_id, product_id = self.opc._values(args, 4)
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             self._need(OPERATIONAL)
+            if self.sub_state in (SINGLE, CONTINUOUS):
+                raise RefusedError("busy", f"the vision system is in {self.sub_state}")
             if recipe_id:
                 recipe, _ = remote.prepare_recipe(self.opc.cell, remote.recipe_ref(recipe_id))
-                self.prepared = recipe.name
+                if recipe.name != self.prepared:
+                    self.prepared = recipe.name
+                    self._remember()
             if not self.prepared:
                 raise RefusedError("not_ready", "no recipe is prepared: PrepareRecipe first")
-            if self.sub_state == SINGLE:
-                raise RefusedError("busy", "a single job is running")
-            job = remote.approach_recipe(self.opc.cell, caller, self.prepared)
-            self.running_job, self.sub_state = job.id, SINGLE
-            log.info("single job %s (meas %s, part %s, product %s)", job.id, meas_id,
+            start = remote.approach_recipe if kind == SINGLE else remote.track_recipe
+            job = start(self.opc.cell, caller, self.prepared)
+            self.running_job, self.sub_state = job.id, kind
+            log.info("%s job %s (meas %s, part %s, product %s)", kind, job.id, meas_id,
                      part_id, product_id)
             return [ua.Variant(job.id, S)]
 
@@ -285,6 +344,7 @@ class MachineVision:
             self.prepared = recipe.name
             if self.state == OPERATIONAL and self.sub_state == INITIALIZED:
                 self.sub_state = READY
+            self._remember()
             return [ua.Variant(f"{recipe.name}@{recipe.version}", S)]
 
         out = await self._call(work, [ua.Variant("", S)])
@@ -301,6 +361,7 @@ class MachineVision:
             self.prepared = ""
             if self.state == OPERATIONAL and self.sub_state == READY:
                 self.sub_state = INITIALIZED
+            self._remember()
             return []
 
         out = await self._call(work, [])

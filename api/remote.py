@@ -199,6 +199,25 @@ def approach_recipe(cell: Cell, caller: RemoteCaller, ref: Any, target: str = ""
                          recipe=recipe.record(chosen))
 
 
+def track_recipe(cell: Cell, caller: RemoteCaller, ref: Any, target: str = "",
+                 duration_s: float | None = None) -> Job:
+    """A track job with a recipe's target: its layout, taught pose and standoff, for
+    ``duration_s`` (None: ``[servo] max_track_s``, i.e. until stopped); the job records the
+    recipe, its version and the target."""
+    params = {"recipe": ref, "target": target, "duration_s": duration_s}
+    require(cell, caller, "approach", "track", params)
+    try:
+        recipe, chosen = prepare_recipe(cell, recipe_ref(ref), target)
+        duration = cell.config.servo.max_track_s if duration_s is None \
+            else finite("duration_s", duration_s, minimum=0.0)
+        T_target_tcp = taught_T_target_tcp(cell, chosen.taught) if chosen.taught else None
+    except CellError:
+        with audited(cell, caller, "track", params):
+            raise
+    return cell.track(caller.label, standoff_mm=chosen.standoff_mm, duration_s=duration,
+                      T_target_tcp=T_target_tcp, recipe=recipe.record(chosen))
+
+
 def track(cell: Cell, caller: RemoteCaller, standoff_mm: Any, duration_s: Any) -> Job:
     params = {"standoff_mm": standoff_mm, "duration_s": duration_s}
     require(cell, caller, "approach", "track", params)

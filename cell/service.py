@@ -186,11 +186,13 @@ class Cell:
             wait_timeout_s=wait_timeout_s, mode=mode, recipe=recipe)
 
     def track(self, caller: str, *, standoff_mm: float, T_target_tcp: Matrix4 | None = None,
-              duration_s: float, wait: bool = False, wait_timeout_s: float = 120.0) -> Job:
-        """Track job: hold the TCP at the standoff pose on a moving target (cell.track)."""
+              duration_s: float, wait: bool = False, wait_timeout_s: float = 120.0,
+              recipe: dict[str, Any] | None = None) -> Job:
+        """Track job: hold the TCP at the standoff pose on a moving target (cell.track);
+        ``recipe``: the recipe record the job keeps."""
         return track.start_track(self.core, caller, standoff_mm=standoff_mm,
                                  duration_s=duration_s, T_target_tcp=T_target_tcp, wait=wait,
-                                 wait_timeout_s=wait_timeout_s)
+                                 wait_timeout_s=wait_timeout_s, recipe=recipe)
 
     def jog_step(self, caller: str, *, frame: JogFrame, translation_mm: Any,
                  rotation_deg: Any, speed_mm_s: float | None = None) -> Matrix4:

@@ -28,12 +28,15 @@ Matrix4 = NDArray[np.float64]
 
 def start_track(core: CellCore, caller: str, *, standoff_mm: float, duration_s: float,
                 T_target_tcp: Matrix4 | None = None, wait: bool = False,
-                wait_timeout_s: float = 120.0) -> Job:
+                wait_timeout_s: float = 120.0, recipe: dict[str, Any] | None = None) -> Job:
     sc = core.config.servo
     T_tt = (core.config.approach.T_target_tcp.T() if T_target_tcp is None
             else np.asarray(T_target_tcp, dtype=float))
     standoff, duration = float(standoff_mm), float(duration_s)
-    params = {"standoff_mm": standoff, "duration_s": duration, "T_target_tcp": pose_dict(T_tt)}
+    params: dict[str, Any] = {"standoff_mm": standoff, "duration_s": duration,
+                              "T_target_tcp": pose_dict(T_tt)}
+    if recipe is not None:
+        params["recipe"] = recipe  # the record of the recipe the job tracks with
     first: list[Located] = []
 
     def check(motion: Motion) -> None:

@@ -231,6 +231,7 @@ class RecordingApi:
     robot_extra: dict[str, Any] = field(default_factory=dict)  # merged into its "robot"
     jobs: list[dict[str, Any]] = field(default_factory=list)  # GET /jobs
     frame_headers: dict[str, str] = field(default_factory=dict)  # added to frame.jpg
+    recipes: list[dict[str, Any]] = field(default_factory=list)  # GET /recipes
 
     def of(self, path: str) -> list[Call]:
         with self.lock:
@@ -265,6 +266,7 @@ def recording_app(rec: RecordingApi) -> FastAPI:
     from pydantic import TypeAdapter, ValidationError
 
     from api.page import mount_page
+    from api.routes_recipes import RecipeApproachRequest
     from api.schemas import ApproachRequest, GripperRequest, JogRequest, StopRequest
 
     app = FastAPI()
@@ -281,6 +283,7 @@ def recording_app(rec: RecordingApi) -> FastAPI:
         "/api/v1/gripper": TypeAdapter(GripperRequest),
         "/api/v1/stop": TypeAdapter(StopRequest),
     }
+    recipe_schema: TypeAdapter[Any] = TypeAdapter(RecipeApproachRequest)
 
     @app.middleware("http")
     async def record(request: Request, call_next: Any) -> Any:
@@ -297,11 +300,14 @@ def recording_app(rec: RecordingApi) -> FastAPI:
         if role is None:
             return _error(401, "unauthorized", "unknown token")
         granted = stub_permissions(role) | ({"operator"} if role == "operator" else set())
-        if need.get(path, "read") not in granted:
-            return _error(403, "forbidden", f"role {role!r} may not {need.get(path, 'read')}")
-        if path in schemas and body is not None:
+        recipe_approach = re.fullmatch(r"/api/v1/recipes/[^/]+/approach", path) is not None
+        needed = "approach" if recipe_approach else need.get(path, "read")
+        if needed not in granted:
+            return _error(403, "forbidden", f"role {role!r} may not {needed}")
+        schema = recipe_schema if recipe_approach else schemas.get(path)
+        if schema is not None and body is not None:
             try:
-                schemas[path].validate_python(body)
+                schema.validate_python(body)
             except ValidationError as err:
                 return _error(422, "invalid_request", str(err))
         if path in rec.failures:
@@ -363,6 +369,22 @@ def recording_app(rec: RecordingApi) -> FastAPI:
     @app.get("/api/v1/teach")
     def taught() -> dict[str, Any]:
         return {"taught": []}
+
+    @app.get("/api/v1/recipes")
+    def recipes() -> dict[str, Any]:
+        return {"recipes": rec.recipes}
+
+    @app.post("/api/v1/recipes/{ref}/approach")
+    async def recipe_approach(ref: str, request: Request) -> Any:
+        body = RecipeApproachRequest.model_validate(await request.json())
+        found = [r for r in rec.recipes if ref in (r["name"], str(r["number"]))]
+        if not found:
+            return _error(404, "recipe_not_found", f"no recipe {ref!r}")
+        r = found[0]
+        record = {"name": r["name"], "number": r["number"], "version": r["version"],
+                  "target": body.target or r["targets"][0]["name"]}
+        return {"id": "4ec1be00", "kind": "approach", "state": "running",
+                "params": {"recipe": record}, "progress": {}, "result": None, "error": None}
 
     @app.get("/api/v1/camera/settings")
     def camera_settings() -> dict[str, Any]:

@@ -2,7 +2,8 @@
 ``tests/clients/node_opcua_jobs.js``): right after Approach returns, JobId/JobKind/JobState
 already hold the new running job, 100 times of 100; every job's end comes with its result
 (carrying the JobId) and as a JobEnded event. Also, with asyncua as the PLC: the Machine
-Vision subset (state machine, recipes, StartSingleJob, results with ids).
+Vision subset (state machine, recipes, StartSingleJob, StartContinuousJob as tracking, results
+with ids, the mode and recipe kept over a restart).
 
 node-opcua is installed with npm into ``$NODE_OPCUA_DIR`` (default
 ``~/.cache/ur-vision-cell/node-opcua``, outside the repository) the first time; without node
@@ -11,6 +12,7 @@ or npm the node-opcua test is skipped."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import shutil
@@ -20,11 +22,14 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from api.opcua import OpcUaServer
+from cell.config import CellConfig
 from cell.endpoints import opcua_cert_dir
+from cell.frames import approach_tcp
 from cell.service import Cell
 from estimator.transforms import T_from_pose_dict, pose_distance
 from tests.cell_testing import running_cell, settled_tcp, sim_config
@@ -167,3 +172,164 @@ def test_machine_vision_single_job_with_a_recipe(served: Served) -> None:
 
     asyncio.run(go())
     settled_tcp(cell)
+
+
+async def _vision(client: Any) -> dict[str, Any]:
+    """The Machine Vision nodes a PLC uses, by browse name."""
+    ns = await client.get_namespace_index("urn:ur-vision-cell")
+    vs = await client.nodes.objects.get_child(f"{ns}:VisionSystem")
+    sm = await vs.get_child(f"{ns}:VisionStateMachine")
+    auto = await sm.get_child(f"{ns}:VisionAutomaticModeStateMachine")
+    recipes = await vs.get_child(f"{ns}:RecipeManagement")
+    return {"ns": ns, "sm": sm, "auto": auto, "recipes": recipes,
+            "results": await vs.get_child(f"{ns}:ResultManagement"),
+            "state": await sm.get_child(f"{ns}:CurrentState"),
+            "sub_state": await auto.get_child(f"{ns}:CurrentState"),
+            "prepared": await recipes.get_child(f"{ns}:PreparedRecipe")}
+
+
+async def _text_becomes(node: Any, text: str, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while (await node.read_value()).Text != text:
+        assert time.monotonic() < deadline, f"not {text} after {timeout_s} s"
+        await asyncio.sleep(0.05)
+
+
+def _recipe_content(cell: Cell, standoff_mm: float, dot_diameter_mm: float | None = None
+                    ) -> str:
+    t = cell.config.target
+    return json.dumps({"targets": [{
+        "name": "plate", "points_mm": [list(p) for p in t.points_mm],
+        "dot_diameter_mm": dot_diameter_mm or t.dot_diameter_mm, "polarity": t.polarity,
+        "standoff_mm": standoff_mm}]})
+
+
+@contextlib.contextmanager
+def _service(config: CellConfig) -> Iterator[Cell]:
+    """The cell and its OPC UA server, as ``cell serve`` runs them."""
+    with running_cell(config) as cell:
+        server = OpcUaServer(cell, config.opcua, opcua_cert_dir(config))
+        server.start()
+        try:
+            yield cell
+        finally:
+            server.close()
+
+
+def test_machine_vision_continuous_job_tracks_until_stop(tmp_path: Path) -> None:
+    """StartContinuousJob is tracking with the prepared recipe: ContinuousExecution while the
+    track job runs (the arm held at the recipe's standoff from the true target), a single job
+    meanwhile refused as busy, Stop ends it and the state machine is Ready again, with the
+    job's result (cancelled, recipe and version) under its id. The target may go unseen for
+    1 s here (0.1 s by default): a loaded shared test host must not end the tracking."""
+    port = free_port()
+    config = sim_config(tmp_path, opcua={"endpoint": f"opc.tcp://127.0.0.1:{port}"},
+                        servo={"lost_after_s": 1.0})
+    with _service(config) as cell:
+        _continuous_job(cell, f"opc.tcp://127.0.0.1:{port}")
+
+
+def _continuous_job(cell: Cell, url: str) -> None:
+
+    async def go() -> None:
+        async with opc_client(url, "operator") as op, opc_client(url, "plc") as plc:
+            mv = await _vision(plc)
+            ns, auto = mv["ns"], mv["auto"]
+            op_recipes = op.get_node(mv["recipes"].nodeid)
+            out = await op_recipes.call_method(f"{ns}:AddRecipe", "plate-c", "9",
+                                               _recipe_content(cell, 70.0))
+            assert out == ["plate-c@1", 0], out
+            assert await mv["sm"].call_method(f"{ns}:SelectModeAutomatic") == 0
+            job_id, error = await auto.call_method(
+                f"{ns}:StartContinuousJob", "m1", "p1", "9", "prod")
+            assert error == 0 and job_id
+            assert (await mv["sub_state"].read_value()).Text == "ContinuousExecution"
+            job = cell.job(job_id)
+            assert job.kind == "track" and job.state == "running"
+            assert job.params["recipe"] == {"name": "plate-c", "number": 9, "version": 1,
+                                            "target": "plate"}
+            assert job.params["standoff_mm"] == 70.0
+            assert job.params["duration_s"] == cell.config.servo.max_track_s
+            # holding the standoff pose on the target (simulated truth, not the cell's view)
+            assert cell.sim is not None
+            goal = approach_tcp(cell.sim.true_T_base_target(),
+                                cell.config.approach.T_target_tcp.T(), 70.0)
+            deadline = time.monotonic() + 60
+            while pose_distance(cell.sim.true_T_base_tcp(), goal)[0] > 2.0:
+                assert time.monotonic() < deadline, "tracking did not reach the standoff"
+                assert cell.job(job_id).state == "running", cell.job(job_id).error_message
+                await asyncio.sleep(0.1)
+            out = await auto.call_method(
+                f"{ns}:StartSingleJob", "m2", "p2", "", "")
+            assert out[0] == "" and out[1] == 3  # busy
+            assert cell.job(job_id).state == "running"  # the refusal changed nothing
+            assert await auto.call_method(f"{ns}:Stop") == 0
+            await _text_becomes(mv["sub_state"], "Ready", 30)
+            assert cell.job(job_id).state == "cancelled"
+            body, error = await mv["results"].call_method(
+                f"{ns}:GetResultById", f"r-{job_id}")
+            assert error == 0
+            r = json.loads(body)
+            assert r["state"] == "cancelled" and r["recipe"]["name"] == "plate-c"
+            assert (await mv["state"].read_value()).Text == "Operational"
+
+    asyncio.run(go())
+    settled_tcp(cell)
+
+
+def test_machine_vision_mode_and_recipe_survive_a_restart(tmp_path: Path) -> None:
+    """After a restart of the service (cell and OPC UA server) on the same state dir, the
+    remembered recipe is prepared again (its layout is the locator's) and automatic mode
+    resumes: Operational/Ready. After a Halt the next start stays Preoperational (recipe
+    still prepared); an unreadable memory file starts Preoperational with nothing prepared."""
+    port = free_port()
+    config = sim_config(tmp_path, opcua={"endpoint": f"opc.tcp://127.0.0.1:{port}"})
+    url = f"opc.tcp://127.0.0.1:{port}"
+
+    def service() -> contextlib.AbstractContextManager[Cell]:
+        return _service(config)
+
+    async def states() -> tuple[str, str, str]:
+        async with opc_client(url, "plc") as plc:
+            mv = await _vision(plc)
+            return ((await mv["state"].read_value()).Text,
+                    (await mv["sub_state"].read_value()).Text,
+                    await mv["prepared"].read_value())
+
+    recipe_dot_mm = config.target.dot_diameter_mm + 1.5  # tells its layout from the config's
+
+    async def set_up(cell: Cell) -> None:
+        async with opc_client(url, "operator") as op:
+            mv = await _vision(op)
+            ns = mv["ns"]
+            out = await mv["recipes"].call_method(
+                f"{ns}:AddRecipe", "plate-r", "11", _recipe_content(cell, 50.0, recipe_dot_mm))
+            assert out == ["plate-r@1", 0], out
+            assert await mv["sm"].call_method(f"{ns}:SelectModeAutomatic") == 0
+            assert (await mv["recipes"].call_method(
+                f"{ns}:PrepareRecipe", "plate-r")) == ["plate-r@1", 0]
+
+    async def halt() -> None:
+        async with opc_client(url, "operator") as op:
+            mv = await _vision(op)
+            assert await mv["sm"].call_method(f"{mv['ns']}:Halt") == 0
+
+    with service() as cell:
+        assert asyncio.run(states()) == ("Preoperational", "", "")
+        asyncio.run(set_up(cell))
+        assert asyncio.run(states()) == ("Operational", "Ready", "plate-r")
+    assert json.loads((tmp_path / "machine_vision.json").read_text()) == {
+        "automatic": True, "prepared": "plate-r"}
+
+    with service() as cell:
+        assert asyncio.run(states()) == ("Operational", "Ready", "plate-r")
+        assert cell.core.locator.target.dot_diameter_mm == recipe_dot_mm
+        asyncio.run(halt())
+    with service() as cell:
+        assert asyncio.run(states()) == ("Preoperational", "", "plate-r")
+        assert cell.core.locator.target.dot_diameter_mm == recipe_dot_mm
+
+    (tmp_path / "machine_vision.json").write_text("{not json")
+    with service() as cell:
+        assert asyncio.run(states()) == ("Preoperational", "", "")
+        assert cell.core.locator.target.dot_diameter_mm == config.target.dot_diameter_mm

@@ -14,6 +14,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -68,6 +69,7 @@ def rec(stub: tuple[str, RecordingApi]) -> RecordingApi:
     r.robot_extra.clear()
     r.jobs.clear()
     r.frame_headers.clear()
+    r.recipes.clear()
     return r
 
 
@@ -90,6 +92,7 @@ def _hold_start(page: Any, testid: str) -> None:
 
 NEEDS = {  # control -> the API permission it uses (api.auth); "operator": that role only
     "locate": "locate", "approach": "approach", "standoff": "approach", "taught": "approach",
+    "recipe": "approach",
     "gripper-open": "gripper", "gripper-close": "gripper", **dict.fromkeys(JOG_BUTTONS, "jog"),
     "cam-apply": "camera", "cam-iso": "camera", "home": "operator", "unlock": "operator",
     "teach": "operator", "teach-name": "operator", "calib-start": "operator",
@@ -267,6 +270,105 @@ def test_api_refusals_are_shown_in_words(
     page.get_by_test_id("approach").click()
     _wait_for(lambda: "standoff" in msg.inner_text(), what="input message")
     assert len(rec.of("/api/v1/approach")) == 1  # refused before anything was sent
+
+
+PLATE = [[0, 0, 0], [40, 0, 0], [0, 30, 0], [40, 30, 0]]
+
+
+def _stub_recipe(name: str, number: int, version: int, *targets: dict[str, Any]
+                 ) -> dict[str, Any]:
+    full = [{"name": "main", "points_mm": PLATE, "dot_diameter_mm": 6.0, "polarity": "dark",
+             "taught": "", "standoff_mm": 50.0, "mode": "look_and_move", "speed_mm_s": 150.0,
+             **t} for t in targets]
+    return {"name": name, "number": number, "description": "", "targets": full,
+            "version": version, "saved_by": "operator(operator)", "saved_at": time.time()}
+
+
+def test_recipe_choice_approaches_with_the_recipe_and_no_recipe_is_the_plain_approach(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    url, r = stub
+    r.recipes[:] = [
+        _stub_recipe("plate-a", 3, 2, {"standoff_mm": 45.0}),
+        _stub_recipe("plate-b", 4, 3, {"name": "top", "standoff_mm": 70.0, "mode": "servo",
+                                       "taught": "grasp-a"},
+                     {"name": "side", "standoff_mm": 60.0})]
+    login(page, url, "tok-operator")
+    choice = page.get_by_test_id("recipe")
+    _wait_for(lambda: choice.locator("option").count() == 3, what="recipe list")
+    assert choice.locator("option").all_inner_texts() == [
+        "no recipe", "plate-a v2 (no. 3)", "plate-b v3 (no. 4)"]
+    assert choice.input_value() == ""  # the default keeps the plain approach
+    page.get_by_test_id("standoff").fill("35")
+
+    choice.select_option("plate-b")
+    target = page.get_by_test_id("recipe-target")
+    assert target.is_visible() and target.input_value() == "top"
+    assert page.get_by_test_id("standoff").input_value() == "70"
+    assert "servo" in page.get_by_test_id("recipe-note").inner_text()
+    assert "grasp-a" in page.get_by_test_id("recipe-note").inner_text()
+    # the recipe's mode and tool pose apply: the page's choices are off
+    assert page.get_by_test_id("approach-mode").is_disabled()
+    assert page.get_by_test_id("taught").is_disabled()
+    target.select_option("side")
+    assert page.get_by_test_id("standoff").input_value() == "60"
+    record = {"name": "plate-b", "number": 4, "version": 3, "target": "side"}
+    r.jobs[:] = [{"id": "4ec1be00", "kind": "approach", "state": "succeeded", "caller": "op",
+                  "created_at": time.time(), "params": {"recipe": record},
+                  "result": {"reach_error_mm": 0.3}}]  # how the job ends
+    page.get_by_test_id("approach").click()
+    _wait_for(lambda: rec.of("/api/v1/recipes/plate-b/approach"), what="recipe approach")
+    (sent,) = rec.of("/api/v1/recipes/plate-b/approach")
+    assert sent.method == "POST" and sent.body == {"target": "side", "standoff_mm": 60}
+    assert not rec.of("/api/v1/approach")
+    job = page.get_by_test_id("job")
+    _wait_for(lambda: "succeeded" in job.inner_text(), what="the job's end")
+    assert "4ec1be00 · recipe plate-b v3, target side: succeeded" in job.inner_text()
+
+    choice.select_option("plate-a")  # one target: no target choice offered
+    assert page.get_by_test_id("recipe-target").is_hidden()
+    assert page.get_by_test_id("standoff").input_value() == "45"
+    choice.select_option("")
+    assert page.get_by_test_id("standoff").input_value() == "35"  # the operator's own value
+    assert page.get_by_test_id("approach-mode").is_enabled()
+    assert page.get_by_test_id("taught").is_enabled()
+    page.get_by_test_id("approach").click()
+    _wait_for(lambda: rec.of("/api/v1/approach"), what="plain approach")
+    assert rec.of("/api/v1/approach")[0].body == {"standoff_mm": 35, "wait": False}
+    assert len(rec.of("/api/v1/recipes/plate-b/approach")) == 1
+
+    # a recipe removed elsewhere while chosen: the choice goes back to none, said so
+    choice.select_option("plate-a")
+    del r.recipes[0]
+    _wait_for(lambda: choice.input_value() == "", timeout_s=10, what="removed recipe unchosen")
+    assert "plate-a was removed" in page.get_by_test_id("message").inner_text()
+
+
+def test_a_running_recipe_job_names_its_recipe_and_blocks_only_motion(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    url, r = stub
+    r.recipes[:] = [_stub_recipe("plate-a", 3, 2, {})]
+    r.status_extra["job"] = {"id": "0badf00d", "kind": "approach", "state": "running",
+                             "params": {"recipe": {"name": "plate-a", "number": 3,
+                                                   "version": 2, "target": "main"}},
+                             "progress": {"phase": "moving"}}
+    login(page, url, "tok-operator")
+    page.get_by_test_id("recipe").locator("option").nth(1).wait_for(state="attached")
+    page.get_by_test_id("recipe").select_option("plate-a")
+    _wait_for(lambda: page.get_by_test_id("approach").is_disabled(), what="approach disabled")
+    assert "recipe plate-a v2, target main" in page.get_by_test_id("job").inner_text()
+    assert page.get_by_test_id("approach-mode").is_disabled()  # the recipe's, not the page's
+    assert page.get_by_test_id("recipe").is_enabled()  # choosing is not motion
+    r.status_extra["job"] = None
+    r.jobs[:] = [{"id": "0badf00d", "kind": "approach", "state": "succeeded", "caller": "op",
+                  "created_at": time.time(), "params": {"recipe": {
+                      "name": "plate-a", "number": 3, "version": 2, "target": "main"}},
+                  "result": {"reach_error_mm": 0.4}}]
+    _wait_for(lambda: page.get_by_test_id("approach").is_enabled(), what="approach enabled")
+    assert page.get_by_test_id("approach-mode").is_disabled()
+    _wait_for(lambda: "recipe plate-a v2" in page.get_by_test_id("history").inner_text(),
+              timeout_s=10, what="recipe in the history")
 
 
 def test_stop_works_for_every_role(
@@ -541,3 +643,60 @@ def test_sim_cell_live_view_jog_approach_and_stop(page: Any, sim_cell: str) -> N
     _wait_for(lambda: re.search("cancel|stop|fail", page.get_by_test_id("job").inner_text()),
               5, "job shown as ended")
     screenshot(page, "operator-page-sim-after-stop")
+
+
+def _truth(url: str) -> dict[str, Any]:
+    r = httpx.get(f"{url}/api/v1/sim/truth", timeout=5.0,
+                  headers={"Authorization": f"Bearer {SIM_OPERATOR}"})
+    r.raise_for_status()
+    return dict(r.json())
+
+
+def test_sim_cell_approach_with_a_recipe_chosen_on_the_page(page: Any, sim_cell: str) -> None:
+    """Two versions of a recipe saved over HTTP; the operator chooses it on the page: the
+    approach job records that recipe and its newest version, the page's job line says so, and
+    the arm stands at the recipe's standoff from the true target."""
+    from cell.config import load_config
+    from cell.frames import approach_tcp
+    from estimator.transforms import T_from_pose_dict, pose_distance
+
+    url = sim_cell
+    config = load_config(Path(__file__).resolve().parents[1] / "cell" / "configs" / "sim.toml")
+    t = config.target
+    auth = {"Authorization": f"Bearer {SIM_OPERATOR}"}
+    for standoff_mm in (80.0, 60.0):  # version 1, then version 2
+        spec = {"name": "plate-page", "number": 21, "targets": [{
+            "name": "main", "points_mm": [list(p) for p in t.points_mm],
+            "dot_diameter_mm": t.dot_diameter_mm, "polarity": t.polarity,
+            "standoff_mm": standoff_mm, "speed_mm_s": 200.0}]}
+        r = httpx.put(f"{url}/api/v1/recipes", json=spec, headers=auth, timeout=10.0)
+        assert r.status_code == 200, r.text
+    assert r.json()["version"] == 2
+
+    login(page, url, SIM_OPERATOR)
+    choice = page.get_by_test_id("recipe")
+    _wait_for(lambda: "plate-page v2 (no. 21)" in choice.locator("option").all_inner_texts(),
+              10, "the recipe on the page")
+    page.get_by_test_id("stop").click()  # nothing left running from an earlier test
+    _wait_for(lambda: page.get_by_test_id("approach").is_enabled(), 15, "approach enabled")
+    choice.select_option("plate-page")
+    assert page.get_by_test_id("standoff").input_value() == "60"
+    page.get_by_test_id("approach").click()
+    job_line = page.get_by_test_id("job")
+    _wait_for(lambda: "succeeded" in job_line.inner_text()
+              or "failed" in job_line.inner_text(), 90, "the approach's end")
+    text = job_line.inner_text()
+    assert "recipe plate-page v2, target main: succeeded" in text, text
+    job_id = text.split()[1]
+    job = httpx.get(f"{url}/api/v1/jobs/{job_id}", headers=auth, timeout=5.0).json()
+    assert job["state"] == "succeeded"
+    assert job["params"]["recipe"] == {"name": "plate-page", "number": 21, "version": 2,
+                                       "target": "main"}
+    assert job["params"]["standoff_mm"] == 60.0
+    truth = _truth(url)
+    goal = approach_tcp(T_from_pose_dict(truth["T_base_target"]),
+                        config.approach.T_target_tcp.T(), 60.0)
+    d_mm, _ = pose_distance(T_from_pose_dict(truth["T_base_tcp"]), goal)
+    print(f"page recipe approach: TCP {d_mm:.2f} mm from the recipe's standoff goal (truth)")
+    assert d_mm < 2.0
+    screenshot(page, "operator-page-sim-recipe")

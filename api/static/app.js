@@ -179,6 +179,7 @@ function applyRole() {
     el.disabled = !allowed.has(el.dataset.needs) || busy;
   });
   if (!state.calibJob || state.calibJob.state !== "succeeded") $("calib-apply").disabled = true;
+  applyRecipeChoice();
   $("role").textContent = state.token ? `role: ${state.role || "unknown"}` : "";
   $("logout").hidden = !state.token;
   $("login").hidden = !!state.token;
@@ -215,6 +216,7 @@ async function login(token) {
   say(state.role ? `Logged in as ${state.role}.` : "Logged in.", "info");
   state.settingsLoaded = false;
   loadTaught();
+  loadRecipes();
   loadCameraSettings();
   refreshLogs();
   refreshImages();
@@ -322,7 +324,7 @@ function renderJob(job) {
     return;
   }
   const p = job.progress || {};
-  let text = `${job.kind || "job"} ${job.id}: ${job.state.replace(/_/g, " ")}`;
+  let text = `${job.kind || "job"} ${job.id}${recipeLabel(job)}: ${job.state.replace(/_/g, " ")}`;
   if (job.state === "running") {
     // The number of look-and-move cycles is not known in advance: show the phase, and an
     // indeterminate bar rather than a made-up percentage.
@@ -606,6 +608,7 @@ function wireCommands() {
     if (!Number.isFinite(standoff) || $("standoff").value === "" || standoff < 0) {
       throw new ApiError("the standoff must be a distance in millimetres, 0 or more", 0, "input");
     }
+    if (chosenRecipe()) return approachWithRecipe(standoff);
     // "" (the first option): no mode in the body, so the config's [approach] mode applies
     const body = { standoff_mm: standoff, mode: $("approach-mode").value || undefined,
                    wait: false };
@@ -770,7 +773,7 @@ async function refreshHistory() {
     const detail = j.error ? j.error.message
       : Number.isFinite(res.reach_error_mm) ? `reached within ${fmt(res.reach_error_mm, 2)} mm` : "";
     return el("tr", { dataset: { state: j.state, jobId: j.id } },
-      el("td", { textContent: when(j.created_at) }), el("td", { textContent: `${j.kind} ${j.id}` }),
+      el("td", { textContent: when(j.created_at) }), el("td", { textContent: `${j.kind} ${j.id}${recipeLabel(j)}` }),
       el("td", { textContent: j.state }), el("td", { textContent: j.caller }),
       el("td", { textContent: detail }));
   }));
@@ -780,7 +783,7 @@ async function refreshHistory() {
 async function refreshLogs() {
   if (!state.token) return;
   try {
-    await Promise.all([refreshAlarmLog(), refreshHistory(), refreshImages()]);
+    await Promise.all([refreshAlarmLog(), refreshHistory(), refreshImages(), loadRecipes()]);
   } catch (e) { /* retried on the next round */ }
 }
 
@@ -984,11 +987,128 @@ function wireExtras() {
   }));
 }
 
+// ---------------------------------------------------------------------------------------------
+// Recipes: the Approach controls' recipe choice (GET /recipes). "no recipe" is the plain
+// approach as before; a recipe brings its target's dot layout, tool pose, mode and speed
+// (POST /recipes/{name}/approach), so the page's mode and tool pose choices do not apply
+// and are disabled. Its standoff is shown in the standoff field (what is shown is sent); the
+// operator's own value comes back with "no recipe". The job line names the recipe and version
+// from the job's record (params.recipe), which is what the cell really ran.
+
+const recipes = { list: [], key: "", manualStandoff: null };
+
+function recipeLabel(job) {
+  const r = job && job.params && job.params.recipe;
+  if (!r || typeof r !== "object" || !r.name) return "";
+  return ` · recipe ${r.name} v${r.version}${r.target ? `, target ${r.target}` : ""}`;
+}
+
+function chosenRecipe() {
+  const name = $("recipe").value;
+  return name ? recipes.list.find((r) => r.name === name) || null : null;
+}
+
+function recipeTarget(recipe) {
+  const name = $("recipe-target").value;
+  return recipe.targets.find((t) => t.name === name) || recipe.targets[0];
+}
+
+async function loadRecipes() {
+  if (!state.token) return;
+  let r;
+  try {
+    r = await api("GET", "/recipes", undefined, { timeoutMs: 3000 });
+  } catch (e) {
+    return; // a service without recipes: "no recipe" stays the only choice
+  }
+  const list = Array.isArray(r.recipes) ? r.recipes : [];
+  const key = list.map((x) => `${x.name}@${x.version}`).join(",");
+  if (key === recipes.key) return; // rebuilding an open select would close it
+  const sel = $("recipe");
+  const keep = sel.value;
+  const before = chosenRecipe();
+  recipes.list = list;
+  recipes.key = key;
+  sel.replaceChildren(el("option", { value: "", textContent: "no recipe" }),
+    ...list.map((x) => el("option", { value: x.name,
+      textContent: `${x.name} v${x.version} (no. ${x.number})` })));
+  if (keep && !list.some((x) => x.name === keep)) {
+    sel.value = "";
+    chooseRecipe();
+    say(`Recipe ${keep} was removed: no recipe is selected.`);
+    return;
+  }
+  sel.value = keep;
+  const now = chosenRecipe();
+  // a new version of the chosen recipe: its targets and standoff are shown afresh
+  if (now && (!before || before.version !== now.version)) chooseRecipe();
+}
+
+// The selection changed (or its recipe got a new version): targets, standoff, note.
+function chooseRecipe() {
+  const recipe = chosenRecipe();
+  const targetSel = $("recipe-target");
+  const keepTarget = targetSel.value;
+  if (recipe) {
+    if (recipes.manualStandoff === null) recipes.manualStandoff = $("standoff").value;
+    targetSel.replaceChildren(...recipe.targets.map((t) => el("option",
+      { value: t.name, textContent: t.name })));
+    targetSel.value = recipe.targets.some((t) => t.name === keepTarget) ? keepTarget
+      : recipe.targets[0].name;
+    $("recipe-target-label").hidden = recipe.targets.length < 2;
+    $("standoff").value = String(recipeTarget(recipe).standoff_mm);
+  } else {
+    targetSel.replaceChildren();
+    $("recipe-target-label").hidden = true;
+    if (recipes.manualStandoff !== null) $("standoff").value = recipes.manualStandoff;
+    recipes.manualStandoff = null;
+  }
+  showRecipeNote();
+  applyRole();
+}
+
+function showRecipeNote() {
+  const recipe = chosenRecipe();
+  if (!recipe) { $("recipe-note").textContent = ""; return; }
+  const t = recipeTarget(recipe);
+  $("recipe-note").textContent = `${t.mode.replace(/_/g, "-")}, tool pose ${t.taught || "default (config)"}, `
+    + `${fmt(t.speed_mm_s, 0)} mm/s, ${t.points_mm.length} dots`;
+}
+
+// Called by applyRole: with a recipe chosen, its tool pose and mode apply, not the page's.
+function applyRecipeChoice() {
+  if (!chosenRecipe()) return;
+  $("approach-mode").disabled = true;
+  $("taught").disabled = true;
+}
+
+async function approachWithRecipe(standoff) {
+  const recipe = chosenRecipe();
+  const body = { target: recipeTarget(recipe).name, standoff_mm: standoff };
+  const job = await api("POST", `/recipes/${encodeURIComponent(recipe.name)}/approach`, body);
+  state.lastJob = job;
+  state.resultJobId = job.id;
+  renderJob(job);
+  const r = (job.params && job.params.recipe) || {};
+  return `approach with recipe ${r.name || recipe.name} v${r.version || recipe.version} `
+    + `started (job ${job.id})`;
+}
+
+function wireRecipes() {
+  $("recipe").addEventListener("change", () => { clearError(); chooseRecipe(); });
+  $("recipe-target").addEventListener("change", () => {
+    const recipe = chosenRecipe();
+    if (recipe) $("standoff").value = String(recipeTarget(recipe).standoff_mm);
+    showRecipeNote();
+  });
+}
+
 const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
 
 function main() {
   wireJogButtons();
   wireCommands();
+  wireRecipes();
   applyRole();
   if (state.token) login(state.token);
   statusLoop();
