@@ -198,7 +198,7 @@ class ApproachConfig(_Strict):
     # choice). Servo is 3.75x faster at an equal final error (cell bench approach), but on a
     # loaded 2-core host 3-5 of 10 servo runs still end target_lost at the default
     # [servo] lost_after_s (look-and-move: 10 of 10), so look-and-move stays the default
-    # until servo holds under load (README: Servo benchmark).
+    # until servo holds under load (docs/performance.md, the approach benchmark).
     mode: Literal["servo", "look_and_move"] = "look_and_move"
 
 

@@ -1,5 +1,5 @@
 """Deployment on a cell PC: the systemd unit in the repo passes ``systemd-analyze verify`` (when
-systemd is present) and says what the README promises, and ``cell serve --log-format json``
+systemd is present) and says what docs/deployment.md promises, and ``cell serve --log-format json``
 writes one JSON object per line, the service's own records and uvicorn's access log alike."""
 
 from __future__ import annotations
