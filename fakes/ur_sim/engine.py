@@ -68,6 +68,7 @@ from fakes.ur_sim.state import (
     as_vector,
     positive_number,
 )
+from fakes.ur_sim.step_context import StepContext
 
 Floats = tuple[float, ...]  # a pose or twist as a snapshot carries it
 
@@ -319,7 +320,7 @@ class MotionEngine:
         cmd = self._cmd
         assert cmd is not None
         try:
-            out = cmd.step(self, now, dt)
+            out = cmd.step(self._step_context(), now, dt)
         except SafetyTrip as trip:
             self._protective_stop(str(trip), now)
             return
@@ -336,6 +337,9 @@ class MotionEngine:
             if cmd.name == "emergency_stop":  # category 1: power goes once the arm is at rest
                 self._robot_mode = RobotMode.POWER_OFF
             self._finish(CommandOutcome.SUCCEEDED)
+
+    def _step_context(self) -> StepContext:
+        return StepContext(self._q, self._qd, self._speed_fraction, self._kin, self.limits)
 
     def _violation(self, q: Vec, qd: Vec) -> str:
         lim = self.limits
@@ -894,7 +898,8 @@ class MotionEngine:
             if float(np.linalg.norm(twist[:3])) > self.limits.max_tcp_speed_m_s:
                 self._trip(f"{name} above the tool speed limit")
             target = np.concatenate([twist[:3] * 1000.0, twist[3:]])
-            cmd = SpeedL(self._new_id(), name, self, target, frame, a * 1000.0, a, expire)
+            cmd = SpeedL(self._new_id(), name, self._step_context(), target, frame, a * 1000.0, a,
+                         expire)
             return self._install(cmd)
 
     def jog_stop(self, decel_m_s2: float = 0.5) -> None:
