@@ -17,7 +17,7 @@ from collections.abc import Callable
 import numpy as np
 
 from estimator.transforms import T_from_ur_pose
-from fakes.ur_sim.clock import ControllerClock
+from fakes.ur_sim.clock import CycleClock
 from fakes.ur_sim.commands import Brake, Command, Then
 from fakes.ur_sim.kinematics import UnreachableError, UR5eKinematics
 from fakes.ur_sim.state import (
@@ -58,7 +58,7 @@ class ArmCore:
         self.next_id = 1
         self.outcomes: dict[int, CommandOutcome] = {}
         self.timers: list[tuple[float, str]] = []  # (due monotonic, event)
-        self.clock = ControllerClock()
+        self.clock = CycleClock()
         # the protocol layer's per-cycle hook (see MotionEngine.set_cycle_hook)
         self.hook: Callable[[], None] | None = None
         self.hook_wants: Callable[[], bool] | None = None

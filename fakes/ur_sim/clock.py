@@ -14,7 +14,7 @@ from fakes.ur_sim.state import CYCLE_S
 MAX_CATCH_UP_CYCLES = 500  # a host stall up to 1 s is caught up cycle by cycle
 
 
-class ControllerClock:
+class CycleClock:
     """Cycles since start; callers hold the engine lock."""
 
     def __init__(self) -> None:
