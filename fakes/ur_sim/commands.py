@@ -1,14 +1,14 @@
 """What the simulated arm can be doing: one class per kind of motion command.
 
-Each command advances itself to ``now`` from the engine's state in :meth:`Command.step`; the
-engine owns the state, the safety checks and the thread.
+Each command advances itself to ``now`` in :meth:`Command.step` from a read-only
+:class:`~fakes.ur_sim.step_context.StepContext` of the arm; the engine owns the state, the
+safety checks and the thread, and commands know nothing of it.
 """
 
 from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -16,9 +16,7 @@ from scipy.spatial.transform import Rotation
 from fakes.ur_sim.kinematics import UnreachableError
 from fakes.ur_sim.profiles import BlendedLinearPath, JointProfile
 from fakes.ur_sim.state import CYCLE_S, JogFeature, Vec
-
-if TYPE_CHECKING:
-    from fakes.ur_sim.engine import MotionEngine
+from fakes.ur_sim.step_context import StepContext
 
 
 class SafetyTrip(Exception):
@@ -34,7 +32,7 @@ class Step:
 
 
 class Command:
-    """One thing the arm is doing. ``step`` advances it to ``now`` from the engine state."""
+    """One thing the arm is doing. ``step`` advances it to ``now`` from the arm's state."""
 
     limited = True  # subject to the run-time safety checks (brakes are not)
 
@@ -43,7 +41,7 @@ class Command:
         self.name = name
         self.progress = -1
 
-    def step(self, eng: MotionEngine, now: float, dt: float) -> Step:
+    def step(self, ctx: StepContext, now: float, dt: float) -> Step:
         raise NotImplementedError
 
 
@@ -63,7 +61,7 @@ class Brake(Command):
     def q_end(self) -> Vec:
         return self.q0 + 0.5 * self.T * self.qd0
 
-    def step(self, eng: MotionEngine, now: float, dt: float) -> Step:
+    def step(self, ctx: StepContext, now: float, dt: float) -> Step:
         self.t += dt
         if self.t >= self.T:
             z = np.zeros(6)
@@ -82,12 +80,12 @@ class Then(Command):
         self.first, self.second = first, second
         self.limited = True
 
-    def step(self, eng: MotionEngine, now: float, dt: float) -> Step:
+    def step(self, ctx: StepContext, now: float, dt: float) -> Step:
         if self.first is not None and self.first.t < self.first.T:
-            out = self.first.step(eng, now, dt)
+            out = self.first.step(ctx, now, dt)
             out.done = False
             return out
-        out = self.second.step(eng, now, dt)
+        out = self.second.step(ctx, now, dt)
         self.progress = self.second.progress
         return out
 
@@ -99,8 +97,8 @@ class MoveJ(Command):
         self.tau = 0.0
         self.progress = 0
 
-    def step(self, eng: MotionEngine, now: float, dt: float) -> Step:
-        f = eng._speed_fraction
+    def step(self, ctx: StepContext, now: float, dt: float) -> Step:
+        f = ctx.speed_fraction
         self.tau += dt * f
         q, qd, qdd = self.profile.at(self.tau)
         return Step(q, qd * f, qdd * f * f, self.tau >= self.profile.duration_s)
@@ -117,19 +115,19 @@ class MoveL(Command):
         self.first_entry = first_entry
         self.progress = first_entry
 
-    def step(self, eng: MotionEngine, now: float, dt: float) -> Step:
-        self.tau += dt * eng._speed_fraction
+    def step(self, ctx: StepContext, now: float, dt: float) -> Step:
+        self.tau += dt * ctx.speed_fraction
         done = self.tau >= self.path.duration_s
         self.progress = self.first_entry + self.path.index_at(self.tau)
         T = self.path.pose_at(self.tau)
         try:
             # the closed form lands the final pose exactly; Newton is plenty in between
-            q = (eng._kin.inverse_tcp(T, eng._q) if done
-                 else eng._kin.inverse_tcp_local(T, eng._q, eng._q + eng._qd * dt))
+            q = (ctx.kin.inverse_tcp(T, ctx.q) if done
+                 else ctx.kin.inverse_tcp_local(T, ctx.q, ctx.q + ctx.qd * dt))
         except UnreachableError as err:
             raise SafetyTrip("linear move lost its inverse kinematics") from err
-        qd = (q - eng._q) / dt if dt > 0 else np.zeros(6)
-        return Step(q, qd, (qd - eng._qd) / dt if dt > 0 else np.zeros(6), done)
+        qd = (q - ctx.q) / dt if dt > 0 else np.zeros(6)
+        return Step(q, qd, (qd - ctx.qd) / dt if dt > 0 else np.zeros(6), done)
 
 
 class PathMove(Command):
@@ -139,9 +137,9 @@ class PathMove(Command):
         self.index = 0
         self.progress = 0
 
-    def step(self, eng: MotionEngine, now: float, dt: float) -> Step:
+    def step(self, ctx: StepContext, now: float, dt: float) -> Step:
         seg = self.segments[self.index]
-        out = seg.step(eng, now, dt)
+        out = seg.step(ctx, now, dt)
         self.progress = seg.progress
         if out.done and self.index + 1 < len(self.segments):
             self.index += 1
@@ -161,13 +159,13 @@ class SpeedJ(Command):
     def stop(self, decel: float, now: float) -> None:
         self.accel, self.expire_at = decel, now
 
-    def step(self, eng: MotionEngine, now: float, dt: float) -> Step:
+    def step(self, ctx: StepContext, now: float, dt: float) -> Step:
         stopping = self.expire_at is not None and now >= self.expire_at
         target = np.zeros(6) if stopping else self.target
         dv = target - self.qd
         m = float(np.max(np.abs(dv)))
         new = self.qd + dv * min(1.0, self.accel * dt / m) if m > 0 else self.qd.copy()
-        q = eng._q + 0.5 * (self.qd + new) * dt
+        q = ctx.q + 0.5 * (self.qd + new) * dt
         qdd = (new - self.qd) / dt if dt > 0 else np.zeros(6)
         self.qd = new
         return Step(q, new.copy(), qdd, stopping and not np.any(new))
@@ -176,11 +174,11 @@ class SpeedJ(Command):
 class SpeedL(Command):
     """Cartesian velocity (base or tool frame) integrated on the TCP pose, joints by IK."""
 
-    def __init__(self, cid: int, name: str, eng: MotionEngine, target: Vec, frame: JogFeature,
+    def __init__(self, cid: int, name: str, ctx: StepContext, target: Vec, frame: JogFeature,
                  accel_mm_s2: float, accel_rad_s2: float, expire_at: float | None) -> None:
         super().__init__(cid, name)
-        self.T = eng._kin.forward_tcp(eng._q)
-        self.twist = eng._kin.jacobian_tcp(eng._q) @ eng._qd
+        self.T = ctx.kin.forward_tcp(ctx.q)
+        self.twist = ctx.kin.jacobian_tcp(ctx.q) @ ctx.qd
         self.target, self.frame = target, frame
         self.acc_lin, self.acc_rot, self.expire_at = accel_mm_s2, accel_rad_s2, expire_at
 
@@ -193,7 +191,7 @@ class SpeedL(Command):
         m = float(np.linalg.norm(dv))
         return cur + dv * min(1.0, accel * dt / m) if m > 0 else cur.copy()
 
-    def step(self, eng: MotionEngine, now: float, dt: float) -> Step:
+    def step(self, ctx: StepContext, now: float, dt: float) -> Step:
         stopping = self.expire_at is not None and now >= self.expire_at
         target = np.zeros(6) if stopping else self.target.copy()
         if self.frame == "tool" and not stopping:
@@ -207,12 +205,12 @@ class SpeedL(Command):
         T[:3, :3] = (Rotation.from_rotvec(mean[3:] * dt) * Rotation.from_matrix(T[:3, :3])
                      ).as_matrix()
         try:
-            q = eng._kin.inverse_tcp_local(T, eng._q, eng._q + eng._qd * dt)
+            q = ctx.kin.inverse_tcp_local(T, ctx.q, ctx.q + ctx.qd * dt)
         except UnreachableError as err:
             raise SafetyTrip("Cartesian speed command left the reachable workspace") from err
         self.T, self.twist = T, new
-        qd = (q - eng._q) / dt if dt > 0 else np.zeros(6)
-        return Step(q, qd, (qd - eng._qd) / dt if dt > 0 else np.zeros(6),
+        qd = (q - ctx.q) / dt if dt > 0 else np.zeros(6)
+        return Step(q, qd, (qd - ctx.qd) / dt if dt > 0 else np.zeros(6),
                      stopping and not np.any(new))
 
 
@@ -281,27 +279,27 @@ class Servo(Command):
         while len(self.samples) > 2 and self.samples[1][0] < host_s - 4 * STREAM_WINDOW_S:
             self.samples.popleft()
 
-    def step(self, eng: MotionEngine, now: float, dt: float) -> Step:
+    def step(self, ctx: StepContext, now: float, dt: float) -> Step:
         silent_s = now - self.last_call_t - self.time_s
-        if self.brake is None and silent_s > eng.limits.servo_watchdog_s:
-            self.brake = Brake(self.id, self.name, eng._q, eng._qd, self.decel)
+        if self.brake is None and silent_s > ctx.limits.servo_watchdog_s:
+            self.brake = Brake(self.id, self.name, ctx.q, ctx.qd, self.decel)
         if self.brake is not None:
-            return self.brake.step(eng, now, dt)
+            return self.brake.step(ctx, now, dt)
         run_s = min(dt, self.seg_left_s)
         if run_s > 0:
             self.seg_left_s -= run_s
             self.ref = self.target.copy() if self.seg_left_s <= 1e-9 else (
                 self.ref + self.v_ref * run_s)
         v_ref = self.v_ref * (run_s / dt)
-        v_cmd = v_ref + (self.ref - eng._q) / self.tau_s
-        dv = v_cmd - eng._qd
-        dv_max = eng.limits.max_joint_accel_rad_s2 * dt
+        v_cmd = v_ref + (self.ref - ctx.q) / self.tau_s
+        dv = v_cmd - ctx.qd
+        dv_max = ctx.limits.max_joint_accel_rad_s2 * dt
         m = float(np.max(np.abs(dv)))
         if m > dv_max:
             dv *= dv_max / m
-        qd = eng._qd + dv
+        qd = ctx.qd + dv
         peak = float(np.max(np.abs(qd)))
-        if peak > eng.limits.max_joint_speed_rad_s:
-            qd *= eng.limits.max_joint_speed_rad_s / peak
-        q = eng._q + 0.5 * (eng._qd + qd) * dt
-        return Step(q, qd, (qd - eng._qd) / dt, False)
+        if peak > ctx.limits.max_joint_speed_rad_s:
+            qd *= ctx.limits.max_joint_speed_rad_s / peak
+        q = ctx.q + 0.5 * (ctx.qd + qd) * dt
+        return Step(q, qd, (qd - ctx.qd) / dt, False)
