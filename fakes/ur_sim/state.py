@@ -16,6 +16,7 @@ from numpy.typing import ArrayLike, NDArray
 
 # UR's published codes, one definition for both sides of the wire
 from drivers.ur_modes import RobotMode, SafetyMode
+from fakes.ur_sim.kinematics import elbow_position_m
 
 NUM_JOINTS = 6
 CYCLE_S = 0.002  # 500 Hz, the e-Series control rate
@@ -178,15 +179,11 @@ class EngineSnapshot:
     @property
     def elbow_position(self) -> tuple[float, ...]:
         """Elbow joint centre in the base frame (m)."""
-        from fakes.ur_sim.kinematics import elbow_position_m
-
         return tuple(map(float, elbow_position_m(self.q)))
 
     @property
     def elbow_velocity(self) -> tuple[float, ...]:
         """Elbow joint centre velocity (m/s)."""
-        from fakes.ur_sim.kinematics import elbow_position_m
-
         if not any(self.qd):
             return (0.0, 0.0, 0.0)
         ahead = [q + 1e-3 * qd for q, qd in zip(self.q, self.qd, strict=True)]
