@@ -9,6 +9,8 @@ After SIGCONT the service recovers without a restart: it homes again.
 
 from __future__ import annotations
 
+import contextlib
+import csv
 import os
 import signal
 import subprocess
@@ -144,33 +146,51 @@ def _home(svc: Service) -> None:
 def _wait_moving(r: Any, job: Any, svc: Service, timeout_s: float = 30.0) -> None:
     deadline = time.monotonic() + timeout_s
     while _speed_mm_s(r) < 0.5 * SPEED_MM_S:
-        assert svc.get(f"/jobs/{job}")["state"] == "running", svc.get(f"/jobs/{job}")
+        state = svc.get(f"/jobs/{job}")
+        assert state["state"] == "running", state["error"]
         assert time.monotonic() < deadline, "the arm never reached speed"
         time.sleep(0.01)
 
 
-def _still_after_freeze(r: Any, pid: int) -> tuple[float, float]:
-    """Freeze ``pid``; from the controller's own samples: (controller seconds from the freeze
-    to the TCP standing, mm travelled meanwhile). The process is thawed afterwards."""
-    t_ctl0 = float(r.getTimestamp())
-    p0 = np.asarray(r.getActualTCPPose()[:3])
+def _recorded(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(controller timestamps s, TCP positions m, TCP linear speeds mm/s) of a recording."""
+    with path.open() as f:
+        rows = list(csv.DictReader(f))
+    t = np.array([float(r["timestamp"]) for r in rows])
+    p = np.array([[float(r[f"actual_TCP_pose_{i}"]) for i in range(3)] for r in rows])
+    v = np.array([[float(r[f"actual_TCP_speed_{i}"]) for i in range(3)] for r in rows])
+    return t, p, 1000.0 * np.linalg.norm(v, axis=1)
+
+
+def _still_after_freeze(r: Any, pid: int, tmp: Path) -> tuple[float, float]:
+    """Freeze ``pid``; from every package of the controller's own stream (ur_rtde records
+    them in its own thread, so this process's scheduling does not blur the figure):
+    (controller seconds from the freeze to the TCP standing, mm travelled meanwhile). The
+    process is thawed afterwards."""
+    rec = tmp / f"freeze-{pid}-{time.monotonic_ns()}.csv"
+    r.startFileRecording(str(rec), ["timestamp", "actual_TCP_pose", "actual_TCP_speed"])
+    time.sleep(0.1)
+    t_ctl0 = float(r.getTimestamp())  # the controller's clock when the freeze is sent
     os.kill(pid, signal.SIGSTOP)
     try:
         deadline = time.monotonic() + 10.0
-        while time.monotonic() < deadline:  # poll until the controller's TCP stands
-            t_ctl = float(r.getTimestamp())
-            p = np.asarray(r.getActualTCPPose()[:3])
-            if _speed_mm_s(r) < STILL_SPEED_MM_S:
-                return t_ctl - t_ctl0, 1000.0 * float(np.linalg.norm(p - p0))
-            time.sleep(0.002)
-        return float("inf"), 1000.0 * float(np.linalg.norm(
-            np.asarray(r.getActualTCPPose()[:3]) - p0))
+        while time.monotonic() < deadline and _speed_mm_s(r) >= STILL_SPEED_MM_S:
+            time.sleep(0.01)  # poll until the controller's TCP stands
+        time.sleep(0.1)
     finally:
-        time.sleep(0.5)  # frozen well past the watchdog's reach
-        try:
+        r.stopFileRecording()
+        time.sleep(0.4)  # frozen well past the watchdog's reach
+        # the service may have given up on (and replaced) a child that did not answer
+        with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGCONT)
-        except ProcessLookupError:  # the service gave up on a child that did not answer
-            pass
+    t, p, v = _recorded(rec)
+    after = t >= t_ctl0
+    i0 = int(np.argmax(after))
+    still = np.nonzero(after & (v < STILL_SPEED_MM_S))[0]
+    if not len(still):
+        return float("inf"), 1000.0 * float(np.linalg.norm(p[-1] - p[i0]))
+    k = int(still[0])
+    return float(t[k] - t[i0]), 1000.0 * float(np.linalg.norm(p[k] - p[i0]))
 
 
 def _start(svc: Service, motion: str) -> str:
@@ -191,12 +211,13 @@ def _start(svc: Service, motion: str) -> str:
 @pytest.mark.parametrize("motion", ["track", "servo_approach"])
 @pytest.mark.parametrize("frozen", ["ur_rtde_child", "service"])
 def test_frozen_host_mid_servo_leaves_the_arm_still(service: Service, receiver: Any,
-                                                   motion: str, frozen: str) -> None:
+                                                   motion: str, frozen: str,
+                                                   tmp_path: Path) -> None:
     _home(service)
     job = _start(service, motion)
     _wait_moving(receiver, job, service)
     pid = service.child_pid() if frozen == "ur_rtde_child" else service.proc.pid
-    still_s, moved_mm = _still_after_freeze(receiver, pid)
+    still_s, moved_mm = _still_after_freeze(receiver, pid, tmp_path)
     assert still_s <= STILL_WITHIN_S and moved_mm <= TRAVEL_WITHIN_MM, (still_s, moved_mm)
     # the service goes on after the thaw: a stop ends the job with the arm still, and the
     # next motion runs without a restart
