@@ -491,7 +491,10 @@ class URArm:
         turning = bool(np.max(np.abs(s.qd_rad_s)) > MOVING_QD_RAD_S)
         if s.safety_bits & (SafetyBits.PROTECTIVE_STOPPED | ESTOP_BITS):
             return turning
-        return turning or self._jog_deadline_s is not None or s.async_running
+        # a script that ended (its RTDE watchdog, a runtime error) leaves its async progress
+        # register as it was: no move is under way then, whatever it says
+        under_way = s.async_running and s.runtime_state == RuntimeState.PLAYING
+        return turning or self._jog_deadline_s is not None or under_way
 
     def async_progress(self) -> int:
         """Index of the path segment under way, or -1 when no async move runs."""
