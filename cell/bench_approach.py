@@ -325,3 +325,140 @@ def format_report(r: dict[str, Any]) -> str:
                                 for k, v in r["targets_met"].items()),
     ]
     return "\n".join(lines)
+
+
+# -- the tracking section: false losses first -----------------------------------------------
+TRACK_RUNS: dict[float, int] = {25.0: 5, 50.0: 5, 100.0: 10, 150.0: 10}  # 30 runs
+TRACK_TRAVEL_MM = 300.0  # the drift's length at most: the target stays in the workspace
+COVER_RUNS = 5
+COVER_SPEED_MM_S = 100.0
+
+
+def _track_run(cell: Cell, speed_mm_s: float, T_target_tcp: Matrix4, T_home_target: Matrix4,
+               follow_s: float) -> dict[str, Any]:
+    """One tracking run; ``false_loss`` when the job ended ``target_lost`` while every frame
+    showed the target (it is never covered here)."""
+    follow = min(follow_s, TRACK_TRAVEL_MM / speed_mm_s)
+    row = _attempt(functools.partial(_track, cell, speed_mm_s, T_target_tcp, T_home_target,
+                                     follow),
+                   cell, {"speed_mm_s": speed_mm_s, "rms_error_mm": None})
+    text = str(row.get("error") or row.get("failed") or "")
+    row["follow_s"] = follow
+    row["false_loss"] = "target_lost" in text or "no target pose" in text \
+        or "did not show the target" in text or "no frame examined" in text
+    row["ok"] = row.get("state_while_following") == "running" and not text
+    return row
+
+
+def _cover_run(cell: Cell, speed_mm_s: float, T_target_tcp: Matrix4, T_home_target: Matrix4
+               ) -> dict[str, Any]:
+    """Tracking at ``speed_mm_s``, then the lens is covered: from the cover to the simulated
+    arm standing still (the simulator's own state), and the job's end code."""
+    _home(cell)
+    sim = _sim(cell)
+    sim.set_target(T_home_target)
+    time.sleep(0.15)
+    job_id = _hold(cell, T_target_tcp, 30.0)
+    sim.set_target(sim.true_T_base_target(), np.array([-speed_mm_s, 0.0, 0.0]))
+    time.sleep(1.0)
+    t_cover = time.monotonic()
+    sim.set_camera_blocked(True)
+    try:
+        t_still = _still_at(cell, t_cover)
+        state = _wait_end(cell, job_id, 10.0)
+    finally:
+        sim.set_camera_blocked(False)
+        sim.set_target(sim.true_T_base_target())
+    job = cell.job(job_id)
+    lost_at = job.progress.get("lost_at_monotonic_s")
+    return {"speed_mm_s": speed_mm_s, "state": state, "code": job.error_code,
+            "cover_to_still_ms": (t_still - t_cover) * 1000.0,
+            "cover_to_declared_ms": None if lost_at is None else (lost_at - t_cover) * 1000.0,
+            "declared_to_still_ms": None if lost_at is None else (t_still - lost_at) * 1000.0}
+
+
+def run_bench_tracking(*, runs: dict[float, int] | None = None, cover_runs: int = COVER_RUNS,
+                       follow_s: float = 3.0, host: str | None = None,
+                       progress: Progress | None = None) -> dict[str, Any]:
+    """Tracking runs per speed (a false ``target_lost`` counted first), then covered-lens
+    stops timed to the simulated arm standing still."""
+    from fakes.ur_controller.process import free_loopback_host
+
+    plan = TRACK_RUNS if runs is None else runs
+    load_before = list(os.getloadavg())
+    with tempfile.TemporaryDirectory() as tmp:
+        cell = start_cell(bench_config(Path(tmp), host or free_loopback_host()))
+        freeze_startup_objects()
+        try:
+            T_tt = cell.config.approach.T_target_tcp.T()
+            T_home_target = _sim(cell).true_T_base_target()
+            total = sum(plan.values()) + cover_runs
+            rows: list[dict[str, Any]] = []
+            for speed, n in plan.items():
+                for _ in range(n):
+                    rows.append(_track_run(cell, speed, T_tt, T_home_target, follow_s))
+                    if progress:
+                        progress("tracking", len(rows), total)
+            covers: list[dict[str, Any]] = []
+            for _ in range(cover_runs):
+                covers.append(_attempt(
+                    functools.partial(_cover_run, cell, COVER_SPEED_MM_S, T_tt, T_home_target),
+                    cell, {"speed_mm_s": COVER_SPEED_MM_S, "cover_to_still_ms": None}))
+                if progress:
+                    progress("tracking", len(rows) + len(covers), total)
+            _sim(cell).set_target(T_home_target)
+            lost_after_s = cell.config.servo.lost_after_s
+        finally:
+            cell.close()
+    return _tracking_report(rows, covers, lost_after_s, load_before)
+
+
+def _tracking_report(rows: list[dict[str, Any]], covers: list[dict[str, Any]],
+                     lost_after_s: float, load_before: list[float]) -> dict[str, Any]:
+    speeds = sorted({r["speed_mm_s"] for r in rows})
+    per_speed: dict[str, dict[str, Any]] = {}
+    for s in speeds:
+        rs = [r for r in rows if r["speed_mm_s"] == s]
+        rms = [r["rms_error_mm"] for r in rs if r["ok"] and r["rms_error_mm"] is not None]
+        per_speed[f"{s:g}"] = {
+            "runs": len(rs), "false_target_lost": sum(r["false_loss"] for r in rs),
+            "other_failures": sum((not r["ok"]) and not r["false_loss"] for r in rs),
+            "rms_error_mm_max": max(rms) if rms else None,
+            "rms_error_mm_median": float(statistics.median(rms)) if rms else None}
+    still = [c["cover_to_still_ms"] for c in covers if c.get("cover_to_still_ms") is not None]
+    lost_codes = [c.get("code") for c in covers]
+    false_total = sum(r["false_loss"] for r in rows)
+    return {
+        "false_target_lost": false_total, "tracking_runs": len(rows),
+        "other_failures": sum((not r["ok"]) and not r["false_loss"] for r in rows),
+        "per_speed": per_speed,
+        "cover_to_still_ms_max": max(still) if still else None,
+        "cover_to_still_ms_median": float(statistics.median(still)) if still else None,
+        "cover_runs": len(covers), "cover_ended_target_lost": lost_codes.count("target_lost"),
+        "lost_after_s": lost_after_s,
+        "targets_met": {"no_false_target_lost": false_total == 0,
+                        "covered_stops": bool(covers) and lost_codes.count("target_lost")
+                        == len(covers)},
+        "runs": rows, "covers": covers,
+        "load_average_before": load_before, "load_average_after": list(os.getloadavg()),
+    }
+
+
+def format_tracking_report(r: dict[str, Any]) -> str:
+    def f(x: Any, fmt: str = ".2f") -> str:
+        return "n/a" if x is None else format(x, fmt)
+
+    lines = [f"tracking: {r['false_target_lost']} false target_lost in {r['tracking_runs']} "
+             f"runs ({r['other_failures']} other failures)"]
+    for k, v in r["per_speed"].items():
+        lines.append(f"  {k:>4} mm/s: {v['false_target_lost']} false losses, "
+                     f"{v['other_failures']} other failures in {v['runs']} runs; RMS error "
+                     f"max {f(v['rms_error_mm_max'])} mm (median "
+                     f"{f(v['rms_error_mm_median'])})")
+    lines.append(f"covered lens at {COVER_SPEED_MM_S:g} mm/s: arm still after max "
+                 f"{f(r['cover_to_still_ms_max'], '.0f')} ms (median "
+                 f"{f(r['cover_to_still_ms_median'], '.0f')}) of the cover; "
+                 f"{r['cover_ended_target_lost']}/{r['cover_runs']} ended target_lost")
+    lines.append(f"load average before {r['load_average_before'][0]:.2f}, after "
+                 f"{r['load_average_after'][0]:.2f}")
+    return "\n".join(lines)

@@ -228,9 +228,12 @@ class ServoConfig(_Strict):
     tolerance_deg: float = Field(default=0.03, gt=0)
     converge_frames: int = Field(default=4, ge=1, le=100)
     lost_after_s: float = Field(default=0.1, gt=0, le=5)  # of camera time (exposures)
-    # the lost-target clock starts from a pose's exposure plus the pipeline's recent latency
-    # (the largest of the last 8 poses), at most this much (cell/servo.py: _silent_s)
-    latency_allowance_s: float = Field(default=0.15, ge=0, le=1)
+    # loss is judged on camera time (cell/target_loss.py); a pipeline that examines no frame
+    # for this long (host time since its newest examined exposure: a stalled camera or
+    # estimator) is lost too. Meanwhile the goal is extrapolated for at most
+    # max_predict_s past the newest pose, then held.
+    stall_after_s: float = Field(default=1.0, gt=0, le=5)
+    max_predict_s: float = Field(default=0.5, gt=0, le=5)
     tick_s: float = Field(default=0.008, ge=0.008, le=0.1)  # control period
     watchdog_s: float = Field(default=0.05, gt=0, le=1)  # the arm brakes when ticks stop
     filter_alpha: float = Field(default=0.5, gt=0, le=1)

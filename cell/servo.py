@@ -9,8 +9,9 @@ job's thread, runs at ``[servo] tick_s``: it predicts the target pose *now*, mak
 (:mod:`cell.servo_law`) through the guarded arm, which checks every tick. So the loop is as
 fast as the arm's state, not the camera, and a frame's age costs no lag.
 
-Safety: no measurement older than ``limits.max_pose_age_s`` is used; no pose for
-``[servo] lost_after_s`` stops the arm (still before the job fails ``target_lost``); every new
+Safety: no measurement older than ``limits.max_pose_age_s`` is used; frames exposed
+``[servo] lost_after_s`` after the last pose that did not show the target stop the arm (still
+before the job fails ``target_lost``; judged on camera time, :mod:`cell.target_loss`); every new
 goal is checked against the envelope and tilt limit (its limit's code ends the job); a stop
 cancels the slot's holder, which the next tick sees, and the arm's own watchdog brakes if
 ticks stop coming.
@@ -20,8 +21,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections import deque
-from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -42,12 +41,12 @@ from cell.servo_law import (
     pose_error,
 )
 from cell.target_filter import ConstantVelocityFilter
+from cell.target_loss import LossClock, Silence
 from drivers.errors import DriverError
 from estimator.transforms import pose_dict, pose_distance
 
 Matrix4 = NDArray[np.float64]
 ServoMode = Literal["approach", "track"]
-RECENT_LAGS = 8  # the lost-target clock allows for the largest latency of the last poses
 HISTORY_POINTS = 100  # the error history in a job's result is downsampled to this
 STILL_TIMEOUT_S = 2.0
 PROGRESS_PERIOD_S = 0.25  # the job's progress carries the live error this often
@@ -85,26 +84,6 @@ def _stats_ms(xs: list[float]) -> dict[str, float] | None:
             "max": round(float(a.max()), 1)}
 
 
-def latency_allowance_s(recent_lags_s: Iterable[float], cap_s: float) -> float:
-    """The largest recent exposure-to-filter latency, at most ``cap_s``; ``cap_s`` before any
-    pose has been timed: the loop's first frame waits for the camera and is estimated from a
-    full search (60-200 ms), and its latency is not yet known (without this the first pose
-    could be declared lost before it had any chance to arrive)."""
-    return min(max(recent_lags_s, default=cap_s), cap_s)
-
-
-def silent_s(now_s: float, last_exposure_s: float, allowance_s: float, floor_s: float
-             ) -> float:
-    """How long the target has gone unseen, on the camera's clock.
-
-    Counted from the mid-exposure time of the last pose plus the pipeline's recent latency
-    (render or transfer, estimate), not from when that pose reached the filter: on a loaded
-    host every pose arrives late and in jitter while every frame still shows the target, and
-    that delay is not the target's absence. A covered lens or a stalled camera still counts
-    from its last good exposure. Never from before ``floor_s`` (the loop's start)."""
-    return now_s - max(last_exposure_s + allowance_s, floor_s)
-
-
 class ServoRun:
     """One servo job's loop (see module doc). ``run`` returns the job's result."""
 
@@ -122,9 +101,9 @@ class ServoRun:
         self._failed_frames = 0
         self._stale_frames = 0
         self._last_pose_s = time.monotonic()  # host time the last pose went into the filter
-        self._last_exposure_s = time.monotonic()  # that pose's mid-exposure time
-        self._clock_floor_s = time.monotonic()  # the lost-target clock runs from here at least
-        self._recent_lags: deque[float] = deque(maxlen=RECENT_LAGS)
+        self._loss = LossClock(sc.lost_after_s, max(sc.stall_after_s, sc.lost_after_s),
+                               time.monotonic(),
+                               None if first is None else first.frame_timestamp_s)
         self._camera_error: CellError | None = None
         self._last_error: CellError | None = None  # why the last frame gave no pose
         self._last_sequence = -1
@@ -134,7 +113,6 @@ class ServoRun:
         if first is not None:
             self.filter.update(first.frame_timestamp_s, first.T_base_target)
             self._last_pose_s = first.located_at_s
-            self._last_exposure_s = first.frame_timestamp_s
             self._last_sequence = first.frame_sequence
         self.params = LawParams(sc.gain_lin_per_s, sc.gain_rot_per_s,
                                 min(sc.max_speed_mm_s, core.config.limits.max_speed_mm_s),
@@ -160,11 +138,17 @@ class ServoRun:
                 if err.code != "no_new_frame":
                     self._failed_frames += 1
                     self._last_error = err
+                    shown = self.core.locator.last_frame  # the frame it was judged on
+                    if shown is not None:
+                        with self._lock:
+                            self._loss.examined(shown.timestamp_s)
                 continue
             self._camera_error = None
             self._last_sequence = frame.sequence
             if time.monotonic() - frame.timestamp_s > max_age:
                 self._stale_frames += 1  # never used: the pose it gives is too old
+                with self._lock:
+                    self._loss.examined(frame.timestamp_s)
                 continue
             now = time.monotonic()
             with self._lock:
@@ -177,6 +161,7 @@ class ServoRun:
                 gate_deg = self.sc.gate_deg + GATE_GROWTH_DEG_S * silent_s
                 if d_mm > gate_mm or d_deg > gate_deg:
                     self._gated += 1  # not this target's motion: a wrong match
+                    self._loss.examined(frame.timestamp_s)
                     self._last_error = RefusedError(
                         "pose_jump", f"a pose {d_mm:.1f} mm / {d_deg:.1f} deg from the "
                         "prediction was not used")
@@ -184,9 +169,8 @@ class ServoRun:
                 self.filter.update(frame.timestamp_s, T_bt)
                 self._gaps.append(now - self._last_pose_s)
                 self._lags.append(now - frame.timestamp_s)
-                self._recent_lags.append(now - frame.timestamp_s)
                 self._last_pose_s = now
-                self._last_exposure_s = frame.timestamp_s
+                self._loss.pose(frame.timestamp_s)
                 self._frames += 1
 
     # -- the control loop ----------------------------------------------------------------------
@@ -195,7 +179,7 @@ class ServoRun:
                                   name=f"servo-frames-{self.job_id}")
         with self._lock:  # the lost-target clock starts with the loop (the arm is still)
             self._last_pose_s = max(self._last_pose_s, time.monotonic())
-            self._clock_floor_s = time.monotonic()
+            self._loss.restart(time.monotonic())
         thread.start()
         try:
             return self._control()
@@ -221,10 +205,10 @@ class ServoRun:
             tick = time.monotonic()
             self.motion.raise_if_cancelled("while servoing")
             with self._lock:
-                silent_s, frames = self._silent_s(tick), self._frames
-                est = self.filter.predict(tick)
-            if silent_s > sc.lost_after_s:
-                self._lost(silent_s)
+                silence, frames = self._loss.silence(tick), self._frames
+                est = self.filter.predict(tick, max_horizon_s=sc.max_predict_s)
+            if silence.lost:
+                self._lost(silence)
             if tick - est.measured_at_s > max_age:
                 self._stop_still()
                 raise RefusedError("stale_pose", f"the newest target pose is "
@@ -327,17 +311,6 @@ class ServoRun:
                        target_velocity_mm_s=est.velocity_mm_s.tolist())
         return out
 
-    def _latency_allowance_s(self) -> float:
-        return latency_allowance_s(self._recent_lags, self.sc.latency_allowance_s)
-
-    def _silent_s(self, now: float) -> float:
-        """How long the target has gone unseen (call with the lock): see :func:`silent_s`."""
-        allowance = self._latency_allowance_s()
-        # before the loop's first pose the floor moves on by the allowance too: that first
-        # frame's wait and full search is the latency not yet measured
-        floor = self._clock_floor_s + (allowance if not self._recent_lags else 0.0)
-        return silent_s(now, self._last_exposure_s, allowance, floor)
-
     def _stop_still(self) -> float:
         """Command the stop and wait until the arm stands; seconds it took."""
         t0 = time.monotonic()
@@ -356,18 +329,22 @@ class ServoRun:
             time.sleep(0.002)
         return time.monotonic() - t0
 
-    def _lost(self, silent_s: float) -> None:
+    def _lost(self, silence: Silence) -> None:
         declared_s = time.monotonic()
         took = self._stop_still()
         why = self._camera_error or self._last_error
-        with self._lock:
-            allowance_s = self._latency_allowance_s()
+        stall_s = self._loss.stall_after_s
         self.core.runner.progress(self.job_id, {"phase": "target_lost",
                                                 "stopped_in_ms": round(took * 1000.0, 1),
                                                 "lost_at_monotonic_s": declared_s})
-        raise RefusedError("target_lost", f"no target pose for {silent_s * 1000:.0f} ms "
-                           f"(limit {self.sc.lost_after_s * 1000:.0f} ms after the pipeline's "
-                           f"{allowance_s * 1000:.0f} ms latency"
+        if silence.camera_s > self.sc.lost_after_s:
+            what = (f"frames exposed for {silence.camera_s * 1000:.0f} ms after the last "
+                    f"pose did not show the target (limit {self.sc.lost_after_s * 1000:.0f} ms "
+                    "of camera time")
+        else:
+            what = (f"no frame examined for {silence.stalled_s * 1000:.0f} ms (limit "
+                    f"{stall_s * 1000:.0f} ms: the camera or the estimator stalled")
+        raise RefusedError("target_lost", what
                            + (f"; {why.message}" if why is not None else "")
                            + f"; {self._failed_frames} frames without the target, "
                            f"{self._gated} gated as jumps, {self._stale_frames} too old"

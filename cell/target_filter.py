@@ -87,13 +87,21 @@ class ConstantVelocityFilter:
         r = Rotation.from_matrix(np.asarray(T_meas[:3, :3]) @ T[:3, :3].T).magnitude()
         return d_mm, float(np.degrees(r))
 
-    def predict(self, t_s: float) -> TargetEstimate:
+    def predict(self, t_s: float, max_horizon_s: float | None = None) -> TargetEstimate:
         """The pose at ``t_s`` extrapolated at the estimated velocity (RuntimeError before
-        the first measurement). Velocity is reported as zero until two measurements."""
+        the first measurement). Velocity is reported as zero until two measurements.
+
+        With ``max_horizon_s`` the extrapolation stops that long after the last measurement:
+        past it the pose is held and its velocity reported as zero, so a pipeline that has
+        gone quiet cannot lead a follower ever further along a guessed path."""
         if self._t is None:
             raise RuntimeError("the target filter has no measurement yet")
         dt = t_s - self._t
+        v, w = self._v.copy(), self._w.copy()
+        if max_horizon_s is not None and dt > max_horizon_s:
+            dt = max_horizon_s
+            v, w = np.zeros(3), np.zeros(3)
         T = np.eye(4)
         T[:3, :3] = Rotation.from_rotvec(self._w * dt).as_matrix() @ self._R
         T[:3, 3] = self._p + self._v * dt
-        return TargetEstimate(T, self._v.copy(), self._w.copy(), self._t)
+        return TargetEstimate(T, v, w, self._t)

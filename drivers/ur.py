@@ -491,7 +491,10 @@ class URArm:
         turning = bool(np.max(np.abs(s.qd_rad_s)) > MOVING_QD_RAD_S)
         if s.safety_bits & (SafetyBits.PROTECTIVE_STOPPED | ESTOP_BITS):
             return turning
-        return turning or self._jog_deadline_s is not None or s.async_running
+        # a script that ended (its RTDE watchdog, a runtime error) leaves its async progress
+        # register as it was: no move is under way then, whatever it says
+        under_way = s.async_running and s.runtime_state == RuntimeState.PLAYING
+        return turning or self._jog_deadline_s is not None or under_way
 
     def async_progress(self) -> int:
         """Index of the path segment under way, or -1 when no async move runs."""
@@ -573,6 +576,22 @@ class URArm:
         if wait:
             self._wait_for_motion(2.0 * (travel / v + v / a) + 5.0)
 
+    def _script_ended(self, within_s: float = 0.05) -> bool:
+        """After a refused command: did the control script end without a safety stop (the
+        controller's RTDE watchdog after a host hiccup longer than its period, or a runtime
+        error)? Then it is uploaded again (True) and the caller may send its command once
+        more: the host that missed the kick is back and streams again. A safety stop raises."""
+        deadline = time.monotonic() + within_s  # the stream may lag the client by a cycle
+        while True:
+            s = self._sample()
+            self._raise_if_stopped(s)
+            if s.runtime_state != RuntimeState.PLAYING:
+                self._ensure_program()
+                return True
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.005)
+
     def _raise_command_failure(self, what: str) -> None:
         """The client said False: find out why from the stream and raise the typed error."""
         deadline = time.monotonic() + 0.2  # the stream may lag the client by a cycle or two
@@ -644,7 +663,8 @@ class URArm:
         watchdog = _positive(watchdog_s, "watchdog")
         self._ready_for_motion()
         xd = [*map(float, twist[:3] / 1000.0), *map(float, twist[3:])]
-        if not self._ctrl("speedL", xd, a, 0.0):
+        if not self._ctrl("speedL", xd, a, 0.0) and not (
+                self._script_ended() and self._ctrl("speedL", xd, a, 0.0)):
             self._raise_command_failure("speedL")
         self._jog_decel_m_s2 = max(a, 0.5)
         self._arm_watchdog(watchdog)

@@ -71,6 +71,7 @@ KICK_PERIOD_S = 0.02
 PARENT_LEASE_S = 0.06
 HEARTBEAT_S = 0.02
 QUIET_AFTER_CALL_S = 0.02
+RUNTIME_PLAYING = 2  # RTDE runtime_state: the control script runs
 PR_SET_PDEATHSIG = 1
 
 ClientName = Literal["dash", "recv", "ctrl"]
@@ -205,14 +206,20 @@ class _Clients:
         self._seen = (-1.0, 0.0)  # (package timestamp, when it was first seen)
         self.guard: Guard | None = None
         self.parent_seen_s = time.monotonic()  # the parent's last message
+        self.watchdog_armed = False  # setWatchdog accepted by the script running now
         self.ctrl_ended_s = 0.0  # when the last control call returned
 
     def arm_watchdog(self) -> None:
-        """setWatchdog on the control script (a new script starts without one)."""
+        """setWatchdog on the control script (a new script starts without one). Refused
+        while no script runs (ur_rtde answers False): the kicker tries again once one runs."""
         ctrl, guard = self.objects.get("ctrl"), self.guard
         if ctrl is not None and guard is not None:
             with self.locks["ctrl"]:
-                ctrl.setWatchdog(guard.min_frequency_hz)
+                self.watchdog_armed = bool(ctrl.setWatchdog(guard.min_frequency_hz))
+
+    def _script_running(self) -> bool:
+        recv = self.objects.get("recv")
+        return recv is not None and int(recv.getRuntimeState()) == RUNTIME_PLAYING
 
     def kick(self) -> None:
         """One kick of the controller's watchdog, when armed and the parent is alive.
@@ -228,13 +235,19 @@ class _Clients:
             return
         if time.monotonic() - self.parent_seen_s > guard.parent_lease_s:
             return  # the parent stalled: let the controller stop the arm
+        if not self._script_running():
+            self.watchdog_armed = False  # the script ended: the next one starts unguarded
+            return
         lock = self.locks["ctrl"]
         if not lock.acquire(blocking=False):
             return
         try:
             if time.monotonic() - self.ctrl_ended_s >= QUIET_AFTER_CALL_S:
                 with contextlib.suppress(Exception):
-                    ctrl.kickWatchdog()
+                    if self.watchdog_armed:
+                        ctrl.kickWatchdog()
+                    else:  # a script that started without one (not via reuploadScript)
+                        self.watchdog_armed = bool(ctrl.setWatchdog(guard.min_frequency_hz))
         finally:
             lock.release()
 

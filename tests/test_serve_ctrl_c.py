@@ -30,8 +30,8 @@ def _config(tmp_path: Path) -> Path:
     """The built-in sim config as `make run` serves it (simulated controller through ur_rtde),
     on a loopback address of its own and with a job database under tmp_path."""
     text = resources.files("cell.configs").joinpath("sim.toml").read_text()
-    text = re.sub(r'(\[robot\][^\[]*?)host = "[^"]*"', rf'\1host = "{free_loopback_host()}"',
-                  text, flags=re.S)
+    text = re.sub(r'(\n\[robot\]\n(?:(?!\n\[)[\s\S])*?\n)host = "[^"]*"',
+                  rf'\1host = "{free_loopback_host()}"', text)
     text = text.replace('job_db = "var/cell_jobs.db"', f'job_db = "{tmp_path / "jobs.db"}"')
     path = tmp_path / "cell.toml"
     path.write_text(without_interfaces(text))

@@ -189,3 +189,20 @@ def test_innovation_measures_a_jump_from_the_prediction() -> None:
         Rotation.from_rotvec([0, 0, 0.1]).as_matrix(), np.array([0.0, 40.0, 0.0]))
     d_mm, d_deg = f.innovation(10 / 30.0, jump)
     assert d_mm > 35 and d_deg == pytest.approx(np.degrees(0.1), abs=0.05)
+
+
+def test_filter_prediction_is_held_past_its_horizon() -> None:
+    f = ConstantVelocityFilter(0.5, 0.1)
+    v = np.array([100.0, 0.0, 0.0])
+    for k in range(60):
+        t = k / 30.0
+        f.update(t, make_T(np.eye(3), v * t))
+    t_last = 59 / 30.0
+    near = f.predict(t_last + 0.2, max_horizon_s=0.5)
+    assert np.allclose(near.velocity_mm_s, v, atol=1.0)
+    far = f.predict(t_last + 3.0, max_horizon_s=0.5)
+    held = f.predict(t_last + 0.5)
+    assert np.allclose(far.T_base_target, held.T_base_target)  # no further than the horizon
+    assert np.allclose(far.velocity_mm_s, 0.0) and np.allclose(far.angular_velocity_rad_s, 0.0)
+    unbounded = f.predict(t_last + 3.0)
+    assert unbounded.T_base_target[0, 3] - far.T_base_target[0, 3] == pytest.approx(250.0, abs=5)

@@ -37,6 +37,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="override [servo] lost_after_s (default: the config's, 0.1 s)")
     a.add_argument("--check", action="store_true",
                    help="exit with status 1 when a target is missed")
+    a.add_argument("--tracking", action="store_true",
+                   help="only the tracking section: 30 runs at 25/50/100/150 mm/s (10 at 100 "
+                        "and 150), false target_lost counted first, then covered-lens stops")
+    a.add_argument("--tracking-runs", type=int, default=None,
+                   help="with --tracking: this many runs at each speed instead")
     a.set_defaults(func=_bench_approach)
     svc = what.add_parser(
         "service", help="the simulated cell service under load: STOP, status, SSE, idle CPU",
@@ -85,6 +90,20 @@ def _bench_approach(args: argparse.Namespace) -> int:
 
     if args.placements < 1:
         return fail("invalid_argument", "--placements must be at least 1", args.json)
+    if args.tracking:
+        from cell.bench_approach import (
+            TRACK_RUNS,
+            format_tracking_report,
+            run_bench_tracking,
+        )
+
+        n = args.tracking_runs
+        if n is not None and n < 1:
+            return fail("invalid_argument", "--tracking-runs must be at least 1", args.json)
+        runs = None if n is None else dict.fromkeys(TRACK_RUNS, n)
+        with progress_bars(not args.json) as progress:
+            report = run_bench_tracking(runs=runs, progress=progress)
+        return _report(args, report, format_tracking_report(report))
     with progress_bars(not args.json) as progress:
         report = run_bench_approach(placements=args.placements, seed=args.seed,
                                     progress=progress, lost_after_s=args.lost_after_s)

@@ -38,6 +38,11 @@ STOP_SCRIPT = 255
 # mailbox commands the simulator refuses (see MailboxInterpreter.refuse), by ur_rtde's names
 REFUSED_CMDS = {6: "forceMode", 12: "servoC", 25: "toolContact", 28: "getTargetWaypoint"}
 REFUSE_RESUME_S = 0.3
+# A real controller receives RTDE input whatever its host does; this one shares a host. When
+# its own cycle was held up this long, packages written meanwhile may still sit unread in its
+# sockets: the watchdog waits WATCHDOG_GRACE_S for them before it judges.
+WATCHDOG_STALL_S = 0.02
+WATCHDOG_GRACE_S = 0.01
 # speedStop, servoStop, stopL, stopJ: their receive times go to the stop log (see StopLog)
 STOP_CMDS = {15: "speedStop", 16: "servoStop", 33: "stopL", 34: "stopJ"}
 STOP_LOG_ENV = "UR_SIM_STOP_LOG"
@@ -132,6 +137,8 @@ class MailboxInterpreter:
         self._async_op_id = 0
         self._speed_args: tuple[float, ...] | None = None
         self._watchdog_s: float | None = None  # set_watchdog: max gap between client writes
+        self._last_step_s = time.monotonic()
+        self._watchdog_grace_until_s = 0.0
         self._resume: tuple[ControlProgram, float] | None = None  # after a refused command
         self.hand_guiding = False  # teach or freedrive mode
         self._ignore: tuple[int, float] | None = None  # (command, write time) refused
@@ -211,6 +218,10 @@ class MailboxInterpreter:
 
     # -- the cycle -----------------------------------------------------------------------------
     def step(self, snap: EngineSnapshot) -> None:
+        now = time.monotonic()
+        if now - self._last_step_s > WATCHDOG_STALL_S:  # this process was not scheduled
+            self._watchdog_grace_until_s = now + WATCHDOG_GRACE_S
+        self._last_step_s = now
         if not self.running:
             if self._resume is not None and time.monotonic() >= self._resume[1]:
                 prog, self._resume = self._resume[0], None
@@ -262,7 +273,7 @@ class MailboxInterpreter:
 
     def _watchdog_expired(self) -> bool:
         """rtde_set_watchdog(..., "stop"): the client must keep writing the command register."""
-        if self._watchdog_s is None:
+        if self._watchdog_s is None or time.monotonic() < self._watchdog_grace_until_s:
             return False
         written = self.regs.in_int_written_s[self._prog.int_offset]
         return time.monotonic() - written > self._watchdog_s
