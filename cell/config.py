@@ -199,7 +199,7 @@ class ApproachConfig(_Strict):
     # loaded 2-core host 3-5 of 10 servo runs still end target_lost at the default
     # [servo] lost_after_s (look-and-move: 10 of 10), so look-and-move stays the default
     # until servo holds under load (README: Servo benchmark).
-    mode: Literal["servo", "look_and_move"] = "look_and_move"
+    mode: Literal["servo", "look_and_move"] = "look_and_move"  # ibvs needs a taught view
 
 
 class ServoConfig(_Strict):
@@ -241,6 +241,27 @@ class ServoConfig(_Strict):
     gate_deg: float = Field(default=10.0, gt=0)
     approach_timeout_s: float = Field(default=30.0, gt=0)
     max_track_s: float = Field(default=600.0, gt=0)  # the cap on a track job's duration_s
+
+
+class IbvsConfig(_Strict):
+    """Image-based servoing (mode "ibvs", :mod:`cell.ibvs` and :mod:`cell.ibvs_run`).
+
+    The law is ``v_c = -lambda L^+ (s - s*)`` on the dots' normalised image points, the gain
+    ``lambda(x) = (l0 - linf) exp(-slope x / (l0 - linf)) + linf`` with ``x`` the largest
+    feature error (normalised units, ~1/fx per pixel). Speeds and accelerations are the
+    ``[servo]`` caps (and ``[limits]``). Converged: the image error under ``tolerance_px_rms``
+    and ``tolerance_px_max`` on ``converge_frames`` consecutive frames. Fewer than 4 dots
+    matched to the taught view for ``[servo] lost_after_s``: the arm stops, ``target_lost``.
+    """
+
+    gain_at_zero_per_s: float = Field(default=2.0, gt=0, le=50)
+    gain_at_infinity_per_s: float = Field(default=6.0, gt=0, le=50)
+    slope_at_zero: float = Field(default=-100.0, ge=-10000, le=10000)
+    interaction: Literal["current", "desired", "mean"] = "mean"
+    tolerance_px_rms: float = Field(default=0.02, gt=0)
+    tolerance_px_max: float = Field(default=0.04, gt=0)
+    converge_frames: int = Field(default=10, ge=1, le=100)
+    approach_timeout_s: float = Field(default=30.0, gt=0)
 
 
 class LimitsConfig(_Strict):
@@ -540,6 +561,7 @@ class CellConfig(BaseModel):
     tool: ToolConfig = ToolConfig()
     approach: ApproachConfig = ApproachConfig()
     servo: ServoConfig = ServoConfig()
+    ibvs: IbvsConfig = IbvsConfig()
     limits: LimitsConfig = LimitsConfig()
     api: ApiConfig = ApiConfig()
     gripper: GripperConfig = GripperConfig()

@@ -607,8 +607,9 @@ function wireCommands() {
       throw new ApiError("the standoff must be a distance in millimetres, 0 or more", 0, "input");
     }
     // "" (the first option): no mode in the body, so the config's [approach] mode applies
-    const body = { standoff_mm: standoff, mode: $("approach-mode").value || undefined,
-                   wait: false };
+    const mode = $("approach-mode").value || undefined;
+    // IBVS goes to the taught view itself: no standoff
+    const body = { standoff_mm: mode === "ibvs" ? undefined : standoff, mode, wait: false };
     if ($("taught").value) body.taught = $("taught").value;
     const job = await api("POST", "/approach", body);
     state.lastJob = job;
