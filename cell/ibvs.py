@@ -124,15 +124,34 @@ def camera_twist(current: Features, desired: Features, gain: AdaptiveGain,
     if len(current.ids) < MIN_FEATURES:
         raise ValueError(f"IBVS needs at least {MIN_FEATURES} points, got {len(current.ids)}")
     e = feature_error(current, desired)
-    if interaction == "current":
-        L = interaction_matrix(current.xy, current.depth_mm)
-    elif interaction == "desired":
-        L = interaction_matrix(desired.xy, desired.depth_mm)
-    else:
-        L = 0.5 * (interaction_matrix(current.xy, current.depth_mm)
-                   + interaction_matrix(desired.xy, desired.depth_mm))
+    L = interaction_of(current, desired, interaction)
     lam = gain(float(np.max(np.abs(e))) if e.size else 0.0)
     return np.asarray(-lam * (np.linalg.pinv(L) @ e), dtype=float)
+
+
+def interaction_of(current: Features, desired: Features, which: InteractionFrom) -> Matrix:
+    """The interaction matrix the law uses: of the current view, the desired one, or the mean."""
+    if which == "current":
+        return interaction_matrix(current.xy, current.depth_mm)
+    if which == "desired":
+        return interaction_matrix(desired.xy, desired.depth_mm)
+    return 0.5 * (interaction_matrix(current.xy, current.depth_mm)
+                  + interaction_matrix(desired.xy, desired.depth_mm))
+
+
+def remaining_motion(current: Features, desired: Features, which: InteractionFrom,
+                     T_camera_tcp: Matrix) -> tuple[float, float]:
+    """How far the view says the TCP still is from where it was taught: the camera's
+    Gauss-Newton step ``-L^+ e`` applied to the TCP point (mm) and its angle (deg).
+
+    The image error alone hides the view's weakest direction (a turn about a point near the
+    target moves the image by thousandths of a pixel per tenth of a millimetre); the pseudo-
+    inverse weighs every direction by what it means in space, so this is the test that
+    does not stop on a view that is right in pixels and wrong in millimetres."""
+    step = -np.linalg.pinv(interaction_of(current, desired, which)) @ feature_error(current,
+                                                                                 desired)
+    dp = step[:3] + np.cross(step[3:], T_camera_tcp[:3, 3])
+    return float(np.linalg.norm(dp)), float(np.degrees(np.linalg.norm(step[3:])))
 
 
 def base_tcp_twist(v_camera: ArrayLike, T_base_camera: Matrix, T_base_tcp: Matrix) -> Vec:

@@ -21,6 +21,7 @@ from cell.ibvs import (
     limit_twist,
     predicted,
     project_normalised,
+    remaining_motion,
 )
 from estimator import CameraModel
 from estimator.transforms import T_from_pose, invert_T, pose_distance
@@ -144,3 +145,18 @@ def test_features_from_pixels_undistort_through_the_lens() -> None:
     f = features_from_view(cam, range(6), px, T_DESIRED, DOTS)
     assert np.allclose(f.xy, xy, atol=1e-6)
     assert image_error_px(f, _features(T_DESIRED), cam)[1] < 1e-3
+
+
+def test_remaining_motion_is_the_tcp_displacement_the_view_asks_for() -> None:
+    T_camera_tcp = T_from_pose([0.0, -60.0, 120.0], [0.0, 0.0, 0.0])
+    # the camera (and the TCP with it) turned 0.05 deg about a point near the target: a
+    # hair in the image, a tenth of a millimetre at the TCP
+    pivot = T_from_pose(T_DESIRED[:3, :3] @ DOTS.mean(axis=0) + T_DESIRED[:3, 3], [0, 0, 0])
+    turn = pivot @ T_from_pose([0, 0, 0], [np.radians(0.05), 0, 0]) @ invert_T(pivot)
+    T_now = invert_T(turn) @ T_DESIRED  # the target seen from the turned camera
+    cur, des = _features(T_now), _features(T_DESIRED)
+    assert image_error_px(cur, des, CameraModel(800.0, 800.0, 639.5, 399.5))[0] < 0.05
+    d_mm, d_deg = remaining_motion(cur, des, "mean", T_camera_tcp)
+    expect_mm, expect_deg = pose_distance(turn @ T_camera_tcp, T_camera_tcp)
+    assert d_mm == pytest.approx(expect_mm, rel=0.05) and expect_mm > 0.1
+    assert d_deg == pytest.approx(expect_deg, rel=0.05)
