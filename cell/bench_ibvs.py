@@ -18,6 +18,7 @@ from the image's edge: negative means a dot left the image on the way.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import statistics
 import tempfile
@@ -120,6 +121,16 @@ def _jog_to(cell: Cell, T_goal: Matrix4) -> None:
     time.sleep(0.3)
 
 
+def _recover(cell: Cell) -> None:
+    """After a failed run: stop, unlock a protective stop, home (each may refuse harmlessly)."""
+    for step in (lambda: cell.stop(CALLER, reason="bench: run failed"),
+                 lambda: cell.unlock(CALLER),
+                 lambda: cell.home(CALLER, wait=True)):
+        with contextlib.suppress(CellError):
+            step()
+        time.sleep(0.3)
+
+
 def _one(cell: Cell, mode: str, taught: TaughtPose, T_taught_true: Matrix4) -> dict[str, Any]:
     t0 = time.monotonic()
     kw: dict[str, Any] = {"view": taught.view} if mode == "ibvs" else {"standoff_mm": 0.0}
@@ -166,8 +177,18 @@ def run_world(world: str, placements: int, seed: int, displace_mm: float, displa
                 T_disp[:3, :3] = Rotation.from_rotvec(np.radians(dr)).as_matrix() \
                     @ T_taught_true[:3, :3]
                 for mode in MODES:
-                    _jog_to(cell, T_disp)
+                    try:
+                        _jog_to(cell, T_disp)
+                    except CellError as err:  # recorded; the arm is recovered and homed
+                        rows.append({"placement": i, "mode": mode, "state": "not_started",
+                                     "time_s": None, "error_mm": None, "error_deg": None,
+                                     "error": f"jog to the displaced pose: {err.code}: "
+                                     f"{err.message}"})
+                        _recover(cell)
+                        continue
                     rows.append({"placement": i, **_one(cell, mode, taught, T_taught_true)})
+                    if rows[-1]["state"] != "succeeded":
+                        _recover(cell)
         finally:
             cell.close()
     return {"world": world, "teach_spread_mm": taught.spread_mm,
