@@ -246,16 +246,16 @@ def run_bench_approach(*, placements: int = 10, seed: int = 0,
         finally:
             cell.close()
     report = _report(rows, tracks, lost, placements, seed, lost_after_s)
-    report["ibvs"] = _ibvs_section(placements, seed)
+    report["ibvs"] = _ibvs_section(placements, seed, lost_after_s)
     return report
 
 
-def _ibvs_section(placements: int, seed: int) -> dict[str, Any]:
+def _ibvs_section(placements: int, seed: int, lost_after_s: float) -> dict[str, Any]:
     """IBVS, servo and look-and-move to a taught view (cell/bench_ibvs.py), its own cells."""
     from cell.bench_ibvs import run_bench_ibvs
 
     try:
-        return run_bench_ibvs(placements=placements, seed=seed)
+        return run_bench_ibvs(placements=placements, seed=seed, lost_after_s=lost_after_s)
     except Exception as err:  # recorded, as every other section's failure
         return {"failed": f"{type(err).__name__}: {err}"}
 

@@ -158,10 +158,10 @@ def _one(cell: Cell, mode: str, taught: TaughtPose, T_taught_true: Matrix4) -> d
 
 
 def run_world(world: str, placements: int, seed: int, displace_mm: float, displace_deg: float,
-              host: str) -> dict[str, Any]:
+              host: str, lost_after_s: float | None = None) -> dict[str, Any]:
     rng = np.random.default_rng(seed)
     with tempfile.TemporaryDirectory() as tmp:
-        cell = start_cell(world_config(bench_config(Path(tmp), host), world))
+        cell = start_cell(world_config(bench_config(Path(tmp), host, lost_after_s), world))
         rows: list[dict[str, Any]] = []
         try:
             job = cell.home(CALLER, wait=True)
@@ -219,17 +219,18 @@ def _summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 def run_bench_ibvs(*, placements: int = 10, seed: int = 0, displace_mm: float = 30.0,
                    displace_deg: float = 6.0, host: str | None = None,
-                   worlds: tuple[str, ...] = ("mount_focal", "ideal")) -> dict[str, Any]:
+                   worlds: tuple[str, ...] = ("mount_focal", "ideal"),
+                   lost_after_s: float | None = None) -> dict[str, Any]:
     from fakes.ur_controller.process import free_loopback_host
 
     out: dict[str, Any] = {"placements": placements, "seed": seed, "displace_mm": displace_mm,
                            "displace_deg": displace_deg, "teach_samples": TEACH_SAMPLES,
                            "mount_error_mm": float(np.linalg.norm(MOUNT_ERROR_MM)),
                            "mount_error_deg": MOUNT_ERROR_DEG,
-                           "focal_error": FOCAL_SCALE - 1.0}
+                           "focal_error": FOCAL_SCALE - 1.0, "lost_after_s": lost_after_s}
     for world in worlds:  # the least kind world first
         out[world] = run_world(world, placements, seed, displace_mm, displace_deg,
-                               host or free_loopback_host())
+                               host or free_loopback_host(), lost_after_s)
     out["load_average"] = list(os.getloadavg())
     return out
 
