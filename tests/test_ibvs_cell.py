@@ -163,3 +163,19 @@ def test_a_hidden_dot_drops_out_and_too_few_stop_the_arm(
     assert "3 of the taught view's dots" in job["error"]["message"]
     time.sleep(0.2)
     assert not cell.arm_state().moving
+
+
+def test_track_in_ibvs_mode_holds_the_taught_view(client: TestClient) -> None:
+    cell = cell_of(client)
+    time.sleep(0.2)
+    T_taught = tcp(cell)
+    teach_here(client)
+    jog(client, [8.0, -6.0, 4.0], [0.0, 0.0, 2.0])
+    r = client.post("/api/v1/track", json={"taught": "view", "mode": "ibvs", "standoff_mm": 0,
+                                           "duration_s": 4.0, "wait": True}, headers=PLC)
+    assert r.status_code == 200, r.text
+    job = r.json()
+    assert job["state"] == "succeeded", job["error"]
+    assert job["params"]["mode"] == "ibvs" and job["result"]["mode"] == "ibvs_track"
+    d_mm, d_deg = pose_distance(tcp(cell), T_taught)
+    assert d_mm < 1.0 and d_deg < 0.2
