@@ -69,6 +69,8 @@ class ErrorCode(StrEnum):
     invalid_standoff = "invalid_standoff"
     invalid_name = "invalid_name"
     invalid_camera_setting = "invalid_camera_setting"
+    ibvs_needs_taught = "ibvs_needs_taught"
+    taught_without_view = "taught_without_view"
     # not found (404)
     job_not_found = "job_not_found"
     taught_not_found = "taught_not_found"

@@ -4,7 +4,7 @@ One object ``Cell`` under Objects holds the variables (``State``, ``RobotMode``,
 ``SafetyStatus``, ``TcpPose``/``TcpPoseUR``, ``LastLocatePose``/``LastLocatePoseUR``,
 ``LastLocateQuality``, ``JobId``, ``JobKind``, ``JobState``, ``JobPhase``, ``JobProgress``,
 ``CameraConnected``, ``Alarms``, ``JobResult``, ``JobErrorCode``) and the methods ``Locate()``,
-``Approach(standoff_mm, mode)``, ``ApproachRecipe(recipe, target, standoff_mm)``,
+``Approach(standoff_mm, mode, taught)``, ``ApproachRecipe(recipe, target, standoff_mm)``,
 ``Track(standoff_mm, duration_s)``, ``Stop()``, ``Home()``, ``Gripper(action, width_mm)``. Every
 method answers ``Code`` ("ok" or the HTTP API's error code) and ``Message`` first; a refusal is
 an answer, not an OPC UA fault, so a PLC reads one place. Poses are the structure ``Pose``
@@ -337,7 +337,10 @@ class OpcUaServer:
                 _arg("RmsPx", D, "reprojection error")]),
             ("Approach", self._approach, [
                 _arg("standoff_mm", D, "distance back from the taught tool pose"),
-                _arg("mode", S, '"look_and_move" (default when empty) or "servo"')], job),
+                _arg("mode", S, '"look_and_move" (default when empty), "servo" or "ibvs" '
+                     "(image-based, to the taught view; standoff 0)"),
+                _arg("taught", S, "a taught pose's name (empty: the config's tool pose); "
+                     "required for ibvs")], job),
             ("ApproachRecipe", self._approach_recipe, [
                 _arg("recipe", S, "the recipe's name or number"),
                 _arg("target", S, "the recipe's target (empty: its first)"),
@@ -587,10 +590,10 @@ class OpcUaServer:
         return await self._answer(work, blank)
 
     async def _approach(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
-        standoff_mm, mode = self._values(args, 2)
+        standoff_mm, mode, taught = self._values(args, 3)
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
-            job = remote.approach(self.cell, caller, standoff_mm, mode or "")
+            job = remote.approach(self.cell, caller, standoff_mm, mode or "", taught or "")
             return self._job_answer(job.id, job.state)
 
         return await self._job_call(work)

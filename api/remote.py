@@ -27,6 +27,7 @@ from api.auth import ALWAYS, PERMISSIONS
 from api.errors import STATUS, ForbiddenError
 from cell.audit import AuditNote
 from cell.frames import approach_tcp
+from cell.ibvs import Features
 from cell.jobs import Job
 from cell.locate import Located
 from cell.recipes import Recipe, RecipeStore, RecipeTarget
@@ -38,7 +39,7 @@ from estimator.transforms import pose_from_T
 Matrix4 = NDArray[np.float64]
 T = TypeVar("T")
 
-APPROACH_MODES = ("look_and_move", "servo")
+APPROACH_MODES = ("look_and_move", "servo", "ibvs")
 
 
 class NotSupportedError(CellError):
@@ -125,9 +126,11 @@ def locate(cell: Cell, caller: RemoteCaller) -> Located:
     return cell.locate(caller.label)
 
 
-def approach(cell: Cell, caller: RemoteCaller, standoff_mm: Any, mode: str) -> Job:
-    """An approach job (not waited for). ``mode`` "" is the cell's default."""
-    params = {"standoff_mm": standoff_mm, "mode": mode}
+def approach(cell: Cell, caller: RemoteCaller, standoff_mm: Any, mode: str,
+             taught: str = "") -> Job:
+    """An approach job (not waited for). ``mode`` "" is the cell's default; ``taught`` (may
+    be empty) names a taught pose, whose view an ``ibvs`` approach converges on."""
+    params = {"standoff_mm": standoff_mm, "mode": mode, "taught": taught}
     require(cell, caller, "approach", "approach", params)
     mode = mode or cell.config.approach.mode  # "" is the cell's default
     try:
@@ -139,13 +142,35 @@ def approach(cell: Cell, caller: RemoteCaller, standoff_mm: Any, mode: str) -> J
         if mode != "look_and_move" and not takes_mode:
             raise NotSupportedError("not_supported",
                                     f"approach mode {mode!r} is not available in this cell")
+        T_target_tcp, view = taught_pose_and_view(cell, taught or None, mode)
     except CellError:
         with audited(cell, caller, "approach", params):
             raise
     start: Callable[..., Job] = cell.approach
+    if mode == "ibvs":
+        return start(caller.label, standoff_mm=standoff or None, mode=mode,
+                     T_target_tcp=T_target_tcp, view=view)
     if takes_mode:
-        return start(caller.label, standoff_mm=standoff, mode=mode)
-    return start(caller.label, standoff_mm=standoff)
+        return start(caller.label, standoff_mm=standoff, mode=mode, T_target_tcp=T_target_tcp)
+    return start(caller.label, standoff_mm=standoff, T_target_tcp=T_target_tcp)
+
+
+def taught_pose_and_view(cell: Cell, taught: str | None, mode: str
+                         ) -> tuple[Matrix4 | None, Features | None]:
+    """The taught pose (None without a name) and, for ``ibvs``, its view: refused as the
+    HTTP API refuses (``ibvs_needs_taught``, ``taught_without_view``, ``taught_not_found``)."""
+    if taught is None:
+        if mode == "ibvs":
+            raise LimitError("ibvs_needs_taught", "mode 'ibvs' converges on a taught view: "
+                             "give the taught pose's name")
+        return None, None
+    if not isinstance(taught, str):
+        raise LimitError("invalid_request", f"taught must be a name, got {taught!r}")
+    pose = TaughtStore.beside_job_db(cell.config.api.job_db).get(taught)
+    if mode == "ibvs" and pose.view is None:
+        raise LimitError("taught_without_view", f"the pose {taught!r} was taught without its "
+                         "view (an older record): teach it again for ibvs")
+    return pose.T_target_tcp, pose.view if mode == "ibvs" else None
 
 
 # -- recipes ----------------------------------------------------------------------------------

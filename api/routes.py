@@ -20,7 +20,7 @@ from api.auth import Caller, Read, Stream, require
 from api.errors import CONFLICT, DEVICE_ERRORS, ERROR_RESPONSES, NOT_FOUND, UNAVAILABLE
 from api.live import LiveView
 from api.media import EventStreamResponse, JPEGResponse, MJPEGResponse, PNGResponse
-from api.routes_calibration import taught_target_tcp
+from api.routes_calibration import taught_target_tcp, taught_view
 from api.schemas import (
     ApproachRequest,
     AuditLog,
@@ -131,7 +131,7 @@ def approach(request: Request, caller: Annotated[Caller, Depends(require("approa
     job = cell_of(request).approach(caller.label, standoff_mm=b.standoff_mm,
                                     speed_mm_s=b.speed_mm_s, T_target_tcp=T,
                                     use_last_locate=b.use_last_locate, wait=b.wait,
-                                    mode=b.mode)
+                                    mode=b.mode, view=taught_view(request, b.taught, b.mode))
     return job.as_dict()
 
 

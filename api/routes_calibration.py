@@ -24,6 +24,7 @@ from api.schemas import ApplyResult, Job, TaughtDeleted, TaughtList, TaughtPoseO
 from api.sse import SSE_RESPONSES, sse_response
 from cell.calibration.routine import RoutineSettings
 from cell.calibration.service import EVENT, CalibrationService
+from cell.ibvs import Features
 from cell.safety import LimitError
 from cell.service import Cell
 from cell.teach import (
@@ -109,6 +110,23 @@ def taught_target_tcp(request: Request, name: str, given: bool = False) -> NDArr
     if given:
         raise LimitError("invalid_request", "give either T_target_tcp or taught, not both")
     return _taught(request).get(name).T_target_tcp
+
+
+def taught_view(request: Request, name: str | None, mode: str | None) -> Features | None:
+    """The taught view for an ``ibvs`` job (None for the other modes). 422
+    ``ibvs_needs_taught`` without a taught name, ``taught_without_view`` for a pose taught
+    before views were recorded, 404 for an unknown name."""
+    if mode != "ibvs":
+        return None
+    if name is None:
+        raise LimitError("ibvs_needs_taught", "mode 'ibvs' converges on a taught view: give "
+                         "`taught` (POST /teach records the view)")
+    view = _taught(request).get(name).view
+    if view is None:
+        raise LimitError("taught_without_view", f"the pose {name!r} was taught without its "
+                         "view (an older record): it serves servo and look_and_move; teach it "
+                         "again for ibvs")
+    return view
 
 
 # -- hand-eye --------------------------------------------------------------------------------

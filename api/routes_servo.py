@@ -12,7 +12,7 @@ from fastapi import APIRouter, Depends, Request
 
 from api.auth import Caller, require
 from api.errors import ERROR_RESPONSES
-from api.routes_calibration import taught_target_tcp
+from api.routes_calibration import taught_target_tcp, taught_view
 from api.schemas import Job, TrackRequest
 from cell.service import Cell
 from estimator.transforms import T_from_pose
@@ -33,5 +33,6 @@ def track(request: Request, caller: Annotated[Caller, Depends(require("track"))]
     cell: Cell = request.app.state.cell
     job = cell.track(caller.label, standoff_mm=body.standoff_mm, T_target_tcp=T,
                      duration_s=body.duration_s, wait=body.wait,
-                     wait_timeout_s=body.duration_s + 30.0)
+                     wait_timeout_s=body.duration_s + 30.0, mode=body.mode,
+                     view=taught_view(request, body.taught, body.mode))
     return job.as_dict()

@@ -60,9 +60,11 @@ class ApproachRequest(_Body):
     use_last_locate: bool = Field(
         default=False, description="start from the last /locate result instead of locating "
         "again (refused when older than limits.max_pose_age_s)")
-    mode: Literal["servo", "look_and_move"] | None = Field(
-        default=None, description="servo: closed loop on every frame; look_and_move: stop, "
-        "locate, correct; default: the config's [approach] mode")
+    mode: Literal["servo", "look_and_move", "ibvs"] | None = Field(
+        default=None, description="servo: closed loop on every frame (pose-based); "
+        "look_and_move: stop, locate, correct; ibvs: closed loop on the image features of "
+        "the view taught under `taught` (image-based; needs `taught`, no standoff); "
+        "default: the config's [approach] mode")
     wait: bool = Field(default=False, description=(
         "false (default): answer 200 at once with the running job; follow it with GET "
         "/jobs/{id} or /events. true: answer 200 when the job has ended, whatever its end "
@@ -79,6 +81,9 @@ class TrackRequest(_Body):
         default=None, description="tool pose in the target frame; default from config")
     taught: str | None = Field(default=None, min_length=1, max_length=64,
                                description="use the T_target_tcp taught under this name")
+    mode: Literal["servo", "ibvs"] = Field(
+        default="servo", description="servo: hold the pose (pose-based); ibvs: hold the view "
+        "taught under `taught` (image-based; standoff_mm must be 0)")
     wait: bool = False
 
 
@@ -464,6 +469,14 @@ TAUGHT_EXAMPLE = {
     "T_base_tcp": POSE_EXAMPLE, "taught_by": "op(operator)", "taught_at": 1796200000.0}
 
 
+class TaughtView(_Out):
+    """The view taught: each matched dot's normalised image point (undistorted) and depth."""
+
+    ids: list[int]
+    xy: list[tuple[float, float]]
+    depth_mm: list[float]
+
+
 class TaughtPoseOut(_Out):
     """A taught tool pose in the target frame, with how it was taught."""
 
@@ -477,6 +490,9 @@ class TaughtPoseOut(_Out):
     T_base_tcp: PoseOut
     taught_by: str
     taught_at: float
+    view: TaughtView | None = Field(
+        default=None, description="the desired image features recorded when taught (IBVS "
+        "converges on them); null for a pose taught without them")
 
 
 class TaughtList(_Out):

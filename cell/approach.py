@@ -1,5 +1,6 @@
-"""Approach: by look-and-move (observe, locate, correct, repeat, then the final move) or by
-closed-loop servoing (``mode="servo"``, :mod:`cell.servo`).
+"""Approach: by look-and-move (observe, locate, correct, repeat, then the final move), by
+closed-loop servoing (``mode="servo"``, :mod:`cell.servo`) or by image-based servoing to a
+taught view (``mode="ibvs"``, :mod:`cell.ibvs_run`).
 
 The goal is ``T_base_target @ T_target_tcp @ translate(0, 0, -standoff_mm)``. The arm first
 goes to an observation pose in front of the target with the goal's orientation (so the final
@@ -20,6 +21,8 @@ from numpy.typing import NDArray
 
 from cell.core import CellCore
 from cell.frames import approach_tcp, observation_camera
+from cell.ibvs import Features
+from cell.ibvs_run import IbvsRun
 from cell.jobs import Job
 from cell.locate import Located
 from cell.motion import Motion
@@ -57,15 +60,22 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
                    speed_mm_s: float | None = None, T_target_tcp: Matrix4 | None = None,
                    use_last_locate: bool = False, wait: bool = False,
                    wait_timeout_s: float = 120.0,
-                   mode: Literal["servo", "look_and_move"] | None = None,
-                   recipe: dict[str, Any] | None = None) -> Job:
+                   mode: Literal["servo", "look_and_move", "ibvs"] | None = None,
+                   recipe: dict[str, Any] | None = None, view: Features | None = None,
+                   ) -> Job:
     """Start an approach job (``mode`` default: ``[approach] mode``); with ``wait`` return
-    when it has ended. ``recipe``: the recipe record the job keeps (cell.recipes)."""
+    when it has ended. ``recipe``: the recipe record the job keeps (cell.recipes). ``view``:
+    the taught image features an ``ibvs`` approach converges on (required for it)."""
     ac = core.config.approach
     how = ac.mode if mode is None else mode
-    if how not in ("servo", "look_and_move"):
-        raise RefusedError("invalid_request", f"approach mode must be 'servo' or "
-                           f"'look_and_move', got {mode!r}")
+    if how not in ("servo", "look_and_move", "ibvs"):
+        raise RefusedError("invalid_request", f"approach mode must be 'servo', "
+                           f"'look_and_move' or 'ibvs', got {mode!r}")
+    if how == "ibvs":
+        standoff_mm = check_ibvs_request(view, standoff_mm, use_last_locate)
+        if core.frames.is_fixed:
+            raise RefusedError("not_supported", "mode 'ibvs' is for a camera on the flange; "
+                               "a fixed camera approaches by look_and_move")
     plan = ApproachPlan(
         standoff_mm=ac.standoff_mm if standoff_mm is None else float(standoff_mm),
         speed_mm_s=ac.speed_mm_s if speed_mm_s is None else float(speed_mm_s),
@@ -89,7 +99,7 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
             raise UnavailableError("camera_lost", "the camera is lost: approach needs it "
                                    "(jogging is still possible)")
         # the servo re-estimates from every frame: one frame to start from is enough
-        n_frames = 1 if how == "servo" else ac.frames_per_locate
+        n_frames = 1 if how in ("servo", "ibvs") else ac.frames_per_locate
         if use_last_locate:
             loc = _last_locate(core)
         elif core.frames.is_fixed:
@@ -97,7 +107,7 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
         else:
             loc = locate(core, n_frames)
         goal = approach_tcp(loc.T_base_target, plan.T_target_tcp, plan.standoff_mm)
-        if how == "servo" or core.frames.is_fixed:  # straight at the goal: that path is checked
+        if how in ("servo", "ibvs") or core.frames.is_fixed:  # straight at the goal: checked
             core.arm.guard.check_goal(st.T_base_tcp, goal, "approach goal")
         else:  # both goals are checked now, so that a refusal moves nothing
             T_obs = observation_tcp(core, loc.T_base_target, plan.T_target_tcp)
@@ -106,6 +116,9 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
         first.append(loc)
 
     def work(job_id: str, motion: Motion) -> dict[str, Any]:
+        if how == "ibvs":
+            assert view is not None
+            return IbvsRun(core, job_id, motion, view, plan.T_target_tcp, "approach").run()
         if how == "servo":
             run = ServoRun(core, job_id, motion, ServoGoal(plan.T_target_tcp, plan.standoff_mm),
                            "approach", first=first[0])
@@ -116,6 +129,23 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
 
     return core.runner.start("approach", caller, params, work, check=check, needs_camera=True,
                              wait=wait, wait_timeout_s=wait_timeout_s)
+
+
+def check_ibvs_request(view: Features | None, standoff_mm: float | None,
+                       use_last_locate: bool = False) -> float:
+    """An IBVS job converges on a taught view: it needs one, and it goes to that view itself
+    (a standoff would be a view nobody showed). Returns the standoff (0)."""
+    if view is None:
+        raise LimitError("taught_without_view", "mode 'ibvs' needs a pose taught with its "
+                         "view (give `taught`; poses taught before views were recorded serve "
+                         "servo and look_and_move only: teach it again for ibvs)")
+    if standoff_mm not in (None, 0, 0.0):
+        raise LimitError("invalid_standoff", "mode 'ibvs' goes to the taught view itself: "
+                         f"standoff_mm must be 0 or absent, got {standoff_mm}")
+    if use_last_locate:
+        raise LimitError("invalid_request", "mode 'ibvs' servos on live frames; "
+                         "use_last_locate does not apply")
+    return 0.0
 
 
 def _last_locate(core: CellCore) -> Located:

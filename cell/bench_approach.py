@@ -245,7 +245,19 @@ def run_bench_approach(*, placements: int = 10, seed: int = 0,
             _sim(cell).set_target(T_home_target)
         finally:
             cell.close()
-    return _report(rows, tracks, lost, placements, seed, lost_after_s)
+    report = _report(rows, tracks, lost, placements, seed, lost_after_s)
+    report["ibvs"] = _ibvs_section(placements, seed, lost_after_s)
+    return report
+
+
+def _ibvs_section(placements: int, seed: int, lost_after_s: float) -> dict[str, Any]:
+    """IBVS, servo and look-and-move to a taught view (cell/bench_ibvs.py), its own cells."""
+    from cell.bench_ibvs import run_bench_ibvs
+
+    try:
+        return run_bench_ibvs(placements=placements, seed=seed, lost_after_s=lost_after_s)
+    except Exception as err:  # recorded, as every other section's failure
+        return {"failed": f"{type(err).__name__}: {err}"}
 
 
 def _attempt(run: Callable[[], dict[str, Any]], cell: Cell, empty: dict[str, Any]
@@ -324,7 +336,17 @@ def format_report(r: dict[str, Any]) -> str:
         "targets: " + ", ".join(f"{k} {'yes' if v else 'NO'}"
                                 for k, v in r["targets_met"].items()),
     ]
-    return "\n".join(lines)
+    return "\n".join(lines + _ibvs_lines(r.get("ibvs")))
+
+
+def _ibvs_lines(section: dict[str, Any] | None) -> list[str]:
+    from cell.bench_ibvs import format_ibvs
+
+    if section is None:
+        return []
+    if "failed" in section:
+        return [f"ibvs section failed: {section['failed']}"]
+    return format_ibvs(section)
 
 
 # -- the tracking section: false losses first -----------------------------------------------

@@ -199,7 +199,7 @@ class ApproachConfig(_Strict):
     # loaded 2-core host 3-5 of 10 servo runs still end target_lost at the default
     # [servo] lost_after_s (look-and-move: 10 of 10), so look-and-move stays the default
     # until servo holds under load (docs/performance.md, the approach benchmark).
-    mode: Literal["servo", "look_and_move"] = "look_and_move"
+    mode: Literal["servo", "look_and_move"] = "look_and_move"  # ibvs needs a taught view
 
 
 class ServoConfig(_Strict):
@@ -244,6 +244,35 @@ class ServoConfig(_Strict):
     gate_deg: float = Field(default=10.0, gt=0)
     approach_timeout_s: float = Field(default=30.0, gt=0)
     max_track_s: float = Field(default=600.0, gt=0)  # the cap on a track job's duration_s
+
+
+class IbvsConfig(_Strict):
+    """Image-based servoing (mode "ibvs", :mod:`cell.ibvs` and :mod:`cell.ibvs_run`).
+
+    The law is ``v_c = -lambda L^+ (s - s*)`` on the dots' normalised image points, the gain
+    ``lambda(x) = (l0 - linf) exp(-slope x / (l0 - linf)) + linf`` with ``x`` the largest
+    feature error (normalised units, ~1/fx per pixel). Speeds and accelerations are the
+    ``[servo]`` caps (and ``[limits]``). Converged: over the last ``converge_frames`` frames,
+    the mean image error under ``tolerance_px_rms`` / ``tolerance_px_max`` and the mean TCP
+    motion the view still asks for under ``tolerance_mm`` / ``tolerance_deg``. Fewer than 4 dots
+    matched to the taught view for ``[servo] lost_after_s``: the arm stops, ``target_lost``.
+    """
+
+    gain_at_zero_per_s: float = Field(default=2.0, gt=0, le=50)
+    gain_at_infinity_per_s: float = Field(default=6.0, gt=0, le=50)
+    slope_at_zero: float = Field(default=-100.0, ge=-10000, le=10000)
+    interaction: Literal["current", "desired", "mean"] = "mean"
+    tolerance_px_rms: float = Field(default=0.02, gt=0)
+    tolerance_px_max: float = Field(default=0.04, gt=0)
+    # the TCP motion the view still asks for (mm / deg), averaged over the same frames
+    tolerance_mm: float = Field(default=0.15, gt=0)
+    tolerance_deg: float = Field(default=0.03, gt=0)
+    converge_frames: int = Field(default=10, ge=1, le=100)
+    # move the measured features on by the arm's motion since their exposure (latency
+    # compensation); off by default: measured slower to converge (4.3-5.0 s against 3.1-3.5
+    # s from 30 mm / 6 deg) at the same final error (docs/ibvs.md)
+    predict_motion: bool = False
+    approach_timeout_s: float = Field(default=30.0, gt=0)
 
 
 class LimitsConfig(_Strict):
@@ -543,6 +572,7 @@ class CellConfig(BaseModel):
     tool: ToolConfig = ToolConfig()
     approach: ApproachConfig = ApproachConfig()
     servo: ServoConfig = ServoConfig()
+    ibvs: IbvsConfig = IbvsConfig()
     limits: LimitsConfig = LimitsConfig()
     api: ApiConfig = ApiConfig()
     gripper: GripperConfig = GripperConfig()

@@ -179,6 +179,20 @@ class Locator:
         result = self._estimate(frame)
         return frame, self.frames.T_base_target(T_base_tcp, result.T_camera_target), T_base_tcp
 
+    def measure_view(self, after_sequence: int, timeout_s: float = 0.5
+                     ) -> tuple[Frame, PoseResult, Matrix4]:
+        """As :meth:`measure`, for image-based servoing: ``(frame, estimate, T_base_tcp at
+        mid-exposure)``; the estimate carries the matched dots' image points and ids."""
+        try:
+            frame = self.camera.latest_frame(timeout_s=timeout_s)
+        except DriverError as err:
+            raise UnavailableError("camera_lost", f"no camera frame: {err}") from err
+        self.last_frame = frame
+        if frame.sequence <= after_sequence:
+            raise RefusedError("no_new_frame", "no frame newer than the last one")
+        T_base_tcp = self._pose_at(frame)
+        return frame, self._estimate(frame), T_base_tcp
+
     def _pose_at(self, frame: Frame) -> Matrix4:
         try:
             return self.arm.pose_at(frame.timestamp_s)

@@ -33,6 +33,8 @@ from cell.events import EventBus
 from cell.frames import CellFrames, cell_frames
 from cell.gripper_ops import GripperService
 from cell.hardware import Hardware, SimWorld
+from cell.ibvs import Features
+from cell.ibvs_track import start_ibvs_track
 from cell.imagelog import ImageLog
 from cell.jobrunner import JobRunner
 from cell.jobs import Job, JobStore
@@ -40,7 +42,7 @@ from cell.jog import Jogger
 from cell.links import LinkSupervisor
 from cell.locate import Located, Locator
 from cell.motion import GuardedArm, MotionSlot, driver_error
-from cell.safety import NotFoundError
+from cell.safety import LimitError, NotFoundError
 from cell.snapshot import CellSnapshot
 from cell.stats import CellStats
 from cell.stop import StopLine
@@ -176,20 +178,29 @@ class Cell:
                  speed_mm_s: float | None = None, T_target_tcp: Matrix4 | None = None,
                  use_last_locate: bool = False, wait: bool = False,
                  wait_timeout_s: float = 120.0,
-                 mode: Literal["servo", "look_and_move"] | None = None,
-                 recipe: dict[str, Any] | None = None) -> Job:
+                 mode: Literal["servo", "look_and_move", "ibvs"] | None = None,
+                 recipe: dict[str, Any] | None = None, view: Features | None = None) -> Job:
         """Approach job; ``mode`` None: ``[approach] mode`` (see cell.approach); ``recipe``:
-        the recipe record the job keeps."""
+        the recipe record the job keeps; ``view``: the taught view (mode ``ibvs``)."""
         return approach_mod.start_approach(
             self.core, caller, standoff_mm=standoff_mm, speed_mm_s=speed_mm_s,
             T_target_tcp=T_target_tcp, use_last_locate=use_last_locate, wait=wait,
-            wait_timeout_s=wait_timeout_s, mode=mode, recipe=recipe)
+            wait_timeout_s=wait_timeout_s, mode=mode, recipe=recipe, view=view)
 
     def track(self, caller: str, *, standoff_mm: float, T_target_tcp: Matrix4 | None = None,
               duration_s: float, wait: bool = False, wait_timeout_s: float = 120.0,
+              mode: Literal["servo", "ibvs"] = "servo", view: Features | None = None,
               recipe: dict[str, Any] | None = None) -> Job:
-        """Track job: hold the TCP at the standoff pose on a moving target (cell.track);
-        ``recipe``: the recipe record the job keeps."""
+        """Track job: hold the TCP at the standoff pose on a moving target (cell.track), or
+        the taught view (``mode="ibvs"``, cell.ibvs_track); ``recipe``: the recipe record the
+        job keeps."""
+        if mode == "ibvs":
+            return start_ibvs_track(self.core, caller, standoff_mm=standoff_mm,
+                                    duration_s=duration_s, T_target_tcp=T_target_tcp,
+                                    view=view, wait=wait, wait_timeout_s=wait_timeout_s)
+        if mode != "servo":
+            raise LimitError("invalid_request", f"track mode must be 'servo' or 'ibvs', got "
+                             f"{mode!r}")
         return track.start_track(self.core, caller, standoff_mm=standoff_mm,
                                  duration_s=duration_s, T_target_tcp=T_target_tcp, wait=wait,
                                  wait_timeout_s=wait_timeout_s, recipe=recipe)

@@ -12,6 +12,11 @@ and reads them in a text editor; beside the job database because that is the cel
 state directory (the config file may be read-only and is hand-edited). Every change rewrites
 the whole file atomically (temporary file, fsync, rename), so a crash leaves either the old
 or the new file, never a torn one. A file that cannot be read is never overwritten.
+
+Teaching by showing: the view is recorded too (``view``: each matched dot's normalised image
+point and depth, averaged over the samples), so an IBVS approach (:mod:`cell.ibvs_run`) can
+drive the image back to it. Poses taught before that have no view; they still serve servo and
+look-and-move, and IBVS to them is refused (``taught_without_view``).
 """
 
 from __future__ import annotations
@@ -30,10 +35,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.frames import mean_pose
+from cell.ibvs import Features, features_from_view
 from cell.safety import CellError, LimitError, NotFoundError, RefusedError
 from estimator.transforms import T_from_pose_dict, invert_T, pose_dict, pose_distance
 
 if TYPE_CHECKING:
+    from cell.locate import Located
     from cell.service import Cell
 
 Matrix4 = NDArray[np.float64]
@@ -65,8 +72,12 @@ class TaughtPose:
     T_base_tcp: Matrix4
     taught_by: str
     taught_at: float  # UNIX seconds
+    view: Features | None = None  # the desired image features (None: taught without them)
 
     def as_dict(self) -> dict[str, Any]:
+        return {**self._pose_dict(), "view": view_dict(self.view)}
+
+    def _pose_dict(self) -> dict[str, Any]:
         return {
             "name": self.name, "T_target_tcp": pose_dict(self.T_target_tcp),
             "samples": self.samples, "spread_mm": self.spread_mm, "spread_deg": self.spread_deg,
@@ -82,7 +93,36 @@ class TaughtPose:
             samples=int(d["samples"]), spread_mm=float(d["spread_mm"]),
             spread_deg=float(d["spread_deg"]), T_base_target=T_from_pose_dict(d["T_base_target"]),
             T_base_tcp=T_from_pose_dict(d["T_base_tcp"]), taught_by=str(d["taught_by"]),
-            taught_at=float(d["taught_at"]))
+            taught_at=float(d["taught_at"]), view=view_from_dict(d.get("view")))
+
+
+def view_dict(view: Features | None) -> dict[str, Any] | None:
+    if view is None:
+        return None
+    return {"ids": list(view.ids), "xy": view.xy.tolist(), "depth_mm": view.depth_mm.tolist()}
+
+
+def view_from_dict(d: dict[str, Any] | None) -> Features | None:
+    if d is None:
+        return None
+    xy = np.asarray(d["xy"], dtype=float).reshape(-1, 2)
+    depth = np.asarray(d["depth_mm"], dtype=float).reshape(-1)
+    ids = tuple(int(i) for i in d["ids"])
+    if len(ids) != len(xy) or len(ids) != len(depth):
+        raise ValueError("a taught view needs one point and one depth per dot id")
+    return Features(ids, xy, depth)
+
+
+def mean_view(views: list[Features]) -> Features | None:
+    """The dots seen in every sample, their normalised points and depths averaged."""
+    if not views:
+        return None
+    common = [i for i in views[0].ids if all(i in v.ids for v in views[1:])]
+    if not common:
+        return None
+    subs = [v.subset(tuple(common)) for v in views]
+    return Features(tuple(common), np.mean([v.xy for v in subs], axis=0),
+                    np.mean([v.depth_mm for v in subs], axis=0))
 
 
 def check_name(name: str) -> str:
@@ -202,6 +242,7 @@ class Sample:
     T_base_target: Matrix4
     T_base_tcp: Matrix4
     frame_sequence: int
+    view: Features | None = None
 
 
 def combine(name: str, samples: list[Sample], caller: str, max_spread_mm: float,
@@ -228,7 +269,9 @@ def combine(name: str, samples: list[Sample], caller: str, max_spread_mm: float,
     T_base_target = mean_pose([s.T_base_target for s in samples])
     T_base_tcp = mean_pose([s.T_base_tcp for s in samples])
     return TaughtPose(check_name(name), T_mean, len(samples), spread_mm, spread_deg,
-                      T_base_target, T_base_tcp, caller, time.time())
+                      T_base_target, T_base_tcp, caller, time.time(),
+                      mean_view([s.view for s in samples if s.view is not None])
+                      if all(s.view is not None for s in samples) else None)
 
 
 def teach(cell: Cell, store: TaughtStore, caller: str, name: str, samples: int = 5,
@@ -257,6 +300,16 @@ def teach(cell: Cell, store: TaughtStore, caller: str, name: str, samples: int =
     return taught
 
 
+def located_view(cell: Cell, loc: Located) -> Features | None:
+    """The image features of a locate's last frame (None when it kept no image points)."""
+    r = loc.result
+    if r.image_points_px is None or not r.matched_ids:
+        return None
+    locator = cell.core.locator
+    return features_from_view(locator.camera_model, r.matched_ids, r.image_points_px,
+                              r.T_camera_target, locator.target.points_mm)
+
+
 def _samples(cell: Cell, caller: str, n: int) -> list[Sample]:
     """``n`` locates, each from a frame not used before (the camera runs at its own rate)."""
     period_s = 1.0 / cell.config.camera.fps
@@ -271,5 +324,6 @@ def _samples(cell: Cell, caller: str, n: int) -> list[Sample]:
             time.sleep(0.5 * period_s)
             continue
         seen.add(loc.frame_sequence)
-        out.append(Sample(loc.T_base_target, loc.T_base_tcp, loc.frame_sequence))
+        out.append(Sample(loc.T_base_target, loc.T_base_tcp, loc.frame_sequence,
+                          located_view(cell, loc)))
     return out

@@ -610,8 +610,9 @@ function wireCommands() {
     }
     if (chosenRecipe()) return approachWithRecipe(standoff);
     // "" (the first option): no mode in the body, so the config's [approach] mode applies
-    const body = { standoff_mm: standoff, mode: $("approach-mode").value || undefined,
-                   wait: false };
+    const mode = $("approach-mode").value || undefined;
+    // IBVS goes to the taught view itself: no standoff
+    const body = { standoff_mm: mode === "ibvs" ? undefined : standoff, mode, wait: false };
     if ($("taught").value) body.taught = $("taught").value;
     const job = await api("POST", "/approach", body);
     state.lastJob = job;
