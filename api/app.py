@@ -15,22 +15,22 @@ from fastapi import Depends, FastAPI, Response
 from fastapi.responses import PlainTextResponse
 from prometheus_client import CONTENT_TYPE_LATEST
 
-from api import errors, logs, metrics, openapi_limits
 from api.auth import TokenTable, require
-from api.docs import mount_docs
-from api.fast_lane import FastLane
-from api.guard import OPEN_PATHS, RequestGuard
-from api.interfaces import Interfaces
-from api.live import LiveView
-from api.page import mount_page
-from api.request_timer import RequestTimer
-from api.routes import router, sim_router
-from api.routes_arm import router as arm_router
-from api.routes_calibration import install as install_calibration
-from api.routes_ops import install as install_ops
-from api.routes_recipes import router as recipes_router
-from api.routes_servo import router as servo_router
-from cell.endpoints import with_ports
+from api.http import errors, logs, metrics, openapi_limits
+from api.http.docs import mount_docs
+from api.http.fast_lane import FastLane
+from api.http.guard import OPEN_PATHS, RequestGuard
+from api.http.live import LiveView
+from api.http.page import mount_page
+from api.http.request_timer import RequestTimer
+from api.http.routes.arm import router as arm_router
+from api.http.routes.calibration import install as install_calibration
+from api.http.routes.main import router, sim_router
+from api.http.routes.ops import install as install_ops
+from api.http.routes.recipes import router as recipes_router
+from api.http.routes.servo import router as servo_router
+from api.plc.interfaces import Interfaces
+from cell.config.endpoints import with_ports
 from cell.runtime import freeze_startup_objects
 from cell.service import Cell
 
@@ -53,7 +53,7 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False,
                interfaces: bool = False) -> FastAPI:
     """Build the API for ``cell``. Raises ConfigError when a sample token is configured on
     hardware other than the fakes. ``interfaces``: also serve the configured OPC UA server and
-    URScript XML-RPC endpoint (api.interfaces) while the app runs."""
+    URScript XML-RPC endpoint (api.plc.interfaces) while the app runs."""
     tokens = TokenTable(list(cell.config.api.tokens), simulated=cell.hw.simulated)
     logs.install()
     doors = Interfaces(cell)
@@ -118,7 +118,7 @@ def app_from_environment() -> FastAPI:
     import os
     import sys
 
-    from cell.config import load_config
+    from cell.config.schema import load_config
     from cell.runtime import SHUTDOWN_HOOKS, start_cell
 
     try:

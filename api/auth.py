@@ -2,7 +2,7 @@
 
 Credentials come from the ``Authorization`` header. Only the GET streaming routes (camera
 frames, event streams) also accept ``?token=``, because browsers cannot set headers on
-``<img>`` and ``EventSource``; such URLs are redacted from every log line (api.logs). A token
+``<img>`` and ``EventSource``; such URLs are redacted from every log line (api.http.logs). A token
 in the query of any other route, POST above all, is refused: a cross-site page can make a
 browser send a "simple" POST with a URL of its choosing, never with an Authorization header.
 
@@ -22,8 +22,8 @@ from typing import Annotated, Any
 from fastapi import Depends, Query, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from api.errors import AuthError, ForbiddenError
-from cell.config import SAMPLE_TOKENS, ConfigError
+from api.http.errors import AuthError, ForbiddenError
+from cell.config.schema import SAMPLE_TOKENS, ConfigError
 
 PERMISSIONS: dict[str, frozenset[str]] = {
     "viewer": frozenset({"read"}),

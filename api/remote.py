@@ -24,16 +24,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from api.auth import ALWAYS, PERMISSIONS
-from api.errors import STATUS, ForbiddenError
-from cell.audit import AuditNote
-from cell.frames import approach_tcp
-from cell.ibvs import Features
-from cell.jobs import Job
-from cell.locate import Located
-from cell.recipes import Recipe, RecipeStore, RecipeTarget
-from cell.safety import CellError, LimitError, NotFoundError
+from api.http.errors import STATUS, ForbiddenError
+from cell.actions.ibvs import Features
+from cell.features.recipes import Recipe, RecipeStore, RecipeTarget
+from cell.features.teach import TaughtStore
+from cell.jobs.audit import AuditNote
+from cell.jobs.store import Job
+from cell.motion.limits import CellError, LimitError, NotFoundError
 from cell.service import Cell
-from cell.teach import TaughtStore
+from cell.vision.frames import approach_tcp
+from cell.vision.locate import Located
 from estimator.transforms import pose_from_T
 
 Matrix4 = NDArray[np.float64]

@@ -14,22 +14,22 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.audit import Auditor
-from cell.config import CellConfig
-from cell.events import EventBus
-from cell.frames import CellFrames
-from cell.hardware import Hardware
-from cell.jobrunner import JobRunner
-from cell.jobs import JobStore
-from cell.locate import Locator
-from cell.motion import GuardedArm, MotionSlot
+from cell.config.schema import CellConfig
+from cell.devices.hardware import Hardware
+from cell.jobs.audit import Auditor
+from cell.jobs.events import EventBus
+from cell.jobs.runner import JobRunner
+from cell.jobs.store import JobStore
+from cell.motion.guard import GuardedArm, MotionSlot
 from cell.stats import CellStats
+from cell.vision.frames import CellFrames
+from cell.vision.locate import Locator
 from drivers.camera import Camera
 from drivers.gripper import Gripper
 from estimator import Target
 
 if TYPE_CHECKING:
-    from cell.stop import StopLine
+    from cell.actions.stop import StopLine
 
 
 @dataclass
@@ -47,7 +47,7 @@ class CellCore:
     frames: CellFrames
     target: Target
     lock: threading.RLock = field(default_factory=threading.RLock)
-    stopper: StopLine | None = None  # the one stop path (cell.stop); set by the Cell
+    stopper: StopLine | None = None  # the one stop path (cell.actions.stop); set by the Cell
 
     @property
     def camera(self) -> Camera:

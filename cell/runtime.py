@@ -6,12 +6,12 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from cell.config import CellConfig, ConfigError, load_config
-from cell.config_checks import startup_problems
-from cell.factory import build_hardware
-from cell.imagelog import ImageLog
-from cell.jobs import JobStore
+from cell.config.checks import startup_problems
+from cell.config.schema import CellConfig, ConfigError, load_config
+from cell.devices.factory import build_hardware
+from cell.jobs.store import JobStore
 from cell.service import Cell
+from cell.vision.imagelog import ImageLog
 
 # Called first thing on SIGTERM/SIGINT by ``cell serve`` (see cell.commands.serve), before the
 # HTTP server waits for open connections: the arm must not wait for an SSE client to leave.

@@ -3,12 +3,12 @@
 One object owns the hardware for the service's lifetime; the work is done by the modules it
 wires together, each with one responsibility:
 
-- :mod:`cell.motion`: the one guarded path to the arm and the one-motion-at-a-time slot;
-- :mod:`cell.jobrunner`: the lifecycle of every job; :mod:`cell.audit`: the audit log;
-- :mod:`cell.approach`, :mod:`cell.track` (:mod:`cell.servo`), :mod:`cell.jog`,
-  :mod:`cell.recovery`: what moves the arm;
-- :mod:`cell.links`: devices that drop and come back; :mod:`cell.status`: what is reported;
-- :mod:`cell.gripper_ops`: gripper commands and its cached status.
+- :mod:`cell.motion.guard`: the one guarded path to the arm and the one-motion-at-a-time slot;
+- :mod:`cell.jobs.runner`: the lifecycle of every job; :mod:`cell.jobs.audit`: the audit log;
+- :mod:`cell.actions.approach`, :mod:`cell.actions.track` (:mod:`cell.actions.servo`), :mod:`cell.actions.jog`,
+  :mod:`cell.actions.recovery`: what moves the arm;
+- :mod:`cell.supervision.links`: devices that drop and come back; :mod:`cell.supervision.status`: what is reported;
+- :mod:`cell.supervision.gripper`: gripper commands and its cached status.
 
 Rules: one motion at a time; every check before anything is commanded (a refusal moves
 nothing); stop is always accepted and cancels whatever holds the motion slot; every command is
@@ -24,28 +24,28 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from cell import approach as approach_mod
-from cell import recovery, track
-from cell.audit import Auditor
-from cell.config import CellConfig, HandEyeConfig, PoseConfig
+from cell.actions import approach as approach_mod
+from cell.actions import recovery, track
+from cell.actions.ibvs import Features
+from cell.actions.ibvs_track import start_ibvs_track
+from cell.actions.jog import Jogger
+from cell.actions.stop import StopLine
+from cell.config.schema import CellConfig, HandEyeConfig, PoseConfig
 from cell.core import CellCore
-from cell.events import EventBus
-from cell.frames import CellFrames, cell_frames
-from cell.gripper_ops import GripperService
-from cell.hardware import Hardware, SimWorld
-from cell.ibvs import Features
-from cell.ibvs_track import start_ibvs_track
-from cell.imagelog import ImageLog
-from cell.jobrunner import JobRunner
-from cell.jobs import Job, JobStore
-from cell.jog import Jogger
-from cell.links import LinkSupervisor
-from cell.locate import Located, Locator
-from cell.motion import GuardedArm, MotionSlot, driver_error
-from cell.safety import LimitError, NotFoundError
-from cell.snapshot import CellSnapshot
+from cell.devices.hardware import Hardware, SimWorld
+from cell.jobs.audit import Auditor
+from cell.jobs.events import EventBus
+from cell.jobs.runner import JobRunner
+from cell.jobs.store import Job, JobStore
+from cell.motion.guard import GuardedArm, MotionSlot, driver_error
+from cell.motion.limits import LimitError, NotFoundError
 from cell.stats import CellStats
-from cell.stop import StopLine
+from cell.supervision.gripper import GripperService
+from cell.supervision.links import LinkSupervisor
+from cell.supervision.snapshot import CellSnapshot
+from cell.vision.frames import CellFrames, cell_frames
+from cell.vision.imagelog import ImageLog
+from cell.vision.locate import Located, Locator
 from drivers.arm import ArmState, JogFrame
 from drivers.camera import Frame
 from drivers.errors import DriverError
@@ -88,7 +88,7 @@ class Cell:
     # -- what other modules read ---------------------------------------------------------------
     @property
     def sim(self) -> SimWorld | None:
-        """The simulated world when running on fakes, else None (see cell.hardware)."""
+        """The simulated world when running on fakes, else None (see cell.devices.hardware)."""
         return self.hw.sim
 
     @property
@@ -140,11 +140,11 @@ class Cell:
             raise driver_error(err, "reading the arm state") from err
 
     def health(self) -> dict[str, Any]:
-        """From the snapshot (cell.snapshot): never waits on a device."""
+        """From the snapshot (cell.supervision.snapshot): never waits on a device."""
         return self.snapshot.health()
 
     def status(self) -> dict[str, Any]:
-        """From the snapshot (cell.snapshot): never waits on a device."""
+        """From the snapshot (cell.supervision.snapshot): never waits on a device."""
         return self.snapshot.status()
 
     def job(self, job_id: str) -> Job:
@@ -180,7 +180,7 @@ class Cell:
                  wait_timeout_s: float = 120.0,
                  mode: Literal["servo", "look_and_move", "ibvs"] | None = None,
                  recipe: dict[str, Any] | None = None, view: Features | None = None) -> Job:
-        """Approach job; ``mode`` None: ``[approach] mode`` (see cell.approach); ``recipe``:
+        """Approach job; ``mode`` None: ``[approach] mode`` (see cell.actions.approach); ``recipe``:
         the recipe record the job keeps; ``view``: the taught view (mode ``ibvs``)."""
         return approach_mod.start_approach(
             self.core, caller, standoff_mm=standoff_mm, speed_mm_s=speed_mm_s,
@@ -191,8 +191,8 @@ class Cell:
               duration_s: float, wait: bool = False, wait_timeout_s: float = 120.0,
               mode: Literal["servo", "ibvs"] = "servo", view: Features | None = None,
               recipe: dict[str, Any] | None = None) -> Job:
-        """Track job: hold the TCP at the standoff pose on a moving target (cell.track), or
-        the taught view (``mode="ibvs"``, cell.ibvs_track); ``recipe``: the recipe record the
+        """Track job: hold the TCP at the standoff pose on a moving target (cell.actions.track), or
+        the taught view (``mode="ibvs"``, cell.actions.ibvs_track); ``recipe``: the recipe record the
         job keeps."""
         if mode == "ibvs":
             return start_ibvs_track(self.core, caller, standoff_mm=standoff_mm,
@@ -235,7 +235,7 @@ class Cell:
         return self.gripper_ops.command(caller, action, position_mm, speed_pct, force_pct, wait)
 
     def stop(self, caller: str, reason: str = "requested") -> dict[str, Any]:
-        """Always accepted, through the one stop path (cell.stop): the motion slot's holder
+        """Always accepted, through the one stop path (cell.actions.stop): the motion slot's holder
         is cancelled (a flag: no new command can pass the guard from then on), the stop
         thread tells the arm to stop, then the job is cancelled and the stop audited."""
         return self.stopper.stop(caller, reason)

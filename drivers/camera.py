@@ -41,7 +41,7 @@ class CameraSettings:
 
 @runtime_checkable
 class Camera(Protocol):
-    """An image source. Implementations: OAK (drivers.oak), simulated (fakes.sim_camera)."""
+    """An image source. Implementations: OAK (drivers.oak.camera), simulated (fakes.sim_camera)."""
 
     def connect(self) -> None:
         """Open the device and start streaming; raises ConnectionLostError when it cannot."""

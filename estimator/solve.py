@@ -72,7 +72,7 @@ SEED_TOLERANCE_PX = 0.05  # the seed only has to land in the right basin; LM doe
 # Iterating on to 0.005 px (cheap now that the steps are compiled) would save ~2 LM evaluations
 # per frame, but on a close-range 5-dot plate both converged branches and the mirror then led
 # only to a wrong minimum (0.44 px rms against 0.005 px at the truth, 7.7 mm off), where the
-# 4 px seed still lay in the true basin: tests/test_solve_pose.py keeps that frame.
+# 4 px seed still lay in the true basin: tests/estimator/test_solve_pose.py keeps that frame.
 PLANAR_SEED_TOLERANCE_PX = 4.0
 CONTENDER_RAW_RMS_PX = 8.0  # an unrefined alternative above this cannot refine to < 2 px rms
 CONTENDER_RATIO = 3.0  # ... unless the winner itself fits badly (a wrong basin)

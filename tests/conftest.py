@@ -7,11 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from drivers.ur import URArm
+from drivers.ur.adapter import URArm
 from fakes.ur_controller.process import ControllerProcess
-
-REPO = Path(__file__).resolve().parents[1]
-SHARED = REPO.parent / "shared"
+from tests.support.paths import SHARED
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -21,13 +19,17 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 # ``make test`` runs the suite on two xdist workers (``--dist loadgroup``): each file is one
 # unit of work, so its module fixtures, servers and CPU burners stay in one process.
-# The files that drive the simulated UR controller in real time through ur_rtde (three of them
-# with CPU burners or a dozen pollers) form one group and run one after another on one worker:
-# together they would load both cores far past the "loaded 2-core host" their bounds are
-# written for (measured: a 0.4 s late speedL, 1.6 s without RTDE data, with two of them at once
-# beside other engineers' runs).
-REALTIME_UR = ("test_links.py", "test_peer_clients.py", "test_ur_protocol.py",
-               "test_ur_faults.py", "test_ur_driver.py", "test_stop_load.py")
+# The files in ``tests/realtime/`` drive the simulated UR controller in real time through
+# ur_rtde (some with CPU burners or a dozen pollers); they form one group and run one after
+# another on one worker: together they would load both cores far past the "loaded 2-core host"
+# their bounds are written for (measured: a 0.4 s late speedL, 1.6 s without RTDE data, with
+# two of them at once).
+REALTIME_DIR = Path(__file__).resolve().parent / "realtime"
+
+
+def _realtime(item: pytest.Item) -> bool:
+    return item.path.parent == REALTIME_DIR
+
 # The other files that take longest (seconds of simulated motion in real time, measured with
 # ``--durations``), longest first, after the real-time group: handing out the long work first
 # (``--no-loadscope-reorder`` keeps this order) keeps one worker from starting a 2-minute file
@@ -49,7 +51,7 @@ LONGEST_FIRST = (
 
 def _module_rank(item: pytest.Item) -> int:
     name = item.path.name
-    if name in REALTIME_UR:
+    if _realtime(item):
         return 0
     return 1 + (LONGEST_FIRST.index(name) if name in LONGEST_FIRST else len(LONGEST_FIRST))
 
@@ -57,7 +59,7 @@ def _module_rank(item: pytest.Item) -> int:
 def pytest_itemcollected(item: pytest.Item) -> None:
     """The xdist group, set as each test is collected (xdist reads it when collection ends)."""
     name = item.path.name
-    item.add_marker(pytest.mark.xdist_group("realtime_ur" if name in REALTIME_UR else name))
+    item.add_marker(pytest.mark.xdist_group("realtime_ur" if _realtime(item) else name))
 
 
 @pytest.hookimpl(tryfirst=True)

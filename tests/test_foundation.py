@@ -17,8 +17,7 @@ from estimator.transforms import (
     pose_from_T,
     ur_pose_from_T,
 )
-
-REPO = Path(__file__).resolve().parents[1]
+from tests.support.paths import REPO
 
 # package -> packages of the project it may import
 ALLOWED = {
@@ -55,8 +54,8 @@ def test_layering() -> None:
 # (and the benchmarks: the estimator's renders its scenes with the fake renderer, the approach,
 # service and freeze benchmarks run the simulated cell or controller on a free loopback
 # address, the fixed-camera one renders its views with the fixed simulated camera).
-MAY_IMPORT_FAKES = {"cell/factory.py", "cell/bench.py", "cell/bench_approach.py",
-                    "cell/bench_service.py", "cell/bench_freeze.py", "cell/bench_fixed.py"}
+MAY_IMPORT_FAKES = {"cell/devices/factory.py", "cell/bench/estimator.py", "cell/bench/approach.py",
+                    "cell/bench/service.py", "cell/bench/freeze.py", "cell/bench/fixed.py"}
 
 
 def test_only_the_factory_builds_fakes() -> None:

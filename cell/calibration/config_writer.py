@@ -2,7 +2,7 @@
 
 Used by ``cell calibrate ... --write-config`` and by the API's apply. The table holds
 ``T_flange_camera`` as the project's pose object (``position_mm``, ``rotvec_rad``), which is the
-schema ``cell.config.HandEyeConfig`` reads.
+schema ``cell.config.schema.HandEyeConfig`` reads.
 
 Only a file that exists and loads as a valid cell config is edited (a mistyped path must not
 become a stub config holding only ``[hand_eye]``), and the result must load as one too. A cell
@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.config import CellConfig, ConfigError, parse_config
+from cell.config.schema import CellConfig, ConfigError, parse_config
 from estimator.transforms import pose_dict, pose_distance, pose_from_T
 
 TABLE = "hand_eye"

@@ -1,7 +1,7 @@
 """The guided hand-eye routine: move the arm around a start pose, look, solve, judge.
 
 Works on any :class:`drivers.arm.Arm` and :class:`drivers.camera.Camera`; the cell and the CLI
-hand it their :class:`cell.motion.GuardedArm`, so every view pose is checked against the
+hand it their :class:`cell.motion.guard.GuardedArm`, so every view pose is checked against the
 limits first (a refused view is skipped, not moved to) and a stop ends the routine.
 
 The poses tilt the camera about the target (so it stays in view) about several axes and roll
@@ -28,7 +28,7 @@ from cell.calibration.dataset import HandEyeDataset, save_project_dataset
 from cell.calibration.observe import Observation, ObservationError, Observer
 from cell.calibration.report import HandEyeReport
 from cell.calibration.solve import DEFAULT_METHOD, Progress, solve_observations
-from cell.safety import LimitError
+from cell.motion.limits import LimitError
 from drivers.arm import Arm
 from drivers.camera import Camera, Frame
 from drivers.errors import DriverError

@@ -33,9 +33,9 @@ from cell.calibration.routine import (
     save_views,
 )
 from cell.calibration.solve import CHOICES
-from cell.jobs import Job
-from cell.motion import Motion
-from cell.safety import LimitError, NotFoundError, RefusedError, UnavailableError
+from cell.jobs.store import Job
+from cell.motion.guard import Motion
+from cell.motion.limits import LimitError, NotFoundError, RefusedError, UnavailableError
 from cell.service import Cell
 from estimator.transforms import T_from_pose_dict, pose_dict, pose_distance
 

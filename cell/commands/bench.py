@@ -14,7 +14,7 @@ from typing import Any
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("bench", help="benchmark the estimator against OpenCV pipelines",
                        description="Times and pose errors on rendered 1280x800 frames "
-                                   "(see cell/bench.py for what is measured and how).")
+                                   "(see cell/bench/estimator.py for what is measured and how).")
     p.add_argument("--frames", type=int, default=60, help="rendered frames (default 60)")
     p.add_argument("--scenes", type=int, default=1000,
                    help="random scenes for the 0.5 px accuracy comparison (default 1000)")
@@ -29,7 +29,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     a = what.add_parser(
         "approach", help="servo vs look-and-move approach, conveyor tracking, lost target",
         description="On the simulated cell through the UR adapter and ur_rtde (see "
-                    "cell/bench_approach.py): the same seeded placements for both approach "
+                    "cell/bench/approach.py): the same seeded placements for both approach "
                     "modes, conveyor tracking at 25/50/100 mm/s, then a lost-target stop.")
     a.add_argument("--placements", type=int, default=10, help="random placements (default 10)")
     a.add_argument("--seed", type=int, default=0, help="random seed")
@@ -47,7 +47,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "service", help="the simulated cell service under load: STOP, status, SSE, idle CPU",
         description="Serves the simulated cell, measures idle CPU by process, then runs 50 "
                     "status pollers, 10 SSE streams and 2 live views while STOP is sent 100+ "
-                    "times with the arm jogging (see cell/bench_service.py).")
+                    "times with the arm jogging (see cell/bench/service.py).")
     svc.add_argument("--duration", type=float, default=20.0, help="load seconds (default 20)")
     svc.add_argument("--idle", type=float, default=5.0, help="idle seconds (default 5)")
     svc.add_argument("--pollers", type=int, default=50)
@@ -68,7 +68,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         description="Streams 50 mm/s twists to the simulated controller, freezes the host "
                     "process or its ur_rtde child for 2 s (SIGSTOP), and measures from the "
                     "controller's own state when the arm stood and how far it went (see "
-                    "cell/bench_freeze.py).")
+                    "cell/bench/freeze.py).")
     frz.add_argument("--runs", type=int, default=3, help="freezes of each process (default 3)")
     frz.add_argument("--check", action="store_true",
                      help="exit with status 1 when a target is missed")
@@ -76,7 +76,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     mb = what.add_parser(
         "modbus", help="STOP written over Modbus TCP to the simulated arm's receipt",
         description="A pymodbus client starts approaches over the handshake and stops each "
-                    "mid-motion (see cell/bench_modbus.py).")
+                    "mid-motion (see cell/bench/modbus.py).")
     mb.add_argument("--stops", type=int, default=100, help="stops (default 100)")
     mb.add_argument("--check", action="store_true",
                     help="exit with status 1 when the 20 ms p99 target is missed")
@@ -85,13 +85,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 def _bench_approach(args: argparse.Namespace) -> int:
 
-    from cell.bench_approach import format_report, run_bench_approach
+    from cell.bench.approach import format_report, run_bench_approach
     from cell.commands.common import fail, progress_bars
 
     if args.placements < 1:
         return fail("invalid_argument", "--placements must be at least 1", args.json)
     if args.tracking:
-        from cell.bench_approach import (
+        from cell.bench.approach import (
             TRACK_RUNS,
             format_tracking_report,
             run_bench_tracking,
@@ -111,7 +111,7 @@ def _bench_approach(args: argparse.Namespace) -> int:
 
 
 def _bench_freeze(args: argparse.Namespace) -> int:
-    from cell.bench_freeze import format_report, run_bench_freeze
+    from cell.bench.freeze import format_report, run_bench_freeze
     from cell.commands.common import fail
 
     if args.runs < 1:
@@ -122,9 +122,9 @@ def _bench_freeze(args: argparse.Namespace) -> int:
 
 def _bench(args: argparse.Namespace) -> int:
 
-    from cell.bench import format_report, run_bench
+    from cell.bench.estimator import format_report, run_bench
     from cell.commands.common import fail, progress_bars
-    from cell.config import ConfigError, load_config
+    from cell.config.schema import ConfigError, load_config
 
     if args.frames < 1 or args.scenes < 1:
         return fail("invalid_argument", "--frames and --scenes must be at least 1", args.json)
@@ -155,7 +155,7 @@ def _report(args: argparse.Namespace, report: dict[str, Any], text: str) -> int:
 
 
 def _bench_service(args: argparse.Namespace) -> int:
-    from cell.bench_service import ServiceBenchConfig, format_report, run_service_bench
+    from cell.bench.service import ServiceBenchConfig, format_report, run_service_bench
     from cell.commands.common import EXIT_OK, fail, print_json
 
     if min(args.duration, args.idle) <= 0 or min(args.pollers, args.streams, args.viewers,
@@ -180,7 +180,7 @@ def _bench_service(args: argparse.Namespace) -> int:
 def _bench_modbus(args: argparse.Namespace) -> int:
     import json
 
-    from cell.bench_modbus import run
+    from cell.bench.modbus import run
 
     report = run(args.stops)
     print(json.dumps(report, indent=2))

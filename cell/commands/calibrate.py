@@ -134,7 +134,7 @@ def _method(args: argparse.Namespace) -> str:
 
 def _fixed_mount(args: argparse.Namespace) -> bool:
     """The camera mount of ``--config`` (else ``--write-config``'s file): fixed or on the hand."""
-    from cell.config import ConfigError, load_config
+    from cell.config.schema import ConfigError, load_config
 
     path = getattr(args, "config", None) or getattr(args, "write_config", None)
     if not path:
@@ -188,10 +188,10 @@ def run_routine(args: argparse.Namespace) -> int:
         run_hand_eye_routine,
         save_views,
     )
-    from cell.config import ConfigError, load_config
-    from cell.factory import build_hardware
-    from cell.motion import GuardedArm
-    from cell.safety import CellError, SafetyGuard
+    from cell.config.schema import ConfigError, load_config
+    from cell.devices.factory import build_hardware
+    from cell.motion.guard import GuardedArm
+    from cell.motion.limits import CellError, SafetyGuard
     from drivers.errors import DriverError
     from estimator.calib.board import Board
 
@@ -274,7 +274,7 @@ def _check_writable_config(path: str) -> None:
     """Refuse before the routine moves the arm when ``--write-config`` could not be honoured."""
     from pathlib import Path
 
-    from cell.config import ConfigError, load_config
+    from cell.config.schema import ConfigError, load_config
 
     if not Path(path).is_file():
         raise ValueError(f"--write-config {path}: no such file; the result is written only into "

@@ -3,7 +3,7 @@
 The first look through a new cell's camera (focus, exposure, is the target in view), and a
 way for external tests to get an image. Without ``--config`` it is the simulated camera with
 the built-in settings, looking at the target from the simulated arm's home pose. The camera
-is built by :func:`cell.factory.build_camera`, the one place that chooses real or fake.
+is built by :func:`cell.devices.factory.build_camera`, the one place that chooses real or fake.
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def run_snapshot(args: argparse.Namespace) -> int:
     import cv2
 
-    from cell.config import ConfigError, load_config
-    from cell.factory import build_camera
+    from cell.config.schema import ConfigError, load_config
+    from cell.devices.factory import build_camera
     from drivers.errors import DriverError
 
     try:

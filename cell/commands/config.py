@@ -1,7 +1,7 @@
 """``cell config check FILE``: validate a cell config without touching any hardware.
 
 What an integrator runs after every edit of a real cell's file: the strict schema, the
-commissioning checks and every rule a start refuses on (:mod:`cell.config_checks`: sample or
+commissioning checks and every rule a start refuses on (:mod:`cell.config.checks`: sample or
 weak API tokens on real hardware, device combinations the factory cannot build), every problem
 listed with its key. Exit 0 when ``cell serve`` would start with the file, 2 otherwise.
 """
@@ -30,8 +30,8 @@ def run_check(args: argparse.Namespace) -> int:
     # no USB is reachable; no device is touched here, and the warning would corrupt --json.
     os.environ.setdefault("DEPTHAI_LEVEL", "error")
 
-    from cell.config import ConfigError, load_config
-    from cell.config_checks import startup_problems
+    from cell.config.checks import startup_problems
+    from cell.config.schema import ConfigError, load_config
 
     try:
         config = load_config(args.file)

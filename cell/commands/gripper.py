@@ -29,7 +29,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from cell.config import ConfigError, GripperConfig, load_config
+    from cell.config.schema import ConfigError, GripperConfig, load_config
     from drivers.errors import DriverError
     from drivers.robotiq import RobotiqGripper
 

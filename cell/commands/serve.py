@@ -44,8 +44,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def _serve(args: argparse.Namespace) -> int:
-    from cell.config import ConfigError, load_config
-    from cell.endpoints import endpoints, with_ports
+    from cell.config.endpoints import endpoints, with_ports
+    from cell.config.schema import ConfigError, load_config
     from cell.runtime import check_startable
 
     if bool(args.ssl_certfile) != bool(args.ssl_keyfile):
@@ -77,7 +77,7 @@ def _serve(args: argparse.Namespace) -> int:
     import logging
     import logging.config
 
-    from cell.logs import log_config
+    from cell.supervision.logs import log_config
     from estimator.kernels import warm_up
 
     logging_config = log_config(args.log_format, args.log_level)

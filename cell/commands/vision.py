@@ -16,7 +16,7 @@ if TYPE_CHECKING:
     import numpy as np
     from numpy.typing import NDArray
 
-    from cell.config import CellConfig
+    from cell.config.schema import CellConfig
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -35,7 +35,7 @@ def _load(args: argparse.Namespace) -> tuple[CellConfig, NDArray[np.uint8]] | in
     """Config and grey image, or the exit status of the failure already reported."""
     import numpy as np
 
-    from cell.config import ConfigError, load_config
+    from cell.config.schema import ConfigError, load_config
 
     try:
         config = load_config(args.config)

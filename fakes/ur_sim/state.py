@@ -1,4 +1,4 @@
-"""Types of the simulated UR controller: modes (UR's codes, from :mod:`drivers.ur_modes`) and
+"""Types of the simulated UR controller: modes (UR's codes, from :mod:`drivers.ur.modes`) and
 status bits as RTDE reports them, limits, the engine's state snapshot, command outcomes and
 errors. Shared by the engine, its commands and the protocol servers.
 """
@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 # UR's published codes, one definition for both sides of the wire
-from drivers.ur_modes import RobotMode, SafetyMode
+from drivers.ur.modes import RobotMode, SafetyMode
 from fakes.ur_sim.kinematics import elbow_position_m
 
 NUM_JOINTS = 6

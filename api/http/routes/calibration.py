@@ -1,0 +1,205 @@
+"""Routes under ``/api/v1`` for commissioning: the hand-eye routine and taught poses.
+
+Starting, applying, teaching and deleting change the cell, so they need an operator token;
+reading needs any token. ``install(app)`` mounts the routes and creates the calibration
+service and the taught-pose store (beside the job database) on ``app.state``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from fastapi import APIRouter, Body, Depends, FastAPI, Query, Request
+from fastapi.responses import StreamingResponse
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
+
+from api.auth import Caller, Read, Stream
+from api.http.errors import DEVICE_ERRORS, ERROR_RESPONSES, NOT_FOUND, ForbiddenError
+from api.http.media import EventStreamResponse
+from api.http.schemas import ApplyResult, Job, TaughtDeleted, TaughtList, TaughtPoseOut
+from api.http.sse import SSE_RESPONSES, sse_response
+from cell.actions.ibvs import Features
+from cell.calibration.routine import RoutineSettings
+from cell.calibration.service import EVENT, CalibrationService
+from cell.features.teach import (
+    DEFAULT_MAX_SPREAD_DEG,
+    DEFAULT_MAX_SPREAD_MM,
+    NAME_PATTERN,
+    TaughtStore,
+    teach,
+)
+from cell.motion.limits import LimitError
+from cell.service import Cell
+
+router = APIRouter(prefix="/api/v1", responses={**ERROR_RESPONSES, **NOT_FOUND})
+
+OPERATOR_ROLES = frozenset({"operator"})
+
+
+def _operator(caller: Read) -> Caller:
+    """Calibration and teaching change what every later approach does: operators only."""
+    if caller.role not in OPERATOR_ROLES:
+        raise ForbiddenError("forbidden", f"role {caller.role!r} may not calibrate or teach; "
+                             "use an operator token")
+    return caller
+
+
+Operator = Annotated[Caller, Depends(_operator)]
+
+
+class _Body(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class HandEyeRequest(_Body):
+    views: int = Field(default=10, ge=3, le=30, description="views including the start pose")
+    tilt_deg: float = Field(default=18.0, gt=0, le=45,
+                            description="camera tilt about the target point")
+    roll_deg: float = Field(default=35.0, ge=0, le=90,
+                            description="largest roll about the optical axis")
+    speed_mm_s: float = Field(default=200.0, gt=0, le=2000)
+    method: Literal["tsai", "park", "horaud", "joint"] = Field(
+        default="joint", description="the result reported as chosen (all are computed)")
+
+
+class ApplyRequest(_Body):
+    method: Literal["tsai", "park", "horaud", "joint"] | None = Field(
+        default=None, description="default: the job's chosen method")
+    running: bool = Field(default=True, description="use it in the running cell now")
+    write_config: bool = Field(default=False,
+                               description="write it into the config file's [hand_eye] table")
+    force: bool = Field(default=False, description="apply although the verdict says the data "
+                        "disagree with themselves")
+
+
+class TeachRequest(_Body):
+    name: str = Field(pattern=NAME_PATTERN.pattern, description="1-64 of [A-Za-z0-9_.-]")
+    samples: int = Field(default=5, ge=1, le=20, description="locates averaged")
+    max_spread_mm: float = Field(default=DEFAULT_MAX_SPREAD_MM, gt=0, le=50)
+    max_spread_deg: float = Field(default=DEFAULT_MAX_SPREAD_DEG, gt=0, le=10)
+    replace: bool = Field(default=True, description="false: refuse if the name is taught")
+
+
+def install(app: FastAPI, config_path: str | Path | None = None) -> None:
+    """Mount the routes; ``config_path`` (default ``$CELL_CONFIG``) is the file that
+    ``apply`` with ``write_config`` edits."""
+    cell: Cell = app.state.cell
+    path = config_path if config_path is not None else os.environ.get("CELL_CONFIG") or None
+    app.state.calibration = CalibrationService(cell, path)
+    app.state.taught = TaughtStore.beside_job_db(cell.config.api.job_db)
+    app.include_router(router)
+
+
+def _calibration(request: Request) -> CalibrationService:
+    service: CalibrationService = request.app.state.calibration
+    return service
+
+
+def _taught(request: Request) -> TaughtStore:
+    store: TaughtStore = request.app.state.taught
+    return store
+
+
+def taught_target_tcp(request: Request, name: str, given: bool = False) -> NDArray[np.float64]:
+    """``T_target_tcp`` of a taught pose, for ``approach`` (404 ``taught_not_found`` for an
+    unknown name; 422 when the request also gives ``T_target_tcp`` itself)."""
+    if given:
+        raise LimitError("invalid_request", "give either T_target_tcp or taught, not both")
+    return _taught(request).get(name).T_target_tcp
+
+
+def taught_view(request: Request, name: str | None, mode: str | None) -> Features | None:
+    """The taught view for an ``ibvs`` job (None for the other modes). 422
+    ``ibvs_needs_taught`` without a taught name, ``taught_without_view`` for a pose taught
+    before views were recorded, 404 for an unknown name."""
+    if mode != "ibvs":
+        return None
+    if name is None:
+        raise LimitError("ibvs_needs_taught", "mode 'ibvs' converges on a taught view: give "
+                         "`taught` (POST /teach records the view)")
+    view = _taught(request).get(name).view
+    if view is None:
+        raise LimitError("taught_without_view", f"the pose {name!r} was taught without its "
+                         "view (an older record): it serves servo and look_and_move; teach it "
+                         "again for ibvs")
+    return view
+
+
+# -- hand-eye --------------------------------------------------------------------------------
+@router.post("/calibration/hand-eye", response_model=Job, tags=["calibration"],
+             responses=DEVICE_ERRORS)
+def start_hand_eye(request: Request, caller: Operator,
+                   body: Annotated[HandEyeRequest | None, Body()] = None) -> dict[str, Any]:
+    """Start the hand-eye routine around the arm's current pose (the target must be in view).
+    The arm moves; ``/stop`` cancels it. Poll ``GET .../{id}`` or follow
+    ``/calibration/events``."""
+    b = body or HandEyeRequest()
+    service = _calibration(request)
+    limits = service.cell.config.limits
+    settings = RoutineSettings(n_views=b.views, tilt_deg=b.tilt_deg, roll_deg=b.roll_deg,
+                               speed_mm_s=b.speed_mm_s,
+                               accel_mm_s2=min(4.0 * b.speed_mm_s, limits.max_accel_mm_s2),
+                               min_views=min(6, b.views), chosen=b.method)
+    return service.start(caller.label, settings).as_dict()
+
+
+@router.get("/calibration/hand-eye/{job_id}", response_model=Job, tags=["calibration"])
+def hand_eye_job(request: Request, caller: Read, job_id: str) -> dict[str, Any]:
+    """State and progress; when succeeded, ``result`` holds ``T_flange_camera`` per method
+    (pose objects), the joint refinement, the residuals and the verdict."""
+    return _calibration(request).job(job_id).as_dict()
+
+
+@router.post("/calibration/hand-eye/{job_id}/apply", response_model=ApplyResult,
+             tags=["calibration"], responses=DEVICE_ERRORS)
+def apply_hand_eye(request: Request, caller: Operator, job_id: str,
+                   body: Annotated[ApplyRequest | None, Body()] = None) -> dict[str, Any]:
+    """Use the result in the running cell and/or write it into the config file."""
+    b = body or ApplyRequest()
+    return _calibration(request).apply(caller.label, job_id, b.method, b.running,
+                                       b.write_config, b.force)
+
+
+@router.get("/calibration/events", tags=["calibration"], responses=SSE_RESPONSES,
+            response_class=EventStreamResponse)
+async def calibration_events(request: Request, caller: Stream,
+                             max_events: Annotated[int | None, Query(ge=1, le=100000)] = None
+                             ) -> StreamingResponse:
+    """Server-sent ``calibration`` events: progress (stage, done, total), the finished job,
+    and applied results. ``max_events`` ends the stream after that many."""
+    # The cell's other events have their own stream (/events).
+    return sse_response(request, _calibration(request).cell.events.subscribe(), max_events,
+                        keep=lambda ev: ev["type"] == EVENT)
+
+
+# -- taught poses ----------------------------------------------------------------------------
+@router.post("/teach", response_model=TaughtPoseOut, tags=["teach"],
+             responses=DEVICE_ERRORS)
+def teach_pose(request: Request, caller: Operator, body: TeachRequest) -> dict[str, Any]:
+    """Store ``T_target_tcp`` of the arm's resting pose under ``name``: ``samples`` locates
+    are averaged; their spread is reported and over the limit refused (409)."""
+    cell: Cell = request.app.state.cell
+    return teach(cell, _taught(request), caller.label, body.name, body.samples,
+                 body.max_spread_mm, body.max_spread_deg, body.replace).as_dict()
+
+
+@router.get("/teach", response_model=TaughtList, tags=["teach"])
+def list_taught(request: Request, caller: Read) -> dict[str, Any]:
+    return {"taught": [p.as_dict() for p in _taught(request).list()]}
+
+
+@router.get("/teach/{name}", response_model=TaughtPoseOut, tags=["teach"])
+def get_taught(request: Request, caller: Read, name: str) -> dict[str, Any]:
+    return _taught(request).get(name).as_dict()
+
+
+@router.delete("/teach/{name}", response_model=TaughtDeleted, tags=["teach"])
+def delete_taught(request: Request, caller: Operator, name: str) -> dict[str, Any]:
+    cell: Cell = request.app.state.cell
+    pose = _taught(request).delete(name)
+    cell.jobs.audit(caller.label, "teach_delete", {"name": name}, "ok")
+    return {"deleted": pose.as_dict()}

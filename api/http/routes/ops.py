@@ -1,0 +1,115 @@
+"""Routes under ``/api/v1`` for running a production day: alarms, camera settings, the image
+log of failed locates. ``install(app)`` mounts them and starts the cell's alarm log."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Body, Depends, FastAPI, Query, Request
+from fastapi.responses import FileResponse
+
+from api.auth import Caller, Read, require
+from api.http.errors import ERROR_RESPONSES, NOT_FOUND, UNAVAILABLE
+from api.http.schemas import (
+    Alarm,
+    AlarmList,
+    CameraSettingsOut,
+    CameraSettingsRequest,
+    ImageList,
+)
+from cell.features.alarms import AlarmLog
+from cell.features.camera_control import apply_camera_settings, camera_settings
+from cell.motion.limits import NotFoundError
+from cell.service import Cell
+
+router = APIRouter(prefix="/api/v1", responses=ERROR_RESPONSES)
+
+
+def install(app: FastAPI) -> AlarmLog:
+    cell: Cell = app.state.cell
+    alarms = AlarmLog(cell)
+    app.state.alarms = alarms
+    app.include_router(router)
+    return alarms
+
+
+def _cell(request: Request) -> Cell:
+    cell: Cell = request.app.state.cell
+    return cell
+
+
+def _alarms(request: Request) -> AlarmLog:
+    alarms: AlarmLog = request.app.state.alarms
+    return alarms
+
+
+# -- alarms ----------------------------------------------------------------------------------
+@router.get("/alarms", response_model=AlarmList, tags=["alarms"])
+def list_alarms(request: Request, caller: Read,
+                active: Annotated[bool, Query(description="only unacknowledged")] = False,
+                limit: Annotated[int, Query(ge=1, le=500)] = 50,
+                offset: Annotated[int, Query(ge=0, le=10_000_000)] = 0) -> dict[str, Any]:
+    """Alarms newest first: failed, cancelled and interrupted jobs and faults (protective or
+    emergency stop, arm or camera lost, gripper fault). An alarm stays ``active`` until
+    acknowledged; alarms survive a restart of the service."""
+    items, total, n_active = _alarms(request).list(active, limit, offset)
+    return {"alarms": [a.as_dict() for a in items], "active": n_active, "total": total,
+            "offset": offset}
+
+
+@router.post("/alarms/{alarm_id}/ack", response_model=Alarm, tags=["alarms"],
+             responses=NOT_FOUND)
+def acknowledge_alarm(request: Request,
+                      caller: Annotated[Caller, Depends(require("alarm_ack"))],
+                      alarm_id: int) -> dict[str, Any]:
+    """Acknowledge (operator role; audited). Acknowledging an acknowledged alarm answers it
+    unchanged; 404 ``alarm_not_found`` for an unknown id."""
+    return _alarms(request).acknowledge(alarm_id, caller.label).as_dict()
+
+
+# -- camera settings ------------------------------------------------------------------------
+@router.get("/camera/settings", response_model=CameraSettingsOut, tags=["vision"],
+            responses=UNAVAILABLE)
+def get_camera_settings(request: Request, caller: Read) -> dict[str, Any]:
+    """Exposure (µs), gain (ISO) and focus (0..255 or "auto") in force; null for a control
+    this camera does not have."""
+    return camera_settings(_cell(request))
+
+
+@router.put("/camera/settings", response_model=CameraSettingsOut, tags=["vision"],
+            responses=UNAVAILABLE)
+def put_camera_settings(request: Request,
+                        caller: Annotated[Caller, Depends(require("camera"))],
+                        body: Annotated[CameraSettingsRequest, Body()]) -> dict[str, Any]:
+    """Change the settings given (operator role; audited). A value the camera does not
+    accept is 422 ``invalid_camera_setting`` naming the setting, and nothing changes."""
+    return apply_camera_settings(_cell(request), caller.label, exposure_us=body.exposure_us,
+                                 iso=body.iso, focus=body.focus)
+
+
+# -- image log -------------------------------------------------------------------------------
+@router.get("/images", response_model=ImageList, tags=["vision"])
+def list_images(request: Request, caller: Read,
+                limit: Annotated[int, Query(ge=1, le=200)] = 20,
+                offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0) -> dict[str, Any]:
+    """Frames whose locate failed, newest first, with the reason (``[api] image_log_dir``;
+    ``enabled`` is false when it is not set)."""
+    log = _cell(request).image_log
+    if log is None:
+        return {"images": [], "total": 0, "offset": offset, "enabled": False}
+    entries, total = log.page(offset, limit)
+    for e in entries:
+        e["url"] = f"/api/v1/images/{e['name']}.png"
+    return {"images": entries, "total": total, "offset": offset, "enabled": True}
+
+
+@router.get("/images/{name}.png", tags=["vision"], response_class=FileResponse,
+            responses={200: {"content": {"image/png": {}}, "description": "the logged frame"},
+                       **NOT_FOUND})
+def get_image(request: Request, caller: Read, name: str) -> FileResponse:
+    """One logged frame as it was seen (PNG, lossless: detections can be re-run on it)."""
+    log = _cell(request).image_log
+    path = None if log is None else log.image_path(name)
+    if path is None:
+        raise NotFoundError("image_not_found", f"no logged image {name!r}")
+    return FileResponse(path, media_type="image/png", headers={"Cache-Control": "no-store"})

@@ -1,0 +1,98 @@
+"""Recipes (products) over HTTP: list, versions, save (a new version), delete, and an approach
+with a recipe's target (a job that records the recipe and its version).
+
+Saving and deleting change what later jobs do: operators only, as teaching. An approach with
+a recipe needs the approach permission (operator, PLC). The store is :mod:`cell.features.recipes`,
+shared with OPC UA and Modbus through :func:`api.remote.recipe_store`.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Request
+from pydantic import BaseModel, ConfigDict, Field
+
+from api import remote
+from api.auth import Caller, require
+from api.http.errors import ERROR_RESPONSES
+from api.http.schemas import Job
+from api.remote import RemoteCaller
+from cell.features.recipes import EXAMPLE, Recipe, RecipeSpec
+from cell.service import Cell
+
+router = APIRouter(prefix="/api/v1", tags=["recipes"], responses=ERROR_RESPONSES)
+
+
+class RecipeApproachRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    target: str = Field(default="", description="the recipe's target (empty: its first)")
+    standoff_mm: float | None = Field(default=None, ge=0,
+                                      description="default: the target's standoff")
+
+
+class RecipeList(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{"recipes": [EXAMPLE]}]})
+
+    recipes: list[Recipe] = Field(description="the newest version of every recipe, by number")
+
+
+class RecipeVersions(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{"versions": [EXAMPLE]}]})
+
+    versions: list[Recipe] = Field(description="every stored version, oldest first")
+
+
+def _remote(caller: Caller) -> RemoteCaller:
+    return RemoteCaller("http", caller.name or caller.role, caller.role)
+
+
+@router.get("/recipes", response_model=RecipeList)
+def list_recipes(request: Request,
+                 caller: Annotated[Caller, Depends(require("read"))]) -> dict[str, Any]:
+    """The newest version of every recipe, by number."""
+    cell: Cell = request.app.state.cell
+    return {"recipes": [r.model_dump() for r in remote.recipe_store(cell).list()]}
+
+
+@router.get("/recipes/{name}", response_model=RecipeVersions)
+def recipe_versions(request: Request, name: str,
+                    caller: Annotated[Caller, Depends(require("read"))]) -> dict[str, Any]:
+    """Every stored version of one recipe, oldest first."""
+    cell: Cell = request.app.state.cell
+    return {"versions": [r.model_dump() for r in remote.recipe_store(cell).versions(name)]}
+
+
+@router.put("/recipes", response_model=Recipe)
+def save_recipe(request: Request, body: RecipeSpec,
+                caller: Annotated[Caller, Depends(require("read"))]) -> dict[str, Any]:
+    """Save a recipe as its next version (version 1 for a new name); operators only."""
+    cell: Cell = request.app.state.cell
+    rc = _remote(caller)
+    remote.require_operator(cell, rc, "save_recipe", {"name": body.name})
+    with remote.audited(cell, rc, "save_recipe", {"name": body.name}) as note:
+        recipe = remote.recipe_store(cell).save(body, caller.label)
+        note.detail = f"version {recipe.version}"
+    return recipe.model_dump()
+
+
+@router.delete("/recipes/{name}", response_model=Recipe)
+def delete_recipe(request: Request, name: str,
+                  caller: Annotated[Caller, Depends(require("read"))]) -> dict[str, Any]:
+    """Remove a recipe and its history (jobs keep their record of it); operators only."""
+    cell: Cell = request.app.state.cell
+    rc = _remote(caller)
+    remote.require_operator(cell, rc, "delete_recipe", {"name": name})
+    with remote.audited(cell, rc, "delete_recipe", {"name": name}):
+        return remote.recipe_store(cell).delete(name).model_dump()
+
+
+@router.post("/recipes/{ref}/approach", response_model=Job)
+def approach_recipe(request: Request, ref: str, body: RecipeApproachRequest,
+                    caller: Annotated[Caller, Depends(require("approach"))]) -> dict[str, Any]:
+    """An approach job with the recipe's target (name or number): its dot layout, taught
+    pose, standoff, mode and speed; the job records the recipe, version and target."""
+    cell: Cell = request.app.state.cell
+    job = remote.approach_recipe(cell, _remote(caller), ref, body.target, body.standoff_mm)
+    return job.as_dict()

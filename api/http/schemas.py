@@ -1,0 +1,505 @@
+"""Request and response bodies of the HTTP API (pydantic).
+
+Bounds here are the first line of refusals: a malformed or absurd body is a 422 before the
+cell sees it. The cell's own safety checks still run on everything that passes.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from cell.error_codes import ErrorCode
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Vec3 = tuple[Finite, Finite, Finite]
+
+
+class _Body(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class Pose(_Body):
+    """``{"position_mm": [x, y, z], "rotvec_rad": [rx, ry, rz]}``, the project's pose object."""
+
+    position_mm: tuple[
+        Annotated[float, Field(ge=-1e5, le=1e5)], Annotated[float, Field(ge=-1e5, le=1e5)],
+        Annotated[float, Field(ge=-1e5, le=1e5)]]
+    rotvec_rad: tuple[
+        Annotated[float, Field(ge=-10, le=10)], Annotated[float, Field(ge=-10, le=10)],
+        Annotated[float, Field(ge=-10, le=10)]]
+
+
+class ErrorDetail(BaseModel):
+    code: ErrorCode = Field(description="stable machine-readable reason (enum)")
+    message: str = Field(description="the reason in words, for people")
+
+
+class ErrorResponse(BaseModel):
+    """The body of every error answer."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"error": {"code": "busy", "message": "the arm is busy (approach); wait for it to "
+                   "finish or stop it"}}]})
+    error: ErrorDetail
+
+
+class LocateRequest(_Body):
+    n_frames: int = Field(default=1, ge=1, le=10, description="frames averaged")
+
+
+class ApproachRequest(_Body):
+    standoff_mm: float | None = Field(default=None, ge=0, le=500)
+    speed_mm_s: float | None = Field(default=None, gt=0, le=2000)
+    T_target_tcp: Pose | None = Field(
+        default=None, description="tool pose in the target frame; default from config")
+    taught: str | None = Field(
+        default=None, min_length=1, max_length=64,
+        description="use the T_target_tcp taught under this name (POST /teach) instead")
+    use_last_locate: bool = Field(
+        default=False, description="start from the last /locate result instead of locating "
+        "again (refused when older than limits.max_pose_age_s)")
+    mode: Literal["servo", "look_and_move", "ibvs"] | None = Field(
+        default=None, description="servo: closed loop on every frame (pose-based); "
+        "look_and_move: stop, locate, correct; ibvs: closed loop on the image features of "
+        "the view taught under `taught` (image-based; needs `taught`, no standoff); "
+        "default: the config's [approach] mode")
+    wait: bool = Field(default=False, description=(
+        "false (default): answer 200 at once with the running job; follow it with GET "
+        "/jobs/{id} or /events. true: answer 200 when the job has ended, whatever its end "
+        "state: a failed or cancelled approach is still 200, with state 'failed' or "
+        "'cancelled' and error {code, message} in the job. Refusals before anything moved "
+        "are 4xx/5xx as usual. The wait is bounded; a job still running then is answered "
+        "with state 'running'."))
+
+
+class TrackRequest(_Body):
+    standoff_mm: float = Field(ge=0, le=500)
+    duration_s: float = Field(gt=0, le=86400, description="capped by [servo] max_track_s")
+    T_target_tcp: Pose | None = Field(
+        default=None, description="tool pose in the target frame; default from config")
+    taught: str | None = Field(default=None, min_length=1, max_length=64,
+                               description="use the T_target_tcp taught under this name")
+    mode: Literal["servo", "ibvs"] = Field(
+        default="servo", description="servo: hold the pose (pose-based); ibvs: hold the view "
+        "taught under `taught` (image-based; standoff_mm must be 0)")
+    wait: bool = False
+
+
+_Vel = Annotated[float, Field(ge=-1000, le=1000)]
+_AngVel = Annotated[float, Field(ge=-360, le=360)]
+
+
+class SimTargetRequest(Pose):
+    """A target pose and, optionally, the drift it starts now (base frame)."""
+
+    velocity_mm_s: tuple[_Vel, _Vel, _Vel] | None = None
+    angular_velocity_deg_s: tuple[_AngVel, _AngVel, _AngVel] | None = None
+
+
+_Lin = Annotated[float, Field(ge=-1000, le=1000)]
+_Ang = Annotated[float, Field(ge=-360, le=360)]
+
+
+class JogStep(_Body):
+    mode: Literal["step"] = "step"
+    frame: Literal["base", "tool"] = "base"
+    translation_mm: tuple[_Lin, _Lin, _Lin] = (0.0, 0.0, 0.0)
+    rotation_deg: tuple[_Ang, _Ang, _Ang] = (0.0, 0.0, 0.0)
+    speed_mm_s: float | None = Field(default=None, gt=0, le=2000)
+
+
+class JogContinuous(_Body):
+    mode: Literal["continuous"]
+    frame: Literal["base", "tool"] = "base"
+    linear_mm_s: tuple[_Lin, _Lin, _Lin] = (0.0, 0.0, 0.0)
+    angular_deg_s: tuple[_Ang, _Ang, _Ang] = (0.0, 0.0, 0.0)
+
+
+JogRequest = Annotated[JogStep | JogContinuous, Field(discriminator="mode")]
+
+
+class GripperRequest(_Body):
+    action: Literal["open", "close", "move", "activate"]
+    position_mm: float | None = Field(default=None, ge=0, le=85)
+    speed_pct: float = Field(default=100.0, ge=0, le=100)
+    force_pct: float = Field(default=50.0, ge=0, le=100)
+    wait: bool = True
+
+    @model_validator(mode="after")
+    def _position_for_move(self) -> GripperRequest:
+        if self.action == "move" and self.position_mm is None:
+            raise ValueError("action 'move' needs position_mm")
+        return self
+
+
+class StopRequest(_Body):
+    reason: str = Field(default="requested", max_length=200)
+
+
+
+# -- responses ---------------------------------------------------------------------------------
+# Response models allow extra fields: a newer service may add some, and clients must ignore
+# what they do not know.
+
+
+class _Out(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+
+def _examples(*examples: dict[str, Any]) -> ConfigDict:
+    return ConfigDict(extra="allow", json_schema_extra={"examples": list(examples)})
+
+
+POSE_EXAMPLE = {"position_mm": [-480.0, -130.0, 350.0], "rotvec_rad": [3.1416, 0.0, 0.0]}
+
+
+class PoseOut(_Out):
+    """A pose: position in mm and rotation vector in rad."""
+
+    model_config = _examples(POSE_EXAMPLE)
+    position_mm: list[float]
+    rotvec_rad: list[float]
+
+
+class JobError(_Out):
+    code: str = Field(description="an ErrorCode value (see ErrorDetail)")
+    message: str
+
+
+JOB_EXAMPLE = {
+    "id": "3f2a9c1b7d4e", "kind": "approach", "caller": "plc(plc)",
+    "params": {"standoff_mm": 40.0, "speed_mm_s": 150.0},
+    "state": "failed", "progress": {"phase": "locate", "cycle": 1, "cycles": []},
+    "result": None,
+    "error": {"code": "too_few_blobs", "message": "target not located: 2 blobs, need 4"},
+    "created_at": 1796200000.0, "ended_at": 1796200002.5}
+
+
+class Job(_Out):
+    """A long-running command (approach, hand-eye calibration). ``result`` is set when it
+    succeeded, ``error`` when it failed, was cancelled or interrupted."""
+
+    model_config = _examples(JOB_EXAMPLE)
+    id: str
+    kind: str
+    caller: str
+    params: dict[str, Any]
+    state: Literal["running", "succeeded", "failed", "cancelled", "interrupted"]
+    progress: dict[str, Any]
+    result: dict[str, Any] | None
+    error: JobError | None
+    created_at: float = Field(description="UNIX seconds")
+    ended_at: float | None
+
+
+class JobList(_Out):
+    model_config = _examples({"jobs": [JOB_EXAMPLE], "total": 1, "offset": 0})
+    jobs: list[Job]
+    total: int | None = Field(default=None, description="jobs stored (for paging)")
+    offset: int = 0
+
+
+class Me(_Out):
+    model_config = _examples({"name": "line-3-plc", "role": "plc",
+                              "permissions": ["approach", "locate", "read", "stop"]})
+    name: str
+    role: str
+    permissions: list[str]
+
+
+class Health(_Out):
+    model_config = _examples(
+        {"status": "ok", "missing": [], "arm_connected": True, "camera_connected": True},
+        {"status": "degraded", "missing": ["arm"], "arm_connected": False,
+         "camera_connected": True})
+    status: Literal["ok", "degraded"] = Field(
+        description="ok: every device connected; degraded: the process serves, the devices "
+        "in `missing` are being reconnected")
+    missing: list[str] = Field(default_factory=list)
+    arm_connected: bool
+    camera_connected: bool
+
+
+class Quality(_Out):
+    rms_px: float
+    max_residual_px: float
+    ambiguous: bool
+    converged: bool
+    n_points: int
+    covariance: list[list[float]] | None
+    frame_age_s: float
+    n_frames: int
+    spread_mm: float
+
+
+LOCATED_EXAMPLE = {
+    "T_base_target": {"position_mm": [-480.1, -129.9, 0.1], "rotvec_rad": [0.0, 0.0, 0.001]},
+    "T_camera_target": {"position_mm": [1.2, -3.4, 350.2], "rotvec_rad": [3.14, 0.0, 0.0]},
+    "T_base_tcp": POSE_EXAMPLE,
+    "quality": {"rms_px": 0.12, "max_residual_px": 0.2, "ambiguous": False, "converged": True,
+                "n_points": 6, "covariance": None, "frame_age_s": 0.05, "n_frames": 1,
+                "spread_mm": 0.0},
+    "frame_sequence": 1234}
+
+
+class Located(_Out):
+    """Where the target is, in the base frame and the camera frame, and how well it fits."""
+
+    model_config = _examples(LOCATED_EXAMPLE)
+    T_base_target: PoseOut
+    T_camera_target: PoseOut
+    T_base_tcp: PoseOut = Field(description="the arm pose at the frame's capture time")
+    quality: Quality
+    frame_sequence: int
+
+
+class RobotStatus(_Out):
+    connected: bool
+    mode: str | None = None
+    safety: str | None = None
+    moving: bool | None = None
+    protective_stop: bool | None = None
+    T_base_tcp: PoseOut | None = None
+    joints_deg: list[float] | None = None
+    state_age_s: float | None = None
+    error: str | None = Field(default=None, description="why the arm cannot be read")
+
+
+class CameraStatus(_Out):
+    connected: bool
+    last_frame_age_s: float | None = None
+
+
+class GripperState(_Out):
+    """The gripper's status; ``stale`` when another command holds the line, ``error`` when
+    it cannot be read."""
+
+    model_config = _examples({"activated": True, "position_mm": 85.0, "object_detected": False,
+                              "moving": False, "fault": ""})
+    activated: bool | None = None
+    position_mm: float | None = None
+    object_detected: bool | None = None
+    moving: bool | None = None
+    fault: str | None = None
+    stale: bool | None = None
+    error: str | None = None
+
+
+class Status(_Out):
+    """The cell now: ``state`` is idle, the running motion (approach, jog, ...), or why the
+    arm cannot move (disconnected, emergency_stop, protective_stop, not_ready)."""
+
+    model_config = _examples({
+        "state": "idle",
+        "robot": {"connected": True, "mode": "RUNNING", "safety": "NORMAL", "moving": False,
+                  "protective_stop": False, "T_base_tcp": POSE_EXAMPLE,
+                  "joints_deg": [0.0, -90.0, 90.0, -90.0, -90.0, 0.0], "state_age_s": 0.004},
+        "camera": {"connected": True, "last_frame_age_s": 0.05},
+        "gripper": None, "job": None, "last_locate": None})
+    state: str
+    robot: RobotStatus
+    camera: CameraStatus
+    gripper: GripperState | None = Field(default=None, description="null: no gripper")
+    job: Job | None = Field(default=None, description="the running job, if any")
+    last_locate: Located | None = None
+
+
+class JogStepResult(_Out):
+    model_config = _examples({"T_base_tcp": POSE_EXAMPLE})
+    T_base_tcp: PoseOut = Field(description="the pose reached")
+
+
+class JogInfo(_Out):
+    model_config = _examples({"jogging": True, "frame": "base", "deadman_timeout_s": 0.2})
+    jogging: bool
+    frame: Literal["base", "tool"] | None = None
+    deadman_timeout_s: float | None = None
+
+
+class StopResult(_Out):
+    """``stopped`` is false only when the arm could not be told to stop (``arm_error``)."""
+
+    model_config = _examples({"stopped": True, "cancelled": "approach",
+                              "job_id": "3f2a9c1b7d4e", "arm_error": None})
+    stopped: bool
+    cancelled: str | None = Field(default=None, description="the motion that was cancelled")
+    job_id: str | None = None
+    arm_error: str | None = None
+
+
+class AuditEntry(_Out):
+    model_config = _examples({
+        "id": 41, "caller": "anonymous", "command": "POST /api/v1/approach",
+        "params": {"status": 401}, "outcome": "refused:unauthorized", "detail": "unknown token",
+        "job_id": None, "started_at": 1796200000.0, "ended_at": 1796200000.0})
+    id: int
+    caller: str
+    command: str
+    params: dict[str, Any]
+    outcome: str = Field(description="ok, refused:<code>, error, or a job's end state")
+    detail: str
+    job_id: str | None
+    started_at: float
+    ended_at: float
+
+
+AUDIT_EXAMPLE = {
+    "id": 41, "caller": "anonymous", "command": "POST /api/v1/approach",
+    "params": {"status": 401}, "outcome": "refused:unauthorized", "detail": "unknown token",
+    "job_id": None, "started_at": 1796200000.0, "ended_at": 1796200000.0}
+
+
+class AuditLog(_Out):
+    model_config = _examples({"entries": [AUDIT_EXAMPLE]})
+    entries: list[AuditEntry]
+
+
+class SimCameraTruthOut(_Out):
+    """The simulated lens as it really is: intrinsics (px), Brown-Conrady k1 k2 p1 p2 k3."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    dist: list[float]
+    width: int
+    height: int
+
+
+class SimTruth(_Out):
+    model_config = _examples({
+        "T_base_target": POSE_EXAMPLE, "T_base_tcp": POSE_EXAMPLE, "world": "realistic",
+        "T_flange_camera": POSE_EXAMPLE,
+        "camera": {"fx": 1008.0, "fy": 1007.0, "cx": 643.5, "cy": 397.5,
+                   "dist": [-0.045, 0.012, 0.0004, -0.0003, 0.0], "width": 1280, "height": 800}})
+    T_base_target: PoseOut
+    T_base_tcp: PoseOut
+    world: str
+    T_flange_camera: PoseOut
+    camera: SimCameraTruthOut
+
+
+class SimTarget(_Out):
+    model_config = _examples({"T_base_target": POSE_EXAMPLE})
+    T_base_target: PoseOut
+
+
+class Alarm(_Out):
+    """A fault or a failed job the operator must see; it stays active until acknowledged."""
+
+    model_config = _examples({
+        "id": 7, "code": "too_few_blobs", "source": "job", "job_id": "3f2a9c1b7d4e",
+        "message": "approach 3f2a9c1b7d4e failed: target not located: 2 blobs, need 4",
+        "raised_at": 1796200002.5, "active": True, "acknowledged_at": None,
+        "acknowledged_by": None})
+    id: int
+    code: str = Field(description="an ErrorCode value, or a fault: protective_stop, "
+                      "emergency_stop, arm_disconnected, camera_lost, gripper_fault")
+    source: Literal["job", "arm", "camera", "gripper"]
+    job_id: str | None
+    message: str
+    raised_at: float = Field(description="UNIX seconds")
+    active: bool = Field(description="true until acknowledged")
+    acknowledged_at: float | None
+    acknowledged_by: str | None
+
+
+class AlarmList(_Out):
+    model_config = _examples({"alarms": [], "active": 0, "total": 0, "offset": 0})
+    alarms: list[Alarm]
+    active: int = Field(description="alarms not yet acknowledged")
+    total: int = Field(description="alarms matching the query (for paging)")
+    offset: int
+
+
+class CameraSettingsOut(_Out):
+    """The settings in force; null for a control this camera does not have."""
+
+    model_config = _examples({"exposure_us": 4000, "iso": 100, "focus": None})
+    exposure_us: int | None
+    iso: int | None
+    focus: int | Literal["auto"] | None
+
+
+class CameraSettingsRequest(_Body):
+    """Settings to change; omitted (or null) ones stay as they are."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"exposure_us": 8000, "iso": 200}]})
+    exposure_us: int | None = Field(default=None, ge=1, le=1_000_000)
+    iso: int | None = Field(default=None, ge=1, le=100_000)
+    focus: Annotated[int, Field(ge=0, le=255)] | Literal["auto"] | None = None
+
+
+class ImageEntry(_Out):
+    model_config = _examples({
+        "name": "20261201T120000_000000001_1", "code": "too_few_blobs",
+        "message": "target not located: 2 blobs, need 4", "saved_at": 1796200000.0,
+        "url": "/api/v1/images/20261201T120000_000000001_1.png"})
+    name: str
+    code: str | None
+    message: str | None
+    saved_at: float
+    url: str
+
+
+class ImageList(_Out):
+    model_config = _examples({"images": [], "total": 0, "offset": 0, "enabled": True})
+    images: list[ImageEntry]
+    total: int
+    offset: int
+    enabled: bool = Field(description="false when [api] image_log_dir is not set")
+
+
+class ApplyResult(_Out):
+    model_config = _examples({"job_id": "3f2a9c1b7d4e", "T_flange_camera": POSE_EXAMPLE,
+                              "running": True, "written_config": None})
+    job_id: str
+    T_flange_camera: PoseOut
+    running: bool = Field(description="in use by the running cell now")
+    written_config: str | None = Field(description="the config file written, if any")
+
+
+TAUGHT_EXAMPLE = {
+    "name": "grasp-a", "T_target_tcp": {"position_mm": [0.0, 0.0, -20.0],
+                                        "rotvec_rad": [0.0, 0.0, 0.0]},
+    "samples": 5, "spread_mm": 0.03, "spread_deg": 0.01, "T_base_target": POSE_EXAMPLE,
+    "T_base_tcp": POSE_EXAMPLE, "taught_by": "op(operator)", "taught_at": 1796200000.0}
+
+
+class TaughtView(_Out):
+    """The view taught: each matched dot's normalised image point (undistorted) and depth."""
+
+    ids: list[int]
+    xy: list[tuple[float, float]]
+    depth_mm: list[float]
+
+
+class TaughtPoseOut(_Out):
+    """A taught tool pose in the target frame, with how it was taught."""
+
+    model_config = _examples(TAUGHT_EXAMPLE)
+    name: str
+    T_target_tcp: PoseOut
+    samples: int
+    spread_mm: float
+    spread_deg: float
+    T_base_target: PoseOut
+    T_base_tcp: PoseOut
+    taught_by: str
+    taught_at: float
+    view: TaughtView | None = Field(
+        default=None, description="the desired image features recorded when taught (IBVS "
+        "converges on them); null for a pose taught without them")
+
+
+class TaughtList(_Out):
+    model_config = _examples({"taught": [TAUGHT_EXAMPLE]})
+    taught: list[TaughtPoseOut]
+
+
+class TaughtDeleted(_Out):
+    model_config = _examples({"deleted": TAUGHT_EXAMPLE})
+    deleted: TaughtPoseOut

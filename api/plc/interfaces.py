@@ -1,0 +1,67 @@
+"""The service's other doors, next to HTTP: the OPC UA server, the URScript XML-RPC endpoint
+and the Modbus TCP server.
+
+``cell serve`` starts them with the app (``create_app(cell, interfaces=True)``) and stops them
+before the cell closes. One that cannot listen (its port is taken) is logged and left out; the
+HTTP API and the other still serve, because a PLC port in use must not keep the operator page
+(and its STOP) away.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Protocol
+
+from cell.config.endpoints import opcua_cert_dir
+from cell.service import Cell
+
+log = logging.getLogger(__name__)
+
+
+class _Server(Protocol):
+    def start(self) -> None: ...
+    def close(self) -> None: ...
+
+
+class Interfaces:
+    """Starts and stops the configured OPC UA and XML-RPC servers around one cell."""
+
+    def __init__(self, cell: Cell) -> None:
+        self.cell = cell
+        self.running: dict[str, _Server] = {}
+
+    def start(self) -> None:
+        config = self.cell.config
+        if config.opcua.enabled:
+            from api.plc.opcua import OpcUaServer
+
+            self._start("opcua", config.opcua.endpoint,
+                        OpcUaServer(self.cell, config.opcua, opcua_cert_dir(config)))
+        if config.urscript.xmlrpc_port:
+            from api.plc.xmlrpc import XmlRpcServer
+
+            self._start("xmlrpc", f"{config.urscript.host}:{config.urscript.xmlrpc_port}",
+                        XmlRpcServer(self.cell, config.urscript))
+        if config.modbus.port:
+            from api.plc.modbus import ModbusServer
+
+            self._start("modbus", f"{config.modbus.host}:{config.modbus.port}",
+                        ModbusServer(self.cell, config.modbus))
+
+    def _start(self, name: str, where: str, server: _Server) -> None:
+        try:
+            server.start()
+        except Exception as err:  # a port in use, a bad certificate file, ...
+            log.error("%s: cannot serve on %s: %s; the rest of the service runs without it",
+                      name, where, err)
+            server.close()
+            return
+        self.running[name] = server
+
+    def close(self) -> None:
+        for name, server in list(self.running.items()):
+            try:
+                server.close()
+            except Exception:
+                log.exception("closing %s failed", name)
+        self.running.clear()

@@ -1,0 +1,440 @@
+"""The Modbus TCP server for PLCs without OPC UA (pymodbus), configured by ``[modbus]``.
+
+One unit (id 1). Holding registers (the PLC writes): 0 command, 1 command sequence, 2 recipe
+number (0: none), 3-4 standoff_mm (float32, big-endian word order; 0.0: the recipe's or the
+configured standoff). Input registers (the PLC reads): 0 accepted sequence, 1 state, 2 error
+number, 3 finished sequence, 4-15 the last pose x, y, z (mm), rx, ry, rz (rad) as float32,
+16 heartbeat (+1 every 100 ms), 17 alarm bits. The full map, the error table and the handshake's
+timing are in docs/plc.md.
+
+The handshake cannot race: the cell acts only when the sequence register changes, and it acts
+inside the write's own request, so when the write's response reaches the PLC the accepted
+sequence, state ``busy`` and error 0 are already in the input registers. When the command ends,
+state, error number and pose are written, and the finished sequence last, in one step on the
+server's loop: a PLC that sees ``finished == its sequence`` reads the result of that command.
+A command's end is published only while its sequence is the one accepted last (a stop that
+overtakes an approach reports the stop).
+
+Writes come only from ``[modbus] clients`` (empty: any); any other client may write only the
+stop command (4) and its sequence, so every panel and PLC on the network can stop the arm.
+STOP goes to the cell's stop path from the request's own thread of its own pool, never queued
+behind a locate.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import contextvars
+import ipaddress
+import logging
+import math
+import struct
+import threading
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from enum import IntEnum
+from typing import Any
+
+from pymodbus.constants import ExcCodes
+from pymodbus.datastore import ModbusServerContext
+from pymodbus.exceptions import NoSuchIdException
+from pymodbus.server import ModbusTcpServer
+from pymodbus.server.requesthandler import ServerRequestHandler
+
+from api import remote
+from api.remote import RemoteCaller
+from cell.config.schema import ModbusConfig
+from cell.jobs.store import Job
+from cell.motion.limits import CellError
+from cell.service import Cell
+
+log = logging.getLogger(__name__)
+
+UNIT_ID = 1
+HEARTBEAT_PERIOD_S = 0.1
+JOB_POLL_S = 0.01
+N_HOLDING = 5
+N_INPUT = 18
+FC_READ_HOLDING, FC_READ_INPUT = 3, 4
+_PEER: contextvars.ContextVar[str] = contextvars.ContextVar("modbus_peer", default="")
+
+
+class Command(IntEnum):
+    LOCATE = 1
+    APPROACH = 2
+    HOME = 3
+    STOP = 4
+    GRIPPER_OPEN = 5
+    GRIPPER_CLOSE = 6
+
+
+class State(IntEnum):
+    IDLE = 0
+    BUSY = 1
+    DONE_OK = 2
+    FAILED = 3
+
+
+class Hr(IntEnum):
+    """Holding register addresses."""
+
+    COMMAND = 0
+    SEQUENCE = 1
+    RECIPE = 2
+    STANDOFF_MM = 3  # and 4
+
+
+class Ir(IntEnum):
+    """Input register addresses."""
+
+    ACCEPTED_SEQUENCE = 0
+    STATE = 1
+    ERROR = 2
+    FINISHED_SEQUENCE = 3
+    POSE = 4  # 4..15: x, y, z (mm), rx, ry, rz (rad), float32 each
+    HEARTBEAT = 16
+    ALARMS = 17
+
+
+class Alarm(IntEnum):
+    """Bits of input register 17."""
+
+    PROTECTIVE_STOP = 0
+    EMERGENCY_STOP = 1
+    CAMERA_DISCONNECTED = 2
+    ARM_DISCONNECTED = 3
+    GRIPPER_FAULT = 4
+    JOB_FAILED = 5  # the last command failed (cleared by the next accepted one)
+
+
+# The error numbers of input register 2, one per cell error code a PLC can meet; codes not
+# listed fall back to their class (the HTTP status family). Documented in docs/plc.md.
+ERROR_NUMBERS: dict[str, int] = {
+    "unknown_command": 1, "invalid_request": 2, "invalid_standoff": 2, "busy": 3,
+    "recipe_not_found": 4, "recipe_target_not_found": 4, "taught_not_found": 5,
+    "target_not_visible": 6, "too_few_blobs": 6, "no_correspondence": 6,
+    "estimation_failed": 6, "not_converged": 6, "degenerate_geometry": 6,
+    "target_behind_camera": 6, "stale_pose": 7, "camera_lost": 8, "camera_stalled": 8,
+    "camera_stale": 8, "protective_stop": 9, "emergency_stop": 10, "arm_not_ready": 11,
+    "arm_disconnected": 11, "cancelled": 12, "motion_failed": 13, "motion_timeout": 13,
+    "outside_envelope": 14, "tilt_limit": 14, "move_too_far": 14, "speed_limit": 15,
+    "accel_limit": 15, "gripper_unavailable": 16, "forbidden": 17, "not_supported": 18,
+    "target_lost": 19, "pose_jump": 19, "recipe_store_unreadable": 20,
+    "recipe_store_write_failed": 20, "not_ready": 21, "recipe_prepared": 22,
+    "recipe_number_taken": 23, "invalid_recipe": 24, "unauthorized": 17,
+    "result_not_found": 25,
+    "internal_error": 99,
+}
+ERROR_BY_KIND: dict[str, int] = {"invalid": 90, "conflict": 91, "unavailable": 92,
+                                 "not_found": 93, "forbidden": 17}
+UNKNOWN_ERROR = 99
+
+
+def error_number(code: str, kind: str = "") -> int:
+    return ERROR_NUMBERS.get(code, ERROR_BY_KIND.get(kind, UNKNOWN_ERROR))
+
+
+def float_words(value: float) -> list[int]:
+    """A float32 as two registers, high word first (big-endian, as most PLCs expect)."""
+    hi, lo = struct.unpack(">HH", struct.pack(">f", value))
+    return [hi, lo]
+
+
+def words_float(hi: int, lo: int) -> float:
+    return float(struct.unpack(">f", struct.pack(">HH", hi, lo))[0])
+
+
+class _Outcome:
+    """What one command ended with, for the input registers."""
+
+    def __init__(self, ok: bool, error: int = 0, pose: list[float] | None = None) -> None:
+        self.ok = ok
+        self.error = error
+        self.pose = pose
+
+
+class _Registers(ModbusServerContext):
+    """The one unit's registers. pymodbus calls these from its loop for every request; the
+    cell's answers land here through ``loop.call_soon_threadsafe``, so every change is one
+    step of that loop and a read never sees half of one."""
+
+    def __init__(self, server: ModbusServer) -> None:  # no devices: this is the datastore
+        self.old_simulator = True  # pymodbus then calls these methods directly
+        self.simdevices = []
+        self._devices = {}
+        self.server = server
+        self.holding = [0] * N_HOLDING
+        self.input = [0] * N_INPUT
+
+    def device_ids(self) -> list[int]:
+        return [UNIT_ID]
+
+    def _unit(self, device_id: int) -> None:
+        if device_id != UNIT_ID:
+            raise NoSuchIdException(f"unit {device_id}: this cell is unit {UNIT_ID}")
+
+    async def async_getValues(self, device_id: int, func_code: int, address: int,
+                              count: int = 1) -> list[int] | list[bool] | ExcCodes:
+        self._unit(device_id)
+        table = self.input if func_code == FC_READ_INPUT else self.holding
+        if func_code not in (FC_READ_INPUT, FC_READ_HOLDING, 6, 16, 23):
+            return ExcCodes.ILLEGAL_FUNCTION
+        if address < 0 or count < 1 or address + count > len(table):
+            return ExcCodes.ILLEGAL_ADDRESS
+        return list(table[address:address + count])
+
+    async def async_setValues(self, device_id: int, func_code: int, address: int,
+                              values: Sequence[int] | Sequence[bool]) -> ExcCodes | None:
+        self._unit(device_id)
+        if func_code not in (6, 16, 23):
+            return ExcCodes.ILLEGAL_FUNCTION
+        if address < 0 or address + len(values) > N_HOLDING:
+            return ExcCodes.ILLEGAL_ADDRESS
+        after = list(self.holding)
+        after[address:address + len(values)] = [int(v) for v in values]
+        if not self.server.may_write(_PEER.get(), after):
+            return ExcCodes.ILLEGAL_FUNCTION
+        changed = after[Hr.SEQUENCE] != self.holding[Hr.SEQUENCE]
+        self.holding = after
+        if changed:
+            self.server.accept(after)
+        return None
+
+
+class _Handler(ServerRequestHandler):
+    """Tells the datastore which client is asking (writes are allowed per address)."""
+
+    async def handle_request(self) -> None:
+        peer = ""
+        with contextlib.suppress(Exception):
+            peer = str(self.transport.get_extra_info("peername")[0])
+        _PEER.set(peer)
+        await super().handle_request()
+
+
+class _Server(ModbusTcpServer):
+    def callback_new_connection(self) -> _Handler:
+        return _Handler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
+
+
+class ModbusServer:
+    """``start()`` listens (OSError when the port is taken), ``close()``."""
+
+    def __init__(self, cell: Cell, config: ModbusConfig,
+                 on_stop_sent: Callable[[float], None] | None = None) -> None:
+        self.cell = cell
+        self.config = config
+        self.caller = RemoteCaller("modbus", "plc", config.role)
+        self.allowed = [ipaddress.ip_network(c, strict=False) for c in config.clients]
+        self.on_stop_sent = on_stop_sent  # told time.perf_counter() when a STOP is accepted
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._server: _Server | None = None
+        self._thread: threading.Thread | None = None
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self._closing = threading.Event()
+        self._registers: _Registers | None = None
+        self._accepted_seq = -1
+        self._commands = ThreadPoolExecutor(2, thread_name_prefix="modbus-cmd")
+        self._stops = ThreadPoolExecutor(1, thread_name_prefix="modbus-stop")
+
+    @property
+    def port(self) -> int:
+        if self._server is not None and self._server.transport is not None:
+            with contextlib.suppress(Exception):
+                sock = self._server.transport.get_extra_info("socket")
+                return int(sock.getsockname()[1])
+        return self.config.port
+
+    @property
+    def registers(self) -> _Registers:
+        assert self._registers is not None
+        return self._registers
+
+    def start(self, timeout_s: float = 10.0) -> None:
+        logging.getLogger("pymodbus").setLevel(logging.WARNING)
+        self._thread = threading.Thread(target=self._run, name="modbus", daemon=True)
+        self._thread.start()
+        if not self._ready.wait(timeout_s):
+            raise TimeoutError(f"the Modbus server did not start within {timeout_s:g} s")
+        if self._error is not None:
+            raise self._error
+
+    def close(self) -> None:
+        self._closing.set()
+        loop, server = self._loop, self._server
+        if loop is not None and server is not None and not loop.is_closed():
+            with contextlib.suppress(RuntimeError):
+                asyncio.run_coroutine_threadsafe(server.shutdown(), loop).result(timeout=5.0)
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        self._commands.shutdown(wait=False, cancel_futures=True)
+        self._stops.shutdown(wait=False, cancel_futures=True)
+
+    # -- the server's thread --------------------------------------------------------------------
+    def _run(self) -> None:
+        try:
+            asyncio.run(self._main())
+        except BaseException as err:
+            if not self._ready.is_set():
+                self._error = err
+            else:
+                log.exception("the Modbus server stopped")
+        finally:
+            self._ready.set()
+
+    async def _main(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._registers = _Registers(self)
+        self._server = _Server(self._registers, address=(self.config.host, self.config.port))
+        await self._server.listen()
+        self._ready.set()
+        ticker = asyncio.create_task(self._heartbeat())
+        try:
+            await self._server.serving
+        finally:
+            ticker.cancel()
+
+    async def _heartbeat(self) -> None:
+        """Input register 16 counts every 100 ms; the alarm bits follow the cell."""
+        while True:
+            regs = self.registers
+            regs.input[Ir.HEARTBEAT] = (regs.input[Ir.HEARTBEAT] + 1) & 0xFFFF
+            try:
+                regs.input[Ir.ALARMS] = self._alarm_bits(regs.input[Ir.ALARMS])
+            except Exception:
+                log.exception("Modbus alarm update failed")
+            await asyncio.sleep(HEARTBEAT_PERIOD_S)
+
+    def _alarm_bits(self, previous: int) -> int:
+        st = self.cell.status()
+        health = self.cell.health()
+        robot = st.get("robot", {})
+        bits = previous & (1 << Alarm.JOB_FAILED)
+        missing = health.get("missing", [])
+        if robot.get("protective_stop"):
+            bits |= 1 << Alarm.PROTECTIVE_STOP
+        if "EMERGENCY_STOP" in str(robot.get("safety", "")):
+            bits |= 1 << Alarm.EMERGENCY_STOP
+        if "camera" in missing or not st.get("camera", {}).get("connected", True):
+            bits |= 1 << Alarm.CAMERA_DISCONNECTED
+        if "arm" in missing or "robot" in missing:
+            bits |= 1 << Alarm.ARM_DISCONNECTED
+        gripper = st.get("gripper") or {}
+        if isinstance(gripper, dict) and gripper.get("error"):
+            bits |= 1 << Alarm.GRIPPER_FAULT
+        return bits
+
+    # -- the handshake (on the server's loop) ---------------------------------------------------
+    def may_write(self, peer: str, after: list[int]) -> bool:
+        """Listed clients write anything; the others only the stop command."""
+        if not self.allowed or self._listed(peer):
+            return True
+        return after[Hr.COMMAND] == Command.STOP
+
+    def _listed(self, peer: str) -> bool:
+        try:
+            address = ipaddress.ip_address(peer)
+        except ValueError:
+            return False
+        return any(address in net for net in self.allowed)
+
+    def accept(self, holding: list[int]) -> None:
+        """A new sequence: accepted now (still inside the write's request), run off the loop."""
+        regs = self.registers
+        seq, command = holding[Hr.SEQUENCE], holding[Hr.COMMAND]
+        self._accepted_seq = seq
+        regs.input[Ir.ACCEPTED_SEQUENCE] = seq
+        regs.input[Ir.STATE] = State.BUSY
+        regs.input[Ir.ERROR] = 0
+        regs.input[Ir.ALARMS] &= ~(1 << Alarm.JOB_FAILED)
+        if command == Command.STOP:
+            if self.on_stop_sent is not None:
+                self.on_stop_sent(time.perf_counter())
+            self._stops.submit(self._execute, seq, holding)
+        else:
+            self._commands.submit(self._execute, seq, holding)
+
+    def _finish(self, seq: int, outcome: _Outcome) -> None:
+        """State, error, pose, then the finished sequence: one step of the loop."""
+        if seq != self._accepted_seq:
+            return  # a newer command was accepted meanwhile; it reports instead
+        regs = self.registers
+        if outcome.pose is not None:
+            for i, v in enumerate(outcome.pose):
+                regs.input[Ir.POSE + 2 * i:Ir.POSE + 2 * i + 2] = float_words(v)
+        regs.input[Ir.STATE] = State.DONE_OK if outcome.ok else State.FAILED
+        regs.input[Ir.ERROR] = outcome.error
+        if not outcome.ok:
+            regs.input[Ir.ALARMS] |= 1 << Alarm.JOB_FAILED
+        regs.input[Ir.FINISHED_SEQUENCE] = seq
+
+    # -- commands (worker threads) --------------------------------------------------------------
+    def _execute(self, seq: int, holding: list[int]) -> None:
+        try:
+            outcome = self._command(holding)
+        except CellError as err:
+            outcome = _Outcome(False, error_number(err.code, err.kind))
+        except Exception:
+            log.exception("Modbus command %s failed", holding[Hr.COMMAND])
+            outcome = _Outcome(False, UNKNOWN_ERROR)
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(self._finish, seq, outcome)
+
+    def _command(self, holding: list[int]) -> _Outcome:
+        command, recipe = holding[Hr.COMMAND], holding[Hr.RECIPE]
+        standoff = words_float(holding[Hr.STANDOFF_MM], holding[Hr.STANDOFF_MM + 1])
+        if command == Command.STOP:
+            out = remote.stop(self.cell, self.caller)
+            if out.get("arm_error"):
+                return _Outcome(False, error_number("motion_failed"))
+            return _Outcome(True)
+        if command == Command.LOCATE:
+            if recipe:
+                remote.require(self.cell, self.caller, "locate", "locate", {"recipe": recipe})
+                remote.prepare_recipe(self.cell, recipe)
+            loc = remote.locate(self.cell, self.caller)
+            return _Outcome(True, pose=self._pose(loc.T_base_target))
+        if command == Command.APPROACH:
+            if not math.isfinite(standoff) or standoff < 0:
+                return _Outcome(False, error_number("invalid_standoff"))
+            if recipe:
+                job = remote.approach_recipe(self.cell, self.caller, recipe,
+                                             standoff_mm=standoff or None)
+            else:
+                job = remote.approach(self.cell, self.caller,
+                                      standoff or self.cell.config.approach.standoff_mm, "")
+            return self._job_outcome(job)
+        if command == Command.HOME:
+            return self._job_outcome(remote.home(self.cell, self.caller))
+        if command in (Command.GRIPPER_OPEN, Command.GRIPPER_CLOSE):
+            action = "open" if command == Command.GRIPPER_OPEN else "close"
+            remote.gripper(self.cell, self.caller, action, None)
+            return _Outcome(True)
+        return _Outcome(False, error_number("unknown_command"))
+
+    def _job_outcome(self, job: Job) -> _Outcome:
+        """Wait for the job's end; an approach reports the pose it located."""
+        while not job.finished and not self._closing.is_set():
+            time.sleep(JOB_POLL_S)
+            job = self.cell.job(job.id)
+        if not job.finished:
+            return _Outcome(False, error_number("cancelled"))
+        if job.state != "succeeded":
+            return _Outcome(False, error_number(job.error_code or "internal_error"))
+        pose = None
+        result = job.result or {}
+        target = result.get("T_base_target") or (result.get("locate") or {}).get("T_base_target")
+        if isinstance(target, dict) and "position_mm" in target:
+            pose = [float(v) for v in target["position_mm"]] + \
+                [float(v) for v in target["rotvec_rad"]]
+        return _Outcome(True, pose=pose)
+
+    @staticmethod
+    def _pose(T_base: Any) -> list[float]:
+        position_mm, rotvec_rad = remote.pose_mm_rad(T_base)
+        return position_mm + rotvec_rad

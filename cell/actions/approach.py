@@ -1,0 +1,286 @@
+"""Approach: by look-and-move (observe, locate, correct, repeat, then the final move), by
+closed-loop servoing (``mode="servo"``, :mod:`cell.actions.servo`) or by image-based servoing to a
+taught view (``mode="ibvs"``, :mod:`cell.actions.ibvs_run`).
+
+The goal is ``T_base_target @ T_target_tcp @ translate(0, 0, -standoff_mm)``. The arm first
+goes to an observation pose in front of the target with the goal's orientation (so the final
+move is a pure translation and every cycle sees the target from the same viewpoint), locates
+again from frames exposed after it stopped, and repeats until the correction is under the
+tolerance or the cycle limit; every cycle's correction and the final estimated error are in
+the job's result. Every goal is checked before the job starts, so a refusal moves nothing.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cell.actions.ibvs import Features
+from cell.actions.ibvs_run import IbvsRun
+from cell.actions.servo import ServoGoal, ServoRun
+from cell.core import CellCore
+from cell.jobs.store import Job
+from cell.motion.guard import Motion
+from cell.motion.limits import CellError, LimitError, RefusedError, UnavailableError
+from cell.vision.frames import approach_tcp, observation_camera
+from cell.vision.locate import Located
+from estimator.transforms import pose_dict, pose_distance
+
+Matrix4 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class ApproachPlan:
+    standoff_mm: float
+    speed_mm_s: float
+    accel_mm_s2: float
+    T_target_tcp: Matrix4
+
+
+def observation_tcp(core: CellCore, T_base_target: Matrix4, T_target_tcp: Matrix4) -> Matrix4:
+    R_tcp = (T_base_target @ T_target_tcp)[:3, :3]
+    cam = observation_camera(T_base_target, core.target_centre_mm,
+                             core.config.approach.observe_distance_mm,
+                             R_tcp @ core.frames.T_tcp_camera[:3, :3])
+    return core.frames.tcp_for_camera(cam)
+
+
+def locate(core: CellCore, n_frames: int = 1, after_s: float | None = None) -> Located:
+    loc = core.locator.locate(n_frames, after_s)
+    core.events.publish("locate", {"T_base_target": pose_dict(loc.T_base_target),
+                                   "rms_px": float(loc.result.rms_px)})
+    return loc
+
+
+def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = None,
+                   speed_mm_s: float | None = None, T_target_tcp: Matrix4 | None = None,
+                   use_last_locate: bool = False, wait: bool = False,
+                   wait_timeout_s: float = 120.0,
+                   mode: Literal["servo", "look_and_move", "ibvs"] | None = None,
+                   recipe: dict[str, Any] | None = None, view: Features | None = None,
+                   ) -> Job:
+    """Start an approach job (``mode`` default: ``[approach] mode``); with ``wait`` return
+    when it has ended. ``recipe``: the recipe record the job keeps (cell.features.recipes). ``view``:
+    the taught image features an ``ibvs`` approach converges on (required for it)."""
+    ac = core.config.approach
+    how = ac.mode if mode is None else mode
+    if how not in ("servo", "look_and_move", "ibvs"):
+        raise RefusedError("invalid_request", f"approach mode must be 'servo', "
+                           f"'look_and_move' or 'ibvs', got {mode!r}")
+    if how == "ibvs":
+        standoff_mm = check_ibvs_request(view, standoff_mm, use_last_locate)
+        if core.frames.is_fixed:
+            raise RefusedError("not_supported", "mode 'ibvs' is for a camera on the flange; "
+                               "a fixed camera approaches by look_and_move")
+    plan = ApproachPlan(
+        standoff_mm=ac.standoff_mm if standoff_mm is None else float(standoff_mm),
+        speed_mm_s=ac.speed_mm_s if speed_mm_s is None else float(speed_mm_s),
+        accel_mm_s2=min(ac.accel_mm_s2, core.config.limits.max_accel_mm_s2),
+        T_target_tcp=ac.T_target_tcp.T() if T_target_tcp is None
+        else np.asarray(T_target_tcp, dtype=float))
+    params = {"standoff_mm": plan.standoff_mm, "speed_mm_s": plan.speed_mm_s,
+              "T_target_tcp": pose_dict(plan.T_target_tcp), "use_last_locate": use_last_locate,
+              "mode": how}
+    if recipe is not None:
+        params["recipe"] = recipe
+    first: list[Located] = []
+    seen: dict[str, Any] = {}  # how a fixed camera's pose was had (live or before occlusion)
+
+    def check(motion: Motion) -> None:
+        if not np.isfinite(plan.standoff_mm) or plan.standoff_mm < 0:
+            raise LimitError("invalid_standoff", "standoff_mm must be a number >= 0")
+        core.arm.guard.check_speed(plan.speed_mm_s, plan.accel_mm_s2)
+        st = core.arm.ready_state()
+        if not core.camera.is_connected:
+            raise UnavailableError("camera_lost", "the camera is lost: approach needs it "
+                                   "(jogging is still possible)")
+        # the servo re-estimates from every frame: one frame to start from is enough
+        n_frames = 1 if how in ("servo", "ibvs") else ac.frames_per_locate
+        if use_last_locate:
+            loc = _last_locate(core)
+        elif core.frames.is_fixed:
+            loc = _fixed_locate(core, n_frames, seen)
+        else:
+            loc = locate(core, n_frames)
+        goal = approach_tcp(loc.T_base_target, plan.T_target_tcp, plan.standoff_mm)
+        if how in ("servo", "ibvs") or core.frames.is_fixed:  # straight at the goal: checked
+            core.arm.guard.check_goal(st.T_base_tcp, goal, "approach goal")
+        else:  # both goals are checked now, so that a refusal moves nothing
+            T_obs = observation_tcp(core, loc.T_base_target, plan.T_target_tcp)
+            core.arm.guard.check_goal(st.T_base_tcp, T_obs, "observation pose")
+            core.arm.guard.check_goal(T_obs, goal, "approach goal")
+        first.append(loc)
+
+    def work(job_id: str, motion: Motion) -> dict[str, Any]:
+        if how == "ibvs":
+            assert view is not None
+            return IbvsRun(core, job_id, motion, view, plan.T_target_tcp, "approach").run()
+        if how == "servo":
+            run = ServoRun(core, job_id, motion, ServoGoal(plan.T_target_tcp, plan.standoff_mm),
+                           "approach", first=first[0])
+            return run.run()
+        if core.frames.is_fixed:
+            return fixed_look_and_move(core, job_id, motion, first[0], plan, seen)
+        return look_and_move(core, job_id, motion, first[0], plan)
+
+    return core.runner.start("approach", caller, params, work, check=check, needs_camera=True,
+                             wait=wait, wait_timeout_s=wait_timeout_s)
+
+
+def check_ibvs_request(view: Features | None, standoff_mm: float | None,
+                       use_last_locate: bool = False) -> float:
+    """An IBVS job converges on a taught view: it needs one, and it goes to that view itself
+    (a standoff would be a view nobody showed). Returns the standoff (0)."""
+    if view is None:
+        raise LimitError("taught_without_view", "mode 'ibvs' needs a pose taught with its "
+                         "view (give `taught`; poses taught before views were recorded serve "
+                         "servo and look_and_move only: teach it again for ibvs)")
+    if standoff_mm not in (None, 0, 0.0):
+        raise LimitError("invalid_standoff", "mode 'ibvs' goes to the taught view itself: "
+                         f"standoff_mm must be 0 or absent, got {standoff_mm}")
+    if use_last_locate:
+        raise LimitError("invalid_request", "mode 'ibvs' servos on live frames; "
+                         "use_last_locate does not apply")
+    return 0.0
+
+
+def _last_locate(core: CellCore) -> Located:
+    loc = core.locator.last
+    if loc is None:
+        raise RefusedError("stale_pose", "no target has been located yet")
+    age = time.monotonic() - loc.frame_timestamp_s
+    limit = core.config.limits.max_pose_age_s
+    if age > limit:
+        raise RefusedError("stale_pose", f"the last located pose is {age:.1f} s old (limit "
+                           f"{limit} s); locate again")
+    return loc
+
+
+def _fixed_locate(core: CellCore, n_frames: int, seen: dict[str, Any]) -> Located:
+    """Locate with a fixed camera; when the target is not found, the arm may be standing
+    between the camera and the target: then the last pose seen (before the arm entered the
+    view) is used, and the result says so. Without an earlier pose the error stands."""
+    try:
+        loc = locate(core, n_frames)
+    except CellError as err:
+        last = core.locator.last
+        if last is None or err.code in ("camera_lost", "camera_stalled"):
+            raise
+        seen.update(pose_source="last_seen", occluded=True, reason=err.message,
+                    pose_age_s=time.monotonic() - last.frame_timestamp_s)
+        return last
+    seen.update(pose_source="live", occluded=False)
+    return loc
+
+
+def fixed_look_and_move(core: CellCore, job_id: str, motion: Motion, loc: Located,
+                        plan: ApproachPlan, seen: dict[str, Any]) -> dict[str, Any]:
+    """Look-and-move with a fixed camera: no observation pose (the camera does not move with
+    the arm); straight to the goal, then, while the camera still sees the target past the
+    arm, locate again at rest and correct until under the tolerance. Once the arm hides the
+    target the goal stays the one from the last pose seen, and the result says so."""
+    ac = core.config.approach
+    arm = core.arm
+    cycles: list[dict[str, Any]] = []
+    converged = False
+    goal = approach_tcp(loc.T_base_target, plan.T_target_tcp, plan.standoff_mm)
+    occluded_at_goal = False
+    for cycle in range(1, ac.max_cycles + 1):
+        core.runner.progress(job_id, {"phase": "move", "cycle": cycle, "cycles": cycles})
+        arm.move_linear(goal, plan.speed_mm_s, plan.accel_mm_s2, what="approach goal")
+        arrived = time.monotonic()
+        if ac.settle_s:
+            time.sleep(ac.settle_s)
+        motion.raise_if_cancelled("at the approach goal")
+        try:
+            new = locate(core, ac.frames_per_locate, after_s=arrived + ac.settle_s)
+        except CellError as err:
+            if err.code in ("camera_lost", "camera_stalled"):
+                raise
+            occluded_at_goal = True
+            seen.setdefault("reason", err.message)
+            break
+        new_goal = approach_tcp(new.T_base_target, plan.T_target_tcp, plan.standoff_mm)
+        d_mm, d_deg = pose_distance(goal, new_goal)
+        cycles.append({"cycle": cycle, "correction_mm": d_mm, "correction_deg": d_deg,
+                       "rms_px": float(new.result.rms_px), "spread_mm": new.spread_mm})
+        loc, goal = new, new_goal
+        if d_mm < ac.tolerance_mm and d_deg < ac.tolerance_deg:
+            converged = True
+            break
+    if not converged:
+        arm.move_linear(goal, plan.speed_mm_s, plan.accel_mm_s2, what="approach goal")
+    reached = arm.state().T_base_tcp
+    reach_mm, reach_deg = pose_distance(reached, goal)
+    last_mm = cycles[-1]["correction_mm"] if cycles else 0.0
+    last_deg = cycles[-1]["correction_deg"] if cycles else 0.0
+    return {
+        "mode": "look_and_move",
+        "camera_mount": "fixed",
+        "converged": converged,
+        "cycles": cycles,
+        # the pose the goal came from: "live" (seen at the start or at the goal) or
+        # "last_seen" (the arm hid the target: the last pose before it entered the view)
+        "pose_source": seen.get("pose_source", "live"),
+        "occluded": bool(seen.get("occluded", False)) or occluded_at_goal,
+        "occluded_at_goal": occluded_at_goal,
+        "pose_age_s": seen.get("pose_age_s"),
+        "occlusion_reason": seen.get("reason"),
+        "T_base_target": pose_dict(loc.T_base_target),
+        "goal_T_base_tcp": pose_dict(goal),
+        "reached_T_base_tcp": pose_dict(reached),
+        "reach_error_mm": reach_mm,
+        "reach_error_deg": reach_deg,
+        "estimated_error_mm": float(np.hypot(last_mm, reach_mm)),
+        "estimated_error_deg": float(np.hypot(last_deg, reach_deg)),
+    }
+
+
+def look_and_move(core: CellCore, job_id: str, motion: Motion, loc: Located,
+                  plan: ApproachPlan) -> dict[str, Any]:
+    ac = core.config.approach
+    arm = core.arm
+    cycles: list[dict[str, Any]] = []
+    converged = False
+    goal = approach_tcp(loc.T_base_target, plan.T_target_tcp, plan.standoff_mm)
+    for cycle in range(1, ac.max_cycles + 1):
+        core.runner.progress(job_id, {"phase": "observe", "cycle": cycle, "cycles": cycles})
+        T_obs = observation_tcp(core, loc.T_base_target, plan.T_target_tcp)
+        arm.move_linear(T_obs, plan.speed_mm_s, plan.accel_mm_s2, what="observation pose")
+        arrived = time.monotonic()
+        if ac.settle_s:
+            time.sleep(ac.settle_s)
+        motion.raise_if_cancelled("at the observation pose")
+        core.runner.progress(job_id, {"phase": "locate", "cycle": cycle, "cycles": cycles})
+        new = locate(core, ac.frames_per_locate, after_s=arrived + ac.settle_s)
+        new_goal = approach_tcp(new.T_base_target, plan.T_target_tcp, plan.standoff_mm)
+        d_mm, d_deg = pose_distance(goal, new_goal)
+        cycles.append({"cycle": cycle, "correction_mm": d_mm, "correction_deg": d_deg,
+                       "rms_px": float(new.result.rms_px), "spread_mm": new.spread_mm})
+        loc, goal = new, new_goal
+        if d_mm < ac.tolerance_mm and d_deg < ac.tolerance_deg:
+            converged = True
+            break
+        motion.raise_if_cancelled("between cycles")
+    core.runner.progress(job_id, {"phase": "final", "cycle": len(cycles), "cycles": cycles})
+    arm.move_linear(goal, plan.speed_mm_s, plan.accel_mm_s2, what="approach goal")
+    reached = arm.state().T_base_tcp
+    reach_mm, reach_deg = pose_distance(reached, goal)
+    last = cycles[-1]
+    return {
+        "mode": "look_and_move",
+        "converged": converged,
+        "cycles": cycles,
+        "T_base_target": pose_dict(loc.T_base_target),
+        "goal_T_base_tcp": pose_dict(goal),
+        "reached_T_base_tcp": pose_dict(reached),
+        "reach_error_mm": reach_mm,
+        "reach_error_deg": reach_deg,
+        # what is left unknown: the last correction (estimate noise) plus the reach error
+        "estimated_error_mm": float(np.hypot(last["correction_mm"], reach_mm)),
+        "estimated_error_deg": float(np.hypot(last["correction_deg"], reach_deg)),
+    }

@@ -1,0 +1,414 @@
+"""Image-based visual servoing to a taught view (approach and track, mode ``"ibvs"``).
+
+Two threads per run, as :mod:`cell.actions.servo`. The frame thread estimates every new frame and
+keeps the newest view: the matched dots' normalised image points (undistorted through the lens
+model), their depths and 3-D positions from the frame's pose estimate, and the arm pose at
+the frame's mid-exposure time. Only the dots the taught view also has are used (the estimator's
+correspondence names them), so a dot that leaves the image or is hidden just drops out; a view
+with fewer than 4 of them is no view (the lost-target clock runs, then ``target_lost``).
+
+The control loop ticks at ``[servo] tick_s``. It takes the newest measured features (with
+``[ibvs] predict_motion``, moved on by the camera's motion since their exposure, from the arm's
+pose history: :func:`cell.actions.ibvs.predicted`; at rest nothing is added), computes the law's
+camera twist (:mod:`cell.actions.ibvs`), maps it to the TCP's base-frame twist through the hand-eye
+transform, caps its speed and acceleration by the
+``[servo]`` limits, and sends it through the guarded arm's ``servo_twist`` (every tick
+checked, the arm's watchdog brakes if ticks stop, a stop cancels the holder). Each new view's
+pose-based goal (``T_base_target @ T_target_tcp``) is checked against the envelope like the
+servo's, and reported as the estimated pose error; the law itself never uses it.
+
+Converged (approach): the image error averaged over the last ``[ibvs] converge_frames``
+measured frames under ``tolerance_px_rms`` (RMS over the dots) and ``tolerance_px_max`` (the
+worst dot). Averaged, because the view's weakest direction (a turn about a point near the
+target, which moves the image only through perspective) is below one frame's noise: a
+single-frame test stops on a lucky frame far from the view. And the TCP motion the view still
+asks for (:func:`cell.actions.ibvs.remaining_motion`, averaged over the same frames) under
+``tolerance_mm`` / ``tolerance_deg``: the pixels alone cannot see that weakest direction
+(measured: 0.005 px RMS left 0.2-0.3 mm at the TCP under a 0.5 deg mount error, which bends
+the camera's path into it).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cell.actions.ibvs import (
+    MIN_FEATURES,
+    AdaptiveGain,
+    Features,
+    base_tcp_twist,
+    camera_twist,
+    features_from_view,
+    image_error_px,
+    limit_twist,
+    predicted,
+    remaining_motion,
+)
+from cell.actions.servo import (
+    MAX_EXTRAPOLATE_S,
+    PROGRESS_PERIOD_S,
+    STILL_TIMEOUT_S,
+    _stats_ms,
+)
+from cell.actions.servo_law import extrapolate_tcp
+from cell.actions.target_loss import LossClock, Silence
+from cell.core import CellCore
+from cell.motion.guard import SERVO_MIN_DT_S, Motion
+from cell.motion.limits import CellError, RefusedError, UnavailableError, linear_path
+from drivers.errors import DriverError
+from estimator.transforms import invert_T, pose_dict, pose_distance
+
+log = logging.getLogger(__name__)
+Matrix4 = NDArray[np.float64]
+IbvsMode = Literal["approach", "track"]
+HISTORY_POINTS = 100
+
+
+@dataclass(frozen=True)
+class View:
+    """One measured frame, reduced to what the law needs."""
+
+    features: Features  # only the dots the taught view has
+    points_camera_mm: NDArray[np.float64]  # those dots in the camera frame (pose estimate)
+    T_base_tcp: Matrix4  # at mid-exposure
+    T_base_target: Matrix4  # the pose estimate in the base frame (for the goal check)
+    exposure_s: float
+    sequence: int
+    border_px: float  # the smallest distance of a matched dot from the image's edge
+    missing: tuple[int, ...]  # taught dots not matched in this frame
+
+
+class IbvsRun:
+    """One IBVS job's loop (module doc). ``run`` returns the job's result."""
+
+    def __init__(self, core: CellCore, job_id: str, motion: Motion, desired: Features,
+                 T_target_tcp: Matrix4, mode: IbvsMode, *,
+                 duration_s: float | None = None) -> None:
+        self.core, self.job_id, self.motion, self.mode = core, job_id, motion, mode
+        self.desired, self.T_target_tcp, self.duration_s = desired, T_target_tcp, duration_s
+        self.sc, self.ic, lim = core.config.servo, core.config.ibvs, core.config.limits
+        self.gain = AdaptiveGain(self.ic.gain_at_zero_per_s, self.ic.gain_at_infinity_per_s,
+                                 self.ic.slope_at_zero)
+        self.max_speed_mm_s = min(self.sc.max_speed_mm_s, lim.max_speed_mm_s)
+        self.max_rate_rad_s = float(np.radians(min(self.sc.max_angular_speed_deg_s,
+                                                   lim.max_angular_speed_deg_s)))
+        self.accel_mm_s2 = min(self.sc.accel_mm_s2, lim.max_accel_mm_s2)
+        self.accel_rad_s2 = float(np.radians(min(self.sc.angular_accel_deg_s2,
+                                                 lim.max_angular_accel_deg_s2)))
+        self._lock = threading.Lock()
+        self._done = threading.Event()
+        self._view: View | None = None
+        self._frames = 0
+        self._failed_frames = 0
+        self._stale_frames = 0
+        self._few_dots_frames = 0
+        self._frames_missing_dots = 0
+        self._min_dots = len(desired.ids)
+        self._min_border_px = float("inf")
+        # loss judged on camera time, as the pose-based servo does (cell.actions.target_loss)
+        sc = self.sc
+        self._loss = LossClock(sc.lost_after_s, max(sc.stall_after_s, sc.lost_after_s),
+                               time.monotonic())
+        self._lags: list[float] = []
+        self._camera_error: CellError | None = None
+        self._last_error: CellError | None = None
+        self._last_sequence = -1
+        self._thread_error: Exception | None = None
+
+    # -- the frame thread ----------------------------------------------------------------------
+    def _frame_thread(self) -> None:
+        try:
+            self._frame_loop()
+        except Exception as err:  # the control loop sees it and stops the arm
+            log.exception("the IBVS frame thread failed")
+            self._thread_error = err
+
+    def _frame_loop(self) -> None:
+        locator = self.core.locator
+        max_age = self.core.config.limits.max_pose_age_s
+        while not self._done.is_set():
+            try:
+                frame, result, T_base_tcp = locator.measure_view(self._last_sequence, 0.5)
+            except UnavailableError as err:
+                self._camera_error = err
+                self._done.wait(0.02)
+                continue
+            except CellError as err:
+                if err.code != "no_new_frame":
+                    self._failed_frames += 1
+                    self._last_error = err
+                continue
+            self._camera_error = None
+            self._last_sequence = frame.sequence
+            now = time.monotonic()
+            if now - frame.timestamp_s > max_age:
+                self._stale_frames += 1
+                with self._lock:
+                    self._loss.examined(frame.timestamp_s)
+                continue
+            # the lens model the estimator used for this frame (teaching used it too)
+            try:
+                view = self._view_of(locator.camera_model, result, T_base_tcp,
+                                     frame.timestamp_s, frame.sequence)
+            except (ValueError, IndexError, np.linalg.LinAlgError) as err:
+                # a degenerate estimate (a dot behind the camera, a bad id): not a view
+                log.warning("frame %d gave no IBVS view: %r", frame.sequence, err)
+                self._failed_frames += 1
+                self._last_error = RefusedError("estimation_failed", f"no view: {err}")
+                with self._lock:
+                    self._loss.examined(frame.timestamp_s)
+                continue
+            if view is None:
+                with self._lock:
+                    self._loss.examined(frame.timestamp_s)
+                continue
+            with self._lock:
+                self._view = view
+                self._frames += 1
+                self._loss.pose(frame.timestamp_s)
+                self._lags.append(now - frame.timestamp_s)
+                self._min_dots = min(self._min_dots, len(view.features.ids))
+                self._min_border_px = min(self._min_border_px, view.border_px)
+                if view.missing:
+                    self._frames_missing_dots += 1
+
+    def _view_of(self, camera: Any, result: Any, T_base_tcp: Matrix4, exposure_s: float,
+                 sequence: int) -> View | None:
+        locator = self.core.locator
+        if result.image_points_px is None or not result.matched_ids:
+            self._failed_frames += 1
+            return None
+        points = locator.target.points_mm
+        seen = features_from_view(camera, result.matched_ids, result.image_points_px,
+                                  result.T_camera_target, points)
+        common = tuple(i for i in self.desired.ids if i in seen.ids)
+        if len(common) < MIN_FEATURES:
+            self._few_dots_frames += 1
+            self._last_error = RefusedError(
+                "target_lost", f"only {len(common)} of the taught view's dots matched (at "
+                f"least {MIN_FEATURES} are needed)")
+            return None
+        px = np.asarray(result.image_points_px, dtype=float).reshape(-1, 2)
+        border = float(np.min(np.concatenate([px[:, 0], px[:, 1],
+                                              camera.width - 1 - px[:, 0],
+                                              camera.height - 1 - px[:, 1]])))
+        P = np.asarray(points, dtype=float)[list(common)]
+        Tc = result.T_camera_target
+        return View(seen.subset(common), P @ Tc[:3, :3].T + Tc[:3, 3], T_base_tcp,
+                    self.core.frames.T_base_target(T_base_tcp, Tc), exposure_s, sequence,
+                    border, tuple(i for i in self.desired.ids if i not in common))
+
+    # -- the control loop ----------------------------------------------------------------------
+    def run(self) -> dict[str, Any]:
+        thread = threading.Thread(target=self._frame_thread, daemon=True,
+                                  name=f"ibvs-frames-{self.job_id}")
+        with self._lock:
+            self._loss.restart(time.monotonic())
+        thread.start()
+        try:
+            return self._control()
+        finally:
+            self._done.set()
+            thread.join(timeout=2.0)
+
+    def _control(self) -> dict[str, Any]:
+        core, sc, ic, arm = self.core, self.sc, self.ic, self.core.arm
+        T_tcp_camera = core.frames.T_tcp_camera
+        cam = core.locator.camera_model
+        t0 = time.monotonic()
+        prev = np.zeros(6)
+        t_prev: float | None = None
+        seen = -1
+        window: deque[NDArray[np.float64]] = deque(maxlen=ic.converge_frames)
+        steps: deque[tuple[float, float]] = deque(maxlen=ic.converge_frames)
+        T_camera_tcp = invert_T(T_tcp_camera)
+        last_step = (float("nan"), float("nan"))
+        converged_s: float | None = None
+        history: list[tuple[float, float, float, float]] = []
+        last_px = (float("nan"), float("nan"))
+        last_pose = (float("nan"), float("nan"))
+        shown_s = 0.0
+        while True:
+            tick = time.monotonic()
+            self.motion.raise_if_cancelled("while servoing on the image")
+            if self._thread_error is not None:
+                self._stop_still()
+                raise RefusedError("estimator_failed", f"the IBVS frame thread failed: "
+                                   f"{self._thread_error!r}")
+            with self._lock:
+                silence, view = self._loss.silence(tick), self._view
+            if silence.lost or view is None:
+                if silence.lost:
+                    self._lost(silence)
+                time.sleep(sc.tick_s)
+                continue
+            try:
+                state = arm.state()
+            except DriverError as err:
+                raise UnavailableError("arm_disconnected", f"reading the arm: {err}") from err
+            held_s = 0.0 if t_prev is None else min(tick, t_prev + sc.watchdog_s) \
+                - state.timestamp_s
+            T_tcp = extrapolate_tcp(state.T_base_tcp, prev,
+                                    min(max(held_s, 0.0), MAX_EXTRAPOLATE_S))
+            desired = self.desired.subset(view.features.ids)
+            if view.sequence != seen:  # a new view: its goal checked, its error judged
+                seen = view.sequence
+                goal = view.T_base_target @ self.T_target_tcp
+                arm.guard.check_path(linear_path(T_tcp, goal), "ibvs goal estimate")
+                last_pose = pose_distance(view.T_base_tcp, goal)
+                last_px = image_error_px(view.features, desired, cam)
+                history.append((tick - t0, last_px[0], last_pose[0], last_pose[1]))
+                core.events.publish("servo", {"job_id": self.job_id, "mode": "ibvs",
+                                              "t_s": tick - t0, "image_error_px": last_px[0],
+                                              "error_mm": last_pose[0],
+                                              "error_deg": last_pose[1]})
+                if tick - shown_s >= PROGRESS_PERIOD_S:
+                    shown_s = tick
+                    core.runner.progress(self.job_id, {
+                        "phase": f"ibvs_{self.mode}", "t_s": round(tick - t0, 3),
+                        "image_error_px": last_px[0], "error_mm": last_pose[0],
+                        "error_deg": last_pose[1], "dots": len(view.features.ids)})
+                if self.mode == "approach":
+                    window.append(view.features.xy - desired.xy)
+                    steps.append(remaining_motion(view.features, desired, ic.interaction,
+                                                  T_camera_tcp))
+                    if len({e.shape for e in window}) > 1:  # the dots changed: start again
+                        window.clear()
+                        window.append(view.features.xy - desired.xy)
+                    if len(window) >= ic.converge_frames:
+                        last_px = _window_px(window, cam)
+                        last_step = (float(np.mean([s[0] for s in steps])),
+                                     float(np.mean([s[1] for s in steps])))
+                        if last_px[0] < ic.tolerance_px_rms \
+                                and last_px[1] < ic.tolerance_px_max \
+                                and last_step[0] < ic.tolerance_mm \
+                                and last_step[1] < ic.tolerance_deg:
+                            converged_s = tick - t0
+                            break
+            if self.mode == "approach" and tick - t0 > ic.approach_timeout_s:
+                self._stop_still()
+                raise RefusedError("servo_timeout", f"the IBVS approach did not converge "
+                                   f"within {ic.approach_timeout_s} s (image error "
+                                   f"{last_px[0]:.3f} px RMS, {last_px[1]:.3f} px max)")
+            if self.mode == "track" and self.duration_s is not None \
+                    and tick - t0 >= self.duration_s:
+                break
+            T_base_cam_now = T_tcp @ T_tcp_camera
+            T_base_cam_then = view.T_base_tcp @ T_tcp_camera
+            now_features = predicted(view.features,
+                                     invert_T(T_base_cam_now) @ T_base_cam_then,
+                                     view.points_camera_mm) if ic.predict_motion \
+                else view.features
+            v_c = camera_twist(now_features, desired, self.gain, ic.interaction)
+            twist = base_tcp_twist(v_c, T_base_cam_now, T_tcp)
+            t_cmd = time.monotonic()
+            accepted_s = arm.last_twist_s
+            dt = SERVO_MIN_DT_S if t_prev is None or accepted_s is None else min(
+                max(t_cmd - accepted_s, SERVO_MIN_DT_S), 2.0 * sc.tick_s)
+            if t_prev is not None and t_cmd - t_prev > 0.75 * sc.watchdog_s:
+                prev = np.zeros(6)
+            twist = limit_twist(twist, prev, dt, self.max_speed_mm_s, self.max_rate_rad_s,
+                                self.accel_mm_s2, self.accel_rad_s2)
+            arm.servo_twist(twist, self.accel_mm_s2, sc.watchdog_s, self.accel_rad_s2)
+            prev, t_prev = twist, t_cmd
+            rest = tick + sc.tick_s - time.monotonic()
+            if rest > 0:
+                time.sleep(rest)
+        self._stop_still()
+        return self._result(t0, converged_s, last_px, last_pose, history) | {
+            "view_error_mm": last_step[0], "view_error_deg": last_step[1]}
+
+    def _result(self, t0: float, converged_s: float | None, last_px: tuple[float, float],
+                last_pose: tuple[float, float],
+                history: list[tuple[float, float, float, float]]) -> dict[str, Any]:
+        reached = self.core.arm.state().T_base_tcp
+        with self._lock:
+            view = self._view
+        out: dict[str, Any] = {
+            "mode": "ibvs" if self.mode == "approach" else "ibvs_track",
+            "frames": self._frames, "failed_frames": self._failed_frames,
+            "stale_frames": self._stale_frames,
+            "frames_with_too_few_dots": self._few_dots_frames,
+            "frames_missing_dots": self._frames_missing_dots,
+            "min_dots_used": self._min_dots,
+            "dots_taught": len(self.desired.ids),
+            "min_dot_border_px": None if not np.isfinite(self._min_border_px)
+            else self._min_border_px,
+            "interaction": self.ic.interaction,
+            "image_error_px_rms": last_px[0], "image_error_px_max": last_px[1],
+            "estimated_error_mm": last_pose[0], "estimated_error_deg": last_pose[1],
+            "reached_T_base_tcp": pose_dict(reached),
+            "pose_latency_ms": _stats_ms(self._lags),
+            "error_history": _downsample(history),
+        }
+        if view is not None:
+            out["T_base_target"] = pose_dict(view.T_base_target)
+            out["goal_T_base_tcp"] = pose_dict(view.T_base_target @ self.T_target_tcp)
+        if self.mode == "approach":
+            out.update(converged=True, time_to_converge_s=converged_s)
+        else:
+            out.update(duration_s=time.monotonic() - t0)
+        return out
+
+    def _stop_still(self) -> float:
+        t0 = time.monotonic()
+        arm = self.core.arm
+        try:
+            arm.stop(decel_mm_s2=self.sc.stop_decel_mm_s2)
+        except DriverError as err:
+            raise UnavailableError("arm_disconnected", f"stopping the arm: {err}") from err
+        deadline = t0 + STILL_TIMEOUT_S
+        while time.monotonic() < deadline:
+            try:
+                if not arm.state().moving:
+                    break
+            except DriverError:
+                break
+            time.sleep(0.002)
+        return time.monotonic() - t0
+
+    def _lost(self, silence: Silence) -> None:
+        declared_s = time.monotonic()
+        took = self._stop_still()
+        why = self._camera_error or self._last_error
+        self.core.runner.progress(self.job_id, {"phase": "target_lost",
+                                                "stopped_in_ms": round(took * 1000.0, 1),
+                                                "lost_at_monotonic_s": declared_s})
+        if silence.camera_s > self.sc.lost_after_s:
+            what = (f"frames exposed for {silence.camera_s * 1000:.0f} ms after the last view "
+                    f"were not usable (limit {self.sc.lost_after_s * 1000:.0f} ms of camera "
+                    "time)")
+        else:
+            what = (f"no frame examined for {silence.stalled_s * 1000:.0f} ms (limit "
+                    f"{self._loss.stall_after_s * 1000:.0f} ms: the camera or the estimator "
+                    "stalled)")
+        raise RefusedError("target_lost", what
+                           + (f"; {why.message}" if why is not None else "")
+                           + f"; {self._failed_frames} frames without the target, "
+                           f"{self._few_dots_frames} with fewer than {MIN_FEATURES} taught "
+                           f"dots; the arm stopped in {took * 1000:.0f} ms")
+
+
+def _window_px(window: deque[NDArray[np.float64]], camera: Any) -> tuple[float, float]:
+    """RMS and max over the dots of the image error averaged over the window's frames (px):
+    where the view rests, its frame-to-frame noise averaged out."""
+    d = np.mean(np.stack(list(window)), axis=0) * np.array([camera.fx, camera.fy])
+    n = np.linalg.norm(d, axis=1)
+    return float(np.sqrt(np.mean(n ** 2))), float(np.max(n))
+
+
+def _downsample(rows: list[tuple[float, float, float, float]], n: int = HISTORY_POINTS
+                ) -> list[dict[str, float]]:
+    if len(rows) > n:
+        idx = np.unique(np.linspace(0, len(rows) - 1, n).round().astype(int))
+        rows = [rows[i] for i in idx]
+    return [{"t_s": round(t, 4), "image_error_px": round(px, 4), "error_mm": round(e, 4),
+             "error_deg": round(d, 4)} for t, px, e, d in rows]

@@ -1,0 +1,125 @@
+"""Benchmark: locate accuracy of a fixed camera at 1 m (``cell bench fixed``).
+
+Renders the cell's dot plate at 1 m from the camera, 30 deg off the optical axis (the
+sim-fixed.toml geometry) at random positions and spins, estimates it, and reports the error
+against the rendered truth at the plate centre (where the tool goes): the worst case first,
+then the median, for one frame and for the 3-frame average look-and-move uses, for the OAK-D's
+12 MP colour sensor and its 1280x800 mono sensor. The truth is never shown to the estimator.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from cell.vision.frames import mean_pose
+from estimator import CameraModel, EstimationError, Target
+from estimator.pipeline import Estimator
+from estimator.transforms import make_T, pose_distance
+from fakes.render import render_target
+
+SENSORS = {"12MP colour (4056x3040, f 2950 px)": (4056, 3040, 2950.0),
+           "1280x800 mono (f 880 px)": (1280, 800, 880.0)}
+POINTS = [[0, 0, 0], [60, 0, 0], [100, 10, 0], [0, 50, 0], [40, 70, 0], [90, 60, 0]]
+
+
+def run(n_poses: int, tilt_deg: float, distance_mm: float, seed: int) -> None:
+    target = Target(POINTS, 10.0, "dark")
+    centre = target.points_mm.mean(axis=0)
+    for name, (w, h, f) in SENSORS.items():
+        cam = CameraModel(f, f, (w - 1) / 2, (h - 1) / 2, (), w, h)
+        rng = np.random.default_rng(seed)
+        rows, failed = [], 0
+        for _ in range(n_poses):
+            R = (Rotation.from_rotvec([np.radians(tilt_deg), 0, 0])
+                 * Rotation.from_rotvec([0, 0, rng.uniform(-np.pi, np.pi)])).as_matrix()
+            t = np.array([*rng.uniform(-100, 100, 2), distance_mm]) - R @ centre
+            T = make_T(R, t)
+            estimates = []
+            for _frame in range(3):
+                img = render_target(cam, target, T, noise_std=1.0, blur_sigma_px=0.8, rng=rng)
+                try:
+                    estimates.append(Estimator(cam, target).estimate(img).T_camera_target)
+                except EstimationError:
+                    failed += 1
+            if len(estimates) < 3:
+                continue
+            row = []
+            for Te in (estimates[0], mean_pose(estimates)):
+                d_mm = float(np.linalg.norm((Te[:3, :3] - R) @ centre + Te[:3, 3] - t))
+                row += [d_mm, pose_distance(Te, T)[1]]
+            rows.append(row)
+        e = np.array(rows)
+        print(f"{name}: {len(rows)} poses, {failed} failed frames, at {distance_mm:g} mm, "
+              f"tilt {tilt_deg:g} deg")
+        for label, k in (("1 frame", 0), ("3-frame mean", 2)):
+            print(f"  {label:13s} worst {e[:, k].max():.3f} mm / {e[:, k + 1].max():.3f} deg, "
+                  f"median {np.median(e[:, k]):.3f} mm / {np.median(e[:, k + 1]):.3f} deg")
+
+
+def approach(n: int, seed: int) -> None:
+    """``n`` look-and-move approaches on the simulated fixed-camera cell (sim-fixed.toml,
+    in-process arm), each to a new random placement, homing between; the error is the true
+    TCP against the true goal (simulated truth the cell does not see)."""
+    import tempfile
+    import time
+    from pathlib import Path
+
+    from cell.actions.approach import start_approach
+    from cell.config.schema import load_config, parse_config
+    from cell.runtime import start_cell
+    from cell.vision.frames import approach_tcp
+
+    flat = np.array([[1.0, 0, 0], [0, -1, 0], [0, 0, -1]])
+    rng = np.random.default_rng(seed)
+    with tempfile.TemporaryDirectory() as tmp:
+        d = load_config(Path(__file__).parents[1] / "configs" / "sim-fixed.toml").model_dump(
+            mode="python")
+        d["robot"]["kind"], d["sim"]["ur_controller"], d["gripper"]["kind"] = "sim", False, "none"
+        d["api"]["job_db"] = str(Path(tmp) / "jobs.db")
+        d["opcua"]["enabled"], d["urscript"]["xmlrpc_port"] = False, 0
+        cell = start_cell(parse_config(d))
+        try:
+            assert cell.sim is not None
+            errors, good = [], 0
+            for _ in range(n):
+                R = (Rotation.from_rotvec([*rng.normal(size=2) * 0.15, 0])
+                     * Rotation.from_rotvec([0, 0, rng.uniform(-0.6, 0.6)])).as_matrix() @ flat
+                c = np.array([-432.0, -132.0, 0.0]) + np.r_[rng.uniform(-40, 40, 2),
+                                                             rng.uniform(0, 30)]
+                T = make_T(R, c - R @ np.array([48.0, 32.0, 0.0]))
+                cell.sim.set_target(T)
+                time.sleep(0.3)
+                job = start_approach(cell.core, "bench", wait=True)
+                rec = cell.core.jobs.get(job.id)
+                goal = approach_tcp(T, np.eye(4), cell.config.approach.standoff_mm)
+                d_mm, d_deg = pose_distance(cell.sim.true_T_base_tcp(), goal)
+                errors.append((d_mm, d_deg))
+                good += int(rec is not None and rec.state == "succeeded" and d_mm < 0.1)
+                cell.home("bench", wait=True)
+            e = np.array(errors)
+            print(f"approach: {good}/{n} succeeded within 0.1 mm of the true goal; worst "
+                  f"{e[:, 0].max():.3f} mm / {e[:, 1].max():.4f} deg, median "
+                  f"{np.median(e[:, 0]):.3f} mm")
+        finally:
+            cell.close()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--poses", type=int, default=20)
+    ap.add_argument("--tilt-deg", type=float, default=30.0)
+    ap.add_argument("--distance-mm", type=float, default=1000.0)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--approaches", type=int, default=0,
+                    help="also run this many approaches on the simulated fixed-camera cell")
+    a = ap.parse_args()
+    run(a.poses, a.tilt_deg, a.distance_mm, a.seed)
+    if a.approaches:
+        approach(a.approaches, a.seed)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,718 @@
+"""Cell configuration: one TOML file, validated strictly; every error names the offending key.
+
+Tables: ``[camera]``, ``[target]`` and ``[robot]`` (``kind`` required), ``[hand_eye]``,
+``[tool]``, ``[approach]``, ``[servo]``, ``[limits]``, ``[api]``, ``[gripper]``, ``[sim]``,
+``[opcua]``, ``[urscript]``, ``[commissioning]``. A config with any real device must also state
+``[limits]``, ``[tool]`` and ``[hand_eye]`` (their defaults suit only the simulated cell).
+Types are strict (``width = "1280"`` is an error, not a coercion), an unknown key is answered
+with the closest valid name, and the commissioning checks (:mod:`cell.config.checks`) catch
+values in the wrong unit.
+Keys stay stable, because commissioned cells keep their files.
+Without a file every command uses the built-in simulated cell (``cell/configs/sim.toml``).
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+import typing
+from importlib import resources
+from pathlib import Path, PurePosixPath
+from typing import Any, Literal
+from urllib.parse import urlparse
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from cell.config.checks import Problem, check, closest
+from estimator import CameraModel, Target
+from estimator.target import layout_problem
+from estimator.transforms import T_from_pose
+
+
+class ConfigError(Exception):
+    """The configuration file is missing, unreadable or invalid; the message names the key.
+
+    ``problems`` lists every problem found (schema and commissioning checks), each with its key.
+    """
+
+    code = "config_invalid"
+
+    def __init__(self, message: str, problems: list[Problem] | None = None) -> None:
+        super().__init__(message)
+        self.problems = problems if problems is not None else [Problem("", message)]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+class CameraConfig(_Strict):
+    """Intrinsics for the configured output size (OpenCV model)."""
+
+    fx: float = Field(gt=0)
+    fy: float = Field(gt=0)
+    cx: float
+    cy: float
+    width: int = Field(gt=0)
+    height: int = Field(gt=0)
+    dist: list[float] = Field(default_factory=list)
+    # Which device, its frame rate, and (OAK) which one and how it exposes. The output size is
+    # ``width`` x ``height``. Unset sensor settings keep the device's defaults.
+    kind: Literal["sim", "oak"] = "sim"
+    # Where the camera is: on the flange ("hand", eye-in-hand; [hand_eye] T_flange_camera) or
+    # fixed in the cell ("fixed", eye-to-hand; [hand_eye] T_base_camera).
+    mount: Literal["hand", "fixed"] = "hand"
+    fps: float = Field(default=15.0, gt=0, le=120)
+    device_id: str = ""  # OAK serial number (MxId) or IP address; empty: the first device found
+    socket: Literal["CAM_A", "CAM_B", "CAM_C", "CAM_D"] = "CAM_B"  # CAM_B: OAK-D's left mono
+    exposure_us: int | None = Field(default=None, ge=1)  # manual exposure time
+    iso: int | None = Field(default=None, ge=100, le=1600)  # sensor gain
+    focus: int | Literal["auto"] | None = None  # lens position 0..255, "auto", unset: fixed
+
+    @field_validator("dist")
+    @classmethod
+    def _dist_len(cls, v: list[float]) -> list[float]:
+        if len(v) not in (0, 4, 5, 8, 12, 14):
+            raise ValueError("dist must have 0, 4, 5, 8, 12 or 14 coefficients")
+        return v
+
+    @field_validator("focus")
+    @classmethod
+    def _focus(cls, v: int | str | None) -> int | str | None:
+        if isinstance(v, int) and not 0 <= v <= 255:
+            raise ValueError(f"focus must be a lens position 0..255 or \"auto\", got {v}")
+        return v
+
+    @model_validator(mode="after")
+    def _exposure_fits(self) -> CameraConfig:
+        if self.exposure_us is not None and self.exposure_us > 1e6 / self.fps:
+            raise ValueError(f"exposure_us = {self.exposure_us} does not fit in one frame at "
+                             f"{self.fps:g} fps (at most {int(1e6 / self.fps)} us): lower it "
+                             "or the fps")
+        return self
+
+    def model(self) -> CameraModel:
+        return CameraModel(self.fx, self.fy, self.cx, self.cy, tuple(self.dist),
+                           self.width, self.height)
+
+
+class TargetConfig(_Strict):
+    """Dot centres in the target frame (mm), dot diameter, dark or light dots."""
+
+    points_mm: list[tuple[float, float, float]] = Field(min_length=4, max_length=100)
+    dot_diameter_mm: float = Field(gt=0)
+    polarity: Literal["dark", "light"] = "dark"
+
+    @field_validator("points_mm")
+    @classmethod
+    def _determines_a_pose(cls, v: list[tuple[float, float, float]]) -> list[
+            tuple[float, float, float]]:
+        problem = layout_problem(v)
+        if problem is not None:
+            raise ValueError(problem)
+        return v
+
+    def model(self) -> Target:
+        return Target(self.points_mm, self.dot_diameter_mm, self.polarity)
+
+
+Vec3 = tuple[float, float, float]
+
+
+class PoseConfig(_Strict):
+    """A pose in the project's JSON form: position (mm) and rotation vector (rad)."""
+
+    position_mm: Vec3 = (0.0, 0.0, 0.0)
+    rotvec_rad: Vec3 = (0.0, 0.0, 0.0)
+
+    def T(self) -> NDArray[np.float64]:
+        return T_from_pose(self.position_mm, self.rotvec_rad)
+
+
+class RobotConfig(_Strict):
+    """``kind = "ur"``: a UR controller at ``host`` through ur_rtde; ``"sim"``: the in-process
+    simulated arm (fast tests). ``home_joints_deg`` is where ``cell serve`` starts on a simulated
+    arm and what an operator can return to."""
+
+    kind: Literal["ur", "sim"]  # required: a file that lost it must not run a simulated arm
+    host: str = "127.0.0.1"
+    # The UR adapter's timing (drivers.ur.adapter.URArm): connecting, one call to the controller, the
+    # jog watchdog period, and how long unchanged RTDE data may be before the link counts as lost.
+    connect_timeout_s: float = Field(default=5.0, gt=0)
+    # Power on and release the brakes when the service starts and after a controller that
+    # came back (False: an operator does it from the page or POST /api/v1/arm/power).
+    power_on_at_start: bool = False
+    # Reconnect tries to a lost arm or camera: first after this, doubling up to the maximum.
+    reconnect_initial_s: float = Field(default=0.2, gt=0, le=60)
+    reconnect_max_s: float = Field(default=5.0, gt=0, le=300)
+    call_timeout_s: float = Field(default=3.0, gt=0)
+    watchdog_s: float = Field(default=0.25, gt=0)
+    # No new RTDE data for this long = the controller is gone (frozen, cable): generous,
+    # because a loaded cell PC can delay the stream reader by most of a second.
+    stale_after_s: float = Field(default=1.5, gt=0)
+    home_joints_deg: tuple[float, float, float, float, float, float] = (
+        0.0, -90.0, 90.0, -90.0, -90.0, 0.0)
+
+
+class HandEyeConfig(_Strict):
+    """The hand-eye calibration result: the camera's pose on the flange (eye-in-hand,
+    ``[camera] mount = "hand"``) or in the robot base frame (eye-to-hand, ``mount = "fixed"``).
+    Exactly the one the mount needs may be given (checked by :class:`CellConfig`)."""
+
+    T_flange_camera: PoseConfig = PoseConfig()
+    T_base_camera: PoseConfig | None = None
+
+    def stated(self, key: str) -> bool:
+        """Whether the file gave ``key``; a fixed camera refuses a (non-identity)
+        ``T_flange_camera``, since only the mount the camera has may be stated."""
+        return key in self.model_fields_set
+
+
+class ToolConfig(_Strict):
+    """The tool centre point on the flange; also sent to the controller (set_tcp)."""
+
+    T_flange_tcp: PoseConfig = PoseConfig()
+
+
+class ApproachConfig(_Strict):
+    """Look-and-move defaults.
+
+    ``T_target_tcp`` identity means the tool z axis points into the target plate (the target
+    frame's +z points into the plate). The observation pose puts the camera straight in front
+    of the target centre at ``observe_distance_mm``, looking along the target's +z.
+    """
+
+    T_target_tcp: PoseConfig = PoseConfig()
+    standoff_mm: float = Field(default=50.0, ge=0)
+    speed_mm_s: float = Field(default=150.0, gt=0)
+    accel_mm_s2: float = Field(default=600.0, gt=0)
+    tolerance_mm: float = Field(default=0.1, gt=0)
+    tolerance_deg: float = Field(default=0.05, gt=0)
+    max_cycles: int = Field(default=4, ge=1, le=20)
+    observe_distance_mm: float = Field(default=300.0, gt=0)
+    settle_s: float = Field(default=0.05, ge=0)
+    frames_per_locate: int = Field(default=3, ge=1, le=10)  # averaged inside look-and-move
+    # POST /approach without "mode" (and OPC UA / XML-RPC's empty mode, the page's first
+    # choice). Servo is 3.75x faster at an equal final error (cell bench approach), but on a
+    # loaded 2-core host 3-5 of 10 servo runs still end target_lost at the default
+    # [servo] lost_after_s (look-and-move: 10 of 10), so look-and-move stays the default
+    # until servo holds under load (docs/performance.md, the approach benchmark).
+    mode: Literal["servo", "look_and_move"] = "look_and_move"  # ibvs needs a taught view
+
+
+class ServoConfig(_Strict):
+    """Closed-loop visual servoing (approach mode "servo" and tracking, :mod:`cell.actions.servo`).
+
+    The law is ``twist = feed-forward + gain * error`` with the speed capped by
+    ``max_speed_mm_s`` / ``max_angular_speed_deg_s`` and by braking room, and its change per
+    tick by ``accel_mm_s2`` / ``angular_accel_deg_s2``. Converged: the estimated error under
+    ``tolerance_mm`` / ``tolerance_deg`` on ``converge_frames`` consecutive frames. No pose
+    for ``lost_after_s``: the arm stops and the job fails ``target_lost``.
+    """
+
+    gain_lin_per_s: float = Field(default=20.0, gt=0, le=50)
+    gain_rot_per_s: float = Field(default=20.0, gt=0, le=50)
+    # tracking only: integral action on the error (1/s^2), its share capped at a fifth of
+    # the speed limits, against the steady lag of an arm slower than commanded
+    track_integral_per_s2: float = Field(default=20.0, ge=0, le=500)
+    max_speed_mm_s: float = Field(default=250.0, gt=0)
+    max_angular_speed_deg_s: float = Field(default=90.0, gt=0)
+    accel_mm_s2: float = Field(default=1500.0, gt=0)
+    # the rotation's own acceleration (a 90 deg tool turn at 1.5 rad/s^2, UR's speedl rule of
+    # one number for both, took >= 2 s alone); capped by limits.max_angular_accel_deg_s2
+    angular_accel_deg_s2: float = Field(default=450.0, gt=0)
+    stop_decel_mm_s2: float = Field(default=3000.0, gt=0)
+    tolerance_mm: float = Field(default=0.05, gt=0)
+    tolerance_deg: float = Field(default=0.03, gt=0)
+    converge_frames: int = Field(default=4, ge=1, le=100)
+    lost_after_s: float = Field(default=0.1, gt=0, le=5)  # of camera time (exposures)
+    # loss is judged on camera time (cell/actions/target_loss.py); a pipeline that examines no frame
+    # for this long (host time since its newest examined exposure: a stalled camera or
+    # estimator) is lost too. Meanwhile the goal is extrapolated for at most
+    # max_predict_s past the newest pose, then held.
+    stall_after_s: float = Field(default=1.0, gt=0, le=5)
+    max_predict_s: float = Field(default=0.5, gt=0, le=5)
+    tick_s: float = Field(default=0.008, ge=0.008, le=0.1)  # control period
+    watchdog_s: float = Field(default=0.05, gt=0, le=1)  # the arm brakes when ticks stop
+    filter_alpha: float = Field(default=0.5, gt=0, le=1)
+    filter_beta: float = Field(default=0.1, ge=0, le=1)
+    # validation gate: a pose this far from the filter's prediction is not used (a wrong
+    # match, a reflection); only poses that pass count as "a pose arrived"
+    gate_mm: float = Field(default=30.0, gt=0)
+    gate_deg: float = Field(default=10.0, gt=0)
+    approach_timeout_s: float = Field(default=30.0, gt=0)
+    max_track_s: float = Field(default=600.0, gt=0)  # the cap on a track job's duration_s
+
+
+class IbvsConfig(_Strict):
+    """Image-based servoing (mode "ibvs", :mod:`cell.actions.ibvs` and :mod:`cell.actions.ibvs_run`).
+
+    The law is ``v_c = -lambda L^+ (s - s*)`` on the dots' normalised image points, the gain
+    ``lambda(x) = (l0 - linf) exp(-slope x / (l0 - linf)) + linf`` with ``x`` the largest
+    feature error (normalised units, ~1/fx per pixel). Speeds and accelerations are the
+    ``[servo]`` caps (and ``[limits]``). Converged: over the last ``converge_frames`` frames,
+    the mean image error under ``tolerance_px_rms`` / ``tolerance_px_max`` and the mean TCP
+    motion the view still asks for under ``tolerance_mm`` / ``tolerance_deg``. Fewer than 4 dots
+    matched to the taught view for ``[servo] lost_after_s``: the arm stops, ``target_lost``.
+    """
+
+    gain_at_zero_per_s: float = Field(default=2.0, gt=0, le=50)
+    gain_at_infinity_per_s: float = Field(default=6.0, gt=0, le=50)
+    slope_at_zero: float = Field(default=-100.0, ge=-10000, le=10000)
+    interaction: Literal["current", "desired", "mean"] = "mean"
+    tolerance_px_rms: float = Field(default=0.02, gt=0)
+    tolerance_px_max: float = Field(default=0.04, gt=0)
+    # the TCP motion the view still asks for (mm / deg), averaged over the same frames
+    tolerance_mm: float = Field(default=0.15, gt=0)
+    tolerance_deg: float = Field(default=0.03, gt=0)
+    converge_frames: int = Field(default=10, ge=1, le=100)
+    # move the measured features on by the arm's motion since their exposure (latency
+    # compensation); off by default: measured slower to converge (4.3-5.0 s against 3.1-3.5
+    # s from 30 mm / 6 deg) at the same final error (docs/ibvs.md)
+    predict_motion: bool = False
+    approach_timeout_s: float = Field(default=30.0, gt=0)
+
+
+class LimitsConfig(_Strict):
+    """Safety envelope checked before any motion; a refusal moves nothing."""
+
+    workspace_min_mm: Vec3 = (-900.0, -900.0, -100.0)
+    workspace_max_mm: Vec3 = (900.0, 900.0, 1000.0)
+    max_speed_mm_s: float = Field(default=250.0, gt=0)
+    # Slower than this is refused: a speed that rounds to nothing on the wire would leave an
+    # arm creeping for hours while the cell has long given up on the move.
+    min_speed_mm_s: float = Field(default=1.0, gt=0)
+    max_accel_mm_s2: float = Field(default=1500.0, gt=0)
+    max_joint_speed_deg_s: float = Field(default=60.0, gt=0, le=360)  # joint moves (home)
+    max_joint_accel_deg_s2: float = Field(default=120.0, gt=0)
+    max_jog_speed_mm_s: float = Field(default=100.0, gt=0)
+    max_jog_speed_deg_s: float = Field(default=30.0, gt=0)
+    max_angular_speed_deg_s: float = Field(default=90.0, gt=0)  # streamed (servo) twists
+    # a streamed twist's rotation (10.5 rad/s^2; the translation's cap is max_accel_mm_s2):
+    # URScript's speedl takes it as its own aRot, which defaults to the linear value
+    max_angular_accel_deg_s2: float = Field(default=600.0, gt=0)
+    max_jog_step_mm: float = Field(default=200.0, gt=0)  # one jog step, translation
+    max_jog_step_deg: float = Field(default=45.0, gt=0)  # one jog step, rotation
+    tilt_limit_deg: float = Field(default=60.0, gt=0, le=180)
+    max_move_mm: float = Field(default=800.0, gt=0)
+    # the arm's state and a target pose older than this are not used; at least 0.5 s: a
+    # standing UR arm's state comes every 0.1 s (quiet pushes) and a pose takes ~0.1 s
+    max_pose_age_s: float = Field(default=2.0, ge=0.5)
+    deadman_timeout_s: float = Field(default=0.2, gt=0, le=0.25)
+
+    @model_validator(mode="after")
+    def _box(self) -> LimitsConfig:
+        if any(lo >= hi for lo, hi in zip(self.workspace_min_mm, self.workspace_max_mm,
+                                          strict=True)):
+            raise ValueError("workspace_min_mm must be below workspace_max_mm on every axis")
+        if self.min_speed_mm_s > min(self.max_speed_mm_s, self.max_jog_speed_mm_s):
+            raise ValueError("min_speed_mm_s must not exceed max_speed_mm_s or "
+                             "max_jog_speed_mm_s")
+        return self
+
+
+Role = Literal["viewer", "operator", "plc"]
+
+
+class TokenConfig(_Strict):
+    """A token in the clear (``token``), or stored as ``sha256`` = hex sha256 of ``salt`` +
+    token (the service then never holds the token itself)."""
+
+    token: str = ""
+    role: Role
+    name: str = ""
+    sha256: str = Field(default="", pattern=r"^([0-9a-fA-F]{64})?$")
+    salt: str = ""
+
+    @model_validator(mode="after")
+    def _one_secret(self) -> TokenConfig:
+        if bool(self.token) == bool(self.sha256):
+            raise ValueError("give either token or sha256 (with its salt), not both or none")
+        return self
+
+
+SAMPLE_TOKENS = frozenset({"sim-viewer", "sim-operator", "sim-plc"})
+
+
+STATE_PATH_KEYS = ("job_db", "calibration_dir", "image_log_dir")
+STATE_DEFAULTS = {"job_db": "jobs.db", "calibration_dir": "calibration",
+                  "image_log_dir": "failed-locates"}
+
+
+class ApiConfig(_Strict):
+    """Bearer tokens and their roles, and where the service keeps its state.
+
+    ``state_dir`` (absolute) holds everything the service writes: the job and audit database,
+    the taught poses beside it, each hand-eye routine's views and the image log of failed
+    locates. With it, relative ``job_db`` / ``calibration_dir`` / ``image_log_dir`` are inside
+    it and absent ones default to ``jobs.db``, ``calibration`` and ``failed-locates``; the
+    loaded config holds the resolved absolute paths. Without it (the simulated cell) relative
+    paths are relative to the working directory. The sample tokens are refused on real hardware.
+    """
+
+    tokens: list[TokenConfig] = Field(default_factory=list)
+    state_dir: str = ""
+    job_db: str = "var/cell_jobs.db"
+    # Each successful hand-eye routine saves its views (images, flange poses) to a dataset
+    # folder here, named after its job; empty: not saved.
+    calibration_dir: str = "var/calibration"
+    image_log_dir: str = ""  # empty: no image log of failed locates
+    image_log_max: int = Field(default=50, ge=1)
+    metrics_public: bool = False  # true: /metrics answers without a token (for a scraper)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _inside_state_dir(cls, data: Any) -> Any:
+        if not isinstance(data, dict) or not isinstance(data.get("state_dir"), str) \
+                or not data["state_dir"]:
+            return data
+        root = PurePosixPath(data["state_dir"])
+        if not root.is_absolute():
+            raise ValueError(f"state_dir must be an absolute path, got {str(root)!r}")
+        out = dict(data)
+        for key in STATE_PATH_KEYS:
+            value = out.get(key, STATE_DEFAULTS[key])
+            if isinstance(value, str) and value and not PurePosixPath(value).is_absolute():
+                out[key] = str(root / value)
+        return out
+
+    @field_validator("tokens")
+    @classmethod
+    def _unique(cls, v: list[TokenConfig]) -> list[TokenConfig]:
+        if len({t.token or t.sha256.lower() for t in v}) != len(v):
+            raise ValueError("tokens must be unique")
+        return v
+
+
+class GripperConfig(_Strict):
+    """``robotiq``: a 2F-85 compatible gripper on ``port``; ``sim``: the fake one on a pty."""
+
+    kind: Literal["robotiq", "sim", "none"] = "none"
+    port: str = ""
+    slave_id: int = Field(default=9, ge=1, le=247)
+    baudrate: Literal[9600, 19200, 38400, 57600, 115200] = 115200  # Robotiq's default: 115200
+    timeout_s: float = Field(default=0.5, gt=0)  # one Modbus request
+    retries: int = Field(default=1, ge=0, le=10)
+    motion_timeout_s: float = Field(default=5.0, gt=0)
+    activation_timeout_s: float = Field(default=10.0, gt=0)
+
+
+class SimCameraTruth(_Strict):
+    """The simulated lens's true intrinsics (px) and Brown-Conrady distortion (k1 k2 p1 p2 k3);
+    each unset value comes from the ``world`` preset, apart from what ``[camera]`` believes."""
+
+    fx: float | None = Field(default=None, gt=0)
+    fy: float | None = Field(default=None, gt=0)
+    cx: float | None = None
+    cy: float | None = None
+    dist: list[float] | None = None
+
+    @field_validator("dist")
+    @classmethod
+    def _dist(cls, v: list[float] | None) -> list[float] | None:
+        if v is not None and len(v) not in (4, 5):
+            raise ValueError(f"dist is k1 k2 p1 p2 [k3]: 4 or 5 values, got {len(v)}")
+        return v
+
+
+class SimConfig(_Strict):
+    """Ground truth of the simulated cell; used only by the hardware factory and /sim routes.
+
+    ``world``: ``"ideal"`` (the truth is the cell's config: only the estimator errs) or
+    ``"realistic"`` (lens and mount differ from the config by typical commissioning-day
+    amounts; see docs/simulator.md). Explicit values here win over the preset.
+    """
+
+    world: Literal["ideal", "realistic"] = "ideal"
+    camera: SimCameraTruth = SimCameraTruth()
+    T_base_target: PoseConfig = PoseConfig(position_mm=(-480.0, -130.0, 0.0))
+    # The true camera mount; None means the [hand_eye] value is exact.
+    T_flange_camera: PoseConfig | None = None
+    # The true pose of a fixed camera ([camera] mount = "fixed"); None: [hand_eye] is exact.
+    T_base_camera: PoseConfig | None = None
+    # A calibration plate (the target's dot layout) clamped to the tool at this pose on the
+    # flange, for the eye-to-hand routine; the fixed camera then sees it instead of the
+    # work target (which is off the table meanwhile). None: the tool carries no plate.
+    T_flange_board: PoseConfig | None = None
+    # The simulated tool body that hides what lies behind it from a fixed camera: a cylinder
+    # of this radius from the wrist to the TCP (0: the arm is transparent).
+    tool_radius_mm: float = Field(default=30.0, ge=0)
+    ur_controller: bool = False  # kind="ur": start the simulated controller at robot.host
+    # False: it is not running when the service starts (SimWorld.start_controller starts it),
+    # as when a cell PC boots before its controller.
+    controller_running_at_start: bool = True
+    noise_std: float = Field(default=1.0, ge=0)
+    blur_sigma_px: float = Field(default=0.8, ge=0)
+    gripper_object_width_mm: float | None = Field(default=None, ge=0, le=85)
+
+
+SAMPLE_OPCUA_PASSWORDS = frozenset({"sim-viewer", "sim-operator", "sim-plc"})
+OpcUaPolicy = Literal["None", "Basic256Sha256"]
+
+
+class OpcUaUserConfig(_Strict):
+    """One OPC UA user: a name and password that map to one of the API's roles."""
+
+    name: str = Field(min_length=1)
+    password: str = Field(min_length=1)
+    role: Role
+
+
+class OpcUaConfig(_Strict):
+    """The OPC UA server inside the service (off unless ``enabled``), for cell PLCs.
+
+    ``security_policies``: ``"None"`` and/or ``"Basic256Sha256"`` (Sign and SignAndEncrypt).
+    Basic256Sha256 needs a certificate: ``certificate`` (DER or PEM) and ``private_key`` (PEM),
+    or, both empty, a self-signed pair generated at the first start into ``opcua/`` beside the
+    job database and reused. Only the ``users`` may connect (user name and password; no
+    anonymous sessions); each has one of the API's roles. ``trusted_client_certs_dir`` limits
+    Basic256Sha256 to the client certificates in it.
+    """
+
+    enabled: bool = False
+    endpoint: str = "opc.tcp://127.0.0.1:4840"
+    namespace: str = "urn:ur-vision-cell"
+    security_policies: list[OpcUaPolicy] = Field(
+        default_factory=lambda: list[OpcUaPolicy](["Basic256Sha256"]), min_length=1)
+    certificate: str = ""
+    private_key: str = ""
+    users: list[OpcUaUserConfig] = Field(default_factory=list)
+    # A folder of trusted client certificates (DER/PEM): with it, a Basic256Sha256 client whose
+    # certificate is not in it is refused; empty: any client certificate (users still log in).
+    trusted_client_certs_dir: str = ""
+    update_period_s: float = Field(default=0.1, gt=0, le=10)  # how often variables refresh
+
+    @field_validator("endpoint")
+    @classmethod
+    def _endpoint(cls, v: str) -> str:
+        url = urlparse(v)
+        try:
+            port = url.port
+        except ValueError as err:
+            raise ValueError(f"endpoint {v!r}: {err}") from err
+        if url.scheme != "opc.tcp" or not url.hostname or port is None:
+            raise ValueError(f"endpoint must look like opc.tcp://HOST:PORT, got {v!r}")
+        return v
+
+    @field_validator("users")
+    @classmethod
+    def _unique_users(cls, v: list[OpcUaUserConfig]) -> list[OpcUaUserConfig]:
+        if len({u.name for u in v}) != len(v):
+            raise ValueError("user names must be unique")
+        return v
+
+    @model_validator(mode="after")
+    def _key_pair(self) -> OpcUaConfig:
+        if bool(self.certificate) != bool(self.private_key):
+            raise ValueError("certificate and private_key go together (both empty: a "
+                             "self-signed pair is generated)")
+        if self.enabled and not self.users:
+            raise ValueError("users must list at least one user when the server is enabled")
+        return self
+
+
+class UrscriptConfig(_Strict):
+    """The XML-RPC endpoint a PolyScope program calls (``rpc_factory("xmlrpc", URL)``).
+
+    Off while ``xmlrpc_port`` is 0. With ``require_token`` the URL carries one of the
+    ``[api] tokens`` (``http://HOST:PORT/<token>/RPC2``) and the call has that token's role;
+    without it ``/RPC2`` acts with the ``plc`` role (simulated cells only).
+    """
+
+    xmlrpc_port: int = Field(default=0, ge=0, le=65535)
+    host: str = Field(default="127.0.0.1", min_length=1)
+    require_token: bool = True
+
+
+class ModbusConfig(_Strict):
+    """The Modbus TCP server for PLCs without OPC UA (off while ``port`` is 0); unit id 1.
+
+    ``clients``: the addresses (or networks, ``192.168.1.0/24``) that may write commands;
+    empty: any. Every other client may still write the stop command. The commands act with
+    ``role`` (one of the API's roles). The register map is in docs/plc.md.
+    """
+
+    port: int = Field(default=0, ge=0, le=65535)
+    host: str = Field(default="127.0.0.1", min_length=1)
+    clients: list[str] = Field(default_factory=list)
+    role: str = "plc"
+
+    @field_validator("clients")
+    @classmethod
+    def _networks(cls, v: list[str]) -> list[str]:
+        import ipaddress
+
+        for c in v:
+            try:
+                ipaddress.ip_network(c, strict=False)
+            except ValueError as err:
+                raise ValueError(f"modbus client {c!r} is not an address or network") from err
+        return v
+
+
+class CommissioningConfig(_Strict):
+    """Keys whose unusual value is intended: the commissioning checks let them pass."""
+
+    accept: list[str] = Field(default_factory=list)
+
+
+class CellConfig(BaseModel):
+    """The whole file. ``[camera]``, ``[target]`` and ``[robot]`` are required; with any real
+    device ``[limits]``, ``[tool]`` and ``[hand_eye]`` are too (checked on the raw file by
+    :func:`cell.config.checks.check`); the rest have defaults (no gripper, simulated truth)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    camera: CameraConfig
+    target: TargetConfig
+    robot: RobotConfig
+    hand_eye: HandEyeConfig = HandEyeConfig()
+    tool: ToolConfig = ToolConfig()
+    approach: ApproachConfig = ApproachConfig()
+    servo: ServoConfig = ServoConfig()
+    ibvs: IbvsConfig = IbvsConfig()
+    limits: LimitsConfig = LimitsConfig()
+    api: ApiConfig = ApiConfig()
+    gripper: GripperConfig = GripperConfig()
+    sim: SimConfig = SimConfig()
+    opcua: OpcUaConfig = OpcUaConfig()
+    urscript: UrscriptConfig = UrscriptConfig()
+    modbus: ModbusConfig = ModbusConfig()
+    commissioning: CommissioningConfig = CommissioningConfig()
+
+    @model_validator(mode="after")
+    def _mount_matches_hand_eye(self) -> CellConfig:
+        he = self.hand_eye
+        if self.camera.mount == "fixed":
+            if he.T_base_camera is None:
+                raise ValueError("hand_eye.T_base_camera is required with camera.mount = "
+                                 "\"fixed\" (the fixed camera's pose in the robot base frame)")
+            if he.stated("T_flange_camera") and he.T_flange_camera != PoseConfig():
+                raise ValueError("hand_eye.T_flange_camera is for a camera on the flange; "
+                                 "with camera.mount = \"fixed\" give T_base_camera only")
+            if self.sim.T_flange_camera is not None:
+                raise ValueError("sim.T_flange_camera is for a camera on the flange; with "
+                                 "camera.mount = \"fixed\" use sim.T_base_camera")
+        else:
+            if he.T_base_camera is not None:
+                raise ValueError("hand_eye.T_base_camera is for a fixed camera; with "
+                                 "camera.mount = \"hand\" (the default) give T_flange_camera, "
+                                 "or set camera.mount = \"fixed\"")
+            if self.sim.T_base_camera is not None or self.sim.T_flange_board is not None:
+                raise ValueError("sim.T_base_camera and sim.T_flange_board belong to a fixed "
+                                 "camera: set camera.mount = \"fixed\"")
+        return self
+
+    @property
+    def fixed_camera(self) -> bool:
+        """The camera is fixed in the cell (eye-to-hand), not on the flange."""
+        return self.camera.mount == "fixed"
+
+    def has_real_device(self) -> bool:
+        """Any device that is not simulated (then the commissioning rules apply)."""
+        return ((self.robot.kind == "ur" and not self.sim.ur_controller)
+                or self.camera.kind == "oak" or self.gripper.kind == "robotiq")
+
+
+SIM_CONFIG_NAME = "sim.toml"
+
+_MISSING_HINTS = {
+    "robot": "required table: [robot] with kind = \"ur\" (a UR controller) or \"sim\"",
+    "robot.kind": "required: \"ur\" (a UR controller at host) or \"sim\" (the simulated arm)",
+}
+
+
+def _model_at(loc: tuple[int | str, ...]) -> type[BaseModel] | None:
+    """The config model that holds the key at ``loc`` (for naming the valid keys there)."""
+    model: type[BaseModel] = CellConfig
+    for part in loc:
+        if isinstance(part, int):
+            continue
+        field = model.model_fields.get(part)
+        if field is None:
+            return None
+        nested = _nested_model(field.annotation)
+        if nested is None:
+            return None
+        model = nested
+    return model
+
+
+def _nested_model(annotation: Any) -> type[BaseModel] | None:
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in typing.get_args(annotation):
+        found = _nested_model(arg)
+        if found is not None:
+            return found
+    return None
+
+
+def _schema_problems(err: ValidationError) -> list[Problem]:
+    problems = []
+    for e in err.errors():
+        loc = tuple(e["loc"])
+        key = ".".join(str(p) for p in loc)
+        msg = e["msg"]
+        if e["type"] == "extra_forbidden":
+            model = _model_at(loc[:-1])
+            valid = list(model.model_fields) if model is not None else []
+            hint = closest(str(loc[-1]), valid)
+            msg = "unknown key" + (f"; did you mean {hint!r}?" if hint else
+                                   (f"; valid keys: {', '.join(valid)}" if valid else ""))
+        elif e["type"] == "missing" and key in _MISSING_HINTS:
+            msg = _MISSING_HINTS[key]
+        elif isinstance(e.get("input"), str) and e["type"] in ("int_type", "float_type",
+                                                                "bool_type"):
+            msg += f" (got the string {e['input']!r}: write it without quotes)"
+        elif e["type"] == "value_error":
+            msg = msg.removeprefix("Value error, ")
+            # a table-level check whose message starts with the key it is about: name that key
+            model = _model_at(loc)
+            first = msg.split(" ", 1)[0]
+            if model is not None and first.split(".", 1)[0] in model.model_fields:
+                key = f"{key}.{first}" if key else first
+        problems.append(Problem(key, msg))
+    return problems
+
+
+def _format(problems: list[Problem], source: str) -> str:
+    return "\n".join([f"invalid configuration in {source}:", *(f"  {p}" for p in problems)])
+
+
+def parse_config(data: dict[str, Any], source: str = "<config>") -> CellConfig:
+    """Validate raw config data: the strict schema, then the commissioning checks; a
+    ConfigError lists every problem found, each naming its key."""
+    problems: list[Problem] = []
+    config = None
+    try:
+        # Validated as JSON in strict mode: TOML's arrays fill tuples, integers fill floats,
+        # and nothing else is coerced ("1280" is not an integer).
+        config = CellConfig.model_validate_json(json.dumps(data, default=str), strict=True)
+    except ValidationError as err:
+        problems.extend(_schema_problems(err))
+    problems.extend(check(data))
+    if problems or config is None:
+        raise ConfigError(_format(problems, source), problems)
+    return config
+
+
+def load_config(path: str | Path | None = None) -> CellConfig:
+    """Load and validate a config file; ``None`` gives the built-in simulated cell."""
+    if path is None:
+        text = resources.files("cell.configs").joinpath(SIM_CONFIG_NAME).read_text()
+        source = f"built-in {SIM_CONFIG_NAME}"
+    else:
+        p = Path(path)
+        try:
+            text = p.read_text()
+        except OSError as err:
+            raise ConfigError(f"cannot read config file {p}: {err.strerror}") from err
+        source = str(p)
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{source} is not valid TOML: {err}") from err
+    return parse_config(data, source)

@@ -1,0 +1,81 @@
+"""What the hardware factory hands to the cell: the devices behind their interfaces.
+
+The cell's business code sees only these interfaces, never which implementation is behind
+them. ``sim`` is the one exception by design: on simulated hardware it gives the API its
+``/sim`` routes (ground truth, placing the target) and tests their fault switches; on real
+hardware it is None and those routes do not exist.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cell.devices.sim_truth import SimTruthValues
+from drivers.arm import Arm
+from drivers.camera import Camera
+from drivers.gripper import Gripper
+
+
+class SimWorld(Protocol):
+    """Ground truth and fault switches of a simulated cell."""
+
+    def true_T_base_target(self, at_s: float | None = None) -> NDArray[np.float64]:
+        """The true target pose now, or at monotonic time ``at_s`` (a moving target)."""
+
+    def true_T_base_tcp(self) -> NDArray[np.float64]: ...
+
+    def truth_values(self) -> SimTruthValues:
+        """The simulated camera's true lens and mount (apart from the cell's config)."""
+
+    def true_tcp_sample(self) -> tuple[NDArray[np.float64], float]:
+        """The true TCP pose and the monotonic time the simulator had it."""
+
+    def set_target(self, T_base_target: NDArray[np.float64],
+                   velocity_mm_s: NDArray[np.float64] | None = None,
+                   angular_velocity_rad_s: NDArray[np.float64] | None = None) -> None:
+        """Place the target now; with velocities (base frame) it drifts from now on."""
+
+    def set_camera_blocked(self, blocked: bool) -> None:
+        """Cover (True) or uncover the lens: frames come, the target is not in them."""
+
+    def trigger_protective_stop(self, reason: str = "test") -> None: ...
+
+    def set_camera_lost(self, lost: bool) -> None: ...
+
+    def inject_gripper_fault(self, fault: Literal["garbage", "bad_crc", "no_answer"],
+                             count: int = 1) -> None:
+        """The next ``count`` gripper transactions fail on the serial line."""
+
+    def freeze_controller(self, frozen: bool) -> None:
+        """SIGSTOP (True) or SIGCONT (False) the simulated controller process."""
+
+    def kill_controller(self) -> None:
+        """SIGKILL the simulated controller process (RuntimeError for an in-process arm)."""
+
+    def start_controller(self) -> None:
+        """Start a simulated controller on the configured address (after a kill, or when
+        the config said it is not running at start)."""
+
+
+@dataclass
+class Hardware:
+    arm: Arm
+    camera: Camera
+    gripper: Gripper | None
+    simulated: bool  # every device is a fake (sample API tokens are allowed)
+    sim: SimWorld | None = None
+    closers: list[Callable[[], None]] = field(default_factory=list)
+
+    def close(self) -> None:
+        """Release devices in reverse order of creation; never raises."""
+        for close in reversed(self.closers):
+            # shutdown must go on whatever one device does
+            with contextlib.suppress(Exception):
+                close()
+        self.closers.clear()

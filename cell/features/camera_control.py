@@ -1,0 +1,52 @@
+"""Camera settings (exposure, gain, focus) of the running cell, for the API and the page.
+
+Through the ``Camera`` interface only, so the simulated camera and the OAK behave alike. A
+value the camera refuses is a LimitError ``invalid_camera_setting`` whose message names the
+setting, and nothing changes; every change is audited.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict
+from typing import TYPE_CHECKING, Any
+
+from cell.motion.limits import LimitError, UnavailableError
+from drivers.camera import CameraSettings, FocusSetting
+from drivers.errors import DriverError
+
+if TYPE_CHECKING:
+    from cell.service import Cell
+
+
+def camera_settings(cell: Cell) -> dict[str, Any]:
+    """The settings in force (None for a control this camera does not have)."""
+    try:
+        return asdict(cell.hw.camera.get_settings())
+    except DriverError as err:
+        raise UnavailableError("camera_lost", f"reading the camera settings: {err}") from err
+
+
+def apply_camera_settings(cell: Cell, caller: str, *, exposure_us: int | None = None,
+                          iso: int | None = None,
+                          focus: FocusSetting | None = None) -> dict[str, Any]:
+    """Change the given settings (None: leave as is); returns those in force."""
+    params = {"exposure_us": exposure_us, "iso": iso, "focus": focus}
+    t0 = time.time()
+    try:
+        try:
+            applied = cell.hw.camera.apply_settings(
+                CameraSettings(exposure_us=exposure_us, iso=iso, focus=focus))
+        except ValueError as err:
+            raise LimitError("invalid_camera_setting", str(err)) from err
+        except DriverError as err:
+            raise UnavailableError("camera_lost", f"changing the camera settings: {err}") \
+                from err
+    except (LimitError, UnavailableError) as err:
+        cell.jobs.audit(caller, "camera_settings", params, f"refused:{err.code}", err.message,
+                        None, t0)
+        raise
+    out = asdict(applied)
+    cell.jobs.audit(caller, "camera_settings", params, "ok", "", None, t0)
+    cell.events.publish("camera_settings", {"settings": out})
+    return out

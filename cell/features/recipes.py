@@ -1,0 +1,258 @@
+"""Recipes (products): what a PLC selects per job instead of sending poses and numbers.
+
+A recipe has a number (what a Modbus PLC writes into its recipe register), a name, and one or
+more targets. Each target is a dot layout (centres in mm, dot diameter, dark or light dots) with
+the taught tool pose to approach it with (a name in the taught-pose store; empty: the
+configured ``[approach] T_target_tcp``), the standoff, the approach mode and its limits (speed,
+largest reprojection error accepted). Saving a recipe again makes a new version; every version
+is kept, so a job's record (recipe name, number, version, target) says exactly what it ran
+with, even after the recipe was changed. One JSON file beside the job database, replaced
+atomically; an unreadable file refuses recipe jobs and is never overwritten.
+"""
+
+from __future__ import annotations
+
+import builtins
+import json
+import os
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from cell.motion.limits import CellError, LimitError, NotFoundError, RefusedError
+from estimator.target import Target, layout_problem
+
+STORE_NAME = "recipes.json"
+FORMAT_VERSION = 1
+MAX_RECIPE_NUMBER = 65535  # one Modbus register
+EXAMPLE: dict[str, Any] = {
+    "name": "plate-a", "number": 3, "description": "4-dot plate, dark dots",
+    "targets": [{"name": "main", "points_mm": [[0, 0, 0], [40, 0, 0], [0, 30, 0], [40, 30, 0]],
+                 "dot_diameter_mm": 6.0, "polarity": "dark", "taught": "",
+                 "standoff_mm": 50.0, "mode": "look_and_move", "speed_mm_s": 150.0}],
+    "version": 2, "saved_by": "operator(operator)", "saved_at": 1760000000.0}
+
+
+class RecipeStoreError(CellError):
+    """The recipe file cannot be read or written; nothing was changed."""
+
+    kind = "unavailable"
+
+
+class RecipeTarget(BaseModel):
+    """One target of a product: its dot layout and how the cell approaches it."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    name: str = Field(default="main", min_length=1, max_length=64)
+    points_mm: list[tuple[float, float, float]] = Field(min_length=4, max_length=100)
+    dot_diameter_mm: float = Field(gt=0)
+    polarity: Literal["dark", "light"] = "dark"
+    taught: str = ""  # a taught pose's name; "" uses [approach] T_target_tcp
+    standoff_mm: float = Field(default=50.0, ge=0)
+    mode: Literal["look_and_move", "servo"] = "look_and_move"
+    speed_mm_s: float = Field(default=150.0, gt=0)
+
+    @field_validator("points_mm")
+    @classmethod
+    def _determines_a_pose(cls, v: list[tuple[float, float, float]]) -> list[
+            tuple[float, float, float]]:
+        problem = layout_problem(v)
+        if problem is not None:
+            raise ValueError(problem)
+        return v
+
+    def model(self) -> Target:
+        return Target(self.points_mm, self.dot_diameter_mm, self.polarity)
+
+
+class RecipeSpec(BaseModel):
+    """A recipe as a client sends it (no version: the store gives that)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$")
+    number: int = Field(ge=1, le=MAX_RECIPE_NUMBER)
+    description: str = Field(default="", max_length=500)
+    targets: list[RecipeTarget] = Field(min_length=1, max_length=16)
+
+    @field_validator("targets")
+    @classmethod
+    def _unique_names(cls, v: list[RecipeTarget]) -> list[RecipeTarget]:
+        names = [t.name for t in v]
+        if len(set(names)) != len(names):
+            raise ValueError(f"target names must be unique, got {names}")
+        return v
+
+
+class Recipe(RecipeSpec):
+    """One stored version of a recipe."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False,
+                              json_schema_extra={"examples": [EXAMPLE]})
+
+    version: int = Field(ge=1)
+    saved_by: str = ""
+    saved_at: float = 0.0
+
+    def target(self, name: str = "") -> RecipeTarget:
+        """The named target ("": the first)."""
+        if not name:
+            return self.targets[0]
+        for t in self.targets:
+            if t.name == name:
+                return t
+        raise NotFoundError("recipe_target_not_found",
+                            f"recipe {self.name!r} has no target {name!r}; it has "
+                            f"{', '.join(t.name for t in self.targets)}")
+
+    def record(self, target: RecipeTarget) -> dict[str, Any]:
+        """What a job records about the recipe it ran with."""
+        return {"name": self.name, "number": self.number, "version": self.version,
+                "target": target.name}
+
+
+def parse_spec(data: Any) -> RecipeSpec:
+    """A recipe from JSON-like data, or ``invalid_recipe`` naming the first problem."""
+    try:
+        return RecipeSpec.model_validate(data)
+    except ValidationError as err:
+        first = err.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise LimitError("invalid_recipe", f"recipe {where}: {first['msg']}") from err
+
+
+class RecipeStore:
+    """Thread-safe, versioned recipes in one JSON file (``path=None``: in memory only)."""
+
+    def __init__(self, path: str | Path | None) -> None:
+        self.path = None if path is None else Path(path)
+        self._lock = threading.Lock()
+        self._error: RecipeStoreError | None = None
+        self._versions: dict[str, list[Recipe]] = {}
+        try:
+            self._versions = self._load()
+        except RecipeStoreError as err:  # the service still runs; recipe jobs are refused
+            self._error = err
+
+    @staticmethod
+    def beside_job_db(job_db: str) -> RecipeStore:
+        if job_db == ":memory:":
+            return RecipeStore(None)
+        return RecipeStore(Path(job_db).parent / STORE_NAME)
+
+    def _load(self) -> dict[str, list[Recipe]]:
+        if self.path is None or not self.path.exists():
+            return {}
+        try:
+            data = json.loads(self.path.read_text())
+            out: dict[str, list[Recipe]] = {}
+            for d in data["recipes"]:
+                r = Recipe.model_validate(d)
+                out.setdefault(r.name, []).append(r)
+            return {k: sorted(v, key=lambda r: r.version) for k, v in out.items()}
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise RecipeStoreError("recipe_store_unreadable",
+                                   f"cannot read the recipes in {self.path}: {err!r}; fix or "
+                                   "move the file (it is never overwritten while unreadable)"
+                                   ) from err
+
+    def _usable(self) -> None:
+        if self._error is not None:
+            raise self._error
+
+    def list(self) -> list[Recipe]:
+        """The newest version of every recipe, by number."""
+        self._usable()
+        with self._lock:
+            return sorted((v[-1] for v in self._versions.values()), key=lambda r: r.number)
+
+    def versions(self, name: str) -> builtins.list[Recipe]:
+        self._usable()
+        with self._lock:
+            found = list(self._versions.get(name, []))
+        if not found:
+            raise self._missing(name)
+        return found
+
+    def get(self, ref: str | int, version: int | None = None) -> Recipe:
+        """By name or number; the newest version unless one is asked for."""
+        self._usable()
+        with self._lock:
+            if isinstance(ref, int) and not isinstance(ref, bool):
+                found = [v for v in self._versions.values() if v[-1].number == ref]
+                history = found[0] if found else []
+            else:
+                history = self._versions.get(str(ref), [])
+        if not history:
+            raise self._missing(ref)
+        if version is None:
+            return history[-1]
+        for r in history:
+            if r.version == version:
+                return r
+        raise NotFoundError("recipe_not_found",
+                            f"recipe {ref!r} has no version {version}; it has "
+                            f"{', '.join(str(r.version) for r in history)}")
+
+    def save(self, spec: RecipeSpec, saved_by: str) -> Recipe:
+        """A new version of ``spec.name`` (version 1 for a new name). A number another recipe
+        uses is refused."""
+        self._usable()
+        with self._lock:
+            for name, history in self._versions.items():
+                if name != spec.name and history[-1].number == spec.number:
+                    raise RefusedError("recipe_number_taken",
+                                       f"recipe number {spec.number} belongs to {name!r}")
+            history = self._versions.get(spec.name, [])
+            recipe = Recipe(**spec.model_dump(), version=len(history) + 1 if not history
+                            else history[-1].version + 1, saved_by=saved_by,
+                            saved_at=time.time())
+            versions = {**self._versions, spec.name: [*history, recipe]}
+            self._write(versions)
+            self._versions = versions
+            return recipe
+
+    def delete(self, name: str) -> Recipe:
+        """Removes the recipe and its history (jobs keep their record of it)."""
+        self._usable()
+        with self._lock:
+            history = self._versions.get(name)
+            if not history:
+                raise self._missing(name)
+            versions = {k: v for k, v in self._versions.items() if k != name}
+            self._write(versions)
+            self._versions = versions
+            return history[-1]
+
+    @staticmethod
+    def _missing(ref: str | int) -> NotFoundError:
+        return NotFoundError("recipe_not_found", f"no recipe {ref!r}; see GET /api/v1/recipes")
+
+    def _write(self, versions: dict[str, builtins.list[Recipe]]) -> None:
+        """Replace the file atomically; on failure the file and the memory stay as they were."""
+        if self.path is None:
+            return
+        rows = [r.model_dump() for name in sorted(versions) for r in versions[name]]
+        text = json.dumps({"version": FORMAT_VERSION, "recipes": rows}, indent=2)
+        tmp = None
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", dir=self.path.parent)
+            with os.fdopen(fd, "w") as f:
+                f.write(text + "\n")
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, self.path)
+            tmp = None
+        except OSError as err:
+            raise RecipeStoreError("recipe_store_write_failed",
+                                   f"cannot write {self.path}: {err}; nothing was changed"
+                                   ) from err
+        finally:
+            if tmp is not None:
+                Path(tmp).unlink(missing_ok=True)

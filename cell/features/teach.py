@@ -1,0 +1,329 @@
+"""Taught reference poses: ``T_target_tcp`` stored under a name, so ``approach`` can reuse it.
+
+Teaching: with the arm resting where the tool should be relative to the target (a grasp pose,
+reached by jogging) and the target in the camera's view, several locates from distinct frames
+are turned into ``T_target_tcp = inv(T_base_target) @ T_base_tcp`` and averaged. Their spread
+(largest distance of one sample from the mean, mm and deg) is reported and a spread over the
+limit is refused, because a noisy or moving scene would otherwise be stored as if it were exact.
+
+Store: one JSON file, ``taught_poses.json`` beside the job database (``[api] job_db``). JSON
+rather than a table in the job database because a person copies taught poses between cells
+and reads them in a text editor; beside the job database because that is the cell's writable
+state directory (the config file may be read-only and is hand-edited). Every change rewrites
+the whole file atomically (temporary file, fsync, rename), so a crash leaves either the old
+or the new file, never a torn one. A file that cannot be read is never overwritten.
+
+Teaching by showing: the view is recorded too (``view``: each matched dot's normalised image
+point and depth, averaged over the samples), so an IBVS approach (:mod:`cell.actions.ibvs_run`) can
+drive the image back to it. Poses taught before that have no view; they still serve servo and
+look-and-move, and IBVS to them is refused (``taught_without_view``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cell.actions.ibvs import Features, features_from_view
+from cell.motion.limits import CellError, LimitError, NotFoundError, RefusedError
+from cell.vision.frames import mean_pose
+from estimator.transforms import T_from_pose_dict, invert_T, pose_dict, pose_distance
+
+if TYPE_CHECKING:
+    from cell.service import Cell
+    from cell.vision.locate import Located
+
+Matrix4 = NDArray[np.float64]
+
+STORE_NAME = "taught_poses.json"
+FORMAT_VERSION = 1
+NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$")
+DEFAULT_MAX_SPREAD_MM = 0.5
+DEFAULT_MAX_SPREAD_DEG = 0.2
+# The arm must rest while teaching: a TCP that moves more than this between samples is refused.
+STILL_MM = 0.05
+STILL_DEG = 0.02
+
+
+class TeachStoreError(CellError):
+    """The store file cannot be read or written; nothing was changed."""
+
+    kind = "unavailable"
+
+
+@dataclass(frozen=True)
+class TaughtPose:
+    name: str
+    T_target_tcp: Matrix4
+    samples: int
+    spread_mm: float  # largest distance of one sample from the mean
+    spread_deg: float
+    T_base_target: Matrix4  # where the target was when taught (for the record)
+    T_base_tcp: Matrix4
+    taught_by: str
+    taught_at: float  # UNIX seconds
+    view: Features | None = None  # the desired image features (None: taught without them)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {**self._pose_dict(), "view": view_dict(self.view)}
+
+    def _pose_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name, "T_target_tcp": pose_dict(self.T_target_tcp),
+            "samples": self.samples, "spread_mm": self.spread_mm, "spread_deg": self.spread_deg,
+            "T_base_target": pose_dict(self.T_base_target),
+            "T_base_tcp": pose_dict(self.T_base_tcp),
+            "taught_by": self.taught_by, "taught_at": self.taught_at,
+        }
+
+    @staticmethod
+    def from_dict(d: dict[str, Any]) -> TaughtPose:
+        return TaughtPose(
+            name=str(d["name"]), T_target_tcp=T_from_pose_dict(d["T_target_tcp"]),
+            samples=int(d["samples"]), spread_mm=float(d["spread_mm"]),
+            spread_deg=float(d["spread_deg"]), T_base_target=T_from_pose_dict(d["T_base_target"]),
+            T_base_tcp=T_from_pose_dict(d["T_base_tcp"]), taught_by=str(d["taught_by"]),
+            taught_at=float(d["taught_at"]), view=view_from_dict(d.get("view")))
+
+
+def view_dict(view: Features | None) -> dict[str, Any] | None:
+    if view is None:
+        return None
+    return {"ids": list(view.ids), "xy": view.xy.tolist(), "depth_mm": view.depth_mm.tolist()}
+
+
+def view_from_dict(d: dict[str, Any] | None) -> Features | None:
+    if d is None:
+        return None
+    xy = np.asarray(d["xy"], dtype=float).reshape(-1, 2)
+    depth = np.asarray(d["depth_mm"], dtype=float).reshape(-1)
+    ids = tuple(int(i) for i in d["ids"])
+    if len(ids) != len(xy) or len(ids) != len(depth):
+        raise ValueError("a taught view needs one point and one depth per dot id")
+    return Features(ids, xy, depth)
+
+
+def mean_view(views: list[Features]) -> Features | None:
+    """The dots seen in every sample, their normalised points and depths averaged."""
+    if not views:
+        return None
+    common = [i for i in views[0].ids if all(i in v.ids for v in views[1:])]
+    if not common:
+        return None
+    subs = [v.subset(tuple(common)) for v in views]
+    return Features(tuple(common), np.mean([v.xy for v in subs], axis=0),
+                    np.mean([v.depth_mm for v in subs], axis=0))
+
+
+def check_name(name: str) -> str:
+    if not NAME_PATTERN.match(name):
+        raise LimitError("invalid_name", f"taught pose name {name!r}: use 1-64 letters, digits, "
+                         "'_', '.' or '-', starting with a letter or digit")
+    return name
+
+
+class TaughtStore:
+    """Thread-safe named poses in one JSON file (``path=None``: in memory only, for tests and
+    an in-memory job database)."""
+
+    def __init__(self, path: str | Path | None) -> None:
+        self.path = None if path is None else Path(path)
+        self._lock = threading.Lock()
+        self._error: TeachStoreError | None = None
+        self._poses: dict[str, TaughtPose] = {}
+        try:
+            self._poses = self._load()
+        except TeachStoreError as err:  # the service still runs; taught poses are refused
+            self._error = err
+
+    @staticmethod
+    def beside_job_db(job_db: str) -> TaughtStore:
+        if job_db == ":memory:":
+            return TaughtStore(None)
+        return TaughtStore(Path(job_db).parent / STORE_NAME)
+
+    def _load(self) -> dict[str, TaughtPose]:
+        if self.path is None or not self.path.exists():
+            return {}
+        try:
+            data = json.loads(self.path.read_text())
+            return {d["name"]: TaughtPose.from_dict(d) for d in data["poses"]}
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise TeachStoreError("taught_store_unreadable",
+                                  f"cannot read the taught poses in {self.path}: {err!r}; fix or "
+                                  "move the file (it is never overwritten while unreadable)"
+                                  ) from err
+
+    def list(self) -> list[TaughtPose]:
+        self._usable()
+        with self._lock:
+            return sorted(self._poses.values(), key=lambda p: p.name)
+
+    def has(self, name: str) -> bool:
+        self._usable()
+        with self._lock:
+            return name in self._poses
+
+    def get(self, name: str) -> TaughtPose:
+        self._usable()
+        with self._lock:
+            pose = self._poses.get(name)
+        if pose is None:
+            raise NotFoundError("taught_not_found", f"no taught pose named {name!r}; see "
+                                "GET /api/v1/teach for the taught names")
+        return pose
+
+    def put(self, pose: TaughtPose, replace: bool = True) -> None:
+        self._usable()
+        check_name(pose.name)
+        with self._lock:
+            if not replace and pose.name in self._poses:
+                raise RefusedError("taught_exists", f"a pose named {pose.name!r} is already "
+                                   "taught; delete it first or ask to replace it")
+            poses = {**self._poses, pose.name: pose}
+            self._write(poses)
+            self._poses = poses
+
+    def delete(self, name: str) -> TaughtPose:
+        self._usable()
+        with self._lock:
+            pose = self._poses.get(name)
+            if pose is None:
+                raise NotFoundError("taught_not_found", f"no taught pose named {name!r}")
+            poses = {k: v for k, v in self._poses.items() if k != name}
+            self._write(poses)
+            self._poses = poses
+            return pose
+
+    def _usable(self) -> None:
+        if self._error is not None:
+            raise self._error
+
+    def _write(self, poses: dict[str, TaughtPose]) -> None:
+        """Replace the file atomically; on failure the file and the memory stay as they were."""
+        if self.path is None:
+            return
+        text = json.dumps({"version": FORMAT_VERSION,
+                           "poses": [p.as_dict() for p in sorted(poses.values(),
+                                                                 key=lambda p: p.name)]},
+                          indent=2)
+        tmp = None
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", dir=self.path.parent)
+            with os.fdopen(fd, "w") as f:
+                f.write(text + "\n")
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, self.path)
+            tmp = None
+        except OSError as err:
+            raise TeachStoreError("taught_store_write_failed",
+                                  f"cannot write {self.path}: {err}; nothing was changed") from err
+        finally:
+            if tmp is not None:
+                Path(tmp).unlink(missing_ok=True)
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One locate: the target and the resting TCP, both at the frame's capture time."""
+
+    T_base_target: Matrix4
+    T_base_tcp: Matrix4
+    frame_sequence: int
+    view: Features | None = None
+
+
+def combine(name: str, samples: list[Sample], caller: str, max_spread_mm: float,
+            max_spread_deg: float) -> TaughtPose:
+    """Average the samples into a taught pose; refuse a moving arm or a spread over the limit."""
+    if not samples:
+        raise LimitError("invalid_request", "teaching needs at least one sample")
+    T0 = samples[0].T_base_tcp
+    for s in samples[1:]:
+        d_mm, d_deg = pose_distance(T0, s.T_base_tcp)
+        if d_mm > STILL_MM or d_deg > STILL_DEG:
+            raise RefusedError("arm_moving", f"the arm moved {d_mm:.3f} mm / {d_deg:.3f} deg "
+                               "while teaching; let it rest and teach again")
+    each = [invert_T(s.T_base_target) @ s.T_base_tcp for s in samples]
+    T_mean = mean_pose(each)
+    dists = [pose_distance(T_mean, T) for T in each]
+    spread_mm = max(d[0] for d in dists)
+    spread_deg = max(d[1] for d in dists)
+    if spread_mm > max_spread_mm or spread_deg > max_spread_deg:
+        raise RefusedError("spread_too_large", f"the {len(samples)} locates spread "
+                           f"{spread_mm:.3f} mm / {spread_deg:.3f} deg (limit {max_spread_mm} mm"
+                           f" / {max_spread_deg} deg): the view is poor or the target moves; "
+                           "nothing was stored")
+    T_base_target = mean_pose([s.T_base_target for s in samples])
+    T_base_tcp = mean_pose([s.T_base_tcp for s in samples])
+    return TaughtPose(check_name(name), T_mean, len(samples), spread_mm, spread_deg,
+                      T_base_target, T_base_tcp, caller, time.time(),
+                      mean_view([s.view for s in samples if s.view is not None])
+                      if all(s.view is not None for s in samples) else None)
+
+
+def teach(cell: Cell, store: TaughtStore, caller: str, name: str, samples: int = 5,
+          max_spread_mm: float = DEFAULT_MAX_SPREAD_MM,
+          max_spread_deg: float = DEFAULT_MAX_SPREAD_DEG, replace: bool = True) -> TaughtPose:
+    """Locate ``samples`` times from distinct frames at the arm's resting pose and store the
+    averaged ``T_target_tcp`` under ``name``. Nothing moves; every refusal stores nothing."""
+    params = {"name": name, "samples": samples, "max_spread_mm": max_spread_mm,
+              "max_spread_deg": max_spread_deg, "replace": replace}
+    with cell.core.audit.command(caller, "teach", params) as note:
+        check_name(name)
+        if not 1 <= samples <= 50:
+            raise LimitError("invalid_request", "samples must be 1..50")
+        if not replace and store.has(name):
+            raise RefusedError("taught_exists", f"a pose named {name!r} is already taught; "
+                               "delete it first or ask to replace it")
+        # Hold the motion slot: no approach or jog may start while the samples are taken,
+        # and a running one refuses the teach (busy).
+        with cell.core.slot.hold("teach"):
+            if cell.arm_state().moving:
+                raise RefusedError("arm_moving", "the arm is moving; teach when it rests")
+            taught = combine(name, _samples(cell, caller, samples), caller, max_spread_mm,
+                             max_spread_deg)
+        store.put(taught, replace=replace)
+        note.detail = (f"spread {taught.spread_mm:.3f} mm / {taught.spread_deg:.3f} deg")
+    return taught
+
+
+def located_view(cell: Cell, loc: Located) -> Features | None:
+    """The image features of a locate's last frame (None when it kept no image points)."""
+    r = loc.result
+    if r.image_points_px is None or not r.matched_ids:
+        return None
+    locator = cell.core.locator
+    return features_from_view(locator.camera_model, r.matched_ids, r.image_points_px,
+                              r.T_camera_target, locator.target.points_mm)
+
+
+def _samples(cell: Cell, caller: str, n: int) -> list[Sample]:
+    """``n`` locates, each from a frame not used before (the camera runs at its own rate)."""
+    period_s = 1.0 / cell.config.camera.fps
+    deadline = time.monotonic() + 5.0 + 3.0 * n * period_s
+    out: list[Sample] = []
+    seen: set[int] = set()
+    while len(out) < n:
+        loc = cell.locate(caller, 1)
+        if loc.frame_sequence in seen:
+            if time.monotonic() > deadline:
+                raise RefusedError("camera_stalled", "the camera delivers no new frames")
+            time.sleep(0.5 * period_s)
+            continue
+        seen.add(loc.frame_sequence)
+        out.append(Sample(loc.T_base_target, loc.T_base_tcp, loc.frame_sequence,
+                          located_view(cell, loc)))
+    return out

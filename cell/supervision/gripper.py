@@ -1,0 +1,127 @@
+"""Gripper commands, one Modbus transaction at a time, and a cached status that costs reads
+nothing.
+
+A gripper that times out (a serial link gone quiet) takes a second per transaction; reading it
+inside ``/status`` made every status poll wait for that. Here a background thread refreshes the
+status twice a second and on every command, and readers get the last one with its age; a fault
+or a lost link is published once (``gripper`` events) so the operator sees it.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any
+
+from cell.jobs.audit import Auditor
+from cell.jobs.events import EventBus
+from cell.motion.guard import driver_error
+from cell.motion.limits import LimitError, UnavailableError
+from drivers.errors import DriverError
+from drivers.gripper import Gripper, GripperStatus
+
+log = logging.getLogger(__name__)
+POLL_PERIOD_S = 0.5
+ACTIONS = ("open", "close", "move", "activate")
+
+
+class GripperService:
+    def __init__(self, gripper: Gripper | None, audit: Auditor, events: EventBus) -> None:
+        self.gripper = gripper
+        self.audit = audit
+        self.events = events
+        self._bus_lock = threading.Lock()  # one Modbus transaction at a time
+        self._lock = threading.Lock()
+        self._last: dict[str, Any] | None = None
+        self._last_t = 0.0
+        self._error: str | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        if self.gripper is None:
+            return
+        try:
+            self.gripper.connect()
+            self._set(self.gripper.activate(), None)
+        except DriverError as err:
+            log.warning("gripper not available at start: %s", err)
+            self._set(None, str(err))
+        self._thread = threading.Thread(target=self._poll, name="cell-gripper", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=3.0)
+
+    def status(self) -> dict[str, Any] | None:
+        """The last status read (never waits on the serial line), with its age."""
+        if self.gripper is None:
+            return None
+        with self._lock:
+            age = None if self._last is None else max(0.0, time.monotonic() - self._last_t)
+            base = dict(self._last) if self._last is not None else {}
+            return {**base, "age_s": age, "error": self._error}
+
+    def command(self, caller: str, action: str, position_mm: float | None = None,
+                speed_pct: float = 100.0, force_pct: float = 50.0,
+                wait: bool = True) -> dict[str, Any]:
+        params = {"action": action, "position_mm": position_mm, "speed_pct": speed_pct,
+                  "force_pct": force_pct, "wait": wait}
+        with self.audit.command(caller, "gripper", params):
+            g = self.gripper
+            if g is None:
+                raise UnavailableError("gripper_unavailable", "this cell has no gripper")
+            if action not in ACTIONS:
+                raise LimitError("invalid_request", f"unknown gripper action {action!r}")
+            if action == "move" and position_mm is None:
+                raise LimitError("invalid_request", "move needs position_mm")
+            with self._bus_lock:
+                try:
+                    st = self._send(g, action, position_mm, speed_pct, force_pct, wait)
+                except DriverError as err:
+                    self._set(None, str(err))
+                    raise driver_error(err, f"gripper {action}", device="gripper") from err
+            self._set(st, None)
+            return st.as_dict()
+
+    @staticmethod
+    def _send(g: Gripper, action: str, position_mm: float | None, speed_pct: float,
+              force_pct: float, wait: bool) -> GripperStatus:
+        if action == "open":
+            return g.open(wait=wait)
+        if action == "close":
+            return g.close(wait=wait)
+        if action == "activate":
+            return g.activate()
+        assert position_mm is not None
+        return g.move(position_mm, speed_pct, force_pct, wait=wait)
+
+    def _poll(self) -> None:
+        assert self.gripper is not None
+        while not self._stop.wait(POLL_PERIOD_S):
+            if not self._bus_lock.acquire(timeout=0.05):
+                continue  # a command holds the line and refreshes the status itself
+            try:
+                st = self.gripper.status()
+            except DriverError as err:
+                self._set(None, str(err))
+                continue
+            finally:
+                self._bus_lock.release()
+            self._set(st, None)
+
+    def _set(self, st: GripperStatus | None, error: str | None) -> None:
+        fault = error if error is not None else (st.fault if st is not None else None)
+        with self._lock:
+            before = self._error if self._error is not None else (
+                None if self._last is None else self._last.get("fault"))
+            if st is not None:
+                self._last, self._last_t = st.as_dict(), time.monotonic()
+            self._error = error
+        if fault != before:
+            if fault is not None:
+                log.warning("gripper fault: %s", fault)
+            self.events.publish("gripper", {"fault": fault})

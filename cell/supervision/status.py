@@ -1,0 +1,77 @@
+"""What the cell reports about itself: ``/status``, ``/health`` and the ``state`` events
+(served from :mod:`cell.supervision.snapshot`, which calls these once per camera period).
+
+Nothing here waits on a slow device: the arm state is the adapter's cached stream sample, the
+gripper's status is the last one its poller read, links come from the supervisor.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from cell.core import CellCore
+from cell.supervision.gripper import GripperService
+from cell.supervision.links import LinkSupervisor
+from drivers.arm import ArmState
+from drivers.errors import DriverError
+from estimator.transforms import pose_dict
+
+
+def arm_state_name(st: ArmState) -> str:
+    return ("disconnected" if not st.connected else
+            "emergency_stop" if st.emergency_stop else
+            "protective_stop" if st.protective_stop else
+            "not_ready" if not st.ready else "idle")
+
+
+def robot_dict(st: ArmState, now_s: float) -> dict[str, Any]:
+    return {
+        "connected": st.connected, "mode": st.robot_mode, "safety": st.safety_status,
+        "moving": st.moving, "protective_stop": st.protective_stop,
+        "T_base_tcp": pose_dict(st.T_base_tcp),
+        "joints_deg": [float(np.degrees(q)) for q in st.joints_rad],
+        "state_age_s": max(0.0, now_s - st.timestamp_s),
+    }
+
+
+def status(core: CellCore, links: LinkSupervisor, gripper: GripperService) -> dict[str, Any]:
+    now = time.monotonic()
+    out: dict[str, Any] = {}
+    try:
+        st = core.arm.state()
+        out["robot"] = robot_dict(st, now)
+        arm_state = arm_state_name(st)
+    except DriverError as err:
+        out["robot"] = {"connected": False, "error": str(err)}
+        arm_state = "disconnected"
+    motion = core.slot.current
+    out["state"] = arm_state if arm_state != "idle" or motion is None else motion.name
+    frame = core.locator.last_frame
+    out["camera"] = {
+        "connected": bool(core.camera.is_connected),
+        "last_frame_age_s": None if frame is None else max(0.0, now - frame.timestamp_s),
+    }
+    out["gripper"] = gripper.status()
+    job = None
+    if motion is not None and motion.job_id is not None:
+        j = core.jobs.get(motion.job_id)
+        job = None if j is None else j.as_dict()
+    out["job"] = job
+    last = core.locator.last
+    out["last_locate"] = None if last is None else last.as_dict(now)
+    out["links"] = links.snapshot()
+    return out
+
+
+def health_from(missing: list[str]) -> dict[str, Any]:
+    """``ok`` when every device is connected, else ``degraded`` naming what is missing; the
+    process answers either way (a liveness probe must not fail because a device did)."""
+    return {"status": "degraded" if missing else "ok", "missing": missing,
+            "arm_connected": "arm" not in missing, "camera_connected": "camera" not in missing}
+
+
+def health(core: CellCore, links: LinkSupervisor) -> dict[str, Any]:
+    return health_from(links.missing())

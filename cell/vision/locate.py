@@ -1,0 +1,251 @@
+"""Locate: the freshest frame, its target pose, paired with the arm pose at capture time.
+
+``T_base_target = T_base_tcp(t) @ inv(T_flange_tcp) @ T_flange_camera @ T_camera_target`` with
+``t`` the frame's mid-exposure time looked up in the arm's pose history, so a frame taken while
+the arm moves is mapped with the pose the arm had when the frame was taken.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cell.motion.limits import CellError, RefusedError, UnavailableError
+from cell.vision.frames import CellFrames, mean_pose
+from cell.vision.imagelog import ImageLog
+from drivers.arm import Arm
+from drivers.camera import Camera, Frame
+from drivers.errors import DriverError
+from estimator import CameraModel, EstimationError, PoseResult, Target
+from estimator.pipeline import Estimator
+from estimator.transforms import invert_T, pose_dict
+
+log = logging.getLogger(__name__)
+Matrix4 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Located:
+    """A target pose in the base frame and the evidence it came from."""
+
+    T_base_target: Matrix4
+    T_camera_target: Matrix4
+    T_base_tcp: Matrix4  # at the (last) frame's capture time
+    result: PoseResult  # of the last frame
+    frame_timestamp_s: float
+    frame_sequence: int
+    n_frames: int
+    spread_mm: float  # largest distance of a single-frame estimate from the mean
+    located_at_s: float  # time.monotonic()
+
+    def as_dict(self, now_s: float) -> dict[str, Any]:
+        r = self.result
+        return {
+            "T_base_target": pose_dict(self.T_base_target),
+            "T_camera_target": pose_dict(self.T_camera_target),
+            "T_base_tcp": pose_dict(self.T_base_tcp),
+            "quality": {
+                "rms_px": float(r.rms_px),
+                "max_residual_px": float(np.max(r.residuals_px)) if len(r.residuals_px) else 0.0,
+                "ambiguous": bool(r.ambiguous),
+                "converged": bool(r.converged),
+                "n_points": len(r.matched_ids),
+                "covariance": None if r.covariance is None else r.covariance.tolist(),
+                "frame_age_s": max(0.0, now_s - self.frame_timestamp_s),
+                "n_frames": self.n_frames,
+                "spread_mm": self.spread_mm,
+            },
+            "frame_sequence": self.frame_sequence,
+        }
+
+
+class Locator:
+    """Owns the estimators; thread-safe. Failed frames go to the optional image log."""
+
+    def __init__(self, camera_model: CameraModel, target: Target, camera: Camera, arm: Arm,
+                 frames: CellFrames, fps: float, image_log: ImageLog | None = None) -> None:
+        self.camera = camera
+        self.arm = arm
+        self.frames = frames
+        self.fps = fps
+        self.image_log = image_log
+        self.target = target
+        self.camera_model = camera_model
+        self._estimator = Estimator(camera_model, target)
+        self._estimator_lock = threading.Lock()
+        # a separate one keeps the live view from disturbing locate's tracking state
+        self._preview = Estimator(camera_model, target)
+        self._preview_lock = threading.Lock()
+        self._lock = threading.Lock()
+        self.outcomes: Counter[str] = Counter()  # ok / failed / error, for /metrics
+        self.seconds_sum = 0.0
+        self.last: Located | None = None
+        self.last_frame: Frame | None = None
+
+    def set_frames(self, frames: CellFrames) -> None:
+        """New calibrated mounts; the last locate was mapped with the old ones, so drop it."""
+        self.frames = frames
+        self.last = None
+
+    def use_target(self, target: Target) -> bool:
+        """Look for another dot layout from now on (a recipe's target); the last locate was
+        of the old one, so it is dropped. False when it is the layout already in use."""
+        same = (target.polarity == self.target.polarity
+                and target.dot_diameter_mm == self.target.dot_diameter_mm
+                and np.array_equal(target.points_mm, self.target.points_mm))
+        if same:
+            return False
+        with self._estimator_lock, self._preview_lock:
+            self.target = target
+            self._estimator = Estimator(self.camera_model, target)
+            self._preview = Estimator(self.camera_model, target)
+        self.last = None
+        return True
+
+    def latest_frame(self) -> Frame:
+        try:
+            frame = self.camera.latest_frame(timeout_s=1.0)
+        except DriverError as err:
+            raise UnavailableError("camera_lost", f"no camera frame: {err}") from err
+        self.last_frame = frame
+        return frame
+
+    def preview(self, estimate: bool) -> tuple[Frame, PoseResult | None, str | None]:
+        """The freshest frame and, if asked, what the estimator sees in it (live view)."""
+        frame = self.latest_frame()
+        if not estimate:
+            return frame, None, None
+        try:
+            with self._preview_lock:
+                return frame, self._preview.estimate(frame.image), None
+        except EstimationError as err:
+            return frame, None, err.message
+
+    def locate(self, n_frames: int = 1, after_s: float | None = None) -> Located:
+        """Estimate from ``n_frames`` successive frames captured no earlier than ``after_s``,
+        each paired with the arm pose at its capture time, and average the base-frame results
+        (noise drops as 1/sqrt(n))."""
+        if not self.camera.is_connected:
+            raise UnavailableError("camera_lost", "the camera is not connected")
+        estimates: list[Matrix4] = []
+        last: tuple[Frame, PoseResult, Matrix4] | None = None
+        for _ in range(max(1, n_frames)):
+            seq = -1 if last is None else last[0].sequence
+            frame = self._fresh_frame(after_s)
+            while frame.sequence == seq:
+                frame = self._fresh_frame(frame.timestamp_s + 1e-6)
+            try:
+                T_base_tcp = self.arm.pose_at(frame.timestamp_s)
+            except LookupError:
+                # a frame older than the history (a link that just came back): the next one
+                frame = self._fresh_frame(time.monotonic())
+                T_base_tcp = self._pose_at(frame)
+            except DriverError as err:
+                raise UnavailableError(err.code, f"reading the arm pose history: {err}") from err
+            result = self._estimate(frame)
+            estimates.append(self.frames.T_base_target(T_base_tcp, result.T_camera_target))
+            last = (frame, result, T_base_tcp)
+        assert last is not None
+        frame, result, T_base_tcp = last
+        T_mean = mean_pose(estimates) if len(estimates) > 1 else estimates[0]
+        spread = max(float(np.linalg.norm(T[:3, 3] - T_mean[:3, 3])) for T in estimates)
+        T_camera_target = invert_T(self.frames.T_base_camera(T_base_tcp)) @ T_mean
+        loc = Located(T_mean, T_camera_target, T_base_tcp, result, frame.timestamp_s,
+                      frame.sequence, len(estimates), spread, time.monotonic())
+        self.last = loc
+        return loc
+
+    def measure(self, after_sequence: int, timeout_s: float = 0.5
+                ) -> tuple[Frame, Matrix4, Matrix4]:
+        """One frame newer than ``after_sequence``, estimated (tracking mode after the first),
+        mapped into the base frame with the arm pose at its mid-exposure time: ``(frame,
+        T_base_target, T_base_tcp)``. For the servo loop: no averaging, no waiting for the
+        arm to rest. CellError when the frame does not show the target."""
+        try:
+            frame = self.camera.latest_frame(timeout_s=timeout_s)
+        except DriverError as err:
+            raise UnavailableError("camera_lost", f"no camera frame: {err}") from err
+        self.last_frame = frame
+        if frame.sequence <= after_sequence:
+            raise RefusedError("no_new_frame", "no frame newer than the last one")
+        T_base_tcp = self._pose_at(frame)
+        result = self._estimate(frame)
+        return frame, self.frames.T_base_target(T_base_tcp, result.T_camera_target), T_base_tcp
+
+    def measure_view(self, after_sequence: int, timeout_s: float = 0.5
+                     ) -> tuple[Frame, PoseResult, Matrix4]:
+        """As :meth:`measure`, for image-based servoing: ``(frame, estimate, T_base_tcp at
+        mid-exposure)``; the estimate carries the matched dots' image points and ids."""
+        try:
+            frame = self.camera.latest_frame(timeout_s=timeout_s)
+        except DriverError as err:
+            raise UnavailableError("camera_lost", f"no camera frame: {err}") from err
+        self.last_frame = frame
+        if frame.sequence <= after_sequence:
+            raise RefusedError("no_new_frame", "no frame newer than the last one")
+        T_base_tcp = self._pose_at(frame)
+        return frame, self._estimate(frame), T_base_tcp
+
+    def _pose_at(self, frame: Frame) -> Matrix4:
+        try:
+            return self.arm.pose_at(frame.timestamp_s)
+        except LookupError as err:
+            raise RefusedError("stale_pose", "the arm's pose history does not cover the "
+                               f"frame's capture time: {err}") from err
+        except DriverError as err:
+            raise UnavailableError(err.code, f"reading the arm pose history: {err}") from err
+
+    def _fresh_frame(self, after_s: float | None) -> Frame:
+        """The freshest frame, captured no earlier than ``after_s`` (monotonic)."""
+        deadline = time.monotonic() + 2.0 + 3.0 / self.fps
+        while True:
+            frame = self.latest_frame()
+            if after_s is None or frame.timestamp_s >= after_s:
+                return frame
+            if time.monotonic() > deadline:
+                raise UnavailableError("camera_stalled",
+                                       "the camera delivers no new frames; check its connection")
+            time.sleep(0.2 / self.fps)
+
+    def _use_intrinsics(self, model: CameraModel) -> None:
+        """Frames carry the intrinsics valid for them (an OAK reports its factory calibration);
+        when they differ from the configured ones, the frame's win."""
+        if model != self.camera_model:
+            log.warning("camera intrinsics differ from the config; using the device's")
+            self.camera_model = model
+            self._estimator = Estimator(model, self.target)
+            self._preview = Estimator(model, self.target)
+
+    def _estimate(self, frame: Frame) -> PoseResult:
+        t0 = time.perf_counter()
+        try:
+            with self._estimator_lock:
+                self._use_intrinsics(frame.camera)
+                result = self._estimator.estimate(frame.image)
+        except EstimationError as err:
+            raise self._failed(frame, "failed", RefusedError(
+                err.code, f"target not located: {err.message}")) from err
+        except Exception as err:  # an estimator bug must not take the service down
+            log.exception("estimator failed on frame %d", frame.sequence)
+            raise self._failed(frame, "error", RefusedError(
+                "estimator_failed", f"the estimator failed unexpectedly: {err!r}")) from err
+        with self._lock:
+            self.outcomes["ok"] += 1
+            self.seconds_sum += time.perf_counter() - t0
+        return result
+
+    def _failed(self, frame: Frame, outcome: str, err: CellError) -> CellError:
+        with self._lock:
+            self.outcomes[outcome] += 1
+        if self.image_log is not None:
+            self.image_log.save(frame.image, {"code": err.code, "message": err.message,
+                                              "sequence": frame.sequence,
+                                              "timestamp_s": frame.timestamp_s})
+        return err

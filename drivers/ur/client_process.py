@@ -1,0 +1,626 @@
+"""ur_rtde in a child process, driven over a pipe by :class:`ClientProcess`.
+
+Why a process and not just threads: ur_rtde's Python constructors hold the GIL while they wait
+on the controller (a hung controller would freeze the whole program), its client calls can
+block for minutes when the peer vanishes, and after a dropped connection its control interface
+reconnects from inside its own receive thread and can crash the process. In a child, a hang is
+ended with SIGKILL and a crash is a closed pipe: both become ConnectionLostError in the parent.
+
+Frames are length-prefixed pickles of the typed messages below (both ends are this module):
+requests are :class:`Create`, :class:`Call`, :class:`Sample`, :class:`Subscribe` and
+:class:`Drop`; a sample comes back as a :class:`StateSample`. Requests are served
+concurrently, so a long move does not block the state sampling that watches it.
+
+After :class:`Subscribe` the child pushes samples (reply id 0) instead of being polled: its
+pusher thread sleeps between looks at the receive client's package timestamp and sends a
+sample only when the RTDE data changed (at most the subscribed rate), and after every call it
+sends one before the call's reply, so a sample read after a command's reply reflects the
+command. Samples carry a sequence number in the order they were taken.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import itertools
+import logging
+import os
+import pickle
+import signal
+import struct
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
+from dataclasses import dataclass
+from typing import IO, Any, Literal
+
+from drivers.ur.timer_slack import set_timer_slack, timer_slack
+
+_LEN = struct.Struct(">I")
+PUSH_ID = 0  # the reply id of pushed samples (request ids start at 1)
+RECV_FREQUENCY_HZ = 125.0  # the receive client's RTDE rate: enough for the pose history
+PUSH_CHECK_S = 0.004  # how often the pusher looks at the package timestamp (two cheap reads)
+# ... and while the arm has stood still, with no call made, for RESTING_AFTER_S: a motion the
+# cell did not command (the pendant, a protective stop) is seen at most this much later.
+RESTING_CHECK_S = 0.032
+RESTING_AFTER_S = 0.5
+# Timer slack of the clients' own threads (see drivers.ur.timer_slack): a package is read at most
+# this much later, for a fifth of the idle CPU. The receive client's packages come every 8 ms,
+# the control client's every 2 ms: its slack stays at 1 ms (with 2 ms an idle minute showed no
+# lag, but the servo benchmark's tracking fell apart: 30-77 mm RMS, the arm still 1.2 s after
+# a lost target).
+TIMER_SLACK_S: dict[str, float] = {"recv": 0.002, "ctrl": 0.001, "dash": 0.002}
+PUSHER_TIMER_SLACK_S = 0.001
+# A standing arm (see _PushState): one sample per QUIET_PUSH_S, well inside the adapter's
+# PUSH_FRESH_S; the deadbands are far below what the cell resolves (1e-5 rad is 10 um at 1 m)
+QUIET_PUSH_S = 0.1
+STILL_DEADBAND_RAD = 1e-5
+STILL_DEADBAND_RAD_S = 1e-4
+STILL_DEADBAND_M_RAD = 1e-5
+
+# The controller's own watchdog (ur_rtde's setWatchdog): its control script stops the program,
+# braking the arm, when no RTDE input arrives for 1 / CONTROLLER_WATCHDOG_HZ. The child kicks it
+# every KICK_PERIOD_S, but only while the parent has been heard from within PARENT_LEASE_S (its
+# heartbeat comes every HEARTBEAT_S): a frozen child and a frozen parent both stop the arm.
+CONTROLLER_WATCHDOG_HZ = 12.5
+KICK_PERIOD_S = 0.02
+PARENT_LEASE_S = 0.06
+HEARTBEAT_S = 0.02
+QUIET_AFTER_CALL_S = 0.02
+RUNTIME_PLAYING = 2  # RTDE runtime_state: the control script runs
+PR_SET_PDEATHSIG = 1
+
+ClientName = Literal["dash", "recv", "ctrl"]
+
+
+@dataclass(frozen=True)
+class Create:
+    """Create one ur_rtde client (its constructor connects, and may block for long)."""
+
+    client: ClientName
+
+
+@dataclass(frozen=True)
+class Call:
+    """Call a ur_rtde method by its own name on one client."""
+
+    client: ClientName
+    method: str
+    args: tuple[Any, ...] = ()
+
+
+@dataclass(frozen=True)
+class Sample:
+    """Read everything the adapter watches from the clients' cached state."""
+
+
+@dataclass(frozen=True)
+class Subscribe:
+    """Push samples from now on, whenever the RTDE data changed, at most every ``period_s``."""
+
+    period_s: float
+
+
+@dataclass(frozen=True)
+class Drop:
+    """Forget a client (after its connection is known to be gone)."""
+
+    client: ClientName
+
+
+@dataclass(frozen=True)
+class Guard:
+    """Arm the controller's watchdog at ``min_frequency_hz`` (again after every script upload)
+    and kick it while the parent's heartbeats keep coming within ``parent_lease_s``."""
+
+    min_frequency_hz: float
+    parent_lease_s: float
+
+
+@dataclass(frozen=True)
+class Heartbeat:
+    """The parent is alive (handled inline, no reply)."""
+
+
+Request = Create | Call | Sample | Subscribe | Drop | Guard
+
+
+@dataclass(frozen=True)
+class StateSample:
+    """One consistent read of the receive (and control) client's state, UR units."""
+
+    connected: bool
+    timestamp_s: float  # controller time of the RTDE package
+    tcp_pose: tuple[float, ...]  # [x, y, z (m), rx, ry, rz (rad)]
+    q_rad: tuple[float, ...]
+    qd_rad_s: tuple[float, ...]
+    robot_mode: int
+    safety_mode: int
+    safety_bits: int
+    runtime_state: int
+    async_running: bool = False  # ur_rtde's async operation (moveL/moveJ/path) under way
+    async_progress: int = -1
+    seq: int = 0  # order in which the child took its samples (later = larger)
+    seen_s: float = 0.0  # host time.monotonic() when the child first saw this package
+
+
+def describe(req: Request) -> str:
+    """A request in words, for timeouts and logs."""
+    if isinstance(req, Call):
+        return f"{req.client}.{req.method}"
+    if isinstance(req, Sample):
+        return "sample"
+    if isinstance(req, Subscribe):
+        return "subscribe"
+    if isinstance(req, Guard):
+        return "guard"
+    return f"{type(req).__name__.lower()} {req.client}"
+
+
+class ClientDied(Exception):
+    """The child process is gone (crashed, killed) or stopped answering."""
+
+
+class RemoteError(Exception):
+    """An exception raised by ur_rtde in the child: ``kind`` is its Python type name."""
+
+    def __init__(self, kind: str, message: str) -> None:
+        super().__init__(message)
+        self.kind = kind
+
+
+def _write(stream: IO[bytes], obj: object, lock: threading.Lock) -> None:
+    data = pickle.dumps(obj)
+    with lock:
+        stream.write(_LEN.pack(len(data)) + data)
+        stream.flush()
+
+
+def _read(stream: IO[bytes]) -> Any:
+    head = stream.read(_LEN.size)
+    if len(head) < _LEN.size:
+        raise EOFError
+    (n,) = _LEN.unpack(head)
+    body = stream.read(n)
+    if len(body) < n:
+        raise EOFError
+    return pickle.loads(body)
+
+
+# -- the child -------------------------------------------------------------------------------
+
+class _Clients:
+    """The ur_rtde objects of one controller, living in the child."""
+
+    def __init__(self, host: str) -> None:
+        self.host = host
+        self.objects: dict[str, Any] = {}
+        self.locks = {name: threading.Lock() for name in ("dash", "recv", "ctrl")}
+        self._seq = itertools.count(1)
+        self._seq_lock = threading.Lock()
+        self.push_period_s: float | None = None  # set by Subscribe
+        self._seen = (-1.0, 0.0)  # (package timestamp, when it was first seen)
+        self.guard: Guard | None = None
+        self.parent_seen_s = time.monotonic()  # the parent's last message
+        self.watchdog_armed = False  # setWatchdog accepted by the script running now
+        self.ctrl_ended_s = 0.0  # when the last control call returned
+
+    def arm_watchdog(self) -> None:
+        """setWatchdog on the control script (a new script starts without one). Refused
+        while no script runs (ur_rtde answers False): the kicker tries again once one runs."""
+        ctrl, guard = self.objects.get("ctrl"), self.guard
+        if ctrl is not None and guard is not None:
+            with self.locks["ctrl"]:
+                self.watchdog_armed = bool(ctrl.setWatchdog(guard.min_frequency_hz))
+
+    def _script_running(self) -> bool:
+        recv = self.objects.get("recv")
+        return recv is not None and int(recv.getRuntimeState()) == RUNTIME_PLAYING
+
+    def kick(self) -> None:
+        """One kick of the controller's watchdog, when armed and the parent is alive.
+
+        A kick writes the script's command register, so it must not land before the script
+        has taken a call's command (that command would be lost, and a call waiting for its
+        answer would hang): kicks go out only between calls, and not within QUIET_AFTER_CALL_S
+        of one (streamed commands return at once, before the script's next cycle). A
+        blocking call (a stop waiting for the arm to rest) is not kicked through: if it lasts
+        longer than the watchdog, the controller brakes the arm itself, the safe way round."""
+        ctrl, guard = self.objects.get("ctrl"), self.guard
+        if ctrl is None or guard is None:
+            return
+        if time.monotonic() - self.parent_seen_s > guard.parent_lease_s:
+            return  # the parent stalled: let the controller stop the arm
+        if not self._script_running():
+            self.watchdog_armed = False  # the script ended: the next one starts unguarded
+            return
+        lock = self.locks["ctrl"]
+        if not lock.acquire(blocking=False):
+            return
+        try:
+            if time.monotonic() - self.ctrl_ended_s >= QUIET_AFTER_CALL_S:
+                with contextlib.suppress(Exception):
+                    if self.watchdog_armed:
+                        ctrl.kickWatchdog()
+                    else:  # a script that started without one (not via reuploadScript)
+                        self.watchdog_armed = bool(ctrl.setWatchdog(guard.min_frequency_hz))
+        finally:
+            lock.release()
+
+    def create(self, name: ClientName) -> None:
+        import dashboard_client
+        import rtde_control
+        import rtde_receive
+
+        factories = {"dash": dashboard_client.DashboardClient,
+                     "recv": rtde_receive.RTDEReceiveInterface,
+                     "ctrl": rtde_control.RTDEControlInterface}
+        with timer_slack(TIMER_SLACK_S[name]):  # the client's threads start in here
+            if name == "recv":  # the adapter needs no more than this; fewer packages to parse
+                self.objects[name] = factories[name](self.host, RECV_FREQUENCY_HZ)
+            else:
+                self.objects[name] = factories[name](self.host)
+
+    def call(self, name: ClientName, method: str, args: tuple[Any, ...]) -> Any:
+        obj = self.objects.get(name)
+        if obj is None:
+            raise RuntimeError(f"no {name} client")
+        with self.locks[name]:  # one call at a time per client object
+            try:
+                result = getattr(obj, method)(*args)
+            finally:
+                if name == "ctrl":
+                    self.ctrl_ended_s = time.monotonic()
+        if name == "ctrl" and method == "reuploadScript" and result:
+            self.arm_watchdog()
+        return result
+
+    def sample(self) -> StateSample:
+        """Everything the adapter watches, read from the clients' cached state."""
+        recv = self.objects.get("recv")
+        if recv is None:
+            raise RuntimeError("no receive client")
+        with self._seq_lock:
+            seq = next(self._seq)
+        timestamp_s = float(recv.getTimestamp())
+        seen_s = self._note_seen(timestamp_s)
+        running, progress = False, -1
+        ctrl = self.objects.get("ctrl")
+        if ctrl is not None:
+            status = ctrl.getAsyncOperationProgressEx()
+            running, progress = bool(status.isAsyncOperationRunning()), int(status.progress())
+        return StateSample(
+            connected=bool(recv.isConnected()),
+            timestamp_s=timestamp_s,
+            tcp_pose=tuple(recv.getActualTCPPose()),
+            q_rad=tuple(recv.getActualQ()),
+            qd_rad_s=tuple(recv.getActualQd()),
+            robot_mode=int(recv.getRobotMode()),
+            safety_mode=int(recv.getSafetyMode()),
+            safety_bits=int(recv.getSafetyStatusBits()),
+            runtime_state=int(recv.getRuntimeState()),
+            async_running=running,
+            async_progress=progress,
+            seq=seq,
+            seen_s=seen_s,
+        )
+
+    def _note_seen(self, timestamp_s: float) -> float:
+        with self._seq_lock:
+            if timestamp_s != self._seen[0]:
+                self._seen = (timestamp_s, time.monotonic())
+            return self._seen[1]
+
+    def handle(self, req: Request) -> Any:
+        if isinstance(req, Create):
+            return self.create(req.client)
+        if isinstance(req, Sample):
+            return self.sample()
+        if isinstance(req, Drop):
+            self.objects.pop(req.client, None)
+            return None
+        if isinstance(req, Subscribe):
+            self.push_period_s = max(0.001, float(req.period_s))
+            return None
+        if isinstance(req, Guard):
+            self.guard = req
+            self.arm_watchdog()
+            return None
+        return self.call(req.client, req.method, req.args)
+
+    def data_key(self) -> tuple[float, bool] | None:
+        """What tells whether the RTDE data changed (cheap: two reads), None without a
+        receive client."""
+        recv = self.objects.get("recv")
+        if recv is None:
+            return None
+        timestamp_s = float(recv.getTimestamp())
+        self._note_seen(timestamp_s)
+        return timestamp_s, bool(recv.isConnected())
+
+
+class _PushState:
+    """Which samples the pusher sends: every change of the arm's state, and a still arm's
+    samples only every ``QUIET_PUSH_S``.
+
+    The parent would take 125 identical samples a second from a standing arm (2.4 % of a core
+    for unpickling and the pose history). Held back instead, the last of them is sent just
+    before the first sample that differs, so the parent's pose history still knows the arm
+    stood until then and latency compensation interpolates nothing across the hold. Joint
+    and TCP values within a deadband count as the same, so encoder noise of a real arm does
+    not defeat this; a slow creep is still sent once it adds up to the deadband.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._last: StateSample | None = None  # the last sample sent
+        self._last_s = 0.0
+        self._held: StateSample | None = None  # the newest one not sent
+        self._active_s = 0.0  # when the state last changed or a call was made
+
+    def resting(self, now_s: float) -> bool:
+        """The arm has not changed and no call was made for ``RESTING_AFTER_S``."""
+        with self._lock:
+            return now_s - self._active_s > RESTING_AFTER_S
+
+    def due(self, now_s: float, period_s: float | None) -> bool:
+        with self._lock:
+            return period_s is not None and now_s - self._last_s >= period_s
+
+    def pushed(self, sample: StateSample, now_s: float) -> None:
+        """``sample`` went to the parent outside the pusher (after a call)."""
+        with self._lock:
+            self._last, self._last_s, self._held = sample, now_s, None
+            self._active_s = now_s
+
+    def offer(self, sample: StateSample, now_s: float) -> list[StateSample]:
+        """The samples to send now for a new package, oldest first."""
+        with self._lock:
+            last = self._last
+            same = last is not None and unchanged(last, sample)
+            if same and now_s - self._last_s < QUIET_PUSH_S:
+                self._held = sample
+                return []
+            if not same:
+                self._active_s = now_s
+            out = [sample]
+            if self._held is not None and not unchanged(self._held, sample):
+                out.insert(0, self._held)
+            self._last, self._last_s, self._held = sample, now_s, None
+            return out
+
+
+def unchanged(a: StateSample, b: StateSample) -> bool:
+    """The same arm state for the adapter: modes, bits and async state equal, joints and TCP
+    within the deadband (only the package's timestamp moved on)."""
+    return (a.connected == b.connected and a.robot_mode == b.robot_mode
+            and a.safety_mode == b.safety_mode and a.safety_bits == b.safety_bits
+            and a.runtime_state == b.runtime_state and a.async_running == b.async_running
+            and a.async_progress == b.async_progress
+            and _within(a.q_rad, b.q_rad, STILL_DEADBAND_RAD)
+            and _within(a.qd_rad_s, b.qd_rad_s, STILL_DEADBAND_RAD_S)
+            and _within(a.tcp_pose, b.tcp_pose, STILL_DEADBAND_M_RAD))
+
+
+def _within(a: tuple[float, ...], b: tuple[float, ...], tol: float) -> bool:
+    return len(a) == len(b) and all(abs(x - y) <= tol for x, y in zip(a, b, strict=True))
+
+
+def _bind_to_parent() -> None:
+    """The child dies with its parent (Linux: PR_SET_PDEATHSIG) and ignores the terminal's
+    Ctrl-C: the parent stops the arm first and then closes this process itself."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+
+
+def child_main(host: str, parent_pid: int | None = None) -> None:
+    """Serve requests from stdin until it closes; replies go to stdout."""
+    _bind_to_parent()
+    if parent_pid is not None and os.getppid() != parent_pid:
+        os._exit(0)  # the parent died before the death signal was set
+    stdin = sys.stdin.buffer
+    # ur_rtde prints to file descriptor 1: keep the reply stream on a private copy of it and
+    # send fd 1 (and Python's stdout) to stderr.
+    stdout = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)
+    sys.stdout = sys.stderr
+    clients = _Clients(host)
+    lock = threading.Lock()
+
+    pusher_state = _PushState()
+    wake_pusher = threading.Event()  # a call was made: look at the arm at full rate again
+
+    def send(sample: StateSample) -> None:
+        with contextlib.suppress(OSError, ValueError):
+            _write(stdout, (PUSH_ID, True, sample), lock)
+
+    def push() -> None:
+        """One sample to the parent now, when subscribed and there is something to sample."""
+        if clients.push_period_s is None:
+            return
+        try:
+            sample = clients.sample()
+        except Exception:  # no receive client (yet, or any more): nothing to push
+            return
+        pusher_state.pushed(sample, time.monotonic())
+        send(sample)
+
+    def serve(req_id: int, req: Request) -> None:
+        try:
+            reply: tuple[Any, ...] = (req_id, True, clients.handle(req))
+        except Exception as exc:
+            reply = (req_id, False, (type(exc).__name__, str(exc)))
+        if isinstance(req, Call):
+            push()  # before the reply: what the parent reads next reflects the call
+            wake_pusher.set()
+        with contextlib.suppress(OSError, ValueError):
+            _write(stdout, reply, lock)
+        if isinstance(req, Subscribe):
+            threading.Thread(target=pusher, daemon=True, name="pusher").start()
+
+    def pusher() -> None:
+        """Look whether the RTDE data changed every ``PUSH_CHECK_S`` (``RESTING_CHECK_S``
+        while the arm rests), and push when it did, at most once per subscribed period; a
+        still arm's samples only every ``QUIET_PUSH_S`` (see :class:`_PushState`)."""
+        last: tuple[float, bool] | None = None
+        set_timer_slack(PUSHER_TIMER_SLACK_S)
+        while True:
+            resting = pusher_state.resting(time.monotonic())
+            if wake_pusher.wait(RESTING_CHECK_S if resting else PUSH_CHECK_S):
+                wake_pusher.clear()
+            try:
+                key = clients.data_key()
+            except Exception:
+                key = None
+            now = time.monotonic()
+            if key is None or key == last or not pusher_state.due(now, clients.push_period_s):
+                continue
+            last = key
+            try:
+                sample = clients.sample()
+            except Exception:
+                continue
+            for out in pusher_state.offer(sample, now):
+                send(out)
+
+    def kicker() -> None:
+        """Kick the controller's watchdog while the parent lives (see Guard)."""
+        set_timer_slack(PUSHER_TIMER_SLACK_S)
+        while True:
+            time.sleep(KICK_PERIOD_S)
+            if parent_pid is not None and os.getppid() != parent_pid:
+                os._exit(0)  # orphaned: the controller's watchdog stops the arm
+            clients.kick()
+
+    threading.Thread(target=kicker, daemon=True, name="kicker").start()
+    while True:
+        try:
+            req = _read(stdin)
+        except (EOFError, OSError):
+            break
+        clients.parent_seen_s = time.monotonic()
+        if isinstance(req[1], Heartbeat):
+            continue
+        threading.Thread(target=serve, args=req, daemon=True).start()
+    stdout.flush()
+    os._exit(0)  # skip ur_rtde destructors: the parent has already closed what it wanted
+
+
+# -- the parent ------------------------------------------------------------------------------
+
+class ClientProcess:
+    """A child process holding the ur_rtde clients of one controller."""
+
+    def __init__(self, host: str) -> None:
+        self.host = host
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "drivers.ur.client_process", host, str(os.getpid())],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+            process_group=0)  # the terminal's Ctrl-C goes to the parent, which stops the arm
+        self._ids = itertools.count(1)
+        self._pending: dict[int, Future[Any]] = {}
+        self._lock = threading.Lock()
+        self._write_lock = threading.Lock()
+        self.dead_reason: str | None = None
+        # told of every pushed sample (see Subscribe), from the reader thread
+        self.on_push: Callable[[StateSample], None] | None = None
+        threading.Thread(target=self._read_replies, daemon=True,
+                         name=f"ur-client-{host}").start()
+        threading.Thread(target=self._heartbeat, daemon=True,
+                         name=f"ur-heartbeat-{host}").start()
+
+    def _heartbeat(self) -> None:
+        """Tell the child this process lives (it kicks the controller's watchdog only then)."""
+        while self.dead_reason is None:
+            try:
+                assert self._proc.stdin is not None
+                _write(self._proc.stdin, (0, Heartbeat()), self._write_lock)
+            except (OSError, ValueError):
+                return
+            time.sleep(HEARTBEAT_S)
+
+    def _read_replies(self) -> None:
+        assert self._proc.stdout is not None
+        while True:
+            try:
+                req_id, ok, value = _read(self._proc.stdout)
+            except (EOFError, OSError, pickle.UnpicklingError):
+                break
+            if req_id == PUSH_ID:
+                on_push = self.on_push
+                if on_push is not None and ok:
+                    try:
+                        on_push(value)
+                    except Exception:  # the reader must outlive a bad consumer
+                        logging.getLogger(__name__).exception("pushed sample not taken")
+                continue
+            with self._lock:
+                fut = self._pending.pop(req_id, None)
+            if fut is not None:
+                if ok:
+                    fut.set_result(value)
+                else:
+                    fut.set_exception(RemoteError(*value))
+        code = self._proc.poll()
+        self._die(f"the ur_rtde client process ended (exit code {code})")
+
+    def _die(self, reason: str) -> None:
+        with self._lock:
+            if self.dead_reason is None:
+                self.dead_reason = reason
+            pending, self._pending = self._pending, {}
+        for fut in pending.values():
+            fut.set_exception(ClientDied(reason))
+
+    def request(self, req: Request, timeout_s: float = 3.0) -> Any:
+        """Run one request in the child; ClientDied when it is gone or overruns the deadline
+        (the child is then killed: a client that hung once is not trusted again)."""
+        fut: Future[Any] = Future()
+        with self._lock:
+            if self.dead_reason is not None:
+                raise ClientDied(self.dead_reason)
+            req_id = next(self._ids)
+            self._pending[req_id] = fut
+        try:
+            assert self._proc.stdin is not None
+            _write(self._proc.stdin, (req_id, req), self._write_lock)
+        except (OSError, ValueError) as exc:
+            self._die(f"cannot reach the ur_rtde client process: {exc}")
+        try:
+            return fut.result(timeout=timeout_s)
+        except FutureTimeout:
+            self.kill(f"{describe(req)}: no answer from the controller within {timeout_s:g} s")
+            raise ClientDied(self.dead_reason or "timeout") from None
+
+    def kill(self, reason: str) -> None:
+        self._die(reason)
+        if self._proc.poll() is None:
+            self._proc.kill()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            self._proc.wait(timeout=2.0)
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Let the child exit (stdin closed); kill it if it does not."""
+        if self._proc.stdin is not None:
+            with contextlib.suppress(OSError):
+                self._proc.stdin.close()
+        try:
+            self._proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            self._proc.wait(timeout=2.0)
+        self._die("closed")
+
+
+if __name__ == "__main__":
+    # Run the importable module's copy, so the message classes the parent pickles (by their
+    # module name) are the very ones ``handle`` checks against.
+    from drivers.ur.client_process import child_main as _child_main
+
+    _child_main(sys.argv[1], int(sys.argv[2]) if len(sys.argv) > 2 else None)

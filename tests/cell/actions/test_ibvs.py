@@ -1,0 +1,162 @@
+"""The IBVS law against known geometry: the interaction matrix against the numerical
+derivative of projected points, the twist mapping against rigid-body motion, and closed loops
+(kinematic, no arm) from translated and rotated views converging on the desired view."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from cell.actions.ibvs import (
+    AdaptiveGain,
+    Features,
+    base_tcp_twist,
+    camera_twist,
+    camera_twist_from_base,
+    depths_mm,
+    features_from_view,
+    image_error_px,
+    interaction_matrix,
+    limit_twist,
+    predicted,
+    project_normalised,
+    remaining_motion,
+)
+from estimator import CameraModel
+from estimator.transforms import T_from_pose, invert_T, pose_distance
+
+DOTS = np.array([[0, 0, 0], [60, 0, 0], [100, 10, 0], [0, 50, 0], [40, 70, 0], [90, 60, 0.0]])
+T_DESIRED = T_from_pose([-50.0, -35.0, 300.0], [0.05, -0.03, 0.2])  # T_camera_target
+
+
+def _features(T_camera_target: np.ndarray, ids: tuple[int, ...] = tuple(range(6))) -> Features:
+    P = DOTS[list(ids)]
+    return Features(ids, project_normalised(T_camera_target, P), depths_mm(T_camera_target, P))
+
+
+def _move_camera(T_camera_target: np.ndarray, twist: np.ndarray, dt: float) -> np.ndarray:
+    """The target seen from a camera that moved at ``twist`` (its own frame) for ``dt``."""
+    T_old_new = T_from_pose(twist[:3] * dt, twist[3:] * dt)
+    return invert_T(T_old_new) @ T_camera_target
+
+
+def test_interaction_matrix_is_the_derivative_of_the_projections() -> None:
+    f0 = _features(T_DESIRED)
+    L = interaction_matrix(f0.xy, f0.depth_mm)
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        twist = rng.normal(size=6) * np.r_[50.0, 50.0, 50.0, 0.3, 0.3, 0.3]
+        dt = 1e-5
+        f1 = _features(_move_camera(T_DESIRED, twist, dt))
+        numeric = (f1.xy - f0.xy).reshape(-1) / dt
+        assert np.allclose(L @ twist, numeric, rtol=1e-3, atol=1e-6)
+
+
+def test_base_twist_moves_the_tcp_and_the_camera_as_one_body() -> None:
+    T_base_tcp = T_from_pose([-400.0, 100.0, 300.0], [3.0, 0.2, -0.1])
+    T_tcp_camera = T_from_pose([0.0, 60.0, -120.0], [0.01, 0.02, 0.0])
+    T_base_camera = T_base_tcp @ T_tcp_camera
+    v_c = np.array([10.0, -20.0, 5.0, 0.1, -0.2, 0.3])
+    tw = base_tcp_twist(v_c, T_base_camera, T_base_tcp)
+    assert np.allclose(camera_twist_from_base(tw, T_base_camera, T_base_tcp), v_c)
+    dt = 1e-5
+    T_tcp_next = np.eye(4)
+    T_tcp_next[:3, :3] = Rotation.from_rotvec(tw[3:] * dt).as_matrix() @ T_base_tcp[:3, :3]
+    T_tcp_next[:3, 3] = T_base_tcp[:3, 3] + tw[:3] * dt
+    T_cam_next = T_tcp_next @ T_tcp_camera
+    moved = invert_T(T_base_camera) @ T_cam_next  # the camera's motion in its own frame
+    assert np.allclose(moved[:3, 3] / dt, v_c[:3], rtol=1e-3, atol=1e-3)
+    assert np.allclose(Rotation.from_matrix(moved[:3, :3]).as_rotvec() / dt, v_c[3:],
+                       rtol=1e-3, atol=1e-6)
+
+
+def _loop(T_start: np.ndarray, interaction: str, steps: int = 600, dt: float = 0.01,
+          ids: tuple[int, ...] = tuple(range(6))) -> np.ndarray:
+    gain = AdaptiveGain(4.0, 2.0, 30.0)
+    desired = _features(T_DESIRED, ids)
+    T = T_start
+    for _ in range(steps):
+        v = camera_twist(_features(T, ids), desired, gain, interaction)  # type: ignore[arg-type]
+        T = _move_camera(T, v, dt)
+    return T
+
+
+@pytest.mark.parametrize("interaction", ["current", "desired", "mean"])
+@pytest.mark.parametrize("offset", [
+    ([25.0, -15.0, 10.0], [0.0, 0.0, 0.0]),  # pure translation
+    ([0.0, 0.0, 0.0], [0.0, 0.0, np.radians(6.0)]),  # pure rotation about the optical axis
+    ([0.0, 0.0, 0.0], [np.radians(4.0), -np.radians(3.0), 0.0]),  # pure tilt
+    ([25.0, -15.0, 10.0], [0.0, 0.0, np.radians(6.0)]),  # both
+])
+def test_displaced_views_converge_on_the_desired_pose(
+        interaction: str, offset: tuple[list[float], list[float]]) -> None:
+    T_start = T_from_pose(offset[0], offset[1]) @ T_DESIRED
+    T_end = _loop(T_start, interaction)
+    d_mm, d_deg = pose_distance(T_end, T_DESIRED)
+    assert d_mm < 1e-3 and d_deg < 1e-4
+
+
+def test_four_of_six_dots_still_converge() -> None:
+    T_start = T_from_pose([20.0, 10.0, -10.0], [0.0, 0.02, 0.1]) @ T_DESIRED
+    d_mm, d_deg = pose_distance(_loop(T_start, "mean", ids=(0, 1, 4, 5)), T_DESIRED)
+    assert d_mm < 1e-3 and d_deg < 1e-4
+
+
+def test_too_few_dots_are_refused() -> None:
+    f = _features(T_DESIRED, (0, 1, 2))
+    with pytest.raises(ValueError, match="at least 4"):
+        camera_twist(f, f, AdaptiveGain(4.0, 2.0, 30.0))
+
+
+def test_adaptive_gain_runs_from_zero_to_infinity() -> None:
+    g = AdaptiveGain(4.0, 1.0, 30.0)
+    assert g(0.0) == pytest.approx(4.0)
+    assert g(1e6) == pytest.approx(1.0)
+    h = 1e-7
+    assert (g(h) - g(0.0)) / h == pytest.approx(-30.0, rel=1e-3)
+    up = AdaptiveGain(1.0, 4.0, -30.0)  # rising with the error is as well defined
+    assert up(0.0) == pytest.approx(1.0) and up(1e6) == pytest.approx(4.0)
+
+
+def test_limit_twist_keeps_direction_and_acceleration() -> None:
+    t = np.array([300.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+    out = limit_twist(t, t * 250.0 / 300.0, 0.01, 250.0, 2.0, 1500.0, 10.0)
+    assert np.allclose(out, t * 250.0 / 300.0)
+    out = limit_twist(np.array([100.0, 0, 0, 0, 0, 0]), np.zeros(6), 0.01, 250.0, 2.0,
+                      1500.0, 10.0)
+    assert out[0] == pytest.approx(15.0)
+
+
+def test_prediction_moves_features_with_the_camera_and_measured_ones_stay_at_rest() -> None:
+    f = _features(T_DESIRED)
+    P = (DOTS @ T_DESIRED[:3, :3].T) + T_DESIRED[:3, 3]
+    same = predicted(f, np.eye(4), P)
+    assert np.allclose(same.xy, f.xy)
+    step = T_from_pose([1.0, 0.0, 0.0], [0.0, 0.0, 0.0])  # camera now -> then
+    moved = predicted(f, step, P)
+    assert np.allclose(moved.xy, project_normalised(step @ T_DESIRED, DOTS))
+
+
+def test_features_from_pixels_undistort_through_the_lens() -> None:
+    cam = CameraModel(800.0, 800.0, 639.5, 399.5, (-0.05, 0.01, 0.0, 0.0, 0.0))
+    xy = project_normalised(T_DESIRED, DOTS)
+    px = cam.distort_points(xy)
+    f = features_from_view(cam, range(6), px, T_DESIRED, DOTS)
+    assert np.allclose(f.xy, xy, atol=1e-6)
+    assert image_error_px(f, _features(T_DESIRED), cam)[1] < 1e-3
+
+
+def test_remaining_motion_is_the_tcp_displacement_the_view_asks_for() -> None:
+    T_camera_tcp = T_from_pose([0.0, -60.0, 120.0], [0.0, 0.0, 0.0])
+    # the camera (and the TCP with it) turned 0.05 deg about a point near the target: a
+    # hair in the image, a tenth of a millimetre at the TCP
+    pivot = T_from_pose(T_DESIRED[:3, :3] @ DOTS.mean(axis=0) + T_DESIRED[:3, 3], [0, 0, 0])
+    turn = pivot @ T_from_pose([0, 0, 0], [np.radians(0.05), 0, 0]) @ invert_T(pivot)
+    T_now = invert_T(turn) @ T_DESIRED  # the target seen from the turned camera
+    cur, des = _features(T_now), _features(T_DESIRED)
+    assert image_error_px(cur, des, CameraModel(800.0, 800.0, 639.5, 399.5))[0] < 0.05
+    d_mm, d_deg = remaining_motion(cur, des, "mean", T_camera_tcp)
+    expect_mm, expect_deg = pose_distance(turn @ T_camera_tcp, T_camera_tcp)
+    assert d_mm == pytest.approx(expect_mm, rel=0.05) and expect_mm > 0.1
+    assert d_deg == pytest.approx(expect_deg, rel=0.05)
