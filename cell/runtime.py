@@ -6,9 +6,10 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from cell.config.checks import startup_problems
+from cell.config.checks import Problem
 from cell.config.schema import CellConfig, ConfigError, load_config
-from cell.devices.factory import build_hardware
+from cell.config.tokens import token_problems
+from cell.devices.factory import all_simulated, build_hardware, hardware_problems
 from cell.jobs.store import JobStore
 from cell.service import Cell
 from cell.vision.imagelog import ImageLog
@@ -17,6 +18,18 @@ from cell.vision.imagelog import ImageLog
 # HTTP server waits for open connections: the arm must not wait for an SSE client to leave.
 # The app that serves a cell registers its stop here (api.app.app_from_environment).
 SHUTDOWN_HOOKS: list[Callable[[], None]] = []
+
+
+def startup_problems(config: CellConfig) -> list[Problem]:
+    """Every reason ``cell serve`` (and any other start path) refuses the loaded ``config``
+    before a device is touched: the API token and interface rules on real hardware, and the
+    device combinations the factory cannot build. ``cell config check`` fails on the same list,
+    so a config that passes the check is one the service starts with."""
+    problems = []
+    for text in token_problems(config, all_simulated(config)):
+        key, _, message = text.partition(": ")
+        problems.append(Problem(key, message))
+    return problems + hardware_problems(config)
 
 
 def check_startable(config: CellConfig) -> None:

@@ -30,8 +30,8 @@ def run_check(args: argparse.Namespace) -> int:
     # no USB is reachable; no device is touched here, and the warning would corrupt --json.
     os.environ.setdefault("DEPTHAI_LEVEL", "error")
 
-    from cell.config.checks import startup_problems
     from cell.config.schema import ConfigError, load_config
+    from cell.runtime import startup_problems
 
     try:
         config = load_config(args.file)

@@ -17,10 +17,7 @@ import difflib
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
-
-if TYPE_CHECKING:
-    from cell.config.schema import CellConfig
+from typing import Any
 
 # Tables a config with real hardware must state: their defaults fit only the simulated cell.
 REAL_REQUIRED_TABLES: dict[str, str] = {
@@ -100,21 +97,6 @@ def check(data: dict[str, Any]) -> list[Problem]:
             problems.append(Problem(key, f"{message} (if this is intended, list \"{key}\" in "
                                     "[commissioning] accept)"))
     return problems
-
-
-def startup_problems(config: CellConfig) -> list[Problem]:
-    """Every reason ``cell serve`` (and any other start path) refuses the loaded ``config``
-    before a device is touched: the API token and interface rules on real hardware, and the
-    device combinations the factory cannot build. ``cell config check`` fails on the same list,
-    so a config that passes the check is one the service starts with."""
-    from cell.config.tokens import token_problems
-    from cell.devices.factory import all_simulated, hardware_problems
-
-    problems = []
-    for text in token_problems(config, all_simulated(config)):
-        key, _, message = text.partition(": ")
-        problems.append(Problem(key, message))
-    return problems + hardware_problems(config)
 
 
 def _accepted(data: dict[str, Any]) -> tuple[set[str], list[Problem]]:
