@@ -29,7 +29,6 @@ from numpy.typing import NDArray
 
 from cell.actions.servo_law import (
     LawParams,
-    extrapolate_tcp,
     goal_velocity,
     integrate,
     pbvs_twist,
@@ -40,6 +39,7 @@ from cell.actions.target_loss import LossClock, Silence
 from cell.core import CellCore
 from cell.motion.guard import SERVO_MIN_DT_S, Motion
 from cell.motion.limits import CellError, RefusedError, UnavailableError, linear_path
+from cell.motion.twist import extrapolate_tcp
 from cell.vision.frames import approach_tcp
 from cell.vision.locate import Located
 from drivers.errors import DriverError

@@ -57,21 +57,6 @@ def pose_error(T_tcp: Matrix4, T_goal: Matrix4) -> tuple[Vec, Vec]:
     return e_p, np.asarray(e_r, dtype=float)
 
 
-def extrapolate_tcp(T_tcp: Matrix4, twist: Vec, dt_s: float) -> Matrix4:
-    """The TCP ``dt_s`` after a reading taken while it moved at ``twist`` (base frame,
-    mm/s and rad/s, the twist last commanded). The arm's state is a few ms old when the law
-    reads it (the RTDE package period, the hop to the service): uncorrected, the law
-    steers an old pose and, tracking a moving goal, holds the TCP ahead of it by
-    ``speed * age`` (measured: 0.74 mm at 50 mm/s)."""
-    dt = max(float(dt_s), 0.0)
-    out = np.array(T_tcp, dtype=float, copy=True)
-    out[:3, 3] += np.asarray(twist[:3], dtype=float) * dt
-    w = np.asarray(twist[3:], dtype=float)
-    if np.any(w):
-        out[:3, :3] = Rotation.from_rotvec(w * dt).as_matrix() @ out[:3, :3]
-    return out
-
-
 def goal_velocity(T_base_target: Matrix4, T_goal: Matrix4, v_target_mm_s: Vec,
                   w_target_rad_s: Vec) -> Vec:
     """Twist of a goal rigidly attached to a target moving at ``(v, w)`` (base frame)."""

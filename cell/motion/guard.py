@@ -33,7 +33,6 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from cell.actions.servo_law import extrapolate_tcp
 from cell.config.schema import LimitsConfig
 from cell.motion.limits import (
     CellError,
@@ -43,6 +42,7 @@ from cell.motion.limits import (
     UnavailableError,
     linear_path,
 )
+from cell.motion.twist import extrapolate_tcp
 from drivers.arm import Arm, ArmState, JogFrame
 from drivers.errors import (
     ConnectionLostError,

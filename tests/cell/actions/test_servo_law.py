@@ -9,13 +9,13 @@ from scipy.spatial.transform import Rotation
 from cell.actions.servo_law import (
     LawParams,
     braking_speed,
-    extrapolate_tcp,
     goal_velocity,
     integrate,
     pbvs_twist,
     pose_error,
 )
 from cell.actions.target_filter import ConstantVelocityFilter
+from cell.motion.twist import extrapolate_tcp
 from estimator.transforms import make_T, pose_distance
 
 P = LawParams(gain_lin_per_s=10.0, gain_rot_per_s=10.0, max_speed_mm_s=250.0,
