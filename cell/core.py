@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,9 +27,6 @@ from drivers.camera import Camera
 from drivers.gripper import Gripper
 from estimator import Target
 
-if TYPE_CHECKING:
-    from cell.actions.stop import StopLine
-
 
 @dataclass
 class CellCore:
@@ -47,7 +43,6 @@ class CellCore:
     frames: CellFrames
     target: Target
     lock: threading.RLock = field(default_factory=threading.RLock)
-    stopper: StopLine | None = None  # the one stop path (cell.actions.stop); set by the Cell
 
     @property
     def camera(self) -> Camera:

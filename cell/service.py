@@ -80,8 +80,7 @@ class Cell:
         self.links = LinkSupervisor(self.core)
         self.gripper_ops = GripperService(hardware.gripper, audit, self.events)
         self.stopper = StopLine(self.core)
-        self.core.stopper = self.stopper
-        self.jogger = Jogger(self.core)
+        self.jogger = Jogger(self.core, self.stopper.stop)
         self.snapshot = CellSnapshot(self.core, self.links, self.gripper_ops)
         self.started_at = time.time()
 

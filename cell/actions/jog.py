@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -39,8 +40,11 @@ class _Jog:
 
 
 class Jogger:
-    def __init__(self, core: CellCore) -> None:
+    def __init__(self, core: CellCore, stop: Callable[[str, str], object]) -> None:
+        """``stop(caller, reason)`` is the cell's one stop path, taken when the dead-man's
+        heartbeat expires, exactly as ``/stop`` takes it."""
         self.core = core
+        self._stop = stop
         self._jog: _Jog | None = None
         self._lock = threading.Lock()
 
@@ -126,8 +130,7 @@ class Jogger:
                 if time.monotonic() - jog.last_heartbeat_s > timeout_s:
                     reason = "dead-man: heartbeat expired"
                     core.stats.count_deadman_stop()
-                    if core.stopper is not None:  # the one stop path, as /stop takes
-                        core.stopper.stop("service", reason)
+                    self._stop("service", reason)
                     break
                 core.arm.jog(jog.velocity, jog.frame, accel_mm_s2=self._accel())
         except CellError as err:
