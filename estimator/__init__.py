@@ -15,8 +15,9 @@ from estimator.errors import (
     TooFewBlobsError,
 )
 from estimator.pipeline import Estimator
-from estimator.posit import PositResult, posit
+from estimator.posit import PositResult
 from estimator.result import AlternativePose, Blob, PoseResult
+from estimator.seed import posit
 from estimator.solve import solve_pose
 from estimator.target import Target
 

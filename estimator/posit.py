@@ -7,7 +7,8 @@ image points for the perspective it ignored (the epsilons) until they stop chang
 
 The object matrix depends only on the model, so :func:`object_model` computes it once per model
 and caches it; each frame then costs a handful of small matrix products per iteration. Planar
-models make that matrix singular and are handled by :mod:`estimator.coplanar`.
+models make that matrix singular and are handled by :mod:`estimator.coplanar`;
+:func:`estimator.seed.posit` chooses between the two.
 
 Everything runs in undistorted normalised image coordinates, so the focal length is 1.
 """
@@ -23,7 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from estimator.arrays import kernel_array
 from estimator.camera import CameraModel
-from estimator.errors import BehindCameraError, DegenerateGeometryError, TooFewBlobsError
+from estimator.errors import DegenerateGeometryError, TooFewBlobsError
 
 MIN_POINTS = 4
 PLANAR_RATIO = 1e-6  # smallest/largest singular value of the centred model below this: planar
@@ -294,39 +295,3 @@ def posit_general(
     assert rows is not None  # max_iterations >= 1
     T = pose_from_rows(np.array(rows[:3]), rows[3], xy[0], model.points_mm[0])
     return T, iterations, converged
-
-
-def posit(
-    object_points_mm: ArrayLike,
-    image_points_px: ArrayLike,
-    camera: CameraModel,
-    *,
-    max_iterations: int = 100,
-    tolerance_px: float = 1e-4,
-) -> PositResult:
-    """POSIT seed pose from matched points, no refinement (DeMenthon & Davis 1995).
-
-    The first point is the reference point P0. Iteration stops when no perspective-corrected
-    image point moves by more than ``tolerance_px`` (converted to normalised units with the mean
-    focal length) or after ``max_iterations``. The final rotation is orthonormalised with an
-    SVD, because POSIT's rows I/|I| and J/|J| are not exactly orthogonal. Planar models
-    (singular object matrix) go to coplanar POSIT, which also returns the other branch.
-
-    Raises TooFewBlobsError (< 4 points), DegenerateGeometryError (collinear model or image) and
-    BehindCameraError (the best solution puts part of the target behind the camera).
-    """
-    model = object_model(object_points_mm)
-    xy = normalised_image_points(image_points_px, camera, model.n_points)
-    tolerance = tolerance_px / (0.5 * (camera.fx + camera.fy))
-    if model.planar:
-        from estimator.coplanar import posit_coplanar
-
-        return posit_coplanar(model, xy, image_points_px, camera, max_iterations, tolerance)
-    T, iterations, converged = posit_general(model, xy, max_iterations, tolerance)
-    if not all_in_front(T, model.points_mm):
-        raise BehindCameraError(
-            "POSIT put part of the target behind the camera: the image points probably do not "
-            "match the model (check the correspondence)"
-        )
-    rms = reprojection_rms_px(T, model.points_mm, image_points_px, camera)
-    return PositResult(T, iterations, converged, rms)
