@@ -22,8 +22,9 @@ from typing import Annotated, Any
 from fastapi import Depends, Query, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from api.http.errors import AuthError, ForbiddenError
 from cell.config.schema import SAMPLE_TOKENS, ConfigError
+from cell.error_codes import ErrorCode
+from cell.errors import AuthError, ForbiddenError
 
 PERMISSIONS: dict[str, frozenset[str]] = {
     "viewer": frozenset({"read"}),
@@ -84,7 +85,7 @@ class TokenTable:
 
     def lookup(self, token: str | None) -> Caller:
         if not token:
-            raise AuthError("unauthorized", "missing bearer token (Authorization: Bearer ...)")
+            raise AuthError(ErrorCode.unauthorized, "missing bearer token (Authorization: Bearer ...)")
         given = token.encode()
         found: Caller | None = None
         for entry in self._entries:  # no early exit: every entry costs the same
@@ -93,7 +94,7 @@ class TokenTable:
             if secrets.compare_digest(candidate, entry.secret) and found is None:
                 found = entry.caller
         if found is None:
-            raise AuthError("unauthorized", "unknown token")
+            raise AuthError(ErrorCode.unauthorized, "unknown token")
         return found
 
 
@@ -107,7 +108,7 @@ def authorise(request: Request, token: str | None, permission: str) -> Caller:
     caller = table.lookup(token)
     request.state.caller = caller
     if permission not in caller.permissions:
-        raise ForbiddenError("forbidden", f"role {caller.role!r} may not {permission}")
+        raise ForbiddenError(ErrorCode.forbidden, f"role {caller.role!r} may not {permission}")
     return caller
 
 
@@ -116,7 +117,7 @@ def header_token(request: Request, credentials: HTTPAuthorizationCredentials | N
     """The token of a route that takes it only in the Authorization header: a ``?token=``
     there is refused, not ignored (it would end up in proxies' and browsers' logs)."""
     if credentials is None and "token" in request.query_params:
-        raise AuthError("unauthorized", "this route takes the token only in the "
+        raise AuthError(ErrorCode.unauthorized, "this route takes the token only in the "
                         "Authorization header (?token= is for the GET streaming routes)")
     return credentials.credentials if credentials else None
 

@@ -24,13 +24,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from api.auth import ALWAYS, PERMISSIONS
-from api.http.errors import STATUS, ForbiddenError
+from api.http.errors import STATUS
 from cell.actions.ibvs import Features
+from cell.error_codes import ErrorCode
+from cell.errors import CellError, ForbiddenError, LimitError, NotFoundError
 from cell.features.recipes import Recipe, RecipeStore, RecipeTarget
 from cell.features.teach import TaughtStore
 from cell.jobs.audit import AuditNote
 from cell.jobs.store import Job
-from cell.motion.limits import CellError, LimitError, NotFoundError
 from cell.service import Cell
 from cell.vision.frames import approach_tcp
 from cell.vision.locate import Located
@@ -71,7 +72,7 @@ def require(cell: Cell, caller: RemoteCaller, permission: str, command: str,
     if caller.may(permission):
         return
     with cell.core.audit.command(caller.label, command, params):
-        raise ForbiddenError("forbidden", f"role {caller.role!r} may not {permission}")
+        raise ForbiddenError(ErrorCode.forbidden, f"role {caller.role!r} may not {permission}")
 
 
 def require_operator(cell: Cell, caller: RemoteCaller, command: str,
@@ -80,7 +81,7 @@ def require_operator(cell: Cell, caller: RemoteCaller, command: str,
     if caller.role == "operator":
         return
     with cell.core.audit.command(caller.label, command, params):
-        raise ForbiddenError("forbidden", f"role {caller.role!r} may not change recipes; "
+        raise ForbiddenError(ErrorCode.forbidden, f"role {caller.role!r} may not change recipes; "
                              "use an operator's account")
 
 
@@ -101,9 +102,9 @@ def finite(name: str, value: Any, *, minimum: float | None = None) -> float:
     """A float argument, or ``invalid_request`` (bools, NaN and infinities are refused)."""
     if isinstance(value, bool) or not isinstance(value, int | float) \
             or not math.isfinite(float(value)):
-        raise LimitError("invalid_request", f"{name} must be a finite number, got {value!r}")
+        raise LimitError(ErrorCode.invalid_request, f"{name} must be a finite number, got {value!r}")
     if minimum is not None and value < minimum:
-        raise LimitError("invalid_request", f"{name} must be >= {minimum:g}, got {value!r}")
+        raise LimitError(ErrorCode.invalid_request, f"{name} must be >= {minimum:g}, got {value!r}")
     return float(value)
 
 
@@ -136,11 +137,11 @@ def approach(cell: Cell, caller: RemoteCaller, standoff_mm: Any, mode: str,
     try:
         standoff = finite("standoff_mm", standoff_mm, minimum=0.0)
         if mode not in APPROACH_MODES:
-            raise LimitError("invalid_request", f"mode must be one of {', '.join(APPROACH_MODES)}"
+            raise LimitError(ErrorCode.invalid_request, f"mode must be one of {', '.join(APPROACH_MODES)}"
                              f" (or empty), got {mode!r}")
         takes_mode = "mode" in inspect.signature(cell.approach).parameters
         if mode != "look_and_move" and not takes_mode:
-            raise NotSupportedError("not_supported",
+            raise NotSupportedError(ErrorCode.not_supported,
                                     f"approach mode {mode!r} is not available in this cell")
         T_target_tcp, view = taught_pose_and_view(cell, taught or None, mode)
     except CellError:
@@ -161,14 +162,14 @@ def taught_pose_and_view(cell: Cell, taught: str | None, mode: str
     HTTP API refuses (``ibvs_needs_taught``, ``taught_without_view``, ``taught_not_found``)."""
     if taught is None:
         if mode == "ibvs":
-            raise LimitError("ibvs_needs_taught", "mode 'ibvs' converges on a taught view: "
+            raise LimitError(ErrorCode.ibvs_needs_taught, "mode 'ibvs' converges on a taught view: "
                              "give the taught pose's name")
         return None, None
     if not isinstance(taught, str):
-        raise LimitError("invalid_request", f"taught must be a name, got {taught!r}")
+        raise LimitError(ErrorCode.invalid_request, f"taught must be a name, got {taught!r}")
     pose = TaughtStore.beside_job_db(cell.config.api.job_db).get(taught)
     if mode == "ibvs" and pose.view is None:
-        raise LimitError("taught_without_view", f"the pose {taught!r} was taught without its "
+        raise LimitError(ErrorCode.taught_without_view, f"the pose {taught!r} was taught without its "
                          "view (an older record): teach it again for ibvs")
     return pose.T_target_tcp, pose.view if mode == "ibvs" else None
 
@@ -190,7 +191,7 @@ def recipe_store(cell: Cell) -> RecipeStore:
 def recipe_ref(value: Any) -> str | int:
     """A recipe named by its name or its number (a digit string is a number)."""
     if isinstance(value, bool) or not isinstance(value, str | int) or value in ("", 0):
-        raise LimitError("invalid_request", f"recipe must be a name or a number, got {value!r}")
+        raise LimitError(ErrorCode.invalid_request, f"recipe must be a name or a number, got {value!r}")
     if isinstance(value, str) and value.isdigit():
         return int(value)
     return value
@@ -251,7 +252,7 @@ def track(cell: Cell, caller: RemoteCaller, standoff_mm: Any, duration_s: Any) -
         standoff = finite("standoff_mm", standoff_mm, minimum=0.0)
         duration = finite("duration_s", duration_s, minimum=0.0)
         if run is None:
-            raise NotSupportedError("not_supported", "tracking is not available in this cell")
+            raise NotSupportedError(ErrorCode.not_supported, "tracking is not available in this cell")
     except CellError:
         with audited(cell, caller, "track", params):
             raise
@@ -285,7 +286,7 @@ def taught_T_target_tcp(cell: Cell, name: str) -> Matrix4:
     """A taught tool pose from the store beside the job database (as the HTTP API reads it)."""
     store = TaughtStore.beside_job_db(cell.config.api.job_db)
     if not isinstance(name, str) or not name:
-        raise NotFoundError("taught_not_found", f"no taught pose named {name!r}")
+        raise NotFoundError(ErrorCode.taught_not_found, f"no taught pose named {name!r}")
     return store.get(name).T_target_tcp
 
 

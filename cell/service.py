@@ -33,12 +33,13 @@ from cell.actions.stop import StopLine
 from cell.config.schema import CellConfig, HandEyeConfig, PoseConfig
 from cell.core import CellCore
 from cell.devices.hardware import Hardware, SimWorld
+from cell.error_codes import ErrorCode
+from cell.errors import LimitError, NotFoundError
 from cell.jobs.audit import Auditor
 from cell.jobs.events import EventBus
 from cell.jobs.runner import JobRunner
 from cell.jobs.store import Job, JobStore
 from cell.motion.guard import GuardedArm, MotionSlot, driver_error
-from cell.motion.limits import LimitError, NotFoundError
 from cell.stats import CellStats
 from cell.supervision.gripper import GripperService
 from cell.supervision.links import LinkSupervisor
@@ -149,7 +150,7 @@ class Cell:
     def job(self, job_id: str) -> Job:
         job = self.jobs.get(job_id)
         if job is None:
-            raise NotFoundError("job_not_found", f"no job with id {job_id!r}")
+            raise NotFoundError(ErrorCode.job_not_found, f"no job with id {job_id!r}")
         return job
 
     def latest_frame(self) -> Frame:
@@ -198,7 +199,7 @@ class Cell:
                                     duration_s=duration_s, T_target_tcp=T_target_tcp,
                                     view=view, wait=wait, wait_timeout_s=wait_timeout_s)
         if mode != "servo":
-            raise LimitError("invalid_request", f"track mode must be 'servo' or 'ibvs', got "
+            raise LimitError(ErrorCode.invalid_request, f"track mode must be 'servo' or 'ibvs', got "
                              f"{mode!r}")
         return track.start_track(self.core, caller, standoff_mm=standoff_mm,
                                  duration_s=duration_s, T_target_tcp=T_target_tcp, wait=wait,

@@ -16,14 +16,11 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from api.http.schemas import ErrorResponse
-from cell.motion.limits import CellError
+from api.status import STATUS
+from cell.errors import CellError
 
 log = logging.getLogger(__name__)
 
-STATUS = {
-    "invalid": 422, "conflict": 409, "unavailable": 503, "not_found": 404,
-    "unauthorized": 401, "forbidden": 403,
-}
 AUDITED = frozenset({401, 403, 422})
 
 
@@ -46,14 +43,6 @@ UNAVAILABLE: Responses = {503: _resp("a device the request needs is unavailable 
                           "arm_disconnected)")}
 NOT_FOUND: Responses = {404: _resp("no such object (job, taught pose, alarm, image)")}
 DEVICE_ERRORS: Responses = {**CONFLICT, **UNAVAILABLE}
-
-
-class AuthError(CellError):
-    kind = "unauthorized"
-
-
-class ForbiddenError(CellError):
-    kind = "forbidden"
 
 
 def error_body(code: str, message: str) -> dict[str, dict[str, str]]:

@@ -25,7 +25,7 @@ from api.auth import bearer_of
 from api.http.guard import MAX_BODY_BYTES
 from api.http.schemas import StopRequest, StopResult
 from api.http.stop import snapshot_now, stop_now
-from cell.motion.limits import CellError
+from cell.errors import CellError
 from cell.supervision.snapshot import with_age
 
 STATUS_PATH = "/api/v1/status"

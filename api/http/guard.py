@@ -19,7 +19,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from api.auth import bearer_of
 from api.http.errors import error_body
-from cell.motion.limits import CellError
+from cell.errors import CellError
 
 log = logging.getLogger(__name__)
 

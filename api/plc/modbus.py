@@ -46,8 +46,8 @@ from pymodbus.server.requesthandler import ServerRequestHandler
 from api import remote
 from api.remote import RemoteCaller
 from cell.config.schema import ModbusConfig
+from cell.errors import CellError
 from cell.jobs.store import Job
-from cell.motion.limits import CellError
 from cell.service import Cell
 
 log = logging.getLogger(__name__)

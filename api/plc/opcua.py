@@ -53,7 +53,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 from api import remote
 from api.remote import RemoteCaller
 from cell.config.schema import OpcUaConfig
-from cell.motion.limits import CellError
+from cell.errors import CellError
 from cell.service import Cell
 
 log = logging.getLogger(__name__)

@@ -45,8 +45,9 @@ from api import remote
 from api.plc.machine_vision_memory import MachineVisionMemory, Remembered
 from api.plc.modbus import UNKNOWN_ERROR, error_number
 from api.remote import RemoteCaller
+from cell.error_codes import ErrorCode
+from cell.errors import CellError, RefusedError
 from cell.features.recipes import parse_spec
-from cell.motion.limits import CellError, RefusedError
 
 if TYPE_CHECKING:
     from api.plc.opcua import OpcUaServer
@@ -230,7 +231,7 @@ class MachineVision:
 
     def _need(self, *states: str) -> None:
         if self.state not in states:
-            raise RefusedError("not_ready", f"the vision system is {self.state}; this needs "
+            raise RefusedError(ErrorCode.not_ready, f"the vision system is {self.state}; this needs "
                                f"{' or '.join(states)}")
 
     async def _select_automatic(self, parent: ua.NodeId) -> list[ua.Variant]:
@@ -293,14 +294,14 @@ class MachineVision:
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             self._need(OPERATIONAL)
             if self.sub_state in (SINGLE, CONTINUOUS):
-                raise RefusedError("busy", f"the vision system is in {self.sub_state}")
+                raise RefusedError(ErrorCode.busy, f"the vision system is in {self.sub_state}")
             if recipe_id:
                 recipe, _ = remote.prepare_recipe(self.opc.cell, remote.recipe_ref(recipe_id))
                 if recipe.name != self.prepared:
                     self.prepared = recipe.name
                     self._remember()
             if not self.prepared:
-                raise RefusedError("not_ready", "no recipe is prepared: PrepareRecipe first")
+                raise RefusedError(ErrorCode.not_ready, "no recipe is prepared: PrepareRecipe first")
             start = remote.approach_recipe if kind == SINGLE else remote.track_recipe
             job = start(self.opc.cell, caller, self.prepared)
             self.running_job, self.sub_state = job.id, kind
@@ -322,9 +323,9 @@ class MachineVision:
             try:
                 data = json.loads(str(content or "{}"))
             except ValueError as err:
-                raise remote.LimitError("invalid_recipe", f"Content is not JSON: {err}") from err
+                raise remote.LimitError(ErrorCode.invalid_recipe, f"Content is not JSON: {err}") from err
             if not isinstance(data, dict):
-                raise remote.LimitError("invalid_recipe", "Content must be a JSON object")
+                raise remote.LimitError(ErrorCode.invalid_recipe, "Content must be a JSON object")
             data.setdefault("name", external_id)
             if product_id:
                 data.setdefault("number", int(product_id) if str(product_id).isdigit()
@@ -356,7 +357,7 @@ class MachineVision:
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             if external_id not in ("", self.prepared):
-                raise remote.NotFoundError("recipe_not_found",
+                raise remote.NotFoundError(ErrorCode.recipe_not_found,
                                            f"recipe {external_id!r} is not prepared")
             self.prepared = ""
             if self.state == OPERATIONAL and self.sub_state == READY:
@@ -375,7 +376,7 @@ class MachineVision:
             remote.require_operator(self.opc.cell, caller, "remove_recipe",
                                     {"name": external_id})
             if external_id == self.prepared:
-                raise RefusedError("recipe_prepared", "UnprepareRecipe first")
+                raise RefusedError(ErrorCode.recipe_prepared, "UnprepareRecipe first")
             remote.recipe_store(self.opc.cell).delete(str(external_id or ""))
             return []
 

@@ -35,10 +35,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from api import remote
-from api.http.errors import ForbiddenError
 from api.remote import RemoteCaller
 from cell.config.schema import UrscriptConfig
-from cell.motion.limits import CellError
+from cell.error_codes import ErrorCode
+from cell.errors import CellError, ForbiddenError
 from cell.service import Cell
 
 log = logging.getLogger(__name__)
@@ -111,7 +111,7 @@ class _Methods:
 
     def status(self, caller: RemoteCaller) -> str:
         if not caller.may("read"):
-            raise ForbiddenError("forbidden", f"role {caller.role!r} may not read")
+            raise ForbiddenError(ErrorCode.forbidden, f"role {caller.role!r} may not read")
         return str(self.cell.status().get("state", "unknown"))
 
     def table(self) -> dict[str, Callable[..., Any]]:

@@ -23,9 +23,10 @@ from cell.actions.ibvs import Features
 from cell.actions.ibvs_run import IbvsRun
 from cell.actions.servo import ServoGoal, ServoRun
 from cell.core import CellCore
+from cell.error_codes import ErrorCode
+from cell.errors import CellError, LimitError, RefusedError, UnavailableError
 from cell.jobs.store import Job
 from cell.motion.guard import Motion
-from cell.motion.limits import CellError, LimitError, RefusedError, UnavailableError
 from cell.vision.frames import approach_tcp, observation_camera
 from cell.vision.locate import Located
 from estimator.transforms import pose_dict, pose_distance
@@ -69,12 +70,12 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
     ac = core.config.approach
     how = ac.mode if mode is None else mode
     if how not in ("servo", "look_and_move", "ibvs"):
-        raise RefusedError("invalid_request", f"approach mode must be 'servo', "
+        raise RefusedError(ErrorCode.invalid_request, f"approach mode must be 'servo', "
                            f"'look_and_move' or 'ibvs', got {mode!r}")
     if how == "ibvs":
         standoff_mm = check_ibvs_request(view, standoff_mm, use_last_locate)
         if core.frames.is_fixed:
-            raise RefusedError("not_supported", "mode 'ibvs' is for a camera on the flange; "
+            raise RefusedError(ErrorCode.not_supported, "mode 'ibvs' is for a camera on the flange; "
                                "a fixed camera approaches by look_and_move")
     plan = ApproachPlan(
         standoff_mm=ac.standoff_mm if standoff_mm is None else float(standoff_mm),
@@ -92,11 +93,11 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
 
     def check(motion: Motion) -> None:
         if not np.isfinite(plan.standoff_mm) or plan.standoff_mm < 0:
-            raise LimitError("invalid_standoff", "standoff_mm must be a number >= 0")
+            raise LimitError(ErrorCode.invalid_standoff, "standoff_mm must be a number >= 0")
         core.arm.guard.check_speed(plan.speed_mm_s, plan.accel_mm_s2)
         st = core.arm.ready_state()
         if not core.camera.is_connected:
-            raise UnavailableError("camera_lost", "the camera is lost: approach needs it "
+            raise UnavailableError(ErrorCode.camera_lost, "the camera is lost: approach needs it "
                                    "(jogging is still possible)")
         # the servo re-estimates from every frame: one frame to start from is enough
         n_frames = 1 if how in ("servo", "ibvs") else ac.frames_per_locate
@@ -136,14 +137,14 @@ def check_ibvs_request(view: Features | None, standoff_mm: float | None,
     """An IBVS job converges on a taught view: it needs one, and it goes to that view itself
     (a standoff would be a view nobody showed). Returns the standoff (0)."""
     if view is None:
-        raise LimitError("taught_without_view", "mode 'ibvs' needs a pose taught with its "
+        raise LimitError(ErrorCode.taught_without_view, "mode 'ibvs' needs a pose taught with its "
                          "view (give `taught`; poses taught before views were recorded serve "
                          "servo and look_and_move only: teach it again for ibvs)")
     if standoff_mm not in (None, 0, 0.0):
-        raise LimitError("invalid_standoff", "mode 'ibvs' goes to the taught view itself: "
+        raise LimitError(ErrorCode.invalid_standoff, "mode 'ibvs' goes to the taught view itself: "
                          f"standoff_mm must be 0 or absent, got {standoff_mm}")
     if use_last_locate:
-        raise LimitError("invalid_request", "mode 'ibvs' servos on live frames; "
+        raise LimitError(ErrorCode.invalid_request, "mode 'ibvs' servos on live frames; "
                          "use_last_locate does not apply")
     return 0.0
 
@@ -151,11 +152,11 @@ def check_ibvs_request(view: Features | None, standoff_mm: float | None,
 def _last_locate(core: CellCore) -> Located:
     loc = core.locator.last
     if loc is None:
-        raise RefusedError("stale_pose", "no target has been located yet")
+        raise RefusedError(ErrorCode.stale_pose, "no target has been located yet")
     age = time.monotonic() - loc.frame_timestamp_s
     limit = core.config.limits.max_pose_age_s
     if age > limit:
-        raise RefusedError("stale_pose", f"the last located pose is {age:.1f} s old (limit "
+        raise RefusedError(ErrorCode.stale_pose, f"the last located pose is {age:.1f} s old (limit "
                            f"{limit} s); locate again")
     return loc
 

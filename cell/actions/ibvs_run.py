@@ -58,11 +58,13 @@ from cell.actions.servo import (
     STILL_TIMEOUT_S,
     _stats_ms,
 )
-from cell.actions.servo_law import extrapolate_tcp
 from cell.actions.target_loss import LossClock, Silence
 from cell.core import CellCore
+from cell.error_codes import ErrorCode
+from cell.errors import CellError, RefusedError, UnavailableError
 from cell.motion.guard import SERVO_MIN_DT_S, Motion
-from cell.motion.limits import CellError, RefusedError, UnavailableError, linear_path
+from cell.motion.limits import linear_path
+from cell.motion.twist import extrapolate_tcp
 from drivers.errors import DriverError
 from estimator.transforms import invert_T, pose_dict, pose_distance
 
@@ -162,7 +164,7 @@ class IbvsRun:
                 # a degenerate estimate (a dot behind the camera, a bad id): not a view
                 log.warning("frame %d gave no IBVS view: %r", frame.sequence, err)
                 self._failed_frames += 1
-                self._last_error = RefusedError("estimation_failed", f"no view: {err}")
+                self._last_error = RefusedError(ErrorCode.estimation_failed, f"no view: {err}")
                 with self._lock:
                     self._loss.examined(frame.timestamp_s)
                 continue
@@ -193,7 +195,7 @@ class IbvsRun:
         if len(common) < MIN_FEATURES:
             self._few_dots_frames += 1
             self._last_error = RefusedError(
-                "target_lost", f"only {len(common)} of the taught view's dots matched (at "
+                ErrorCode.target_lost, f"only {len(common)} of the taught view's dots matched (at "
                 f"least {MIN_FEATURES} are needed)")
             return None
         px = np.asarray(result.image_points_px, dtype=float).reshape(-1, 2)
@@ -241,7 +243,7 @@ class IbvsRun:
             self.motion.raise_if_cancelled("while servoing on the image")
             if self._thread_error is not None:
                 self._stop_still()
-                raise RefusedError("estimator_failed", f"the IBVS frame thread failed: "
+                raise RefusedError(ErrorCode.estimator_failed, f"the IBVS frame thread failed: "
                                    f"{self._thread_error!r}")
             with self._lock:
                 silence, view = self._loss.silence(tick), self._view
@@ -253,7 +255,7 @@ class IbvsRun:
             try:
                 state = arm.state()
             except DriverError as err:
-                raise UnavailableError("arm_disconnected", f"reading the arm: {err}") from err
+                raise UnavailableError(ErrorCode.arm_disconnected, f"reading the arm: {err}") from err
             held_s = 0.0 if t_prev is None else min(tick, t_prev + sc.watchdog_s) \
                 - state.timestamp_s
             T_tcp = extrapolate_tcp(state.T_base_tcp, prev,
@@ -295,7 +297,7 @@ class IbvsRun:
                             break
             if self.mode == "approach" and tick - t0 > ic.approach_timeout_s:
                 self._stop_still()
-                raise RefusedError("servo_timeout", f"the IBVS approach did not converge "
+                raise RefusedError(ErrorCode.servo_timeout, f"the IBVS approach did not converge "
                                    f"within {ic.approach_timeout_s} s (image error "
                                    f"{last_px[0]:.3f} px RMS, {last_px[1]:.3f} px max)")
             if self.mode == "track" and self.duration_s is not None \
@@ -364,7 +366,7 @@ class IbvsRun:
         try:
             arm.stop(decel_mm_s2=self.sc.stop_decel_mm_s2)
         except DriverError as err:
-            raise UnavailableError("arm_disconnected", f"stopping the arm: {err}") from err
+            raise UnavailableError(ErrorCode.arm_disconnected, f"stopping the arm: {err}") from err
         deadline = t0 + STILL_TIMEOUT_S
         while time.monotonic() < deadline:
             try:
@@ -390,7 +392,7 @@ class IbvsRun:
             what = (f"no frame examined for {silence.stalled_s * 1000:.0f} ms (limit "
                     f"{self._loss.stall_after_s * 1000:.0f} ms: the camera or the estimator "
                     "stalled)")
-        raise RefusedError("target_lost", what
+        raise RefusedError(ErrorCode.target_lost, what
                            + (f"; {why.message}" if why is not None else "")
                            + f"; {self._failed_frames} frames without the target, "
                            f"{self._few_dots_frames} with fewer than {MIN_FEATURES} taught "

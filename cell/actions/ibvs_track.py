@@ -19,9 +19,10 @@ from cell.actions.approach import check_ibvs_request, locate
 from cell.actions.ibvs import Features
 from cell.actions.ibvs_run import IbvsRun
 from cell.core import CellCore
+from cell.error_codes import ErrorCode
+from cell.errors import LimitError, RefusedError, UnavailableError
 from cell.jobs.store import Job
 from cell.motion.guard import Motion
-from cell.motion.limits import LimitError, RefusedError, UnavailableError
 from estimator.transforms import pose_dict
 
 Matrix4 = NDArray[np.float64]
@@ -33,7 +34,7 @@ def start_ibvs_track(core: CellCore, caller: str, *, standoff_mm: float, duratio
     sc = core.config.servo
     check_ibvs_request(view, standoff_mm)
     if core.frames.is_fixed:
-        raise RefusedError("not_supported", "mode 'ibvs' is for a camera on the flange")
+        raise RefusedError(ErrorCode.not_supported, "mode 'ibvs' is for a camera on the flange")
     T_tt = (core.config.approach.T_target_tcp.T() if T_target_tcp is None
             else np.asarray(T_target_tcp, dtype=float))
     duration = float(duration_s)
@@ -42,11 +43,11 @@ def start_ibvs_track(core: CellCore, caller: str, *, standoff_mm: float, duratio
 
     def check(motion: Motion) -> None:
         if not (np.isfinite(duration) and 0 < duration <= sc.max_track_s):
-            raise LimitError("duration_limit", f"duration_s must be within (0, "
+            raise LimitError(ErrorCode.duration_limit, f"duration_s must be within (0, "
                              f"{sc.max_track_s}] (servo.max_track_s), got {duration_s}")
         st = core.arm.ready_state()
         if not core.camera.is_connected:
-            raise UnavailableError("camera_lost", "the camera is lost: tracking needs it")
+            raise UnavailableError(ErrorCode.camera_lost, "the camera is lost: tracking needs it")
         loc = locate(core, 1)
         core.arm.guard.check_goal(st.T_base_tcp, loc.T_base_target @ T_tt, "tracking goal")
 

@@ -19,8 +19,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cell.core import CellCore
+from cell.error_codes import ErrorCode
+from cell.errors import CellError, RefusedError
 from cell.motion.guard import Motion
-from cell.motion.limits import CellError, RefusedError
 from cell.vision.frames import step_goal
 from drivers.arm import JogFrame
 from drivers.errors import DriverError
@@ -104,7 +105,7 @@ class Jogger:
         with self._lock:
             jog = self._jog
             if jog is None or self.core.slot.current is not jog.motion:
-                raise RefusedError("not_jogging", "no continuous jog is running (it may have "
+                raise RefusedError(ErrorCode.not_jogging, "no continuous jog is running (it may have "
                                    "stopped: dead-man expired, stop, or a limit)")
             jog.last_heartbeat_s = time.monotonic()
             return self._info(jog)

@@ -12,9 +12,10 @@ from typing import Any
 import numpy as np
 
 from cell.core import CellCore
+from cell.error_codes import ErrorCode
+from cell.errors import RefusedError
 from cell.jobs.store import Job
 from cell.motion.guard import Motion, driver_error
-from cell.motion.limits import RefusedError
 from drivers.errors import DriverError, UnlockTooEarlyError
 from estimator.transforms import pose_dict
 
@@ -51,7 +52,7 @@ def unlock(core: CellCore, caller: str) -> dict[str, Any]:
             before = core.arm.state()
             core.arm.recover_protective_stop()
         except UnlockTooEarlyError as err:
-            raise RefusedError("unlock_too_early", f"the controller refuses to unlock yet: try "
+            raise RefusedError(ErrorCode.unlock_too_early, f"the controller refuses to unlock yet: try "
                                f"again in {err.retry_in_s:.1f} s (inspect the cause of the stop "
                                "meanwhile)") from err
         except DriverError as err:

@@ -37,8 +37,10 @@ from cell.actions.servo_law import (
 from cell.actions.target_filter import ConstantVelocityFilter
 from cell.actions.target_loss import LossClock, Silence
 from cell.core import CellCore
+from cell.error_codes import ErrorCode
+from cell.errors import CellError, RefusedError, UnavailableError
 from cell.motion.guard import SERVO_MIN_DT_S, Motion
-from cell.motion.limits import CellError, RefusedError, UnavailableError, linear_path
+from cell.motion.limits import linear_path
 from cell.motion.twist import extrapolate_tcp
 from cell.vision.frames import approach_tcp
 from cell.vision.locate import Located
@@ -163,7 +165,7 @@ class ServoRun:
                     self._gated += 1  # not this target's motion: a wrong match
                     self._loss.examined(frame.timestamp_s)
                     self._last_error = RefusedError(
-                        "pose_jump", f"a pose {d_mm:.1f} mm / {d_deg:.1f} deg from the "
+                        ErrorCode.pose_jump, f"a pose {d_mm:.1f} mm / {d_deg:.1f} deg from the "
                         "prediction was not used")
                     continue
                 self.filter.update(frame.timestamp_s, T_bt)
@@ -211,13 +213,13 @@ class ServoRun:
                 self._lost(silence)
             if tick - est.measured_at_s > max_age:
                 self._stop_still()
-                raise RefusedError("stale_pose", f"the newest target pose is "
+                raise RefusedError(ErrorCode.stale_pose, f"the newest target pose is "
                                    f"{tick - est.measured_at_s:.2f} s old (limit {max_age} s)")
             goal = self.goal.tcp(est.T_base_target)
             try:
                 state = arm.state()
             except DriverError as err:
-                raise UnavailableError("arm_disconnected", f"reading the arm: {err}") from err
+                raise UnavailableError(ErrorCode.arm_disconnected, f"reading the arm: {err}") from err
             # the TCP now: the reading (a few ms old) moved on by the twist last sent, for as
             # long as the arm kept that twist (its watchdog brakes it after watchdog_s)
             held_s = 0.0 if t_prev is None else min(tick, t_prev + sc.watchdog_s) \
@@ -247,7 +249,7 @@ class ServoRun:
                         break
             if self.mode == "approach" and tick - t0 > sc.approach_timeout_s:
                 self._stop_still()
-                raise RefusedError("servo_timeout", f"the servo approach did not converge "
+                raise RefusedError(ErrorCode.servo_timeout, f"the servo approach did not converge "
                                    f"within {sc.approach_timeout_s} s (error {last_est[0]:.2f} "
                                    f"mm / {last_est[1]:.3f} deg)")
             if self.mode == "track" and self.duration_s is not None \
@@ -318,7 +320,7 @@ class ServoRun:
         try:
             arm.stop(decel_mm_s2=self.sc.stop_decel_mm_s2)
         except DriverError as err:
-            raise UnavailableError("arm_disconnected", f"stopping the arm: {err}") from err
+            raise UnavailableError(ErrorCode.arm_disconnected, f"stopping the arm: {err}") from err
         deadline = t0 + STILL_TIMEOUT_S
         while time.monotonic() < deadline:
             try:
@@ -344,7 +346,7 @@ class ServoRun:
         else:
             what = (f"no frame examined for {silence.stalled_s * 1000:.0f} ms (limit "
                     f"{stall_s * 1000:.0f} ms: the camera or the estimator stalled")
-        raise RefusedError("target_lost", what
+        raise RefusedError(ErrorCode.target_lost, what
                            + (f"; {why.message}" if why is not None else "")
                            + f"; {self._failed_frames} frames without the target, "
                            f"{self._gated} gated as jumps, {self._stale_frames} too old"

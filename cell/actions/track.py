@@ -16,9 +16,10 @@ from numpy.typing import NDArray
 from cell.actions.approach import locate
 from cell.actions.servo import ServoGoal, ServoRun
 from cell.core import CellCore
+from cell.error_codes import ErrorCode
+from cell.errors import LimitError, UnavailableError
 from cell.jobs.store import Job
 from cell.motion.guard import Motion
-from cell.motion.limits import LimitError, UnavailableError
 from cell.vision.frames import approach_tcp
 from cell.vision.locate import Located
 from estimator.transforms import pose_dict
@@ -41,13 +42,13 @@ def start_track(core: CellCore, caller: str, *, standoff_mm: float, duration_s: 
 
     def check(motion: Motion) -> None:
         if not np.isfinite(standoff) or standoff < 0:
-            raise LimitError("invalid_standoff", "standoff_mm must be a number >= 0")
+            raise LimitError(ErrorCode.invalid_standoff, "standoff_mm must be a number >= 0")
         if not (np.isfinite(duration) and 0 < duration <= sc.max_track_s):
-            raise LimitError("duration_limit", f"duration_s must be within (0, "
+            raise LimitError(ErrorCode.duration_limit, f"duration_s must be within (0, "
                              f"{sc.max_track_s}] (servo.max_track_s), got {duration_s}")
         st = core.arm.ready_state()
         if not core.camera.is_connected:
-            raise UnavailableError("camera_lost", "the camera is lost: tracking needs it")
+            raise UnavailableError(ErrorCode.camera_lost, "the camera is lost: tracking needs it")
         loc = locate(core, 1)
         core.arm.guard.check_goal(st.T_base_tcp, approach_tcp(loc.T_base_target, T_tt, standoff),
                                   "tracking goal")

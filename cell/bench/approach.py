@@ -35,7 +35,7 @@ from scipy.spatial.transform import Rotation
 
 from cell.config.schema import CellConfig, load_config, parse_config
 from cell.devices.hardware import SimWorld
-from cell.motion.limits import CellError
+from cell.errors import CellError
 from cell.runtime import freeze_startup_objects, start_cell
 from cell.service import Cell
 from cell.vision.frames import approach_tcp

@@ -33,8 +33,8 @@ from scipy.spatial.transform import Rotation
 
 from cell.bench.approach import CALLER, bench_config
 from cell.config.schema import CellConfig, parse_config
+from cell.errors import CellError
 from cell.features.teach import TaughtPose, TaughtStore, teach
-from cell.motion.limits import CellError
 from cell.runtime import start_cell
 from cell.service import Cell
 from estimator.transforms import T_from_pose, invert_T, pose_distance

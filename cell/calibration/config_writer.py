@@ -29,14 +29,21 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.config.schema import CellConfig, ConfigError, parse_config
+from cell.error_codes import ErrorCode
+from cell.errors import CellError
 from estimator.transforms import pose_dict, pose_distance, pose_from_T
 
 TABLE = "hand_eye"
 _HEADER = re.compile(r"^\s*\[\[?\s*([A-Za-z0-9_\-.\"' ]+?)\s*\]\]?\s*(#.*)?$")
 
 
-class ConfigWriteError(Exception):
-    code = "config_write_failed"
+class ConfigWriteError(CellError):
+    """The calibrated mount could not be written to the config file; the file is unchanged."""
+
+    kind = "unavailable"
+
+    def __init__(self, message: str) -> None:
+        super().__init__(ErrorCode.config_write_failed, message)
 
 
 @dataclass(frozen=True)

@@ -33,6 +33,8 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from cell.error_codes import ErrorCode
+from cell.errors import CellError
 from estimator import CameraModel, Target
 from estimator.calib.board import Board
 from estimator.transforms import T_from_pose_dict, T_from_ur_pose, pose_dict
@@ -42,13 +44,10 @@ DATASET_FILE = "dataset.json"
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
 
 
-class DatasetError(Exception):
+class DatasetError(CellError):
     """The folder is missing, incomplete or holds a file that cannot be read."""
 
-    def __init__(self, code: str, message: str) -> None:
-        super().__init__(message)
-        self.code = code
-        self.message = message
+    kind = "invalid"
 
 
 @dataclass(frozen=True)
@@ -62,7 +61,7 @@ class View:
     def load_image(self) -> NDArray[np.uint8]:
         img = cv2.imread(str(self.image_path), cv2.IMREAD_GRAYSCALE)
         if img is None:
-            raise DatasetError("image_unreadable", f"cannot read image {self.image_path}")
+            raise DatasetError(ErrorCode.image_unreadable, f"cannot read image {self.image_path}")
         return np.asarray(img, dtype=np.uint8)
 
 
@@ -80,13 +79,13 @@ def load_dataset(folder: str | Path) -> HandEyeDataset:
     """Read either format, recognised by its files."""
     d = Path(folder)
     if not d.is_dir():
-        raise DatasetError("dataset_not_found", f"{d} is not a folder")
+        raise DatasetError(ErrorCode.dataset_not_found, f"{d} is not a folder")
     if (d / DATASET_FILE).is_file():
         return load_project_dataset(d)
     if any(d.glob("*_rPe_*.yaml")):
         return load_visp_dataset(d)
     raise DatasetError(
-        "dataset_not_found",
+        ErrorCode.dataset_not_found,
         f"{d} holds neither a {DATASET_FILE} nor ViSP robot poses (*_rPe_N.yaml)",
     )
 
@@ -103,19 +102,19 @@ def load_visp_dataset(folder: str | Path) -> HandEyeDataset:
         key=lambda item: item[0],
     )
     if not poses:
-        raise DatasetError("dataset_not_found", f"no *_rPe_N.yaml robot poses in {d}")
+        raise DatasetError(ErrorCode.dataset_not_found, f"no *_rPe_N.yaml robot poses in {d}")
     images = _numbered_images(d)
     views = []
     for n, pose_path in poses:
         if n not in images:
             raise DatasetError(
-                "image_missing",
+                ErrorCode.image_missing,
                 f"no image numbered {n} (e.g. *_image-{n}.png) for {pose_path.name}",
             )
         views.append(View(images[n].stem, images[n], read_visp_pose(pose_path)))
     xmls = sorted(d.glob("*.xml"))
     if not xmls:
-        raise DatasetError("camera_missing", f"no camera xml (vpXmlParserCamera) in {d}")
+        raise DatasetError(ErrorCode.camera_missing, f"no camera xml (vpXmlParserCamera) in {d}")
     camera = read_visp_camera(xmls[0])
     board = read_visp_board(d / "chessboard-data.txt")
     return HandEyeDataset(camera, board, tuple(views), "visp", d)
@@ -135,7 +134,7 @@ def read_visp_pose(path: Path) -> NDArray[np.float64]:
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as err:
-        raise DatasetError("pose_unreadable", f"cannot read robot pose {path}: {err}") from err
+        raise DatasetError(ErrorCode.pose_unreadable, f"cannot read robot pose {path}: {err}") from err
     # vpPoseVector::saveYAML writes {rows: 6, cols: 1, data: [[tx], [ty], ...]}.
     values: list[float] = []
     try:
@@ -147,7 +146,7 @@ def read_visp_pose(path: Path) -> NDArray[np.float64]:
         values = []
     if len(values) != 6 or not np.all(np.isfinite(values)):
         raise DatasetError(
-            "pose_unreadable",
+            ErrorCode.pose_unreadable,
             f"{path} is not a ViSP pose (rows: 6, cols: 1, data: 6 numbers [t m, theta-u rad])",
         )
     return T_from_ur_pose(values)
@@ -175,7 +174,7 @@ def read_visp_camera(path: Path) -> CameraModel:
             (kud, 0.0, 0.0, 0.0, 0.0) if kud != 0.0 else (), width, height,
         )
     except (ET.ParseError, ValueError, OSError) as err:
-        raise DatasetError("camera_unreadable", f"cannot read camera {path}: {err}") from err
+        raise DatasetError(ErrorCode.camera_unreadable, f"cannot read camera {path}: {err}") from err
 
 
 def _xml_text(node: ET.Element, tag: str) -> str:
@@ -190,12 +189,12 @@ def read_visp_board(path: Path) -> Board:
     try:
         text = path.read_text()
     except OSError as err:
-        raise DatasetError("board_missing", f"cannot read board description {path}") from err
+        raise DatasetError(ErrorCode.board_missing, f"cannot read board description {path}") from err
     size = re.search(r"(\d+)\s*x\s*(\d+)", text)
     square = re.search(r"square size:\s*([0-9.eE+-]+)\s*m", text)
     if not size or not square:
         raise DatasetError(
-            "board_unreadable", f"{path} should give 'C x R' and 'square size: S m'"
+            ErrorCode.board_unreadable, f"{path} should give 'C x R' and 'square size: S m'"
         )
     return Board("chessboard", int(size[1]), int(size[2]), round(float(square[1]) * 1000.0, 9))
 
@@ -209,7 +208,7 @@ def load_project_dataset(folder: str | Path) -> HandEyeDataset:
     try:
         data = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise DatasetError("dataset_invalid", f"cannot read {path}: {err}") from err
+        raise DatasetError(ErrorCode.dataset_invalid, f"cannot read {path}: {err}") from err
     try:
         if data.get("format") != FORMAT_NAME:
             raise ValueError(f'"format" must be "{FORMAT_NAME}"')
@@ -232,7 +231,7 @@ def load_project_dataset(folder: str | Path) -> HandEyeDataset:
                 T = T_from_pose_dict(v["T_base_flange"])
             except (KeyError, TypeError, ValueError) as err:
                 raise DatasetError(
-                    "pose_unreadable", f"{path}: views[{k}].T_base_flange is not a pose object "
+                    ErrorCode.pose_unreadable, f"{path}: views[{k}].T_base_flange is not a pose object "
                     f'{{"position_mm": [x, y, z], "rotvec_rad": [rx, ry, rz]}} ({err})'
                 ) from err
             image = d / str(v["image"])
@@ -240,7 +239,7 @@ def load_project_dataset(folder: str | Path) -> HandEyeDataset:
     except DatasetError:
         raise
     except (KeyError, TypeError, ValueError, AttributeError) as err:
-        raise DatasetError("dataset_invalid", f"{path}: {err!r}") from err
+        raise DatasetError(ErrorCode.dataset_invalid, f"{path}: {err!r}") from err
     return HandEyeDataset(camera, board, tuple(views), "project", d, target)
 
 
@@ -252,7 +251,7 @@ def new_dataset_folder(folder: str | Path) -> Path:
     """
     d = Path(folder)
     if (d / DATASET_FILE).exists():
-        raise DatasetError("dataset_exists", f"{d} already holds a {DATASET_FILE}: choose a "
+        raise DatasetError(ErrorCode.dataset_exists, f"{d} already holds a {DATASET_FILE}: choose a "
                            "new folder (a calibration's record is never overwritten)")
     try:
         d.mkdir(parents=True, exist_ok=True)
@@ -260,7 +259,7 @@ def new_dataset_folder(folder: str | Path) -> Path:
         probe.write_bytes(b"")
         probe.unlink()
     except OSError as err:
-        raise DatasetError("dataset_unwritable", f"cannot write to {d}: {err}") from err
+        raise DatasetError(ErrorCode.dataset_unwritable, f"cannot write to {d}: {err}") from err
     return d
 
 
@@ -277,11 +276,11 @@ def save_project_dataset(
     try:
         d.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        raise DatasetError("dataset_unwritable", f"cannot create {d}: {err}") from err
+        raise DatasetError(ErrorCode.dataset_unwritable, f"cannot create {d}: {err}") from err
     if images is not None:
         for (name, _), img in zip(views, images, strict=True):
             if not cv2.imwrite(str(d / name), img):
-                raise DatasetError("image_unwritable", f"cannot write {d / name}")
+                raise DatasetError(ErrorCode.image_unwritable, f"cannot write {d / name}")
     data: dict[str, Any] = {
         "format": FORMAT_NAME,
         "version": 1,
@@ -299,6 +298,6 @@ def save_project_dataset(
     try:
         (d / DATASET_FILE).write_text(json.dumps(data, indent=2) + "\n")
     except OSError as err:
-        raise DatasetError("dataset_unwritable", f"cannot write {d / DATASET_FILE}: {err}"
+        raise DatasetError(ErrorCode.dataset_unwritable, f"cannot write {d / DATASET_FILE}: {err}"
                            ) from err
     return load_project_dataset(d)

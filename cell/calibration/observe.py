@@ -12,6 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from cell.error_codes import ErrorCode
+from cell.errors import CellError
 from estimator import CameraModel, EstimationError, Target
 from estimator.calib.board import Board, board_pose, detect_board
 
@@ -31,8 +33,11 @@ class Observation:
 Observer = Callable[[NDArray[np.uint8], CameraModel], Observation]
 
 
-class ObservationError(Exception):
+class ObservationError(CellError):
     """The target was not found in the image; the message says why."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(ErrorCode.target_not_visible, message)
 
 
 def board_observer(board: Board) -> Observer:

@@ -28,7 +28,8 @@ from cell.calibration.dataset import HandEyeDataset, save_project_dataset
 from cell.calibration.observe import Observation, ObservationError, Observer
 from cell.calibration.report import HandEyeReport
 from cell.calibration.solve import DEFAULT_METHOD, Progress, solve_observations
-from cell.motion.limits import LimitError
+from cell.error_codes import ErrorCode
+from cell.errors import CellError, LimitError
 from drivers.arm import Arm
 from drivers.camera import Camera, Frame
 from drivers.errors import DriverError
@@ -42,13 +43,10 @@ Matrix4 = NDArray[np.float64]
 GOLDEN_ANGLE_RAD = np.pi * (3.0 - np.sqrt(5.0))
 
 
-class RoutineError(Exception):
+class RoutineError(CellError):
     """The routine cannot go on (no target at the start pose, too few good views)."""
 
-    def __init__(self, code: str, message: str) -> None:
-        super().__init__(message)
-        self.code = code
-        self.message = message
+    kind = "conflict"
 
 
 @dataclass(frozen=True)
@@ -145,7 +143,7 @@ def run_hand_eye_routine(
     T_start_tcp = arm.tcp_pose()
     flange0, obs0, intrinsics, image0 = _capture(arm, camera, observer, tcp_inv, s)
     if isinstance(obs0, str):
-        raise RoutineError("target_not_visible", f"at the start pose: {obs0}")
+        raise RoutineError(ErrorCode.target_not_visible, f"at the start pose: {obs0}")
     centre = obs0.object_points_mm.mean(axis=0)
     pivot = obs0.T_camera_board[:3, :3] @ centre + obs0.T_camera_board[:3, 3]
     plan = plan_poses(flange0, T_flange_camera_guess, pivot, s)
@@ -175,7 +173,7 @@ def run_hand_eye_routine(
     if len(observations) < s.min_views:
         reasons = "; ".join(f"view {k}: {r}" for k, r in failed)
         raise RoutineError(
-            "too_few_views",
+            ErrorCode.too_few_views,
             f"only {len(observations)} of {len(plan)} views succeeded (need {s.min_views}): "
             f"{reasons}",
         )
@@ -188,7 +186,7 @@ def run_hand_eye_routine(
             chosen=s.chosen, progress=report,
         )
     except HandEyeError as err:
-        raise RoutineError(err.code, str(err)) from err
+        raise RoutineError(ErrorCode(err.code), str(err)) from err
     return RoutineResult(result, tuple(flanges), tuple(observations), tuple(failed),
                          tuple(images), intrinsics)
 
@@ -219,5 +217,5 @@ def _frame_after(camera: Camera, t_s: float, timeout_s: float) -> Frame:
         if frame.timestamp_s >= t_s:
             return frame
         if time.monotonic() > deadline:
-            raise RoutineError("camera_stale", f"no frame exposed after the arm stopped within "
+            raise RoutineError(ErrorCode.camera_stale, f"no frame exposed after the arm stopped within "
                                f"{timeout_s} s")

@@ -33,9 +33,10 @@ from cell.calibration.routine import (
     save_views,
 )
 from cell.calibration.solve import CHOICES
+from cell.error_codes import ErrorCode
+from cell.errors import LimitError, NotFoundError, RefusedError, UnavailableError
 from cell.jobs.store import Job
 from cell.motion.guard import Motion
-from cell.motion.limits import LimitError, NotFoundError, RefusedError, UnavailableError
 from cell.service import Cell
 from estimator.transforms import T_from_pose_dict, pose_dict, pose_distance
 
@@ -64,11 +65,11 @@ class CalibrationService:
 
         def check(motion: Motion) -> None:
             if settings.chosen not in CHOICES:
-                raise LimitError("invalid_request", f"method must be one of {', '.join(CHOICES)}")
+                raise LimitError(ErrorCode.invalid_request, f"method must be one of {', '.join(CHOICES)}")
             core.arm.guard.check_speed(settings.speed_mm_s, settings.accel_mm_s2)
             core.arm.ready_state()
             if not core.camera.is_connected:
-                raise UnavailableError("camera_lost", "calibration needs the camera")
+                raise UnavailableError(ErrorCode.camera_lost, "calibration needs the camera")
 
         def work(job_id: str, motion: Motion) -> dict[str, Any]:
             return self._run(job_id, settings)
@@ -91,7 +92,7 @@ class CalibrationService:
                 core.arm, core.camera, dot_target_observer(core.target),
                 core.frames.T_flange_tcp, guess, settings, progress)
         except RoutineError as err:
-            raise RefusedError(err.code, err.message) from err
+            raise RefusedError(ErrorCode(err.code), err.message) from err
         report = result.report
         out = report.as_dict()
         out["failed_views"] = [{"view": k, "reason": r} for k, r in result.failed]
@@ -126,7 +127,7 @@ class CalibrationService:
     def job(self, job_id: str) -> Job:
         job = self.cell.jobs.get(job_id)
         if job is None or job.kind != JOB_KIND:
-            raise NotFoundError("job_not_found", f"no hand-eye calibration job {job_id!r}")
+            raise NotFoundError(ErrorCode.job_not_found, f"no hand-eye calibration job {job_id!r}")
         return job
 
     def wait(self, job_id: str, timeout_s: float) -> Job:
@@ -154,10 +155,10 @@ class CalibrationService:
             note.job_id = job_id
             T = self._result_T(self.job(job_id), method, force)
             if not running and not write_config:
-                raise LimitError("invalid_request", "nothing to do: ask for running and/or "
+                raise LimitError(ErrorCode.invalid_request, "nothing to do: ask for running and/or "
                                  "write_config")
             if write_config and self.config_path is None:
-                raise RefusedError("no_config_file", "the cell runs a built-in config; start it "
+                raise RefusedError(ErrorCode.no_config_file, "the cell runs a built-in config; start it "
                                    "with a config file (CELL_CONFIG) to write the result")
             change = None
             with cell.core.slot.hold("apply_calibration"):
@@ -167,7 +168,7 @@ class CalibrationService:
                         change = write_hand_eye(self.config_path, T,
                                                 f"hand-eye calibration job {job_id} by {caller}")
                     except ConfigWriteError as err:
-                        raise RefusedError(err.code, str(err)) from err
+                        raise RefusedError(ErrorCode(err.code), str(err)) from err
                 if running:
                     cell.set_hand_eye(T)
         out = {"job_id": job_id, "T_flange_camera": pose_dict(T), "running": running,
@@ -180,21 +181,21 @@ class CalibrationService:
     @staticmethod
     def _result_T(job: Job, method: str | None, force: bool) -> Matrix4:
         if job.state != "succeeded" or job.result is None:
-            raise RefusedError("job_not_succeeded", f"calibration job {job.id} is {job.state}; "
+            raise RefusedError(ErrorCode.job_not_succeeded, f"calibration job {job.id} is {job.state}; "
                                "only a succeeded job can be applied")
         r = job.result
         if not r["verdict"]["consistent"] and not force:
-            raise RefusedError("calibration_inconsistent", "the calibration data disagree with "
+            raise RefusedError(ErrorCode.calibration_inconsistent, "the calibration data disagree with "
                                f"themselves ({r['verdict']['text']}); apply with force=true only "
                                "if you accept that")
         if method is None or method == r["chosen"]:
             return T_from_pose_dict(r["T_flange_camera"])
         if method == "joint":
             if r.get("joint") is None:
-                raise NotFoundError("method_not_found", "this job has no joint refinement")
+                raise NotFoundError(ErrorCode.method_not_found, "this job has no joint refinement")
             return T_from_pose_dict(r["joint"]["T_flange_camera"])
         if method not in r["methods"]:
-            raise NotFoundError("method_not_found", f"no result for method {method!r}; have "
+            raise NotFoundError(ErrorCode.method_not_found, f"no result for method {method!r}; have "
                                 f"{', '.join([*r['methods'], 'joint'])}")
         return T_from_pose_dict(r["methods"][method]["T_flange_camera"])
 

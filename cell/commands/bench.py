@@ -131,7 +131,7 @@ def _bench(args: argparse.Namespace) -> int:
     try:
         camera = load_config(args.config).camera.model()
     except ConfigError as err:
-        return fail(ConfigError.code, str(err), args.json)
+        return fail(err.code, str(err), args.json)
     with progress_bars(not args.json) as progress:
         report = run_bench(camera, frames=args.frames, scenes=args.scenes, seed=args.seed,
                            progress=progress)

@@ -190,8 +190,9 @@ def run_routine(args: argparse.Namespace) -> int:
     )
     from cell.config.schema import ConfigError, load_config
     from cell.devices.factory import build_hardware
+    from cell.errors import CellError
     from cell.motion.guard import GuardedArm
-    from cell.motion.limits import CellError, SafetyGuard
+    from cell.motion.limits import SafetyGuard
     from drivers.errors import DriverError
     from estimator.calib.board import Board
 
@@ -213,7 +214,7 @@ def run_routine(args: argparse.Namespace) -> int:
         if args.write_config:  # likewise: a config that cannot take the result
             _check_writable_config(args.write_config)
     except ConfigError as err:
-        return fail(ConfigError.code, str(err), args.json)
+        return fail(err.code, str(err), args.json)
     except DatasetError as err:
         return fail(err.code, err.message, args.json)
     except CellError as err:

@@ -40,7 +40,7 @@ def _load(args: argparse.Namespace) -> tuple[CellConfig, NDArray[np.uint8]] | in
     try:
         config = load_config(args.config)
     except ConfigError as err:
-        return fail(ConfigError.code, str(err), args.json)
+        return fail(err.code, str(err), args.json)
     image = read_grey(args.image)
     if isinstance(image, str):
         return fail("image_unreadable", image, args.json)

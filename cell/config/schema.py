@@ -26,21 +26,23 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from cell.config.checks import Problem, check, closest
+from cell.error_codes import ErrorCode
+from cell.errors import CellError
 from estimator import CameraModel, Target
 from estimator.target import layout_problem
 from estimator.transforms import T_from_pose
 
 
-class ConfigError(Exception):
+class ConfigError(CellError):
     """The configuration file is missing, unreadable or invalid; the message names the key.
 
     ``problems`` lists every problem found (schema and commissioning checks), each with its key.
     """
 
-    code = "config_invalid"
+    kind = "invalid"
 
     def __init__(self, message: str, problems: list[Problem] | None = None) -> None:
-        super().__init__(message)
+        super().__init__(ErrorCode.config_invalid, message)
         self.problems = problems if problems is not None else [Problem("", message)]
 
 

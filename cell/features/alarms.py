@@ -24,7 +24,8 @@ import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from cell.motion.limits import NotFoundError
+from cell.error_codes import ErrorCode
+from cell.errors import NotFoundError
 
 if TYPE_CHECKING:
     from cell.service import Cell
@@ -218,7 +219,7 @@ class AlarmLog:
     def _get_locked(self, alarm_id: int) -> Alarm:
         row = self._db.execute(f"{_SELECT} WHERE id = ?", (alarm_id,)).fetchone()
         if row is None:
-            raise NotFoundError("alarm_not_found", f"no alarm with id {alarm_id}")
+            raise NotFoundError(ErrorCode.alarm_not_found, f"no alarm with id {alarm_id}")
         return _alarm(row)
 
     def acknowledge(self, alarm_id: int, caller: str) -> Alarm:

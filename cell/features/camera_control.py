@@ -11,7 +11,8 @@ import time
 from dataclasses import asdict
 from typing import TYPE_CHECKING, Any
 
-from cell.motion.limits import LimitError, UnavailableError
+from cell.error_codes import ErrorCode
+from cell.errors import LimitError, UnavailableError
 from drivers.camera import CameraSettings, FocusSetting
 from drivers.errors import DriverError
 
@@ -24,7 +25,7 @@ def camera_settings(cell: Cell) -> dict[str, Any]:
     try:
         return asdict(cell.hw.camera.get_settings())
     except DriverError as err:
-        raise UnavailableError("camera_lost", f"reading the camera settings: {err}") from err
+        raise UnavailableError(ErrorCode.camera_lost, f"reading the camera settings: {err}") from err
 
 
 def apply_camera_settings(cell: Cell, caller: str, *, exposure_us: int | None = None,
@@ -38,9 +39,9 @@ def apply_camera_settings(cell: Cell, caller: str, *, exposure_us: int | None = 
             applied = cell.hw.camera.apply_settings(
                 CameraSettings(exposure_us=exposure_us, iso=iso, focus=focus))
         except ValueError as err:
-            raise LimitError("invalid_camera_setting", str(err)) from err
+            raise LimitError(ErrorCode.invalid_camera_setting, str(err)) from err
         except DriverError as err:
-            raise UnavailableError("camera_lost", f"changing the camera settings: {err}") \
+            raise UnavailableError(ErrorCode.camera_lost, f"changing the camera settings: {err}") \
                 from err
     except (LimitError, UnavailableError) as err:
         cell.jobs.audit(caller, "camera_settings", params, f"refused:{err.code}", err.message,

@@ -23,7 +23,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from cell.motion.limits import CellError, LimitError, NotFoundError, RefusedError
+from cell.error_codes import ErrorCode
+from cell.errors import CellError, LimitError, NotFoundError, RefusedError
 from estimator.target import Target, layout_problem
 
 STORE_NAME = "recipes.json"
@@ -106,7 +107,7 @@ class Recipe(RecipeSpec):
         for t in self.targets:
             if t.name == name:
                 return t
-        raise NotFoundError("recipe_target_not_found",
+        raise NotFoundError(ErrorCode.recipe_target_not_found,
                             f"recipe {self.name!r} has no target {name!r}; it has "
                             f"{', '.join(t.name for t in self.targets)}")
 
@@ -123,7 +124,7 @@ def parse_spec(data: Any) -> RecipeSpec:
     except ValidationError as err:
         first = err.errors()[0]
         where = ".".join(str(p) for p in first["loc"])
-        raise LimitError("invalid_recipe", f"recipe {where}: {first['msg']}") from err
+        raise LimitError(ErrorCode.invalid_recipe, f"recipe {where}: {first['msg']}") from err
 
 
 class RecipeStore:
@@ -156,7 +157,7 @@ class RecipeStore:
                 out.setdefault(r.name, []).append(r)
             return {k: sorted(v, key=lambda r: r.version) for k, v in out.items()}
         except (OSError, ValueError, KeyError, TypeError) as err:
-            raise RecipeStoreError("recipe_store_unreadable",
+            raise RecipeStoreError(ErrorCode.recipe_store_unreadable,
                                    f"cannot read the recipes in {self.path}: {err!r}; fix or "
                                    "move the file (it is never overwritten while unreadable)"
                                    ) from err
@@ -195,7 +196,7 @@ class RecipeStore:
         for r in history:
             if r.version == version:
                 return r
-        raise NotFoundError("recipe_not_found",
+        raise NotFoundError(ErrorCode.recipe_not_found,
                             f"recipe {ref!r} has no version {version}; it has "
                             f"{', '.join(str(r.version) for r in history)}")
 
@@ -206,7 +207,7 @@ class RecipeStore:
         with self._lock:
             for name, history in self._versions.items():
                 if name != spec.name and history[-1].number == spec.number:
-                    raise RefusedError("recipe_number_taken",
+                    raise RefusedError(ErrorCode.recipe_number_taken,
                                        f"recipe number {spec.number} belongs to {name!r}")
             history = self._versions.get(spec.name, [])
             recipe = Recipe(**spec.model_dump(), version=len(history) + 1 if not history
@@ -231,7 +232,7 @@ class RecipeStore:
 
     @staticmethod
     def _missing(ref: str | int) -> NotFoundError:
-        return NotFoundError("recipe_not_found", f"no recipe {ref!r}; see GET /api/v1/recipes")
+        return NotFoundError(ErrorCode.recipe_not_found, f"no recipe {ref!r}; see GET /api/v1/recipes")
 
     def _write(self, versions: dict[str, builtins.list[Recipe]]) -> None:
         """Replace the file atomically; on failure the file and the memory stay as they were."""
@@ -250,7 +251,7 @@ class RecipeStore:
             os.replace(tmp, self.path)
             tmp = None
         except OSError as err:
-            raise RecipeStoreError("recipe_store_write_failed",
+            raise RecipeStoreError(ErrorCode.recipe_store_write_failed,
                                    f"cannot write {self.path}: {err}; nothing was changed"
                                    ) from err
         finally:

@@ -35,7 +35,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.actions.ibvs import Features, features_from_view
-from cell.motion.limits import CellError, LimitError, NotFoundError, RefusedError
+from cell.error_codes import ErrorCode
+from cell.errors import CellError, LimitError, NotFoundError, RefusedError
 from cell.vision.frames import mean_pose
 from estimator.transforms import T_from_pose_dict, invert_T, pose_dict, pose_distance
 
@@ -127,7 +128,7 @@ def mean_view(views: list[Features]) -> Features | None:
 
 def check_name(name: str) -> str:
     if not NAME_PATTERN.match(name):
-        raise LimitError("invalid_name", f"taught pose name {name!r}: use 1-64 letters, digits, "
+        raise LimitError(ErrorCode.invalid_name, f"taught pose name {name!r}: use 1-64 letters, digits, "
                          "'_', '.' or '-', starting with a letter or digit")
     return name
 
@@ -159,7 +160,7 @@ class TaughtStore:
             data = json.loads(self.path.read_text())
             return {d["name"]: TaughtPose.from_dict(d) for d in data["poses"]}
         except (OSError, ValueError, KeyError, TypeError) as err:
-            raise TeachStoreError("taught_store_unreadable",
+            raise TeachStoreError(ErrorCode.taught_store_unreadable,
                                   f"cannot read the taught poses in {self.path}: {err!r}; fix or "
                                   "move the file (it is never overwritten while unreadable)"
                                   ) from err
@@ -179,7 +180,7 @@ class TaughtStore:
         with self._lock:
             pose = self._poses.get(name)
         if pose is None:
-            raise NotFoundError("taught_not_found", f"no taught pose named {name!r}; see "
+            raise NotFoundError(ErrorCode.taught_not_found, f"no taught pose named {name!r}; see "
                                 "GET /api/v1/teach for the taught names")
         return pose
 
@@ -188,7 +189,7 @@ class TaughtStore:
         check_name(pose.name)
         with self._lock:
             if not replace and pose.name in self._poses:
-                raise RefusedError("taught_exists", f"a pose named {pose.name!r} is already "
+                raise RefusedError(ErrorCode.taught_exists, f"a pose named {pose.name!r} is already "
                                    "taught; delete it first or ask to replace it")
             poses = {**self._poses, pose.name: pose}
             self._write(poses)
@@ -199,7 +200,7 @@ class TaughtStore:
         with self._lock:
             pose = self._poses.get(name)
             if pose is None:
-                raise NotFoundError("taught_not_found", f"no taught pose named {name!r}")
+                raise NotFoundError(ErrorCode.taught_not_found, f"no taught pose named {name!r}")
             poses = {k: v for k, v in self._poses.items() if k != name}
             self._write(poses)
             self._poses = poses
@@ -228,7 +229,7 @@ class TaughtStore:
             os.replace(tmp, self.path)
             tmp = None
         except OSError as err:
-            raise TeachStoreError("taught_store_write_failed",
+            raise TeachStoreError(ErrorCode.taught_store_write_failed,
                                   f"cannot write {self.path}: {err}; nothing was changed") from err
         finally:
             if tmp is not None:
@@ -249,12 +250,12 @@ def combine(name: str, samples: list[Sample], caller: str, max_spread_mm: float,
             max_spread_deg: float) -> TaughtPose:
     """Average the samples into a taught pose; refuse a moving arm or a spread over the limit."""
     if not samples:
-        raise LimitError("invalid_request", "teaching needs at least one sample")
+        raise LimitError(ErrorCode.invalid_request, "teaching needs at least one sample")
     T0 = samples[0].T_base_tcp
     for s in samples[1:]:
         d_mm, d_deg = pose_distance(T0, s.T_base_tcp)
         if d_mm > STILL_MM or d_deg > STILL_DEG:
-            raise RefusedError("arm_moving", f"the arm moved {d_mm:.3f} mm / {d_deg:.3f} deg "
+            raise RefusedError(ErrorCode.arm_moving, f"the arm moved {d_mm:.3f} mm / {d_deg:.3f} deg "
                                "while teaching; let it rest and teach again")
     each = [invert_T(s.T_base_target) @ s.T_base_tcp for s in samples]
     T_mean = mean_pose(each)
@@ -262,7 +263,7 @@ def combine(name: str, samples: list[Sample], caller: str, max_spread_mm: float,
     spread_mm = max(d[0] for d in dists)
     spread_deg = max(d[1] for d in dists)
     if spread_mm > max_spread_mm or spread_deg > max_spread_deg:
-        raise RefusedError("spread_too_large", f"the {len(samples)} locates spread "
+        raise RefusedError(ErrorCode.spread_too_large, f"the {len(samples)} locates spread "
                            f"{spread_mm:.3f} mm / {spread_deg:.3f} deg (limit {max_spread_mm} mm"
                            f" / {max_spread_deg} deg): the view is poor or the target moves; "
                            "nothing was stored")
@@ -284,15 +285,15 @@ def teach(cell: Cell, store: TaughtStore, caller: str, name: str, samples: int =
     with cell.core.audit.command(caller, "teach", params) as note:
         check_name(name)
         if not 1 <= samples <= 50:
-            raise LimitError("invalid_request", "samples must be 1..50")
+            raise LimitError(ErrorCode.invalid_request, "samples must be 1..50")
         if not replace and store.has(name):
-            raise RefusedError("taught_exists", f"a pose named {name!r} is already taught; "
+            raise RefusedError(ErrorCode.taught_exists, f"a pose named {name!r} is already taught; "
                                "delete it first or ask to replace it")
         # Hold the motion slot: no approach or jog may start while the samples are taken,
         # and a running one refuses the teach (busy).
         with cell.core.slot.hold("teach"):
             if cell.arm_state().moving:
-                raise RefusedError("arm_moving", "the arm is moving; teach when it rests")
+                raise RefusedError(ErrorCode.arm_moving, "the arm is moving; teach when it rests")
             taught = combine(name, _samples(cell, caller, samples), caller, max_spread_mm,
                              max_spread_deg)
         store.put(taught, replace=replace)
@@ -320,7 +321,7 @@ def _samples(cell: Cell, caller: str, n: int) -> list[Sample]:
         loc = cell.locate(caller, 1)
         if loc.frame_sequence in seen:
             if time.monotonic() > deadline:
-                raise RefusedError("camera_stalled", "the camera delivers no new frames")
+                raise RefusedError(ErrorCode.camera_stalled, "the camera delivers no new frames")
             time.sleep(0.5 * period_s)
             continue
         seen.add(loc.frame_sequence)

@@ -12,8 +12,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
+from cell.errors import CellError
 from cell.jobs.store import JobStore
-from cell.motion.limits import CellError
 from cell.stats import CellStats
 
 

@@ -13,11 +13,11 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
+from cell.errors import Cancelled, CellError
 from cell.jobs.audit import Auditor
 from cell.jobs.events import EventBus
 from cell.jobs.store import Job, JobStore
-from cell.motion.guard import Cancelled, GuardedArm, Motion, MotionSlot, driver_error
-from cell.motion.limits import CellError
+from cell.motion.guard import GuardedArm, Motion, MotionSlot, driver_error
 from cell.stats import CellStats
 from drivers.errors import DriverError
 

@@ -34,14 +34,9 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from cell.config.schema import LimitsConfig
-from cell.motion.limits import (
-    CellError,
-    LimitError,
-    RefusedError,
-    SafetyGuard,
-    UnavailableError,
-    linear_path,
-)
+from cell.error_codes import ErrorCode
+from cell.errors import Cancelled, CellError, LimitError, RefusedError, UnavailableError
+from cell.motion.limits import SafetyGuard, linear_path
 from cell.motion.twist import extrapolate_tcp
 from drivers.arm import Arm, ArmState, JogFrame
 from drivers.errors import (
@@ -65,12 +60,6 @@ SERVO_MIN_DT_S = 0.008  # ticks closer than this are judged as this far apart (m
 SETTLE_TIMEOUT_S = 10.0
 
 
-class Cancelled(CellError):
-    """The running motion was cancelled by a stop."""
-
-    kind = "conflict"
-
-
 def driver_error(err: DriverError, what: str, device: str = "arm") -> CellError:
     """A hardware error as the cell reports it: unavailable when the device cannot be
     reached (the arm's lost link is ``arm_disconnected``), otherwise refused in the current
@@ -80,10 +69,10 @@ def driver_error(err: DriverError, what: str, device: str = "arm") -> CellError:
         text = (f"the arm stopped on a safety stop while {what}: {err}; clear the cause, "
                 "then unlock")
     if isinstance(err, ConnectionLostError):
-        return UnavailableError("arm_disconnected" if device == "arm" else err.code, text)
+        return UnavailableError(ErrorCode.arm_disconnected if device == "arm" else ErrorCode(err.code), text)
     if isinstance(err, DeviceTimeoutError):
-        return UnavailableError(err.code, text)
-    return RefusedError(err.code, text)
+        return UnavailableError(ErrorCode(err.code), text)
+    return RefusedError(ErrorCode(err.code), text)
 
 
 @dataclass
@@ -106,7 +95,7 @@ class Motion:
         if self.cancel.is_set():
             if self.reason is not None:
                 raise type(self.reason)(self.reason.code, self.reason.message)
-            raise Cancelled("cancelled", f"stopped by request {what}")
+            raise Cancelled(ErrorCode.cancelled, f"stopped by request {what}")
 
 
 class MotionSlot:
@@ -130,7 +119,7 @@ class MotionSlot:
         """Take the slot (RefusedError ``busy`` when it is taken)."""
         with self._lock:
             if self._motion is not None:
-                raise RefusedError("busy", f"the arm is busy ({self._motion.name}); wait for it "
+                raise RefusedError(ErrorCode.busy, f"the arm is busy ({self._motion.name}); wait for it "
                                    "to finish or stop it")
             self._motion = Motion(name, needs_camera=needs_camera)
             self._generation += 1
@@ -271,7 +260,7 @@ class GuardedArm:
     def _holder(self, what: str) -> Motion:
         motion = self.slot.current
         if motion is None:
-            raise RefusedError("no_motion_slot", f"{what} refused: motion commands need the "
+            raise RefusedError(ErrorCode.no_motion_slot, f"{what} refused: motion commands need the "
                                "cell's motion slot (internal error: report it)")
         motion.raise_if_cancelled(f"before the {what}")
         return motion
@@ -310,7 +299,7 @@ class GuardedArm:
         checking it (CellError when refused); callers use it to refuse before a job starts."""
         q1 = np.asarray(joints_rad, dtype=float).reshape(-1)
         if q1.shape != (6,) or not np.all(np.isfinite(q1)):
-            raise RefusedError("invalid_pose", f"the {what} needs 6 finite joint values")
+            raise RefusedError(ErrorCode.invalid_pose, f"the {what} needs 6 finite joint values")
         st = self.ready_state()
         q0 = np.asarray(st.joints_rad, dtype=float)
         n = max(2, int(np.ceil(np.degrees(np.max(np.abs(q1 - q0))) / JOINT_PATH_STEP_DEG)) + 1)
@@ -328,10 +317,10 @@ class GuardedArm:
         self._holder("jog")
         v = np.asarray(velocity, dtype=float).reshape(-1)
         if v.shape != (6,):
-            raise RefusedError("invalid_request", "a jog needs [vx, vy, vz, wx, wy, wz]")
+            raise RefusedError(ErrorCode.invalid_request, "a jog needs [vx, vy, vz, wx, wy, wz]")
         self.guard.check_jog_speed(v[:3], np.degrees(v[3:]))
         if not 0 < accel_mm_s2 <= self.limits.max_accel_mm_s2:
-            raise RefusedError("accel_limit", f"jog acceleration {accel_mm_s2} mm/s^2 is outside "
+            raise RefusedError(ErrorCode.accel_limit, f"jog acceleration {accel_mm_s2} mm/s^2 is outside "
                                f"(0, {self.limits.max_accel_mm_s2}]")
         st = self.ready_state()
         self.guard.check_jog_ahead(st.T_base_tcp, jog_ahead(st.T_base_tcp, v, frame,
@@ -358,24 +347,24 @@ class GuardedArm:
         """
         v = np.asarray(velocity, dtype=float).reshape(-1)
         if v.shape != (6,) or not np.all(np.isfinite(v)):
-            raise RefusedError("invalid_request", "a servo twist needs 6 finite values")
+            raise RefusedError(ErrorCode.invalid_request, "a servo twist needs 6 finite values")
         lim = self.limits
         if not 0 < accel_mm_s2 <= lim.max_accel_mm_s2:
-            raise LimitError("accel_limit", f"servo acceleration {accel_mm_s2} mm/s^2 is "
+            raise LimitError(ErrorCode.accel_limit, f"servo acceleration {accel_mm_s2} mm/s^2 is "
                              f"outside (0, {lim.max_accel_mm_s2}]")
         alpha = accel_mm_s2 / 1000.0 if angular_accel_rad_s2 is None \
             else float(angular_accel_rad_s2)
         if not (np.isfinite(alpha) and 0 < np.degrees(alpha)
                 <= lim.max_angular_accel_deg_s2 * (1 + 1e-9)):
-            raise LimitError("accel_limit", f"servo angular acceleration "
+            raise LimitError(ErrorCode.accel_limit, f"servo angular acceleration "
                              f"{np.degrees(alpha):.0f} deg/s^2 is outside (0, "
                              f"{lim.max_angular_accel_deg_s2}]")
         lin, ang_deg = float(np.linalg.norm(v[:3])), float(np.degrees(np.linalg.norm(v[3:])))
         if lin > lim.max_speed_mm_s * (1 + 1e-9):
-            raise LimitError("speed_limit", f"servo speed {lin:.1f} mm/s is above "
+            raise LimitError(ErrorCode.speed_limit, f"servo speed {lin:.1f} mm/s is above "
                              f"limits.max_speed_mm_s = {lim.max_speed_mm_s}")
         if ang_deg > lim.max_angular_speed_deg_s * (1 + 1e-9):
-            raise LimitError("speed_limit", f"servo rotation {ang_deg:.1f} deg/s is above "
+            raise LimitError(ErrorCode.speed_limit, f"servo rotation {ang_deg:.1f} deg/s is above "
                              f"limits.max_angular_speed_deg_s = {lim.max_angular_speed_deg_s}")
         with self._stream_lock:
             self._holder("servo tick")
@@ -389,7 +378,7 @@ class GuardedArm:
             dv, dw = min((twist_change(v, r, dt) for r in refs),
                          key=lambda c: max(c[0] / accel_mm_s2, c[1] / alpha))
             if not servo_change_ok(dv, dw, accel_mm_s2, alpha):
-                raise LimitError("accel_limit", f"servo twist changes at {dv:.0f} mm/s^2 / "
+                raise LimitError(ErrorCode.accel_limit, f"servo twist changes at {dv:.0f} mm/s^2 / "
                                  f"{np.degrees(dw):.0f} deg/s^2, above {accel_mm_s2} mm/s^2 "
                                  f"/ {np.degrees(alpha):.0f} deg/s^2")
             st = self.ready_state()
@@ -441,7 +430,7 @@ class GuardedArm:
             return
         self.settle()
         motion.raise_if_cancelled(f"while moving to the {what}")
-        raise RefusedError("motion_failed", f"the arm stopped {d_mm:.2f} mm / {d_deg:.2f} deg "
+        raise RefusedError(ErrorCode.motion_failed, f"the arm stopped {d_mm:.2f} mm / {d_deg:.2f} deg "
                            f"short of the {what}")
 
     def settle(self, timeout_s: float = SETTLE_TIMEOUT_S) -> bool:

@@ -8,52 +8,16 @@ failed check therefore guarantees that nothing moved.
 from __future__ import annotations
 
 import math
-from typing import ClassVar, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
 from cell.config.schema import LimitsConfig
+from cell.error_codes import ErrorCode
+from cell.errors import LimitError, RefusedError, UnavailableError
 from cell.vision.frames import tilt_deg
 from drivers.arm import ArmState
-
-ErrorKind = Literal["invalid", "conflict", "unavailable", "not_found", "unauthorized",
-                    "forbidden"]
-
-
-class CellError(Exception):
-    """Base of every refusal or failure the cell reports to its callers."""
-
-    kind: ClassVar[ErrorKind] = "conflict"
-
-    def __init__(self, code: str, message: str) -> None:
-        super().__init__(message)
-        self.code = code
-        self.message = message
-
-
-class LimitError(CellError):
-    """The request itself breaks a configured limit (envelope, speed, tilt, distance)."""
-
-    kind = "invalid"
-
-
-class RefusedError(CellError):
-    """The request is fine but the cell's state forbids it now (busy, stopped, stale pose)."""
-
-    kind = "conflict"
-
-
-class UnavailableError(CellError):
-    """A device the request needs is not available (camera lost, arm disconnected)."""
-
-    kind = "unavailable"
-
-
-class NotFoundError(CellError):
-    kind = "not_found"
-
 
 PATH_STEP_MM = 2.0  # sampling of a commanded path for the envelope and tilt checks
 PATH_STEP_DEG = 1.0
@@ -111,23 +75,23 @@ class SafetyGuard:
     def check_arm(self, state: ArmState, now_s: float) -> None:
         """The arm can take a motion command now, and its state is fresh."""
         if not state.connected:
-            raise UnavailableError("arm_disconnected",
+            raise UnavailableError(ErrorCode.arm_disconnected,
                                    "the arm is not connected; check the controller and network")
         if state.emergency_stop:
-            raise RefusedError("emergency_stop",
+            raise RefusedError(ErrorCode.emergency_stop,
                                "the arm is emergency-stopped; release the e-stop at the cell")
         if state.protective_stop:
-            raise RefusedError("protective_stop",
+            raise RefusedError(ErrorCode.protective_stop,
                                "the arm is protective-stopped; clear the cause, then unlock it "
                                "(page: Unlock, or POST /api/v1/arm/unlock) before moving")
         if not state.ready:
-            raise RefusedError("arm_not_ready",
+            raise RefusedError(ErrorCode.arm_not_ready,
                                f"the arm is not ready for motion (mode {state.robot_mode}, "
                                f"safety {state.safety_status}); power it on (page: Power, or "
                                "POST /api/v1/arm/power)")
         age = now_s - state.timestamp_s
         if age > self.limits.max_pose_age_s:
-            raise RefusedError("stale_pose",
+            raise RefusedError(ErrorCode.stale_pose,
                                f"the arm's pose is {age:.2f} s old (limit "
                                f"{self.limits.max_pose_age_s} s); the robot state stream stalled")
 
@@ -135,20 +99,20 @@ class SafetyGuard:
         lim = self.limits
         if not (math.isfinite(speed_mm_s) and lim.min_speed_mm_s <= speed_mm_s
                 <= lim.max_speed_mm_s):
-            raise LimitError("speed_limit", f"speed {speed_mm_s} mm/s is outside "
+            raise LimitError(ErrorCode.speed_limit, f"speed {speed_mm_s} mm/s is outside "
                              f"[{lim.min_speed_mm_s}, {lim.max_speed_mm_s}] mm/s")
         if not (math.isfinite(accel_mm_s2) and 0 < accel_mm_s2 <= lim.max_accel_mm_s2):
-            raise LimitError("accel_limit", f"acceleration {accel_mm_s2} mm/s^2 is outside (0, "
+            raise LimitError(ErrorCode.accel_limit, f"acceleration {accel_mm_s2} mm/s^2 is outside (0, "
                              f"{lim.max_accel_mm_s2}] mm/s^2")
 
     def check_joint_speed(self, speed_rad_s: float, accel_rad_s2: float) -> None:
         lim = self.limits
         v, a = math.degrees(speed_rad_s), math.degrees(accel_rad_s2)
         if not (math.isfinite(v) and 0.1 <= v <= lim.max_joint_speed_deg_s):
-            raise LimitError("speed_limit", f"joint speed {v:.3g} deg/s is outside [0.1, "
+            raise LimitError(ErrorCode.speed_limit, f"joint speed {v:.3g} deg/s is outside [0.1, "
                              f"{lim.max_joint_speed_deg_s}] deg/s")
         if not (math.isfinite(a) and 0 < a <= lim.max_joint_accel_deg_s2):
-            raise LimitError("accel_limit", f"joint acceleration {a:.3g} deg/s^2 is outside (0, "
+            raise LimitError(ErrorCode.accel_limit, f"joint acceleration {a:.3g} deg/s^2 is outside (0, "
                              f"{lim.max_joint_accel_deg_s2}] deg/s^2")
 
     def check_goal(self, T_from: ArrayLike, T_goal: ArrayLike, what: str = "goal") -> None:
@@ -158,10 +122,10 @@ class SafetyGuard:
         A = np.asarray(T_from, dtype=float)
         B = np.asarray(T_goal, dtype=float)
         if B.shape != (4, 4) or not np.all(np.isfinite(B)):
-            raise LimitError("invalid_pose", f"the {what} pose is not finite")
+            raise LimitError(ErrorCode.invalid_pose, f"the {what} pose is not finite")
         dist = float(np.linalg.norm(B[:3, 3] - A[:3, 3]))
         if dist > self.limits.max_move_mm:
-            raise LimitError("move_too_far", f"the {what} is {dist:.1f} mm away (limit "
+            raise LimitError(ErrorCode.move_too_far, f"the {what} is {dist:.1f} mm away (limit "
                              f"{self.limits.max_move_mm} mm for one move)")
         self.check_path(linear_path(A, B), what)
 
@@ -176,12 +140,12 @@ class SafetyGuard:
         lo, hi = list(self.limits.workspace_min_mm), list(self.limits.workspace_max_mm)
         if box0 > 0 and moves and box_end >= box0 - _EPS:
             raise LimitError(
-                "outside_envelope",
+                ErrorCode.outside_envelope,
                 f"the TCP is {box0:.1f} mm outside the workspace box {lo}..{hi}: only moves "
                 f"back towards the box are allowed, and the {what} does not reduce that")
         if tilt0 > 0 and turns and tilt_end >= tilt0 - _EPS:
             raise LimitError(
-                "tilt_limit",
+                ErrorCode.tilt_limit,
                 f"the tool is tilted {tilt_deg(start):.1f} deg, past the limit of "
                 f"{self.limits.tilt_limit_deg} deg: only rotations back towards vertical are "
                 f"allowed, and the {what} does not reduce the tilt")
@@ -189,13 +153,13 @@ class SafetyGuard:
             if self.box_violation_mm(T[:3, 3]) > box0 + _EPS:
                 where = "ends" if T is goal else "passes"
                 raise LimitError(
-                    "outside_envelope",
+                    ErrorCode.outside_envelope,
                     f"the {what} {where} outside the workspace box {lo}..{hi} (at "
                     f"{np.round(T[:3, 3], 1).tolist()} mm)")
             if self.tilt_excess_deg(T) > tilt0 + _EPS:
                 where = "at its end" if T is goal else "on its way"
                 raise LimitError(
-                    "tilt_limit",
+                    ErrorCode.tilt_limit,
                     f"the {what} tilts the tool {tilt_deg(T):.1f} deg from vertical {where} "
                     f"(limit {self.limits.tilt_limit_deg} deg)")
 
@@ -203,14 +167,14 @@ class SafetyGuard:
         lin = np.asarray(linear_mm_s, dtype=float)
         ang = np.asarray(angular_deg_s, dtype=float)
         if not (np.all(np.isfinite(lin)) and np.all(np.isfinite(ang))):
-            raise LimitError("invalid_request", "jog speeds must be finite numbers")
+            raise LimitError(ErrorCode.invalid_request, "jog speeds must be finite numbers")
         v = float(np.linalg.norm(lin))
         w = float(np.linalg.norm(ang))
         if v > self.limits.max_jog_speed_mm_s:
-            raise LimitError("jog_speed_limit", f"jog speed {v:.1f} mm/s exceeds "
+            raise LimitError(ErrorCode.jog_speed_limit, f"jog speed {v:.1f} mm/s exceeds "
                              f"{self.limits.max_jog_speed_mm_s} mm/s")
         if w > self.limits.max_jog_speed_deg_s:
-            raise LimitError("jog_speed_limit", f"jog rotation speed {w:.1f} deg/s exceeds "
+            raise LimitError(ErrorCode.jog_speed_limit, f"jog rotation speed {w:.1f} deg/s exceeds "
                              f"{self.limits.max_jog_speed_deg_s} deg/s")
 
     def check_jog_step(self, translation_mm: ArrayLike, rotation_deg: ArrayLike,
@@ -219,18 +183,18 @@ class SafetyGuard:
         lim = self.limits
         if not (math.isfinite(speed_mm_s)
                 and lim.min_speed_mm_s <= speed_mm_s <= lim.max_jog_speed_mm_s):
-            raise LimitError("jog_speed_limit", f"jog speed {speed_mm_s} mm/s is outside "
+            raise LimitError(ErrorCode.jog_speed_limit, f"jog speed {speed_mm_s} mm/s is outside "
                              f"[{lim.min_speed_mm_s}, {lim.max_jog_speed_mm_s}] mm/s")
         t = np.asarray(translation_mm, dtype=float).reshape(-1)
         r = np.asarray(rotation_deg, dtype=float).reshape(-1)
         if t.shape != (3,) or r.shape != (3,) or not (np.all(np.isfinite(t))
                                                      and np.all(np.isfinite(r))):
-            raise LimitError("invalid_request", "a jog step needs 3 finite translation_mm and "
+            raise LimitError(ErrorCode.invalid_request, "a jog step needs 3 finite translation_mm and "
                              "3 finite rotation_deg values")
         step_mm, step_deg = float(np.linalg.norm(t)), float(np.linalg.norm(r))
         if step_mm > lim.max_jog_step_mm or step_deg > lim.max_jog_step_deg:
             raise LimitError(
-                "jog_step_limit",
+                ErrorCode.jog_step_limit,
                 f"a jog step of {step_mm:.1f} mm / {step_deg:.1f} deg is larger than "
                 f"limits.max_jog_step_mm = {lim.max_jog_step_mm} / max_jog_step_deg = "
                 f"{lim.max_jog_step_deg}: use approach or several steps")

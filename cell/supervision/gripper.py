@@ -14,10 +14,11 @@ import threading
 import time
 from typing import Any
 
+from cell.error_codes import ErrorCode
+from cell.errors import LimitError, UnavailableError
 from cell.jobs.audit import Auditor
 from cell.jobs.events import EventBus
 from cell.motion.guard import driver_error
-from cell.motion.limits import LimitError, UnavailableError
 from drivers.errors import DriverError
 from drivers.gripper import Gripper, GripperStatus
 
@@ -73,11 +74,11 @@ class GripperService:
         with self.audit.command(caller, "gripper", params):
             g = self.gripper
             if g is None:
-                raise UnavailableError("gripper_unavailable", "this cell has no gripper")
+                raise UnavailableError(ErrorCode.gripper_unavailable, "this cell has no gripper")
             if action not in ACTIONS:
-                raise LimitError("invalid_request", f"unknown gripper action {action!r}")
+                raise LimitError(ErrorCode.invalid_request, f"unknown gripper action {action!r}")
             if action == "move" and position_mm is None:
-                raise LimitError("invalid_request", "move needs position_mm")
+                raise LimitError(ErrorCode.invalid_request, "move needs position_mm")
             with self._bus_lock:
                 try:
                     st = self._send(g, action, position_mm, speed_pct, force_pct, wait)

@@ -20,7 +20,8 @@ import time
 from dataclasses import dataclass
 
 from cell.core import CellCore
-from cell.motion.limits import CellError, UnavailableError
+from cell.error_codes import ErrorCode
+from cell.errors import CellError, UnavailableError
 from drivers.errors import DriverError
 
 log = logging.getLogger(__name__)
@@ -106,7 +107,7 @@ class LinkSupervisor:
             connected = False
         if self.arm.up and not connected:
             self._lost(self.arm, UnavailableError(
-                "arm_disconnected", "the link to the arm's controller was lost; the cell "
+                ErrorCode.arm_disconnected, "the link to the arm's controller was lost; the cell "
                 "reconnects by itself and tells the arm to stop first"), needs_camera=False)
         elif not self.arm.up and time.monotonic() >= self.arm.next_try_s:
             self._try_arm(first=False)
@@ -115,7 +116,7 @@ class LinkSupervisor:
         connected = bool(self.core.camera.is_connected)
         if self.camera.up and not connected:
             self._lost(self.camera, UnavailableError(
-                "camera_lost", "the camera was lost; the cell reconnects by itself"),
+                ErrorCode.camera_lost, "the camera was lost; the cell reconnects by itself"),
                 needs_camera=True)
         elif not self.camera.up and connected:
             self._up(self.camera)  # came back on its own (the OAK adapter reconnects itself)
@@ -187,7 +188,7 @@ class LinkSupervisor:
         try:
             self.core.camera.connect()
             if not self.core.camera.is_connected:
-                raise UnavailableError("camera_lost", "connected, but no frames flow yet")
+                raise UnavailableError(ErrorCode.camera_lost, "connected, but no frames flow yet")
         except (DriverError, UnavailableError) as err:
             self._failed_try(self.camera, err)
             return

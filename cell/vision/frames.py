@@ -15,6 +15,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
+from cell.error_codes import ErrorCode
+from cell.errors import RefusedError
 from estimator.transforms import invert_T, make_T, translation_T
 
 if TYPE_CHECKING:
@@ -23,8 +25,11 @@ if TYPE_CHECKING:
 Matrix4 = NDArray[np.float64]
 
 
-class FixedCameraError(ValueError):
+class FixedCameraError(RefusedError):
     """A flange-camera operation (an observation pose) asked of a fixed camera."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(ErrorCode.not_supported, message)
 
 
 @dataclass(frozen=True)

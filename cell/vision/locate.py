@@ -17,7 +17,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.motion.limits import CellError, RefusedError, UnavailableError
+from cell.error_codes import ErrorCode
+from cell.errors import CellError, RefusedError, UnavailableError
 from cell.vision.frames import CellFrames, mean_pose
 from cell.vision.imagelog import ImageLog
 from drivers.arm import Arm
@@ -113,7 +114,7 @@ class Locator:
         try:
             frame = self.camera.latest_frame(timeout_s=1.0)
         except DriverError as err:
-            raise UnavailableError("camera_lost", f"no camera frame: {err}") from err
+            raise UnavailableError(ErrorCode.camera_lost, f"no camera frame: {err}") from err
         self.last_frame = frame
         return frame
 
@@ -133,7 +134,7 @@ class Locator:
         each paired with the arm pose at its capture time, and average the base-frame results
         (noise drops as 1/sqrt(n))."""
         if not self.camera.is_connected:
-            raise UnavailableError("camera_lost", "the camera is not connected")
+            raise UnavailableError(ErrorCode.camera_lost, "the camera is not connected")
         estimates: list[Matrix4] = []
         last: tuple[Frame, PoseResult, Matrix4] | None = None
         for _ in range(max(1, n_frames)):
@@ -148,7 +149,7 @@ class Locator:
                 frame = self._fresh_frame(time.monotonic())
                 T_base_tcp = self._pose_at(frame)
             except DriverError as err:
-                raise UnavailableError(err.code, f"reading the arm pose history: {err}") from err
+                raise UnavailableError(ErrorCode(err.code), f"reading the arm pose history: {err}") from err
             result = self._estimate(frame)
             estimates.append(self.frames.T_base_target(T_base_tcp, result.T_camera_target))
             last = (frame, result, T_base_tcp)
@@ -171,10 +172,10 @@ class Locator:
         try:
             frame = self.camera.latest_frame(timeout_s=timeout_s)
         except DriverError as err:
-            raise UnavailableError("camera_lost", f"no camera frame: {err}") from err
+            raise UnavailableError(ErrorCode.camera_lost, f"no camera frame: {err}") from err
         self.last_frame = frame
         if frame.sequence <= after_sequence:
-            raise RefusedError("no_new_frame", "no frame newer than the last one")
+            raise RefusedError(ErrorCode.no_new_frame, "no frame newer than the last one")
         T_base_tcp = self._pose_at(frame)
         result = self._estimate(frame)
         return frame, self.frames.T_base_target(T_base_tcp, result.T_camera_target), T_base_tcp
@@ -186,10 +187,10 @@ class Locator:
         try:
             frame = self.camera.latest_frame(timeout_s=timeout_s)
         except DriverError as err:
-            raise UnavailableError("camera_lost", f"no camera frame: {err}") from err
+            raise UnavailableError(ErrorCode.camera_lost, f"no camera frame: {err}") from err
         self.last_frame = frame
         if frame.sequence <= after_sequence:
-            raise RefusedError("no_new_frame", "no frame newer than the last one")
+            raise RefusedError(ErrorCode.no_new_frame, "no frame newer than the last one")
         T_base_tcp = self._pose_at(frame)
         return frame, self._estimate(frame), T_base_tcp
 
@@ -197,10 +198,10 @@ class Locator:
         try:
             return self.arm.pose_at(frame.timestamp_s)
         except LookupError as err:
-            raise RefusedError("stale_pose", "the arm's pose history does not cover the "
+            raise RefusedError(ErrorCode.stale_pose, "the arm's pose history does not cover the "
                                f"frame's capture time: {err}") from err
         except DriverError as err:
-            raise UnavailableError(err.code, f"reading the arm pose history: {err}") from err
+            raise UnavailableError(ErrorCode(err.code), f"reading the arm pose history: {err}") from err
 
     def _fresh_frame(self, after_s: float | None) -> Frame:
         """The freshest frame, captured no earlier than ``after_s`` (monotonic)."""
@@ -210,7 +211,7 @@ class Locator:
             if after_s is None or frame.timestamp_s >= after_s:
                 return frame
             if time.monotonic() > deadline:
-                raise UnavailableError("camera_stalled",
+                raise UnavailableError(ErrorCode.camera_stalled,
                                        "the camera delivers no new frames; check its connection")
             time.sleep(0.2 / self.fps)
 
@@ -231,11 +232,11 @@ class Locator:
                 result = self._estimator.estimate(frame.image)
         except EstimationError as err:
             raise self._failed(frame, "failed", RefusedError(
-                err.code, f"target not located: {err.message}")) from err
+                ErrorCode(err.code), f"target not located: {err.message}")) from err
         except Exception as err:  # an estimator bug must not take the service down
             log.exception("estimator failed on frame %d", frame.sequence)
             raise self._failed(frame, "error", RefusedError(
-                "estimator_failed", f"the estimator failed unexpectedly: {err!r}")) from err
+                ErrorCode.estimator_failed, f"the estimator failed unexpectedly: {err!r}")) from err
         with self._lock:
             self.outcomes["ok"] += 1
             self.seconds_sum += time.perf_counter() - t0

@@ -13,9 +13,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from cell.config.schema import ConfigError, LimitsConfig, load_config, parse_config
+from cell.errors import LimitError, RefusedError, UnavailableError
 from cell.jobs.events import EventBus
 from cell.jobs.store import JobStore
-from cell.motion.limits import LimitError, RefusedError, SafetyGuard, UnavailableError
+from cell.motion.limits import SafetyGuard
 from cell.vision.frames import (
     CellFrames,
     approach_tcp,

@@ -18,13 +18,15 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from api.auth import Caller, Read, Stream
-from api.http.errors import DEVICE_ERRORS, ERROR_RESPONSES, NOT_FOUND, ForbiddenError
+from api.http.errors import DEVICE_ERRORS, ERROR_RESPONSES, NOT_FOUND
 from api.http.media import EventStreamResponse
 from api.http.schemas import ApplyResult, Job, TaughtDeleted, TaughtList, TaughtPoseOut
 from api.http.sse import SSE_RESPONSES, sse_response
 from cell.actions.ibvs import Features
 from cell.calibration.routine import RoutineSettings
 from cell.calibration.service import EVENT, CalibrationService
+from cell.error_codes import ErrorCode
+from cell.errors import ForbiddenError, LimitError
 from cell.features.teach import (
     DEFAULT_MAX_SPREAD_DEG,
     DEFAULT_MAX_SPREAD_MM,
@@ -32,7 +34,6 @@ from cell.features.teach import (
     TaughtStore,
     teach,
 )
-from cell.motion.limits import LimitError
 from cell.service import Cell
 
 router = APIRouter(prefix="/api/v1", responses={**ERROR_RESPONSES, **NOT_FOUND})
@@ -43,7 +44,7 @@ OPERATOR_ROLES = frozenset({"operator"})
 def _operator(caller: Read) -> Caller:
     """Calibration and teaching change what every later approach does: operators only."""
     if caller.role not in OPERATOR_ROLES:
-        raise ForbiddenError("forbidden", f"role {caller.role!r} may not calibrate or teach; "
+        raise ForbiddenError(ErrorCode.forbidden, f"role {caller.role!r} may not calibrate or teach; "
                              "use an operator token")
     return caller
 
@@ -108,7 +109,7 @@ def taught_target_tcp(request: Request, name: str, given: bool = False) -> NDArr
     """``T_target_tcp`` of a taught pose, for ``approach`` (404 ``taught_not_found`` for an
     unknown name; 422 when the request also gives ``T_target_tcp`` itself)."""
     if given:
-        raise LimitError("invalid_request", "give either T_target_tcp or taught, not both")
+        raise LimitError(ErrorCode.invalid_request, "give either T_target_tcp or taught, not both")
     return _taught(request).get(name).T_target_tcp
 
 
@@ -119,11 +120,11 @@ def taught_view(request: Request, name: str | None, mode: str | None) -> Feature
     if mode != "ibvs":
         return None
     if name is None:
-        raise LimitError("ibvs_needs_taught", "mode 'ibvs' converges on a taught view: give "
+        raise LimitError(ErrorCode.ibvs_needs_taught, "mode 'ibvs' converges on a taught view: give "
                          "`taught` (POST /teach records the view)")
     view = _taught(request).get(name).view
     if view is None:
-        raise LimitError("taught_without_view", f"the pose {name!r} was taught without its "
+        raise LimitError(ErrorCode.taught_without_view, f"the pose {name!r} was taught without its "
                          "view (an older record): it serves servo and look_and_move; teach it "
                          "again for ibvs")
     return view

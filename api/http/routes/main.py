@@ -46,7 +46,8 @@ from api.http.schemas import (
 from api.http.sse import SSE_RESPONSES, sse_response
 from api.http.stop import ReadNow, StopCaller, StreamNow, snapshot_now, stop_now
 from cell.devices.hardware import SimWorld
-from cell.motion.limits import CellError, NotFoundError
+from cell.error_codes import ErrorCode
+from cell.errors import CellError, NotFoundError
 from cell.service import Cell
 from cell.supervision.snapshot import with_age
 from estimator.transforms import T_from_pose, pose_dict
@@ -63,7 +64,7 @@ def cell_of(request: Request) -> Cell:
 def sim_of(request: Request) -> SimWorld:
     sim = cell_of(request).sim
     if sim is None:  # the routes are not mounted then; kept for type narrowing
-        raise NotFoundError("not_simulated", "this cell runs on real hardware")
+        raise NotFoundError(ErrorCode.not_simulated, "this cell runs on real hardware")
     return sim
 
 

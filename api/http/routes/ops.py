@@ -17,9 +17,10 @@ from api.http.schemas import (
     CameraSettingsRequest,
     ImageList,
 )
+from cell.error_codes import ErrorCode
+from cell.errors import NotFoundError
 from cell.features.alarms import AlarmLog
 from cell.features.camera_control import apply_camera_settings, camera_settings
-from cell.motion.limits import NotFoundError
 from cell.service import Cell
 
 router = APIRouter(prefix="/api/v1", responses=ERROR_RESPONSES)
@@ -111,5 +112,5 @@ def get_image(request: Request, caller: Read, name: str) -> FileResponse:
     log = _cell(request).image_log
     path = None if log is None else log.image_path(name)
     if path is None:
-        raise NotFoundError("image_not_found", f"no logged image {name!r}")
+        raise NotFoundError(ErrorCode.image_not_found, f"no logged image {name!r}")
     return FileResponse(path, media_type="image/png", headers={"Cache-Control": "no-store"})

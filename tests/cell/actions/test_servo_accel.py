@@ -11,8 +11,8 @@ from scipy.spatial.transform import Rotation
 
 from cell.actions.servo_law import LawParams, pbvs_twist
 from cell.config.schema import LimitsConfig
+from cell.errors import CellError
 from cell.motion.guard import GuardedArm, servo_ahead, servo_change_ok, twist_change
-from cell.motion.limits import CellError
 from drivers.arm import speedl_accel
 from estimator.transforms import make_T, pose_distance
 from fakes.sim_arm import SimArm

@@ -13,8 +13,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from api.app import create_app
+from cell.errors import CellError
 from cell.features.recipes import RecipeStore, parse_spec
-from cell.motion.limits import CellError
 from cell.vision.frames import approach_tcp
 from estimator.transforms import pose_distance
 from tests.support.cell import AUTH, running_cell, settled_tcp, sim_config

@@ -15,8 +15,8 @@ from fastapi.testclient import TestClient
 from scipy.spatial.transform import Rotation
 
 from api.app import create_app
+from cell.errors import CellError, LimitError, NotFoundError, RefusedError
 from cell.features.teach import STORE_NAME, Sample, TaughtPose, TaughtStore, combine
-from cell.motion.limits import CellError, LimitError, NotFoundError, RefusedError
 from cell.service import Cell
 from estimator.transforms import T_from_pose, T_from_pose_dict, invert_T, make_T, pose_distance
 from tests.support.cell import AUTH, running_cell, sim_config, tcp, world

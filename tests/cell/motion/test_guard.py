@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from cell.config.schema import LimitsConfig
+from cell.errors import CellError, LimitError, RefusedError
 from cell.motion.guard import GuardedArm, MotionSlot
-from cell.motion.limits import CellError, LimitError, RefusedError, SafetyGuard, linear_path
+from cell.motion.limits import SafetyGuard, linear_path
 from cell.vision.frames import tilt_deg
 from drivers.errors import MotionError
 from estimator.transforms import T_from_pose, pose_distance, translation_T

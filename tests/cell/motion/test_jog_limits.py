@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cell.motion.limits import LimitError
+from cell.errors import LimitError
 from tests.support.cell import running_cell, sim_config
 
 

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from cell.config.schema import LimitsConfig
+from cell.errors import CellError
 from cell.motion.guard import GuardedArm, servo_ahead
-from cell.motion.limits import CellError
 from drivers.arm import ArmState
 from estimator.transforms import pose_distance
 from fakes.sim_arm import SimArm
