@@ -15,6 +15,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from api.http.refusals import audit_refusal
 from api.http.schemas import ErrorResponse
 from api.status import STATUS
 from cell.errors import CellError
@@ -58,8 +59,6 @@ def _validation_message(err: RequestValidationError) -> str:
 
 
 def _audit(request: Request, status: int, code: str, message: str) -> None:
-    from api.http.guard import audit_refusal
-
     caller = getattr(request.state, "caller", None)
     route = getattr(request.scope.get("route"), "path", request.url.path)
     audit_refusal(request.app, caller.label if caller is not None else "anonymous",

@@ -11,14 +11,13 @@ from __future__ import annotations
 
 import json
 import logging
-import threading
-import time
 from typing import Any
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from api.auth import bearer_of
 from api.http.errors import error_body
+from api.http.refusals import audit_refusal
 from cell.errors import CellError
 
 log = logging.getLogger(__name__)
@@ -26,53 +25,6 @@ log = logging.getLogger(__name__)
 MAX_BODY_BYTES = 64 * 1024  # the largest real body (a jog or an approach) is under 1 KB
 OPEN_PATHS = frozenset({"/api/v1/health"})
 BODY_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
-
-
-AUDIT_REFUSALS_PER_S = 50  # beyond this, refusals are counted, not written one by one
-
-
-class _RefusalBudget:
-    """Keeps a flood of refused requests (a scanner, a misconfigured client) from filling the
-    audit table: past the budget in one second, rows are skipped and their number is written
-    with the next row that fits."""
-
-    def __init__(self) -> None:
-        self.lock = threading.Lock()
-        self.second = 0
-        self.used = 0
-        self.skipped = 0
-
-    def take(self) -> tuple[bool, int]:
-        """(may write now, rows skipped since the last written one)."""
-        now = int(time.monotonic())
-        with self.lock:
-            if now != self.second:
-                self.second, self.used = now, 0
-            if self.used >= AUDIT_REFUSALS_PER_S:
-                self.skipped += 1
-                return False, 0
-            self.used += 1
-            skipped, self.skipped = self.skipped, 0
-            return True, skipped
-
-
-def audit_refusal(app: Any, caller: str, method: str, route: str, status: int, code: str,
-                  message: str) -> None:
-    """One audit row per refused request; never lets a logging failure change the answer."""
-    try:
-        budget = getattr(app.state, "refusal_budget", None)
-        if budget is None:
-            budget = app.state.refusal_budget = _RefusalBudget()
-        ok, skipped = budget.take()
-        if not ok:
-            return
-        params: dict[str, Any] = {"status": status}
-        if skipped:
-            params["refusals_not_written_before"] = skipped
-        app.state.cell.jobs.audit(caller, f"{method} {route}", params, f"refused:{code}",
-                                  message[:500])
-    except Exception:  # the answer matters more than the audit row
-        log.exception("could not audit a refused request")
 
 
 class RequestGuard:

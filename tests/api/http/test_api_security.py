@@ -226,7 +226,7 @@ def test_cell_serve_https(tmp_path: Path) -> None:
 
 
 def test_a_flood_of_refusals_does_not_fill_the_audit_log(client: TestClient) -> None:
-    from api.http.guard import AUDIT_REFUSALS_PER_S, audit_refusal
+    from api.http.refusals import AUDIT_REFUSALS_PER_S, audit_refusal
 
     app = client.app
     for _ in range(3 * AUDIT_REFUSALS_PER_S):
