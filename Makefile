@@ -24,6 +24,7 @@ install: $(STAMP)
 lint: install
 	$(BIN)/ruff check $(PACKAGES) tests
 	$(BIN)/mypy
+	$(BIN)/lint-imports
 
 # Two xdist workers, one test file per worker at a time (its module fixtures, CPU burners and
 # servers stay in one process), the real-time UR files one after another, longest work first

@@ -1,11 +1,10 @@
-"""The packaging and layering rules every other feature relies on."""
+"""The packaging rules every other feature relies on. The layering itself is checked by the
+import contracts in pyproject.toml (``lint-imports``, part of ``make lint``)."""
 
 from __future__ import annotations
 
-import ast
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 
@@ -17,55 +16,6 @@ from estimator.transforms import (
     pose_from_T,
     ur_pose_from_T,
 )
-from tests.support.paths import REPO
-
-# package -> packages of the project it may import
-ALLOWED = {
-    "estimator": set(),
-    "drivers": {"estimator"},
-    "fakes": {"estimator", "drivers"},
-    "cell": {"estimator", "drivers", "fakes"},
-    "api": {"cell", "estimator"},
-}
-
-
-def _project_imports(path: Path) -> set[str]:
-    tree = ast.parse(path.read_text())
-    found: set[str] = set()
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import):
-            found.update(a.name.split(".")[0] for a in node.names)
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            found.add(node.module.split(".")[0])
-    return found & set(ALLOWED)
-
-
-def test_layering() -> None:
-    bad = []
-    for pkg, allowed in ALLOWED.items():
-        for f in (REPO / pkg).rglob("*.py"):
-            extra = _project_imports(f) - allowed - {pkg}
-            if extra:
-                bad.append(f"{f.relative_to(REPO)} imports {sorted(extra)}")
-    assert not bad, "\n".join(bad)
-
-
-# Business code never asks whether hardware is simulated: only the hardware factory builds fakes
-# (and the benchmarks: the estimator's renders its scenes with the fake renderer, the approach,
-# service and freeze benchmarks run the simulated cell or controller on a free loopback
-# address, the fixed-camera one renders its views with the fixed simulated camera).
-MAY_IMPORT_FAKES = {"cell/devices/factory.py", "cell/bench/estimator.py", "cell/bench/approach.py",
-                    "cell/bench/service.py", "cell/bench/freeze.py", "cell/bench/fixed.py"}
-
-
-def test_only_the_factory_builds_fakes() -> None:
-    bad = [
-        str(f.relative_to(REPO))
-        for f in (REPO / "cell").rglob("*.py")
-        if "fakes" in _project_imports(f)
-        and str(f.relative_to(REPO)) not in MAY_IMPORT_FAKES
-    ]
-    assert not bad, f"only {sorted(MAY_IMPORT_FAKES)} may import fakes: {bad}"
 
 
 def test_cli_help() -> None:

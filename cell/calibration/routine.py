@@ -1,8 +1,8 @@
 """The guided hand-eye routine: move the arm around a start pose, look, solve, judge.
 
-Works on any :class:`drivers.arm.Arm` and :class:`drivers.camera.Camera`; the cell and the CLI
-hand it their :class:`cell.motion.guard.GuardedArm`, so every view pose is checked against the
-limits first (a refused view is skipped, not moved to) and a stop ends the routine.
+Works on the :class:`cell.motion.guard.GuardedArm` (never the raw arm) and any
+:class:`drivers.camera.Camera`; the cell and the CLI hand it their guarded arm, so every view
+pose is checked against the limits first (a refused view is skipped, not moved to) and a stop ends the routine.
 
 The poses tilt the camera about the target (so it stays in view) about several axes and roll
 it about the optical axis, because AX = XB is only determined by rotations about at least two
@@ -30,7 +30,7 @@ from cell.calibration.report import HandEyeReport
 from cell.calibration.solve import DEFAULT_METHOD, Progress, solve_observations
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, LimitError
-from drivers.arm import Arm
+from cell.motion.guard import GuardedArm
 from drivers.camera import Camera, Frame
 from drivers.errors import DriverError
 from estimator import CameraModel, Target
@@ -122,7 +122,7 @@ def plan_poses(
 
 
 def run_hand_eye_routine(
-    arm: Arm,
+    arm: GuardedArm,
     camera: Camera,
     observer: Observer,
     T_flange_tcp: Matrix4,
@@ -192,7 +192,7 @@ def run_hand_eye_routine(
 
 
 def _capture(
-    arm: Arm, camera: Camera, observer: Observer, tcp_inv: Matrix4, s: RoutineSettings
+    arm: GuardedArm, camera: Camera, observer: Observer, tcp_inv: Matrix4, s: RoutineSettings
 ) -> tuple[Matrix4, Observation | str, CameraModel, NDArray[np.uint8]]:
     """A frame exposed after the arm settled: its flange pose, what it shows, the camera's
     intrinsics and the image."""

@@ -19,6 +19,7 @@ from cell.vision.frames import approach_tcp
 from estimator.transforms import make_T, pose_dict, pose_distance
 from fakes.ur_controller.process import free_loopback_host
 from tests.support.cell import AUTH, running_cell, sim_config, world
+from tests.support.jobs import wait_job
 
 HOME_TARGET = make_T(Rotation.from_rotvec([np.pi, 0, 0]).as_matrix(),
                      np.array([-480.0, -100.0, 0.0]))
@@ -57,16 +58,6 @@ def home(client: TestClient) -> Iterator[None]:
     yield
     world(_cell(client)).set_camera_blocked(False)
     client.post("/api/v1/stop", headers=AUTH["viewer"])
-
-
-def _wait(client: TestClient, job_id: str, timeout_s: float = 60.0) -> dict[str, Any]:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        job: dict[str, Any] = client.get(f"/api/v1/jobs/{job_id}", headers=AUTH["viewer"]).json()
-        if job["state"] != "running":
-            return job
-        assert time.monotonic() < deadline, job
-        time.sleep(0.05)
 
 
 def _still(cell: Cell) -> bool:
@@ -145,7 +136,7 @@ def test_track_a_moving_target_then_stop(client: TestClient, home: None) -> None
     assert np.median(errors) < 5.0  # accuracy is the benchmark's business (cell bench approach)
     r = client.post("/api/v1/stop", headers=AUTH["plc"])
     assert r.status_code == 200 and r.json()["job_id"] == job_id
-    job = _wait(client, job_id, 10)
+    job = wait_job(client, job_id, 10)
     assert job["state"] == "cancelled"
     _place(client, world(cell).true_T_base_target())  # the conveyor stops too
     assert _still(cell)
@@ -159,7 +150,7 @@ def test_target_covered_mid_servo_ends_target_lost_with_the_arm_still(
     assert r.status_code == 200, r.text
     time.sleep(1.0)  # mid-approach, the arm moving fast
     world(cell).set_camera_blocked(True)
-    job = _wait(client, r.json()["id"], 10)
+    job = wait_job(client, r.json()["id"], 10)
     assert job["state"] == "failed" and job["error"]["code"] == "target_lost", job
     assert job["progress"]["stopped_in_ms"] < 1000
     assert _still(cell)
@@ -175,7 +166,7 @@ def test_stop_mid_servo_halts_at_once(client: TestClient, home: None) -> None:
     t_stop = time.monotonic()
     s = client.post("/api/v1/stop", headers=AUTH["viewer"])
     assert s.status_code == 200 and s.json()["cancelled"] == "approach"
-    job = _wait(client, r.json()["id"], 10)
+    job = wait_job(client, r.json()["id"], 10)
     assert job["state"] == "cancelled"
     assert _still(cell)
     late = [c for c in cell.commanded() if c.kind == "servo" and c.t_s > t_stop + 0.05]
@@ -192,7 +183,7 @@ def test_limit_reached_mid_servo_ends_with_its_code_inside_the_envelope(
     time.sleep(2.5)
     # the part sinks: 50 mm above it is soon below the box floor (z = 20 mm)
     _place(client, world(cell).true_T_base_target(), velocity_mm_s=[0.0, 0.0, -40.0])
-    job = _wait(client, r.json()["id"], 15)
+    job = wait_job(client, r.json()["id"], 15)
     _place(client, world(cell).true_T_base_target())
     assert job["state"] == "failed" and job["error"]["code"] == "outside_envelope", job
     assert _still(cell)

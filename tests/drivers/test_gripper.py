@@ -11,7 +11,6 @@ import time
 from collections.abc import Iterator
 
 import pytest
-import serial
 
 from drivers.errors import (
     DeviceTimeoutError,
@@ -27,6 +26,7 @@ from fakes.gripper import (
     GripperModel,
     speed_units_per_s,
 )
+from tests.support.protocol import ScriptedSerial, expected_serial
 
 H = bytes.fromhex
 
@@ -43,48 +43,11 @@ CLOSED_ON_OBJECT = H("09 04 06 B9 00 00 FF BD 00 5C 9A")  # gOBJ=2 at gPO=0xBD
 OVERCURRENT = H("09 04 06 39 00 0E FF 40 00 01 22")
 
 
-class ScriptedSerial:
-    """Stands in for pyserial: checks each written frame, then makes its reply readable."""
-
-    def __init__(self, script: list[tuple[bytes, bytes | None]]) -> None:
-        self.script = list(script)
-        self.written: list[bytes] = []
-        self.rx = b""
-        self.is_open = True
-        self.inter_byte_timeout = 0.0
-
-    @property
-    def in_waiting(self) -> int:
-        return len(self.rx)
-
-    def write(self, data: bytes) -> int:
-        self.written.append(bytes(data))
-        assert self.script, f"unexpected request {data.hex(' ')}"
-        expected, reply = self.script.pop(0)
-        assert data == expected, f"wrote {data.hex(' ')}, expected {expected.hex(' ')}"
-        self.rx += reply or b""
-        return len(data)
-
-    def read(self, size: int = 1) -> bytes:
-        out, self.rx = self.rx[:size], self.rx[size:]
-        return out
-
-    def close(self) -> None:
-        self.is_open = False
-
-
 @pytest.fixture
 def scripted(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[ScriptedSerial]]:
-    """Patch pyserial's opener; a test appends its script with :func:`make`."""
-    made: list[ScriptedSerial] = []
-
-    def opener(url: str, **kwargs: object) -> ScriptedSerial:
-        return made[-1]
-
-    monkeypatch.setattr(serial, "serial_for_url", opener)
-    yield made
-    for s in made:
-        assert not s.script, f"requests never sent: {[e.hex(' ') for e, _ in s.script]}"
+    """Every serial port the adapter opens is the next scripted one (see :func:`make`)."""
+    with expected_serial(monkeypatch) as made:
+        yield made
 
 
 def make(made: list[ScriptedSerial], script: list[tuple[bytes, bytes | None]],

@@ -22,6 +22,7 @@ from drivers.oak.calibration import (
 )
 from drivers.oak.camera import CameraStatus, OakCamera, OakSession, OakSettings
 from tests.support.paths import REPO
+from tests.support.waiting import wait_until
 
 K_FULL = [[800.0, 0.0, 639.5], [0.0, 801.0, 399.5], [0.0, 0.0, 1.0]]
 DIST = [0.1, -0.05, 0.001, 0.002, 0.01]
@@ -219,13 +220,6 @@ def test_timeout_when_frames_stop_briefly(camera: OakCamera, backend: HostBacken
     backend.sources[0].alive.set()
 
 
-def _wait_for(cond: Any, timeout_s: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < deadline, "condition not reached in time"
-        time.sleep(0.02)
-
-
 def test_stalled_device_reconnects_with_backoff() -> None:
     backend = HostBackend()
     seen: list[CameraStatus] = []
@@ -235,10 +229,10 @@ def test_stalled_device_reconnects_with_backoff() -> None:
         cam.latest_frame(timeout_s=2.0)
         backend.fail_next = 3  # the device is gone for three attempts
         backend.sources[0].alive.clear()
-        _wait_for(lambda: cam.status().state == "reconnecting")
+        wait_until(lambda: cam.status().state == "reconnecting")
         with pytest.raises(ConnectionLostError, match="reconnecting"):
             cam.latest_frame()
-        _wait_for(lambda: cam.status().state == "streaming")
+        wait_until(lambda: cam.status().state == "streaming")
         assert cam.latest_frame(timeout_s=2.0).sequence >= 1
         retries = [s.retry_in_s for s in seen if s.state == "reconnecting"]
         assert retries[:4] == [0.1, 0.2, 0.4, 0.4]  # doubling, capped
@@ -252,7 +246,7 @@ def test_stalled_device_reconnects_with_backoff() -> None:
 def test_stopped_pipeline_counts_as_device_loss(camera: OakCamera, backend: HostBackend) -> None:
     camera.latest_frame(timeout_s=2.0)
     backend.pipelines[0].stop()
-    _wait_for(lambda: camera.status().reconnects == 1)
+    wait_until(lambda: camera.status().reconnects == 1)
     assert camera.latest_frame(timeout_s=2.0).image.shape == (40, 64)
 
 
@@ -328,7 +322,7 @@ def test_rejected_settings_change_nothing(camera: OakCamera, backend: HostBacken
 def test_settings_survive_a_reconnection(camera: OakCamera, backend: HostBackend) -> None:
     camera.apply_settings(CameraSettings(exposure_us=3000))
     backend.pipelines[0].stop()
-    _wait_for(lambda: camera.status().reconnects == 1)
+    wait_until(lambda: camera.status().reconnects == 1)
     assert backend.opened[-1].exposure_us == 3000
     msg = _wait_frame(camera, lambda m: True)
     assert msg.cam.exposureTimeUs == 3000

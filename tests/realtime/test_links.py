@@ -6,7 +6,7 @@ from __future__ import annotations
 import multiprocessing
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -19,6 +19,8 @@ from cell.service import Cell
 from estimator.transforms import pose_distance
 from fakes.ur_controller.process import free_loopback_host
 from tests.support.cell import AUTH, running_cell, settled_tcp, sim_config, world
+from tests.support.jobs import wait_job
+from tests.support.waiting import wait_until
 
 OP, PLC, VIEW = AUTH["operator"], AUTH["plc"], AUTH["viewer"]
 
@@ -38,28 +40,9 @@ def cell_of(client: TestClient) -> Cell:
     return cell
 
 
-def wait_for(what: str, check: Callable[[], bool], timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not check():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.05)
-
-
-def wait_job(client: TestClient, job_id: str, timeout_s: float = 60.0) -> dict[str, Any]:
-    job: dict[str, Any] = {}
-
-    def ended() -> bool:
-        nonlocal job
-        job = client.get(f"/api/v1/jobs/{job_id}", headers=VIEW).json()
-        return job["state"] != "running"
-
-    wait_for(f"job {job_id}", ended, timeout_s)
-    return job
-
-
 def moving_away(cell: Cell, start: np.ndarray, mm: float, timeout_s: float = 10.0) -> None:
-    wait_for("the arm to move", lambda: pose_distance(world(cell).true_T_base_tcp(),
-                                                       start)[0] > mm, timeout_s)
+    wait_until(lambda: pose_distance(world(cell).true_T_base_tcp(), start)[0] > mm, timeout_s,
+               "the arm to move")
 
 
 def ready(client: TestClient) -> bool:
@@ -86,7 +69,7 @@ def test_service_without_its_controller_serves_and_picks_it_up_again(tmp_path: P
             "arm_disconnected", "camera_lost"), r.text
         # the controller boots after the cell PC
         world(cell).start_controller()
-        wait_for("the arm link", lambda: ready(client), 30.0)
+        wait_until(lambda: ready(client), 30.0, "the arm link")
         r = client.post("/api/v1/locate", headers=PLC)
         assert r.status_code == 200, r.text
         approach_ok(client)
@@ -101,7 +84,7 @@ def test_service_without_its_controller_serves_and_picks_it_up_again(tmp_path: P
         assert job["state"] == "failed" and job["error"]["code"] == "arm_disconnected", job
         assert client.get("/api/v1/health").json()["missing"] == ["arm"]
         world(cell).start_controller()
-        wait_for("the arm link again", lambda: ready(client), 30.0)
+        wait_until(lambda: ready(client), 30.0, "the arm link again")
         approach_ok(client)
         tries = [e for e in cell.jobs.audit_log(500) if e.command == "approach_end"]
         assert [e.outcome for e in tries][:3] == ["succeeded", "failed", "succeeded"]
@@ -115,8 +98,8 @@ def test_unlock_and_home_over_http(tmp_path: Path) -> None:
                         headers=OP)
         assert r.status_code == 200, r.text
         world(cell).trigger_protective_stop("test")
-        wait_for("the protective stop", lambda: client.get(
-            "/api/v1/status", headers=VIEW).json()["robot"]["protective_stop"], 5.0)
+        wait_until(lambda: client.get("/api/v1/status", headers=VIEW).json()["robot"][
+            "protective_stop"], 5.0, "the protective stop")
         assert client.post("/api/v1/arm/unlock", headers=VIEW).status_code == 403
         r = client.post("/api/v1/arm/unlock", headers=OP)
         assert r.status_code == 409 and r.json()["error"]["code"] == "unlock_too_early", r.text
@@ -166,7 +149,7 @@ def test_a_frozen_controller_is_told_to_stop_first_when_it_answers_again(tmp_pat
             world(cell).freeze_controller(False)
         resumed = time.monotonic()
         at_resume = world(cell).true_T_base_tcp()
-        wait_for("the arm link", lambda: ready(client), 30.0)
+        wait_until(lambda: ready(client), 30.0, "the arm link")
         still = settled_tcp(cell)
         moved_mm = pose_distance(still, at_resume)[0]
         print(f"after the resume the arm moved {moved_mm:.1f} mm and was still "

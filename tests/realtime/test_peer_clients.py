@@ -9,6 +9,7 @@ Outcomes are checked against the simulator's ground truth (the controller proces
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import math
 import socket
@@ -21,6 +22,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.support.waiting import wait_until
+
 rtde_control = pytest.importorskip("rtde_control")
 rtde_receive = pytest.importorskip("rtde_receive")
 rtde_io = pytest.importorskip("rtde_io")
@@ -29,7 +32,6 @@ dashboard_client = pytest.importorskip("dashboard_client")
 from fakes.gripper import FakeGripper  # noqa: E402
 from fakes.ur_controller.load import cpu_burners  # noqa: E402
 from fakes.ur_controller.process import ControllerProcess  # noqa: E402
-from tests.support.ur import wait_until  # noqa: E402
 
 HOME_Q = [0.0, -1.571, 1.571, -1.571, -1.571, 0.0]
 
@@ -342,7 +344,8 @@ def test_unsupported_command_is_refused_and_the_program_keeps_running(
     assert wait_until(lambda: any("forceMode is not simulated" in m
                                   for m in ctl.state()["messages"]), 2.0)
     assert time.monotonic() - t0 < 3.0
-    wait_until(lambda: not c.isProgramRunning(), 1.0)  # the client may see the short stop
+    with contextlib.suppress(AssertionError):
+        wait_until(lambda: not c.isProgramRunning(), 1.0)  # the client may see the short stop
     assert wait_until(c.isProgramRunning, 3.0)
     q = r.getActualQ()
     target = list(q)

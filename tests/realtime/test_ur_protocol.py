@@ -26,7 +26,7 @@ from fakes.ur_controller import rtde
 from fakes.ur_controller.process import ControllerProcess
 from fakes.ur_controller.script import parse_program
 from fakes.ur_controller.urscript import split_programs
-from tests.support.ur import wait_until
+from tests.support.waiting import wait_until
 
 # The ur_rtde clients run in this process and block inside C++ (movePath waits for the program
 # without a deadline): a signal cannot interrupt them, a watchdog thread can end the run.

@@ -20,6 +20,7 @@ from cell.service import Cell
 from cell.vision.frames import approach_tcp
 from estimator.transforms import T_from_pose, T_from_pose_dict, make_T, pose_dict, pose_distance
 from tests.support.cell import AUTH, running_cell, settled_tcp, sim_config, tcp, world
+from tests.support.jobs import wait_job
 
 OP, PLC, VIEW = AUTH["operator"], AUTH["plc"], AUTH["viewer"]
 FLAT = np.array([[1.0, 0, 0], [0, -1, 0], [0, 0, -1]])  # plate facing up, +z into it
@@ -217,16 +218,6 @@ def test_busy_stop_during_approach_and_protective_stop(client: TestClient) -> No
         assert r.status_code == 409 and error_code(r) == "protective_stop", r.text
     assert_not_moved(client, held)
     assert client.get("/api/v1/status", headers=VIEW).json()["state"] == "protective_stop"
-
-
-def wait_job(client: TestClient, job_id: str, timeout_s: float = 30.0) -> dict[str, Any]:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        job: dict[str, Any] = client.get(f"/api/v1/jobs/{job_id}", headers=VIEW).json()
-        if job["state"] != "running":
-            return job
-        time.sleep(0.05)
-    raise AssertionError(f"job {job_id} still running after {timeout_s} s")
 
 
 def test_continuous_jog_with_dead_man(client: TestClient) -> None:

@@ -20,6 +20,7 @@ from cell.config.schema import CellConfig
 from cell.service import Cell
 from estimator.transforms import T_from_pose, pose_dict
 from tests.support.cell import AUTH, running_cell, sim_config
+from tests.support.waiting import wait_until
 
 OP, PLC, VIEW = AUTH["operator"], AUTH["plc"], AUTH["viewer"]
 OUT_OF_VIEW = T_from_pose([-480, 300, 0], [np.pi, 0, 0])
@@ -41,17 +42,6 @@ def cell_of(client: TestClient) -> Cell:
     return cell
 
 
-def wait_for(pred: Any, timeout_s: float = 15.0, what: str = "condition") -> Any:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        value = pred()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.05)
-
-
 def active_alarms(client: TestClient) -> list[dict[str, Any]]:
     r = client.get("/api/v1/alarms", params={"active": "true"}, headers=VIEW)
     assert r.status_code == 200, r.text
@@ -65,7 +55,7 @@ def failed_approach(client: TestClient) -> str:
     job_id = str(r.json()["id"])
     r = client.put("/api/v1/sim/target", json=pose_dict(OUT_OF_VIEW), headers=OP)
     assert r.status_code == 200
-    job = wait_for(lambda: (j := client.get(f"/api/v1/jobs/{job_id}", headers=VIEW).json())
+    job = wait_until(lambda: (j := client.get(f"/api/v1/jobs/{job_id}", headers=VIEW).json())
                    ["state"] != "running" and j, 30, "approach end")
     assert job["state"] == "failed", job
     return job_id
@@ -76,7 +66,7 @@ def test_failed_job_raises_an_alarm_until_acknowledged_and_it_survives_a_restart
     config = _config(tmp_path)
     with running_cell(config) as cell, TestClient(create_app(cell)) as client:
         job_id = failed_approach(client)
-        alarm = wait_for(lambda: next((a for a in active_alarms(client)
+        alarm = wait_until(lambda: next((a for a in active_alarms(client)
                                        if a["job_id"] == job_id), None), 5, "alarm")
         assert alarm["source"] == "job" and alarm["active"]
         # usually the target is not located any more; on a loaded host the move may fail first
@@ -115,7 +105,7 @@ def test_faults_raise_one_alarm_each(client: TestClient) -> None:
     assert cell.sim is not None
     cell.sim.set_camera_lost(True)
     try:
-        alarm = wait_for(lambda: next((a for a in active_alarms(client)
+        alarm = wait_until(lambda: next((a for a in active_alarms(client)
                                        if a["code"] == "camera_lost"), None), 10, "camera alarm")
         assert alarm["source"] == "camera" and "camera" in alarm["message"]
         time.sleep(1.5)  # still lost: no second alarm for the same fault
@@ -245,7 +235,7 @@ def test_a_job_interrupted_by_a_crash_raises_an_alarm_on_restart(tmp_path: Path)
     with running_cell(config) as cell, TestClient(create_app(cell)):
         job = cell.jobs.create("approach", "plc(plc)", {"standoff_mm": 50})  # never finished
     with running_cell(config) as cell, TestClient(create_app(cell)) as client:
-        alarm = wait_for(lambda: next((a for a in active_alarms(client)
+        alarm = wait_until(lambda: next((a for a in active_alarms(client)
                                        if a["job_id"] == job.id), None), 10, "alarm")
         assert alarm["code"] == "interrupted" and "interrupted" in alarm["message"]
 
@@ -254,7 +244,7 @@ def test_a_protective_stop_raises_an_alarm(client: TestClient) -> None:
     cell = cell_of(client)
     assert cell.sim is not None
     cell.sim.trigger_protective_stop("test: collision")
-    alarm = wait_for(lambda: next((a for a in active_alarms(client)
+    alarm = wait_until(lambda: next((a for a in active_alarms(client)
                                    if a["code"] == "protective_stop"), None), 10, "alarm")
     assert alarm["source"] == "arm" and "protective stop" in alarm["message"]
     events = client.get("/api/v1/alarms", headers=VIEW).json()

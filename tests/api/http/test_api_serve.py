@@ -6,7 +6,6 @@ from __future__ import annotations
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -18,12 +17,7 @@ from pathlib import Path
 import httpx
 
 from tests.support.cell import AUTH, without_interfaces
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from tests.support.net import free_port
 
 
 def _config(tmp_path: Path) -> Path:
@@ -68,7 +62,7 @@ def serving(config: Path, port: int) -> Iterator[tuple[subprocess.Popen[str], st
 
 def test_restart_after_kill_keeps_audit_and_marks_the_job(tmp_path: Path) -> None:
     config = _config(tmp_path)
-    port = _free_port()
+    port = free_port()
     with serving(config, port) as (proc, url):
         assert httpx.get(f"{url}/docs", timeout=5).status_code == 200
         r = httpx.post(f"{url}/api/v1/approach", json={"standoff_mm": 40}, headers=AUTH["plc"],
@@ -97,7 +91,7 @@ def test_sample_tokens_are_refused_on_real_hardware(tmp_path: Path) -> None:
     text = text.replace("[api]\n", f'[api]\nstate_dir = "{tmp_path}"\n', 1)  # real: required
     real.write_text(text.replace('host = "127.0.0.1"', 'host = "192.0.2.1"'))
     out = subprocess.run([sys.executable, "-m", "cell", "serve", "--config", str(real),
-                          "--port", str(_free_port())], capture_output=True, text=True,
+                          "--port", str(free_port())], capture_output=True, text=True,
                          timeout=60)
     assert out.returncode == 2
     assert "sample token" in out.stderr and "sim-operator" in out.stderr
@@ -109,7 +103,7 @@ def test_sigterm_stops_the_arm_first_and_closes_streams_within_2_s(tmp_path: Pat
     import threading
 
     config = _config(tmp_path)
-    with serving(config, _free_port()) as (proc, url):
+    with serving(config, free_port()) as (proc, url):
         got: list[str] = []
 
         def listen() -> None:

@@ -22,6 +22,7 @@ from cell.config.schema import load_config
 from cell.service import Cell
 from estimator.transforms import T_from_pose_dict, pose_distance
 from tests.support.cell import AUTH, running_cell, sim_config, tcp, world
+from tests.support.jobs import wait_job
 from tests.support.paths import REPO
 
 OP, PLC, VIEW = AUTH["operator"], AUTH["plc"], AUTH["viewer"]
@@ -44,17 +45,6 @@ def client(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[TestClie
 def cell_of(client: TestClient) -> Cell:
     cell: Cell = client.app.state.cell  # type: ignore[attr-defined]
     return cell
-
-
-def wait_job(client: TestClient, job_id: str, timeout_s: float = 120.0) -> dict[str, Any]:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        r = client.get(f"{BASE}/{job_id}", headers=VIEW)
-        assert r.status_code == 200, r.text
-        job: dict[str, Any] = r.json()
-        if job["state"] != "running" or time.monotonic() > deadline:
-            return job
-        time.sleep(0.2)
 
 
 def sse_events(client: TestClient, n: int) -> list[dict[str, Any]]:
@@ -102,7 +92,7 @@ def test_hand_eye_routine_end_to_end(client: TestClient, tmp_path: Path) -> None
     assert any(e["done"] >= 1 for e in events)
 
     t0 = time.monotonic()
-    job = wait_job(client, job_id)
+    job = wait_job(client, job_id, 120.0, url=BASE, url=BASE)
     assert job["state"] == "succeeded", job["error"]
     print(f"calibration job finished {time.monotonic() - t0:.1f} s after the events")
     result = job["result"]
@@ -175,7 +165,7 @@ def test_refusals_and_stop(client: TestClient) -> None:
     events = sse_events(client, 2)  # the routine is under way
     assert events[-1]["job_id"] == job_id
     assert client.post("/api/v1/stop", json={"reason": "test"}, headers=VIEW).status_code == 200
-    job = wait_job(client, job_id, 20.0)
+    job = wait_job(client, job_id, 20.0, url=BASE, url=BASE)
     assert job["state"] == "cancelled", job
     time.sleep(0.2)
     resting = tcp(cell)

@@ -32,6 +32,7 @@ from tests.support.browser import (
     serve_sim_cell,
     stub_permissions,
 )
+from tests.support.waiting import wait_until
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -73,14 +74,6 @@ def rec(stub: tuple[str, RecordingApi]) -> RecordingApi:
     return r
 
 
-def _wait_for(pred: Any, timeout_s: float = 5.0, what: str = "condition") -> None:
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.05)
-
-
 def _hold_start(page: Any, testid: str) -> None:
     page.get_by_test_id(testid).hover()
     page.mouse.down()
@@ -120,18 +113,18 @@ def test_home_and_unlock_call_the_arm_routes(
     url, _ = stub
     login(page, url, "tok-operator")
     page.get_by_test_id("home").click()
-    _wait_for(lambda: rec.of("/api/v1/arm/home"), what="home request")
-    _wait_for(lambda: "home0001" in page.get_by_test_id("job").inner_text(), what="home job")
+    wait_until(lambda: rec.of("/api/v1/arm/home"), what="home request")
+    wait_until(lambda: "home0001" in page.get_by_test_id("job").inner_text(), what="home job")
     page.get_by_test_id("unlock").click()
-    _wait_for(lambda: rec.of("/api/v1/arm/unlock"), what="unlock request")
-    _wait_for(lambda: "unlocked" in page.get_by_test_id("result").inner_text(), what="unlocked")
+    wait_until(lambda: rec.of("/api/v1/arm/unlock"), what="unlock request")
+    wait_until(lambda: "unlocked" in page.get_by_test_id("result").inner_text(), what="unlocked")
     (home,) = rec.of("/api/v1/arm/home")
     assert home.method == "POST" and home.body == {} and home.query == ""
     rec.failures["/api/v1/arm/unlock"] = (409, "unlock_too_early",
                                           "wait 5 s after a protective stop before unlocking")
     page.get_by_test_id("unlock").click()
     msg = page.get_by_test_id("message")
-    _wait_for(lambda: "wait 5 s" in msg.inner_text(), what="refusal in words")
+    wait_until(lambda: "wait 5 s" in msg.inner_text(), what="refusal in words")
 
 
 def test_bad_token_is_refused_in_words(
@@ -155,7 +148,7 @@ def test_camera_view_refreshes_with_overlay(
     url, _ = stub
     login(page, url, "tok-viewer")
     cam = page.get_by_test_id("camera")
-    _wait_for(lambda: int(cam.get_attribute("data-frames")) >= 1, what="first frame")
+    wait_until(lambda: int(cam.get_attribute("data-frames")) >= 1, what="first frame")
     n0, t0 = int(cam.get_attribute("data-frames")), time.monotonic()
     time.sleep(2.0)
     rate = (int(cam.get_attribute("data-frames")) - n0) / (time.monotonic() - t0)
@@ -178,7 +171,7 @@ def test_held_jog_heartbeats_then_stops_on_release(
     _hold_start(page, "jog-z-plus")
     time.sleep(1.0)
     page.mouse.up()
-    _wait_for(lambda: rec.of("/api/v1/stop"), what="stop after release")
+    wait_until(lambda: rec.of("/api/v1/stop"), what="stop after release")
     released = rec.of("/api/v1/stop")[0].t_s
 
     (start,) = rec.of("/api/v1/jog")
@@ -201,9 +194,9 @@ def test_jog_stops_when_the_page_loses_focus(
     url, _ = stub
     login(page, url, "tok-operator")
     _hold_start(page, "jog-rx-minus")
-    _wait_for(lambda: len(rec.of("/api/v1/jog/heartbeat")) >= 2, what="heartbeats")
+    wait_until(lambda: len(rec.of("/api/v1/jog/heartbeat")) >= 2, what="heartbeats")
     page.evaluate("window.dispatchEvent(new Event('blur'))")  # button still held
-    _wait_for(lambda: rec.of("/api/v1/stop"), what="stop on blur")
+    wait_until(lambda: rec.of("/api/v1/stop"), what="stop on blur")
     n = len(rec.of("/api/v1/jog/heartbeat"))
     time.sleep(0.5)
     page.mouse.up()
@@ -219,12 +212,12 @@ def test_jog_stops_when_the_connection_drops(
     url, _ = stub
     login(page, url, "tok-operator")
     _hold_start(page, "jog-y-plus")
-    _wait_for(lambda: len(rec.of("/api/v1/jog/heartbeat")) >= 2, what="heartbeats")
+    wait_until(lambda: len(rec.of("/api/v1/jog/heartbeat")) >= 2, what="heartbeats")
     page.route("**/api/v1/**", lambda route: route.abort("internetdisconnected"))
     btn = page.get_by_test_id("jog-y-plus")
-    _wait_for(lambda: "held" not in (btn.get_attribute("class") or ""), what="jog released")
+    wait_until(lambda: "held" not in (btn.get_attribute("class") or ""), what="jog released")
     assert re.search("connection|cannot be reached", page.get_by_test_id("message").inner_text())
-    _wait_for(lambda: page.get_by_test_id("connection").inner_text() == "offline",
+    wait_until(lambda: page.get_by_test_id("connection").inner_text() == "offline",
               what="offline indicator")
     page.unroute("**/api/v1/**")
     n = len(rec.of("/api/v1/jog/heartbeat"))
@@ -243,9 +236,9 @@ def test_keyboard_hold_jogs_and_reload_keeps_the_session(
     page.get_by_test_id("role").filter(has_text="operator").wait_for()
     page.get_by_test_id("jog-x-minus").focus()
     page.keyboard.down(" ")
-    _wait_for(lambda: len(rec.of("/api/v1/jog/heartbeat")) >= 3, what="heartbeats")
+    wait_until(lambda: len(rec.of("/api/v1/jog/heartbeat")) >= 3, what="heartbeats")
     page.keyboard.up(" ")
-    _wait_for(lambda: rec.of("/api/v1/stop"), what="stop on key release")
+    wait_until(lambda: rec.of("/api/v1/stop"), what="stop on key release")
     (start,) = rec.of("/api/v1/jog")
     assert start.body["linear_mm_s"][0] < 0
 
@@ -260,7 +253,7 @@ def test_api_refusals_are_shown_in_words(
     page.get_by_test_id("standoff").fill("40")
     page.get_by_test_id("approach").click()
     msg = page.get_by_test_id("message")
-    _wait_for(lambda: "camera cannot see" in msg.inner_text(), what="refusal message")
+    wait_until(lambda: "camera cannot see" in msg.inner_text(), what="refusal message")
     text = msg.inner_text()
     assert "409" not in text and "camera_lost" not in text
     # the mode list starts with "default mode (config)": no mode, the cell's [approach] mode
@@ -268,7 +261,7 @@ def test_api_refusals_are_shown_in_words(
 
     page.get_by_test_id("standoff").fill("-5")
     page.get_by_test_id("approach").click()
-    _wait_for(lambda: "standoff" in msg.inner_text(), what="input message")
+    wait_until(lambda: "standoff" in msg.inner_text(), what="input message")
     assert len(rec.of("/api/v1/approach")) == 1  # refused before anything was sent
 
 
@@ -377,8 +370,8 @@ def test_stop_works_for_every_role(
     url, _ = stub
     login(page, url, "tok-viewer")
     page.get_by_test_id("stop").click()
-    _wait_for(lambda: rec.of("/api/v1/stop"), what="stop request")
-    _wait_for(lambda: "Stopped" in page.get_by_test_id("message").inner_text(), what="ack")
+    wait_until(lambda: rec.of("/api/v1/stop"), what="stop request")
+    wait_until(lambda: "Stopped" in page.get_by_test_id("message").inner_text(), what="ack")
 
 
 def test_tablet_portrait_keeps_stop_in_view(
@@ -404,15 +397,15 @@ def test_a_new_attempt_clears_the_earlier_error_line(
     msg = page.get_by_test_id("message")
     r.failures["/api/v1/approach"] = (409, "camera_lost", "The camera cannot see the target.")
     page.get_by_test_id("approach").click()
-    _wait_for(lambda: "cannot see" in msg.inner_text(), what="first failure")
+    wait_until(lambda: "cannot see" in msg.inner_text(), what="first failure")
     r.failures["/api/v1/approach"] = (503, "arm_disconnected", "The arm is not connected.")
     page.get_by_test_id("approach").click()
-    _wait_for(lambda: "not connected" in msg.inner_text(), what="second failure")
+    wait_until(lambda: "not connected" in msg.inner_text(), what="second failure")
     assert "cannot see" not in msg.inner_text()
     del r.failures["/api/v1/approach"]
     page.get_by_test_id("approach").click()  # this one starts: no failure is left on screen
-    _wait_for(lambda: len(rec.of("/api/v1/approach")) == 3, what="third approach")
-    _wait_for(lambda: msg.is_hidden() or msg.get_attribute("data-kind") != "error",
+    wait_until(lambda: len(rec.of("/api/v1/approach")) == 3, what="third approach")
+    wait_until(lambda: msg.is_hidden() or msg.get_attribute("data-kind") != "error",
               what="error line cleared")
 
 
@@ -427,7 +420,7 @@ def test_motion_controls_are_disabled_while_a_job_runs(
                              "progress": {"phase": "moving", "cycle": 2}}
     login(page, url, "tok-operator")
     motion = ["approach", "home", "track-start", "calib-start", "teach", *JOG_BUTTONS]
-    _wait_for(lambda: page.get_by_test_id("approach").is_disabled(), what="approach disabled")
+    wait_until(lambda: page.get_by_test_id("approach").is_disabled(), what="approach disabled")
     for testid in motion:
         assert page.get_by_test_id(testid).is_disabled(), testid
     for testid in ("stop", "track-stop", "locate", "gripper-open", "unlock"):
@@ -437,7 +430,7 @@ def test_motion_controls_are_disabled_while_a_job_runs(
     r.jobs[:] = [{"id": "0badf00d", "kind": "approach", "state": "failed", "caller": "op",
                   "created_at": time.time(), "error": {"code": "target_lost",
                                                        "message": long_reason}}]
-    _wait_for(lambda: page.get_by_test_id("approach").is_enabled(), what="approach enabled")
+    wait_until(lambda: page.get_by_test_id("approach").is_enabled(), what="approach enabled")
     for testid in motion:
         assert page.get_by_test_id(testid).is_enabled(), testid
 
@@ -454,7 +447,7 @@ def test_job_line_shows_the_whole_reason(
                                                        "message": reason}}
     login(page, url, "tok-operator")
     job = page.get_by_test_id("job")
-    _wait_for(lambda: "end of reason" in job.inner_text(), what="job line")
+    wait_until(lambda: "end of reason" in job.inner_text(), what="job line")
     for width in (1366, 390):
         page.set_viewport_size({"width": width, "height": 800})
         # nothing of it is hidden: the box holds all its text, no ellipsis, no clamp
@@ -518,7 +511,7 @@ def test_tcp_rotation_is_one_canonical_rotation_vector(
     # past pi: 200 deg about +z is 160 deg about -z
     r.robot_extra["T_base_tcp"] = {"position_mm": [1.0, 2.0, 3.0],
                                    "rotvec_rad": [0.0, 0.0, float(np.radians(200.0))]}
-    _wait_for(lambda: "rz -160.0" in page.get_by_test_id("tcp-pose").inner_text(),
+    wait_until(lambda: "rz -160.0" in page.get_by_test_id("tcp-pose").inner_text(),
               what="canonical angle")
 
 
@@ -530,13 +523,13 @@ def test_quality_row_follows_the_overlay_of_the_frame_on_screen(
                             "X-Locate-Error": "only 3 of 7 dots found"})
     login(page, url, "tok-operator")
     rms = page.get_by_test_id("quality-rms")
-    _wait_for(lambda: "not located" in rms.inner_text(), what="not located")
+    wait_until(lambda: "not located" in rms.inner_text(), what="not located")
     time.sleep(0.6)  # status rounds (last locate: rms 0.21, unique) do not overwrite it
     assert rms.inner_text() == "not located" and "only 3 of 7" in rms.get_attribute("title")
     assert page.get_by_test_id("quality-ambiguity").inner_text() == "–"
     r.frame_headers.update({"X-Located": "true", "X-Locate-Rms-Px": "0.0420",
                             "X-Locate-Ambiguous": "false"})
-    _wait_for(lambda: rms.inner_text() == "0.04 px", what="live rms")
+    wait_until(lambda: rms.inner_text() == "0.04 px", what="live rms")
     assert page.get_by_test_id("quality-ambiguity").inner_text() == "unique"
 
 
@@ -604,14 +597,14 @@ def test_sim_cell_live_view_jog_approach_and_stop(page: Any, sim_cell: str) -> N
     url = sim_cell
     login(page, url, SIM_OPERATOR)
     cam = page.get_by_test_id("camera")
-    _wait_for(lambda: int(cam.get_attribute("data-frames")) >= 3, 10, "live camera frames")
+    wait_until(lambda: int(cam.get_attribute("data-frames")) >= 3, 10, "live camera frames")
     n0, t0 = int(cam.get_attribute("data-frames")), time.monotonic()
     time.sleep(1.5)
     rate = (int(cam.get_attribute("data-frames")) - n0) / (time.monotonic() - t0)
     print(f"sim cell live view: {rate:.1f} frames/s")
     assert rate >= 2.0
     assert page.get_by_test_id("quality-age").inner_text().endswith("ms")
-    _wait_for(lambda: "mm" in page.get_by_test_id("tcp-pose").inner_text(), 5, "TCP pose")
+    wait_until(lambda: "mm" in page.get_by_test_id("tcp-pose").inner_text(), 5, "TCP pose")
 
     # Hold jog-z-plus for one second at 20 mm/s in the base frame.
     page.get_by_test_id("jog-frame").select_option("base")
@@ -635,12 +628,12 @@ def test_sim_cell_live_view_jog_approach_and_stop(page: Any, sim_cell: str) -> N
     page.get_by_test_id("standoff").fill("50")
     before = _tcp_mm(url)
     page.get_by_test_id("approach").click()
-    _wait_for(lambda: np.linalg.norm(_tcp_mm(url) - before) > 5.0, 15, "approach motion")
+    wait_until(lambda: np.linalg.norm(_tcp_mm(url) - before) > 5.0, 15, "approach motion")
     page.get_by_test_id("stop").click()
     stopped = _settled_tcp_mm(url, timeout_s=3.0)
     time.sleep(0.5)
     assert np.linalg.norm(_tcp_mm(url) - stopped) < 0.1  # still standing
-    _wait_for(lambda: re.search("cancel|stop|fail", page.get_by_test_id("job").inner_text()),
+    wait_until(lambda: re.search("cancel|stop|fail", page.get_by_test_id("job").inner_text()),
               5, "job shown as ended")
     screenshot(page, "operator-page-sim-after-stop")
 

@@ -26,6 +26,7 @@ from tests.support.browser import (
     screenshot,
     serve_sim_cell,
 )
+from tests.support.waiting import wait_until
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -60,19 +61,8 @@ def api(url: str, method: str, path: str, **kw: Any) -> Any:
     return r.json()
 
 
-def wait_for(pred: Any, timeout_s: float = 20.0, what: str = "condition") -> Any:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        value = pred()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.1)
-
-
 def wait_idle(url: str, timeout_s: float = 60.0) -> None:
-    wait_for(lambda: api(url, "GET", "/status")["job"] is None, timeout_s, "no running job")
+    wait_until(lambda: api(url, "GET", "/status")["job"] is None, timeout_s, "no running job")
 
 
 def in_viewport(page: Any, testid: str) -> bool:
@@ -113,7 +103,7 @@ def test_layout_keeps_camera_state_job_and_stop_in_view(
     else:  # phone: STOP is always in view and never on top of a control
         assert in_viewport(page, "stop")
         assert not overlaps(page, "approach", "stop")
-    wait_for(lambda: "approach" in page.get_by_test_id("job").inner_text(), 10, "job shown")
+    wait_until(lambda: "approach" in page.get_by_test_id("job").inner_text(), 10, "job shown")
     if width >= 900:  # the controls scrolled, the monitor did not
         page.get_by_test_id("images").scroll_into_view_if_needed()
         for testid in MONITOR:
@@ -135,11 +125,11 @@ def test_failed_approach_raises_an_alarm_until_acknowledged(
     wait_idle(cell)
     page.get_by_test_id("standoff").fill("60")
     page.get_by_test_id("approach").click()
-    job_id = wait_for(lambda: (api(cell, "GET", "/status")["job"] or {}).get("id"), 10, "job")
+    job_id = wait_until(lambda: (api(cell, "GET", "/status")["job"] or {}).get("id"), 10, "job")
     away = {"position_mm": [-480.0, 320.0, 0.0], "rotvec_rad": [np.pi, 0.0, 0.0]}
     api(cell, "PUT", "/sim/target", json=away)  # the target leaves the view mid-approach
     try:
-        ended = wait_for(lambda: (j := api(cell, "GET", f"/jobs/{job_id}"))["state"] != "running"
+        ended = wait_until(lambda: (j := api(cell, "GET", f"/jobs/{job_id}"))["state"] != "running"
                          and j, 90, "approach end")
         assert ended["state"] == "failed", ended
         banner = page.get_by_test_id("alarm-banner")
@@ -150,7 +140,7 @@ def test_failed_approach_raises_an_alarm_until_acknowledged(
         assert "failed" in text and ended["error"]["message"][:40] in text, text
         assert page.get_by_test_id("alarm-count").inner_text().endswith(("alarm", "alarms"))
         # the job and the Tasks line say how it ended, not "approach started"
-        wait_for(lambda: "failed" in page.get_by_test_id("job").inner_text(), 10, "job failed")
+        wait_until(lambda: "failed" in page.get_by_test_id("job").inner_text(), 10, "job failed")
         assert "failed" in page.get_by_test_id("result").inner_text()
         # the history and the alarm log show it
         page.locator(f'[data-testid="history"] tr[data-job-id="{job_id}"][data-state="failed"]'
@@ -175,7 +165,7 @@ def test_failed_approach_raises_an_alarm_until_acknowledged(
     # whatever else is open (the layout test's cancelled approaches): "Acknowledge all"
     if api(cell, "GET", "/alarms", params={"active": "true"})["active"]:
         page.get_by_test_id("alarm-ack-all").click()
-    wait_for(lambda: page.get_by_test_id("alarm-banner").is_hidden(), 15, "banner gone")
+    wait_until(lambda: page.get_by_test_id("alarm-banner").is_hidden(), 15, "banner gone")
     assert api(cell, "GET", "/alarms", params={"active": "true"})["active"] == 0
     assert page.get_by_test_id("alarm-count").is_hidden()
 
@@ -188,25 +178,25 @@ def test_operators_own_stop_is_an_info_event_not_an_alarm(
     before = {a["id"] for a in api(cell, "GET", "/alarms")["alarms"]}
     page.get_by_test_id("standoff").fill("80")
     page.get_by_test_id("approach").click()
-    job_id = wait_for(lambda: (api(cell, "GET", "/status")["job"] or {}).get("id"), 10, "job")
+    job_id = wait_until(lambda: (api(cell, "GET", "/status")["job"] or {}).get("id"), 10, "job")
     # while it runs, nothing else that moves the arm can be started from the page
-    wait_for(lambda: page.get_by_test_id("approach").is_disabled(), 5, "approach disabled")
+    wait_until(lambda: page.get_by_test_id("approach").is_disabled(), 5, "approach disabled")
     assert page.get_by_test_id("home").is_disabled()
     assert page.get_by_test_id("jog-z-plus").is_disabled()
     page.get_by_test_id("stop").click()
-    wait_for(lambda: api(cell, "GET", f"/jobs/{job_id}")["state"] == "cancelled", 20,
+    wait_until(lambda: api(cell, "GET", f"/jobs/{job_id}")["state"] == "cancelled", 20,
              "cancelled")
     message = page.get_by_test_id("message")
-    wait_for(lambda: "Stopped" in message.inner_text(), 5, "info line")
+    wait_until(lambda: "Stopped" in message.inner_text(), 5, "info line")
     assert message.get_attribute("data-kind") == "info"
-    wait_for(lambda: "cancelled" in page.get_by_test_id("job").inner_text(), 10, "job line")
+    wait_until(lambda: "cancelled" in page.get_by_test_id("job").inner_text(), 10, "job line")
     time.sleep(2.5)  # several rounds of the alarm watcher
     new = [a for a in api(cell, "GET", "/alarms")["alarms"] if a["id"] not in before]
     assert new == [], new
     assert page.get_by_test_id("alarm-banner").is_hidden()
     page.locator(f'[data-testid="history"] tr[data-job-id="{job_id}"][data-state="cancelled"]'
                  ).wait_for(timeout=10_000)
-    wait_for(lambda: page.get_by_test_id("approach").is_enabled(), 10, "approach enabled")
+    wait_until(lambda: page.get_by_test_id("approach").is_enabled(), 10, "approach enabled")
     screenshot(page, "operator-page-stopped")
 
 
@@ -223,15 +213,15 @@ def test_quality_row_and_overlay_agree(page: Any, cell: str,
             r = httpx.get(f"{cell}/api/v1/camera/frame.jpg", headers=HEAD, timeout=10.0)
             return {k: v for k, v in r.headers.items() if k.lower().startswith("x-locat")}
 
-        wait_for(lambda: frame_says().get("x-located") == "false", 20, "overlay: not located")
+        wait_until(lambda: frame_says().get("x-located") == "false", 20, "overlay: not located")
         rms = page.get_by_test_id("quality-rms")
-        wait_for(lambda: "not located" in rms.inner_text(), 10, "quality row: not located")
+        wait_until(lambda: "not located" in rms.inner_text(), 10, "quality row: not located")
         assert page.get_by_test_id("quality-ambiguity").inner_text() == "–"
         screenshot(page, "operator-page-not-located")
     finally:
         api(cell, "PUT", "/sim/target", json=home_target)
-    wait_for(lambda: frame_says().get("x-located") == "true", 20, "overlay: located")
-    wait_for(lambda: rms.inner_text().endswith(" px")
+    wait_until(lambda: frame_says().get("x-located") == "true", 20, "overlay: located")
+    wait_until(lambda: rms.inner_text().endswith(" px")
              and page.get_by_test_id("quality-ambiguity").inner_text() in (
                  "unique", "AMBIGUOUS: two poses fit"), 10, "quality row: located")
 
@@ -253,7 +243,7 @@ def test_image_log_browser_shows_failed_locate_frames(
     entry.click()
     view = page.get_by_test_id("image-view")
     view.wait_for(state="visible")
-    wait_for(lambda: page.evaluate(
+    wait_until(lambda: page.evaluate(
         "document.querySelector('[data-testid=image-view]').naturalWidth") == 1280, 10,
         "logged frame shown")
 
@@ -267,7 +257,7 @@ def test_teach_a_pose_and_approach_it(page: Any, cell: str) -> None:
     taught_at = np.asarray(api(cell, "GET", "/sim/truth")["T_base_tcp"]["position_mm"])
     page.get_by_test_id("teach-name").fill("page-pose")
     page.get_by_test_id("teach").click()
-    wait_for(lambda: "taught page-pose" in page.get_by_test_id("result").inner_text(), 30,
+    wait_until(lambda: "taught page-pose" in page.get_by_test_id("result").inner_text(), 30,
              "teach done")
     options = page.get_by_test_id("taught").locator("option").all_inner_texts()
     assert "page-pose" in options
@@ -275,8 +265,8 @@ def test_teach_a_pose_and_approach_it(page: Any, cell: str) -> None:
     page.get_by_test_id("taught").select_option("page-pose")
     page.get_by_test_id("standoff").fill("0")
     page.get_by_test_id("approach").click()
-    job_id = wait_for(lambda: (api(cell, "GET", "/status")["job"] or {}).get("id"), 10, "job")
-    job = wait_for(lambda: (j := api(cell, "GET", f"/jobs/{job_id}"))["state"] != "running"
+    job_id = wait_until(lambda: (api(cell, "GET", "/status")["job"] or {}).get("id"), 10, "job")
+    job = wait_until(lambda: (j := api(cell, "GET", f"/jobs/{job_id}"))["state"] != "running"
                    and j, 60, "approach end")
     assert job["state"] == "succeeded", job
     reached = np.asarray(api(cell, "GET", "/sim/truth")["T_base_tcp"]["position_mm"])
@@ -288,19 +278,19 @@ def test_teach_a_pose_and_approach_it(page: Any, cell: str) -> None:
 def test_camera_settings_panel(page: Any, cell: str) -> None:
     login(page, cell, OPERATOR)
     exposure = page.get_by_test_id("cam-exposure")
-    wait_for(lambda: exposure.input_value() != "", 10, "settings loaded")
+    wait_until(lambda: exposure.input_value() != "", 10, "settings loaded")
     page.get_by_test_id("cam-iso").fill("200")
     page.get_by_test_id("cam-apply").click()
-    wait_for(lambda: "ISO 200" in page.get_by_test_id("cam-state").inner_text(), 10, "applied")
+    wait_until(lambda: "ISO 200" in page.get_by_test_id("cam-state").inner_text(), 10, "applied")
     assert api(cell, "GET", "/camera/settings")["iso"] == 200
     page.get_by_test_id("cam-iso").fill("5000")
     page.get_by_test_id("cam-apply").click()
     msg = page.get_by_test_id("message")
-    wait_for(lambda: "iso" in msg.inner_text(), 10, "refusal in words")
+    wait_until(lambda: "iso" in msg.inner_text(), 10, "refusal in words")
     assert api(cell, "GET", "/camera/settings")["iso"] == 200
     page.get_by_test_id("cam-iso").fill("100")
     page.get_by_test_id("cam-apply").click()
-    wait_for(lambda: "ISO 100" in page.get_by_test_id("cam-state").inner_text(), 10, "reset")
+    wait_until(lambda: "ISO 100" in page.get_by_test_id("cam-state").inner_text(), 10, "reset")
 
 
 def test_calibration_from_the_page(page: Any, cell: str, home_target: dict[str, Any]) -> None:
@@ -319,7 +309,7 @@ def test_calibration_from_the_page(page: Any, cell: str, home_target: dict[str, 
             seen.add(text)
         return status.get_attribute("data-state") not in (None, "running")
 
-    wait_for(finished, 180, "calibration end")
+    wait_until(finished, 180, "calibration end")
     print(f"progress shown: {sorted(seen)}")
     assert status.get_attribute("data-state") == "succeeded", status.inner_text()
     assert any("/ 6" in t for t in seen)
@@ -327,7 +317,7 @@ def test_calibration_from_the_page(page: Any, cell: str, home_target: dict[str, 
     assert "verdict" in result and "T_flange_camera" in result
     screenshot(page, "operator-page-calibration")
     page.get_by_test_id("calib-apply").click()
-    wait_for(lambda: status.get_attribute("data-state") == "applied", 10, "applied")
+    wait_until(lambda: status.get_attribute("data-state") == "applied", 10, "applied")
     audit = api(cell, "GET", "/audit")["entries"]
     assert any(e["command"] == "apply_calibration" and e["outcome"] == "ok" for e in audit)
 

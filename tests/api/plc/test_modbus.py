@@ -6,7 +6,6 @@ the heartbeat, and the float word order on the wire."""
 
 from __future__ import annotations
 
-import socket
 import struct
 import time
 from collections.abc import Iterator
@@ -32,14 +31,9 @@ from cell.features.recipes import parse_spec
 from cell.service import Cell
 from estimator.transforms import pose_distance, pose_from_T
 from tests.support.cell import running_cell, settled_tcp, sim_config
+from tests.support.net import free_port
 
 TIMEOUT_S = 60.0
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @dataclass

@@ -16,7 +16,6 @@ import contextlib
 import json
 import os
 import shutil
-import socket
 import subprocess
 import time
 from collections.abc import Iterator
@@ -33,17 +32,12 @@ from cell.service import Cell
 from cell.vision.frames import approach_tcp
 from estimator.transforms import T_from_pose_dict, pose_distance
 from tests.support.cell import running_cell, settled_tcp, sim_config
+from tests.support.net import free_port
 from tests.support.opcua import opc_client
 from tests.support.paths import REPO
 
 SCRIPT = REPO / "tests" / "support" / "clients" / "node_opcua_jobs.js"
 N_CALLS = 100
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @dataclass

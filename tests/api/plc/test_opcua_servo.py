@@ -4,7 +4,6 @@ them, reads the job's variables, and stops a track; outcomes against simulator t
 from __future__ import annotations
 
 import asyncio
-import socket
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -23,15 +22,10 @@ from cell.service import Cell
 from cell.vision.frames import approach_tcp
 from estimator.transforms import make_T, pose_dict, pose_distance
 from tests.support.cell import AUTH, running_cell, settled_tcp, sim_config, world
+from tests.support.net import free_port
 from tests.support.opcua import Opc, opc_client
 
 STANDOFF_MM = 50.0
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @dataclass
@@ -43,7 +37,7 @@ class Served:
 
 @pytest.fixture
 def served(tmp_path: Path) -> Iterator[Served]:
-    port = _free_port()
+    port = free_port()
     # a generous lost-target limit: this is about the OPC UA surface on a loaded test host,
     # the 0.1 s default is the benchmark's business
     config = sim_config(tmp_path, servo={"lost_after_s": 1.0, "max_track_s": 60.0},

@@ -35,18 +35,13 @@ from cell.service import Cell
 from cell.vision.frames import approach_tcp
 from estimator.transforms import T_from_pose, T_from_pose_dict, T_from_ur_pose, pose_distance
 from tests.support.cell import AUTH, running_cell, settled_tcp, sim_config, tcp
+from tests.support.net import free_port
 from tests.support.opcua import Opc, opc_client
 
 METHODS = ("Locate", "Approach", "Track", "Stop", "Home", "Gripper")
 VARIABLES = ("State", "RobotMode", "SafetyStatus", "TcpPose", "TcpPoseUR", "LastLocatePose",
              "LastLocatePoseUR", "LastLocateQuality", "JobId", "JobKind", "JobState",
              "JobPhase", "JobProgress", "CameraConnected", "Alarms")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @dataclass

@@ -7,7 +7,6 @@ from __future__ import annotations
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -18,12 +17,7 @@ import httpx
 
 from fakes.ur_controller.process import free_loopback_host
 from tests.support.cell import AUTH, without_interfaces
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from tests.support.net import free_port
 
 
 def _config(tmp_path: Path) -> Path:
@@ -40,7 +34,7 @@ def _config(tmp_path: Path) -> Path:
 
 def _serve_then_ctrl_c(config: Path) -> tuple[int, str, int]:
     """(exit code, output, active alarms seen while serving)."""
-    port = _free_port()
+    port = free_port()
     proc = subprocess.Popen(
         [sys.executable, "-m", "cell", "serve", "--config", str(config), "--port", str(port)],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)

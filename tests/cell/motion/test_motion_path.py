@@ -14,14 +14,18 @@ from cell.motion.guard import GuardedArm
 from tests.support.cell import running_cell, sim_config
 from tests.support.paths import REPO
 
-MOTION_METHODS = {"move_linear", "move_joint", "jog", "stop", "servo", "speed", "power_on",
-                  "power_off", "recover_protective_stop", "set_tcp"}
-RAW = ("hw.arm", "hardware.arm", ".raw", "_arm")
+MOTION_METHODS = {"move_linear", "move_joint", "jog", "servo_twist", "stop", "servo", "speed",
+                  "power_on", "power_off", "recover_protective_stop", "set_tcp", "connect",
+                  "disconnect"}
+RAW = ("hw.arm", "hardware.arm", ".raw", "_arm", "raw_arm")
 # Where the raw arm may be named: built (factory), wrapped once (the cell, the CLI routine),
 # connected by the link supervisor (connect, reconnect, power on after a controller restart),
 # and the guard itself.
 MAY_NAME_RAW = {"cell/motion/guard.py", "cell/devices/factory.py", "cell/service.py",
                 "cell/commands/calibrate.py", "cell/supervision/links.py"}
+# Modules that may hold the raw arm's type (``drivers.arm.Arm``) to read from it; a module that
+# imports it must not call any motion method at all, whatever it names the receiver.
+MAY_TYPE_RAW = MAY_NAME_RAW | {"cell/devices/hardware.py", "cell/vision/locate.py"}
 
 
 def _sources() -> list[tuple[str, ast.Module]]:
@@ -50,9 +54,32 @@ def test_only_the_motion_module_commands_the_raw_arm() -> None:
                 continue
             receiver = ast.unparse(node.func.value)
             if any(r in receiver for r in RAW) and not (
-                    rel == "cell/supervision/links.py" and node.func.attr in ("power_on", "set_tcp")):
+                    rel == "cell/supervision/links.py"
+                    and node.func.attr in ("power_on", "set_tcp", "connect", "disconnect")):
                 offences.append(f"{rel}:{node.lineno}: {receiver}.{node.func.attr}() "
                                 "bypasses the guarded arm")
+    assert not offences, "\n".join(offences)
+
+
+def _imports_raw_arm(tree: ast.Module) -> bool:
+    return any(isinstance(n, ast.ImportFrom) and n.module == "drivers.arm"
+               and any(a.name == "Arm" for a in n.names) for n in ast.walk(tree))
+
+
+def test_a_module_typed_with_the_raw_arm_commands_nothing() -> None:
+    """A receiver renamed from the raw arm (a parameter typed ``Arm``) is caught here: such
+    a module may read the arm, never move it."""
+    offences = []
+    for rel, tree in _sources():
+        if not _imports_raw_arm(tree) or rel in MAY_NAME_RAW:
+            continue
+        if rel not in MAY_TYPE_RAW:
+            offences.append(f"{rel}: holds the raw arm's type; take the GuardedArm instead")
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) \
+                    and node.func.attr in MOTION_METHODS:
+                offences.append(f"{rel}:{node.lineno}: {ast.unparse(node.func)}() in a module "
+                                "that holds the raw arm")
     assert not offences, "\n".join(offences)
 
 
