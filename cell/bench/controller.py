@@ -1,4 +1,4 @@
-"""``cell bench controller``: numbers for the simulated controller on this machine.
+"""``python -m cell.bench.controller``: numbers for the simulated controller on this machine.
 
 With two CPU-burning processes running (``--no-load`` to skip them): the RTDE stream as
 ur_rtde records it (rows per second, the largest gap in the controller's own timestamps), the
@@ -105,11 +105,7 @@ def _maybe_load(load: bool) -> Iterator[None]:
         yield
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="cell bench controller")
-    parser.add_argument("--no-load", action="store_true", help="no CPU-burning processes")
-    parser.add_argument("--seconds", type=float, default=5.0, help="RTDE recording length")
-    args = parser.parse_args(argv)
+def main(args: argparse.Namespace) -> int:
     import rtde_control
     import rtde_receive
 
@@ -152,7 +148,4 @@ def main(argv: list[str] | None = None) -> None:
         c.stopScript()
         c.disconnect()
         r.disconnect()
-
-
-if __name__ == "__main__":
-    main()
+    return 0

@@ -317,9 +317,12 @@ def _frame_benchmark(camera: CameraModel, frames: list[_Frame]) -> dict[str, dic
 
 def _pose_only(camera: CameraModel, frames: list[_Frame], rng: np.random.Generator
                ) -> dict[str, dict[str, float]]:
-    """Per-call CPU times of the solvers on the true image points + 0.5 px noise (warmed)."""
+    """Per-call CPU times of the solvers on the true image points + 0.5 px noise (warmed),
+    and of the correspondence search (``match_blobs``, the pose included) on the same points
+    in shuffled order, as blob detection hands them over."""
     times: dict[str, _Method] = {
-        name: _Method() for name in ("posit", "solve_pose", "solve_pose_bias", "sqpnp", "ippe")
+        name: _Method() for name in ("posit", "solve_pose", "solve_pose_bias", "sqpnp", "ippe",
+                                     "match_blobs")
     }
     for f in frames:
         obj = f.target.points_mm
@@ -332,6 +335,8 @@ def _pose_only(camera: CameraModel, frames: list[_Frame], rng: np.random.Generat
                                        dot_diameter_mm=f.target.dot_diameter_mm),
             "sqpnp": partial(cv2.solvePnP, obj, img, K, dist, flags=cv2.SOLVEPNP_SQPNP),
             "ippe": partial(cv2.solvePnP, obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE),
+            "match_blobs": partial(match_blobs, img[rng.permutation(len(img))], f.target,
+                                   camera),
         }
         for name, fn in calls.items():
             try:

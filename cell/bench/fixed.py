@@ -107,19 +107,8 @@ def approach(n: int, seed: int) -> None:
             cell.close()
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--poses", type=int, default=20)
-    ap.add_argument("--tilt-deg", type=float, default=30.0)
-    ap.add_argument("--distance-mm", type=float, default=1000.0)
-    ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--approaches", type=int, default=0,
-                    help="also run this many approaches on the simulated fixed-camera cell")
-    a = ap.parse_args()
+def main(a: argparse.Namespace) -> int:
     run(a.poses, a.tilt_deg, a.distance_mm, a.seed)
     if a.approaches:
         approach(a.approaches, a.seed)
-
-
-if __name__ == "__main__":
-    main()
+    return 0

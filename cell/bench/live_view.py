@@ -1,7 +1,7 @@
-"""Benchmark: CPU of the cell service (``cell serve``, simulated cell) with 0, 1 and 5 live
+"""``cell bench live-view``: CPU of the cell service (``cell serve``, simulated cell) with 0, 1 and 5 live
 viewers, for the shared JPEG live view and for the old per-request PNG frames.
 
-    .venv/bin/cell bench live-view [--seconds 15] [--json]
+    cell bench live-view [--seconds 15] [--json]
 
 Each viewer does what the operator page does: fetch a frame with the overlay, show it, ask
 again (JPEG: every 125 ms; the old PNG page: every 150 ms). The service's CPU is read from
@@ -17,7 +17,6 @@ import argparse
 import json
 import os
 import statistics
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -25,7 +24,7 @@ from typing import Any
 
 import httpx
 
-from tests.support.browser import serve_sim_cell
+from cell.bench.service import serving
 
 HEADERS = {"Authorization": "Bearer sim-viewer"}
 
@@ -33,20 +32,6 @@ HEADERS = {"Authorization": "Bearer sim-viewer"}
 def _cpu_s(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def _server_pid(url: str) -> int:
-    port = url.rsplit(":", 1)[1]
-    for proc in Path("/proc").iterdir():
-        if not proc.name.isdigit():
-            continue
-        try:
-            cmd = (proc / "cmdline").read_bytes().split(b"\0")
-        except OSError:
-            continue
-        if b"serve" in cmd and port.encode() in cmd:
-            return int(proc.name)
-    raise RuntimeError("cell serve process not found")
 
 
 def _viewer(url: str, path: str, period_s: float, stop: threading.Event,
@@ -89,17 +74,12 @@ def measure(url: str, pid: int, path: str, period_s: float, viewers: int,
     }
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seconds", type=float, default=15.0)
-    ap.add_argument("--json", action="store_true")
-    args = ap.parse_args()
+def main(args: argparse.Namespace) -> int:
     runs = [("/api/v1/camera/frame.jpg?overlay=true", 0.125, n) for n in (0, 1, 5)]
     runs += [("/api/v1/camera/frame.png?overlay=true", 0.150, n) for n in (1, 5)]
     results = []
-    with tempfile.TemporaryDirectory(prefix="bench-live-") as tmp, \
-            serve_sim_cell(Path(tmp)) as url:
-        pid = _server_pid(url)
+    with serving() as (url, proc):
+        pid = proc.pid
         time.sleep(3.0)  # let start-up settle
         for path, period_s, viewers in runs:
             res = measure(url, pid, path, period_s, viewers, args.seconds)
@@ -114,6 +94,3 @@ def main() -> int:
         print(json.dumps(results, indent=1))
     return 0
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())

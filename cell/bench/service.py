@@ -537,6 +537,3 @@ def format_report(r: dict[str, Any]) -> str:
                                      if r["errors"] else ""),
     ])
 
-
-if __name__ == "__main__":
-    print(json.dumps(run_service_bench(), indent=2))

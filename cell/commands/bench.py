@@ -7,7 +7,9 @@ missed (the report is printed either way), so a CI job or an integrator's script
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
+from collections.abc import Callable
 from typing import Any
 
 
@@ -25,7 +27,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="exit with status 1 when a target is missed")
     p.set_defaults(func=_bench)
     what = p.add_subparsers(dest="bench_command", required=False,
-                            metavar="{approach,service,freeze,modbus}")
+                            metavar="{approach,service,freeze,modbus,fixed,controller,live-view}")
     a = what.add_parser(
         "approach", help="servo vs look-and-move approach, conveyor tracking, lost target",
         description="On the simulated cell through the UR adapter and ur_rtde (see "
@@ -81,6 +83,33 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     mb.add_argument("--check", action="store_true",
                     help="exit with status 1 when the 20 ms p99 target is missed")
     mb.set_defaults(func=_bench_modbus)
+    fx = what.add_parser(
+        "fixed", help="locate accuracy of a fixed camera at 1 m, and approaches with it",
+        description="Renders the fixed camera of cell/configs/sim-fixed.toml at random target "
+                    "poses and compares each locate with the simulated truth (see "
+                    "cell/bench/fixed.py).")
+    fx.add_argument("--poses", type=int, default=20, help="target poses (default 20)")
+    fx.add_argument("--tilt-deg", type=float, default=30.0, help="largest tilt (default 30)")
+    fx.add_argument("--distance-mm", type=float, default=1000.0,
+                    help="camera to target (default 1000)")
+    fx.add_argument("--seed", type=int, default=1, help="random seed")
+    fx.add_argument("--approaches", type=int, default=0,
+                    help="also run this many approaches on the simulated fixed-camera cell")
+    fx.set_defaults(func=_lazy("fixed"))
+    ctl = what.add_parser(
+        "controller", help="the simulated controller's own timing and CPU on this machine",
+        description="RTDE rate and gaps, mailbox round trip and servoL tracking of the "
+                    "simulated controller, beside two CPU burners (see cell/bench/controller.py).")
+    ctl.add_argument("--no-load", action="store_true", help="no CPU-burning processes")
+    ctl.add_argument("--seconds", type=float, default=5.0, help="RTDE recording length")
+    ctl.set_defaults(func=_lazy("controller"))
+    lv = what.add_parser(
+        "live-view", help="the service's CPU with 0, 1 and 5 live viewers",
+        description="Serves the simulated cell and reads its CPU from /proc while viewers "
+                    "fetch overlaid frames as the operator page does (see "
+                    "cell/bench/live_view.py).")
+    lv.add_argument("--seconds", type=float, default=15.0, help="seconds per step (default 15)")
+    lv.set_defaults(func=_lazy("live_view"))
 
 
 def _bench_approach(args: argparse.Namespace) -> int:
@@ -185,3 +214,12 @@ def _bench_modbus(args: argparse.Namespace) -> int:
     report = run(args.stops)
     print(json.dumps(report, indent=2))
     return 1 if args.check and not report["met"] else 0
+
+
+def _lazy(module: str) -> Callable[[argparse.Namespace], int]:
+    """The benchmark module's ``main``, imported only when it runs (it loads the simulator)."""
+
+    def run(args: argparse.Namespace) -> int:
+        return int(importlib.import_module(f"cell.bench.{module}").main(args) or 0)
+
+    return run

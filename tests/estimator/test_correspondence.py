@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
@@ -161,18 +159,6 @@ def test_too_few_blobs_says_how_many() -> None:
     assert "found 3 blob(s)" in err.value.message
     with pytest.raises(TooFewBlobsError):
         match_blobs(np.zeros((5, 2)), SIM_TARGET, CAM, max_missing=0)
-
-
-def test_hull_fast_path_is_fast_on_a_clean_view() -> None:
-    """Benchmark-style print, not a timing assertion: see `cell bench` for the numbers."""
-    rng = np.random.default_rng(4)
-    target = random_target(rng, 8)
-    px = _image_points(target, random_pose(rng, CAM, target), rng)
-    match_blobs(px, target, CAM)
-    t0 = time.perf_counter()
-    for _ in range(20):
-        match_blobs(px, target, CAM)
-    print(f"match_blobs (8 dots, incl. solve_pose): {(time.perf_counter() - t0) / 20 * 1e3:.2f} ms")
 
 
 def test_three_collinear_dots_and_a_fourth_are_matched() -> None:
