@@ -1,1 +1,7 @@
-"""TODO"""
+"""What an operator or a PLC builds a production day from, on top of the cell service.
+
+- :mod:`~cell.features.alarms`: every failed job and every fault, until acknowledged;
+- :mod:`~cell.features.teach`: taught reference poses and the view they were taught from;
+- :mod:`~cell.features.recipes`: products (targets, taught poses, standoff, mode), versioned;
+- :mod:`~cell.features.camera_control`: exposure, gain and focus of the running cell.
+"""

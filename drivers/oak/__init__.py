@@ -1,1 +1,1 @@
-"""TODO"""
+"""Luxonis OAK cameras through depthai v3: the camera adapter and the factory calibration."""
