@@ -85,7 +85,8 @@ class TokenTable:
 
     def lookup(self, token: str | None) -> Caller:
         if not token:
-            raise AuthError(ErrorCode.unauthorized, "missing bearer token (Authorization: Bearer ...)")
+            raise AuthError(ErrorCode.unauthorized,
+                            "missing bearer token (Authorization: Bearer ...)")
         given = token.encode()
         found: Caller | None = None
         for entry in self._entries:  # no early exit: every entry costs the same

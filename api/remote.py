@@ -102,7 +102,8 @@ def finite(name: str, value: Any, *, minimum: float | None = None) -> float:
     """A float argument, or ``invalid_request`` (bools, NaN and infinities are refused)."""
     if isinstance(value, bool) or not isinstance(value, int | float) \
             or not math.isfinite(float(value)):
-        raise LimitError(ErrorCode.invalid_request, f"{name} must be a finite number, got {value!r}")
+        raise LimitError(ErrorCode.invalid_request,
+                         f"{name} must be a finite number, got {value!r}")
     if minimum is not None and value < minimum:
         raise LimitError(ErrorCode.invalid_request, f"{name} must be >= {minimum:g}, got {value!r}")
     return float(value)
@@ -137,7 +138,8 @@ def approach(cell: Cell, caller: RemoteCaller, standoff_mm: Any, mode: str,
     try:
         standoff = finite("standoff_mm", standoff_mm, minimum=0.0)
         if mode not in APPROACH_MODES:
-            raise LimitError(ErrorCode.invalid_request, f"mode must be one of {', '.join(APPROACH_MODES)}"
+            raise LimitError(ErrorCode.invalid_request,
+                             f"mode must be one of {', '.join(APPROACH_MODES)}"
                              f" (or empty), got {mode!r}")
         takes_mode = "mode" in inspect.signature(cell.approach).parameters
         if mode != "look_and_move" and not takes_mode:
@@ -191,7 +193,8 @@ def recipe_store(cell: Cell) -> RecipeStore:
 def recipe_ref(value: Any) -> str | int:
     """A recipe named by its name or its number (a digit string is a number)."""
     if isinstance(value, bool) or not isinstance(value, str | int) or value in ("", 0):
-        raise LimitError(ErrorCode.invalid_request, f"recipe must be a name or a number, got {value!r}")
+        raise LimitError(ErrorCode.invalid_request,
+                         f"recipe must be a name or a number, got {value!r}")
     if isinstance(value, str) and value.isdigit():
         return int(value)
     return value
@@ -252,7 +255,8 @@ def track(cell: Cell, caller: RemoteCaller, standoff_mm: Any, duration_s: Any) -
         standoff = finite("standoff_mm", standoff_mm, minimum=0.0)
         duration = finite("duration_s", duration_s, minimum=0.0)
         if run is None:
-            raise NotSupportedError(ErrorCode.not_supported, "tracking is not available in this cell")
+            raise NotSupportedError(ErrorCode.not_supported,
+                                    "tracking is not available in this cell")
     except CellError:
         with audited(cell, caller, "track", params):
             raise

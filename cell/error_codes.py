@@ -1,6 +1,7 @@
-"""Every ``error.code`` the API can answer, as one enum (it appears in the OpenAPI schema, so a
-PLC programmer can switch on codes without reading the source). ``tests/api/http/test_api_contract.py``
-checks that every code raised in the project is listed here."""
+"""Every ``error.code`` the cell can answer, as one enum: :mod:`cell.errors` carries one, and
+the API shows the enum in its OpenAPI schema, so a PLC programmer can switch on codes without
+reading the source. ``tests/api/http/test_api_contract.py`` checks that every code raised in
+the project is listed here."""
 
 from __future__ import annotations
 

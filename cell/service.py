@@ -3,12 +3,13 @@
 One object owns the hardware for the service's lifetime; the work is done by the modules it
 wires together, each with one responsibility:
 
-- :mod:`cell.motion.guard`: the one guarded path to the arm and the one-motion-at-a-time slot;
-- :mod:`cell.jobs.runner`: the lifecycle of every job; :mod:`cell.jobs.audit`: the audit log;
-- :mod:`cell.actions.approach`, :mod:`cell.actions.track` (:mod:`cell.actions.servo`), :mod:`cell.actions.jog`,
-  :mod:`cell.actions.recovery`: what moves the arm;
-- :mod:`cell.supervision.links`: devices that drop and come back; :mod:`cell.supervision.status`: what is reported;
-- :mod:`cell.supervision.gripper`: gripper commands and its cached status.
+- :mod:`cell.motion`: the one guarded path to the arm and the one-motion-at-a-time slot;
+- :mod:`cell.jobs`: the lifecycle of every job, the audit log, the events;
+- :mod:`cell.actions`: what moves the arm (approach, track and its servo, jog, recovery, stop);
+- :mod:`cell.vision`: the frame chain and locate;
+- :mod:`cell.supervision`: devices that drop and come back, what is reported, the gripper.
+
+docs/architecture.md draws the whole house.
 
 Rules: one motion at a time; every check before anything is commanded (a refusal moves
 nothing); stop is always accepted and cancels whatever holds the motion slot; every command is

@@ -1,4 +1,4 @@
-"""The arm interface the cell uses. Adapters: drivers.ur.adapter (ur_rtde); fake: fakes (simulated UR).
+"""The arm interface the cell uses. Adapter: drivers.ur (ur_rtde); fake: fakes (simulated UR).
 
 All poses inside the project are 4x4 transforms in mm (``T_base_tcp``); only adapters convert
 to a vendor's wire format. The TCP is the one configured with :meth:`Arm.set_tcp`, so that the

@@ -231,7 +231,8 @@ class MachineVision:
 
     def _need(self, *states: str) -> None:
         if self.state not in states:
-            raise RefusedError(ErrorCode.not_ready, f"the vision system is {self.state}; this needs "
+            raise RefusedError(ErrorCode.not_ready,
+                               f"the vision system is {self.state}; this needs "
                                f"{' or '.join(states)}")
 
     async def _select_automatic(self, parent: ua.NodeId) -> list[ua.Variant]:
@@ -301,7 +302,8 @@ class MachineVision:
                     self.prepared = recipe.name
                     self._remember()
             if not self.prepared:
-                raise RefusedError(ErrorCode.not_ready, "no recipe is prepared: PrepareRecipe first")
+                raise RefusedError(ErrorCode.not_ready,
+                                   "no recipe is prepared: PrepareRecipe first")
             start = remote.approach_recipe if kind == SINGLE else remote.track_recipe
             job = start(self.opc.cell, caller, self.prepared)
             self.running_job, self.sub_state = job.id, kind
@@ -323,7 +325,8 @@ class MachineVision:
             try:
                 data = json.loads(str(content or "{}"))
             except ValueError as err:
-                raise remote.LimitError(ErrorCode.invalid_recipe, f"Content is not JSON: {err}") from err
+                raise remote.LimitError(ErrorCode.invalid_recipe,
+                                        f"Content is not JSON: {err}") from err
             if not isinstance(data, dict):
                 raise remote.LimitError(ErrorCode.invalid_recipe, "Content must be a JSON object")
             data.setdefault("name", external_id)

@@ -105,7 +105,8 @@ class Jogger:
         with self._lock:
             jog = self._jog
             if jog is None or self.core.slot.current is not jog.motion:
-                raise RefusedError(ErrorCode.not_jogging, "no continuous jog is running (it may have "
+                raise RefusedError(ErrorCode.not_jogging,
+                                   "no continuous jog is running (it may have "
                                    "stopped: dead-man expired, stop, or a limit)")
             jog.last_heartbeat_s = time.monotonic()
             return self._info(jog)

@@ -52,7 +52,8 @@ def unlock(core: CellCore, caller: str) -> dict[str, Any]:
             before = core.arm.state()
             core.arm.recover_protective_stop()
         except UnlockTooEarlyError as err:
-            raise RefusedError(ErrorCode.unlock_too_early, f"the controller refuses to unlock yet: try "
+            raise RefusedError(ErrorCode.unlock_too_early,
+                               f"the controller refuses to unlock yet: try "
                                f"again in {err.retry_in_s:.1f} s (inspect the cause of the stop "
                                "meanwhile)") from err
         except DriverError as err:

@@ -219,7 +219,8 @@ class ServoRun:
             try:
                 state = arm.state()
             except DriverError as err:
-                raise UnavailableError(ErrorCode.arm_disconnected, f"reading the arm: {err}") from err
+                raise UnavailableError(ErrorCode.arm_disconnected,
+                                       f"reading the arm: {err}") from err
             # the TCP now: the reading (a few ms old) moved on by the twist last sent, for as
             # long as the arm kept that twist (its watchdog brakes it after watchdog_s)
             held_s = 0.0 if t_prev is None else min(tick, t_prev + sc.watchdog_s) \

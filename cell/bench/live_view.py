@@ -1,5 +1,5 @@
-"""``cell bench live-view``: CPU of the cell service (``cell serve``, simulated cell) with 0, 1 and 5 live
-viewers, for the shared JPEG live view and for the old per-request PNG frames.
+"""``cell bench live-view``: CPU of the cell service (``cell serve``, simulated cell) with 0,
+1 and 5 live viewers, for the shared JPEG live view and for the old per-request PNG frames.
 
     cell bench live-view [--seconds 15] [--json]
 

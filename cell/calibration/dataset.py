@@ -134,7 +134,8 @@ def read_visp_pose(path: Path) -> NDArray[np.float64]:
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as err:
-        raise DatasetError(ErrorCode.pose_unreadable, f"cannot read robot pose {path}: {err}") from err
+        raise DatasetError(ErrorCode.pose_unreadable,
+                           f"cannot read robot pose {path}: {err}") from err
     # vpPoseVector::saveYAML writes {rows: 6, cols: 1, data: [[tx], [ty], ...]}.
     values: list[float] = []
     try:
@@ -174,7 +175,8 @@ def read_visp_camera(path: Path) -> CameraModel:
             (kud, 0.0, 0.0, 0.0, 0.0) if kud != 0.0 else (), width, height,
         )
     except (ET.ParseError, ValueError, OSError) as err:
-        raise DatasetError(ErrorCode.camera_unreadable, f"cannot read camera {path}: {err}") from err
+        raise DatasetError(ErrorCode.camera_unreadable,
+                           f"cannot read camera {path}: {err}") from err
 
 
 def _xml_text(node: ET.Element, tag: str) -> str:
@@ -189,7 +191,8 @@ def read_visp_board(path: Path) -> Board:
     try:
         text = path.read_text()
     except OSError as err:
-        raise DatasetError(ErrorCode.board_missing, f"cannot read board description {path}") from err
+        raise DatasetError(ErrorCode.board_missing,
+                           f"cannot read board description {path}") from err
     size = re.search(r"(\d+)\s*x\s*(\d+)", text)
     square = re.search(r"square size:\s*([0-9.eE+-]+)\s*m", text)
     if not size or not square:
@@ -231,7 +234,8 @@ def load_project_dataset(folder: str | Path) -> HandEyeDataset:
                 T = T_from_pose_dict(v["T_base_flange"])
             except (KeyError, TypeError, ValueError) as err:
                 raise DatasetError(
-                    ErrorCode.pose_unreadable, f"{path}: views[{k}].T_base_flange is not a pose object "
+                    ErrorCode.pose_unreadable,
+                    f"{path}: views[{k}].T_base_flange is not a pose object "
                     f'{{"position_mm": [x, y, z], "rotvec_rad": [rx, ry, rz]}} ({err})'
                 ) from err
             image = d / str(v["image"])
@@ -251,7 +255,8 @@ def new_dataset_folder(folder: str | Path) -> Path:
     """
     d = Path(folder)
     if (d / DATASET_FILE).exists():
-        raise DatasetError(ErrorCode.dataset_exists, f"{d} already holds a {DATASET_FILE}: choose a "
+        raise DatasetError(ErrorCode.dataset_exists,
+                           f"{d} already holds a {DATASET_FILE}: choose a "
                            "new folder (a calibration's record is never overwritten)")
     try:
         d.mkdir(parents=True, exist_ok=True)

@@ -2,7 +2,8 @@
 
 Works on the :class:`cell.motion.guard.GuardedArm` (never the raw arm) and any
 :class:`drivers.camera.Camera`; the cell and the CLI hand it their guarded arm, so every view
-pose is checked against the limits first (a refused view is skipped, not moved to) and a stop ends the routine.
+pose is checked against the limits first (a refused view is skipped, not moved to) and a stop
+ends the routine.
 
 The poses tilt the camera about the target (so it stays in view) about several axes and roll
 it about the optical axis, because AX = XB is only determined by rotations about at least two
@@ -217,5 +218,6 @@ def _frame_after(camera: Camera, t_s: float, timeout_s: float) -> Frame:
         if frame.timestamp_s >= t_s:
             return frame
         if time.monotonic() > deadline:
-            raise RoutineError(ErrorCode.camera_stale, f"no frame exposed after the arm stopped within "
+            raise RoutineError(ErrorCode.camera_stale,
+                               f"no frame exposed after the arm stopped within "
                                f"{timeout_s} s")

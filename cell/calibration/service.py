@@ -65,7 +65,8 @@ class CalibrationService:
 
         def check(motion: Motion) -> None:
             if settings.chosen not in CHOICES:
-                raise LimitError(ErrorCode.invalid_request, f"method must be one of {', '.join(CHOICES)}")
+                raise LimitError(ErrorCode.invalid_request,
+                                 f"method must be one of {', '.join(CHOICES)}")
             core.arm.guard.check_speed(settings.speed_mm_s, settings.accel_mm_s2)
             core.arm.ready_state()
             if not core.camera.is_connected:
@@ -158,7 +159,8 @@ class CalibrationService:
                 raise LimitError(ErrorCode.invalid_request, "nothing to do: ask for running and/or "
                                  "write_config")
             if write_config and self.config_path is None:
-                raise RefusedError(ErrorCode.no_config_file, "the cell runs a built-in config; start it "
+                raise RefusedError(ErrorCode.no_config_file,
+                                   "the cell runs a built-in config; start it "
                                    "with a config file (CELL_CONFIG) to write the result")
             change = None
             with cell.core.slot.hold("apply_calibration"):
@@ -181,11 +183,13 @@ class CalibrationService:
     @staticmethod
     def _result_T(job: Job, method: str | None, force: bool) -> Matrix4:
         if job.state != "succeeded" or job.result is None:
-            raise RefusedError(ErrorCode.job_not_succeeded, f"calibration job {job.id} is {job.state}; "
+            raise RefusedError(ErrorCode.job_not_succeeded,
+                               f"calibration job {job.id} is {job.state}; "
                                "only a succeeded job can be applied")
         r = job.result
         if not r["verdict"]["consistent"] and not force:
-            raise RefusedError(ErrorCode.calibration_inconsistent, "the calibration data disagree with "
+            raise RefusedError(ErrorCode.calibration_inconsistent,
+                               "the calibration data disagree with "
                                f"themselves ({r['verdict']['text']}); apply with force=true only "
                                "if you accept that")
         if method is None or method == r["chosen"]:
@@ -195,7 +199,8 @@ class CalibrationService:
                 raise NotFoundError(ErrorCode.method_not_found, "this job has no joint refinement")
             return T_from_pose_dict(r["joint"]["T_flange_camera"])
         if method not in r["methods"]:
-            raise NotFoundError(ErrorCode.method_not_found, f"no result for method {method!r}; have "
+            raise NotFoundError(ErrorCode.method_not_found,
+                                f"no result for method {method!r}; have "
                                 f"{', '.join([*r['methods'], 'joint'])}")
         return T_from_pose_dict(r["methods"][method]["T_flange_camera"])
 

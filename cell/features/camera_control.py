@@ -25,7 +25,8 @@ def camera_settings(cell: Cell) -> dict[str, Any]:
     try:
         return asdict(cell.hw.camera.get_settings())
     except DriverError as err:
-        raise UnavailableError(ErrorCode.camera_lost, f"reading the camera settings: {err}") from err
+        raise UnavailableError(ErrorCode.camera_lost,
+                               f"reading the camera settings: {err}") from err
 
 
 def apply_camera_settings(cell: Cell, caller: str, *, exposure_us: int | None = None,

@@ -232,7 +232,8 @@ class RecipeStore:
 
     @staticmethod
     def _missing(ref: str | int) -> NotFoundError:
-        return NotFoundError(ErrorCode.recipe_not_found, f"no recipe {ref!r}; see GET /api/v1/recipes")
+        return NotFoundError(ErrorCode.recipe_not_found,
+                             f"no recipe {ref!r}; see GET /api/v1/recipes")
 
     def _write(self, versions: dict[str, builtins.list[Recipe]]) -> None:
         """Replace the file atomically; on failure the file and the memory stay as they were."""

@@ -128,7 +128,8 @@ def mean_view(views: list[Features]) -> Features | None:
 
 def check_name(name: str) -> str:
     if not NAME_PATTERN.match(name):
-        raise LimitError(ErrorCode.invalid_name, f"taught pose name {name!r}: use 1-64 letters, digits, "
+        raise LimitError(ErrorCode.invalid_name,
+                         f"taught pose name {name!r}: use 1-64 letters, digits, "
                          "'_', '.' or '-', starting with a letter or digit")
     return name
 
@@ -189,7 +190,8 @@ class TaughtStore:
         check_name(pose.name)
         with self._lock:
             if not replace and pose.name in self._poses:
-                raise RefusedError(ErrorCode.taught_exists, f"a pose named {pose.name!r} is already "
+                raise RefusedError(ErrorCode.taught_exists,
+                                   f"a pose named {pose.name!r} is already "
                                    "taught; delete it first or ask to replace it")
             poses = {**self._poses, pose.name: pose}
             self._write(poses)
@@ -255,7 +257,8 @@ def combine(name: str, samples: list[Sample], caller: str, max_spread_mm: float,
     for s in samples[1:]:
         d_mm, d_deg = pose_distance(T0, s.T_base_tcp)
         if d_mm > STILL_MM or d_deg > STILL_DEG:
-            raise RefusedError(ErrorCode.arm_moving, f"the arm moved {d_mm:.3f} mm / {d_deg:.3f} deg "
+            raise RefusedError(ErrorCode.arm_moving,
+                               f"the arm moved {d_mm:.3f} mm / {d_deg:.3f} deg "
                                "while teaching; let it rest and teach again")
     each = [invert_T(s.T_base_target) @ s.T_base_tcp for s in samples]
     T_mean = mean_pose(each)

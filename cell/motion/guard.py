@@ -3,8 +3,8 @@
 Every command that can move the arm goes through :class:`GuardedArm`, which implements the
 whole :class:`drivers.arm.Arm` protocol over the real (or simulated) arm and checks each
 motion command against the configured limits before anything is sent. A refusal raises the
-limit's :class:`cell.motion.limits.CellError` and nothing moves. ``tests/cell/motion/test_motion_path.py`` fails
-when any module other than this one calls an arm's motion methods.
+limit's :class:`cell.errors.CellError` and nothing moves. ``tests/cell/motion/test_motion_path.py``
+fails when any module other than this one calls an arm's motion methods.
 
 Rules it keeps, whoever calls it (approach, jog, teach, calibration routine, home, CLI):
 - a motion command needs the :class:`MotionSlot` held (one motion at a time) and is refused
@@ -69,7 +69,8 @@ def driver_error(err: DriverError, what: str, device: str = "arm") -> CellError:
         text = (f"the arm stopped on a safety stop while {what}: {err}; clear the cause, "
                 "then unlock")
     if isinstance(err, ConnectionLostError):
-        return UnavailableError(ErrorCode.arm_disconnected if device == "arm" else ErrorCode(err.code), text)
+        code = ErrorCode.arm_disconnected if device == "arm" else ErrorCode(err.code)
+        return UnavailableError(code, text)
     if isinstance(err, DeviceTimeoutError):
         return UnavailableError(ErrorCode(err.code), text)
     return RefusedError(ErrorCode(err.code), text)
@@ -119,7 +120,8 @@ class MotionSlot:
         """Take the slot (RefusedError ``busy`` when it is taken)."""
         with self._lock:
             if self._motion is not None:
-                raise RefusedError(ErrorCode.busy, f"the arm is busy ({self._motion.name}); wait for it "
+                raise RefusedError(ErrorCode.busy,
+                                   f"the arm is busy ({self._motion.name}); wait for it "
                                    "to finish or stop it")
             self._motion = Motion(name, needs_camera=needs_camera)
             self._generation += 1
@@ -260,7 +262,8 @@ class GuardedArm:
     def _holder(self, what: str) -> Motion:
         motion = self.slot.current
         if motion is None:
-            raise RefusedError(ErrorCode.no_motion_slot, f"{what} refused: motion commands need the "
+            raise RefusedError(ErrorCode.no_motion_slot,
+                               f"{what} refused: motion commands need the "
                                "cell's motion slot (internal error: report it)")
         motion.raise_if_cancelled(f"before the {what}")
         return motion
@@ -320,7 +323,8 @@ class GuardedArm:
             raise RefusedError(ErrorCode.invalid_request, "a jog needs [vx, vy, vz, wx, wy, wz]")
         self.guard.check_jog_speed(v[:3], np.degrees(v[3:]))
         if not 0 < accel_mm_s2 <= self.limits.max_accel_mm_s2:
-            raise RefusedError(ErrorCode.accel_limit, f"jog acceleration {accel_mm_s2} mm/s^2 is outside "
+            raise RefusedError(ErrorCode.accel_limit,
+                               f"jog acceleration {accel_mm_s2} mm/s^2 is outside "
                                f"(0, {self.limits.max_accel_mm_s2}]")
         st = self.ready_state()
         self.guard.check_jog_ahead(st.T_base_tcp, jog_ahead(st.T_base_tcp, v, frame,
@@ -430,7 +434,8 @@ class GuardedArm:
             return
         self.settle()
         motion.raise_if_cancelled(f"while moving to the {what}")
-        raise RefusedError(ErrorCode.motion_failed, f"the arm stopped {d_mm:.2f} mm / {d_deg:.2f} deg "
+        raise RefusedError(ErrorCode.motion_failed,
+                           f"the arm stopped {d_mm:.2f} mm / {d_deg:.2f} deg "
                            f"short of the {what}")
 
     def settle(self, timeout_s: float = SETTLE_TIMEOUT_S) -> bool:

@@ -102,7 +102,8 @@ class SafetyGuard:
             raise LimitError(ErrorCode.speed_limit, f"speed {speed_mm_s} mm/s is outside "
                              f"[{lim.min_speed_mm_s}, {lim.max_speed_mm_s}] mm/s")
         if not (math.isfinite(accel_mm_s2) and 0 < accel_mm_s2 <= lim.max_accel_mm_s2):
-            raise LimitError(ErrorCode.accel_limit, f"acceleration {accel_mm_s2} mm/s^2 is outside (0, "
+            raise LimitError(ErrorCode.accel_limit,
+                             f"acceleration {accel_mm_s2} mm/s^2 is outside (0, "
                              f"{lim.max_accel_mm_s2}] mm/s^2")
 
     def check_joint_speed(self, speed_rad_s: float, accel_rad_s2: float) -> None:
@@ -112,7 +113,8 @@ class SafetyGuard:
             raise LimitError(ErrorCode.speed_limit, f"joint speed {v:.3g} deg/s is outside [0.1, "
                              f"{lim.max_joint_speed_deg_s}] deg/s")
         if not (math.isfinite(a) and 0 < a <= lim.max_joint_accel_deg_s2):
-            raise LimitError(ErrorCode.accel_limit, f"joint acceleration {a:.3g} deg/s^2 is outside (0, "
+            raise LimitError(ErrorCode.accel_limit,
+                             f"joint acceleration {a:.3g} deg/s^2 is outside (0, "
                              f"{lim.max_joint_accel_deg_s2}] deg/s^2")
 
     def check_goal(self, T_from: ArrayLike, T_goal: ArrayLike, what: str = "goal") -> None:
@@ -189,7 +191,8 @@ class SafetyGuard:
         r = np.asarray(rotation_deg, dtype=float).reshape(-1)
         if t.shape != (3,) or r.shape != (3,) or not (np.all(np.isfinite(t))
                                                      and np.all(np.isfinite(r))):
-            raise LimitError(ErrorCode.invalid_request, "a jog step needs 3 finite translation_mm and "
+            raise LimitError(ErrorCode.invalid_request,
+                             "a jog step needs 3 finite translation_mm and "
                              "3 finite rotation_deg values")
         step_mm, step_deg = float(np.linalg.norm(t)), float(np.linalg.norm(r))
         if step_mm > lim.max_jog_step_mm or step_deg > lim.max_jog_step_deg:

@@ -149,7 +149,8 @@ class Locator:
                 frame = self._fresh_frame(time.monotonic())
                 T_base_tcp = self._pose_at(frame)
             except DriverError as err:
-                raise UnavailableError(ErrorCode(err.code), f"reading the arm pose history: {err}") from err
+                raise UnavailableError(ErrorCode(err.code),
+                                       f"reading the arm pose history: {err}") from err
             result = self._estimate(frame)
             estimates.append(self.frames.T_base_target(T_base_tcp, result.T_camera_target))
             last = (frame, result, T_base_tcp)
@@ -201,7 +202,8 @@ class Locator:
             raise RefusedError(ErrorCode.stale_pose, "the arm's pose history does not cover the "
                                f"frame's capture time: {err}") from err
         except DriverError as err:
-            raise UnavailableError(ErrorCode(err.code), f"reading the arm pose history: {err}") from err
+            raise UnavailableError(ErrorCode(err.code),
+                                   f"reading the arm pose history: {err}") from err
 
     def _fresh_frame(self, after_s: float | None) -> Frame:
         """The freshest frame, captured no earlier than ``after_s`` (monotonic)."""

@@ -44,7 +44,8 @@ OPERATOR_ROLES = frozenset({"operator"})
 def _operator(caller: Read) -> Caller:
     """Calibration and teaching change what every later approach does: operators only."""
     if caller.role not in OPERATOR_ROLES:
-        raise ForbiddenError(ErrorCode.forbidden, f"role {caller.role!r} may not calibrate or teach; "
+        raise ForbiddenError(ErrorCode.forbidden,
+                             f"role {caller.role!r} may not calibrate or teach; "
                              "use an operator token")
     return caller
 

@@ -92,7 +92,7 @@ def test_hand_eye_routine_end_to_end(client: TestClient, tmp_path: Path) -> None
     assert any(e["done"] >= 1 for e in events)
 
     t0 = time.monotonic()
-    job = wait_job(client, job_id, 120.0, url=BASE, url=BASE, url=BASE, url=BASE)
+    job = wait_job(client, job_id, 120.0, url=BASE)
     assert job["state"] == "succeeded", job["error"]
     print(f"calibration job finished {time.monotonic() - t0:.1f} s after the events")
     result = job["result"]
@@ -165,7 +165,7 @@ def test_refusals_and_stop(client: TestClient) -> None:
     events = sse_events(client, 2)  # the routine is under way
     assert events[-1]["job_id"] == job_id
     assert client.post("/api/v1/stop", json={"reason": "test"}, headers=VIEW).status_code == 200
-    job = wait_job(client, job_id, 20.0, url=BASE, url=BASE, url=BASE, url=BASE)
+    job = wait_job(client, job_id, 20.0, url=BASE)
     assert job["state"] == "cancelled", job
     time.sleep(0.2)
     resting = tcp(cell)

@@ -22,7 +22,7 @@ def real_ur_config(tmp_path: Path, host: str, tokens: list[dict[str, str]]) -> C
     data["sim"]["ur_controller"] = False
     data["api"]["tokens"] = tokens
     data["api"]["state_dir"] = str(tmp_path / "state")
-    data["opcua"]["enabled"] = False  # their own checks: tests/api/plc/test_plc_interfaces_config.py
+    data["opcua"]["enabled"] = False  # checked in tests/api/plc/test_plc_interfaces_config.py
     data["urscript"]["xmlrpc_port"] = 0
     return CellConfig.model_validate(data)
 
