@@ -288,7 +288,7 @@ def test_recipe_choice_approaches_with_the_recipe_and_no_recipe_is_the_plain_app
                      {"name": "side", "standoff_mm": 60.0})]
     login(page, url, "tok-operator")
     choice = page.get_by_test_id("recipe")
-    _wait_for(lambda: choice.locator("option").count() == 3, what="recipe list")
+    wait_until(lambda: choice.locator("option").count() == 3, what="recipe list")
     assert choice.locator("option").all_inner_texts() == [
         "no recipe", "plate-a v2 (no. 3)", "plate-b v3 (no. 4)"]
     assert choice.input_value() == ""  # the default keeps the plain approach
@@ -310,12 +310,12 @@ def test_recipe_choice_approaches_with_the_recipe_and_no_recipe_is_the_plain_app
                   "created_at": time.time(), "params": {"recipe": record},
                   "result": {"reach_error_mm": 0.3}}]  # how the job ends
     page.get_by_test_id("approach").click()
-    _wait_for(lambda: rec.of("/api/v1/recipes/plate-b/approach"), what="recipe approach")
+    wait_until(lambda: rec.of("/api/v1/recipes/plate-b/approach"), what="recipe approach")
     (sent,) = rec.of("/api/v1/recipes/plate-b/approach")
     assert sent.method == "POST" and sent.body == {"target": "side", "standoff_mm": 60}
     assert not rec.of("/api/v1/approach")
     job = page.get_by_test_id("job")
-    _wait_for(lambda: "succeeded" in job.inner_text(), what="the job's end")
+    wait_until(lambda: "succeeded" in job.inner_text(), what="the job's end")
     assert "4ec1be00 · recipe plate-b v3, target side: succeeded" in job.inner_text()
 
     choice.select_option("plate-a")  # one target: no target choice offered
@@ -326,14 +326,14 @@ def test_recipe_choice_approaches_with_the_recipe_and_no_recipe_is_the_plain_app
     assert page.get_by_test_id("approach-mode").is_enabled()
     assert page.get_by_test_id("taught").is_enabled()
     page.get_by_test_id("approach").click()
-    _wait_for(lambda: rec.of("/api/v1/approach"), what="plain approach")
+    wait_until(lambda: rec.of("/api/v1/approach"), what="plain approach")
     assert rec.of("/api/v1/approach")[0].body == {"standoff_mm": 35, "wait": False}
     assert len(rec.of("/api/v1/recipes/plate-b/approach")) == 1
 
     # a recipe removed elsewhere while chosen: the choice goes back to none, said so
     choice.select_option("plate-a")
     del r.recipes[0]
-    _wait_for(lambda: choice.input_value() == "", timeout_s=10, what="removed recipe unchosen")
+    wait_until(lambda: choice.input_value() == "", timeout_s=10, what="removed recipe unchosen")
     assert "plate-a was removed" in page.get_by_test_id("message").inner_text()
 
 
@@ -349,7 +349,7 @@ def test_a_running_recipe_job_names_its_recipe_and_blocks_only_motion(
     login(page, url, "tok-operator")
     page.get_by_test_id("recipe").locator("option").nth(1).wait_for(state="attached")
     page.get_by_test_id("recipe").select_option("plate-a")
-    _wait_for(lambda: page.get_by_test_id("approach").is_disabled(), what="approach disabled")
+    wait_until(lambda: page.get_by_test_id("approach").is_disabled(), what="approach disabled")
     assert "recipe plate-a v2, target main" in page.get_by_test_id("job").inner_text()
     assert page.get_by_test_id("approach-mode").is_disabled()  # the recipe's, not the page's
     assert page.get_by_test_id("recipe").is_enabled()  # choosing is not motion
@@ -358,9 +358,9 @@ def test_a_running_recipe_job_names_its_recipe_and_blocks_only_motion(
                   "created_at": time.time(), "params": {"recipe": {
                       "name": "plate-a", "number": 3, "version": 2, "target": "main"}},
                   "result": {"reach_error_mm": 0.4}}]
-    _wait_for(lambda: page.get_by_test_id("approach").is_enabled(), what="approach enabled")
+    wait_until(lambda: page.get_by_test_id("approach").is_enabled(), what="approach enabled")
     assert page.get_by_test_id("approach-mode").is_disabled()
-    _wait_for(lambda: "recipe plate-a v2" in page.get_by_test_id("history").inner_text(),
+    wait_until(lambda: "recipe plate-a v2" in page.get_by_test_id("history").inner_text(),
               timeout_s=10, what="recipe in the history")
 
 
@@ -668,15 +668,15 @@ def test_sim_cell_approach_with_a_recipe_chosen_on_the_page(page: Any, sim_cell:
 
     login(page, url, SIM_OPERATOR)
     choice = page.get_by_test_id("recipe")
-    _wait_for(lambda: "plate-page v2 (no. 21)" in choice.locator("option").all_inner_texts(),
+    wait_until(lambda: "plate-page v2 (no. 21)" in choice.locator("option").all_inner_texts(),
               10, "the recipe on the page")
     page.get_by_test_id("stop").click()  # nothing left running from an earlier test
-    _wait_for(lambda: page.get_by_test_id("approach").is_enabled(), 15, "approach enabled")
+    wait_until(lambda: page.get_by_test_id("approach").is_enabled(), 15, "approach enabled")
     choice.select_option("plate-page")
     assert page.get_by_test_id("standoff").input_value() == "60"
     page.get_by_test_id("approach").click()
     job_line = page.get_by_test_id("job")
-    _wait_for(lambda: "succeeded" in job_line.inner_text()
+    wait_until(lambda: "succeeded" in job_line.inner_text()
               or "failed" in job_line.inner_text(), 90, "the approach's end")
     text = job_line.inner_text()
     assert "recipe plate-page v2, target main: succeeded" in text, text
