@@ -51,6 +51,7 @@ from asyncua.server.user_managers import UserManager
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from api import remote
+from api.plc.opcua_machine_vision import MachineVision
 from api.remote import RemoteCaller
 from cell.config.schema import OpcUaConfig
 from cell.errors import CellError
@@ -140,7 +141,7 @@ class OpcUaServer:
         self._ended_sent: str = ""  # the last job whose JobEnded event was raised
         self._event_gen: Any = None
         self.machine_vision: Any = None
-        self._calls = ThreadPoolExecutor(4, thread_name_prefix="opcua-call")
+        self.calls = ThreadPoolExecutor(4, thread_name_prefix="opcua-call")
         self._stops = ThreadPoolExecutor(2, thread_name_prefix="opcua-stop")
 
     @property
@@ -167,7 +168,7 @@ class OpcUaServer:
                     loop.call_soon_threadsafe(wake.set)
         if self._thread is not None:
             self._thread.join(timeout=10.0)
-        self._calls.shutdown(wait=False, cancel_futures=True)
+        self.calls.shutdown(wait=False, cancel_futures=True)
         self._stops.shutdown(wait=False, cancel_futures=True)
 
     # -- the server's thread --------------------------------------------------------------------
@@ -265,8 +266,6 @@ class OpcUaServer:
                 | CertificateValidatorOptions.PEER_CLIENT, store))
         idx = await server.register_namespace(cfg.namespace)
         await self._model(server, idx)
-        from api.plc.opcua_machine_vision import MachineVision
-
         self.machine_vision = MachineVision(self, server, idx)
         await self.machine_vision.build()
         return server
@@ -474,12 +473,12 @@ class OpcUaServer:
         changed = {n: v for n, v in values.items() if self._written.get(n) != v}
         if not changed:
             return
-        results = await self._write_nodes({self._nodes[n]: v for n, v in changed.items()})
+        results = await self.write_nodes({self._nodes[n]: v for n, v in changed.items()})
         for (name, value), good in zip(changed.items(), results, strict=True):
             if good:
                 self._written[name] = value
 
-    async def _write_nodes(self, values: dict[Any, ua.Variant]) -> list[bool]:
+    async def write_nodes(self, values: dict[Any, ua.Variant]) -> list[bool]:
         """One Write service call for all of ``values`` (node -> value); which were written."""
         params = ua.WriteParameters()
         for node, value in values.items():
@@ -526,7 +525,7 @@ class OpcUaServer:
             **self._job_end_values(job)})
 
     # -- methods --------------------------------------------------------------------------------
-    def _caller(self) -> RemoteCaller | None:
+    def current_caller(self) -> RemoteCaller | None:
         user = _CURRENT_USER.get()
         if user is None or user.name not in self.roles:
             return None
@@ -537,12 +536,12 @@ class OpcUaServer:
                       pool: ThreadPoolExecutor | None = None) -> list[ua.Variant]:
         """``Code``, ``Message`` and the method's outputs; a refusal fills them with blanks."""
         S = ua.VariantType.String
-        caller = self._caller()
+        caller = self.current_caller()
         if caller is None:
             return [ua.Variant("unauthorized", S), ua.Variant("no known user", S), *refused_tail]
         try:
             loop = asyncio.get_running_loop()
-            return await loop.run_in_executor(pool or self._calls, work, caller)
+            return await loop.run_in_executor(pool or self.calls, work, caller)
         except CellError as err:
             return [ua.Variant(err.code, S), ua.Variant(err.message, S), *refused_tail]
         except Exception as err:
@@ -556,7 +555,7 @@ class OpcUaServer:
         return [ua.Variant("ok", S), ua.Variant(message, S), *tail]
 
     @staticmethod
-    def _values(args: tuple[Any, ...], n: int) -> list[Any]:
+    def method_args(args: tuple[Any, ...], n: int) -> list[Any]:
         """The method's input values; missing ones are None (refused by the checks)."""
         vals = [a.Value if isinstance(a, ua.Variant) else a for a in args]
         return (vals + [None] * n)[:n]
@@ -590,7 +589,7 @@ class OpcUaServer:
         return await self._answer(work, blank)
 
     async def _approach(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
-        standoff_mm, mode, taught = self._values(args, 3)
+        standoff_mm, mode, taught = self.method_args(args, 3)
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             job = remote.approach(self.cell, caller, standoff_mm, mode or "", taught or "")
@@ -599,7 +598,7 @@ class OpcUaServer:
         return await self._job_call(work)
 
     async def _approach_recipe(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
-        recipe, target, standoff_mm = self._values(args, 3)
+        recipe, target, standoff_mm = self.method_args(args, 3)
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             standoff = None if isinstance(standoff_mm, float) and standoff_mm < 0 \
@@ -610,7 +609,7 @@ class OpcUaServer:
         return await self._job_call(work)
 
     async def _track(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
-        standoff_mm, duration_s = self._values(args, 2)
+        standoff_mm, duration_s = self.method_args(args, 2)
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             job = remote.track(self.cell, caller, standoff_mm, duration_s)
@@ -643,7 +642,7 @@ class OpcUaServer:
         return await self._job_call(work)
 
     async def _gripper(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
-        action, width_mm = self._values(args, 2)
+        action, width_mm = self.method_args(args, 2)
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             st = remote.gripper(self.cell, caller, str(action or ""), width_mm)

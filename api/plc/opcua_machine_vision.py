@@ -37,7 +37,8 @@ import asyncio
 import json
 import logging
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from concurrent.futures import Executor
+from typing import Any, Protocol
 
 from asyncua import Server, ua
 
@@ -48,9 +49,27 @@ from api.remote import RemoteCaller
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, RefusedError
 from cell.features.recipes import parse_spec
+from cell.service import Cell
 
-if TYPE_CHECKING:
-    from api.plc.opcua import OpcUaServer
+
+class OpcHost(Protocol):
+    """What the Machine Vision object needs of the OPC UA server it lives in (the server in
+    :mod:`api.plc.opcua` is one); naming only this keeps the two modules from importing each
+    other."""
+
+    @property
+    def cell(self) -> Cell: ...
+
+    @property
+    def calls(self) -> Executor: ...
+
+    async def write_nodes(self, values: dict[Any, ua.Variant]) -> list[bool]: ...
+
+    async def show_started(self, job_id: str) -> None: ...
+
+    def current_caller(self) -> RemoteCaller | None: ...
+
+    def method_args(self, args: tuple[Any, ...], n: int) -> list[Any]: ...
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +98,7 @@ ERROR_OUT = _arg("Error", I32, "0: done; else the cell's error number (docs/plc.
 class MachineVision:
     """The VisionSystem object, its state machines and its recipe and result management."""
 
-    def __init__(self, opc: OpcUaServer, server: Server, idx: int) -> None:
+    def __init__(self, opc: OpcHost, server: Server, idx: int) -> None:
         self.opc = opc
         self.server = server
         self.idx = idx
@@ -206,7 +225,7 @@ class MachineVision:
             self.results.pop(next(iter(self.results)))
         recipe_id = f"{recipe.get('name', '')}@{recipe.get('version', '')}" if recipe else ""
         # the result's id and the job's id are written together with it
-        await self.opc._write_nodes({
+        await self.opc.write_nodes({
             self._nodes["result_id"]: ua.Variant(result_id, S),
             self._nodes["result_job"]: ua.Variant(job["id"], S),
             self._nodes["result_recipe"]: ua.Variant(recipe_id, S),
@@ -216,11 +235,11 @@ class MachineVision:
     async def _call(self, work: Callable[[RemoteCaller], list[ua.Variant]],
                     blanks: list[ua.Variant]) -> list[ua.Variant]:
         """The outputs then ``Error``; a refusal is blanks and its error number."""
-        caller = self.opc._caller()
+        caller = self.opc.current_caller()
         if caller is None:
             return [*blanks, ua.Variant(error_number("unauthorized", "forbidden"), I32)]
         try:
-            out = await asyncio.get_running_loop().run_in_executor(self.opc._calls, work,
+            out = await asyncio.get_running_loop().run_in_executor(self.opc.calls, work,
                                                                    caller)
             return [*out, ua.Variant(0, I32)]
         except CellError as err:
@@ -290,7 +309,7 @@ class MachineVision:
     async def _start_job(self, kind: str, args: tuple[Any, ...]) -> list[ua.Variant]:
         """A single job (an approach) or a continuous one (tracking until stopped) with the
         prepared recipe, or with ``RecipeId`` prepared first."""
-        meas_id, part_id, recipe_id, product_id = self.opc._values(args, 4)
+        meas_id, part_id, recipe_id, product_id = self.opc.method_args(args, 4)
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             self._need(OPERATIONAL)
@@ -318,7 +337,7 @@ class MachineVision:
         return out
 
     async def _add_recipe(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
-        external_id, product_id, content = self.opc._values(args, 3)
+        external_id, product_id, content = self.opc.method_args(args, 3)
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             remote.require_operator(self.opc.cell, caller, "add_recipe", {"name": external_id})
@@ -339,7 +358,7 @@ class MachineVision:
         return await self._call(work, [ua.Variant("", S)])
 
     async def _prepare_recipe(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
-        (external_id,) = self.opc._values(args, 1)
+        (external_id,) = self.opc.method_args(args, 1)
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             remote.require(self.opc.cell, caller, "approach", "prepare_recipe",
@@ -356,7 +375,7 @@ class MachineVision:
         return out
 
     async def _unprepare_recipe(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
-        (external_id,) = self.opc._values(args, 1)
+        (external_id,) = self.opc.method_args(args, 1)
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             if external_id not in ("", self.prepared):
@@ -373,7 +392,7 @@ class MachineVision:
         return out
 
     async def _remove_recipe(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
-        (external_id,) = self.opc._values(args, 1)
+        (external_id,) = self.opc.method_args(args, 1)
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             remote.require_operator(self.opc.cell, caller, "remove_recipe",
@@ -393,7 +412,7 @@ class MachineVision:
         return await self._call(work, [ua.Variant([], S)])
 
     async def _get_result(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
-        (result_id,) = self.opc._values(args, 1)
+        (result_id,) = self.opc.method_args(args, 1)
         body = self.results.get(str(result_id or ""))
         if body is None:
             return [ua.Variant("", S), ua.Variant(error_number("result_not_found", "not_found"),
