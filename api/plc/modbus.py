@@ -44,6 +44,7 @@ from pymodbus.server import ModbusTcpServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 
 from api import remote
+from api.plc.loop_thread import LoopThread
 from api.remote import RemoteCaller
 from cell.config.schema import ModbusConfig
 from cell.errors import CellError
@@ -219,21 +220,21 @@ class _Server(ModbusTcpServer):
         return _Handler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
 
 
-class ModbusServer:
+class ModbusServer(LoopThread):
     """``start()`` listens (OSError when the port is taken), ``close()``."""
+
+    thread_name = "modbus"
+    what = "the Modbus server"
 
     def __init__(self, cell: Cell, config: ModbusConfig,
                  on_stop_sent: Callable[[float], None] | None = None) -> None:
+        super().__init__()
         self.cell = cell
         self.config = config
         self.caller = RemoteCaller("modbus", "plc", config.role)
         self.allowed = [ipaddress.ip_network(c, strict=False) for c in config.clients]
         self.on_stop_sent = on_stop_sent  # told time.perf_counter() when a STOP is accepted
-        self._loop: asyncio.AbstractEventLoop | None = None
         self._server: _Server | None = None
-        self._thread: threading.Thread | None = None
-        self._ready = threading.Event()
-        self._error: BaseException | None = None
         self._closing = threading.Event()
         self._registers: _Registers | None = None
         self._accepted_seq = -1
@@ -255,12 +256,7 @@ class ModbusServer:
 
     def start(self, timeout_s: float = 10.0) -> None:
         logging.getLogger("pymodbus").setLevel(logging.WARNING)
-        self._thread = threading.Thread(target=self._run, name="modbus", daemon=True)
-        self._thread.start()
-        if not self._ready.wait(timeout_s):
-            raise TimeoutError(f"the Modbus server did not start within {timeout_s:g} s")
-        if self._error is not None:
-            raise self._error
+        super().start(timeout_s)
 
     def close(self) -> None:
         self._closing.set()
@@ -268,23 +264,11 @@ class ModbusServer:
         if loop is not None and server is not None and not loop.is_closed():
             with contextlib.suppress(RuntimeError):
                 asyncio.run_coroutine_threadsafe(server.shutdown(), loop).result(timeout=5.0)
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
+        self._join(5.0)
         self._commands.shutdown(wait=False, cancel_futures=True)
         self._stops.shutdown(wait=False, cancel_futures=True)
 
     # -- the server's thread --------------------------------------------------------------------
-    def _run(self) -> None:
-        try:
-            asyncio.run(self._main())
-        except BaseException as err:
-            if not self._ready.is_set():
-                self._error = err
-            else:
-                log.exception("the Modbus server stopped")
-        finally:
-            self._ready.set()
-
     async def _main(self) -> None:
         self._loop = asyncio.get_running_loop()
         self._registers = _Registers(self)

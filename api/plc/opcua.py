@@ -51,6 +51,7 @@ from asyncua.server.user_managers import UserManager
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from api import remote
+from api.plc.loop_thread import LoopThread
 from api.plc.opcua_machine_vision import MachineVision
 from api.remote import RemoteCaller
 from cell.config.schema import OpcUaConfig
@@ -116,20 +117,20 @@ def _arg(name: str, vtype: ua.VariantType, description: str, array: bool = False
     return a
 
 
-class OpcUaServer:
+class OpcUaServer(LoopThread):
     """``start()`` listens (raises OSError when the endpoint cannot be bound), ``close()``."""
 
+    thread_name = "opcua"
+    what = "the OPC UA server"
+
     def __init__(self, cell: Cell, config: OpcUaConfig, cert_dir: Path) -> None:
+        super().__init__()
         self.cell = cell
         self.config = config
         self.cert_dir = cert_dir
         self.roles = {u.name: u.role for u in config.users}
-        self._thread: threading.Thread | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
         self._stop: asyncio.Event | None = None
         self._wake: asyncio.Event | None = None
-        self._ready = threading.Event()
-        self._error: BaseException | None = None
         self._last_job_id = ""
         self._ended_job: dict[str, Any] | None = None  # the last job, as it ended
         self._nodes: dict[str, Any] = {}
@@ -152,12 +153,7 @@ class OpcUaServer:
         library_log = logging.getLogger("asyncua")
         if library_log.level == logging.NOTSET:  # it logs every request at INFO
             library_log.setLevel(logging.WARNING)
-        self._thread = threading.Thread(target=self._run, name="opcua", daemon=True)
-        self._thread.start()
-        if not self._ready.wait(timeout_s):
-            raise TimeoutError(f"the OPC UA server did not start within {timeout_s:g} s")
-        if self._error is not None:
-            raise self._error
+        super().start(timeout_s)
 
     def close(self) -> None:
         loop, stop, wake = self._loop, self._stop, self._wake
@@ -166,23 +162,11 @@ class OpcUaServer:
                 loop.call_soon_threadsafe(stop.set)
                 if wake is not None:
                     loop.call_soon_threadsafe(wake.set)
-        if self._thread is not None:
-            self._thread.join(timeout=10.0)
+        self._join(10.0)
         self.calls.shutdown(wait=False, cancel_futures=True)
         self._stops.shutdown(wait=False, cancel_futures=True)
 
     # -- the server's thread --------------------------------------------------------------------
-    def _run(self) -> None:
-        try:
-            asyncio.run(self._main())
-        except BaseException as err:
-            if not self._ready.is_set():
-                self._error = err
-            else:
-                log.exception("the OPC UA server stopped")
-        finally:
-            self._ready.set()
-
     async def _main(self) -> None:
         self._loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
