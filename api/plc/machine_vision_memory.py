@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+
+from cell.files import replace_text
 
 log = logging.getLogger(__name__)
 
@@ -59,19 +59,8 @@ class MachineVisionMemory:
         if self.path is None:
             return
         text = json.dumps({"automatic": remembered.automatic, "prepared": remembered.prepared})
-        tmp = None
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", dir=self.path.parent)
-            with os.fdopen(fd, "w") as f:
-                f.write(text + "\n")
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, self.path)
-            tmp = None
+            replace_text(self.path, text + "\n")
         except OSError as err:
             log.warning("cannot write %s: %s; the mode and recipe are not kept over a restart",
                         self.path, err)
-        finally:
-            if tmp is not None:
-                Path(tmp).unlink(missing_ok=True)

@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import builtins
 import json
-import os
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -25,6 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, LimitError, NotFoundError, RefusedError
+from cell.files import replace_text
 from estimator.target import Target, layout_problem
 
 STORE_NAME = "recipes.json"
@@ -241,20 +240,9 @@ class RecipeStore:
             return
         rows = [r.model_dump() for name in sorted(versions) for r in versions[name]]
         text = json.dumps({"version": FORMAT_VERSION, "recipes": rows}, indent=2)
-        tmp = None
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", dir=self.path.parent)
-            with os.fdopen(fd, "w") as f:
-                f.write(text + "\n")
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, self.path)
-            tmp = None
+            replace_text(self.path, text + "\n")
         except OSError as err:
             raise RecipeStoreError(ErrorCode.recipe_store_write_failed,
                                    f"cannot write {self.path}: {err}; nothing was changed"
                                    ) from err
-        finally:
-            if tmp is not None:
-                Path(tmp).unlink(missing_ok=True)

@@ -22,9 +22,7 @@ look-and-move, and IBVS to them is refused (``taught_without_view``).
 from __future__ import annotations
 
 import json
-import os
 import re
-import tempfile
 import threading
 import time
 from dataclasses import dataclass
@@ -37,6 +35,7 @@ from numpy.typing import NDArray
 from cell.actions.ibvs import Features, features_from_view
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, LimitError, NotFoundError, RefusedError
+from cell.files import replace_text
 from cell.vision.frames import mean_pose
 from estimator.transforms import T_from_pose_dict, invert_T, pose_dict, pose_distance
 
@@ -220,22 +219,11 @@ class TaughtStore:
                            "poses": [p.as_dict() for p in sorted(poses.values(),
                                                                  key=lambda p: p.name)]},
                           indent=2)
-        tmp = None
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", dir=self.path.parent)
-            with os.fdopen(fd, "w") as f:
-                f.write(text + "\n")
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, self.path)
-            tmp = None
+            replace_text(self.path, text + "\n")
         except OSError as err:
             raise TeachStoreError(ErrorCode.taught_store_write_failed,
                                   f"cannot write {self.path}: {err}; nothing was changed") from err
-        finally:
-            if tmp is not None:
-                Path(tmp).unlink(missing_ok=True)
 
 
 @dataclass(frozen=True)
