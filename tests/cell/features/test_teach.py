@@ -74,7 +74,7 @@ def test_failed_write_changes_nothing(tmp_path: Path, monkeypatch: pytest.Monkey
     def full_disk(src: str, dst: str) -> None:
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr("cell.features.teach.os.replace", full_disk)
+    monkeypatch.setattr("cell.files.os.replace", full_disk)
     with pytest.raises(CellError) as err:
         store.put(_pose("b"))
     assert err.value.code == "taught_store_write_failed"
