@@ -342,7 +342,7 @@ def test_routine_refuses_a_speed_above_the_limit_before_anything_moves(
     import cell.devices.factory
 
     built: list[object] = []
-    monkeypatch.setattr(cell.factory, "build_hardware", lambda cfg: built.append(cfg))
+    monkeypatch.setattr(cell.devices.factory, "build_hardware", lambda cfg: built.append(cfg))
     cfg = sim_cell_config(tmp_path / "cell.toml")
     code, out = run_json(capsys, "calibrate", "routine", "--config", str(cfg),
                          "--speed-mm-s", "300")
