@@ -11,9 +11,9 @@ fast as the arm's state, not the camera, and a frame's age costs no lag.
 
 Safety: no measurement older than ``limits.max_pose_age_s`` is used; frames exposed
 ``[servo] lost_after_s`` after the last pose that did not show the target stop the arm (still
-before the job fails ``target_lost``; judged on camera time, :mod:`cell.actions.target_loss`); every new
-goal is checked against the envelope and tilt limit (its limit's code ends the job); a stop
-cancels the slot's holder, which the next tick sees, and the arm's own watchdog brakes if
+before the job fails ``target_lost``; judged on camera time, :mod:`cell.actions.target_loss`);
+every new goal is checked against the envelope and tilt limit (its limit's code ends the job); a
+stop cancels the slot's holder, which the next tick sees, and the arm's own watchdog brakes if
 ticks stop coming.
 """
 

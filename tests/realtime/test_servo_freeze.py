@@ -27,9 +27,10 @@ import numpy as np
 import pytest
 
 from estimator.transforms import pose_dict
-from tests.cell.commands.test_serve_ctrl_c import _config, _free_port
+from tests.cell.commands.test_serve_ctrl_c import _config
 from tests.cell.test_servo_ur import HOME_TARGET
 from tests.support.cell import AUTH
+from tests.support.net import free_port
 
 rtde_receive = pytest.importorskip("rtde_receive")
 pytestmark = pytest.mark.timeout(240)
@@ -81,7 +82,7 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
     # a slow servo (the frozen arm's travel scales with its speed); loss of the target on a
     # loaded host is not what these tests are about, so the lost-target clock is generous
     config.write_text(text + f"\n[servo]\nmax_speed_mm_s = {SPEED_MM_S}\nlost_after_s = 1.0\n")
-    port = _free_port()
+    port = free_port()
     log = tmp / "serve.log"
     with log.open("w") as out:
         proc = subprocess.Popen(

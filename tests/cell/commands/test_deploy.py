@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import re
 import shutil
-import socket
 import subprocess
 import sys
 import time
@@ -19,6 +18,7 @@ import pytest
 from cell.config.schema import load_config
 from fakes.ur_controller.process import free_loopback_host
 from tests.support.cell import AUTH, without_interfaces
+from tests.support.net import free_port
 from tests.support.paths import REPO
 
 UNIT = REPO / "cell" / "deploy" / "ur-vision-cell.service"
@@ -64,12 +64,6 @@ def test_unit_passes_systemd_analyze_verify(tmp_path: Path) -> None:
     assert "ur-vision-cell.service" not in out.stderr, out.stderr  # no warnings about it
 
 
-def _free_port(host: str) -> int:
-    with socket.socket() as s:
-        s.bind((host, 0))
-        return int(s.getsockname()[1])
-
-
 def test_serve_log_format_json(tmp_path: Path) -> None:
     text = (REPO / "cell" / "configs" / "sim.toml").read_text()
     text = text.replace('kind = "ur"', 'kind = "sim"').replace("ur_controller = true",
@@ -80,7 +74,7 @@ def test_serve_log_format_json(tmp_path: Path) -> None:
     config = tmp_path / "cell.toml"
     config.write_text(without_interfaces(text))
     host = free_loopback_host()
-    port = _free_port(host)
+    port = free_port(host)
     proc = subprocess.Popen(
         [sys.executable, "-m", "cell", "serve", "--config", str(config), "--host", host,
          "--port", str(port), "--log-format", "json"],
