@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from api.auth import ALWAYS, PERMISSIONS
-from api.http.errors import STATUS
+from api.status import STATUS
 from cell.actions.ibvs import Features
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, ForbiddenError, LimitError, NotFoundError
@@ -171,7 +171,8 @@ def taught_pose_and_view(cell: Cell, taught: str | None, mode: str
         raise LimitError(ErrorCode.invalid_request, f"taught must be a name, got {taught!r}")
     pose = TaughtStore.beside_job_db(cell.config.api.job_db).get(taught)
     if mode == "ibvs" and pose.view is None:
-        raise LimitError(ErrorCode.taught_without_view, f"the pose {taught!r} was taught without its "
+        raise LimitError(ErrorCode.taught_without_view,
+                         f"the pose {taught!r} was taught without its "
                          "view (an older record): teach it again for ibvs")
     return pose.T_target_tcp, pose.view if mode == "ibvs" else None
 

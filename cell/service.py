@@ -192,15 +192,16 @@ class Cell:
               duration_s: float, wait: bool = False, wait_timeout_s: float = 120.0,
               mode: Literal["servo", "ibvs"] = "servo", view: Features | None = None,
               recipe: dict[str, Any] | None = None) -> Job:
-        """Track job: hold the TCP at the standoff pose on a moving target (cell.actions.track), or
-        the taught view (``mode="ibvs"``, cell.actions.ibvs_track); ``recipe``: the recipe record the
-        job keeps."""
+        """Track job: hold the TCP at the standoff pose on a moving target (cell.actions.track),
+        or the taught view (``mode="ibvs"``, cell.actions.ibvs_track); ``recipe``: the recipe
+        record the job keeps."""
         if mode == "ibvs":
             return start_ibvs_track(self.core, caller, standoff_mm=standoff_mm,
                                     duration_s=duration_s, T_target_tcp=T_target_tcp,
                                     view=view, wait=wait, wait_timeout_s=wait_timeout_s)
         if mode != "servo":
-            raise LimitError(ErrorCode.invalid_request, f"track mode must be 'servo' or 'ibvs', got "
+            raise LimitError(ErrorCode.invalid_request,
+                             f"track mode must be 'servo' or 'ibvs', got "
                              f"{mode!r}")
         return track.start_track(self.core, caller, standoff_mm=standoff_mm,
                                  duration_s=duration_s, T_target_tcp=T_target_tcp, wait=wait,

@@ -65,8 +65,8 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
                    recipe: dict[str, Any] | None = None, view: Features | None = None,
                    ) -> Job:
     """Start an approach job (``mode`` default: ``[approach] mode``); with ``wait`` return
-    when it has ended. ``recipe``: the recipe record the job keeps (cell.features.recipes). ``view``:
-    the taught image features an ``ibvs`` approach converges on (required for it)."""
+    when it has ended. ``recipe``: the recipe record the job keeps (cell.features.recipes).
+    ``view``: the taught image features an ``ibvs`` approach converges on (required for it)."""
     ac = core.config.approach
     how = ac.mode if mode is None else mode
     if how not in ("servo", "look_and_move", "ibvs"):
@@ -75,7 +75,8 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
     if how == "ibvs":
         standoff_mm = check_ibvs_request(view, standoff_mm, use_last_locate)
         if core.frames.is_fixed:
-            raise RefusedError(ErrorCode.not_supported, "mode 'ibvs' is for a camera on the flange; "
+            raise RefusedError(ErrorCode.not_supported,
+                               "mode 'ibvs' is for a camera on the flange; "
                                "a fixed camera approaches by look_and_move")
     plan = ApproachPlan(
         standoff_mm=ac.standoff_mm if standoff_mm is None else float(standoff_mm),

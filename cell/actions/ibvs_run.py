@@ -255,7 +255,8 @@ class IbvsRun:
             try:
                 state = arm.state()
             except DriverError as err:
-                raise UnavailableError(ErrorCode.arm_disconnected, f"reading the arm: {err}") from err
+                raise UnavailableError(ErrorCode.arm_disconnected,
+                                       f"reading the arm: {err}") from err
             held_s = 0.0 if t_prev is None else min(tick, t_prev + sc.watchdog_s) \
                 - state.timestamp_s
             T_tcp = extrapolate_tcp(state.T_base_tcp, prev,

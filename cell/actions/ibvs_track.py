@@ -1,10 +1,11 @@
 """Track in mode ``"ibvs"``: hold the taught view of a target while it moves.
 
-A job like :func:`cell.actions.track.start_track`, with the image-based loop (:class:`cell.actions.ibvs_run.
-IbvsRun` in ``track`` mode): it runs until ``stop``, ``duration_s`` (capped by ``[servo]
-max_track_s``) or the loss of the target. The law has no feed-forward of the target's motion,
-so a moving target is followed with a lag of ``speed / gain``; it is for slow drifts and for
-holding a view, the pose-based track for conveyors. Checked before the job starts, so a
+A job like :func:`cell.actions.track.start_track`, with the image-based loop
+(:class:`cell.actions.ibvs_run.IbvsRun` in ``track`` mode): it runs until ``stop``,
+``duration_s`` (capped by ``[servo] max_track_s``) or the loss of the target. The law has no
+feed-forward of the target's motion, so a moving target is followed with a lag of
+``speed / gain``; it is for slow drifts and for holding a view, the pose-based track for
+conveyors. Checked before the job starts, so a
 refusal moves nothing.
 """
 

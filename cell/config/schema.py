@@ -249,7 +249,7 @@ class ServoConfig(_Strict):
 
 
 class IbvsConfig(_Strict):
-    """Image-based servoing (mode "ibvs", :mod:`cell.actions.ibvs` and :mod:`cell.actions.ibvs_run`).
+    """Image-based servoing (mode "ibvs": :mod:`cell.actions.ibvs`, :mod:`cell.actions.ibvs_run`).
 
     The law is ``v_c = -lambda L^+ (s - s*)`` on the dots' normalised image points, the gain
     ``lambda(x) = (l0 - linf) exp(-slope x / (l0 - linf)) + linf`` with ``x`` the largest

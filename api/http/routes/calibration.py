@@ -121,7 +121,8 @@ def taught_view(request: Request, name: str | None, mode: str | None) -> Feature
     if mode != "ibvs":
         return None
     if name is None:
-        raise LimitError(ErrorCode.ibvs_needs_taught, "mode 'ibvs' converges on a taught view: give "
+        raise LimitError(ErrorCode.ibvs_needs_taught,
+                         "mode 'ibvs' converges on a taught view: give "
                          "`taught` (POST /teach records the view)")
     view = _taught(request).get(name).view
     if view is None:
