@@ -108,7 +108,7 @@ def service_processes(pid: int) -> dict[str, int]:
     """The service's processes by role: service, ur_client, controller."""
     procs = {"service": pid}
     for child, cmd in _children(pid):
-        if "ur_client_process" in cmd:
+        if "drivers.ur.client_process" in cmd:
             procs["ur_client"] = child
         elif "ur_controller" in cmd:
             procs["controller"] = child

@@ -14,7 +14,6 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import httpx
@@ -32,6 +31,7 @@ from tests.support.browser import (
     serve_sim_cell,
     stub_permissions,
 )
+from tests.support.paths import REPO
 from tests.support.waiting import wait_until
 
 pytestmark = pytest.mark.timeout(120)
@@ -654,7 +654,7 @@ def test_sim_cell_approach_with_a_recipe_chosen_on_the_page(page: Any, sim_cell:
     from estimator.transforms import T_from_pose_dict, pose_distance
 
     url = sim_cell
-    config = load_config(Path(__file__).resolve().parents[1] / "cell" / "configs" / "sim.toml")
+    config = load_config(REPO / "cell" / "configs" / "sim.toml")
     t = config.target
     auth = {"Authorization": f"Bearer {SIM_OPERATOR}"}
     for standoff_mm in (80.0, 60.0):  # version 1, then version 2
