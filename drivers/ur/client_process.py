@@ -71,6 +71,13 @@ KICK_PERIOD_S = 0.02
 PARENT_LEASE_S = 0.06
 HEARTBEAT_S = 0.02
 QUIET_AFTER_CALL_S = 0.02
+# ur_rtde's control commands that return without the script's answer (streamed ones)
+STREAMED_METHODS = frozenset({"speedL", "speedJ", "servoL", "servoJ", "servoC", "forceMode",
+                              "jogStart", "kickWatchdog"})
+# motion commands that end a stream: a planned move or a stop runs to its own end
+ENDS_STREAM = frozenset({"moveL", "moveJ", "movePath", "moveUntilContact", "speedStop",
+                         "servoStop", "stopL", "stopJ", "jogStop", "forceModeStop",
+                         "reuploadScript", "stopScript"})
 RUNTIME_PLAYING = 2  # RTDE runtime_state: the control script runs
 PR_SET_PDEATHSIG = 1
 
@@ -115,7 +122,9 @@ class Drop:
 @dataclass(frozen=True)
 class Guard:
     """Arm the controller's watchdog at ``min_frequency_hz`` (again after every script upload)
-    and kick it while the parent's heartbeats keep coming within ``parent_lease_s``."""
+    and kick it while the child runs; while a streamed motion (speedL, servo) runs, only while
+    the parent's heartbeats keep coming within ``parent_lease_s``. A planned move or a stop
+    ends on its own, so a parent that is late (starved, not frozen) does not end it."""
 
     min_frequency_hz: float
     parent_lease_s: float
@@ -208,6 +217,9 @@ class _Clients:
         self.parent_seen_s = time.monotonic()  # the parent's last message
         self.watchdog_armed = False  # setWatchdog accepted by the script running now
         self.ctrl_ended_s = 0.0  # when the last control call returned
+        self.last_call_streamed = False  # it was a streamed command (see STREAMED_METHODS)
+        self.streaming = False  # a streamed motion was the last motion command (see kick)
+        self.call_ended = threading.Event()  # an answered control call just returned
 
     def arm_watchdog(self) -> None:
         """setWatchdog on the control script (a new script starts without one). Refused
@@ -227,22 +239,27 @@ class _Clients:
         A kick writes the script's command register, so it must not land before the script
         has taken a call's command (that command would be lost, and a call waiting for its
         answer would hang): kicks go out only between calls, and not within QUIET_AFTER_CALL_S
-        of one (streamed commands return at once, before the script's next cycle). A
-        blocking call (a stop waiting for the arm to rest) is not kicked through: if it lasts
-        longer than the watchdog, the controller brakes the arm itself, the safe way round."""
+        of a streamed one (those return at once, before the script's next cycle). An answered
+        call has left the script done with its command, so the kicker kicks right after it
+        (it waited for its next tick before, and a call that took a few loaded script cycles
+        plus that wait outlasted the watchdog on a healthy host). A blocking call (a
+        stop waiting for the arm to rest) is not kicked through: ur_rtde's kick would wait for
+        the script to be ready, and its sends are not made for two threads at once."""
         ctrl, guard = self.objects.get("ctrl"), self.guard
         if ctrl is None or guard is None:
             return
-        if time.monotonic() - self.parent_seen_s > guard.parent_lease_s:
-            return  # the parent stalled: let the controller stop the arm
+        if self.streaming and time.monotonic() - self.parent_seen_s > guard.parent_lease_s:
+            return  # the parent stalled mid-stream: let the controller stop the arm
         if not self._script_running():
             self.watchdog_armed = False  # the script ended: the next one starts unguarded
+            self.streaming = False
             return
         lock = self.locks["ctrl"]
         if not lock.acquire(blocking=False):
             return
         try:
-            if time.monotonic() - self.ctrl_ended_s >= QUIET_AFTER_CALL_S:
+            if (not self.last_call_streamed
+                    or time.monotonic() - self.ctrl_ended_s >= QUIET_AFTER_CALL_S):
                 with contextlib.suppress(Exception):
                     if self.watchdog_armed:
                         ctrl.kickWatchdog()
@@ -275,6 +292,11 @@ class _Clients:
             finally:
                 if name == "ctrl":
                     self.ctrl_ended_s = time.monotonic()
+                    self.last_call_streamed = method in STREAMED_METHODS
+                    if method in STREAMED_METHODS or method in ENDS_STREAM:
+                        self.streaming = method in STREAMED_METHODS
+        if name == "ctrl" and method not in STREAMED_METHODS:
+            self.call_ended.set()  # the kicker kicks now, not a tick later
         if name == "ctrl" and method == "reuploadScript" and result:
             self.arm_watchdog()
         return result
@@ -493,7 +515,8 @@ def child_main(host: str, parent_pid: int | None = None) -> None:
         """Kick the controller's watchdog while the parent lives (see Guard)."""
         set_timer_slack(PUSHER_TIMER_SLACK_S)
         while True:
-            time.sleep(KICK_PERIOD_S)
+            if clients.call_ended.wait(KICK_PERIOD_S):
+                clients.call_ended.clear()
             if parent_pid is not None and os.getppid() != parent_pid:
                 os._exit(0)  # orphaned: the controller's watchdog stops the arm
             clients.kick()
