@@ -140,7 +140,7 @@ class RobotConfig(_Strict):
 
     kind: Literal["ur", "sim"]  # required: a file that lost it must not run a simulated arm
     host: str = "127.0.0.1"
-    # The UR adapter's timing (drivers.ur.URArm): connecting, one call to the controller, the
+    # The UR adapter's timing (URArm): connecting, one call to the controller, the
     # jog watchdog period, and how long unchanged RTDE data may be before the link counts as lost.
     connect_timeout_s: float = Field(default=5.0, gt=0)
     # Power on and release the brakes when the service starts and after a controller that

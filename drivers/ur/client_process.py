@@ -67,6 +67,12 @@ STILL_DEADBAND_M_RAD = 1e-5
 # every KICK_PERIOD_S, but only while the parent has been heard from within PARENT_LEASE_S (its
 # heartbeat comes every HEARTBEAT_S): a frozen child and a frozen parent both stop the arm.
 CONTROLLER_WATCHDOG_HZ = 12.5
+# While no streamed motion runs (a planned move, which ends at its own checked target, a stop,
+# or nothing), the watchdog runs at this lower rate: a host starved for a few hundred ms (a
+# loaded machine) does not end the control script under a healthy planned move, and a dead host
+# still stops it within a second. The rate switches to CONTROLLER_WATCHDOG_HZ before the first
+# streamed command of a stream reaches the controller, and back once the stream has ended.
+PLANNED_WATCHDOG_HZ = 1.0
 KICK_PERIOD_S = 0.02
 PARENT_LEASE_S = 0.06
 HEARTBEAT_S = 0.02
@@ -78,6 +84,9 @@ STREAMED_METHODS = frozenset({"speedL", "speedJ", "servoL", "servoJ", "servoC", 
 ENDS_STREAM = frozenset({"moveL", "moveJ", "movePath", "moveUntilContact", "speedStop",
                          "servoStop", "stopL", "stopJ", "jogStop", "forceModeStop",
                          "reuploadScript", "stopScript"})
+# planned moves: the watchdog goes to its low rate before they start (stops are sent first and
+# the rate lowered after them, so a stop never waits behind a setWatchdog round trip)
+PLANNED_MOVES = frozenset({"moveL", "moveJ", "movePath", "moveUntilContact"})
 RUNTIME_PLAYING = 2  # RTDE runtime_state: the control script runs
 PR_SET_PDEATHSIG = 1
 
@@ -128,6 +137,7 @@ class Guard:
 
     min_frequency_hz: float
     parent_lease_s: float
+    planned_frequency_hz: float = PLANNED_WATCHDOG_HZ
 
 
 @dataclass(frozen=True)
@@ -216,6 +226,7 @@ class _Clients:
         self.guard: Guard | None = None
         self.parent_seen_s = time.monotonic()  # the parent's last message
         self.watchdog_armed = False  # setWatchdog accepted by the script running now
+        self.armed_hz = 0.0  # the rate it was armed at
         self.ctrl_ended_s = 0.0  # when the last control call returned
         self.last_call_streamed = False  # it was a streamed command (see STREAMED_METHODS)
         self.streaming = False  # a streamed motion was the last motion command (see kick)
@@ -224,10 +235,20 @@ class _Clients:
     def arm_watchdog(self) -> None:
         """setWatchdog on the control script (a new script starts without one). Refused
         while no script runs (ur_rtde answers False): the kicker tries again once one runs."""
-        ctrl, guard = self.objects.get("ctrl"), self.guard
-        if ctrl is not None and guard is not None:
+        ctrl = self.objects.get("ctrl")
+        if ctrl is not None and self.guard is not None:
             with self.locks["ctrl"]:
-                self.watchdog_armed = bool(ctrl.setWatchdog(guard.min_frequency_hz))
+                self._set_rate(ctrl, self._wanted_hz())
+
+    def _wanted_hz(self) -> float:
+        guard = self.guard
+        assert guard is not None
+        return guard.min_frequency_hz if self.streaming else guard.planned_frequency_hz
+
+    def _set_rate(self, ctrl: Any, hz: float) -> None:
+        """setWatchdog at ``hz`` (the caller holds the control lock)."""
+        self.watchdog_armed = bool(ctrl.setWatchdog(hz))
+        self.armed_hz = hz if self.watchdog_armed else 0.0
 
     def _script_running(self) -> bool:
         recv = self.objects.get("recv")
@@ -264,7 +285,7 @@ class _Clients:
                     if self.watchdog_armed:
                         ctrl.kickWatchdog()
                     else:  # a script that started without one (not via reuploadScript)
-                        self.watchdog_armed = bool(ctrl.setWatchdog(guard.min_frequency_hz))
+                        self._set_rate(ctrl, self._wanted_hz())
         finally:
             lock.release()
 
@@ -287,6 +308,8 @@ class _Clients:
         if obj is None:
             raise RuntimeError(f"no {name} client")
         with self.locks[name]:  # one call at a time per client object
+            if name == "ctrl":
+                self._rate_before(obj, method)
             try:
                 result = getattr(obj, method)(*args)
             finally:
@@ -295,11 +318,38 @@ class _Clients:
                     self.last_call_streamed = method in STREAMED_METHODS
                     if method in STREAMED_METHODS or method in ENDS_STREAM:
                         self.streaming = method in STREAMED_METHODS
+        if name == "ctrl" and method in ENDS_STREAM and method not in PLANNED_MOVES:
+            self._rate_after_stop(obj)
         if name == "ctrl" and method not in STREAMED_METHODS:
             self.call_ended.set()  # the kicker kicks now, not a tick later
         if name == "ctrl" and method == "reuploadScript" and result:
             self.arm_watchdog()
         return result
+
+    def _rate_before(self, ctrl: Any, method: str) -> None:
+        """The watchdog's rate for what comes: the streaming rate before a streamed command
+        (a frozen host must stop the arm within 1 / min_frequency_hz), the low rate before a
+        planned move (caller holds the control lock)."""
+        guard = self.guard
+        if guard is None or not self.watchdog_armed or method == "kickWatchdog":
+            return
+        if method in STREAMED_METHODS:
+            want = guard.min_frequency_hz
+        elif method in PLANNED_MOVES:
+            want = guard.planned_frequency_hz
+        else:
+            return
+        if want != self.armed_hz:
+            with contextlib.suppress(Exception):
+                self._set_rate(ctrl, want)
+
+    def _rate_after_stop(self, ctrl: Any) -> None:
+        """A stop has been sent and answered: nothing streams now, the low rate again."""
+        guard = self.guard
+        if guard is None or not self.watchdog_armed or self.armed_hz == guard.planned_frequency_hz:
+            return
+        with self.locks["ctrl"], contextlib.suppress(Exception):
+            self._set_rate(ctrl, guard.planned_frequency_hz)
 
     def sample(self) -> StateSample:
         """Everything the adapter watches, read from the clients' cached state."""
