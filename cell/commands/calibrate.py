@@ -147,6 +147,7 @@ def _fixed_mount(args: argparse.Namespace) -> bool:
 
 def run_hand_eye(args: argparse.Namespace) -> int:
     from cell.calibration.dataset import DatasetError, load_dataset
+    from cell.calibration.report import mount_fields
     from cell.calibration.solve import solve_dataset
     from estimator.calib.handeye import HandEyeError
 
@@ -166,13 +167,17 @@ def run_hand_eye(args: argparse.Namespace) -> int:
                  f"{chosen.spread.mean_deg:.3f} deg")
     if report.joint is not None:
         note += f", joint reprojection rms {report.joint.rms_px:.2f} px"
+    fixed = _fixed_mount(args)
     if not args.json:
+        if fixed:
+            print("fixed camera: the result (T_flange_camera below) is T_base_camera")
         print(report.summary())
     written = _write(args, report, note)
     if isinstance(written, int):
         return written
     if args.json:
         out = report.as_dict()
+        out.update(mount_fields(fixed, report.T_flange_camera))
         out["dataset"] = {"folder": str(dataset.folder), "format": dataset.source}
         out.update(_json_write_fields(written, args.write_config))
         print_json(out)
@@ -182,6 +187,7 @@ def run_hand_eye(args: argparse.Namespace) -> int:
 def run_routine(args: argparse.Namespace) -> int:
     from cell.calibration.dataset import DatasetError, new_dataset_folder
     from cell.calibration.observe import board_observer, dot_target_observer
+    from cell.calibration.report import mount_fields
     from cell.calibration.routine import (
         RoutineError,
         RoutineSettings,
@@ -193,6 +199,7 @@ def run_routine(args: argparse.Namespace) -> int:
     from cell.errors import CellError
     from cell.motion.guard import GuardedArm
     from cell.motion.limits import SafetyGuard
+    from cell.vision.frames import cell_frames
     from drivers.errors import DriverError
     from estimator.calib.board import Board
 
@@ -232,10 +239,12 @@ def run_routine(args: argparse.Namespace) -> int:
         arm.power_on()
         arm.set_tcp(T_flange_tcp)
         hw.camera.connect()
+        fixed = cfg.fixed_camera  # then the pattern is on the tool and the result T_base_camera
+        guess = cell_frames(cfg).T_camera_mount
         with progress_bars(not args.json) as progress, arm.slot.hold("calibration"):
             result = run_hand_eye_routine(
-                arm, hw.camera, observer, T_flange_tcp, cfg.hand_eye.T_flange_camera.T(),
-                settings, progress=progress,
+                arm, hw.camera, observer, T_flange_tcp, guess, settings, progress=progress,
+                fixed_camera=fixed,
             )
     except RoutineError as err:
         return fail(err.code, err.message, args.json)
@@ -253,6 +262,8 @@ def run_routine(args: argparse.Namespace) -> int:
         except DatasetError as err:
             return fail(err.code, err.message, args.json)
     if not args.json:
+        if fixed:
+            print("fixed camera: the result (T_flange_camera below) is T_base_camera")
         print(report.summary())
         for k, reason in result.failed:
             print(f"view {k} skipped: {reason}")
@@ -264,6 +275,7 @@ def run_routine(args: argparse.Namespace) -> int:
         return written
     if args.json:
         out = report.as_dict()
+        out.update(mount_fields(fixed, report.T_flange_camera))
         out["failed_views"] = [{"view": k, "reason": r} for k, r in result.failed]
         out.update(_json_write_fields(written, args.write_config))
         out["dataset"] = saved

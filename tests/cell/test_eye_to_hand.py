@@ -3,6 +3,7 @@ OpenCV's own solver), and the simulated fixed-camera cell locating and approachi
 
 from __future__ import annotations
 
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -21,8 +22,16 @@ from cell.runtime import start_cell
 from cell.vision.frames import approach_tcp
 from estimator import CameraModel
 from estimator.calib.eye_to_hand import eye_to_hand_poses
-from estimator.transforms import invert_T, make_T, pose_distance
+from estimator.transforms import (
+    T_from_pose,
+    T_from_pose_dict,
+    invert_T,
+    make_T,
+    pose_dict,
+    pose_distance,
+)
 from tests.support.cell import running_cell
+from tests.support.jobs import wait_job
 from tests.support.paths import REPO
 
 FIXED = REPO / "cell" / "configs" / "sim-fixed.toml"
@@ -131,6 +140,55 @@ def test_fixed_cell_locates_and_approaches_without_an_observation_pose() -> None
                 assert d_mm < 0.1, d_mm
         finally:
             cell.close()
+
+
+# A plate with the target's layout clamped to the tool, facing the camera at the home pose
+# (its centre at the TCP), and the simulator's true camera pose, millimetres and tenths of a
+# degree from the config's [hand_eye] guess, as after mounting the camera by hand.
+TOOL_BOARD = {"position_mm": [48.0, 27.7128, 134.0], "rotvec_rad": [0.0, -0.813104, -3.034545]}
+TRUE_OFFSET = T_from_pose(np.array([2.0, -1.5, 3.0]), np.array([0.004, -0.003, 0.006]))
+
+
+def test_fixed_camera_routine_through_http_recovers_the_true_T_base_camera(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    config_file = tmp_path / "cell.toml"
+    shutil.copy(FIXED, config_file)
+    monkeypatch.setenv("CELL_CONFIG", str(config_file))  # the file apply may write
+    data = fixed_data(tmp_path)
+    guess = T_from_pose_dict(data["hand_eye"]["T_base_camera"])
+    truth = guess @ TRUE_OFFSET
+    data["sim"].update(T_base_camera=pose_dict(truth), T_flange_board=TOOL_BOARD)
+    with running_cell(parse_config(data)) as cell, TestClient(create_app(cell)) as c:
+        op = {"Authorization": "Bearer sim-operator"}
+        start = cell.sim.true_T_base_tcp() if cell.sim else None
+        r = c.post("/api/v1/calibration/hand-eye", json={"views": 12, "speed_mm_s": 250},
+                   headers=op)
+        assert r.status_code == 200, r.text
+        job = wait_job(c, r.json()["id"], timeout_s=400.0)
+        assert job["state"] == "succeeded", job
+        res = job["result"]
+        assert res["mount"] == "fixed" and res["transform"] == "T_base_camera"
+        assert res["T_base_camera"] == res["T_flange_camera"]
+        assert "T_base_camera" in res["change_from_current"]
+        assert res["verdict"]["consistent"], res["verdict"]["text"]
+        assert len(res["views"]) + len(res["failed_views"]) == 12
+        d_mm, d_deg = pose_distance(T_from_pose_dict(res["T_base_camera"]), truth)
+        print(f"routine ({len(res['views'])} views): {d_mm:.4f} mm / {d_deg:.5f} deg from the "
+              f"true T_base_camera; the guess was {pose_distance(guess, truth)}")
+        assert d_mm < 0.5 and d_deg < 0.05, (d_mm, d_deg)
+        assert cell.sim is not None and start is not None
+        assert pose_distance(cell.sim.true_T_base_tcp(), start)[0] < 0.05  # back at the start
+        assert np.allclose(cell.core.frames.T_camera_mount, guess)  # nothing applied yet
+
+        r = c.post(f"/api/v1/calibration/hand-eye/{job['id']}/apply",
+                   json={"write_config": True}, headers=op)
+        assert r.status_code == 200, r.text
+        assert r.json()["transform"] == "T_base_camera"
+        applied = T_from_pose_dict(r.json()["T_base_camera"])
+        assert pose_distance(cell.core.frames.T_camera_mount, applied)[0] < 1e-6
+        written = load_config(config_file)
+        assert written.fixed_camera and written.hand_eye.T_base_camera is not None
+        assert pose_distance(written.hand_eye.T_base_camera.T(), truth)[0] < 0.5
 
 
 # The API tests that need no eye-in-hand view, run here against the fixed-camera cell: pytest
