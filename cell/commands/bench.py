@@ -102,6 +102,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     fx.add_argument("--stall-after-s", type=float, default=None,
                     help="override [servo] stall_after_s for --servo (default: the config's, "
                          "1 s; a 12 MP render here can take longer)")
+    fx.add_argument("--preview", action="store_true",
+                    help="approach on the colour image scaled 1/3 (1352x1013) instead of 12 MP")
     fx.add_argument("--render", type=int, default=0, metavar="N",
                     help="also time N renders and estimates per sensor (a frame's cost)")
     fx.set_defaults(func=_lazy("fixed"))
