@@ -236,6 +236,7 @@ def test_fixed_camera_routine_through_http_recovers_the_true_T_base_camera(
                    json={"write_config": True}, headers=op)
         assert r.status_code == 200, r.text
         assert r.json()["transform"] == "T_base_camera"
+        assert r.json()["config_change"]["key"] == "T_base_camera"
         applied = T_from_pose_dict(r.json()["T_base_camera"])
         assert pose_distance(cell.core.frames.T_camera_mount, applied)[0] < 1e-6
         written = load_config(config_file)
