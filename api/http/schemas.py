@@ -378,6 +378,7 @@ class SimTruth(_Out):
     T_base_tcp: PoseOut
     world: str
     T_flange_camera: PoseOut
+    T_base_camera: PoseOut | None = Field(None, description="a fixed camera's true pose")
     camera: SimCameraTruthOut
 
 

@@ -224,6 +224,8 @@ def test_fixed_camera_routine_through_http_recovers_the_true_T_base_camera(
         assert "T_base_camera" in res["change_from_current"]
         assert res["verdict"]["consistent"], res["verdict"]["text"]
         assert len(res["views"]) + len(res["failed_views"]) == 12
+        true_pose = c.get("/api/v1/sim/truth", headers=op).json()["T_base_camera"]
+        assert pose_distance(T_from_pose_dict(true_pose), truth)[0] < 1e-6
         d_mm, d_deg = pose_distance(T_from_pose_dict(res["T_base_camera"]), truth)
         print(f"routine ({len(res['views'])} views): {d_mm:.4f} mm / {d_deg:.5f} deg from the "
               f"true T_base_camera; the guess was {pose_distance(guess, truth)}")
