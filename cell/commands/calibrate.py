@@ -39,7 +39,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     he.add_argument("--no-refine", action="store_true",
                     help="skip the joint reprojection refinement")
     he.add_argument("--write-config", metavar="FILE",
-                    help="write the chosen T_flange_camera into FILE's [hand_eye] table (an "
+                    help="write the chosen T_flange_camera (T_base_camera for a fixed camera) "
+                         "into FILE's [hand_eye] table (an "
                          "existing, valid cell config; a timestamped backup is kept)")
     he.add_argument("--force", action="store_true",
                     help="write the config even when the verdict is that the data disagree")
@@ -62,7 +63,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     it.set_defaults(func=run_intrinsics)
 
     rt = what.add_parser(
-        "routine", help="move the arm around its current pose, collect views and solve hand-eye"
+        "routine", help="move the arm around its current pose, collect views and solve hand-eye "
+                        "(a fixed camera, per --config's mount: the plate on the tool)"
     )
     rt.add_argument("--config", metavar="FILE", help="cell config (default: the simulated cell)")
     rt.add_argument("--views", type=int, default=12, help="number of views (default 12)")
@@ -78,7 +80,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     rt.add_argument("--rows", type=int, default=6)
     rt.add_argument("--square-mm", "--pitch-mm", dest="pitch_mm", type=float, default=25.0)
     rt.add_argument("--write-config", metavar="FILE",
-                    help="write the chosen T_flange_camera into FILE's [hand_eye] table (an "
+                    help="write the chosen T_flange_camera (T_base_camera for a fixed camera) "
+                         "into FILE's [hand_eye] table (an "
                          "existing, valid cell config; a timestamped backup is kept)")
     rt.add_argument("--force", action="store_true",
                     help="write the config even when the verdict is that the data disagree")
