@@ -378,6 +378,7 @@ class SimTruth(_Out):
     T_base_tcp: PoseOut
     world: str
     T_flange_camera: PoseOut
+    T_base_camera: PoseOut | None = Field(None, description="a fixed camera's true pose")
     camera: SimCameraTruthOut
 
 
@@ -457,7 +458,11 @@ class ApplyResult(_Out):
     model_config = _examples({"job_id": "3f2a9c1b7d4e", "T_flange_camera": POSE_EXAMPLE,
                               "running": True, "written_config": None})
     job_id: str
-    T_flange_camera: PoseOut
+    T_flange_camera: PoseOut = Field(description="the applied mount (T_base_camera for a "
+                                     "fixed camera)")
+    mount: str = Field("hand", description="\"hand\" (eye-in-hand) or \"fixed\"")
+    transform: str = Field("T_flange_camera", description="what the applied mount is")
+    T_base_camera: PoseOut | None = Field(None, description="a fixed camera's applied pose")
     running: bool = Field(description="in use by the running cell now")
     written_config: str | None = Field(description="the config file written, if any")
 

@@ -124,7 +124,11 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
         if how == "servo":
             run = ServoRun(core, job_id, motion, ServoGoal(plan.T_target_tcp, plan.standoff_mm),
                            "approach", first=first[0])
-            return run.run()
+            out = run.run()
+            if seen.get("pose_source") == "last_seen":  # a fixed camera, hidden at the start
+                out.update(start_pose_source="last_seen", occluded=True,
+                           occlusion_reason=out.get("occlusion_reason") or seen.get("reason"))
+            return out
         if core.frames.is_fixed:
             return fixed_look_and_move(core, job_id, motion, first[0], plan, seen)
         return look_and_move(core, job_id, motion, first[0], plan)

@@ -15,6 +15,14 @@ before the job fails ``target_lost``; judged on camera time, :mod:`cell.actions.
 every new goal is checked against the envelope and tilt limit (its limit's code ends the job); a
 stop cancels the slot's holder, which the next tick sees, and the arm's own watchdog brakes if
 ticks stop coming.
+
+A fixed camera (eye-to-hand): the target pose is ``T_base_camera @ T_camera_target`` with no
+flange in the chain (:class:`cell.vision.frames.CellFrames`), and the law already works in the
+base frame, so the loop is the same. Near the goal the arm itself hides the target from the
+camera; an approach then goes on to the goal of the last pose seen, held still (as the fixed
+look-and-move does), and its result says so (``pose_source = "last_seen"``, ``occluded``,
+``pose_age_s``). The target must not move meanwhile: tracking with a fixed camera still ends
+``target_lost``, and a stalled camera (no frames examined) always does.
 """
 
 from __future__ import annotations
@@ -34,7 +42,7 @@ from cell.actions.servo_law import (
     pbvs_twist,
     pose_error,
 )
-from cell.actions.target_filter import ConstantVelocityFilter
+from cell.actions.target_filter import ConstantVelocityFilter, TargetEstimate
 from cell.actions.target_loss import LossClock, Silence
 from cell.core import CellCore
 from cell.error_codes import ErrorCode
@@ -110,6 +118,8 @@ class ServoRun:
         self._last_error: CellError | None = None  # why the last frame gave no pose
         self._last_sequence = -1
         self._gated = 0  # poses rejected by the validation gate
+        self._occlusions = 0  # a fixed camera's approach: times it held the last pose seen
+        self._occlusion_reason: str | None = None
         self._gaps: list[float] = []  # between poses arriving (s)
         self._lags: list[float] = []  # mid-exposure to pose in the filter (s)
         if first is not None:
@@ -203,15 +213,33 @@ class ServoRun:
         shown_s = 0.0
         ki = sc.track_integral_per_s2 if self.mode == "track" else 0.0
         i_lin, i_rot = np.zeros(3), np.zeros(3)
+        # a fixed camera's approach holds the last pose seen while the arm hides the target
+        may_hold = core.frames.is_fixed and self.mode == "approach"
+        held: TargetEstimate | None = None
+        held_frames = -1
         while True:
             tick = time.monotonic()
             self.motion.raise_if_cancelled("while servoing")
             with self._lock:
                 silence, frames = self._loss.silence(tick), self._frames
                 est = self.filter.predict(tick, max_horizon_s=sc.max_predict_s)
-            if silence.lost:
+            if held is not None and frames != held_frames:
+                held = None  # seen again: live poses drive the goal
+            occluded = silence.lost or tick - est.measured_at_s > max_age
+            if held is None and occluded and may_hold and self._camera_error is None \
+                    and silence.stalled_s < self._loss.stall_after_s:
+                with self._lock:
+                    last = self.filter.predict(est.measured_at_s)
+                held, held_frames = TargetEstimate(last.T_base_target, np.zeros(3), np.zeros(3),
+                                                   last.measured_at_s), frames
+                self._occlusions += 1
+                if self._occlusion_reason is None and self._last_error is not None:
+                    self._occlusion_reason = self._last_error.message
+            if held is not None:
+                est = held
+            elif silence.lost:
                 self._lost(silence)
-            if tick - est.measured_at_s > max_age:
+            if held is None and tick - est.measured_at_s > max_age:
                 self._stop_still()
                 raise RefusedError(ErrorCode.stale_pose, f"the newest target pose is "
                                    f"{tick - est.measured_at_s:.2f} s old (limit {max_age} s)")
@@ -248,6 +276,14 @@ class ServoRun:
                     if consecutive >= sc.converge_frames:
                         converged_s = tick - t0
                         break
+            elif held is not None:  # no frames to judge by: the arm's own pose, every tick
+                e_mm, e_deg = pose_distance(T_tcp, goal)
+                last_est = (e_mm, e_deg)
+                ok = e_mm < sc.tolerance_mm and e_deg < sc.tolerance_deg
+                consecutive = consecutive + 1 if ok else 0
+                if consecutive >= sc.converge_frames:
+                    converged_s = tick - t0
+                    break
             if self.mode == "approach" and tick - t0 > sc.approach_timeout_s:
                 self._stop_still()
                 raise RefusedError(ErrorCode.servo_timeout, f"the servo approach did not converge "
@@ -288,7 +324,7 @@ class ServoRun:
         self._stop_still()
         reached = arm.state().T_base_tcp
         with self._lock:
-            est = self.filter.predict(time.monotonic())
+            est = held or self.filter.predict(time.monotonic())
         goal = self.goal.tcp(est.T_base_target)
         reach_mm, reach_deg = pose_distance(reached, goal)
         out: dict[str, Any] = {
@@ -304,6 +340,12 @@ class ServoRun:
             "pose_interval_ms": _stats_ms(self._gaps[1:]),
             "pose_latency_ms": _stats_ms(self._lags),
         }
+        if core.frames.is_fixed:
+            out.update(camera_mount="fixed", pose_source="live" if held is None else "last_seen",
+                       occluded=self._occlusions > 0, occluded_at_goal=held is not None,
+                       occlusions=self._occlusions, occlusion_reason=self._occlusion_reason,
+                       pose_age_s=None if held is None
+                       else time.monotonic() - held.measured_at_s)
         if self.mode == "approach":
             out.update(converged=True, time_to_converge_s=converged_s)
         else:

@@ -10,6 +10,7 @@ then the median, for one frame and for the 3-frame average look-and-move uses, f
 from __future__ import annotations
 
 import argparse
+from typing import Literal
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -59,16 +60,47 @@ def run(n_poses: int, tilt_deg: float, distance_mm: float, seed: int) -> None:
                   f"median {np.median(e[:, k]):.3f} mm / {np.median(e[:, k + 1]):.3f} deg")
 
 
-def approach(n: int, seed: int) -> None:
-    """``n`` look-and-move approaches on the simulated fixed-camera cell (sim-fixed.toml,
-    in-process arm), each to a new random placement, homing between; the error is the true
-    TCP against the true goal (simulated truth the cell does not see)."""
+def render_cost(n: int) -> None:
+    """What one frame costs at each sensor size here: the simulated render and the estimate
+    (the servo's pose interval is at least their sum on this host)."""
+    import time
+
+    target = Target(POINTS, 10.0, "dark")
+    centre = target.points_mm.mean(axis=0)
+    for name, (w, h, f) in SENSORS.items():
+        cam = CameraModel(f, f, (w - 1) / 2, (h - 1) / 2, (), w, h)
+        rng = np.random.default_rng(0)
+        R = Rotation.from_rotvec([np.radians(30.0), 0, 0]).as_matrix()
+        T = make_T(R, np.array([0.0, 0.0, 1000.0]) - R @ centre)
+        est = Estimator(cam, target)
+        t_render, t_est = [], []
+        for _ in range(n):
+            t0 = time.perf_counter()
+            img = render_target(cam, target, T, noise_std=1.0, blur_sigma_px=0.8, rng=rng)
+            t1 = time.perf_counter()
+            est.estimate(img)
+            t_render.append(t1 - t0)
+            t_est.append(time.perf_counter() - t1)
+        print(f"{name}: render median {np.median(t_render) * 1000:.0f} ms (worst "
+              f"{max(t_render) * 1000:.0f}), estimate median {np.median(t_est) * 1000:.0f} ms "
+              f"(worst {max(t_est) * 1000:.0f}) over {n} frames")
+
+
+def approach(n: int, seed: int, servo: bool = False, lost_after_s: float | None = None,
+             stall_after_s: float | None = None, preview: bool = False) -> None:
+    """``n`` approaches on the simulated fixed-camera cell (sim-fixed.toml, in-process arm),
+    look-and-move or (``servo``) the closed loop, each to a new random placement, homing
+    between; the error is the true TCP against the true goal (simulated truth the cell does
+    not see). Failed jobs are counted first; the time is the job's, start to end.
+    ``preview``: the colour sensor's image scaled 1/3 by the camera's ISP (1352x1013), a
+    ninth of the pixels to render and search."""
     import tempfile
     import time
     from pathlib import Path
 
     from cell.actions.approach import start_approach
     from cell.config.schema import load_config, parse_config
+    from cell.errors import CellError
     from cell.runtime import start_cell
     from cell.vision.frames import approach_tcp
 
@@ -80,10 +112,20 @@ def approach(n: int, seed: int) -> None:
         d["robot"]["kind"], d["sim"]["ur_controller"], d["gripper"]["kind"] = "sim", False, "none"
         d["api"]["job_db"] = str(Path(tmp) / "jobs.db")
         d["opcua"]["enabled"], d["urscript"]["xmlrpc_port"] = False, 0
+        if preview:
+            c = d["camera"]
+            c.update(fx=c["fx"] / 3, fy=c["fy"] / 3, cx=(c["cx"] + 0.5) / 3 - 0.5,
+                     cy=(c["cy"] + 0.5) / 3 - 0.5, width=c["width"] // 3,
+                     height=c["height"] // 3)
+        if lost_after_s is not None:
+            d["servo"]["lost_after_s"] = lost_after_s
+        if stall_after_s is not None:
+            d["servo"]["stall_after_s"] = stall_after_s
         cell = start_cell(parse_config(d))
         try:
             assert cell.sim is not None
-            errors, good = [], 0
+            errors, good, times, failures, notes = [], 0, [], [], []
+            mode: Literal["servo", "look_and_move"] = "servo" if servo else "look_and_move"
             for _ in range(n):
                 R = (Rotation.from_rotvec([*rng.normal(size=2) * 0.15, 0])
                      * Rotation.from_rotvec([0, 0, rng.uniform(-0.6, 0.6)])).as_matrix() @ flat
@@ -92,23 +134,53 @@ def approach(n: int, seed: int) -> None:
                 T = make_T(R, c - R @ np.array([48.0, 32.0, 0.0]))
                 cell.sim.set_target(T)
                 time.sleep(0.3)
-                job = start_approach(cell.core, "bench", wait=True)
+                t0 = time.monotonic()
+                try:
+                    job = start_approach(cell.core, "bench", wait=True, mode=mode)
+                except CellError as err:  # refused before anything moved
+                    failures.append(f"refused {err.code}")
+                    continue
+                times.append(time.monotonic() - t0)
                 rec = cell.core.jobs.get(job.id)
                 goal = approach_tcp(T, np.eye(4), cell.config.approach.standoff_mm)
                 d_mm, d_deg = pose_distance(cell.sim.true_T_base_tcp(), goal)
-                errors.append((d_mm, d_deg))
-                good += int(rec is not None and rec.state == "succeeded" and d_mm < 0.1)
+                ok = rec is not None and rec.state == "succeeded"
+                if ok:
+                    errors.append((d_mm, d_deg))
+                    r = (rec.result if rec is not None else None) or {}
+                    notes.append((r.get("pose_source", "live"), r.get("frames"),
+                                  (r.get("pose_interval_ms") or {}).get("median")))
+                else:
+                    failures.append(f"failed {rec.error_code if rec is not None else '?'}")
+                    if rec is not None and rec.error_message and len(failures) == 1:
+                        print(f"  first failure: {rec.error_message}")
+                good += int(ok and d_mm < 0.1)
                 cell.home("bench", wait=True)
-            e = np.array(errors)
-            print(f"approach: {good}/{n} succeeded within 0.1 mm of the true goal; worst "
-                  f"{e[:, 0].max():.3f} mm / {e[:, 1].max():.4f} deg, median "
-                  f"{np.median(e[:, 0]):.3f} mm")
+            size = f"{cell.config.camera.width}x{cell.config.camera.height}"
+            print(f"approach ({mode}, {size}): {good}/{n} succeeded within 0.1 mm of the true "
+                  f"goal; {len(failures)} failed ({', '.join(failures) or 'none'})")
+            if errors:
+                e = np.array(errors)
+                print(f"  error vs truth: worst {e[:, 0].max():.3f} mm / {e[:, 1].max():.4f} "
+                      f"deg, median {np.median(e[:, 0]):.3f} mm / {np.median(e[:, 1]):.4f} deg")
+            if times:
+                print(f"  job time: median {np.median(times):.2f} s, worst {max(times):.2f} s")
+            if servo and notes:
+                held = sum(1 for src, _, _ in notes if src == "last_seen")
+                frames = [f for _, f, _ in notes if f is not None]
+                gaps = [g for _, _, g in notes if g is not None]
+                print(f"  ended on the last pose seen (arm hiding the target): {held}/"
+                      f"{len(notes)}; poses per run median {np.median(frames):.0f}"
+                      + (f", pose interval median {np.median(gaps):.0f} ms" if gaps else ""))
         finally:
             cell.close()
 
 
 def main(a: argparse.Namespace) -> int:
-    run(a.poses, a.tilt_deg, a.distance_mm, a.seed)
+    if a.poses:
+        run(a.poses, a.tilt_deg, a.distance_mm, a.seed)
+    if a.render:
+        render_cost(a.render)
     if a.approaches:
-        approach(a.approaches, a.seed)
+        approach(a.approaches, a.seed, a.servo, a.lost_after_s, a.stall_after_s, a.preview)
     return 0

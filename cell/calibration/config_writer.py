@@ -54,6 +54,7 @@ class ConfigChange:
     backup: Path
     old_T_flange_camera: NDArray[np.float64]
     new_T_flange_camera: NDArray[np.float64]
+    key: str = "T_flange_camera"  # the [hand_eye] key written (T_base_camera: a fixed camera)
 
     def distance(self) -> tuple[float, float]:
         return pose_distance(self.new_T_flange_camera, self.old_T_flange_camera)
@@ -63,7 +64,7 @@ class ConfigChange:
         return {"file": str(self.path), "backup": str(self.backup),
                 "old_T_flange_camera": pose_dict(self.old_T_flange_camera),
                 "new_T_flange_camera": pose_dict(self.new_T_flange_camera),
-                "distance_mm": d_mm, "distance_deg": d_deg}
+                "distance_mm": d_mm, "distance_deg": d_deg, "key": self.key}
 
     def summary(self) -> str:
         old = pose_dict(self.old_T_flange_camera)
@@ -73,7 +74,7 @@ class ConfigChange:
         def fmt(v: list[float], digits: int) -> str:
             return "[" + ", ".join(f"{x:.{digits}f}" for x in v) + "]"
 
-        return (f"[hand_eye] T_flange_camera in {self.path}:\n"
+        return (f"[hand_eye] {self.key} in {self.path}:\n"
                 f"  position_mm {fmt(old['position_mm'], 3)} -> {fmt(new['position_mm'], 3)}\n"
                 f"  rotvec_rad  {fmt(old['rotvec_rad'], 5)} -> {fmt(new['rotvec_rad'], 5)}\n"
                 f"  moved {d_mm:.3f} mm / {d_deg:.4f} deg; the old file is kept as {self.backup}")
@@ -142,7 +143,7 @@ def write_hand_eye(
             from err
     backup = _backup(p)
     _atomic_write(p, new_text)
-    return ConfigChange(p, backup, old_T, written)
+    return ConfigChange(p, backup, old_T, written, key)
 
 
 def _backup(path: Path) -> Path:

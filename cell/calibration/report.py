@@ -261,3 +261,11 @@ def _judge_joint(
             "prefer the fit to the images instead."
         )
     return text
+
+
+def mount_fields(fixed_camera: bool, T_mount: NDArray[np.float64]) -> dict[str, Any]:
+    """What a result's transform is, for readers of its ``T_flange_camera`` field: a fixed
+    camera's result is ``T_base_camera`` (also given under that name)."""
+    if not fixed_camera:
+        return {"mount": "hand", "transform": "T_flange_camera"}
+    return {"mount": "fixed", "transform": "T_base_camera", "T_base_camera": pose_dict(T_mount)}

@@ -10,6 +10,12 @@ it about the optical axis, because AX = XB is only determined by rotations about
 different axes. The target's position for that pivot comes from the first view and the current
 (rough) hand-eye guess; a guess off by centimetres only shifts the target in the image.
 
+With a fixed camera (eye-to-hand) the arm carries the target (clamped to the tool) before the
+camera instead: the views turn the tool about the plate's centre, so the plate tilts about
+several axes across the camera's line of sight and rolls about it, and shift it across the
+image; the flange poses are inverted for the solvers (:mod:`estimator.calib.eye_to_hand`) and
+the result is ``T_base_camera``.
+
 Each view is taken from a frame exposed after the arm has stopped and settled, with the flange
 pose the arm reports for that frame's timestamp, so a slow camera cannot pair an image with the
 wrong pose. Views that fail (unreachable pose, target not found) are reported and skipped.
@@ -36,6 +42,7 @@ from drivers.camera import Camera, Frame
 from drivers.errors import DriverError
 from estimator import CameraModel, Target
 from estimator.calib.board import Board
+from estimator.calib.eye_to_hand import eye_to_hand_poses
 from estimator.calib.handeye import HandEyeError
 from estimator.transforms import invert_T, make_T
 
@@ -62,6 +69,7 @@ class RoutineSettings:
     min_views: int = 6
     chosen: str = DEFAULT_METHOD  # the pose-set is rich and the robot exact on a calibrated cell
     return_to_start: bool = True
+    shift_mm: float = 60.0  # fixed camera only: largest move of the plate across the image
 
     def __post_init__(self) -> None:
         if self.n_views < 3 or self.min_views < 3:
@@ -122,6 +130,40 @@ def plan_poses(
     return poses
 
 
+def plan_fixed_poses(
+    T_base_flange_start: Matrix4,
+    T_base_camera_guess: Matrix4,
+    pivot_base_mm: NDArray[np.float64],
+    settings: RoutineSettings,
+) -> list[Matrix4]:
+    """Flange poses that turn a tool-held plate before a fixed camera, starting with the start
+    pose.
+
+    The tool turns about the plate's centre (``pivot_base_mm``), so the plate stays in view:
+    tilt axes across the camera's line of sight at golden-angle steps, a roll about that line
+    alternating in sign and size, as for a camera on the hand. Each view also shifts the plate
+    across the image by up to ``shift_mm`` (another angle sequence), so the views do not all
+    share one ray of the camera.
+    """
+    R_c = np.asarray(T_base_camera_guess, dtype=float)[:3, :3]
+    pivot = np.asarray(pivot_base_mm, dtype=float)
+    start = np.asarray(T_base_flange_start, dtype=float)
+    poses = [start]
+    for k in range(1, settings.n_views):
+        azimuth = k * GOLDEN_ANGLE_RAD
+        tilt = np.radians(settings.tilt_deg) * (1.0 if k % 2 else 0.6)
+        roll = np.radians(settings.roll_deg) * np.sin(1.7 * k)
+        axis = np.array([np.cos(azimuth), np.sin(azimuth), 0.0])
+        R_cam = Rotation.from_rotvec(axis * tilt) * Rotation.from_rotvec([0, 0, roll])
+        R_base = R_c @ R_cam.as_matrix() @ R_c.T
+        step = 2.4 * k + 1.0
+        shift_cam = settings.shift_mm * np.array([np.cos(step), np.sin(step), 0.0]) \
+            * (0.5 + 0.5 * ((k * 0.618) % 1.0))
+        turn = make_T(R_base, pivot - R_base @ pivot + R_c @ shift_cam)
+        poses.append(turn @ start)
+    return poses
+
+
 def run_hand_eye_routine(
     arm: GuardedArm,
     camera: Camera,
@@ -130,11 +172,15 @@ def run_hand_eye_routine(
     T_flange_camera_guess: Matrix4,
     settings: RoutineSettings | None = None,
     progress: Progress | None = None,
+    fixed_camera: bool = False,
 ) -> RoutineResult:
     """Collect views around the arm's current pose and solve; the arm ends where it started.
 
     ``T_flange_tcp`` must be the TCP the arm is configured with (poses are commanded as TCP
-    poses); ``T_flange_camera_guess`` only aims the views. Raises RoutineError when the target
+    poses); ``T_flange_camera_guess`` only aims the views. With ``fixed_camera`` the target is
+    on the tool, the guess is ``T_base_camera`` and so is the report's result (its
+    ``T_flange_camera`` field); ``T_base_flange`` stays the flange poses as the arm gave them.
+    Raises RoutineError when the target
     is not visible at the start or fewer than ``min_views`` views succeed, and lets
     ``drivers.errors`` through when the arm faults (protective stop, connection lost).
     """
@@ -147,7 +193,11 @@ def run_hand_eye_routine(
         raise RoutineError(ErrorCode.target_not_visible, f"at the start pose: {obs0}")
     centre = obs0.object_points_mm.mean(axis=0)
     pivot = obs0.T_camera_board[:3, :3] @ centre + obs0.T_camera_board[:3, 3]
-    plan = plan_poses(flange0, T_flange_camera_guess, pivot, s)
+    if fixed_camera:
+        G = np.asarray(T_flange_camera_guess, dtype=float)
+        plan = plan_fixed_poses(flange0, G, G[:3, :3] @ pivot + G[:3, 3], s)
+    else:
+        plan = plan_poses(flange0, T_flange_camera_guess, pivot, s)
     flanges, observations, images, failed = [flange0], [obs0], [image0], []
     report("views", 1, len(plan))
     try:
@@ -181,7 +231,8 @@ def run_hand_eye_routine(
     try:
         result = solve_observations(
             intrinsics,
-            [f"view-{k:02d}" for k in range(len(observations))], flanges,
+            [f"view-{k:02d}" for k in range(len(observations))],
+            eye_to_hand_poses(flanges) if fixed_camera else flanges,
             [o.object_points_mm for o in observations], [o.image_points_px for o in observations],
             [o.T_camera_board for o in observations], [o.rms_px for o in observations],
             chosen=s.chosen, progress=report,

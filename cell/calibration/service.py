@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from cell.calibration.config_writer import ConfigWriteError, write_hand_eye
 from cell.calibration.dataset import DatasetError
 from cell.calibration.observe import dot_target_observer
+from cell.calibration.report import mount_fields
 from cell.calibration.routine import (
     RoutineError,
     RoutineResult,
@@ -80,7 +81,8 @@ class CalibrationService:
 
     def _run(self, job_id: str, settings: RoutineSettings) -> dict[str, Any]:
         core = self.cell.core
-        guess = core.frames.T_flange_camera
+        fixed = core.frames.is_fixed
+        guess = core.frames.T_camera_mount  # T_base_camera for a fixed camera
 
         def progress(stage: str, done: int, total: int) -> None:
             info = {"stage": stage, "done": done, "total": total}
@@ -91,14 +93,15 @@ class CalibrationService:
         try:
             result = run_hand_eye_routine(
                 core.arm, core.camera, dot_target_observer(core.target),
-                core.frames.T_flange_tcp, guess, settings, progress)
+                core.frames.T_flange_tcp, guess, settings, progress, fixed_camera=fixed)
         except RoutineError as err:
             raise RefusedError(ErrorCode(err.code), err.message) from err
         report = result.report
         out = report.as_dict()
+        out.update(mount_fields(fixed, report.T_flange_camera))
         out["failed_views"] = [{"view": k, "reason": r} for k, r in result.failed]
         d_mm, d_deg = pose_distance(report.T_flange_camera, guess)
-        out["change_from_current"] = {"T_flange_camera": pose_dict(guess),
+        out["change_from_current"] = {out["transform"]: pose_dict(guess),
                                       "distance_mm": d_mm, "distance_deg": d_deg}
         out["applied"] = None
         out["dataset"] = self._save(job_id, result)
@@ -143,7 +146,8 @@ class CalibrationService:
     def apply(self, caller: str, job_id: str, method: str | None = None,
               running: bool = True, write_config: bool = False,
               force: bool = False) -> dict[str, Any]:
-        """Use a finished job's ``T_flange_camera`` (its chosen method unless ``method``):
+        """Use a finished job's ``T_flange_camera`` (its chosen method unless ``method``;
+        ``T_base_camera`` for a fixed camera, in the ``[hand_eye]`` key of that name):
         in the running cell (``running``) and/or the config file (``write_config``).
 
         Refused while the arm moves (a look-and-move must not change frames mid-way) and, unless
@@ -173,7 +177,8 @@ class CalibrationService:
                         raise RefusedError(ErrorCode(err.code), str(err)) from err
                 if running:
                     cell.set_hand_eye(T)
-        out = {"job_id": job_id, "T_flange_camera": pose_dict(T), "running": running,
+        out = {"job_id": job_id, "T_flange_camera": pose_dict(T),
+               **mount_fields(cell.core.frames.is_fixed, T), "running": running,
                "written_config": str(self.config_path) if write_config else None,
                # the old and new mount and the timestamped backup of the old file
                "config_change": None if change is None else change.as_dict()}

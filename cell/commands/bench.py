@@ -88,13 +88,24 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         description="Renders the fixed camera of cell/configs/sim-fixed.toml at random target "
                     "poses and compares each locate with the simulated truth (see "
                     "cell/bench/fixed.py).")
-    fx.add_argument("--poses", type=int, default=20, help="target poses (default 20)")
+    fx.add_argument("--poses", type=int, default=20, help="target poses (default 20; 0: none)")
     fx.add_argument("--tilt-deg", type=float, default=30.0, help="largest tilt (default 30)")
     fx.add_argument("--distance-mm", type=float, default=1000.0,
                     help="camera to target (default 1000)")
     fx.add_argument("--seed", type=int, default=1, help="random seed")
     fx.add_argument("--approaches", type=int, default=0,
                     help="also run this many approaches on the simulated fixed-camera cell")
+    fx.add_argument("--servo", action="store_true",
+                    help="approach by the closed-loop servo instead of look-and-move")
+    fx.add_argument("--lost-after-s", type=float, default=None,
+                    help="override [servo] lost_after_s for --servo (default: the config's)")
+    fx.add_argument("--stall-after-s", type=float, default=None,
+                    help="override [servo] stall_after_s for --servo (default: the config's, "
+                         "1 s; a 12 MP render here can take longer)")
+    fx.add_argument("--preview", action="store_true",
+                    help="approach on the colour image scaled 1/3 (1352x1013) instead of 12 MP")
+    fx.add_argument("--render", type=int, default=0, metavar="N",
+                    help="also time N renders and estimates per sensor (a frame's cost)")
     fx.set_defaults(func=_lazy("fixed"))
     ctl = what.add_parser(
         "controller", help="the simulated controller's own timing and CPU on this machine",

@@ -39,7 +39,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     he.add_argument("--no-refine", action="store_true",
                     help="skip the joint reprojection refinement")
     he.add_argument("--write-config", metavar="FILE",
-                    help="write the chosen T_flange_camera into FILE's [hand_eye] table (an "
+                    help="write the chosen T_flange_camera (T_base_camera for a fixed camera) "
+                         "into FILE's [hand_eye] table (an "
                          "existing, valid cell config; a timestamped backup is kept)")
     he.add_argument("--force", action="store_true",
                     help="write the config even when the verdict is that the data disagree")
@@ -62,7 +63,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     it.set_defaults(func=run_intrinsics)
 
     rt = what.add_parser(
-        "routine", help="move the arm around its current pose, collect views and solve hand-eye"
+        "routine", help="move the arm around its current pose, collect views and solve hand-eye "
+                        "(a fixed camera, per --config's mount: the plate on the tool)"
     )
     rt.add_argument("--config", metavar="FILE", help="cell config (default: the simulated cell)")
     rt.add_argument("--views", type=int, default=12, help="number of views (default 12)")
@@ -78,7 +80,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     rt.add_argument("--rows", type=int, default=6)
     rt.add_argument("--square-mm", "--pitch-mm", dest="pitch_mm", type=float, default=25.0)
     rt.add_argument("--write-config", metavar="FILE",
-                    help="write the chosen T_flange_camera into FILE's [hand_eye] table (an "
+                    help="write the chosen T_flange_camera (T_base_camera for a fixed camera) "
+                         "into FILE's [hand_eye] table (an "
                          "existing, valid cell config; a timestamped backup is kept)")
     rt.add_argument("--force", action="store_true",
                     help="write the config even when the verdict is that the data disagree")
@@ -147,6 +150,7 @@ def _fixed_mount(args: argparse.Namespace) -> bool:
 
 def run_hand_eye(args: argparse.Namespace) -> int:
     from cell.calibration.dataset import DatasetError, load_dataset
+    from cell.calibration.report import mount_fields
     from cell.calibration.solve import solve_dataset
     from estimator.calib.handeye import HandEyeError
 
@@ -166,13 +170,17 @@ def run_hand_eye(args: argparse.Namespace) -> int:
                  f"{chosen.spread.mean_deg:.3f} deg")
     if report.joint is not None:
         note += f", joint reprojection rms {report.joint.rms_px:.2f} px"
+    fixed = _fixed_mount(args)
     if not args.json:
+        if fixed:
+            print("fixed camera: the result (T_flange_camera below) is T_base_camera")
         print(report.summary())
     written = _write(args, report, note)
     if isinstance(written, int):
         return written
     if args.json:
         out = report.as_dict()
+        out.update(mount_fields(fixed, report.T_flange_camera))
         out["dataset"] = {"folder": str(dataset.folder), "format": dataset.source}
         out.update(_json_write_fields(written, args.write_config))
         print_json(out)
@@ -182,6 +190,7 @@ def run_hand_eye(args: argparse.Namespace) -> int:
 def run_routine(args: argparse.Namespace) -> int:
     from cell.calibration.dataset import DatasetError, new_dataset_folder
     from cell.calibration.observe import board_observer, dot_target_observer
+    from cell.calibration.report import mount_fields
     from cell.calibration.routine import (
         RoutineError,
         RoutineSettings,
@@ -193,6 +202,7 @@ def run_routine(args: argparse.Namespace) -> int:
     from cell.errors import CellError
     from cell.motion.guard import GuardedArm
     from cell.motion.limits import SafetyGuard
+    from cell.vision.frames import cell_frames
     from drivers.errors import DriverError
     from estimator.calib.board import Board
 
@@ -232,10 +242,12 @@ def run_routine(args: argparse.Namespace) -> int:
         arm.power_on()
         arm.set_tcp(T_flange_tcp)
         hw.camera.connect()
+        fixed = cfg.fixed_camera  # then the pattern is on the tool and the result T_base_camera
+        guess = cell_frames(cfg).T_camera_mount
         with progress_bars(not args.json) as progress, arm.slot.hold("calibration"):
             result = run_hand_eye_routine(
-                arm, hw.camera, observer, T_flange_tcp, cfg.hand_eye.T_flange_camera.T(),
-                settings, progress=progress,
+                arm, hw.camera, observer, T_flange_tcp, guess, settings, progress=progress,
+                fixed_camera=fixed,
             )
     except RoutineError as err:
         return fail(err.code, err.message, args.json)
@@ -253,6 +265,8 @@ def run_routine(args: argparse.Namespace) -> int:
         except DatasetError as err:
             return fail(err.code, err.message, args.json)
     if not args.json:
+        if fixed:
+            print("fixed camera: the result (T_flange_camera below) is T_base_camera")
         print(report.summary())
         for k, reason in result.failed:
             print(f"view {k} skipped: {reason}")
@@ -264,6 +278,7 @@ def run_routine(args: argparse.Namespace) -> int:
         return written
     if args.json:
         out = report.as_dict()
+        out.update(mount_fields(fixed, report.T_flange_camera))
         out["failed_views"] = [{"view": k, "reason": r} for k, r in result.failed]
         out.update(_json_write_fields(written, args.write_config))
         out["dataset"] = saved

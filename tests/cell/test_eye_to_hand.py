@@ -3,6 +3,7 @@ OpenCV's own solver), and the simulated fixed-camera cell locating and approachi
 
 from __future__ import annotations
 
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -15,14 +16,23 @@ from scipy.spatial.transform import Rotation
 
 from api.app import create_app
 from cell.actions.approach import start_approach
+from cell.calibration.routine import RoutineSettings, plan_fixed_poses
 from cell.calibration.solve import solve_observations
 from cell.config.schema import ConfigError, load_config, parse_config
 from cell.runtime import start_cell
 from cell.vision.frames import approach_tcp
 from estimator import CameraModel
 from estimator.calib.eye_to_hand import eye_to_hand_poses
-from estimator.transforms import invert_T, make_T, pose_distance
+from estimator.transforms import (
+    T_from_pose,
+    T_from_pose_dict,
+    invert_T,
+    make_T,
+    pose_dict,
+    pose_distance,
+)
 from tests.support.cell import running_cell
+from tests.support.jobs import wait_job
 from tests.support.paths import REPO
 
 FIXED = REPO / "cell" / "configs" / "sim-fixed.toml"
@@ -131,6 +141,109 @@ def test_fixed_cell_locates_and_approaches_without_an_observation_pose() -> None
                 assert d_mm < 0.1, d_mm
         finally:
             cell.close()
+
+
+def test_fixed_cell_servo_approach_holds_the_last_pose_when_the_arm_hides_the_target() -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        data = fixed_data(Path(tmp))
+        # a 12 MP frame takes ~0.6 s to render on a loaded host: the stall rule (host time
+        # without an examined frame) is the simulator's render cost, not the product's
+        data["servo"]["stall_after_s"] = 5.0
+        cell = start_cell(parse_config(data))
+        try:
+            core = cell.core
+            assert cell.sim is not None
+            goal = approach_tcp(cell.sim.true_T_base_target(), np.eye(4),
+                                core.config.approach.standoff_mm)
+            for second in (False, True):  # the second starts with the arm hiding the target
+                job = start_approach(core, "test", wait=True, mode="servo")
+                rec = core.jobs.get(job.id)
+                assert rec is not None and rec.state == "succeeded", rec
+                r = rec.result
+                assert r is not None and r["mode"] == "servo" and r["camera_mount"] == "fixed"
+                if second:
+                    assert r["start_pose_source"] == "last_seen" and r["occluded"]
+                if r["pose_source"] == "last_seen":
+                    assert r["occluded_at_goal"] and r["pose_age_s"] > 0
+                d_mm, d_deg = pose_distance(cell.sim.true_T_base_tcp(), goal)
+                assert d_mm < 0.2 and d_deg < 0.05, (d_mm, d_deg)
+        finally:
+            cell.close()
+
+
+def test_fixed_camera_views_turn_the_plate_in_place_about_several_axes() -> None:
+    cfg = parse_config(fixed_data(Path(tempfile.gettempdir())))
+    assert cfg.hand_eye.T_base_camera is not None
+    Y = cfg.hand_eye.T_base_camera.T()
+    Z = T_from_pose_dict(TOOL_BOARD)
+    flange0 = Y @ make_T(np.eye(3), np.array([0.0, 0.0, 700.0])) @ invert_T(Z)
+    centre = np.array([48.0, 32.0, 0.0])
+    pivot = (flange0 @ Z)[:3, :3] @ centre + (flange0 @ Z)[:3, 3]
+    settings = RoutineSettings(n_views=12)
+    poses = plan_fixed_poses(flange0, Y, pivot, settings)
+    assert len(poses) == 12 and np.allclose(poses[0], flange0)
+    axes = []
+    for T in poses[1:]:
+        board = invert_T(Y) @ T @ Z  # the plate in the camera
+        c = board[:3, :3] @ centre + board[:3, 3]
+        shift = np.linalg.norm(c[:2] - centre[:2])  # across the image, not in depth
+        assert 0 < shift <= settings.shift_mm + 1e-6 and abs(c[2] - 700.0) < 1e-6
+        rel = Rotation.from_matrix(poses[0][:3, :3].T @ T[:3, :3]).as_rotvec()
+        assert 1.0 < np.degrees(np.linalg.norm(rel)) <= 45.0
+        axes.append(rel / np.linalg.norm(rel))
+    assert np.linalg.matrix_rank(np.array(axes), tol=0.2) == 3  # about every axis
+
+
+# A plate with the target's layout clamped to the tool, facing the camera at the home pose
+# (its centre at the TCP), and the simulator's true camera pose, millimetres and tenths of a
+# degree from the config's [hand_eye] guess, as after mounting the camera by hand.
+TOOL_BOARD = {"position_mm": [48.0, 27.7128, 134.0], "rotvec_rad": [0.0, -0.813104, -3.034545]}
+TRUE_OFFSET = T_from_pose(np.array([2.0, -1.5, 3.0]), np.array([0.004, -0.003, 0.006]))
+
+
+def test_fixed_camera_routine_through_http_recovers_the_true_T_base_camera(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    config_file = tmp_path / "cell.toml"
+    shutil.copy(FIXED, config_file)
+    monkeypatch.setenv("CELL_CONFIG", str(config_file))  # the file apply may write
+    data = fixed_data(tmp_path)
+    guess = T_from_pose_dict(data["hand_eye"]["T_base_camera"])
+    truth = guess @ TRUE_OFFSET
+    data["sim"].update(T_base_camera=pose_dict(truth), T_flange_board=TOOL_BOARD)
+    with running_cell(parse_config(data)) as cell, TestClient(create_app(cell)) as c:
+        op = {"Authorization": "Bearer sim-operator"}
+        start = cell.sim.true_T_base_tcp() if cell.sim else None
+        r = c.post("/api/v1/calibration/hand-eye", json={"views": 12, "speed_mm_s": 250},
+                   headers=op)
+        assert r.status_code == 200, r.text
+        job = wait_job(c, r.json()["id"], timeout_s=400.0)
+        assert job["state"] == "succeeded", job
+        res = job["result"]
+        assert res["mount"] == "fixed" and res["transform"] == "T_base_camera"
+        assert res["T_base_camera"] == res["T_flange_camera"]
+        assert "T_base_camera" in res["change_from_current"]
+        assert res["verdict"]["consistent"], res["verdict"]["text"]
+        assert len(res["views"]) + len(res["failed_views"]) == 12
+        true_pose = c.get("/api/v1/sim/truth", headers=op).json()["T_base_camera"]
+        assert pose_distance(T_from_pose_dict(true_pose), truth)[0] < 1e-6
+        d_mm, d_deg = pose_distance(T_from_pose_dict(res["T_base_camera"]), truth)
+        print(f"routine ({len(res['views'])} views): {d_mm:.4f} mm / {d_deg:.5f} deg from the "
+              f"true T_base_camera; the guess was {pose_distance(guess, truth)}")
+        assert d_mm < 0.5 and d_deg < 0.05, (d_mm, d_deg)
+        assert cell.sim is not None and start is not None
+        assert pose_distance(cell.sim.true_T_base_tcp(), start)[0] < 0.05  # back at the start
+        assert np.allclose(cell.core.frames.T_camera_mount, guess)  # nothing applied yet
+
+        r = c.post(f"/api/v1/calibration/hand-eye/{job['id']}/apply",
+                   json={"write_config": True}, headers=op)
+        assert r.status_code == 200, r.text
+        assert r.json()["transform"] == "T_base_camera"
+        assert r.json()["config_change"]["key"] == "T_base_camera"
+        applied = T_from_pose_dict(r.json()["T_base_camera"])
+        assert pose_distance(cell.core.frames.T_camera_mount, applied)[0] < 1e-6
+        written = load_config(config_file)
+        assert written.fixed_camera and written.hand_eye.T_base_camera is not None
+        assert pose_distance(written.hand_eye.T_base_camera.T(), truth)[0] < 0.5
 
 
 # The API tests that need no eye-in-hand view, run here against the fixed-camera cell: pytest

@@ -296,9 +296,12 @@ def sim_truth(request: Request, caller: Read) -> dict[str, Any]:
     sim = sim_of(request)
     true = sim.truth_values()
     cam = true.camera
+    # a simulated fixed camera's mount is its pose in the base frame
+    fixed = cell_of(request).config.fixed_camera
     return {"T_base_target": pose_dict(sim.true_T_base_target()),
             "T_base_tcp": pose_dict(sim.true_T_base_tcp()),
             "world": true.world, "T_flange_camera": pose_dict(true.T_flange_camera),
+            "T_base_camera": pose_dict(true.T_flange_camera) if fixed else None,
             "camera": {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
                        "dist": list(cam.dist), "width": cam.width, "height": cam.height}}
 

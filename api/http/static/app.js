@@ -833,7 +833,7 @@ function showCalibration(job) {
     const v = r.verdict || {};
     const resid = r.residual || {};
     $("calib-result").textContent = `verdict: ${v.text || (v.consistent ? "consistent" : "inconsistent")}\n`
-      + `T_flange_camera (${r.chosen}): ${showPose(r.T_flange_camera)}\n`
+      + `${r.transform || "T_flange_camera"} (${r.chosen}): ${showPose(r.T_flange_camera)}\n`
       + (Number.isFinite(resid.mean_mm) ? `residual ${fmt(resid.mean_mm, 2)} mm / ${fmt(resid.mean_deg, 3)} °\n` : "")
       + (r.change_from_current ? `change from current: ${fmt(r.change_from_current.distance_mm, 2)} mm / `
         + `${fmt(r.change_from_current.distance_deg, 3)} °` : "");
@@ -964,7 +964,7 @@ function wireExtras() {
     const job = state.calibJob;
     if (!job) return undefined;
     const r = await api("POST", `/calibration/hand-eye/${encodeURIComponent(job.id)}/apply`, {});
-    $("calib-status").textContent = `applied: the cell now uses ${showPose(r.T_flange_camera)}`;
+    $("calib-status").textContent = `applied: the cell now uses ${r.transform || "T_flange_camera"} ${showPose(r.T_flange_camera)}`;
     $("calib-status").dataset.state = "applied";
     return "calibration applied";
   }));
