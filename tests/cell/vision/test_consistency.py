@@ -10,16 +10,20 @@ the truth.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
+from fastapi.testclient import TestClient
 
+from api.app import create_app
 from cell.vision.consistency import DEFAULT_LIMITS, consistency
 from cell.vision.frames import approach_tcp
 from cell.vision.locate import Located
 from estimator import PoseResult
 from estimator.transforms import T_from_pose, pose_distance
-from tests.support.cell import running_cell, settled_tcp, sim_config, world
+from tests.support.cell import AUTH, running_cell, settled_tcp, sim_config, world
+from tests.support.waiting import wait_until
 
 STANDOFF_MM = 50.0
 
@@ -62,7 +66,7 @@ def test_high_residuals_and_spread_are_findings_of_their_own() -> None:
     assert c["reprojection"]["max_rms_px"] == pytest.approx(2.5)
 
 
-def _approach(tmp_path: Path, world_name: str) -> tuple[dict, tuple[float, float]]:
+def _approach(tmp_path: Path, world_name: str) -> tuple[dict[str, Any], tuple[float, float]]:
     config = sim_config(tmp_path, sim={"world": world_name})
     with running_cell(config) as cell:
         job = cell.approach("test", standoff_mm=STANDOFF_MM, wait=True, mode="look_and_move")
@@ -100,3 +104,26 @@ def test_a_locate_reports_residuals_and_spread_and_judges_no_motion(tmp_path: Pa
     assert c["verdict"] == "unchecked" and c["motion"]["checks"] == []
     assert len(c["reprojection"]["rms_px"]) == 3 and c["reprojection"]["max_rms_px"] < 1.0
     assert body["quality"]["spread_deg"] == c["frame_spread"]["max_deg"]
+
+
+@pytest.mark.slow
+def test_an_inconsistent_approach_raises_an_alarm_through_the_api(tmp_path: Path) -> None:
+    """The job succeeds (the arm is where the calibration says); the operator still gets a
+    standing alarm with the finding, through the same HTTP API the page reads."""
+    config = sim_config(tmp_path, sim={"world": "realistic"})
+    with running_cell(config) as cell, TestClient(create_app(cell)) as client:
+        r = client.post("/api/v1/approach", json={"standoff_mm": STANDOFF_MM, "wait": True,
+                                                  "mode": "look_and_move"}, headers=AUTH["plc"])
+        assert r.status_code == 200, r.text
+        job = r.json()
+        assert job["state"] == "succeeded", job
+        assert job["result"]["consistency"]["verdict"] == "inconsistent"
+
+        def alarm() -> dict[str, Any] | None:
+            body = client.get("/api/v1/alarms", params={"active": "true"},
+                              headers=AUTH["viewer"]).json()
+            return next((a for a in body["alarms"] if a["job_id"] == job["id"]), None)
+
+        found = wait_until(alarm, 10, "the consistency alarm")
+        assert found["code"] == "calibration_inconsistent" and found["source"] == "job"
+        assert "succeeded" in found["message"] and "base frame" in found["message"]
