@@ -8,6 +8,12 @@ move is a pure translation and every cycle sees the target from the same viewpoi
 again from frames exposed after it stopped, and repeats until the correction is under the
 tolerance or the cycle limit; every cycle's correction and the final estimated error are in
 the job's result. Every goal is checked before the job starts, so a refusal moves nothing.
+
+The estimated error goes through the calibration it relies on, so the result also says how it
+was estimated (``estimated_error_basis``) and whether the evidence agrees with itself
+(``consistency``, :mod:`cell.vision.consistency`): look-and-move locates the target from two
+arm poses at least, and a target at rest that seems to move between them in the base frame
+means the hand-eye calibration or the intrinsics are off.
 """
 
 from __future__ import annotations
@@ -125,6 +131,9 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
         basis = ERROR_BASIS.get(str(result.get("mode")))
         if basis is not None:
             result.setdefault("estimated_error_basis", basis)
+        if "consistency" not in result:  # servo, IBVS, a fixed camera: the first locate's
+            result["consistency"] = consistency([("initial locate", first[0])],
+                                                core.target_centre_mm, target_at_rest=False)
         return result
 
     def run(job_id: str, motion: Motion) -> dict[str, Any]:

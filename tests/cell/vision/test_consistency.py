@@ -127,3 +127,14 @@ def test_an_inconsistent_approach_raises_an_alarm_through_the_api(tmp_path: Path
         found = wait_until(alarm, 10, "the consistency alarm")
         assert found["code"] == "calibration_inconsistent" and found["source"] == "job"
         assert "succeeded" in found["message"] and "base frame" in found["message"]
+
+
+def test_a_servo_approach_says_its_error_is_the_camera_frames_and_judges_no_motion(
+        tmp_path: Path) -> None:
+    with running_cell(sim_config(tmp_path)) as cell:
+        job = cell.approach("test", standoff_mm=STANDOFF_MM, wait=True, mode="servo")
+    assert job.state == "succeeded" and job.result is not None, job.error_message
+    assert job.result["estimated_error_basis"]["frame"] == "camera"
+    c = job.result["consistency"]
+    assert c["verdict"] == "unchecked" and c["motion"]["target_at_rest"] is False
+    assert c["reprojection"]["max_rms_px"] < 1.0
