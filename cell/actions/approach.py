@@ -128,7 +128,8 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
 
     def work(job_id: str, motion: Motion) -> dict[str, Any]:
         result = run(job_id, motion)
-        basis = ERROR_BASIS.get(str(result.get("mode")))
+        basis = ERROR_BASIS.get("fixed" if result.get("camera_mount") == "fixed"
+                                else str(result.get("mode")))
         if basis is not None:
             result.setdefault("estimated_error_basis", basis)
         if "consistency" not in result:  # servo, IBVS, a fixed camera: the first locate's
@@ -269,6 +270,11 @@ ERROR_BASIS: dict[str, dict[str, str]] = {
                 "same observation pose) plus the reach error; both go through the hand-eye "
                 "calibration and the intrinsics, so their error is invisible here: see "
                 "consistency"},
+    "fixed": {
+        "frame": "base",
+        "text": "the last correction of the goal in the base frame (a fixed camera seeing the "
+                "target at the goal) plus the reach error; both go through T_base_camera, so "
+                "its error is invisible here"},
     "servo": {
         "frame": "camera",
         "text": "the TCP against the goal the camera sees from where it stands, i.e. the "
