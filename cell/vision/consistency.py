@@ -44,7 +44,7 @@ class ConsistencyLimits:
     """What the evidence may show and still count as consistent.
 
     The motion limits sit well above what the estimator's noise gives between two locates of a
-    calibrated cell (0.03 mm / 0.07 deg at most on the simulated cell, docs/commissioning.md)
+    calibrated cell (0.05 mm / 0.07 deg at most on the simulated cell, docs/commissioning.md)
     and well below what a hand-measured mount gives (mm, tenths of a degree)."""
 
     rms_px: float = 1.0  # a frame's reprojection rms
