@@ -44,6 +44,7 @@ class ErrorCode(StrEnum):
     target_not_visible = "target_not_visible"
     spread_too_large = "spread_too_large"
     calibration_inconsistent = "calibration_inconsistent"
+    reprojection_too_large = "reprojection_too_large"  # a result's consistency finding
     job_not_succeeded = "job_not_succeeded"
     taught_exists = "taught_exists"
     already_acknowledged = "already_acknowledged"

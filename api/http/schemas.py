@@ -232,6 +232,7 @@ class Quality(_Out):
     frame_age_s: float
     n_frames: int
     spread_mm: float
+    spread_deg: float = 0.0
 
 
 LOCATED_EXAMPLE = {
@@ -253,6 +254,11 @@ class Located(_Out):
     T_base_tcp: PoseOut = Field(description="the arm pose at the frame's capture time")
     quality: Quality
     frame_sequence: int
+    consistency: dict[str, Any] | None = Field(default=None, description=(
+        "whether the evidence agrees with itself: verdict (consistent, inconsistent, "
+        "unchecked), codes and findings, reprojection residuals of the frames averaged and "
+        "their spread; an approach's result carries the same block with the arm's motion "
+        "against the target's seen motion (docs/commissioning.md)"))
 
 
 class RobotStatus(_Out):

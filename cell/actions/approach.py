@@ -8,10 +8,17 @@ move is a pure translation and every cycle sees the target from the same viewpoi
 again from frames exposed after it stopped, and repeats until the correction is under the
 tolerance or the cycle limit; every cycle's correction and the final estimated error are in
 the job's result. Every goal is checked before the job starts, so a refusal moves nothing.
+
+The estimated error goes through the calibration it relies on, so the result also says how it
+was estimated (``estimated_error_basis``) and whether the evidence agrees with itself
+(``consistency``, :mod:`cell.vision.consistency`): look-and-move locates the target from two
+arm poses at least, and a target at rest that seems to move between them in the base frame
+means the hand-eye calibration or the intrinsics are off.
 """
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -27,10 +34,12 @@ from cell.error_codes import ErrorCode
 from cell.errors import CellError, LimitError, RefusedError, UnavailableError
 from cell.jobs.store import Job
 from cell.motion.guard import Motion
+from cell.vision.consistency import consistency
 from cell.vision.frames import approach_tcp, observation_camera
 from cell.vision.locate import Located
 from estimator.transforms import pose_dict, pose_distance
 
+log = logging.getLogger(__name__)
 Matrix4 = NDArray[np.float64]
 
 
@@ -118,6 +127,17 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
         first.append(loc)
 
     def work(job_id: str, motion: Motion) -> dict[str, Any]:
+        result = run(job_id, motion)
+        basis = ERROR_BASIS.get("fixed" if result.get("camera_mount") == "fixed"
+                                else str(result.get("mode")))
+        if basis is not None:
+            result.setdefault("estimated_error_basis", basis)
+        if "consistency" not in result:  # servo, IBVS, a fixed camera: the first locate's
+            result["consistency"] = consistency([("initial locate", first[0])],
+                                                core.target_centre_mm, target_at_rest=False)
+        return result
+
+    def run(job_id: str, motion: Motion) -> dict[str, Any]:
         if how == "ibvs":
             assert view is not None
             return IbvsRun(core, job_id, motion, view, plan.T_target_tcp, "approach").run()
@@ -246,6 +266,42 @@ def fixed_look_and_move(core: CellCore, job_id: str, motion: Motion, loc: Locate
     }
 
 
+# How each approach estimates its own error, and what that estimate cannot see.
+ERROR_BASIS: dict[str, dict[str, str]] = {
+    "look_and_move": {
+        "frame": "base",
+        "text": "the last cycle's change of the goal in the base frame (two locates from the "
+                "same observation pose) plus the reach error; both go through the hand-eye "
+                "calibration and the intrinsics, so their error is invisible here: see "
+                "consistency"},
+    "fixed": {
+        "frame": "base",
+        "text": "the last correction of the goal in the base frame (a fixed camera seeing the "
+                "target at the goal) plus the reach error; both go through T_base_camera, so "
+                "its error is invisible here"},
+    "servo": {
+        "frame": "camera",
+        "text": "the TCP against the goal the camera sees from where it stands, i.e. the "
+                "target in the camera frame; a hand-eye or intrinsics error is invisible here"},
+    "ibvs": {
+        "frame": "image",
+        "text": "the dots' image features against the taught view's; the pose figures are the "
+                "camera frame's; a mount error between teaching and now is invisible here"},
+}
+
+
+def checked(core: CellCore, job_id: str, seen: list[tuple[str, Located]]) -> dict[str, Any]:
+    """The consistency block of an approach's locates; an inconsistency is logged and
+    published (``consistency`` events) so the operator learns of it while the job succeeds."""
+    block = consistency(seen, core.target_centre_mm)
+    if block["verdict"] == "inconsistent":
+        log.warning("approach job %s: %s", job_id, " ".join(block["findings"]))
+        core.events.publish("consistency", {"job_id": job_id, "verdict": block["verdict"],
+                                            "codes": block["codes"],
+                                            "findings": block["findings"]})
+    return block
+
+
 def look_and_move(core: CellCore, job_id: str, motion: Motion, loc: Located,
                   plan: ApproachPlan) -> dict[str, Any]:
     ac = core.config.approach
@@ -253,6 +309,7 @@ def look_and_move(core: CellCore, job_id: str, motion: Motion, loc: Located,
     cycles: list[dict[str, Any]] = []
     converged = False
     goal = approach_tcp(loc.T_base_target, plan.T_target_tcp, plan.standoff_mm)
+    seen: list[tuple[str, Located]] = [("initial locate", loc)]
     for cycle in range(1, ac.max_cycles + 1):
         core.runner.progress(job_id, {"phase": "observe", "cycle": cycle, "cycles": cycles})
         T_obs = observation_tcp(core, loc.T_base_target, plan.T_target_tcp)
@@ -267,6 +324,7 @@ def look_and_move(core: CellCore, job_id: str, motion: Motion, loc: Located,
         d_mm, d_deg = pose_distance(goal, new_goal)
         cycles.append({"cycle": cycle, "correction_mm": d_mm, "correction_deg": d_deg,
                        "rms_px": float(new.result.rms_px), "spread_mm": new.spread_mm})
+        seen.append((f"cycle {cycle}", new))
         loc, goal = new, new_goal
         if d_mm < ac.tolerance_mm and d_deg < ac.tolerance_deg:
             converged = True
@@ -289,4 +347,6 @@ def look_and_move(core: CellCore, job_id: str, motion: Motion, loc: Located,
         # what is left unknown: the last correction (estimate noise) plus the reach error
         "estimated_error_mm": float(np.hypot(last["correction_mm"], reach_mm)),
         "estimated_error_deg": float(np.hypot(last["correction_deg"], reach_deg)),
+        "estimated_error_basis": ERROR_BASIS["look_and_move"],
+        "consistency": checked(core, job_id, seen),
     }

@@ -27,7 +27,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="exit with status 1 when a target is missed")
     p.set_defaults(func=_bench)
     what = p.add_subparsers(dest="bench_command", required=False,
-                            metavar="{approach,service,freeze,modbus,fixed,controller,live-view}")
+                            metavar="{approach,service,freeze,modbus,fixed,commissioning,controller,live-view}")
     a = what.add_parser(
         "approach", help="servo vs look-and-move approach, conveyor tracking, lost target",
         description="On the simulated cell through the UR adapter and ur_rtde (see "
@@ -107,6 +107,16 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     fx.add_argument("--render", type=int, default=0, metavar="N",
                     help="also time N renders and estimates per sensor (a frame's cost)")
     fx.set_defaults(func=_lazy("fixed"))
+    cm = what.add_parser(
+        "commissioning", help="hand-eye routine in the realistic simulated world vs its truth",
+        description="Look-and-move approaches before and after the hand-eye routine on the "
+                    "simulated cell with [sim] world = \"realistic\": true errors, the jobs' "
+                    "own estimates and consistency verdicts (see cell/bench/commissioning.py).")
+    cm.add_argument("--placements", type=int, default=5, help="random placements (default 5)")
+    cm.add_argument("--views", type=int, default=12, help="routine views (default 12)")
+    cm.add_argument("--seed", type=int, default=0, help="random seed")
+    cm.add_argument("--world", choices=("realistic", "ideal"), default="realistic")
+    cm.set_defaults(func=_lazy("commissioning"))
     ctl = what.add_parser(
         "controller", help="the simulated controller's own timing and CPU on this machine",
         description="RTDE rate and gaps, mailbox round trip and servoL tracking of the "

@@ -307,7 +307,7 @@ def run_intrinsics(args: argparse.Namespace) -> int:
     from cell.calibration.dataset import IMAGE_SUFFIXES
     from cell.commands.common import read_grey
     from estimator.calib.board import Board
-    from estimator.calib.intrinsics import IntrinsicsError, calibrate_intrinsics
+    from estimator.calib.intrinsics import MIN_COVERAGE, IntrinsicsError, calibrate_intrinsics
 
     folder = Path(args.folder)
     if not folder.is_dir():
@@ -345,6 +345,7 @@ def run_intrinsics(args: argparse.Namespace) -> int:
             "rms_px": result.rms_px,
             "per_image_rms_px": per_image,
             "rejected": rejected,
+            "coverage": result.coverage,
         })
         return 0
     print(f"fx {cam.fx:.2f}  fy {cam.fy:.2f}  cx {cam.cx:.2f}  cy {cam.cy:.2f}  "
@@ -354,4 +355,8 @@ def run_intrinsics(args: argparse.Namespace) -> int:
         print(f"  {name}: {rms:.3f} px")
     if rejected:
         print(f"board not found in: {', '.join(rejected)}")
+    print(f"the board's points cover {100 * result.coverage:.0f} % of the image")
+    if result.coverage < MIN_COVERAGE:
+        print(f"under {100 * MIN_COVERAGE:.0f} %: the distortion is measured only there and "
+              "extrapolated beyond; add views with the board near the edges and corners")
     return 0

@@ -1,6 +1,7 @@
-"""Alarms: every failed, fault-cancelled or interrupted job and every fault (protective or emergency
-stop, arm or camera lost, gripper fault) becomes an alarm that stays until an operator
-acknowledges it.
+"""Alarms: every failed, fault-cancelled or interrupted job, every succeeded job whose result
+is inconsistent (its ``consistency`` verdict, cell.vision.consistency) and every fault
+(protective or emergency stop, arm or camera lost, gripper fault) becomes an alarm that stays
+until an operator acknowledges it.
 
 Why a log of its own: a failed approach used to be visible only in the job list, below the
 fold; a production cell needs something that stays on screen until a person has seen it, and
@@ -17,6 +18,7 @@ acknowledged while it lasts, and raises a new alarm when it comes back after cle
 
 from __future__ import annotations
 
+import json
 import logging
 import sqlite3
 import threading
@@ -158,6 +160,12 @@ class AlarmLog:
                                 f"{words or state}", job_id, ended)
             if alarm is not None:
                 raised.append(alarm)
+        for job_id, kind, code, words, ended in self._inconsistent_jobs():
+            alarm = self._raise(f"consistency:{job_id}", "job", code,
+                                f"{kind.replace('_', ' ')} job {job_id} succeeded, but its "
+                                f"result is inconsistent: {words}", job_id, ended)
+            if alarm is not None:
+                raised.append(alarm)
         faults = faults_in(self.cell.status())
         for code, (source, message) in faults.items():
             if code not in self._present:
@@ -183,6 +191,30 @@ class AlarmLog:
                 "AND NOT (state = 'cancelled' AND IFNULL(error_code, '') = ?) "
                 "AND 'job:' || id NOT IN (SELECT key FROM alarms WHERE source = 'job') "
                 "ORDER BY ended_at", (self._jobs_since, STOPPED_ON_REQUEST_CODE)).fetchall()
+
+    def _inconsistent_jobs(self) -> list[tuple[Any, ...]]:
+        """Succeeded jobs whose ``consistency`` verdict is inconsistent (a mount error leaves
+        the arm where the calibration says, not where the target is) and have no alarm yet:
+        ``(id, kind, code, finding, ended_at)``."""
+        if str(self.cell.jobs.path) == ":memory:":
+            jobs = [(j.id, j.kind, j.result, j.ended_at) for j in self.cell.jobs.list_jobs(50)
+                    if j.state == "succeeded" and (j.ended_at or 0) >= self._jobs_since]
+        else:
+            with self._lock:
+                rows = self._db.execute(
+                    "SELECT id, kind, result, ended_at FROM jobs WHERE state = 'succeeded' "
+                    "AND ended_at >= ? AND result LIKE '%\"inconsistent\"%' "
+                    "AND 'consistency:' || id NOT IN (SELECT key FROM alarms WHERE "
+                    "source = 'job') ORDER BY ended_at", (self._jobs_since,)).fetchall()
+            jobs = [(i, k, json.loads(r) if r else None, e) for i, k, r, e in rows]
+        out = []
+        for job_id, kind, result, ended in jobs:
+            c = result.get("consistency") if isinstance(result, dict) else None
+            if isinstance(c, dict) and c.get("verdict") == "inconsistent":
+                codes, findings = c.get("codes") or ["calibration_inconsistent"], \
+                    c.get("findings") or [""]
+                out.append((job_id, kind, str(codes[-1]), str(findings[-1]), ended))
+        return out
 
     def _raise(self, key: str, source: str, code: str, message: str,
                job_id: str | None = None, at: float | None = None) -> Alarm | None:

@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, RefusedError, UnavailableError
+from cell.vision.consistency import consistency
 from cell.vision.frames import CellFrames, mean_pose
 from cell.vision.imagelog import ImageLog
 from drivers.arm import Arm
@@ -26,7 +27,7 @@ from drivers.camera import Camera, Frame
 from drivers.errors import DriverError
 from estimator import CameraModel, EstimationError, PoseResult, Target
 from estimator.pipeline import Estimator
-from estimator.transforms import invert_T, pose_dict
+from estimator.transforms import invert_T, pose_dict, pose_distance
 
 log = logging.getLogger(__name__)
 Matrix4 = NDArray[np.float64]
@@ -45,6 +46,8 @@ class Located:
     n_frames: int
     spread_mm: float  # largest distance of a single-frame estimate from the mean
     located_at_s: float  # time.monotonic()
+    spread_deg: float = 0.0  # largest rotation of a single-frame estimate from the mean
+    rms_px_frames: tuple[float, ...] = ()  # reprojection rms of each frame averaged
 
     def as_dict(self, now_s: float) -> dict[str, Any]:
         r = self.result
@@ -62,8 +65,11 @@ class Located:
                 "frame_age_s": max(0.0, now_s - self.frame_timestamp_s),
                 "n_frames": self.n_frames,
                 "spread_mm": self.spread_mm,
+                "spread_deg": self.spread_deg,
             },
             "frame_sequence": self.frame_sequence,
+            # one locate, one arm pose: residuals and frame spread, no motion to judge
+            "consistency": consistency([("locate", self)], np.zeros(3), target_at_rest=False),
         }
 
 
@@ -136,6 +142,7 @@ class Locator:
         if not self.camera.is_connected:
             raise UnavailableError(ErrorCode.camera_lost, "the camera is not connected")
         estimates: list[Matrix4] = []
+        rms_px: list[float] = []
         last: tuple[Frame, PoseResult, Matrix4] | None = None
         for _ in range(max(1, n_frames)):
             seq = -1 if last is None else last[0].sequence
@@ -153,14 +160,17 @@ class Locator:
                                        f"reading the arm pose history: {err}") from err
             result = self._estimate(frame)
             estimates.append(self.frames.T_base_target(T_base_tcp, result.T_camera_target))
+            rms_px.append(float(result.rms_px))
             last = (frame, result, T_base_tcp)
         assert last is not None
         frame, result, T_base_tcp = last
         T_mean = mean_pose(estimates) if len(estimates) > 1 else estimates[0]
         spread = max(float(np.linalg.norm(T[:3, 3] - T_mean[:3, 3])) for T in estimates)
+        spread_deg = max(pose_distance(T, T_mean)[1] for T in estimates)
         T_camera_target = invert_T(self.frames.T_base_camera(T_base_tcp)) @ T_mean
         loc = Located(T_mean, T_camera_target, T_base_tcp, result, frame.timestamp_s,
-                      frame.sequence, len(estimates), spread, time.monotonic())
+                      frame.sequence, len(estimates), spread, time.monotonic(), spread_deg,
+                      tuple(rms_px))
         self.last = loc
         return loc
 
