@@ -77,7 +77,14 @@ def _to_view_distance(cell: Cell, distance_mm: float) -> None:
     T_bt = cell.config.sim.T_base_target.T()
     c_cam = invert_T(T_base_cam) @ (T_bt @ np.r_[centre, 1.0])
     shift = T_base_cam[:3, 2] * (float(c_cam[2]) - distance_mm)
-    _jog_to(cell, T_from_pose(shift, np.zeros(3)) @ T_tcp)
+    for attempt in range(3):  # the controller restarts its program now and then
+        try:
+            _jog_to(cell, T_from_pose(shift, np.zeros(3)) @ T_tcp)
+            break
+        except CellError:
+            if attempt == 2:
+                raise
+            time.sleep(1.0)
 
 
 def displacements(rng: np.random.Generator, n: int, displace_mm: float, displace_deg: float
@@ -128,11 +135,15 @@ class DotSampler:
 
 
 def _jog_to(cell: Cell, T_goal: Matrix4) -> None:
+    """Jog there in steps of at most 100 mm (a jog step is capped by ``[limits]``)."""
     T_now = cell.arm_state().T_base_tcp
     rot = Rotation.from_matrix(T_goal[:3, :3] @ T_now[:3, :3].T).as_rotvec()
-    cell.jog_step(CALLER, frame="base", translation_mm=T_goal[:3, 3] - T_now[:3, 3],
-                  rotation_deg=np.degrees(rot), speed_mm_s=100.0)
-    time.sleep(0.3)
+    move = T_goal[:3, 3] - T_now[:3, 3]
+    n = max(1, int(np.ceil(np.linalg.norm(move) / 100.0)))
+    for _ in range(n):
+        cell.jog_step(CALLER, frame="base", translation_mm=move / n,
+                      rotation_deg=np.degrees(rot) / n, speed_mm_s=100.0)
+        time.sleep(0.3)
 
 
 def _recover(cell: Cell) -> None:
