@@ -77,14 +77,14 @@ def _to_view_distance(cell: Cell, distance_mm: float) -> None:
     T_bt = cell.config.sim.T_base_target.T()
     c_cam = invert_T(T_base_cam) @ (T_bt @ np.r_[centre, 1.0])
     shift = T_base_cam[:3, 2] * (float(c_cam[2]) - distance_mm)
-    for attempt in range(3):  # the controller restarts its program now and then
+    for attempt in range(5):  # the controller restarts its program now and then
         try:
             _jog_to(cell, T_from_pose(shift, np.zeros(3)) @ T_tcp)
             break
         except CellError:
-            if attempt == 2:
+            if attempt == 4:
                 raise
-            time.sleep(1.0)
+            time.sleep(2.0)
 
 
 def displacements(rng: np.random.Generator, n: int, displace_mm: float, displace_deg: float
