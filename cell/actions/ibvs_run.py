@@ -52,6 +52,7 @@ from cell.actions.ibvs import (
     predicted,
     remaining_motion,
 )
+from cell.actions.ibvs_settle import mean_features, settle_step, step_goal, step_size
 from cell.actions.servo import (
     MAX_EXTRAPOLATE_S,
     PROGRESS_PERIOD_S,
@@ -326,8 +327,52 @@ class IbvsRun:
             if rest > 0:
                 time.sleep(rest)
         self._stop_still()
+        settle: dict[str, Any] = {}
+        if self.mode == "approach" and ic.settle_frames > 0:
+            settle = self._settle(T_tcp_camera, T_camera_tcp)
+            converged_s = time.monotonic() - t0
         return self._result(t0, converged_s, last_px, last_pose, history) | {
-            "view_error_mm": last_step[0], "view_error_deg": last_step[1]}
+            "view_error_mm": last_step[0], "view_error_deg": last_step[1]} | settle
+
+    # -- the final settle (cell.actions.ibvs_settle) ---------------------------------------------
+    def _settle(self, T_tcp_camera: Matrix4, T_camera_tcp: Matrix4) -> dict[str, Any]:
+        """Average ``settle_frames`` views with the arm still, step by ``-L^+ e``; up to
+        ``settle_steps`` times, until the step is under the settle tolerance."""
+        ic, arm = self.ic, self.core.arm
+        sizes: list[list[float]] = []
+        for _ in range(ic.settle_steps):
+            views = self._rest_views(ic.settle_frames, time.monotonic())
+            step = settle_step(mean_features([v.features for v in views]), self.desired)
+            size = step_size(step, T_camera_tcp)
+            sizes.append([round(size[0], 4), round(size[1], 5)])
+            if size[0] < ic.settle_tolerance_mm and size[1] < ic.settle_tolerance_deg:
+                break
+            self.motion.raise_if_cancelled("before the IBVS settle step")
+            goal = step_goal(views[-1].T_base_tcp, T_tcp_camera, step)
+            try:
+                arm.move_linear(goal, self.max_speed_mm_s, self.accel_mm_s2,
+                                what="IBVS settle step")
+            finally:
+                self._stop_still()
+        return {"settle_steps_mm_deg": sizes}
+
+    def _rest_views(self, n: int, after_s: float) -> list[View]:
+        """``n`` new views exposed after ``after_s`` (the arm is still by then)."""
+        views: list[View] = []
+        deadline = time.monotonic() + 2.0 + 6.0 * n / self.core.config.camera.fps
+        while len(views) < n:
+            self.motion.raise_if_cancelled("while settling on the image")
+            with self._lock:
+                view = self._view
+            if view is not None and view.exposure_s > after_s and \
+                    (not views or view.sequence != views[-1].sequence):
+                views.append(view)
+            elif time.monotonic() > deadline:
+                raise RefusedError(ErrorCode.target_lost, f"only {len(views)} of {n} views of "
+                                   "the still arm arrived for the IBVS settle")
+            else:
+                time.sleep(0.002)
+        return views
 
     def _result(self, t0: float, converged_s: float | None, last_px: tuple[float, float],
                 last_pose: tuple[float, float],

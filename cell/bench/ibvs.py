@@ -66,6 +66,27 @@ def world_config(base: CellConfig, world: str) -> CellConfig:
     return parse_config(data)
 
 
+def _to_view_distance(cell: Cell, distance_mm: float) -> None:
+    """Move the camera along its optical axis until the target's centre is ``distance_mm``
+    ahead (the cell's own frames: a mount error leaves the view a little off that, as an
+    operator's jog would)."""
+    T_tcp = cell.arm_state().T_base_tcp
+    T_cam = cell.core.frames.T_tcp_camera
+    T_base_cam = T_tcp @ T_cam
+    centre = np.asarray(cell.config.target.points_mm, dtype=float).mean(axis=0)
+    T_bt = cell.config.sim.T_base_target.T()
+    c_cam = invert_T(T_base_cam) @ (T_bt @ np.r_[centre, 1.0])
+    shift = T_base_cam[:3, 2] * (float(c_cam[2]) - distance_mm)
+    for attempt in range(5):  # the controller restarts its program now and then
+        try:
+            _jog_to(cell, T_from_pose(shift, np.zeros(3)) @ T_tcp)
+            break
+        except CellError:
+            if attempt == 4:
+                raise
+            time.sleep(2.0)
+
+
 def displacements(rng: np.random.Generator, n: int, displace_mm: float, displace_deg: float
                   ) -> list[tuple[NDArray[np.float64], NDArray[np.float64]]]:
     out = []
@@ -114,11 +135,15 @@ class DotSampler:
 
 
 def _jog_to(cell: Cell, T_goal: Matrix4) -> None:
+    """Jog there in steps of at most 100 mm (a jog step is capped by ``[limits]``)."""
     T_now = cell.arm_state().T_base_tcp
     rot = Rotation.from_matrix(T_goal[:3, :3] @ T_now[:3, :3].T).as_rotvec()
-    cell.jog_step(CALLER, frame="base", translation_mm=T_goal[:3, 3] - T_now[:3, 3],
-                  rotation_deg=np.degrees(rot), speed_mm_s=100.0)
-    time.sleep(0.3)
+    move = T_goal[:3, 3] - T_now[:3, 3]
+    n = max(1, int(np.ceil(np.linalg.norm(move) / 100.0)))
+    for _ in range(n):
+        cell.jog_step(CALLER, frame="base", translation_mm=move / n,
+                      rotation_deg=np.degrees(rot) / n, speed_mm_s=100.0)
+        time.sleep(0.3)
 
 
 def _recover(cell: Cell) -> None:
@@ -153,30 +178,42 @@ def _one(cell: Cell, mode: str, taught: TaughtPose, T_taught_true: Matrix4) -> d
     elif mode == "ibvs":
         row.update({k: r.get(k) for k in (
             "time_to_converge_s", "image_error_px_rms", "image_error_px_max",
-            "estimated_error_mm", "estimated_error_deg", "min_dots_used")})
+            "estimated_error_mm", "estimated_error_deg", "min_dots_used",
+            "view_error_mm", "settle_steps_mm_deg")})
     return row
 
 
 def run_world(world: str, placements: int, seed: int, displace_mm: float, displace_deg: float,
-              host: str, lost_after_s: float | None = None) -> dict[str, Any]:
+              host: str, lost_after_s: float | None = None, *, modes: tuple[str, ...] = MODES,
+              view_distance_mm: float | None = None, ibvs: dict[str, Any] | None = None,
+              teach_samples: int = TEACH_SAMPLES) -> dict[str, Any]:
+    """One world's runs; ``view_distance_mm``: teach there (None: at home, 456 mm);
+    ``ibvs``: ``[ibvs]`` settings over the config's."""
     rng = np.random.default_rng(seed)
     with tempfile.TemporaryDirectory() as tmp:
-        cell = start_cell(world_config(bench_config(Path(tmp), host, lost_after_s), world))
+        config = bench_config(Path(tmp), host, lost_after_s)
+        if ibvs:
+            data = config.model_dump(mode="python")
+            data["ibvs"].update(ibvs)
+            config = parse_config(data)
+        cell = start_cell(world_config(config, world))
         rows: list[dict[str, Any]] = []
         try:
             job = cell.home(CALLER, wait=True)
             if job.state != "succeeded":
                 raise RuntimeError(f"home failed: {job.error_code} {job.error_message}")
             time.sleep(0.3)
+            if view_distance_mm is not None:
+                _to_view_distance(cell, view_distance_mm)
             assert cell.sim is not None
             T_taught_true = cell.sim.true_T_base_tcp()
-            taught = teach(cell, TaughtStore(None), CALLER, "bench", samples=TEACH_SAMPLES)
+            taught = teach(cell, TaughtStore(None), CALLER, "bench", samples=teach_samples)
             for i, (dt, dr) in enumerate(displacements(rng, placements, displace_mm,
                                                        displace_deg)):
                 T_disp = T_from_pose(dt, np.zeros(3)) @ T_taught_true
                 T_disp[:3, :3] = Rotation.from_rotvec(np.radians(dr)).as_matrix() \
                     @ T_taught_true[:3, :3]
-                for mode in MODES:
+                for mode in modes:
                     try:
                         _jog_to(cell, T_disp)
                     except CellError as err:  # recorded; the arm is recovered and homed
@@ -191,9 +228,10 @@ def run_world(world: str, placements: int, seed: int, displace_mm: float, displa
                         _recover(cell)
         finally:
             cell.close()
-    return {"world": world, "teach_spread_mm": taught.spread_mm,
+    return {"world": world, "view_distance_mm": view_distance_mm,
+            "ibvs_settings": ibvs or {}, "teach_spread_mm": taught.spread_mm,
             "teach_spread_deg": taught.spread_deg, "runs": rows,
-            **{mode: _summary([r for r in rows if r["mode"] == mode]) for mode in MODES}}
+            **{mode: _summary([r for r in rows if r["mode"] == mode]) for mode in modes}}
 
 
 def _summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
@@ -220,17 +258,22 @@ def _summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
 def run_bench_ibvs(*, placements: int = 10, seed: int = 0, displace_mm: float = 30.0,
                    displace_deg: float = 6.0, host: str | None = None,
                    worlds: tuple[str, ...] = ("mount_focal", "ideal"),
-                   lost_after_s: float | None = None) -> dict[str, Any]:
+                   lost_after_s: float | None = None, modes: tuple[str, ...] = MODES,
+                   view_distance_mm: float | None = None,
+                   ibvs: dict[str, Any] | None = None,
+                   teach_samples: int = TEACH_SAMPLES) -> dict[str, Any]:
     from fakes.ur_controller.process import free_loopback_host
 
     out: dict[str, Any] = {"placements": placements, "seed": seed, "displace_mm": displace_mm,
-                           "displace_deg": displace_deg, "teach_samples": TEACH_SAMPLES,
+                           "displace_deg": displace_deg, "teach_samples": teach_samples,
                            "mount_error_mm": float(np.linalg.norm(MOUNT_ERROR_MM)),
                            "mount_error_deg": MOUNT_ERROR_DEG,
                            "focal_error": FOCAL_SCALE - 1.0, "lost_after_s": lost_after_s}
     for world in worlds:  # the least kind world first
         out[world] = run_world(world, placements, seed, displace_mm, displace_deg,
-                               host or free_loopback_host(), lost_after_s)
+                               host or free_loopback_host(), lost_after_s, modes=modes,
+                               view_distance_mm=view_distance_mm, ibvs=ibvs,
+                               teach_samples=teach_samples)
     out["load_average"] = list(os.getloadavg())
     return out
 
@@ -246,6 +289,8 @@ def format_ibvs(r: dict[str, Any]) -> list[str]:
             continue
         lines.append(f"  {world}:")
         for mode in MODES:
+            if mode not in r[world]:
+                continue
             s = r[world][mode]
             lines.append(
                 f"    {mode:14s} worst {f(s['worst_error_mm'])} mm / "

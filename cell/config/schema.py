@@ -274,6 +274,13 @@ class IbvsConfig(_Strict):
     # compensation); off by default: measured slower to converge (4.3-5.0 s against 3.1-3.5
     # s from 30 mm / 6 deg) at the same final error (docs/ibvs.md)
     predict_motion: bool = False
+    # the final settle (cell.actions.ibvs_settle): after the loop's test, the arm still,
+    # ``settle_frames`` frames averaged, one step ``-L^+ e``; up to ``settle_steps`` times,
+    # until the step is under ``settle_tolerance_mm`` / ``_deg``. 0 frames: no settle.
+    settle_frames: int = Field(default=0, ge=0, le=100)
+    settle_steps: int = Field(default=2, ge=1, le=10)
+    settle_tolerance_mm: float = Field(default=0.01, gt=0)
+    settle_tolerance_deg: float = Field(default=0.002, gt=0)
     approach_timeout_s: float = Field(default=30.0, gt=0)
 
 

@@ -23,6 +23,7 @@ from cell.actions.ibvs import (
     project_normalised,
     remaining_motion,
 )
+from cell.actions.ibvs_settle import mean_features, settle_step, step_goal, step_size
 from estimator import CameraModel
 from estimator.transforms import T_from_pose, invert_T, pose_distance
 
@@ -160,3 +161,35 @@ def test_remaining_motion_is_the_tcp_displacement_the_view_asks_for() -> None:
     expect_mm, expect_deg = pose_distance(turn @ T_camera_tcp, T_camera_tcp)
     assert d_mm == pytest.approx(expect_mm, rel=0.05) and expect_mm > 0.1
     assert d_deg == pytest.approx(expect_deg, rel=0.05)
+
+
+def test_settle_steps_put_the_camera_back_where_the_view_was_taught() -> None:
+    """From a small displacement (the settle's regime), the first-order step at the goal's
+    interaction matrix, mapped through the hand-eye transform to a TCP goal, puts the camera
+    back within microns; a second step from there is smaller still."""
+    T_tcp_camera = T_from_pose([30.0, -60.0, 40.0], [0.1, -0.2, 0.05])
+    T_base_target = T_from_pose([-480.0, -130.0, 0.0], [np.pi, 0.0, 0.0])
+    T_base_camera_taught = T_base_target @ invert_T(T_DESIRED)
+    desired = _features(T_DESIRED)
+    T_base_tcp = T_base_camera_taught @ T_from_pose([0.3, -0.2, 0.4], [0.001, -0.002, 0.0015]) \
+        @ invert_T(T_tcp_camera)
+    sizes = []
+    for _ in range(2):
+        T_camera_target = invert_T(T_base_tcp @ T_tcp_camera) @ T_base_target
+        step = settle_step(_features(T_camera_target), desired)
+        sizes.append(step_size(step, invert_T(T_tcp_camera))[0])
+        T_base_tcp = step_goal(T_base_tcp, T_tcp_camera, step)
+    d_mm, d_deg = pose_distance(T_base_tcp @ T_tcp_camera, T_base_camera_taught)
+    assert d_mm < 0.002 and d_deg < 1e-4
+    assert sizes[0] > 0.3 and sizes[1] < 0.01 * sizes[0]
+
+
+def test_mean_features_average_the_dots_every_view_has() -> None:
+    a = _features(T_DESIRED)
+    b = Features(a.ids[1:], a.xy[1:] + 1e-3, a.depth_mm[1:] + 2.0)
+    m = mean_features([a, b])
+    assert m.ids == a.ids[1:]
+    np.testing.assert_allclose(m.xy, a.xy[1:] + 5e-4)
+    np.testing.assert_allclose(m.depth_mm, a.depth_mm[1:] + 1.0)
+    with pytest.raises(ValueError):
+        mean_features([])
