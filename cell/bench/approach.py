@@ -90,16 +90,40 @@ def _sim(cell: Cell) -> SimWorld:
     return cell.sim
 
 
+HOME_RETRY_S = 30.0
+HOME_FAILURES: list[str] = []  # every failed homing of this run, with its reason
+
+
 def _home(cell: Cell) -> None:
-    job = cell.home(CALLER, wait=True)
-    if job.state != "succeeded":
-        raise RuntimeError(f"home failed: {job.error_code} {job.error_message}")
+    """Home; a failure (e.g. the client stalled past the controller's watchdog on a loaded
+    host, and the adapter reconnects) is recorded in HOME_FAILURES and retried for
+    ``HOME_RETRY_S`` before the section fails."""
+    deadline = time.monotonic() + HOME_RETRY_S
+    while True:
+        try:
+            job = cell.home(CALLER, wait=True)
+            if job.state == "succeeded":
+                return
+            reason = f"{job.error_code}: {job.error_message}"
+        except CellError as err:
+            reason = f"{err.code}: {err.message}"
+        HOME_FAILURES.append(reason)
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"home failed: {reason}")
+        time.sleep(1.0)
 
 
 def _true_error(cell: Cell, T_target_tcp: Matrix4) -> tuple[float, float]:
     T_tcp, t = _sim(cell).true_tcp_sample()
     return pose_distance(T_tcp, approach_tcp(_sim(cell).true_T_base_target(t), T_target_tcp,
                                              STANDOFF_MM))
+
+
+def _true_offset_mm(cell: Cell, T_target_tcp: Matrix4) -> NDArray[np.float64]:
+    """True TCP position minus the true goal's (base frame, mm)."""
+    T_tcp, t = _sim(cell).true_tcp_sample()
+    goal = approach_tcp(_sim(cell).true_T_base_target(t), T_target_tcp, STANDOFF_MM)
+    return np.asarray(T_tcp[:3, 3] - goal[:3, 3], dtype=float)
 
 
 def _approach(cell: Cell, mode: str, T_target: Matrix4, T_target_tcp: Matrix4
@@ -158,9 +182,12 @@ def _track(cell: Cell, speed_mm_s: float, T_target_tcp: Matrix4, T_home_target: 
     sim.set_target(sim.true_T_base_target(), np.array([-speed_mm_s, 0.0, 0.0]))
     t_move = time.monotonic()
     samples: list[tuple[float, float, float]] = []
+    offsets: list[NDArray[np.float64]] = []
     while time.monotonic() < t_move + follow_s:
         d_mm, d_deg = _true_error(cell, T_target_tcp)
         samples.append((time.monotonic() - t_move, d_mm, d_deg))
+        if samples[-1][0] >= 1.0:
+            offsets.append(_true_offset_mm(cell, T_target_tcp))
         time.sleep(0.01)
     state = cell.job(job_id).state
     cell.stop(CALLER, reason="bench: tracking done")
@@ -172,6 +199,12 @@ def _track(cell: Cell, speed_mm_s: float, T_target_tcp: Matrix4, T_home_target: 
            "rms_error_mm": float(np.sqrt(np.mean([s[1] ** 2 for s in tail]))),
            "max_error_mm": max(s[1] for s in tail),
            "rms_error_deg": float(np.sqrt(np.mean([s[2] ** 2 for s in tail])))}
+    if offsets:  # a constant offset (calibration) apart from the error that moves (dynamics)
+        arr = np.array(offsets)
+        bias = arr.mean(axis=0)
+        out["bias_mm"] = [float(x) for x in bias]
+        out["bias_norm_mm"] = float(np.linalg.norm(bias))
+        out["rms_about_bias_mm"] = float(np.sqrt(np.mean(np.sum((arr - bias) ** 2, axis=1))))
     if state != "running":
         out["error"] = f"{job.error_code}: {job.error_message}"
     return out
@@ -227,16 +260,24 @@ def run_bench_approach(*, placements: int = 10, seed: int = 0,
                        speeds: tuple[float, ...] = (25.0, 50.0, 100.0, 150.0),
                        follow_s: float = 3.0, host: str | None = None,
                        progress: Progress | None = None, lost_after_s: float | None = None,
-                       world: str = "realistic", ibvs: bool = True) -> dict[str, Any]:
+                       world: str = "realistic", ibvs: bool = True,
+                       sim_overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The approach, tracking and lost-target sections in ``world``; ``sim_overrides`` sets
+    ``[sim]`` keys over the world's preset (to take one effect out and see what it costs)."""
     from fakes.ur_controller.process import free_loopback_host
 
     if world not in WORLDS:
         raise ValueError(f"world must be one of {WORLDS}, got {world!r}")
     rng = np.random.default_rng(seed)
+    HOME_FAILURES.clear()
     load_before = list(os.getloadavg())
     with tempfile.TemporaryDirectory() as tmp:
-        cell = start_cell(bench_config(Path(tmp), host or free_loopback_host(), lost_after_s,
-                                       world))
+        config = bench_config(Path(tmp), host or free_loopback_host(), lost_after_s, world)
+        if sim_overrides:
+            data = config.model_dump(mode="python")
+            data["sim"].update(sim_overrides)
+            config = parse_config(data)
+        cell = start_cell(config)
         freeze_startup_objects()  # as cell serve does: no full collection stalls the loop
         lost_after_s = cell.config.servo.lost_after_s
         try:
@@ -247,7 +288,15 @@ def run_bench_approach(*, placements: int = 10, seed: int = 0,
             for i in range(placements):
                 T = placement(rng, T_home_target)
                 for mode in ("servo", "look_and_move"):
-                    rows.append({"placement": i, **_approach(cell, mode, T, T_tt)})
+                    try:
+                        row = _approach(cell, mode, T, T_tt)
+                    except Exception as err:  # counted as a failure; the run goes on
+                        cell.stop(CALLER, reason="bench: approach failed")
+                        row = {"mode": mode, "state": "failed", "time_s": None,
+                               "error_mm": None, "error_deg": None,
+                               "error": f"{type(err).__name__}: {err}",
+                               "placement_T_base_target": pose_dict(T)}
+                    rows.append({"placement": i, **row})
                     if progress:
                         progress("approach", len(rows), steps)
             tracks: list[dict[str, Any]] = []
@@ -265,6 +314,9 @@ def run_bench_approach(*, placements: int = 10, seed: int = 0,
             cell.close()
     report = _report(rows, tracks, lost, placements, seed, lost_after_s, world)
     report["load_average_before"] = load_before
+    report["sim_overrides"] = sim_overrides or {}
+    report["home_failures"] = list(HOME_FAILURES)
+    HOME_FAILURES.clear()
     if ibvs:
         report["ibvs"] = _ibvs_section(placements, seed, lost_after_s)
     return report
@@ -387,6 +439,7 @@ def format_report(r: dict[str, Any]) -> str:
         f"{f(r['look_and_move_final_error_mm_median'])} mm / "
         f"{f(r['look_and_move_final_error_deg_median'])} deg",
         f"  speed-up {f(r['speedup'], '.1f')}x; failures: {len(r['failures'])}",
+        f"  homings that failed and were retried: {len(r.get('home_failures', []))}",
         f"lost target: arm still {f(r['lost_target_declared_to_still_ms'], '.0f')} ms after it "
         f"was declared lost (the job's own figure {f(r['lost_target_job_stop_ms'], '.0f')} ms)",
         "targets: " + ", ".join(f"{k} {'yes' if v else 'NO'}"
