@@ -311,7 +311,10 @@ def run_bench_approach(*, placements: int = 10, seed: int = 0,
                         progress("approach", len(rows), steps)
             tracks: list[dict[str, Any]] = []
             for speed in speeds:
-                run = functools.partial(_track, cell, speed, T_tt, T_home_target, follow_s)
+                # the drift stays within TRACK_TRAVEL_MM: at 150 mm/s a 3 s follow would carry
+                # the target out of the workspace box
+                follow = min(follow_s, TRACK_TRAVEL_MM / speed)
+                run = functools.partial(_track, cell, speed, T_tt, T_home_target, follow)
                 tracks.append(_attempt(run, cell, {"speed_mm_s": speed, "rms_error_mm": None}))
                 if progress:
                     progress("approach", len(rows) + len(tracks), steps)
