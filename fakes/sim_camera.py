@@ -23,7 +23,6 @@ featureless image, e.g. a hand or a cover in front of the lens).
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
 import threading
@@ -55,6 +54,7 @@ SHARP_FOCUS = 120
 DEFOCUS_PX_PER_STEP = 1.0 / 16.0
 IDLE_AFTER_S = 2.0  # no frame taken for this long: the sensor rests
 IDLE_PERIOD_S = 0.5  # a resting sensor's exposures
+MAX_SMEAR_SPAN_S = 0.25  # two pose samples further apart do not give the motion blur
 
 
 @dataclass(frozen=True)
@@ -127,6 +127,7 @@ class SimCamera:
                                    if self.flicker_depth > 0 else 0.0)
         self._pending: deque[_Exposure] = deque()  # exposed, not yet at the host
         self.exposure_log: deque[ExposureTruth] = deque(maxlen=512)
+        self._prev_sample: tuple[Matrix4, float] | None = None  # the last exposure's pose
         self._iso = NOMINAL_ISO
         self._nominal_exposure_s = exposure_s
         self._focus: int | str = "auto"
@@ -336,17 +337,13 @@ class SimCamera:
         self._rendered = (exp.sequence, image)
         return image
 
-    def _expose(self, start: tuple[Matrix4, float] | None = None) -> None:
-        """Take one exposure: sample the pose at mid-exposure and keep the scene. With motion
-        blur, ``start`` is the pose at the exposure's start and the end is sampled here."""
+    def _expose(self) -> None:
+        """Take one exposure: sample the pose at mid-exposure and keep the scene. The motion
+        blur's image motion comes from this sample and the previous exposure's (no extra pose
+        reads: each is a round trip to the simulated controller that would delay the frame)."""
         T_base_flange, t_s = self.pose_source()
         T_base_flange = np.asarray(T_base_flange, dtype=float)
-        end: tuple[Matrix4, float] | None = None
-        if start is not None:
-            end_s = max(float(t_s) + self.exposure_s / 2.0, start[1] + self.exposure_s)
-            self._stop.wait(max(0.0, end_s - time.monotonic()))
-            T_end, t_end = self.pose_source()
-            end = (np.asarray(T_end, dtype=float), float(t_end))
+        prev, self._prev_sample = self._prev_sample, (T_base_flange, float(t_s))
         with self._cond:
             self._sequence += 1
             drop = self._drop_next > 0 or (
@@ -360,8 +357,8 @@ class SimCamera:
             T_base_camera, T_base_seen = self._view(T_base_flange, float(t_s))
             T_camera_target = invert_T(T_base_camera) @ T_base_seen
             smear = (0.0, 0.0)
-            if start is not None and end is not None:
-                smear = self._smear_locked(start, end)
+            if self.motion_blur and prev is not None and 0.0 < t_s - prev[1] <= MAX_SMEAR_SPAN_S:
+                smear = self._smear_locked(prev, (T_base_flange, float(t_s)))
             t_true = float(t_s)
             stamp = t_true + self.timestamp_offset_s
             if self.timestamp_jitter_s > 0:
@@ -393,8 +390,9 @@ class SimCamera:
 
     def _smear_locked(self, start: tuple[Matrix4, float], end: tuple[Matrix4, float]
                       ) -> tuple[float, float]:
-        """The image motion (px) of the target's centre over one exposure, from the poses at
-        its start and end (scaled to the exposure time if the host stretched the samples)."""
+        """The image motion (px) of the target's centre over one exposure: its motion between
+        two pose samples (the previous exposure's and this one's) scaled to the exposure time,
+        as a constant velocity over that span."""
         centre = np.r_[self.target.points_mm.mean(axis=0), 1.0]
         px = []
         for T_flange, t in (start, end):
@@ -406,7 +404,7 @@ class SimCamera:
         span_s = end[1] - start[1]
         if span_s <= 1e-6:
             return (0.0, 0.0)
-        d = (px[1] - px[0]) * min(1.0, self.exposure_s / span_s)
+        d = (px[1] - px[0]) * (self.exposure_s / span_s)
         return (float(d[0]), float(d[1]))
 
     def _view(self, T_base_flange: Matrix4, t_s: float) -> tuple[Matrix4, Matrix4]:
@@ -437,23 +435,13 @@ class SimCamera:
                     break
                 next_start = time.monotonic()
             mid = next_start + self.exposure_s / 2.0
-            start: tuple[Matrix4, float] | None = None
-            if self.motion_blur:
-                if self._stop.wait(max(0.0, next_start - time.monotonic())):
-                    break
-                with self._cond:
-                    lost = self._lost
-                if not lost:
-                    with contextlib.suppress(Exception):  # reported by the mid sample below
-                        T0, t0 = self.pose_source()
-                        start = (np.asarray(T0, dtype=float), float(t0))
             if self._stop.wait(max(0.0, mid - time.monotonic())):
                 break
             with self._cond:
                 lost = self._lost
             if not lost:
                 try:
-                    self._expose(start)
+                    self._expose()
                 except Exception as err:  # the pose source (arm simulation) is away
                     with self._cond:
                         self._error = f"pose source failed: {err}"
