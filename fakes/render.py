@@ -11,6 +11,7 @@ shape matters less than speed, since the simulated camera renders several frames
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -354,3 +355,32 @@ def random_scene(
     T = random_pose(rng, camera, tgt)
     image = render_target(camera, tgt, T, rng=rng, **render_options)  # type: ignore[arg-type]
     return Scene(image, T, tgt, camera)
+
+
+def motion_smear(image: NDArray[np.uint8], smear_px: tuple[float, float],
+                 min_px: float = 0.3) -> NDArray[np.uint8]:
+    """The image averaged over a straight motion of ``smear_px`` (dx, dy) during the exposure.
+
+    One convolution with a line kernel, sub-pixel by bilinear splatting of samples along the
+    segment: what a rendering averaged over many instants of the exposure gives for a
+    translating image, at the cost of a single filter pass. Rotation during the exposure
+    (a blur that differs across the image) is not modelled."""
+    dx, dy = float(smear_px[0]), float(smear_px[1])
+    length = math.hypot(dx, dy)
+    if length < min_px:
+        return image
+    half = math.ceil(max(abs(dx), abs(dy)) / 2.0) + 1
+    size = 2 * half + 1
+    kernel = np.zeros((size, size), np.float64)
+    n = max(4, math.ceil(length * 4))
+    for t in np.linspace(-0.5, 0.5, n):
+        x, y = half + t * dx, half + t * dy
+        x0, y0 = math.floor(x), math.floor(y)
+        fx, fy = x - x0, y - y0
+        kernel[y0, x0] += (1 - fx) * (1 - fy)
+        kernel[y0, x0 + 1] += fx * (1 - fy)
+        kernel[y0 + 1, x0] += (1 - fx) * fy
+        kernel[y0 + 1, x0 + 1] += fx * fy
+    kernel /= kernel.sum()
+    out = cv2.filter2D(image, -1, kernel.astype(np.float32), borderType=cv2.BORDER_REPLICATE)
+    return np.asarray(out, dtype=np.uint8)

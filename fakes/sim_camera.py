@@ -10,6 +10,12 @@ Nor does it sample the pose 30 times a second for nobody: once no frame has been
 source that went away), and the next ``latest_frame`` wakes it and gets a fresh exposure
 (taken after the call), at most an exposure later than a streaming camera's newest frame.
 
+What a real camera adds on top, each off unless asked for (the ``realistic`` world turns them
+on, cell.devices.sim_truth): a frame becomes available ``latency_s`` (+ jitter) after its
+mid-exposure, its timestamp is off the true mid-exposure time by an offset and a jitter
+(:attr:`SimCamera.exposure_log` keeps the truth per frame), the image is smeared along the
+motion during the exposure, and the light flickers.
+
 Faults as an integrator meets them: dropped frames (sequence gaps), a lost device
 (``latest_frame`` raises ConnectionLostError until restored) and a blocked view (a dark,
 featureless image, e.g. a hand or a cover in front of the lens).
@@ -17,8 +23,11 @@ featureless image, e.g. a hand or a cover in front of the lens).
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -31,7 +40,7 @@ from drivers.camera import CameraSettings, Frame
 from drivers.errors import ConnectionLostError, DeviceTimeoutError
 from estimator import CameraModel, Target
 from estimator.transforms import invert_T
-from fakes.render import render_target
+from fakes.render import motion_smear, render_target
 
 Matrix4 = NDArray[np.float64]
 PoseSource = Callable[[], tuple[Matrix4, float]]  # () -> (T_base_flange mm, time.monotonic())
@@ -45,6 +54,7 @@ SHARP_FOCUS = 120
 DEFOCUS_PX_PER_STEP = 1.0 / 16.0
 IDLE_AFTER_S = 2.0  # no frame taken for this long: the sensor rests
 IDLE_PERIOD_S = 0.5  # a resting sensor's exposures
+MAX_SMEAR_SPAN_S = 0.25  # two pose samples further apart do not give the motion blur
 
 
 @dataclass(frozen=True)
@@ -58,6 +68,21 @@ class _Exposure:
     blocked: bool
     blur_sigma_px: float  # the lens blur plus any defocus
     T_base_flange: Matrix4 | None = None  # the arm's flange then (what a fixed camera may see)
+    true_time_s: float = 0.0  # the true mid-exposure time (timestamp_s is what the cell sees)
+    available_s: float = 0.0  # when the frame reaches the host
+    smear_px: tuple[float, float] = (0.0, 0.0)  # image motion of the target over the exposure
+
+
+@dataclass(frozen=True)
+class ExposureTruth:
+    """One frame's timing truth: what the cell is told against what happened."""
+
+    sequence: int
+    true_time_s: float  # mid-exposure, time.monotonic
+    timestamp_s: float  # the frame's timestamp
+    available_s: float  # when it could be handed out
+    smear_px: tuple[float, float]
+    gain: float  # the frame's brightness relative to nominal (settings, jitter, flicker)
 
 
 class SimCamera:
@@ -68,6 +93,9 @@ class SimCamera:
         T_flange_camera: Matrix4, pose_source: PoseSource, *, fps: float = 15.0,
         exposure_s: float = 0.004, noise_std: float = 1.5, blur_sigma_px: float = 0.7,
         lighting_gradient: float = 0.1, exposure_jitter: float = 0.03, seed: int | None = None,
+        latency_s: float = 0.0, latency_jitter_s: float = 0.0, timestamp_offset_s: float = 0.0,
+        timestamp_jitter_s: float = 0.0, motion_blur: bool = False, flicker_depth: float = 0.0,
+        flicker_hz: float = 100.0,
     ) -> None:
         if not 0 < fps <= 120:
             raise ValueError(f"fps must be within (0, 120], got {fps}")
@@ -89,7 +117,17 @@ class SimCamera:
         self.blur_sigma_px = blur_sigma_px
         self.lighting_gradient = lighting_gradient
         self.exposure_jitter = exposure_jitter
+        self.latency_s, self.latency_jitter_s = float(latency_s), float(latency_jitter_s)
+        self.timestamp_offset_s = float(timestamp_offset_s)
+        self.timestamp_jitter_s = float(timestamp_jitter_s)
+        self.motion_blur = bool(motion_blur)
+        self.flicker_depth, self.flicker_hz = float(flicker_depth), float(flicker_hz)
         self._rng = np.random.default_rng(seed)
+        self._flicker_phase_rad = (float(self._rng.uniform(0.0, 2.0 * math.pi))
+                                   if self.flicker_depth > 0 else 0.0)
+        self._pending: deque[_Exposure] = deque()  # exposed, not yet at the host
+        self.exposure_log: deque[ExposureTruth] = deque(maxlen=512)
+        self._prev_sample: tuple[Matrix4, float] | None = None  # the last exposure's pose
         self._iso = NOMINAL_ISO
         self._nominal_exposure_s = exposure_s
         self._focus: int | str = "auto"
@@ -250,6 +288,7 @@ class SimCamera:
                     raise ConnectionLostError("simulated camera lost (device unplugged)")
                 if self._error is not None:
                     raise ConnectionLostError(f"simulated camera stopped: {self._error}")
+                next_due = self._promote_locked(time.monotonic())
                 exp = self._latest
                 if (exp is not None and exp.sequence != self._handed_out
                         and exp.sequence >= min_sequence):
@@ -259,10 +298,19 @@ class SimCamera:
                 if remaining <= 0:
                     raise DeviceTimeoutError(
                         f"no frame from the simulated camera within {timeout_s} s")
+                if next_due is not None:
+                    remaining = min(remaining, max(0.0005, next_due - time.monotonic()))
                 self._cond.wait(remaining)
         return Frame(self._render(exp), exp.timestamp_s, exp.sequence, self.camera)
 
     # -- internals ---------------------------------------------------------------------------
+    def _promote_locked(self, now_s: float) -> float | None:
+        """Hand the newest exposure that has reached the host to ``_latest``; the time the
+        next one arrives (None: nothing on the way). Call with the lock held."""
+        while self._pending and self._pending[0].available_s <= now_s:
+            self._latest = self._pending.popleft()
+        return self._pending[0].available_s if self._pending else None
+
     def _render(self, exp: _Exposure) -> NDArray[np.uint8]:
         cached = self._rendered
         if cached is not None and cached[0] == exp.sequence:
@@ -282,15 +330,20 @@ class SimCamera:
                 self.camera, self.target, exp.T_camera_target, blur_sigma_px=exp.blur_sigma_px,
                 noise_std=self.noise_std, lighting_gradient=self.lighting_gradient, rng=rng,
             )
+        if self.motion_blur and not exp.blocked:
+            image = motion_smear(image, exp.smear_px)
         if exp.gain != 1.0:  # one saturating multiply-add pass, cheap at any size
             image = np.asarray(cv2.convertScaleAbs(image, alpha=exp.gain), dtype=np.uint8)
         self._rendered = (exp.sequence, image)
         return image
 
     def _expose(self) -> None:
-        """Take one exposure: sample the pose at mid-exposure and keep the scene."""
+        """Take one exposure: sample the pose at mid-exposure and keep the scene. The motion
+        blur's image motion comes from this sample and the previous exposure's (no extra pose
+        reads: each is a round trip to the simulated controller that would delay the frame)."""
         T_base_flange, t_s = self.pose_source()
         T_base_flange = np.asarray(T_base_flange, dtype=float)
+        prev, self._prev_sample = self._prev_sample, (T_base_flange, float(t_s))
         with self._cond:
             self._sequence += 1
             drop = self._drop_next > 0 or (
@@ -300,12 +353,59 @@ class SimCamera:
                 self.frames_dropped += 1
                 return
             gain = self._brightness() * (1.0 + float(self._rng.normal(0.0, self.exposure_jitter)))
+            gain *= self._flicker_locked(float(t_s))
             T_base_camera, T_base_seen = self._view(T_base_flange, float(t_s))
-            self._latest = _Exposure(
-                self._sequence, float(t_s), invert_T(T_base_camera) @ T_base_seen,
-                gain, self._blocked, self._blur_px(), T_base_flange,
-            )
+            T_camera_target = invert_T(T_base_camera) @ T_base_seen
+            smear = (0.0, 0.0)
+            if self.motion_blur and prev is not None and 0.0 < t_s - prev[1] <= MAX_SMEAR_SPAN_S:
+                smear = self._smear_locked(prev, (T_base_flange, float(t_s)))
+            t_true = float(t_s)
+            stamp = t_true + self.timestamp_offset_s
+            if self.timestamp_jitter_s > 0:
+                stamp += float(self._rng.normal(0.0, self.timestamp_jitter_s))
+            exp = _Exposure(
+                self._sequence, stamp, T_camera_target, gain, self._blocked, self._blur_px(),
+                T_base_flange, t_true, t_true, smear)
+            if self.latency_s > 0 or self.latency_jitter_s > 0:
+                jitter = abs(float(self._rng.normal(0.0, self.latency_jitter_s))) \
+                    if self.latency_jitter_s > 0 else 0.0
+                due = t_true + max(self.latency_s + jitter, self.exposure_s / 2.0)
+                exp = dataclasses.replace(exp, available_s=due)
+                self._pending.append(exp)
+            else:
+                self._latest = exp
+            self.exposure_log.append(ExposureTruth(exp.sequence, t_true, stamp,
+                                                   exp.available_s, smear, gain))
             self._cond.notify_all()
+
+    def _flicker_locked(self, t_mid_s: float) -> float:
+        """The light's mean level over the exposure around ``t_mid_s`` (1: steady light)."""
+        if self.flicker_depth <= 0:
+            return 1.0
+        w = 2.0 * math.pi * self.flicker_hz
+        a, b = t_mid_s - self.exposure_s / 2.0, t_mid_s + self.exposure_s / 2.0
+        phase = self._flicker_phase_rad
+        mean_sin = (math.cos(w * a + phase) - math.cos(w * b + phase)) / (w * (b - a))
+        return 1.0 + self.flicker_depth * mean_sin
+
+    def _smear_locked(self, start: tuple[Matrix4, float], end: tuple[Matrix4, float]
+                      ) -> tuple[float, float]:
+        """The image motion (px) of the target's centre over one exposure: its motion between
+        two pose samples (the previous exposure's and this one's) scaled to the exposure time,
+        as a constant velocity over that span."""
+        centre = np.r_[self.target.points_mm.mean(axis=0), 1.0]
+        px = []
+        for T_flange, t in (start, end):
+            T_base_camera, T_base_seen = self._view(T_flange, t)
+            p = (invert_T(T_base_camera) @ T_base_seen @ centre)[:3]
+            if p[2] <= 1e-6:
+                return (0.0, 0.0)
+            px.append(np.array([self.camera.fx * p[0] / p[2], self.camera.fy * p[1] / p[2]]))
+        span_s = end[1] - start[1]
+        if span_s <= 1e-6:
+            return (0.0, 0.0)
+        d = (px[1] - px[0]) * (self.exposure_s / span_s)
+        return (float(d[0]), float(d[1]))
 
     def _view(self, T_base_flange: Matrix4, t_s: float) -> tuple[Matrix4, Matrix4]:
         """``(T_base_camera, T_base_target)`` of one exposure (call with the lock held): the

@@ -374,6 +374,24 @@ class SimCameraTruthOut(_Out):
     height: int
 
 
+class SimEffectsOut(_Out):
+    """The rest of the simulated world's truth: the arm's true DH errors against the nominal
+    table (joint zero rad, d mm, a mm), the camera's latency and timestamp error (s), motion
+    blur, and the frame-to-frame gain (relative) and light flicker."""
+
+    dh_delta_theta_rad: list[float]
+    dh_delta_d_mm: list[float]
+    dh_delta_a_mm: list[float]
+    camera_latency_s: float
+    camera_latency_jitter_s: float
+    timestamp_offset_s: float
+    timestamp_jitter_s: float
+    motion_blur: bool
+    gain_jitter: float
+    flicker_depth: float
+    flicker_hz: float
+
+
 class SimTruth(_Out):
     model_config = _examples({
         "T_base_target": POSE_EXAMPLE, "T_base_tcp": POSE_EXAMPLE, "world": "realistic",
@@ -386,6 +404,7 @@ class SimTruth(_Out):
     T_flange_camera: PoseOut
     T_base_camera: PoseOut | None = Field(None, description="a fixed camera's true pose")
     camera: SimCameraTruthOut
+    effects: SimEffectsOut
 
 
 class SimTarget(_Out):

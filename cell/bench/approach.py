@@ -12,15 +12,23 @@ API, so every command passes the guarded motion path. Errors are against simulat
 2. Conveyor tracking at each speed along base -x for 3 s: the arm first holds the still target
    (placed where home sees it), then the target drifts; the RMS of the true error from the
    first second on.
-3. Lost target: tracking at 50 mm/s, the lens is covered; ``lost_target_stop_ms`` is the
-   simulator's truth from the moment the cell declared the target lost to the TCP standing
-   still; also the job's own figure (stop command to the adapter seeing the arm still) and
-   covered -> still minus ``[servo] lost_after_s``.
+3. Lost target: tracking at 50 mm/s, the lens is covered; the headline
+   ``lost_target_cover_to_still_ms`` is from covering the lens to the simulated arm standing
+   still (the simulated controller's own state, never the cell's declaration); beside it the
+   same from the cell's declaration, and the job's own figure.
+
+``world`` (``realistic`` by default) is the simulated truth the cell does not share
+(cell/devices/sim_truth.py): its lens, mount, arm geometry, camera latency and timestamps,
+motion blur and light differ from what the cell's config believes. The report starts with the
+least kind figures: the success ratio of each mode (a failed approach counts in every median:
+its time as infinite, its error as measured after the job ended), the cover-to-still time,
+then the tracking errors.
 """
 
 from __future__ import annotations
 
 import functools
+import math
 import os
 import statistics
 import tempfile
@@ -47,10 +55,15 @@ STANDOFF_MM = 50.0
 CALLER = "bench"
 
 
-def bench_config(state_dir: Path, host: str, lost_after_s: float | None = None
-                 ) -> CellConfig:
-    """The built-in simulated cell on ``host``, its job database in ``state_dir``."""
+WORLDS = ("realistic", "ideal")
+
+
+def bench_config(state_dir: Path, host: str, lost_after_s: float | None = None,
+                 world: str = "ideal") -> CellConfig:
+    """The built-in simulated cell on ``host``, its job database in ``state_dir``, in the
+    simulated ``world``."""
     data = load_config().model_dump(mode="python")
+    data["sim"]["world"] = world
     if lost_after_s is not None:
         data["servo"]["lost_after_s"] = lost_after_s
     data["robot"]["host"] = host
@@ -77,16 +90,40 @@ def _sim(cell: Cell) -> SimWorld:
     return cell.sim
 
 
+HOME_RETRY_S = 30.0
+HOME_FAILURES: list[str] = []  # every failed homing of this run, with its reason
+
+
 def _home(cell: Cell) -> None:
-    job = cell.home(CALLER, wait=True)
-    if job.state != "succeeded":
-        raise RuntimeError(f"home failed: {job.error_code} {job.error_message}")
+    """Home; a failure (e.g. the client stalled past the controller's watchdog on a loaded
+    host, and the adapter reconnects) is recorded in HOME_FAILURES and retried for
+    ``HOME_RETRY_S`` before the section fails."""
+    deadline = time.monotonic() + HOME_RETRY_S
+    while True:
+        try:
+            job = cell.home(CALLER, wait=True)
+            if job.state == "succeeded":
+                return
+            reason = f"{job.error_code}: {job.error_message}"
+        except CellError as err:
+            reason = f"{err.code}: {err.message}"
+        HOME_FAILURES.append(reason)
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"home failed: {reason}")
+        time.sleep(1.0)
 
 
 def _true_error(cell: Cell, T_target_tcp: Matrix4) -> tuple[float, float]:
     T_tcp, t = _sim(cell).true_tcp_sample()
     return pose_distance(T_tcp, approach_tcp(_sim(cell).true_T_base_target(t), T_target_tcp,
                                              STANDOFF_MM))
+
+
+def _true_offset_mm(cell: Cell, T_target_tcp: Matrix4) -> NDArray[np.float64]:
+    """True TCP position minus the true goal's (base frame, mm)."""
+    T_tcp, t = _sim(cell).true_tcp_sample()
+    goal = approach_tcp(_sim(cell).true_T_base_target(t), T_target_tcp, STANDOFF_MM)
+    return np.asarray(T_tcp[:3, 3] - goal[:3, 3], dtype=float)
 
 
 def _approach(cell: Cell, mode: str, T_target: Matrix4, T_target_tcp: Matrix4
@@ -124,13 +161,23 @@ def _wait_end(cell: Cell, job_id: str, timeout_s: float) -> str:
 
 
 def _hold(cell: Cell, T_target_tcp: Matrix4, duration_s: float) -> str:
-    """Start tracking the still target and wait until the arm holds it (1 mm, 0.5 deg)."""
+    """Start tracking the still target and wait until the arm holds it: within 1 mm and
+    0.5 deg of the true goal, or, in a world whose calibration the cell does not share, where
+    that goal is out of its reach, standing still (the true TCP within 0.05 mm over 0.5 s)."""
     job = cell.track(CALLER, standoff_mm=STANDOFF_MM, duration_s=duration_s)
     deadline = time.monotonic() + 15.0
+    window: list[tuple[float, NDArray[np.float64]]] = []
     while any(e > lim for e, lim in zip(_true_error(cell, T_target_tcp), (1.0, 0.5),
                                             strict=True)):
         if cell.job(job.id).state != "running" or time.monotonic() > deadline:
             raise RuntimeError(f"tracking did not settle: {cell.job(job.id).error_message}")
+        T, t = _sim(cell).true_tcp_sample()
+        window.append((t, T[:3, 3].copy()))
+        while window and window[-1][0] - window[0][0] > 0.5:
+            window.pop(0)
+        if (time.monotonic() - (deadline - 15.0) > 1.0 and window[-1][0] - window[0][0] >= 0.45
+                and max(float(np.linalg.norm(p - window[-1][1])) for _, p in window) < 0.05):
+            break
         time.sleep(0.02)
     return job.id
 
@@ -145,9 +192,12 @@ def _track(cell: Cell, speed_mm_s: float, T_target_tcp: Matrix4, T_home_target: 
     sim.set_target(sim.true_T_base_target(), np.array([-speed_mm_s, 0.0, 0.0]))
     t_move = time.monotonic()
     samples: list[tuple[float, float, float]] = []
+    offsets: list[NDArray[np.float64]] = []
     while time.monotonic() < t_move + follow_s:
         d_mm, d_deg = _true_error(cell, T_target_tcp)
         samples.append((time.monotonic() - t_move, d_mm, d_deg))
+        if samples[-1][0] >= 1.0:
+            offsets.append(_true_offset_mm(cell, T_target_tcp))
         time.sleep(0.01)
     state = cell.job(job_id).state
     cell.stop(CALLER, reason="bench: tracking done")
@@ -159,6 +209,12 @@ def _track(cell: Cell, speed_mm_s: float, T_target_tcp: Matrix4, T_home_target: 
            "rms_error_mm": float(np.sqrt(np.mean([s[1] ** 2 for s in tail]))),
            "max_error_mm": max(s[1] for s in tail),
            "rms_error_deg": float(np.sqrt(np.mean([s[2] ** 2 for s in tail])))}
+    if offsets:  # a constant offset (calibration) apart from the error that moves (dynamics)
+        arr = np.array(offsets)
+        bias = arr.mean(axis=0)
+        out["bias_mm"] = [float(x) for x in bias]
+        out["bias_norm_mm"] = float(np.linalg.norm(bias))
+        out["rms_about_bias_mm"] = float(np.sqrt(np.mean(np.sum((arr - bias) ** 2, axis=1))))
     if state != "running":
         out["error"] = f"{job.error_code}: {job.error_message}"
     return out
@@ -211,14 +267,27 @@ def _lost_target(cell: Cell, T_target_tcp: Matrix4, T_home_target: Matrix4) -> d
 
 
 def run_bench_approach(*, placements: int = 10, seed: int = 0,
-                       speeds: tuple[float, ...] = (25.0, 50.0, 100.0), follow_s: float = 3.0,
-                       host: str | None = None, progress: Progress | None = None,
-                       lost_after_s: float | None = None) -> dict[str, Any]:
+                       speeds: tuple[float, ...] = (25.0, 50.0, 100.0, 150.0),
+                       follow_s: float = 3.0, host: str | None = None,
+                       progress: Progress | None = None, lost_after_s: float | None = None,
+                       world: str = "realistic", ibvs: bool = True,
+                       sim_overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The approach, tracking and lost-target sections in ``world``; ``sim_overrides`` sets
+    ``[sim]`` keys over the world's preset (to take one effect out and see what it costs)."""
     from fakes.ur_controller.process import free_loopback_host
 
+    if world not in WORLDS:
+        raise ValueError(f"world must be one of {WORLDS}, got {world!r}")
     rng = np.random.default_rng(seed)
+    HOME_FAILURES.clear()
+    load_before = list(os.getloadavg())
     with tempfile.TemporaryDirectory() as tmp:
-        cell = start_cell(bench_config(Path(tmp), host or free_loopback_host(), lost_after_s))
+        config = bench_config(Path(tmp), host or free_loopback_host(), lost_after_s, world)
+        if sim_overrides:
+            data = config.model_dump(mode="python")
+            data["sim"].update(sim_overrides)
+            config = parse_config(data)
+        cell = start_cell(config)
         freeze_startup_objects()  # as cell serve does: no full collection stalls the loop
         lost_after_s = cell.config.servo.lost_after_s
         try:
@@ -229,12 +298,23 @@ def run_bench_approach(*, placements: int = 10, seed: int = 0,
             for i in range(placements):
                 T = placement(rng, T_home_target)
                 for mode in ("servo", "look_and_move"):
-                    rows.append({"placement": i, **_approach(cell, mode, T, T_tt)})
+                    try:
+                        row = _approach(cell, mode, T, T_tt)
+                    except Exception as err:  # counted as a failure; the run goes on
+                        cell.stop(CALLER, reason="bench: approach failed")
+                        row = {"mode": mode, "state": "failed", "time_s": None,
+                               "error_mm": None, "error_deg": None,
+                               "error": f"{type(err).__name__}: {err}",
+                               "placement_T_base_target": pose_dict(T)}
+                    rows.append({"placement": i, **row})
                     if progress:
                         progress("approach", len(rows), steps)
             tracks: list[dict[str, Any]] = []
             for speed in speeds:
-                run = functools.partial(_track, cell, speed, T_tt, T_home_target, follow_s)
+                # the drift stays within TRACK_TRAVEL_MM: at 150 mm/s a 3 s follow would carry
+                # the target out of the workspace box
+                follow = min(follow_s, TRACK_TRAVEL_MM / speed)
+                run = functools.partial(_track, cell, speed, T_tt, T_home_target, follow)
                 tracks.append(_attempt(run, cell, {"speed_mm_s": speed, "rms_error_mm": None}))
                 if progress:
                     progress("approach", len(rows) + len(tracks), steps)
@@ -245,8 +325,13 @@ def run_bench_approach(*, placements: int = 10, seed: int = 0,
             _sim(cell).set_target(T_home_target)
         finally:
             cell.close()
-    report = _report(rows, tracks, lost, placements, seed, lost_after_s)
-    report["ibvs"] = _ibvs_section(placements, seed, lost_after_s)
+    report = _report(rows, tracks, lost, placements, seed, lost_after_s, world)
+    report["load_average_before"] = load_before
+    report["sim_overrides"] = sim_overrides or {}
+    report["home_failures"] = list(HOME_FAILURES)
+    HOME_FAILURES.clear()
+    if ibvs:
+        report["ibvs"] = _ibvs_section(placements, seed, lost_after_s)
     return report
 
 
@@ -275,15 +360,46 @@ def _attempt(run: Callable[[], dict[str, Any]], cell: Cell, empty: dict[str, Any
 
 
 def _median(rows: list[dict[str, Any]], mode: str, key: str) -> float | None:
-    xs = [r[key] for r in rows if r["mode"] == mode and r["state"] == "succeeded"]
-    return float(statistics.median(xs)) if xs else None
+    """The median over every run of ``mode``: a failed one counts with the value measured
+    after it ended (a final error) or, where it has none (a time), as infinitely bad; None
+    when no run has the value at all. Each median's ``_n`` in the report says how many."""
+    xs: list[float] = []
+    for r in rows:
+        if r["mode"] != mode:
+            continue
+        value = r.get(key)
+        if r["state"] == "succeeded":
+            if value is not None:
+                xs.append(float(value))
+        elif key.startswith("error_") and value is not None:
+            xs.append(float(value))
+        else:
+            xs.append(math.inf)
+    if not xs:
+        return None
+    m = float(statistics.median(xs))
+    return None if math.isinf(m) else m
+
+
+def _ratio(rows: list[dict[str, Any]], mode: str) -> str:
+    runs = [r for r in rows if r["mode"] == mode]
+    return f"{sum(r['state'] == 'succeeded' for r in runs)}/{len(runs)}"
 
 
 def _report(rows: list[dict[str, Any]], tracks: list[dict[str, Any]], lost: dict[str, Any],
-            placements: int, seed: int, lost_after_s: float) -> dict[str, Any]:
+            placements: int, seed: int, lost_after_s: float, world: str = "ideal"
+            ) -> dict[str, Any]:
     servo_t = _median(rows, "servo", "time_s")
     lam_t = _median(rows, "look_and_move", "time_s")
+    n_servo = sum(r["mode"] == "servo" for r in rows)
+    n_lam = sum(r["mode"] == "look_and_move" for r in rows)
+    cover_ms = lost.get("cover_to_still_ms")
     out: dict[str, Any] = {
+        "world": world,
+        "servo_success_ratio": _ratio(rows, "servo"),
+        "look_and_move_success_ratio": _ratio(rows, "look_and_move"),
+        "lost_target_cover_to_still_ms": cover_ms,
+        "track_rms_error_mm": {f"{t['speed_mm_s']:g}": t["rms_error_mm"] for t in tracks},
         "servo_time_s_median": servo_t,
         "look_and_move_time_s_median": lam_t,
         "servo_final_error_mm_median": _median(rows, "servo", "error_mm"),
@@ -291,10 +407,10 @@ def _report(rows: list[dict[str, Any]], tracks: list[dict[str, Any]], lost: dict
         "look_and_move_final_error_mm_median": _median(rows, "look_and_move", "error_mm"),
         "look_and_move_final_error_deg_median": _median(rows, "look_and_move", "error_deg"),
         "servo_time_to_converge_s_median": _median(rows, "servo", "time_to_converge_s"),
+        "medians_n": {"servo": n_servo, "look_and_move": n_lam},  # every run, failures too
         "speedup": (lam_t / servo_t) if servo_t and lam_t else None,
-        "track_rms_error_mm": {f"{t['speed_mm_s']:g}": t["rms_error_mm"] for t in tracks},
         "lost_after_s": lost_after_s,
-        "lost_target_stop_ms": lost.get("declared_to_still_ms"),
+        "lost_target_declared_to_still_ms": lost.get("declared_to_still_ms"),
         "lost_target_job_stop_ms": lost["job_stopped_in_ms"],
         "lost_target_truth_stop_ms": lost["truth_stop_ms"],
         "failures": [r for r in rows if r["state"] != "succeeded"],
@@ -303,15 +419,17 @@ def _report(rows: list[dict[str, Any]], tracks: list[dict[str, Any]], lost: dict
     }
     e_mm, e_deg = out["servo_final_error_mm_median"], out["servo_final_error_deg_median"]
     rms = out["track_rms_error_mm"]
+    succeeded = [r for r in rows if r["state"] == "succeeded"]
     out["targets_met"] = {
+        "every_approach_succeeded": bool(rows) and len(succeeded) == len(rows),
+        "lost_target_cover_to_still_le_250ms": cover_ms is not None and cover_ms <= 250.0,
+        "track_100_le_1.5mm": (rms.get("100") or 1e9) <= 1.5,
+        "track_150_le_2.5mm": (rms.get("150") or 1e9) <= 2.5,
         "servo_median_time_le_3s": servo_t is not None and servo_t <= 3.0,
         "servo_4x_faster": bool(out["speedup"] and out["speedup"] >= 4.0),
         "servo_final_error_le_0.1mm_0.05deg": e_mm is not None and e_deg is not None
         and e_mm <= 0.1 and e_deg <= 0.05,
         "track_50_le_0.5mm": (rms.get("50") or 1e9) <= 0.5,
-        "track_100_le_1.5mm": (rms.get("100") or 1e9) <= 1.5,
-        "lost_target_still_within_100ms": lost.get("declared_to_still_ms") is not None
-        and lost["declared_to_still_ms"] <= 100.0,
     }
     return out
 
@@ -321,21 +439,28 @@ def format_report(r: dict[str, Any]) -> str:
         return "n/a" if x is None else format(x, fmt)
 
     lines = [
+        f"world {r.get('world', 'ideal')}: servo succeeded {r['servo_success_ratio']}, "
+        f"look-and-move {r['look_and_move_success_ratio']}; lens covered -> arm still "
+        f"{f(r['lost_target_cover_to_still_ms'], '.0f')} ms",
+        "conveyor tracking, RMS error after the first second:",
+        *(f"  {k} mm/s: {f(v)} mm" for k, v in r["track_rms_error_mm"].items()),
         f"approach from home to a {STANDOFF_MM:g} mm standoff, {r['placements']} placements "
-        f"(seed {r['seed']}):",
+        f"(seed {r['seed']}; medians over every run, a failure's time counted as infinite):",
         f"  servo          median {f(r['servo_time_s_median'], '.2f')} s, final error "
         f"{f(r['servo_final_error_mm_median'])} mm / {f(r['servo_final_error_deg_median'])} deg",
         f"  look-and-move  median {f(r['look_and_move_time_s_median'], '.2f')} s, final error "
         f"{f(r['look_and_move_final_error_mm_median'])} mm / "
         f"{f(r['look_and_move_final_error_deg_median'])} deg",
         f"  speed-up {f(r['speedup'], '.1f')}x; failures: {len(r['failures'])}",
-        "conveyor tracking, RMS error after the first second:",
-        *(f"  {k} mm/s: {f(v)} mm" for k, v in r["track_rms_error_mm"].items()),
-        f"lost target: arm still {f(r['lost_target_stop_ms'], '.0f')} ms after it was declared "
-        f"lost (the job's own figure {f(r['lost_target_job_stop_ms'], '.0f')} ms)",
+        f"  homings that failed and were retried: {len(r.get('home_failures', []))}",
+        f"lost target: arm still {f(r['lost_target_declared_to_still_ms'], '.0f')} ms after it "
+        f"was declared lost (the job's own figure {f(r['lost_target_job_stop_ms'], '.0f')} ms)",
         "targets: " + ", ".join(f"{k} {'yes' if v else 'NO'}"
                                 for k, v in r["targets_met"].items()),
     ]
+    for fail in r["failures"]:
+        lines.append(f"  failed: placement {fail.get('placement')} {fail['mode']}: "
+                     f"{fail.get('error')}")
     return "\n".join(lines + _ibvs_lines(r.get("ibvs")))
 
 

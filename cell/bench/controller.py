@@ -1,7 +1,11 @@
 """``python -m cell.bench.controller``: numbers for the simulated controller on this machine.
 
-With two CPU-burning processes running (``--no-load`` to skip them): the RTDE stream as
-ur_rtde records it (rows per second, the largest gap in the controller's own timestamps), the
+With two CPU-burning processes running (``--no-load`` to skip them): the RTDE stream as it
+arrives at the client, on the host's clock (packages per second of host time, the largest and
+99th-percentile gap between arrivals: what a client's control loop meets; the controller's own
+timestamps only say the controller kept its cycle), read by a plain socket and through
+ur_rtde (a new ``timestamp`` seen by polling), then the controller's timestamps as ur_rtde
+records them, the
 controller process's CPU, a mailbox round trip, and servoL tracking along a 200 mm line at
 100 and 250 mm/s, streamed as ur_rtde's realtime_control example does (500 Hz, initPeriod /
 waitPeriod, lookahead 0.1 s, gain 300): the largest distance of the actual TCP from the line
@@ -44,12 +48,22 @@ def rtde_record_stats(path: Path) -> tuple[float, float, int]:
     return (len(stamps) - 1) / span, float(gaps.max()), len(stamps)
 
 
-def raw_rtde_stream(host: str, seconds: float) -> tuple[float, float, int]:
+def arrival_stats(arrivals_s: list[float]) -> dict[str, float]:
+    """Packages per second of host time and the largest and p99 gaps (ms) between arrivals."""
+    gaps = np.diff(arrivals_s)
+    return {"per_s": (len(arrivals_s) - 1) / (arrivals_s[-1] - arrivals_s[0]),
+            "gap_max_ms": 1000.0 * float(gaps.max()),
+            "gap_p99_ms": 1000.0 * float(np.percentile(gaps, 99)), "n": float(len(arrivals_s))}
+
+
+def raw_rtde_stream(host: str, seconds: float) -> tuple[float, float, int, list[float]]:
     """Every data package of a 500 Hz ``timestamp`` recipe, read by a plain socket client:
-    (packages per second of controller time, max timestamp gap s, packages)."""
+    (packages per second of controller time, max timestamp gap s, packages, and each
+    package's arrival on the host clock, time.monotonic of the read that brought it)."""
     from fakes.ur_controller import rtde
 
     stamps: list[float] = []
+    arrivals: list[float] = []
     with socket.create_connection((host, rtde.RTDE_PORT), timeout=2.0) as sock:
         sock.sendall(rtde.encode(rtde.REQUEST_PROTOCOL_VERSION, struct.pack(">H", 2)))
         sock.sendall(rtde.encode(rtde.CONTROL_PACKAGE_SETUP_OUTPUTS,
@@ -58,11 +72,33 @@ def raw_rtde_stream(host: str, seconds: float) -> tuple[float, float, int]:
         reader = rtde.PackageReader()
         end = time.monotonic() + seconds
         while time.monotonic() < end:
-            for kind, payload in reader.feed(sock.recv(65536)):
+            data = sock.recv(65536)
+            t_arrival = time.monotonic()
+            for kind, payload in reader.feed(data):
                 if kind == rtde.DATA_PACKAGE:
                     stamps.append(struct.unpack(">Bd", payload)[1])
+                    arrivals.append(t_arrival)
     gaps = np.diff(stamps)
-    return (len(stamps) - 1) / (stamps[-1] - stamps[0]), float(gaps.max()), len(stamps)
+    return ((len(stamps) - 1) / (stamps[-1] - stamps[0]), float(gaps.max()), len(stamps),
+            arrivals)
+
+
+def ur_rtde_arrivals(r: object, seconds: float, poll_s: float = 0.0002) -> list[float]:
+    """Host times at which ur_rtde's receive interface shows a new controller ``timestamp``
+    (polled every ``poll_s``: the arrival as a client loop reading ur_rtde can see it)."""
+    import rtde_receive
+
+    assert isinstance(r, rtde_receive.RTDEReceiveInterface)
+    arrivals: list[float] = []
+    last = r.getTimestamp()
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        ts = r.getTimestamp()
+        if ts != last:
+            arrivals.append(time.monotonic())
+            last = ts
+        time.sleep(poll_s)
+    return arrivals
 
 
 def servo_line(c: object, r: object, speed_mm_s: float, length_mm: float = 200.0
@@ -114,6 +150,17 @@ def main(args: argparse.Namespace) -> int:
               f"on {os.cpu_count()} cores")
         time.sleep(1.0)
         r = rtde_receive.RTDEReceiveInterface(ctl.host, 500.0)
+        rate, gap, rows, arrivals = raw_rtde_stream(ctl.host, args.seconds)
+        a = arrival_stats(arrivals)
+        print(f"RTDE arrival at the client, host clock (plain socket reader, every package): "
+              f"{a['per_s']:.1f} packages/s, gap between arrivals max {a['gap_max_ms']:.1f} ms, "
+              f"p99 {a['gap_p99_ms']:.1f} ms, {rows} packages")
+        a = arrival_stats(ur_rtde_arrivals(r, args.seconds))
+        print(f"RTDE arrival through ur_rtde, host clock (a new timestamp polled every 0.2 ms): "
+              f"{a['per_s']:.1f} updates/s, gap max {a['gap_max_ms']:.1f} ms, p99 "
+              f"{a['gap_p99_ms']:.1f} ms")
+        print(f"  the same plain-socket stream on the controller's own clock: {rate:.1f} "
+              f"packages/s, max timestamp gap {1000 * gap:.1f} ms")
         with tempfile.TemporaryDirectory() as tmp:
             rec = Path(tmp) / "rec.csv"
             c0, t0 = _cpu_s(ctl.pid), time.monotonic()
@@ -122,12 +169,9 @@ def main(args: argparse.Namespace) -> int:
             r.stopFileRecording()
             cpu = 100.0 * (_cpu_s(ctl.pid) - c0) / (time.monotonic() - t0)
             rate, gap, rows = rtde_record_stats(rec)
-        print(f"RTDE via ur_rtde startFileRecording (record_data): {rate:.1f} rows/s of "
-              f"controller time (asked 500), max timestamp gap {1000 * gap:.1f} ms, {rows} rows; "
+        print(f"  ur_rtde startFileRecording (record_data), controller's clock: {rate:.1f} "
+              f"rows/s (asked 500), max timestamp gap {1000 * gap:.1f} ms, {rows} rows; "
               f"controller CPU {cpu:.0f} %")
-        rate, gap, rows = raw_rtde_stream(ctl.host, args.seconds)
-        print(f"RTDE every package (plain socket reader): {rate:.1f} packages/s of controller "
-              f"time, max timestamp gap {1000 * gap:.1f} ms, {rows} packages")
         c = rtde_control.RTDEControlInterface(ctl.host)
         rtts = []
         for _ in range(50):

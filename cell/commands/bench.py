@@ -32,11 +32,18 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "approach", help="servo vs look-and-move approach, conveyor tracking, lost target",
         description="On the simulated cell through the UR adapter and ur_rtde (see "
                     "cell/bench/approach.py): the same seeded placements for both approach "
-                    "modes, conveyor tracking at 25/50/100 mm/s, then a lost-target stop.")
+                    "modes, conveyor tracking at 25/50/100/150 mm/s, then a lost-target stop, "
+                    "in the realistic simulated world unless --world ideal.")
     a.add_argument("--placements", type=int, default=10, help="random placements (default 10)")
     a.add_argument("--seed", type=int, default=0, help="random seed")
     a.add_argument("--lost-after-s", type=float, default=None,
                    help="override [servo] lost_after_s (default: the config's, 0.1 s)")
+    a.add_argument("--world", choices=("realistic", "ideal"), default="realistic",
+                   help="the simulated truth: realistic (default; lens, mount, arm geometry, "
+                        "camera timing, motion blur and light off what the cell believes) or "
+                        "ideal (the config is the truth)")
+    a.add_argument("--no-ibvs", action="store_true",
+                   help="skip the IBVS section (its own cells, cell/bench/ibvs.py)")
     a.add_argument("--check", action="store_true",
                    help="exit with status 1 when a target is missed")
     a.add_argument("--tracking", action="store_true",
@@ -156,7 +163,8 @@ def _bench_approach(args: argparse.Namespace) -> int:
         return _report(args, report, format_tracking_report(report))
     with progress_bars(not args.json) as progress:
         report = run_bench_approach(placements=args.placements, seed=args.seed,
-                                    progress=progress, lost_after_s=args.lost_after_s)
+                                    progress=progress, lost_after_s=args.lost_after_s,
+                                    world=args.world, ibvs=not args.no_ibvs)
     return _report(args, report, format_report(report))
 
 

@@ -454,6 +454,32 @@ class SimConfig(_Strict):
     controller_running_at_start: bool = True
     noise_std: float = Field(default=1.0, ge=0)
     blur_sigma_px: float = Field(default=0.8, ge=0)
+    # The arm's true geometry: per-joint errors added to the nominal UR5e DH table the
+    # controller reports with (joint zero rad, d mm, a mm; 6 values each); None: the preset.
+    dh_delta_theta_rad: list[float] | None = None
+    dh_delta_d_mm: list[float] | None = None
+    dh_delta_a_mm: list[float] | None = None
+    # The camera's timing truth: mid-exposure to the frame being available to the cell
+    # (latency and its jitter, s), and the error of the frame's timestamp against the true
+    # mid-exposure time (a constant offset and a jitter, s); None: the preset.
+    camera_latency_s: float | None = Field(default=None, ge=0, le=0.5)
+    camera_latency_jitter_s: float | None = Field(default=None, ge=0, le=0.1)
+    timestamp_offset_s: float | None = Field(default=None, ge=-0.1, le=0.1)
+    timestamp_jitter_s: float | None = Field(default=None, ge=0, le=0.1)
+    # The image smeared along the motion during the exposure; None: the preset.
+    motion_blur: bool | None = None
+    # Frame-to-frame brightness: a random gain (relative std) and light flicker (relative
+    # depth at flicker_hz, averaged over each exposure); None: the preset.
+    gain_jitter: float | None = Field(default=None, ge=0, le=0.5)
+    flicker_depth: float | None = Field(default=None, ge=0, le=1)
+    flicker_hz: float = Field(default=100.0, gt=0)
+
+    @field_validator("dh_delta_theta_rad", "dh_delta_d_mm", "dh_delta_a_mm")
+    @classmethod
+    def _six(cls, v: list[float] | None) -> list[float] | None:
+        if v is not None and len(v) != 6:
+            raise ValueError(f"one value per joint: 6 values, got {len(v)}")
+        return v
     gripper_object_width_mm: float | None = Field(default=None, ge=0, le=85)
 
 

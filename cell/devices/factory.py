@@ -40,6 +40,7 @@ from fakes.sim_arm import SimArm
 from fakes.sim_camera import SimCamera
 from fakes.ur_controller.process import ControllerProcess
 from fakes.ur_sim.engine import MotionEngine
+from fakes.ur_sim.kinematics import UR5E, UR5eKinematics
 
 if TYPE_CHECKING:
     from drivers.oak.camera import OakSettings  # imported when used: depthai loads slowly
@@ -48,16 +49,39 @@ Matrix4 = NDArray[np.float64]
 PoseSource = Callable[[], tuple[Matrix4, float]]
 
 
+def true_kinematics(config: CellConfig) -> UR5eKinematics | None:
+    """The arm's true geometry when it differs from the nominal table the controller reports
+    with (``[sim]`` DH errors; None: the nominal table is the truth)."""
+    fx = sim_truth.effects(config)
+    if fx.kinematics_exact:
+        return None
+    return UR5eKinematics(UR5E.perturbed(fx.dh_delta_theta_rad, fx.dh_delta_d_mm,
+                                         fx.dh_delta_a_mm))
+
+
+def _true_flange_and_tcp(kin: UR5eKinematics | None, q: Any, tcp_pose: Any, tcp_offset: Any
+                         ) -> tuple[Matrix4, Matrix4]:
+    """``(T_base_flange, T_base_tcp)`` where the arm really is: the controller's report
+    (nominal kinematics) or, with a true geometry, its forward kinematics at the joints."""
+    T_flange_tcp = T_from_ur_pose(tcp_offset)
+    if kin is None:
+        T_tcp = T_from_ur_pose(tcp_pose)
+        return T_tcp @ invert_T(T_flange_tcp), T_tcp
+    T_flange = kin.forward(q)
+    return T_flange, T_flange @ T_flange_tcp
+
+
 class _EngineTruth:
     """The simulated arm's true state, read from an in-process engine."""
 
-    def __init__(self, engine: MotionEngine) -> None:
+    def __init__(self, engine: MotionEngine, kin: UR5eKinematics | None = None) -> None:
         self.engine = engine
+        self.kin = kin
 
     def flange_and_tcp(self) -> tuple[Matrix4, Matrix4, float]:
         snap = self.engine.snapshot()
-        T_tcp = T_from_ur_pose(snap.tcp_pose)
-        return T_tcp @ invert_T(T_from_ur_pose(snap.tcp_offset)), T_tcp, snap.host_monotonic_s
+        T_flange, T_tcp = _true_flange_and_tcp(self.kin, snap.q, snap.tcp_pose, snap.tcp_offset)
+        return T_flange, T_tcp, snap.host_monotonic_s
 
     def protective_stop(self, reason: str) -> None:
         self.engine.trigger_protective_stop(reason)
@@ -72,8 +96,9 @@ class _ProcessTruth:
     meanwhile the arm stands where it was, so the last pose read stays the truth.
     """
 
-    def __init__(self, host: str, start: bool) -> None:
+    def __init__(self, host: str, start: bool, kin: UR5eKinematics | None = None) -> None:
         self.host = host
+        self.kin = kin
         self.ctl: ControllerProcess | None = ControllerProcess(host) if start else None
         self._last: tuple[Matrix4, Matrix4] | None = None
 
@@ -87,8 +112,8 @@ class _ProcessTruth:
             if self._last is None:
                 raise RuntimeError(f"no simulated arm pose yet: {err}") from err
             return self._last[0], self._last[1], time.monotonic()
-        T_tcp = T_from_ur_pose(st["tcp_pose"])
-        T_flange = T_tcp @ invert_T(T_from_ur_pose(st["tcp_offset"]))
+        T_flange, T_tcp = _true_flange_and_tcp(self.kin, st["q"], st["tcp_pose"],
+                                               st["tcp_offset"])
         self._last = (T_flange, T_tcp)
         return T_flange, T_tcp, float(st["host_monotonic_s"])
 
@@ -122,15 +147,17 @@ class _SimWorld:
     """Ground truth and fault switches over the simulated arm and camera."""
 
     def __init__(self, truth: _EngineTruth | _ProcessTruth, camera: SimCamera,
-                 gripper: FakeGripper | None = None, world: str = "ideal") -> None:
+                 gripper: FakeGripper | None = None, world: str = "ideal",
+                 effects: sim_truth.SimEffects = sim_truth.IDEAL_EFFECTS) -> None:
         self._truth = truth
         self._camera = camera
         self._gripper = gripper
         self._world = world
+        self._effects = effects
 
     def truth_values(self) -> sim_truth.SimTruthValues:
         return sim_truth.SimTruthValues(self._world, self._camera.camera,
-                                        self._camera.T_flange_camera.copy())
+                                        self._camera.T_flange_camera.copy(), self._effects)
 
     def true_T_base_target(self, at_s: float | None = None) -> Matrix4:
         return self._camera.target_at(time.monotonic() if at_s is None else at_s)
@@ -203,10 +230,15 @@ def _make_camera(config: CellConfig, truth: _EngineTruth | _ProcessTruth | None
             sim_camera = _fixed_sim_camera(config, truth)
         else:
             true = sim_truth.resolve(config)
+            fx = true.effects
             sim_camera = SimCamera(
                 true.camera, config.target.model(), sim.T_base_target.T(), true.T_flange_camera,
                 _pose_source(truth), fps=cc.fps, noise_std=sim.noise_std,
-                blur_sigma_px=sim.blur_sigma_px)
+                blur_sigma_px=sim.blur_sigma_px, exposure_jitter=fx.gain_jitter,
+                latency_s=fx.camera_latency_s, latency_jitter_s=fx.camera_latency_jitter_s,
+                timestamp_offset_s=fx.timestamp_offset_s,
+                timestamp_jitter_s=fx.timestamp_jitter_s, motion_blur=fx.motion_blur,
+                flicker_depth=fx.flicker_depth, flicker_hz=fx.flicker_hz)
         if cc.exposure_us is not None or cc.iso is not None or cc.focus is not None:
             try:
                 sim_camera.apply_settings(CameraSettings(cc.exposure_us, cc.iso, cc.focus))
@@ -298,7 +330,7 @@ def build_camera(config: CellConfig) -> tuple[Camera, Callable[[], None]]:
     if config.camera.kind == "sim":
         home_rad = [float(v) for v in np.radians(config.robot.home_joints_deg)]
         engine = MotionEngine(q_rad=home_rad)
-        truth = _EngineTruth(engine)
+        truth = _EngineTruth(engine, true_kinematics(config))
     try:
         camera, _ = _make_camera(config, truth)
     except BaseException:
@@ -338,12 +370,13 @@ def _build(config: CellConfig, closers: list[Callable[[], None]]) -> Hardware:
     if rc.kind == "sim":
         engine = MotionEngine(q_rad=[float(v) for v in np.radians(rc.home_joints_deg)])
         closers.append(engine.close)
-        truth = _EngineTruth(engine)
+        truth = _EngineTruth(engine, true_kinematics(config))
         arm = SimArm(engine)
         closers.append(arm.disconnect)
     else:
         if sim.ur_controller:
-            process_truth = _ProcessTruth(rc.host, start=sim.controller_running_at_start)
+            process_truth = _ProcessTruth(rc.host, start=sim.controller_running_at_start,
+                                          kin=true_kinematics(config))
             closers.append(process_truth.close)
             truth = process_truth
         from drivers.ur.adapter import URArm
@@ -375,7 +408,8 @@ def _build(config: CellConfig, closers: list[Callable[[], None]]) -> Hardware:
     simulated = all_simulated(config)
     world = None
     if simulated and truth is not None and sim_camera is not None:
-        world = _SimWorld(truth, sim_camera, fake, config.sim.world)
+        world = _SimWorld(truth, sim_camera, fake, config.sim.world,
+                          sim_truth.effects(config))
     hw = Hardware(arm=arm, camera=camera, gripper=gripper, simulated=simulated, sim=world,
                   closers=list(closers))
     closers.clear()

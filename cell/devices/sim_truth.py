@@ -37,6 +37,52 @@ class RealisticOffsets:
     dist: tuple[float, float, float, float, float]  # true Brown-Conrady k1 k2 p1 p2 k3
 
 
+@dataclass(frozen=True)
+class SimEffects:
+    """The arm's true geometry and the camera's timing and image effects, beside the lens.
+
+    ``dh_delta_*``: what the arm's true DH table adds to the nominal one the controller
+    reports with. ``camera_latency_s`` (+ a half-normal jitter): mid-exposure to the frame
+    being available; ``timestamp_offset_s`` (+ a normal jitter): the frame's timestamp minus
+    its true mid-exposure time. ``motion_blur``: the image smeared along the motion during the
+    exposure. ``gain_jitter``: a frame's random relative gain; ``flicker_depth``: the light's
+    modulation at ``flicker_hz``, averaged over each exposure.
+    """
+
+    dh_delta_theta_rad: tuple[float, ...] = (0.0,) * 6
+    dh_delta_d_mm: tuple[float, ...] = (0.0,) * 6
+    dh_delta_a_mm: tuple[float, ...] = (0.0,) * 6
+    camera_latency_s: float = 0.0
+    camera_latency_jitter_s: float = 0.0
+    timestamp_offset_s: float = 0.0
+    timestamp_jitter_s: float = 0.0
+    motion_blur: bool = False
+    gain_jitter: float = 0.03
+    flicker_depth: float = 0.0
+    flicker_hz: float = 100.0
+
+    @property
+    def kinematics_exact(self) -> bool:
+        return not any((*self.dh_delta_theta_rad, *self.dh_delta_d_mm, *self.dh_delta_a_mm))
+
+
+# The ideal world: nominal kinematics, a frame available the instant it is exposed and stamped
+# with its true time, no motion blur, the simulated camera's long-standing 3 % gain jitter.
+IDEAL_EFFECTS = SimEffects()
+# Typical values with their sources in docs/simulator.md: an uncalibrated arm's geometry off
+# the nominal table by tenths of a mm and ~0.1 mrad per joint (the reported TCP ~1 mm off);
+# an OAK on USB3: ~33 ms latency (std ~0.8 ms), host-synced timestamps (< 0.2 ms 1 sigma)
+# that mark the end of the exposure; LED light flickering at twice a 50 Hz mains.
+REALISTIC_EFFECTS = SimEffects(
+    dh_delta_theta_rad=(0.0, 3e-4, -2.5e-4, 2.5e-4, -3e-4, 0.0),
+    dh_delta_d_mm=(0.25, 0.0, 0.0, -0.2, 0.15, 0.0),
+    dh_delta_a_mm=(0.0, 0.3, -0.3, 0.0, 0.0, 0.0),
+    camera_latency_s=0.033, camera_latency_jitter_s=0.001,
+    timestamp_offset_s=0.002, timestamp_jitter_s=0.0002,
+    motion_blur=True, gain_jitter=0.05, flicker_depth=0.1, flicker_hz=100.0,
+)
+
+
 # A hand-measured bracket (calipers, a square): 1-3 mm and a few tenths of a degree off;
 # nominal intrinsics from a datasheet field of view: ~0.5-1 % in focal length, a few px in the
 # principal point; a small-format M12 lens of the OAK class: mild barrel distortion.
@@ -56,6 +102,7 @@ class SimTruthValues:
     world: str
     camera: CameraModel
     T_flange_camera: Matrix4
+    effects: SimEffects = IDEAL_EFFECTS
 
 
 def resolve(config: CellConfig) -> SimTruthValues:
@@ -80,4 +127,28 @@ def resolve(config: CellConfig) -> SimTruthValues:
         tuple(sc.dist) if sc.dist is not None else dist, believed.width, believed.height)
     if sim.T_flange_camera is not None:
         T_mount = sim.T_flange_camera.T()
-    return SimTruthValues(sim.world, camera, np.asarray(T_mount, dtype=float))
+    return SimTruthValues(sim.world, camera, np.asarray(T_mount, dtype=float), effects(config))
+
+
+def effects(config: CellConfig) -> SimEffects:
+    """The world preset's kinematic, timing and image effects; explicit ``[sim]`` values win."""
+    sim = config.sim
+    p = REALISTIC_EFFECTS if sim.world == "realistic" else IDEAL_EFFECTS
+
+    def pick(value: float | None, preset: float) -> float:
+        return preset if value is None else float(value)
+
+    def six(value: list[float] | None, preset: tuple[float, ...]) -> tuple[float, ...]:
+        return preset if value is None else tuple(float(x) for x in value)
+
+    return SimEffects(
+        six(sim.dh_delta_theta_rad, p.dh_delta_theta_rad), six(sim.dh_delta_d_mm,
+                                                               p.dh_delta_d_mm),
+        six(sim.dh_delta_a_mm, p.dh_delta_a_mm),
+        pick(sim.camera_latency_s, p.camera_latency_s),
+        pick(sim.camera_latency_jitter_s, p.camera_latency_jitter_s),
+        pick(sim.timestamp_offset_s, p.timestamp_offset_s),
+        pick(sim.timestamp_jitter_s, p.timestamp_jitter_s),
+        p.motion_blur if sim.motion_blur is None else sim.motion_blur,
+        pick(sim.gain_jitter, p.gain_jitter), pick(sim.flicker_depth, p.flicker_depth),
+        sim.flicker_hz)

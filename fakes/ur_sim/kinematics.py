@@ -28,11 +28,23 @@ class UnreachableError(ValueError):
 
 @dataclass(frozen=True)
 class DH:
-    """Standard DH table, lengths in mm."""
+    """Standard DH table, lengths in mm; ``theta_offset_rad`` is added to each joint angle
+    (zero in the published table; a real arm's joint zeros sit a little off it)."""
 
     d_mm: tuple[float, ...]
     a_mm: tuple[float, ...]
     alpha_rad: tuple[float, ...]
+    theta_offset_rad: tuple[float, ...] = (0.0,) * 6
+
+    def perturbed(self, delta_theta_rad: tuple[float, ...], delta_d_mm: tuple[float, ...],
+                  delta_a_mm: tuple[float, ...]) -> DH:
+        """This table with small per-joint errors added: an individual arm's true geometry,
+        which the nominal table (what an uncalibrated controller computes with) misses."""
+        return DH(tuple(x + dx for x, dx in zip(self.d_mm, delta_d_mm, strict=True)),
+                  tuple(x + dx for x, dx in zip(self.a_mm, delta_a_mm, strict=True)),
+                  self.alpha_rad,
+                  tuple(x + dx for x, dx in zip(self.theta_offset_rad, delta_theta_rad,
+                                                strict=True)))
 
 
 # Universal Robots' published UR5e parameters (m -> mm).
@@ -80,8 +92,10 @@ class UR5eKinematics:
         """``T_base_i`` for i = 0..6 (frame 0 is the base, frame 6 the flange)."""
         q = np.asarray(q_rad, dtype=float).reshape(6)
         frames = [np.eye(4)]
+        dh = self.dh
         for i in range(6):
-            Ti = _dh_T(float(q[i]), self.dh.d_mm[i], self.dh.a_mm[i], self.dh.alpha_rad[i])
+            Ti = _dh_T(float(q[i]) + dh.theta_offset_rad[i], dh.d_mm[i], dh.a_mm[i],
+                       dh.alpha_rad[i])
             frames.append(frames[-1] @ Ti)
         return frames
 

@@ -7,6 +7,7 @@ camera waits) and must not stall the event loop that serves /stop and /events.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import time
 from collections.abc import AsyncIterator
 from typing import Annotated, Any
@@ -303,7 +304,8 @@ def sim_truth(request: Request, caller: Read) -> dict[str, Any]:
             "world": true.world, "T_flange_camera": pose_dict(true.T_flange_camera),
             "T_base_camera": pose_dict(true.T_flange_camera) if fixed else None,
             "camera": {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
-                       "dist": list(cam.dist), "width": cam.width, "height": cam.height}}
+                       "dist": list(cam.dist), "width": cam.width, "height": cam.height},
+            "effects": dataclasses.asdict(true.effects)}
 
 
 @sim_router.put("/target", response_model=SimTarget)

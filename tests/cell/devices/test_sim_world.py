@@ -10,8 +10,16 @@ from fastapi.testclient import TestClient
 
 from api.app import create_app
 from cell.config.schema import ConfigError
-from cell.devices.sim_truth import REALISTIC, resolve
+from cell.devices.factory import build_hardware, true_kinematics
+from cell.devices.sim_truth import (
+    IDEAL_EFFECTS,
+    REALISTIC,
+    REALISTIC_EFFECTS,
+    effects,
+    resolve,
+)
 from estimator.transforms import T_from_pose_dict, invert_T, pose_distance
+from fakes.ur_sim.kinematics import UR5eKinematics
 from tests.support.cell import AUTH, running_cell, sim_config
 
 VIEW = AUTH["viewer"]
@@ -62,3 +70,52 @@ def test_sim_truth_reports_lens_and_mount(tmp_path: Path) -> None:
     assert body["camera"]["dist"] == pytest.approx(list(REALISTIC.dist))
     T = T_from_pose_dict(body["T_flange_camera"])
     np.testing.assert_allclose(invert_T(T) @ true.T_flange_camera, np.eye(4), atol=1e-9)
+
+
+def _reported_vs_true_tcp_mm(tmp_path: Path, world: str) -> float:
+    config = sim_config(tmp_path, sim={"world": world})
+    hw = build_hardware(config)
+    try:
+        hw.arm.connect()
+        assert hw.sim is not None
+        return float(np.linalg.norm(hw.arm.tcp_pose()[:3, 3] - hw.sim.true_T_base_tcp()[:3, 3]))
+    finally:
+        hw.close()
+
+
+def test_realistic_arm_reports_nominal_kinematics_off_the_true_tcp(tmp_path: Path) -> None:
+    # the controller reports with the nominal DH table; the true arm is a little off it
+    assert 0.1 < _reported_vs_true_tcp_mm(tmp_path, "realistic") < 1.5
+    assert _reported_vs_true_tcp_mm(tmp_path / "ideal", "ideal") < 1e-9
+
+
+def test_true_kinematics_stay_within_a_millimetre_over_the_workspace(tmp_path: Path) -> None:
+    kin = true_kinematics(sim_config(tmp_path, sim={"world": "realistic"}))
+    assert kin is not None and true_kinematics(sim_config(tmp_path)) is None
+    nominal = UR5eKinematics()
+    q = np.random.default_rng(0).uniform(-np.pi, np.pi, (500, 6))
+    d = [np.linalg.norm(kin.forward(x)[:3, 3] - nominal.forward(x)[:3, 3]) for x in q]
+    assert float(np.median(d)) > 0.2 and max(d) < 1.3
+
+
+def test_effects_presets_and_overrides(tmp_path: Path) -> None:
+    ideal = effects(sim_config(tmp_path))
+    assert ideal == IDEAL_EFFECTS and ideal.kinematics_exact and not ideal.motion_blur
+    real = effects(sim_config(tmp_path, sim={"world": "realistic"}))
+    assert real == REALISTIC_EFFECTS and real.camera_latency_s > 0 and real.motion_blur
+    mixed = effects(sim_config(tmp_path, sim={"world": "realistic", "camera_latency_s": 0.05,
+                                              "motion_blur": False}))
+    assert mixed.camera_latency_s == 0.05 and not mixed.motion_blur
+    with pytest.raises(ConfigError):
+        sim_config(tmp_path, sim={"dh_delta_a_mm": [0.1, 0.2]})
+
+
+def test_sim_truth_reports_the_effects(tmp_path: Path) -> None:
+    config = sim_config(tmp_path, sim={"world": "realistic"})
+    with running_cell(config) as cell, TestClient(create_app(cell)) as client:
+        body = client.get("/api/v1/sim/truth", headers=VIEW).json()
+    fx = body["effects"]
+    assert fx["dh_delta_a_mm"] == pytest.approx(list(REALISTIC_EFFECTS.dh_delta_a_mm))
+    assert fx["camera_latency_s"] == pytest.approx(REALISTIC_EFFECTS.camera_latency_s)
+    assert fx["timestamp_offset_s"] == pytest.approx(REALISTIC_EFFECTS.timestamp_offset_s)
+    assert fx["motion_blur"] is True and fx["flicker_depth"] > 0
