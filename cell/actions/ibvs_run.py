@@ -56,8 +56,8 @@ from cell.actions.ibvs_settle import mean_features, settle_step, step_goal, step
 from cell.actions.servo import (
     MAX_EXTRAPOLATE_S,
     PROGRESS_PERIOD_S,
-    STILL_TIMEOUT_S,
     _stats_ms,
+    stop_still,
 )
 from cell.actions.target_loss import LossClock, Silence
 from cell.core import CellCore
@@ -407,21 +407,7 @@ class IbvsRun:
         return out
 
     def _stop_still(self) -> float:
-        t0 = time.monotonic()
-        arm = self.core.arm
-        try:
-            arm.stop(decel_mm_s2=self.sc.stop_decel_mm_s2)
-        except DriverError as err:
-            raise UnavailableError(ErrorCode.arm_disconnected, f"stopping the arm: {err}") from err
-        deadline = t0 + STILL_TIMEOUT_S
-        while time.monotonic() < deadline:
-            try:
-                if not arm.state().moving:
-                    break
-            except DriverError:
-                break
-            time.sleep(0.002)
-        return time.monotonic() - t0
+        return stop_still(self.core.arm, self.sc.stop_decel_mm_s2)
 
     def _lost(self, silence: Silence) -> None:
         declared_s = time.monotonic()
@@ -430,14 +416,8 @@ class IbvsRun:
         self.core.runner.progress(self.job_id, {"phase": "target_lost",
                                                 "stopped_in_ms": round(took * 1000.0, 1),
                                                 "lost_at_monotonic_s": declared_s})
-        if silence.camera_s > self.sc.lost_after_s:
-            what = (f"frames exposed for {silence.camera_s * 1000:.0f} ms after the last view "
-                    f"were not usable (limit {self.sc.lost_after_s * 1000:.0f} ms of camera "
-                    "time)")
-        else:
-            what = (f"no frame examined for {silence.stalled_s * 1000:.0f} ms (limit "
-                    f"{self._loss.stall_after_s * 1000:.0f} ms: the camera or the estimator "
-                    "stalled)")
+        what = silence.describe(self.sc.lost_after_s, self._loss.stall_after_s,
+                                "view were not usable")
         raise RefusedError(ErrorCode.target_lost, what
                            + (f"; {why.message}" if why is not None else "")
                            + f"; {self._failed_frames} frames without the target, "

@@ -47,7 +47,7 @@ from cell.actions.target_loss import LossClock, Silence
 from cell.core import CellCore
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, RefusedError, UnavailableError
-from cell.motion.guard import SERVO_MIN_DT_S, Motion
+from cell.motion.guard import SERVO_MIN_DT_S, GuardedArm, Motion
 from cell.motion.limits import linear_path
 from cell.motion.twist import extrapolate_tcp
 from cell.vision.frames import approach_tcp
@@ -93,6 +93,25 @@ def _stats_ms(xs: list[float]) -> dict[str, float] | None:
     return {"median": round(float(np.median(a)), 1), "p95": round(float(np.percentile(a, 95)), 1),
             "max": round(float(a.max()), 1)}
 
+
+
+def stop_still(arm: GuardedArm, decel_mm_s2: float) -> float:
+    """Command the stop and wait until the arm stands (at most STILL_TIMEOUT_S); the seconds
+    it took. Every closed loop ends this way before it reports a lost target or a fault."""
+    t0 = time.monotonic()
+    try:
+        arm.stop(decel_mm_s2=decel_mm_s2)
+    except DriverError as err:
+        raise UnavailableError(ErrorCode.arm_disconnected, f"stopping the arm: {err}") from err
+    deadline = t0 + STILL_TIMEOUT_S
+    while time.monotonic() < deadline:
+        try:
+            if not arm.state().moving:
+                break
+        except DriverError:
+            break
+        time.sleep(0.002)
+    return time.monotonic() - t0
 
 class ServoRun:
     """One servo job's loop (see module doc). ``run`` returns the job's result."""
@@ -357,38 +376,16 @@ class ServoRun:
         return out
 
     def _stop_still(self) -> float:
-        """Command the stop and wait until the arm stands; seconds it took."""
-        t0 = time.monotonic()
-        arm = self.core.arm
-        try:
-            arm.stop(decel_mm_s2=self.sc.stop_decel_mm_s2)
-        except DriverError as err:
-            raise UnavailableError(ErrorCode.arm_disconnected, f"stopping the arm: {err}") from err
-        deadline = t0 + STILL_TIMEOUT_S
-        while time.monotonic() < deadline:
-            try:
-                if not arm.state().moving:
-                    break
-            except DriverError:
-                break
-            time.sleep(0.002)
-        return time.monotonic() - t0
+        return stop_still(self.core.arm, self.sc.stop_decel_mm_s2)
 
     def _lost(self, silence: Silence) -> None:
         declared_s = time.monotonic()
         took = self._stop_still()
         why = self._camera_error or self._last_error
-        stall_s = self._loss.stall_after_s
         self.core.runner.progress(self.job_id, {"phase": "target_lost",
                                                 "stopped_in_ms": round(took * 1000.0, 1),
                                                 "lost_at_monotonic_s": declared_s})
-        if silence.camera_s > self.sc.lost_after_s:
-            what = (f"frames exposed for {silence.camera_s * 1000:.0f} ms after the last "
-                    f"pose did not show the target (limit {self.sc.lost_after_s * 1000:.0f} ms "
-                    "of camera time")
-        else:
-            what = (f"no frame examined for {silence.stalled_s * 1000:.0f} ms (limit "
-                    f"{stall_s * 1000:.0f} ms: the camera or the estimator stalled")
+        what = silence.describe(self.sc.lost_after_s, self._loss.stall_after_s)
         raise RefusedError(ErrorCode.target_lost, what
                            + (f"; {why.message}" if why is not None else "")
                            + f"; {self._failed_frames} frames without the target, "

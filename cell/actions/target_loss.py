@@ -26,6 +26,15 @@ class Silence:
     stalled_s: float  # host time since the newest examined frame's exposure
     lost: bool
 
+    def describe(self, lost_after_s: float, stall_after_s: float,
+                 unseen: str = "pose did not show the target") -> str:
+        """Why the target counts as lost, for the job's error message."""
+        if self.camera_s > lost_after_s:
+            return (f"frames exposed for {self.camera_s * 1000:.0f} ms after the last {unseen} "
+                    f"(limit {lost_after_s * 1000:.0f} ms of camera time)")
+        return (f"no frame examined for {self.stalled_s * 1000:.0f} ms (limit "
+                f"{stall_after_s * 1000:.0f} ms: the camera or the estimator stalled)")
+
 
 class LossClock:
     """Not thread-safe: the servo loop calls it under its own lock."""
