@@ -384,7 +384,9 @@ class ServoRun:
         why = self._camera_error or self._last_error
         self.core.runner.progress(self.job_id, {"phase": "target_lost",
                                                 "stopped_in_ms": round(took * 1000.0, 1),
-                                                "lost_at_monotonic_s": declared_s})
+                                                "lost_at_monotonic_s": declared_s,
+                                                "last_pose_exposure_s":
+                                                    self._loss.last_pose_exposure_s})
         what = silence.describe(self.sc.lost_after_s, self._loss.stall_after_s)
         raise RefusedError(ErrorCode.target_lost, what
                            + (f"; {why.message}" if why is not None else "")

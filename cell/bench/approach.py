@@ -17,6 +17,12 @@ API, so every command passes the guarded motion path. Errors are against simulat
    still (the simulated controller's own state, never the cell's declaration); beside it the
    same from the cell's declaration, and the job's own figure.
 
+``commissioned``: before anything is measured, the cell is commissioned as an integrator does
+it on a real cell: the hand-eye routine (the calibration job of the HTTP API, on the cell's
+own dot plate at home) and its result applied to the running cell; the routine's result is
+scored against the simulated mount, which nothing the cell does reads. Intrinsics are not
+measured: live frames carry the camera's own calibration, which the locator uses.
+
 ``world`` (``realistic`` by default) is the simulated truth the cell does not share
 (cell/devices/sim_truth.py): its lens, mount, arm geometry, camera latency and timestamps,
 motion blur and light differ from what the cell's config believes. The report starts with the
@@ -47,7 +53,7 @@ from cell.errors import CellError
 from cell.runtime import freeze_startup_objects, start_cell
 from cell.service import Cell
 from cell.vision.frames import approach_tcp
-from estimator.transforms import make_T, pose_dict, pose_distance
+from estimator.transforms import T_from_pose_dict, make_T, pose_dict, pose_distance
 
 Progress = Callable[[str, int, int], None]
 Matrix4 = NDArray[np.float64]
@@ -246,6 +252,7 @@ def _lost_target(cell: Cell, T_target_tcp: Matrix4, T_home_target: Matrix4) -> d
     job_id = _hold(cell, T_target_tcp, 30.0)
     sim.set_target(sim.true_T_base_target(), np.array([-speed, 0.0, 0.0]))
     time.sleep(1.5)
+    moving_mm_s = _true_speed_mm_s(cell)
     t_cover = time.monotonic()
     sim.set_camera_blocked(True)
     try:
@@ -257,13 +264,81 @@ def _lost_target(cell: Cell, T_target_tcp: Matrix4, T_home_target: Matrix4) -> d
     job = cell.job(job_id)
     lost_after_ms = cell.config.servo.lost_after_s * 1000.0
     lost_at = job.progress.get("lost_at_monotonic_s")
+    last_pose = job.progress.get("last_pose_exposure_s")
+    cover_ms = (t_still - t_cover) * 1000.0
+    # the figure counts only when the arm was following the target when the lens was
+    # covered and stood still after the cell declared the loss (not stopped for another reason)
+    valid = moving_mm_s >= 0.5 * speed and lost_at is not None and t_still >= lost_at - 0.005
     return {"speed_mm_s": speed, "state": state, "code": job.error_code,
+            "arm_speed_at_cover_mm_s": moving_mm_s, "valid": valid,
             "job_stopped_in_ms": job.progress.get("stopped_in_ms"),
-            # the simulator's truth from the moment the cell declared the target lost
+            # where the time went, each from the cover: the camera time of the last frame
+            # that showed the target, the loss declared, the arm standing (simulator truth)
+            "last_pose_exposure_ms": None if last_pose is None
+            else (last_pose - t_cover) * 1000.0,
+            "cover_to_declared_ms": None if lost_at is None else (lost_at - t_cover) * 1000.0,
             "declared_to_still_ms": None if lost_at is None else (t_still - lost_at) * 1000.0,
-            "cover_to_still_ms": (t_still - t_cover) * 1000.0,
+            "cover_to_still_ms": cover_ms if valid else None,
+            "cover_to_still_measured_ms": cover_ms,
             "lost_after_ms": lost_after_ms,
-            "truth_stop_ms": (t_still - t_cover) * 1000.0 - lost_after_ms}
+            "truth_stop_ms": cover_ms - lost_after_ms}
+
+
+def _true_speed_mm_s(cell: Cell, span_s: float = 0.03) -> float:
+    """The true TCP's speed over ``span_s`` (simulator truth)."""
+    T0, t0 = _sim(cell).true_tcp_sample()
+    time.sleep(span_s)
+    T1, t1 = _sim(cell).true_tcp_sample()
+    return float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]) / max(t1 - t0, 1e-6))
+
+
+COMMISSION_VIEWS = 12  # the hand-eye routine's views, as docs/commissioning.md runs it
+
+
+def commission(cell: Cell, T_home_target: Matrix4, views: int = COMMISSION_VIEWS
+               ) -> dict[str, Any]:
+    """Commission the running cell as an integrator does: the hand-eye routine at home on the
+    cell's dot plate, then Apply of its chosen result. The mount before and after, and every
+    method's result, against the simulated truth (read here only to score). When the routine's
+    verdict is inconsistent, Apply refuses (as on the page) and the cell stays uncommissioned:
+    recorded with the verdict's text. RuntimeError when the routine itself fails."""
+    from cell.calibration.routine import RoutineSettings
+    from cell.calibration.service import CalibrationService
+    from cell.errors import CellError
+
+    truth = _sim(cell).truth_values()
+    before = pose_distance(cell.core.frames.T_flange_camera, truth.T_flange_camera)
+    _home(cell)
+    _sim(cell).set_target(T_home_target)
+    time.sleep(0.15)
+    service = CalibrationService(cell)
+    t0 = time.monotonic()
+    job = service.wait(service.start(CALLER, RoutineSettings(n_views=views)).id, 600.0)
+    took = time.monotonic() - t0
+    if job.state != "succeeded" or job.result is None:
+        raise RuntimeError(f"hand-eye routine {job.state}: {job.error_code} {job.error_message}")
+    r = job.result
+    results = {name: m["T_flange_camera"] for name, m in r["methods"].items()}
+    if r.get("joint") is not None:
+        results["joint"] = r["joint"]["T_flange_camera"]
+    scored = {name: dict(zip(("mm", "deg"), pose_distance(T_from_pose_dict(T),
+                                                          truth.T_flange_camera), strict=True))
+              for name, T in results.items()}
+    out: dict[str, Any] = {
+        "views": views, "failed_views": len(r["failed_views"]), "routine_s": took,
+        "chosen": r["chosen"], "verdict_consistent": bool(r["verdict"]["consistent"]),
+        "verdict": r["verdict"]["text"], "methods_vs_truth": scored,
+        "mount_error_before_mm": before[0], "mount_error_before_deg": before[1],
+        "intrinsics": "the camera's own (frames)"}
+    try:
+        service.apply(CALLER, job.id)
+        out["applied"] = True
+    except CellError as err:  # an inconsistent verdict: the page refuses Apply too
+        out["applied"] = False
+        out["apply_refused"] = f"{err.code}: {err.message}"
+    after = pose_distance(cell.core.frames.T_flange_camera, truth.T_flange_camera)
+    out.update(mount_error_after_mm=after[0], mount_error_after_deg=after[1])
+    return out
 
 
 def run_bench_approach(*, placements: int = 10, seed: int = 0,
@@ -271,9 +346,12 @@ def run_bench_approach(*, placements: int = 10, seed: int = 0,
                        follow_s: float = 3.0, host: str | None = None,
                        progress: Progress | None = None, lost_after_s: float | None = None,
                        world: str = "realistic", ibvs: bool = True,
-                       sim_overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+                       sim_overrides: dict[str, Any] | None = None,
+                       commissioned: bool = False) -> dict[str, Any]:
     """The approach, tracking and lost-target sections in ``world``; ``sim_overrides`` sets
-    ``[sim]`` keys over the world's preset (to take one effect out and see what it costs)."""
+    ``[sim]`` keys over the world's preset (to take one effect out and see what it costs);
+    ``commissioned``: the cell's own hand-eye routine is run and applied first (:func:`commission`;
+    a failed commissioning is recorded and the run goes on uncommissioned)."""
     from fakes.ur_controller.process import free_loopback_host
 
     if world not in WORLDS:
@@ -293,6 +371,13 @@ def run_bench_approach(*, placements: int = 10, seed: int = 0,
         try:
             T_tt = cell.config.approach.T_target_tcp.T()
             T_home_target = _sim(cell).true_T_base_target()
+            commissioning: dict[str, Any] | None = None
+            if commissioned:
+                try:
+                    commissioning = commission(cell, T_home_target)
+                except Exception as err:  # recorded; the figures below are then uncommissioned
+                    cell.stop(CALLER, reason="bench: commissioning failed")
+                    commissioning = {"failed": f"{type(err).__name__}: {err}"}
             rows: list[dict[str, Any]] = []
             steps = 2 * placements + len(speeds) + 1
             for i in range(placements):
@@ -326,6 +411,8 @@ def run_bench_approach(*, placements: int = 10, seed: int = 0,
         finally:
             cell.close()
     report = _report(rows, tracks, lost, placements, seed, lost_after_s, world)
+    report["commissioned"] = commissioned
+    report["commissioning"] = commissioning
     report["load_average_before"] = load_before
     report["sim_overrides"] = sim_overrides or {}
     report["home_failures"] = list(HOME_FAILURES)
@@ -438,7 +525,22 @@ def format_report(r: dict[str, Any]) -> str:
     def f(x: Any, fmt: str = ".3f") -> str:
         return "n/a" if x is None else format(x, fmt)
 
+    c = r.get("commissioning")
+    if c is None:
+        comm = "uncommissioned ([hand_eye] as configured)"
+    elif "failed" in c:
+        comm = f"commissioning FAILED ({c['failed']}): the figures are uncommissioned"
+    else:
+        comm = (f"{'commissioned' if c['applied'] else 'NOT commissioned (Apply refused)'}: "
+                f"hand-eye routine {c['views']} views in {c['routine_s']:.0f} s, verdict "
+                f"{'consistent' if c['verdict_consistent'] else 'inconsistent'}; mount "
+                f"{c['mount_error_before_mm']:.2f} mm / {c['mount_error_before_deg']:.3f} deg -> "
+                f"{c['mount_error_after_mm']:.3f} mm / {c['mount_error_after_deg']:.4f} deg "
+                "from the truth; each method: " + ", ".join(
+                    f"{k} {v['mm']:.2f} mm / {v['deg']:.3f} deg"
+                    for k, v in c["methods_vs_truth"].items()))
     lines = [
+        comm,
         f"world {r.get('world', 'ideal')}: servo succeeded {r['servo_success_ratio']}, "
         f"look-and-move {r['look_and_move_success_ratio']}; lens covered -> arm still "
         f"{f(r['lost_target_cover_to_still_ms'], '.0f')} ms",
@@ -455,6 +557,7 @@ def format_report(r: dict[str, Any]) -> str:
         f"  homings that failed and were retried: {len(r.get('home_failures', []))}",
         f"lost target: arm still {f(r['lost_target_declared_to_still_ms'], '.0f')} ms after it "
         f"was declared lost (the job's own figure {f(r['lost_target_job_stop_ms'], '.0f')} ms)",
+        _lost_line(r.get("lost_target") or {}),
         "targets: " + ", ".join(f"{k} {'yes' if v else 'NO'}"
                                 for k, v in r["targets_met"].items()),
     ]
@@ -462,6 +565,23 @@ def format_report(r: dict[str, Any]) -> str:
         lines.append(f"  failed: placement {fail.get('placement')} {fail['mode']}: "
                      f"{fail.get('error')}")
     return "\n".join(lines + _ibvs_lines(r.get("ibvs")))
+
+
+def _lost_line(lost: dict[str, Any]) -> str:
+    """Where the cover-to-still time went, from the cover (ms)."""
+    def f(x: Any) -> str:
+        return "n/a" if x is None else f"{x:+.0f}"
+
+    if "failed" in lost:
+        return f"  lens covered: the section failed: {lost['failed']}"
+    speed = lost.get("arm_speed_at_cover_mm_s")
+    return (f"  lens covered (0): last frame showing the target exposed at "
+            f"{f(lost.get('last_pose_exposure_ms'))}, lost declared "
+            f"{f(lost.get('cover_to_declared_ms'))}, "
+            f"arm still {f(lost.get('cover_to_still_measured_ms'))}; arm at "
+            f"{'n/a' if speed is None else f'{speed:.0f}'} mm/s when covered"
+            + ("" if lost.get("valid") else " (NOT counted: the arm was not following, or had "
+               "stopped before the loss was declared)"))
 
 
 def _ibvs_lines(section: dict[str, Any] | None) -> list[str]:

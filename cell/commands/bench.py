@@ -42,6 +42,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="the simulated truth: realistic (default; lens, mount, arm geometry, "
                         "camera timing, motion blur and light off what the cell believes) or "
                         "ideal (the config is the truth)")
+    a.add_argument("--commissioned", action="store_true",
+                   help="commission the simulated cell first: its hand-eye routine (the HTTP "
+                        "API's calibration job), applied to the running cell, as an integrator "
+                        "does before a cell works")
     a.add_argument("--no-ibvs", action="store_true",
                    help="skip the IBVS section (its own cells, cell/bench/ibvs.py)")
     a.add_argument("--check", action="store_true",
@@ -164,7 +168,8 @@ def _bench_approach(args: argparse.Namespace) -> int:
     with progress_bars(not args.json) as progress:
         report = run_bench_approach(placements=args.placements, seed=args.seed,
                                     progress=progress, lost_after_s=args.lost_after_s,
-                                    world=args.world, ibvs=not args.no_ibvs)
+                                    world=args.world, ibvs=not args.no_ibvs,
+                                    commissioned=args.commissioned)
     return _report(args, report, format_report(report))
 
 

@@ -286,11 +286,16 @@ def _fixed_sim_camera(config: CellConfig, truth: _EngineTruth | _ProcessTruth
     sim, he = config.sim, config.hand_eye
     true_pose = sim.T_base_camera or he.T_base_camera
     assert true_pose is not None  # the config requires T_base_camera with a fixed mount
+    fx = sim_truth.effects(config)  # the same sensor timing, blur and light as on the flange
     return FixedSimCamera(
         config.camera.model(), config.target.model(), sim.T_base_target.T(), true_pose.T(),
         _pose_source(truth), config.tool.T_flange_tcp.T(), tool_radius_mm=sim.tool_radius_mm,
         T_flange_board=None if sim.T_flange_board is None else sim.T_flange_board.T(),
-        fps=config.camera.fps, noise_std=sim.noise_std, blur_sigma_px=sim.blur_sigma_px)
+        fps=config.camera.fps, noise_std=sim.noise_std, blur_sigma_px=sim.blur_sigma_px,
+        exposure_jitter=fx.gain_jitter, latency_s=fx.camera_latency_s,
+        latency_jitter_s=fx.camera_latency_jitter_s, timestamp_offset_s=fx.timestamp_offset_s,
+        timestamp_jitter_s=fx.timestamp_jitter_s, motion_blur=fx.motion_blur,
+        flicker_depth=fx.flicker_depth, flicker_hz=fx.flicker_hz)
 
 
 def oak_settings(config: CellConfig) -> OakSettings:

@@ -9,7 +9,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from api.app import create_app
-from cell.config.schema import ConfigError
+from cell.config.schema import ConfigError, load_config, parse_config
 from cell.devices.factory import build_hardware, true_kinematics
 from cell.devices.sim_truth import (
     IDEAL_EFFECTS,
@@ -19,6 +19,7 @@ from cell.devices.sim_truth import (
     resolve,
 )
 from estimator.transforms import T_from_pose_dict, invert_T, pose_distance
+from fakes.fixed_camera import FixedSimCamera
 from fakes.ur_sim.kinematics import UR5eKinematics
 from tests.support.cell import AUTH, running_cell, sim_config
 
@@ -119,3 +120,21 @@ def test_sim_truth_reports_the_effects(tmp_path: Path) -> None:
     assert fx["camera_latency_s"] == pytest.approx(REALISTIC_EFFECTS.camera_latency_s)
     assert fx["timestamp_offset_s"] == pytest.approx(REALISTIC_EFFECTS.timestamp_offset_s)
     assert fx["motion_blur"] is True and fx["flicker_depth"] > 0
+
+
+def test_fixed_camera_takes_the_realistic_camera_effects(tmp_path: Path) -> None:
+    # the fixed camera is the same sensor: its frames arrive late, stamped off, smeared, flickered
+    data = load_config(Path("cell/configs/sim-fixed.toml")).model_dump(mode="python")
+    data["robot"]["kind"], data["sim"]["ur_controller"] = "sim", False
+    data["gripper"]["kind"] = "none"
+    data["api"]["job_db"] = str(tmp_path / "jobs.db")
+    data["sim"]["world"] = "realistic"
+    hw = build_hardware(parse_config(data))
+    try:
+        cam = hw.camera
+        assert isinstance(cam, FixedSimCamera)
+        fx = REALISTIC_EFFECTS
+        assert (cam.latency_s, cam.timestamp_offset_s, cam.motion_blur, cam.flicker_depth) == (
+            fx.camera_latency_s, fx.timestamp_offset_s, True, fx.flicker_depth)
+    finally:
+        hw.close()
