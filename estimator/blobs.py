@@ -37,6 +37,11 @@ ThresholdSpec = float | Literal["otsu", "adaptive"] | None
 COARSE_STEP = 4  # subsampling of the frame for Otsu and for locating the candidate dots
 _COARSE_PAD_PX = 2 * COARSE_STEP  # a region reaches < one step beyond its sampled pixels
 _NO_MASK = np.zeros((1, 1), np.uint8)
+# A frame whose sampled grey levels span less than this (the tails of SPREAD_TAIL cut) shows no
+# dot: a covered lens with its sensor noise spans about 7 sigma (10 levels at sigma 1.5); the
+# faintest dot the threshold separates from its plate is several times the noise apart.
+MIN_SPREAD_GREY = 16.0
+SPREAD_TAIL = 2e-4
 INERTIA_MARGIN = 0.85  # of cos(max tilt): small ellipses' minor axes are quantised
 
 
@@ -153,6 +158,15 @@ def dots_in_rois(
     ))
 
 
+def grey_spread(sample_u8: NDArray[np.uint8]) -> float:
+    """Grey levels between the darkest and the brightest pixels of ``sample_u8``, the
+    SPREAD_TAIL of each end left out (a hot pixel or two is no contrast)."""
+    hist = cv2.calcHist([sample_u8], [0], None, [256], [0, 256]).ravel()
+    cum = np.cumsum(hist)
+    tail = max(1.0, float(cum[-1]) * SPREAD_TAIL)
+    return float(np.searchsorted(cum, cum[-1] - tail) - np.searchsorted(cum, tail))
+
+
 def _whole_frame(image_u8: NDArray[np.uint8]) -> NDArray[np.int64]:
     return np.array([[0, 0, image_u8.shape[1], image_u8.shape[0]]], np.int64)
 
@@ -201,6 +215,10 @@ def detect_dots(
         thr = regions.otsu_threshold(sample, 2)
     else:
         thr = float(threshold)
+    if grey_spread(sample) < MIN_SPREAD_GREY:
+        # a featureless frame (a covered lens, darkness): no dot to find, and thresholding its
+        # noise would make every other pixel a candidate and label the whole frame twice
+        return Detection(np.zeros((0, regions.N_COLUMNS))), thr
     sample_mask = cv2.threshold(sample, thr, 255, kind)[1]
     sample_u8: NDArray[np.uint8] = np.asarray(sample_mask, dtype=np.uint8)
     rois = _coarse_rois(sample_u8, f, img.shape) if coarse else None

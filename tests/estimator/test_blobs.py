@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from estimator import CameraModel, Target, detect_blobs
-from estimator.blobs import BlobFilter, detect_blobs_thresholded
+from estimator.blobs import MIN_SPREAD_GREY, BlobFilter, detect_blobs_thresholded, grey_spread
 from fakes.render import ellipse_centre_px, random_pose, random_target, render_target
 
 CAM = CameraModel(800.0, 800.0, 639.5, 399.5, (), 1280, 800)
@@ -192,3 +192,18 @@ def test_kernels_warm_up_runs_every_kernel() -> None:
     from estimator.kernels import warm_up
 
     assert warm_up() < 10.0  # compiled already (make install, or the session fixture)
+
+
+def test_a_covered_lens_has_no_dots_and_is_not_labelled() -> None:
+    # sensor noise around a dark level: no contrast, nothing to threshold; the faintest
+    # rendered target keeps a spread far above the limit
+    rng = np.random.default_rng(3)
+    dark = np.clip(12.0 + rng.normal(0.0, 1.5, (800, 1280)), 0, 255).astype(np.uint8)
+    assert grey_spread(dark[::4, ::4].copy()) < MIN_SPREAD_GREY
+    blobs, _ = detect_blobs_thresholded(dark)
+    assert blobs == []
+    target = random_target(rng, 7)
+    T = random_pose(rng, CAM, target, max_tilt_deg=55.0)
+    img = render_target(CAM, target, T, rng=rng)
+    faint = np.asarray(cv2.convertScaleAbs(img, alpha=0.25), dtype=np.uint8)
+    assert grey_spread(faint[::4, ::4].copy()) > 2 * MIN_SPREAD_GREY
