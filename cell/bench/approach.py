@@ -18,10 +18,9 @@ API, so every command passes the guarded motion path. Errors are against simulat
    same from the cell's declaration, and the job's own figure.
 
 ``commissioned``: before anything is measured, the cell is commissioned as an integrator does
-it on a real cell: the hand-eye routine (the calibration job of the HTTP API, on the cell's
-own dot plate at home) and its result applied to the running cell; the routine's result is
-scored against the simulated mount, which nothing the cell does reads. Intrinsics are not
-measured: live frames carry the camera's own calibration, which the locator uses.
+it on a real cell (cell/bench/commission.py): the lens from a circle-grid plate's views into
+``[camera]``, then the hand-eye routine on the running cell and Apply; each result is scored
+against the simulated truth, which nothing the cell does reads.
 
 ``world`` (``realistic`` by default) is the simulated truth the cell does not share
 (cell/devices/sim_truth.py): its lens, mount, arm geometry, camera latency and timestamps,
@@ -47,13 +46,14 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from cell.bench.commission import hand_eye, measure_intrinsics, with_intrinsics
 from cell.config.schema import CellConfig, load_config, parse_config
 from cell.devices.hardware import SimWorld
 from cell.errors import CellError
 from cell.runtime import freeze_startup_objects, start_cell
 from cell.service import Cell
 from cell.vision.frames import approach_tcp
-from estimator.transforms import T_from_pose_dict, make_T, pose_dict, pose_distance
+from estimator.transforms import make_T, pose_dict, pose_distance
 
 Progress = Callable[[str, int, int], None]
 Matrix4 = NDArray[np.float64]
@@ -292,55 +292,6 @@ def _true_speed_mm_s(cell: Cell, span_s: float = 0.03) -> float:
     return float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]) / max(t1 - t0, 1e-6))
 
 
-COMMISSION_VIEWS = 12  # the hand-eye routine's views, as docs/commissioning.md runs it
-
-
-def commission(cell: Cell, T_home_target: Matrix4, views: int = COMMISSION_VIEWS
-               ) -> dict[str, Any]:
-    """Commission the running cell as an integrator does: the hand-eye routine at home on the
-    cell's dot plate, then Apply of its chosen result. The mount before and after, and every
-    method's result, against the simulated truth (read here only to score). When the routine's
-    verdict is inconsistent, Apply refuses (as on the page) and the cell stays uncommissioned:
-    recorded with the verdict's text. RuntimeError when the routine itself fails."""
-    from cell.calibration.routine import RoutineSettings
-    from cell.calibration.service import CalibrationService
-    from cell.errors import CellError
-
-    truth = _sim(cell).truth_values()
-    before = pose_distance(cell.core.frames.T_flange_camera, truth.T_flange_camera)
-    _home(cell)
-    _sim(cell).set_target(T_home_target)
-    time.sleep(0.15)
-    service = CalibrationService(cell)
-    t0 = time.monotonic()
-    job = service.wait(service.start(CALLER, RoutineSettings(n_views=views)).id, 600.0)
-    took = time.monotonic() - t0
-    if job.state != "succeeded" or job.result is None:
-        raise RuntimeError(f"hand-eye routine {job.state}: {job.error_code} {job.error_message}")
-    r = job.result
-    results = {name: m["T_flange_camera"] for name, m in r["methods"].items()}
-    if r.get("joint") is not None:
-        results["joint"] = r["joint"]["T_flange_camera"]
-    scored = {name: dict(zip(("mm", "deg"), pose_distance(T_from_pose_dict(T),
-                                                          truth.T_flange_camera), strict=True))
-              for name, T in results.items()}
-    out: dict[str, Any] = {
-        "views": views, "failed_views": len(r["failed_views"]), "routine_s": took,
-        "chosen": r["chosen"], "verdict_consistent": bool(r["verdict"]["consistent"]),
-        "verdict": r["verdict"]["text"], "methods_vs_truth": scored,
-        "mount_error_before_mm": before[0], "mount_error_before_deg": before[1],
-        "intrinsics": "the camera's own (frames)"}
-    try:
-        service.apply(CALLER, job.id)
-        out["applied"] = True
-    except CellError as err:  # an inconsistent verdict: the page refuses Apply too
-        out["applied"] = False
-        out["apply_refused"] = f"{err.code}: {err.message}"
-    after = pose_distance(cell.core.frames.T_flange_camera, truth.T_flange_camera)
-    out.update(mount_error_after_mm=after[0], mount_error_after_deg=after[1])
-    return out
-
-
 def run_bench_approach(*, placements: int = 10, seed: int = 0,
                        speeds: tuple[float, ...] = (25.0, 50.0, 100.0, 150.0),
                        follow_s: float = 3.0, host: str | None = None,
@@ -350,8 +301,9 @@ def run_bench_approach(*, placements: int = 10, seed: int = 0,
                        commissioned: bool = False) -> dict[str, Any]:
     """The approach, tracking and lost-target sections in ``world``; ``sim_overrides`` sets
     ``[sim]`` keys over the world's preset (to take one effect out and see what it costs);
-    ``commissioned``: the cell's own hand-eye routine is run and applied first (:func:`commission`;
-    a failed commissioning is recorded and the run goes on uncommissioned)."""
+    ``commissioned``: the cell is commissioned first (cell/bench/commission.py: intrinsics into
+    ``[camera]``, then the hand-eye routine and Apply); a step that fails is recorded and the
+    run goes on without it."""
     from fakes.ur_controller.process import free_loopback_host
 
     if world not in WORLDS:
@@ -365,19 +317,29 @@ def run_bench_approach(*, placements: int = 10, seed: int = 0,
             data = config.model_dump(mode="python")
             data["sim"].update(sim_overrides)
             config = parse_config(data)
+        commissioning: dict[str, Any] | None = None
+        if commissioned:
+            commissioning = {}
+            try:
+                commissioning["intrinsics"] = measure_intrinsics(config)
+                config = with_intrinsics(config, commissioning["intrinsics"]["camera"])
+            except Exception as err:  # recorded; the lens stays the configured one
+                commissioning["intrinsics"] = {"failed": f"{type(err).__name__}: {err}"}
         cell = start_cell(config)
         freeze_startup_objects()  # as cell serve does: no full collection stalls the loop
         lost_after_s = cell.config.servo.lost_after_s
         try:
             T_tt = cell.config.approach.T_target_tcp.T()
             T_home_target = _sim(cell).true_T_base_target()
-            commissioning: dict[str, Any] | None = None
-            if commissioned:
+            if commissioning is not None:
                 try:
-                    commissioning = commission(cell, T_home_target)
-                except Exception as err:  # recorded; the figures below are then uncommissioned
+                    _home(cell)
+                    _sim(cell).set_target(T_home_target)
+                    time.sleep(0.15)
+                    commissioning["hand_eye"] = hand_eye(cell)
+                except Exception as err:  # recorded; the mount stays the configured one
                     cell.stop(CALLER, reason="bench: commissioning failed")
-                    commissioning = {"failed": f"{type(err).__name__}: {err}"}
+                    commissioning["hand_eye"] = {"failed": f"{type(err).__name__}: {err}"}
             rows: list[dict[str, Any]] = []
             steps = 2 * placements + len(speeds) + 1
             for i in range(placements):
@@ -525,22 +487,9 @@ def format_report(r: dict[str, Any]) -> str:
     def f(x: Any, fmt: str = ".3f") -> str:
         return "n/a" if x is None else format(x, fmt)
 
-    c = r.get("commissioning")
-    if c is None:
-        comm = "uncommissioned ([hand_eye] as configured)"
-    elif "failed" in c:
-        comm = f"commissioning FAILED ({c['failed']}): the figures are uncommissioned"
-    else:
-        comm = (f"{'commissioned' if c['applied'] else 'NOT commissioned (Apply refused)'}: "
-                f"hand-eye routine {c['views']} views in {c['routine_s']:.0f} s, verdict "
-                f"{'consistent' if c['verdict_consistent'] else 'inconsistent'}; mount "
-                f"{c['mount_error_before_mm']:.2f} mm / {c['mount_error_before_deg']:.3f} deg -> "
-                f"{c['mount_error_after_mm']:.3f} mm / {c['mount_error_after_deg']:.4f} deg "
-                "from the truth; each method: " + ", ".join(
-                    f"{k} {v['mm']:.2f} mm / {v['deg']:.3f} deg"
-                    for k, v in c["methods_vs_truth"].items()))
+    comm = _commissioning_lines(r.get("commissioning"))
     lines = [
-        comm,
+        *comm,
         f"world {r.get('world', 'ideal')}: servo succeeded {r['servo_success_ratio']}, "
         f"look-and-move {r['look_and_move_success_ratio']}; lens covered -> arm still "
         f"{f(r['lost_target_cover_to_still_ms'], '.0f')} ms",
@@ -565,6 +514,35 @@ def format_report(r: dict[str, Any]) -> str:
         lines.append(f"  failed: placement {fail.get('placement')} {fail['mode']}: "
                      f"{fail.get('error')}")
     return "\n".join(lines + _ibvs_lines(r.get("ibvs")))
+
+
+def _commissioning_lines(c: dict[str, Any] | None) -> list[str]:
+    if c is None:
+        return ["uncommissioned: [camera] and [hand_eye] as configured"]
+    out = []
+    i = c.get("intrinsics") or {}
+    if "failed" in i:
+        out.append(f"intrinsics FAILED ({i['failed']}): [camera] as configured")
+    elif i:
+        m, t = i["camera"], i["truth"]
+        out.append(f"intrinsics: {i['views']} board views, rms {i['rms_px']:.3f} px, coverage "
+                   f"{100 * i['coverage']:.0f} %; fx {m['fx']:.2f} (true {t['fx']:.2f}) fy "
+                   f"{m['fy']:.2f} ({t['fy']:.2f}) cx {m['cx']:.2f} ({t['cx']:.2f}) cy "
+                   f"{m['cy']:.2f} ({t['cy']:.2f})")
+    h = c.get("hand_eye") or {}
+    if "failed" in h:
+        out.append(f"hand-eye FAILED ({h['failed']}): [hand_eye] as configured")
+    elif h:
+        out.append(
+            f"hand-eye: {h['views']} views in {h['routine_s']:.0f} s, verdict "
+            f"{'consistent' if h['verdict_consistent'] else 'INCONSISTENT'}, "
+            f"{'applied' if h['applied'] else 'Apply refused'}; mount "
+            f"{h['mount_error_before_mm']:.2f} mm / {h['mount_error_before_deg']:.3f} deg -> "
+            f"{h['mount_error_after_mm']:.3f} mm / {h['mount_error_after_deg']:.4f} deg from "
+            "the truth; each method: " + ", ".join(
+                f"{k} {v['mm']:.2f} mm / {v['deg']:.3f} deg"
+                for k, v in h["methods_vs_truth"].items()))
+    return out
 
 
 def _lost_line(lost: dict[str, Any]) -> str:

@@ -43,9 +43,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                         "camera timing, motion blur and light off what the cell believes) or "
                         "ideal (the config is the truth)")
     a.add_argument("--commissioned", action="store_true",
-                   help="commission the simulated cell first: its hand-eye routine (the HTTP "
-                        "API's calibration job), applied to the running cell, as an integrator "
-                        "does before a cell works")
+                   help="commission the simulated cell first, as an integrator does before a "
+                        "cell works: the lens from a circle-grid plate into [camera], then the "
+                        "hand-eye routine (the HTTP API's job) and Apply")
     a.add_argument("--no-ibvs", action="store_true",
                    help="skip the IBVS section (its own cells, cell/bench/ibvs.py)")
     a.add_argument("--check", action="store_true",
