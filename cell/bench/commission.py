@@ -29,7 +29,7 @@ Matrix4 = NDArray[np.float64]
 CALLER = "bench"
 HAND_EYE_VIEWS = 12  # as docs/commissioning.md runs the routine
 BOARD_VIEWS = 14
-BOARD = ("circles", 10, 7, 35.0)  # kind, cols, rows, pitch mm: a third of the image or more
+BOARD_COLS, BOARD_ROWS, BOARD_PITCH_MM = 10, 7, 35.0  # circles: a third of the image or more
 BOARD_DOT_MM = 14.0
 BOARD_AT = {"position_mm": [-587.0, -30.0, 0.0], "rotvec_rad": [np.pi, 0.0, 0.0]}
 
@@ -47,7 +47,7 @@ def measure_intrinsics(config: CellConfig) -> dict[str, Any]:
     from estimator.calib.board import Board
     from estimator.calib.intrinsics import calibrate_intrinsics
 
-    kind, cols, rows, pitch = BOARD
+    cols, rows, pitch = BOARD_COLS, BOARD_ROWS, BOARD_PITCH_MM
     data = config.model_dump(mode="python")
     data["robot"]["kind"], data["sim"]["ur_controller"] = "sim", False
     data["gripper"]["kind"] = "none"
@@ -56,7 +56,7 @@ def measure_intrinsics(config: CellConfig) -> dict[str, Any]:
     data["target"]["dot_diameter_mm"] = BOARD_DOT_MM
     data["sim"]["T_base_target"] = BOARD_AT
     cfg = parse_config(data)
-    board = Board(kind, cols, rows, pitch)
+    board = Board("circles", cols, rows, pitch)
     limits = cfg.limits
     speed = min(200.0, limits.max_speed_mm_s)
     settings = RoutineSettings(n_views=BOARD_VIEWS, speed_mm_s=speed,
