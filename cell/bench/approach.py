@@ -489,10 +489,10 @@ def format_report(r: dict[str, Any]) -> str:
 
     comm = _commissioning_lines(r.get("commissioning"))
     lines = [
-        *comm,
         f"world {r.get('world', 'ideal')}: servo succeeded {r['servo_success_ratio']}, "
         f"look-and-move {r['look_and_move_success_ratio']}; lens covered -> arm still "
         f"{f(r['lost_target_cover_to_still_ms'], '.0f')} ms",
+        *comm,
         "conveyor tracking, RMS error after the first second:",
         *(f"  {k} mm/s: {f(v)} mm" for k, v in r["track_rms_error_mm"].items()),
         f"approach from home to a {STANDOFF_MM:g} mm standoff, {r['placements']} placements "

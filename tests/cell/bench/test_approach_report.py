@@ -40,3 +40,24 @@ def test_the_report_leads_with_the_least_kind_figures() -> None:
     text = format_report(r)
     assert text.startswith("world realistic: servo succeeded 2/3, look-and-move 1/2; lens "
                            "covered -> arm still 180 ms")
+
+
+def test_the_report_says_how_the_cell_was_commissioned_and_where_a_stop_went() -> None:
+    lost = {"cover_to_still_ms": None, "cover_to_still_measured_ms": 90.0, "valid": False,
+            "last_pose_exposure_ms": -30.0, "cover_to_declared_ms": 120.0,
+            "arm_speed_at_cover_mm_s": 2.0, "declared_to_still_ms": -30.0,
+            "job_stopped_in_ms": 15.0, "truth_stop_ms": -10.0}
+    r = _report(ROWS, [], lost, 3, 0, 0.1, "realistic")
+    assert r["lost_target_cover_to_still_ms"] is None  # the arm was not following: no figure
+    r["commissioning"] = {
+        "intrinsics": {"views": 14, "rms_px": 0.01, "coverage": 0.37,
+                       "camera": {"fx": 806.3, "fy": 805.5, "cx": 643.0, "cy": 397.0},
+                       "truth": {"fx": 806.4, "fy": 805.6, "cx": 643.0, "cy": 397.0}},
+        "hand_eye": {"views": 12, "routine_s": 50.0, "verdict_consistent": False,
+                     "applied": False, "mount_error_before_mm": 2.08,
+                     "mount_error_before_deg": 0.447, "mount_error_after_mm": 2.08,
+                     "mount_error_after_deg": 0.447,
+                     "methods_vs_truth": {"tsai": {"mm": 0.31, "deg": 0.037}}}}
+    text = format_report(r)
+    assert "NOT counted" in text and "last frame showing the target exposed at -30" in text
+    assert "intrinsics: 14 board views" in text and "INCONSISTENT, Apply refused" in text
