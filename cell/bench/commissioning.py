@@ -31,6 +31,7 @@ from cell.calibration.routine import RoutineSettings
 from cell.calibration.service import CalibrationService
 from cell.config.schema import CellConfig, load_config, parse_config
 from cell.devices.hardware import SimWorld
+from cell.errors import CellError
 from cell.runtime import start_cell
 from cell.service import Cell
 from cell.vision.frames import approach_tcp
@@ -147,7 +148,12 @@ def run(placements: int, views: int, seed: int, world: str) -> dict[str, Any]:
                   f"{cal_mm:.3f} mm / {cal_deg:.4f} deg from the true mount "
                   f"(requirement 0.2 mm / 0.05 deg); verdict: "
                   f"{'consistent' if r['verdict']['consistent'] else 'inconsistent'}")
-            service.apply(CALLER, job.id)
+            try:
+                service.apply(CALLER, job.id)
+            except CellError as err:  # an inconsistent verdict: refused, as on the page
+                print(f"Apply refused: {err.code}: {err.message}")
+                return {"before": before, "routine": r, "mount_error": (cal_mm, cal_deg),
+                        "applied": False}
             after = approaches(cell, targets)
             _summary("after applying it", after)
             return {"before": before, "after": after, "mount_error": (cal_mm, cal_deg)}
