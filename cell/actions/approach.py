@@ -111,6 +111,7 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
                                    "(jogging is still possible)")
         # the servo re-estimates from every frame: one frame to start from is enough
         n_frames = 1 if how in ("servo", "ibvs") else ac.frames_per_locate
+        began_s = time.monotonic()
         if use_last_locate:
             loc = _last_locate(core)
         elif core.frames.is_fixed:
@@ -125,9 +126,11 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
             core.arm.guard.check_goal(st.T_base_tcp, T_obs, "observation pose")
             core.arm.guard.check_goal(T_obs, goal, "approach goal")
         first.append(loc)
+        seen["first_locate_s"] = round(time.monotonic() - began_s, 4)
 
     def work(job_id: str, motion: Motion) -> dict[str, Any]:
         result = run(job_id, motion)
+        result.setdefault("first_locate_s", seen.get("first_locate_s"))
         basis = ERROR_BASIS.get("fixed" if result.get("camera_mount") == "fixed"
                                 else str(result.get("mode")))
         if basis is not None:
@@ -140,7 +143,8 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
     def run(job_id: str, motion: Motion) -> dict[str, Any]:
         if how == "ibvs":
             assert view is not None
-            return IbvsRun(core, job_id, motion, view, plan.T_target_tcp, "approach").run()
+            return IbvsRun(core, job_id, motion, view, plan.T_target_tcp,
+                           "approach").run(first[0])
         if how == "servo":
             run = ServoRun(core, job_id, motion, ServoGoal(plan.T_target_tcp, plan.standoff_mm),
                            "approach", first=first[0])

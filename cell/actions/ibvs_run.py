@@ -44,6 +44,7 @@ from cell.actions.ibvs import (
     MIN_FEATURES,
     AdaptiveGain,
     Features,
+    LatencyCappedGain,
     base_tcp_twist,
     camera_twist,
     features_from_view,
@@ -66,6 +67,7 @@ from cell.errors import CellError, RefusedError, UnavailableError
 from cell.motion.guard import SERVO_MIN_DT_S, Motion
 from cell.motion.limits import linear_path
 from cell.motion.twist import extrapolate_tcp
+from cell.vision.locate import Located
 from drivers.errors import DriverError
 from estimator.transforms import invert_T, pose_dict, pose_distance
 
@@ -73,6 +75,7 @@ log = logging.getLogger(__name__)
 Matrix4 = NDArray[np.float64]
 IbvsMode = Literal["approach", "track"]
 HISTORY_POINTS = 100
+LATENCY_SMOOTHING_S = 0.2  # the time constant the loop's delay is averaged over
 
 
 @dataclass(frozen=True)
@@ -210,17 +213,40 @@ class IbvsRun:
                     border, tuple(i for i in self.desired.ids if i not in common))
 
     # -- the control loop ----------------------------------------------------------------------
-    def run(self) -> dict[str, Any]:
+    def run(self, first: Located | None = None) -> dict[str, Any]:
+        """The loop; ``first``: the approach's own locate, whose frame serves as the loop's
+        first view (the next frame would otherwise be waited for and estimated again)."""
         thread = threading.Thread(target=self._frame_thread, daemon=True,
                                   name=f"ibvs-frames-{self.job_id}")
         with self._lock:
             self._loss.restart(time.monotonic())
+        if first is not None:
+            self._seed(first)
         thread.start()
         try:
-            return self._control()
+            out = self._control()
         finally:
             self._done.set()
+            joined_s = time.monotonic()
             thread.join(timeout=2.0)
+        if "phases_s" in out:
+            out["phases_s"]["frame_thread_join"] = round(time.monotonic() - joined_s, 4)
+        return out
+
+    def _seed(self, first: Located) -> None:
+        if time.monotonic() - first.frame_timestamp_s > self.core.config.limits.max_pose_age_s:
+            return
+        try:
+            view = self._view_of(self.core.locator.camera_model, first.result, first.T_base_tcp,
+                                 first.frame_timestamp_s, first.frame_sequence)
+        except (ValueError, IndexError, np.linalg.LinAlgError):
+            return
+        if view is not None:
+            with self._lock:
+                self._view, self._last_sequence = view, first.frame_sequence
+                self._frames += 1
+                self._min_dots = min(self._min_dots, len(view.features.ids))
+                self._min_border_px = min(self._min_border_px, view.border_px)
 
     def _control(self) -> dict[str, Any]:
         core, sc, ic, arm = self.core, self.sc, self.ic, self.core.arm
@@ -239,6 +265,10 @@ class IbvsRun:
         last_px = (float("nan"), float("nan"))
         last_pose = (float("nan"), float("nan"))
         shown_s = 0.0
+        phases: dict[str, float] = {}  # when each phase began (s from the loop's start)
+        delay_s: float | None = None  # the loop's delay, averaged: the view's age + a tick
+        caps: list[float] = []
+        t_tick: float | None = None
         while True:
             tick = time.monotonic()
             self.motion.raise_if_cancelled("while servoing on the image")
@@ -265,6 +295,7 @@ class IbvsRun:
             desired = self.desired.subset(view.features.ids)
             if view.sequence != seen:  # a new view: its goal checked, its error judged
                 seen = view.sequence
+                phases.setdefault("first_view", tick - t0)
                 goal = view.T_base_target @ self.T_target_tcp
                 arm.guard.check_path(linear_path(T_tcp, goal), "ibvs goal estimate")
                 last_pose = pose_distance(view.T_base_tcp, goal)
@@ -284,6 +315,8 @@ class IbvsRun:
                     window.append(view.features.xy - desired.xy)
                     steps.append(remaining_motion(view.features, desired, ic.interaction,
                                                   T_camera_tcp))
+                    if steps[-1][0] < ic.tolerance_mm and steps[-1][1] < ic.tolerance_deg:
+                        phases.setdefault("first_frame_within", tick - t0)
                     if len({e.shape for e in window}) > 1:  # the dots changed: start again
                         window.clear()
                         window.append(view.features.xy - desired.xy)
@@ -311,7 +344,13 @@ class IbvsRun:
                                      invert_T(T_base_cam_now) @ T_base_cam_then,
                                      view.points_camera_mm) if ic.predict_motion \
                 else view.features
-            v_c = camera_twist(now_features, desired, self.gain, ic.interaction)
+            age_s = max(tick - view.exposure_s, 0.0) + sc.tick_s
+            delay_s = age_s if delay_s is None or t_tick is None else delay_s + (
+                age_s - delay_s) * min(1.0, (tick - t_tick) / LATENCY_SMOOTHING_S)
+            t_tick = tick
+            gain = LatencyCappedGain(self.gain, delay_s, ic.gain_latency_product)
+            caps.append(gain.cap_per_s)
+            v_c = camera_twist(now_features, desired, gain, ic.interaction)
             twist = base_tcp_twist(v_c, T_base_cam_now, T_tcp)
             t_cmd = time.monotonic()
             accepted_s = arm.last_twist_s
@@ -326,13 +365,19 @@ class IbvsRun:
             rest = tick + sc.tick_s - time.monotonic()
             if rest > 0:
                 time.sleep(rest)
+        if converged_s is not None:
+            phases["converged"] = converged_s
         self._stop_still()
+        phases["stopped"] = time.monotonic() - t0
         settle: dict[str, Any] = {}
         if self.mode == "approach" and ic.settle_frames > 0:
             settle = self._settle(T_tcp_camera, T_camera_tcp)
             converged_s = time.monotonic() - t0
+            phases["settled"] = converged_s
         return self._result(t0, converged_s, last_px, last_pose, history) | {
-            "view_error_mm": last_step[0], "view_error_deg": last_step[1]} | settle
+            "view_error_mm": last_step[0], "view_error_deg": last_step[1],
+            "phases_s": {k: round(v, 4) for k, v in phases.items()},
+            "gain_cap_per_s": _percentiles(caps)} | settle
 
     # -- the final settle (cell.actions.ibvs_settle) ---------------------------------------------
     def _settle(self, T_tcp_camera: Matrix4, T_camera_tcp: Matrix4) -> dict[str, Any]:
@@ -431,6 +476,13 @@ def _window_px(window: deque[NDArray[np.float64]], camera: Any) -> tuple[float, 
     d = np.mean(np.stack(list(window)), axis=0) * np.array([camera.fx, camera.fy])
     n = np.linalg.norm(d, axis=1)
     return float(np.sqrt(np.mean(n ** 2))), float(np.max(n))
+
+
+def _percentiles(xs: list[float]) -> dict[str, float] | None:
+    if not xs:
+        return None
+    p5, p50, p95 = np.percentile(xs, [5, 50, 95])
+    return {"p5": round(float(p5), 2), "median": round(float(p50), 2), "p95": round(float(p95), 2)}
 
 
 def _downsample(rows: list[tuple[float, float, float, float]], n: int = HISTORY_POINTS

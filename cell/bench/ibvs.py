@@ -179,7 +179,7 @@ def _one(cell: Cell, mode: str, taught: TaughtPose, T_taught_true: Matrix4) -> d
         row.update({k: r.get(k) for k in (
             "time_to_converge_s", "image_error_px_rms", "image_error_px_max",
             "estimated_error_mm", "estimated_error_deg", "min_dots_used",
-            "view_error_mm", "settle_steps_mm_deg")})
+            "view_error_mm", "settle_steps_mm_deg", "first_locate_s", "phases_s")})
     return row
 
 

@@ -263,6 +263,9 @@ class IbvsConfig(_Strict):
     gain_at_zero_per_s: float = Field(default=2.0, gt=0, le=50)
     gain_at_infinity_per_s: float = Field(default=6.0, gt=0, le=50)
     slope_at_zero: float = Field(default=-100.0, ge=-10000, le=10000)
+    # the gain is capped at this over the loop's delay (the view's age, averaged): the loop
+    # stays damped whatever latency the camera and the host's load give it
+    gain_latency_product: float = Field(default=0.4, gt=0, le=1.5)
     interaction: Literal["current", "desired", "mean"] = "mean"
     tolerance_px_rms: float = Field(default=0.02, gt=0)
     tolerance_px_max: float = Field(default=0.04, gt=0)
