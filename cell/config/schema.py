@@ -60,6 +60,10 @@ class CameraConfig(_Strict):
     width: int = Field(gt=0)
     height: int = Field(gt=0)
     dist: list[float] = Field(default_factory=list)
+    # Which intrinsics the cell computes with: these ("config": a commissioning calibration
+    # written here must win) or the ones the device reports with each frame ("device": an
+    # OAK's factory calibration). cell.vision.intrinsics.
+    intrinsics: Literal["config", "device"] = "config"
     # Which device, its frame rate, and (OAK) which one and how it exposes. The output size is
     # ``width`` x ``height``. Unset sensor settings keep the device's defaults.
     kind: Literal["sim", "oak"] = "sim"
