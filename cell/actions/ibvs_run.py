@@ -176,15 +176,20 @@ class IbvsRun:
                 with self._lock:
                     self._loss.examined(frame.timestamp_s)
                 continue
-            with self._lock:
-                self._view = view
-                self._frames += 1
-                self._loss.pose(frame.timestamp_s)
-                self._lags.append(now - frame.timestamp_s)
-                self._min_dots = min(self._min_dots, len(view.features.ids))
-                self._min_border_px = min(self._min_border_px, view.border_px)
-                if view.missing:
-                    self._frames_missing_dots += 1
+            self._keep(view, now)
+
+    def _keep(self, view: View, now_s: float) -> None:
+        """``view`` is the newest; its frame counted."""
+        with self._lock:
+            self._view = view
+            self._last_sequence = max(self._last_sequence, view.sequence)
+            self._frames += 1
+            self._loss.pose(view.exposure_s)
+            self._lags.append(now_s - view.exposure_s)
+            self._min_dots = min(self._min_dots, len(view.features.ids))
+            self._min_border_px = min(self._min_border_px, view.border_px)
+            if view.missing:
+                self._frames_missing_dots += 1
 
     def _view_of(self, camera: Any, result: Any, T_base_tcp: Matrix4, exposure_s: float,
                  sequence: int) -> View | None:
@@ -242,11 +247,7 @@ class IbvsRun:
         except (ValueError, IndexError, np.linalg.LinAlgError):
             return
         if view is not None:
-            with self._lock:
-                self._view, self._last_sequence = view, first.frame_sequence
-                self._frames += 1
-                self._min_dots = min(self._min_dots, len(view.features.ids))
-                self._min_border_px = min(self._min_border_px, view.border_px)
+            self._keep(view, first.located_at_s)
 
     def _control(self) -> dict[str, Any]:
         core, sc, ic, arm = self.core, self.sc, self.ic, self.core.arm
@@ -257,7 +258,6 @@ class IbvsRun:
         t_prev: float | None = None
         seen = -1
         window: deque[NDArray[np.float64]] = deque(maxlen=ic.converge_frames)
-        steps: deque[tuple[float, float]] = deque(maxlen=ic.converge_frames)
         T_camera_tcp = invert_T(T_tcp_camera)
         last_step = (float("nan"), float("nan"))
         converged_s: float | None = None
@@ -313,21 +313,32 @@ class IbvsRun:
                         "error_deg": last_pose[1], "dots": len(view.features.ids)})
                 if self.mode == "approach":
                     window.append(view.features.xy - desired.xy)
-                    steps.append(remaining_motion(view.features, desired, ic.interaction,
-                                                  T_camera_tcp))
-                    if steps[-1][0] < ic.tolerance_mm and steps[-1][1] < ic.tolerance_deg:
+                    step = remaining_motion(view.features, desired, ic.interaction, T_camera_tcp)
+                    if step[0] < ic.tolerance_mm and step[1] < ic.tolerance_deg:
                         phases.setdefault("first_frame_within", tick - t0)
                     if len({e.shape for e in window}) > 1:  # the dots changed: start again
                         window.clear()
                         window.append(view.features.xy - desired.xy)
                     if len(window) >= ic.converge_frames:
                         last_px = _window_px(window, cam)
-                        last_step = (float(np.mean([s[0] for s in steps])),
-                                     float(np.mean([s[1] for s in steps])))
+                        # the motion the window's mean view asks for: a mean of per-frame
+                        # steps would be each frame's noise, not the view's offset
+                        mean_view = Features(desired.ids, desired.xy + np.mean(window, axis=0),
+                                             view.features.depth_mm)
+                        last_step = remaining_motion(mean_view, desired, ic.interaction,
+                                                     T_camera_tcp)
+                        # and the arm nearly still: a window's mean is also small while the
+                        # arm swings through the view; within the loop's delay (what the
+                        # newest view is behind the arm) it may move half the tolerance
+                        lag_s = 0.0 if delay_s is None else delay_s
                         if last_px[0] < ic.tolerance_px_rms \
                                 and last_px[1] < ic.tolerance_px_max \
                                 and last_step[0] < ic.tolerance_mm \
-                                and last_step[1] < ic.tolerance_deg:
+                                and last_step[1] < ic.tolerance_deg \
+                                and float(np.linalg.norm(prev[:3])) * lag_s \
+                                < 0.5 * ic.tolerance_mm \
+                                and float(np.degrees(np.linalg.norm(prev[3:]))) * lag_s \
+                                < 0.5 * ic.tolerance_deg:
                             converged_s = tick - t0
                             break
             if self.mode == "approach" and tick - t0 > ic.approach_timeout_s:
@@ -344,7 +355,10 @@ class IbvsRun:
                                      invert_T(T_base_cam_now) @ T_base_cam_then,
                                      view.points_camera_mm) if ic.predict_motion \
                 else view.features
-            age_s = max(tick - view.exposure_s, 0.0) + sc.tick_s
+            # what the command acts on is as old as the view, or with the view moved on by
+            # the arm's motion since its exposure, as old as the arm's state
+            age_s = max(tick - (state.timestamp_s if ic.predict_motion else view.exposure_s),
+                        0.0) + sc.tick_s
             delay_s = age_s if delay_s is None or t_tick is None else delay_s + (
                 age_s - delay_s) * min(1.0, (tick - t_tick) / LATENCY_SMOOTHING_S)
             t_tick = tick
