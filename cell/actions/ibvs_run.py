@@ -10,22 +10,23 @@ with fewer than 4 of them is no view (the lost-target clock runs, then ``target_
 The control loop ticks at ``[servo] tick_s``. It takes the newest measured features (with
 ``[ibvs] predict_motion``, moved on by the camera's motion since their exposure, from the arm's
 pose history: :func:`cell.actions.ibvs.predicted`; at rest nothing is added), computes the law's
-camera twist (:mod:`cell.actions.ibvs`), maps it to the TCP's base-frame twist through the hand-eye
-transform, caps its speed and acceleration by the
-``[servo]`` limits, and sends it through the guarded arm's ``servo_twist`` (every tick
+camera twist (:mod:`cell.actions.ibvs`) with the adaptive gain capped at ``[ibvs]
+gain_latency_product`` over the loop's delay (the view's age when used, averaged), maps it to
+the TCP's base-frame twist through the hand-eye transform, caps its speed and acceleration by
+the ``[servo]`` limits, and sends it through the guarded arm's ``servo_twist`` (every tick
 checked, the arm's watchdog brakes if ticks stop, a stop cancels the holder). Each new view's
 pose-based goal (``T_base_target @ T_target_tcp``) is checked against the envelope like the
-servo's, and reported as the estimated pose error; the law itself never uses it.
+servo's, and reported as the estimated pose error; the law itself never uses it. An
+approach's own locate is the loop's first view.
 
-Converged (approach): the image error averaged over the last ``[ibvs] converge_frames``
-measured frames under ``tolerance_px_rms`` (RMS over the dots) and ``tolerance_px_max`` (the
-worst dot). Averaged, because the view's weakest direction (a turn about a point near the
-target, which moves the image only through perspective) is below one frame's noise: a
-single-frame test stops on a lucky frame far from the view. And the TCP motion the view still
-asks for (:func:`cell.actions.ibvs.remaining_motion`, averaged over the same frames) under
-``tolerance_mm`` / ``tolerance_deg``: the pixels alone cannot see that weakest direction
-(measured: 0.005 px RMS left 0.2-0.3 mm at the TCP under a 0.5 deg mount error, which bends
-the camera's path into it).
+Converged (approach): over the last ``[ibvs] converge_frames`` measured frames, the image error
+averaged under ``tolerance_px_rms`` (RMS over the dots) and ``tolerance_px_max`` (the worst
+dot); averaged, because the view's weakest direction (a turn about a point near the target,
+which moves the image only through perspective) is below one frame's noise. The TCP motion
+the window's mean view still asks for (:func:`cell.actions.ibvs.remaining_motion`) under
+``tolerance_mm`` / ``tolerance_deg``: the pixels alone cannot see that weakest direction, and
+the mean view's step, unlike a mean of per-frame steps, is not the frames' noise. And the arm
+nearly still: a window's mean is small too while the arm swings through the view.
 """
 
 from __future__ import annotations

@@ -283,8 +283,9 @@ class IbvsConfig(_Strict):
     tolerance_deg: float = Field(default=0.015, gt=0)
     converge_frames: int = Field(default=6, ge=1, le=100)
     # move the measured features on by the arm's motion since their exposure (latency
-    # compensation); off by default: measured slower to converge (4.3-5.0 s against 3.1-3.5
-    # s from 30 mm / 6 deg) at the same final error (docs/ibvs.md)
+    # compensation; the latency cap then counts the arm state's age only); off by default:
+    # measured no faster (250 mm, 30 mm / 6 deg, 5 runs each at load 3-5: median 2.5 s
+    # against 1.9 s, the same final error), its tail noisier (docs/ibvs.md)
     predict_motion: bool = False
     # the final settle (cell.actions.ibvs_settle): after the loop's test, the arm still,
     # ``settle_frames`` frames averaged, one step ``-L^+ e``; up to ``settle_steps`` times,
