@@ -332,6 +332,10 @@ class IbvsRun:
                         # arm swings through the view; within the loop's delay (what the
                         # newest view is behind the arm) it may move half the tolerance
                         lag_s = 0.0 if delay_s is None else delay_s
+                        if last_px[0] < ic.tolerance_px_rms and last_px[1] < ic.tolerance_px_max:
+                            phases.setdefault("window_image_within", tick - t0)
+                        if last_step[0] < ic.tolerance_mm and last_step[1] < ic.tolerance_deg:
+                            phases.setdefault("window_view_within", tick - t0)
                         if last_px[0] < ic.tolerance_px_rms \
                                 and last_px[1] < ic.tolerance_px_max \
                                 and last_step[0] < ic.tolerance_mm \
