@@ -104,8 +104,9 @@ class CameraConfig(_Strict):
                            self.width, self.height)
 
 
-class TargetConfig(_Strict):
-    """Dot centres in the target frame (mm), dot diameter, dark or light dots."""
+class DotLayout(BaseModel):
+    """Dot centres in the target frame (mm), dot diameter, dark or light dots: the fields a
+    target has wherever it is declared (``[target]``, a recipe's targets)."""
 
     points_mm: list[tuple[float, float, float]] = Field(min_length=4, max_length=100)
     dot_diameter_mm: float = Field(gt=0)
@@ -122,6 +123,10 @@ class TargetConfig(_Strict):
 
     def model(self) -> Target:
         return Target(self.points_mm, self.dot_diameter_mm, self.polarity)
+
+
+class TargetConfig(DotLayout, _Strict):
+    """The cell's target (``[target]``)."""
 
 
 Vec3 = tuple[float, float, float]
