@@ -77,6 +77,8 @@ Matrix4 = NDArray[np.float64]
 IbvsMode = Literal["approach", "track"]
 HISTORY_POINTS = 100
 LATENCY_SMOOTHING_S = 0.2  # the time constant the loop's delay is averaged over
+STILL_SHARE = 0.5  # converged only if the arm moves less than this share of the tolerances
+# within the loop's delay
 
 
 @dataclass(frozen=True)
@@ -336,14 +338,16 @@ class IbvsRun:
                             phases.setdefault("window_image_within", tick - t0)
                         if last_step[0] < ic.tolerance_mm and last_step[1] < ic.tolerance_deg:
                             phases.setdefault("window_view_within", tick - t0)
+                        still = float(np.linalg.norm(prev[:3])) * lag_s \
+                            < STILL_SHARE * ic.tolerance_mm \
+                            and float(np.degrees(np.linalg.norm(prev[3:]))) * lag_s \
+                            < STILL_SHARE * ic.tolerance_deg
+                        if still:
+                            phases.setdefault("window_still", tick - t0)
                         if last_px[0] < ic.tolerance_px_rms \
                                 and last_px[1] < ic.tolerance_px_max \
                                 and last_step[0] < ic.tolerance_mm \
-                                and last_step[1] < ic.tolerance_deg \
-                                and float(np.linalg.norm(prev[:3])) * lag_s \
-                                < 0.5 * ic.tolerance_mm \
-                                and float(np.degrees(np.linalg.norm(prev[3:]))) * lag_s \
-                                < 0.5 * ic.tolerance_deg:
+                                and last_step[1] < ic.tolerance_deg and still:
                             converged_s = tick - t0
                             break
             if self.mode == "approach" and tick - t0 > ic.approach_timeout_s:
