@@ -62,8 +62,14 @@ def run(n_poses: int, tilt_deg: float, distance_mm: float, seed: int) -> None:
 
 def render_cost(n: int) -> None:
     """What one frame costs at each sensor size here: the simulated render and the estimate
-    (the servo's pose interval is at least their sum on this host)."""
+    (the servo's pose interval is at least their sum on this host), and the search that runs
+    when the track does not explain a frame: the whole frame against the window around the
+    last dots (:mod:`cell.vision.search_window`), all dots in view and with one dot hidden
+    (the tool over it, the case that costs most: the coarse pass cannot account for every
+    dot). The windowed search must give the same pose; the largest difference is printed."""
     import time
+
+    from cell.vision.search_window import SearchWindows
 
     target = Target(POINTS, 10.0, "dark")
     centre = target.points_mm.mean(axis=0)
@@ -74,16 +80,54 @@ def render_cost(n: int) -> None:
         T = make_T(R, np.array([0.0, 0.0, 1000.0]) - R @ centre)
         est = Estimator(cam, target)
         t_render, t_est = [], []
-        for _ in range(n):
+        search: dict[str, list[float]] = {}
+        worst_diff = (0.0, 0.0)
+        for k in range(n):
             t0 = time.perf_counter()
             img = render_target(cam, target, T, noise_std=1.0, blur_sigma_px=0.8, rng=rng)
             t1 = time.perf_counter()
-            est.estimate(img)
+            first = est.estimate(img)
             t_render.append(t1 - t0)
             t_est.append(time.perf_counter() - t1)
+            hidden = img.copy()  # the tool (grey 70) over one dot, a different one each frame
+            pts = np.asarray(first.image_points_px)
+            u, v = np.round(pts[k % len(pts)]).astype(int)
+            r = int(np.ceil(max(b.major_axis_px for b in first.matched_blobs)))
+            hidden[max(v - r, 0):v + r + 1, max(u - r, 0):u + r + 1] = 70
+            # the window the cell would use for the next frame, the arm having moved 20 mm
+            # in 0.3 s (the servo's pose interval at 12 MP)
+            policy = SearchWindows(True)
+            T_tcp = np.eye(4)
+            policy.seen(first, target.points_mm, cam, 0.0, T_tcp, np.eye(4))
+            moved = T_tcp.copy()
+            moved[:3, 3] += [20.0, 0.0, 0.0]
+            window = policy.window(0.3, moved, w, h)
+            for label, frame in (("all dots", img), ("one hidden", hidden)):
+                poses = {}
+                for how, win in (("full", None), ("window", window)):
+                    # no track, so every estimate searches; the first is the sighting
+                    searcher = Estimator(cam, target, tracking=False)
+                    searcher.estimate(img)
+                    t2 = time.perf_counter()
+                    try:
+                        poses[how] = searcher.estimate(frame, win).T_camera_target
+                    except EstimationError:
+                        continue
+                    finally:
+                        search.setdefault(f"{how}, {label}", []).append(
+                            time.perf_counter() - t2)
+                if len(poses) == 2:
+                    d = pose_distance(poses["full"], poses["window"])
+                    worst_diff = (max(worst_diff[0], d[0]), max(worst_diff[1], d[1]))
         print(f"{name}: render median {np.median(t_render) * 1000:.0f} ms (worst "
               f"{max(t_render) * 1000:.0f}), estimate median {np.median(t_est) * 1000:.0f} ms "
               f"(worst {max(t_est) * 1000:.0f}) over {n} frames")
+        print("  search after a lost track, median / worst ms: " + "; ".join(
+            f"{key} {np.median(ts) * 1000:.1f} / {max(ts) * 1000:.1f}"
+            for key, ts in search.items()))
+        print(f"  window size {window[2] - window[0] if window else w}x"
+              f"{window[3] - window[1] if window else h} px; windowed pose against the full "
+              f"search's: {worst_diff[0]:.2e} mm / {worst_diff[1]:.2e} deg")
 
 
 def approach(n: int, seed: int, servo: bool = False, lost_after_s: float | None = None,
