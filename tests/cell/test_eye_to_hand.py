@@ -146,8 +146,8 @@ def test_fixed_cell_locates_and_approaches_without_an_observation_pose() -> None
 def test_fixed_cell_servo_approach_holds_the_last_pose_when_the_arm_hides_the_target() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         data = fixed_data(Path(tmp))
-        # a 12 MP frame takes ~0.6 s to render on a loaded host: the stall rule (host time
-        # without an examined frame) is the simulator's render cost, not the product's
+        # a 12 MP frame takes 0.2-0.6 s to render on a loaded host: the stall rule (host time
+        # without an examined frame) would measure the simulator's render cost here
         data["servo"]["stall_after_s"] = 5.0
         cell = start_cell(parse_config(data))
         try:

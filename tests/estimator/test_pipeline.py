@@ -247,7 +247,7 @@ def test_window_search_gives_the_full_search_pose_and_falls_back_outside_it() ->
         assert got.matched_ids == want.matched_ids
         assert np.array_equal(got.T_camera_target, want.T_camera_target)
     # a window cutting through the dots: a dot is missing there but not in the frame
-    x0, y0, x1, y1 = window
+    x0, y0, _, y1 = window
     cut = (x0, y0, int(seen.image_points_px[:, 0].max()), y1)
     searcher = Estimator(CAM, s.target, tracking=False)
     got = searcher.estimate(s.image, cut)
