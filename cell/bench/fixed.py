@@ -227,4 +227,98 @@ def main(a: argparse.Namespace) -> int:
         render_cost(a.render)
     if a.approaches:
         approach(a.approaches, a.seed, a.servo, a.lost_after_s, a.stall_after_s, a.preview)
+    if a.ibvs:
+        ibvs(a.ibvs, a.seed, stall_after_s=a.stall_after_s)
     return 0
+
+
+# The dot plate clamped to the tool, facing the camera at home (the calibration test's).
+TOOL_BOARD = {"position_mm": [48.0, 27.7128, 134.0], "rotvec_rad": [0.0, -0.813104, -3.034545]}
+# The true camera off the configured [hand_eye] T_base_camera (2.1 mm / 0.46 deg).
+TRUE_CAMERA_OFFSET = ((1.5, -1.0, 1.2), (0.004, -0.003, 0.005))  # position mm, rotvec rad
+
+
+def ibvs(n: int, seed: int, displace_mm: float = 30.0, displace_deg: float = 6.0,
+         teach_samples: int = 10, stall_after_s: float | None = None) -> None:
+    """IBVS with the fixed camera: the plate on the tool (``TOOL_BOARD``) taught at home
+    (``POST /teach``'s routine), then ``n`` seeded displacements (``displace_mm`` in a random
+    direction, ``displace_deg`` about a random axis through the TCP), each jogged to and
+    approached back by ``mode = "ibvs"``; the simulated camera stands ``TRUE_CAMERA_OFFSET``
+    away from the configured one. Error: the true TCP against the true TCP where the view was
+    taught (simulated truth the cell does not see)."""
+    import tempfile
+    import time
+    from pathlib import Path
+
+    from cell.bench.ibvs import _jog_to, _recover, displacements
+    from cell.config.schema import load_config, parse_config
+    from cell.errors import CellError
+    from cell.features.teach import TaughtStore, teach
+    from cell.runtime import start_cell
+    from estimator.transforms import T_from_pose, T_from_pose_dict, pose_dict
+
+    rng = np.random.default_rng(seed)
+    with tempfile.TemporaryDirectory() as tmp:
+        d = load_config(Path(__file__).parents[1] / "configs" / "sim-fixed.toml").model_dump(
+            mode="python")
+        d["robot"]["kind"], d["sim"]["ur_controller"], d["gripper"]["kind"] = "sim", False, "none"
+        d["api"]["job_db"] = str(Path(tmp) / "jobs.db")
+        d["opcua"]["enabled"], d["urscript"]["xmlrpc_port"] = False, 0
+        guess = T_from_pose_dict(d["hand_eye"]["T_base_camera"])
+        truth = guess @ T_from_pose(*TRUE_CAMERA_OFFSET)
+        d["sim"].update(T_base_camera=pose_dict(truth), T_flange_board=TOOL_BOARD)
+        if stall_after_s is not None:
+            d["servo"]["stall_after_s"] = stall_after_s
+        cell = start_cell(parse_config(d))
+        try:
+            assert cell.sim is not None
+            off_mm, off_deg = pose_distance(guess, truth)
+            T_taught = cell.sim.true_T_base_tcp()
+            taught = teach(cell, TaughtStore(None), "bench", "plate", samples=teach_samples)
+            print(f"IBVS, fixed camera (12 MP), the tool's plate taught at home ({teach_samples} "
+                  f"samples, spread {taught.spread_mm:.3f} mm); camera {off_mm:.1f} mm / "
+                  f"{off_deg:.2f} deg off the config; {n} displacements of {displace_mm:g} mm / "
+                  f"{displace_deg:g} deg; stall_after_s {cell.config.servo.stall_after_s:g} s")
+            rows, failures = [], []
+            for dt, dr in displacements(rng, n, displace_mm, displace_deg):
+                T_disp = T_from_pose(dt, np.zeros(3)) @ T_taught
+                T_disp[:3, :3] = Rotation.from_rotvec(np.radians(dr)).as_matrix() \
+                    @ T_taught[:3, :3]
+                try:
+                    _jog_to(cell, T_disp)
+                except CellError as err:
+                    failures.append(f"jog {err.code}")
+                    _recover(cell)
+                    continue
+                t0 = time.monotonic()
+                try:
+                    job = cell.approach("bench", T_target_tcp=taught.T_target_tcp, mode="ibvs",
+                                        view=taught.view, wait=True, wait_timeout_s=120.0)
+                except CellError as err:
+                    failures.append(f"refused {err.code}")
+                    continue
+                took = time.monotonic() - t0
+                time.sleep(0.2)
+                d_mm, d_deg = pose_distance(cell.sim.true_T_base_tcp(), T_taught)
+                if job.state != "succeeded":
+                    failures.append(f"failed {job.error_code}")
+                    if len(failures) == 1:
+                        print(f"  first failure: {job.error_message}")
+                    _recover(cell)
+                    continue
+                r = job.result or {}
+                rows.append((d_mm, d_deg, took, r.get("estimated_error_mm"),
+                             r.get("image_error_px_rms")))
+            good = sum(1 for row in rows if row[0] < 0.1)
+            print(f"  {len(rows)}/{n} converged, {good} within 0.1 mm of the taught true TCP; "
+                  f"{len(failures)} failed ({', '.join(failures) or 'none'})")
+            if rows:
+                e = np.array([row[:3] for row in rows])
+                est = [row[3] for row in rows if row[3] is not None]
+                print(f"  true error: worst {e[:, 0].max():.3f} mm / {e[:, 1].max():.4f} deg, "
+                      f"median {np.median(e[:, 0]):.3f} mm / {np.median(e[:, 1]):.4f} deg; "
+                      f"time median {np.median(e[:, 2]):.2f} s, worst {e[:, 2].max():.2f} s"
+                      + (f"; pose-based estimate of the error median {np.median(est):.3f} mm"
+                         if est else ""))
+        finally:
+            cell.close()
