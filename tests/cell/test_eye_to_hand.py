@@ -256,12 +256,20 @@ def test_fixed_camera_ibvs_brings_the_tool_plate_back_to_its_taught_view(
     data = fixed_data(tmp_path)
     guess = T_from_pose_dict(data["hand_eye"]["T_base_camera"])
     data["sim"].update(T_base_camera=pose_dict(guess @ TRUE_OFFSET), T_flange_board=TOOL_BOARD)
-    data["servo"]["stall_after_s"] = 5.0  # a 12 MP render on a loaded host (servo test above)
+    # The colour sensor binned 2x2 (2028x1520, 1475 px focal): a 12 MP frame costs 0.2-2.5 s
+    # to render on a loaded 2-core host, a quarter of it far less (the 12 MP figures are the
+    # bench's, docs/eye-to-hand.md); the stop test over 3 frames, not 10.
+    cam = data["camera"]
+    cam.update(fx=cam["fx"] / 2, fy=cam["fy"] / 2, cx=(cam["cx"] + 0.5) / 2 - 0.5,
+               cy=(cam["cy"] + 0.5) / 2 - 0.5, width=cam["width"] // 2,
+               height=cam["height"] // 2)
+    data["servo"]["stall_after_s"] = 5.0
+    data["ibvs"].update(converge_frames=3)
     with running_cell(parse_config(data)) as cell, TestClient(create_app(cell)) as c:
         op = {"Authorization": "Bearer sim-operator"}
         assert cell.sim is not None
         T_taught = cell.sim.true_T_base_tcp()
-        r = c.post("/api/v1/teach", json={"name": "plate", "samples": 3}, headers=op)
+        r = c.post("/api/v1/teach", json={"name": "plate", "samples": 2}, headers=op)
         assert r.status_code == 200, r.text
         view = r.json()["view"]
         assert view is not None and len(view["ids"]) == 6
