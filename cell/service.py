@@ -74,7 +74,7 @@ class Cell:
         frames = cell_frames(config)
         target = config.target.model()
         locator = Locator(config.camera.model(), target, hardware.camera, arm, frames,
-                          config.camera.fps, image_log)
+                          config.camera.fps, image_log, config.camera.intrinsics)
         audit = Auditor(jobs, self.stats)
         runner = JobRunner(jobs, slot, arm, self.events, audit, self.stats)
         self.core = CellCore(config, hardware, arm, slot, jobs, self.events, audit, runner,

@@ -37,10 +37,11 @@ class FixedSimCamera(SimCamera):
         self, camera: CameraModel, target: Target, T_base_target: Matrix4,
         T_base_camera: Matrix4, flange_source: PoseSource, T_flange_tcp: Matrix4, *,
         tool_radius_mm: float = 30.0, T_flange_board: Matrix4 | None = None,
-        **options: float | int | None,
+        reported_camera: CameraModel | None = None, **options: float | int | None,
     ) -> None:
         super().__init__(camera, target, T_base_target, np.asarray(T_base_camera, dtype=float),
-                         flange_source, **options)  # type: ignore[arg-type]
+                         flange_source, reported_camera=reported_camera,
+                         **options)  # type: ignore[arg-type]
         self.T_base_camera = np.array(T_base_camera, dtype=float)
         self.T_flange_tcp = np.array(T_flange_tcp, dtype=float)
         self.tool_radius_mm = float(tool_radius_mm)

@@ -95,7 +95,7 @@ class SimCamera:
         lighting_gradient: float = 0.1, exposure_jitter: float = 0.03, seed: int | None = None,
         latency_s: float = 0.0, latency_jitter_s: float = 0.0, timestamp_offset_s: float = 0.0,
         timestamp_jitter_s: float = 0.0, motion_blur: bool = False, flicker_depth: float = 0.0,
-        flicker_hz: float = 100.0,
+        flicker_hz: float = 100.0, reported_camera: CameraModel | None = None,
     ) -> None:
         if not 0 < fps <= 120:
             raise ValueError(f"fps must be within (0, 120], got {fps}")
@@ -103,6 +103,9 @@ class SimCamera:
             raise ValueError(f"exposure_s must be positive and shorter than a frame, got "
                              f"{exposure_s}")
         self.camera = camera
+        # what the device says its intrinsics are (an OAK's factory calibration): a
+        # calibration, so not necessarily ``camera``, the lens the images are rendered with
+        self.reported_camera = camera if reported_camera is None else reported_camera
         self.target = target
         self.T_flange_camera = np.array(T_flange_camera, dtype=float)
         self._T_base_target = np.array(T_base_target, dtype=float)
@@ -301,7 +304,7 @@ class SimCamera:
                 if next_due is not None:
                     remaining = min(remaining, max(0.0005, next_due - time.monotonic()))
                 self._cond.wait(remaining)
-        return Frame(self._render(exp), exp.timestamp_s, exp.sequence, self.camera)
+        return Frame(self._render(exp), exp.timestamp_s, exp.sequence, self.reported_camera)
 
     # -- internals ---------------------------------------------------------------------------
     def _promote_locked(self, now_s: float) -> float | None:

@@ -232,6 +232,14 @@ class MachineVision:
             self._nodes["result"]: ua.Variant(json.dumps(body, default=str), S)})
 
     # -- calls ----------------------------------------------------------------------------------
+    async def _change_state(self, work: Callable[[RemoteCaller], list[ua.Variant]]
+                            ) -> list[ua.Variant]:
+        """A state-machine method without outputs: ``work`` changes the state, then the
+        state variables show it, whether the call was taken or refused."""
+        out = await self._call(work, [])
+        await self._show()
+        return out
+
     async def _call(self, work: Callable[[RemoteCaller], list[ua.Variant]],
                     blanks: list[ua.Variant]) -> list[ua.Variant]:
         """The outputs then ``Error``; a refusal is blanks and its error number."""
@@ -264,9 +272,7 @@ class MachineVision:
             self._remember()
             return []
 
-        out = await self._call(work, [])
-        await self._show()
-        return out
+        return await self._change_state(work)
 
     async def _halt(self, parent: ua.NodeId) -> list[ua.Variant]:
         def work(caller: RemoteCaller) -> list[ua.Variant]:
@@ -276,9 +282,7 @@ class MachineVision:
             self._remember()
             return []
 
-        out = await self._call(work, [])
-        await self._show()
-        return out
+        return await self._change_state(work)
 
     async def _reset(self, parent: ua.NodeId) -> list[ua.Variant]:
         def work(caller: RemoteCaller) -> list[ua.Variant]:
@@ -289,9 +293,7 @@ class MachineVision:
             self._remember()
             return []
 
-        out = await self._call(work, [])
-        await self._show()
-        return out
+        return await self._change_state(work)
 
     async def _stop(self, parent: ua.NodeId) -> list[ua.Variant]:
         def work(caller: RemoteCaller) -> list[ua.Variant]:
@@ -387,9 +389,7 @@ class MachineVision:
             self._remember()
             return []
 
-        out = await self._call(work, [])
-        await self._show()
-        return out
+        return await self._change_state(work)
 
     async def _remove_recipe(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
         (external_id,) = self.opc.method_args(args, 1)

@@ -24,6 +24,7 @@ wrong pose. Views that fail (unreachable pose, target not found) are reported an
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -173,6 +174,7 @@ def run_hand_eye_routine(
     settings: RoutineSettings | None = None,
     progress: Progress | None = None,
     fixed_camera: bool = False,
+    intrinsics: Callable[[CameraModel], CameraModel] | None = None,
 ) -> RoutineResult:
     """Collect views around the arm's current pose and solve; the arm ends where it started.
 
@@ -180,6 +182,8 @@ def run_hand_eye_routine(
     poses); ``T_flange_camera_guess`` only aims the views. With ``fixed_camera`` the target is
     on the tool, the guess is ``T_base_camera`` and so is the report's result (its
     ``T_flange_camera`` field); ``T_base_flange`` stays the flange poses as the arm gave them.
+    ``intrinsics`` maps the intrinsics a frame reports to the ones to solve with (the cell's
+    :class:`cell.vision.intrinsics.IntrinsicsPolicy`; None: the frame's own).
     Raises RoutineError when the target
     is not visible at the start or fewer than ``min_views`` views succeed, and lets
     ``drivers.errors`` through when the arm faults (protective stop, connection lost).
@@ -188,7 +192,9 @@ def run_hand_eye_routine(
     report = progress or (lambda stage, done, total: None)
     tcp_inv = invert_T(T_flange_tcp)
     T_start_tcp = arm.tcp_pose()
-    flange0, obs0, intrinsics, image0 = _capture(arm, camera, observer, tcp_inv, s)
+    model_for = intrinsics or (lambda device: device)
+    flange0, obs0, intrinsics_used, image0 = _capture(arm, camera, observer, tcp_inv, s,
+                                                      model_for)
     if isinstance(obs0, str):
         raise RoutineError(ErrorCode.target_not_visible, f"at the start pose: {obs0}")
     centre = obs0.object_points_mm.mean(axis=0)
@@ -210,7 +216,7 @@ def run_hand_eye_routine(
                 failed.append((k, f"move refused: {err}"))
                 report("views", k + 1, len(plan))
                 continue
-            flange, obs, _, image = _capture(arm, camera, observer, tcp_inv, s)
+            flange, obs, _, image = _capture(arm, camera, observer, tcp_inv, s, model_for)
             if isinstance(obs, str):
                 failed.append((k, obs))
             else:
@@ -230,7 +236,7 @@ def run_hand_eye_routine(
         )
     try:
         result = solve_observations(
-            intrinsics,
+            intrinsics_used,
             [f"view-{k:02d}" for k in range(len(observations))],
             eye_to_hand_poses(flanges) if fixed_camera else flanges,
             [o.object_points_mm for o in observations], [o.image_points_px for o in observations],
@@ -240,14 +246,15 @@ def run_hand_eye_routine(
     except HandEyeError as err:
         raise RoutineError(ErrorCode(err.code), str(err)) from err
     return RoutineResult(result, tuple(flanges), tuple(observations), tuple(failed),
-                         tuple(images), intrinsics)
+                         tuple(images), intrinsics_used)
 
 
 def _capture(
-    arm: GuardedArm, camera: Camera, observer: Observer, tcp_inv: Matrix4, s: RoutineSettings
+    arm: GuardedArm, camera: Camera, observer: Observer, tcp_inv: Matrix4, s: RoutineSettings,
+    model_for: Callable[[CameraModel], CameraModel],
 ) -> tuple[Matrix4, Observation | str, CameraModel, NDArray[np.uint8]]:
-    """A frame exposed after the arm settled: its flange pose, what it shows, the camera's
-    intrinsics and the image."""
+    """A frame exposed after the arm settled: its flange pose, what it shows, the intrinsics
+    it was observed with and the image."""
     stopped = time.monotonic()
     time.sleep(s.settle_s)
     frame = _frame_after(camera, stopped + s.settle_s, s.frame_timeout_s)
@@ -256,10 +263,11 @@ def _capture(
     except LookupError:
         T_base_tcp = arm.tcp_pose()
     flange = T_base_tcp @ tcp_inv
+    model = model_for(frame.camera)
     try:
-        return flange, observer(frame.image, frame.camera), frame.camera, frame.image.copy()
+        return flange, observer(frame.image, model), model, frame.image.copy()
     except ObservationError as err:
-        return flange, str(err), frame.camera, frame.image.copy()
+        return flange, str(err), model, frame.image.copy()
 
 
 def _frame_after(camera: Camera, t_s: float, timeout_s: float) -> Frame:

@@ -93,7 +93,8 @@ class CalibrationService:
         try:
             result = run_hand_eye_routine(
                 core.arm, core.camera, dot_target_observer(core.target),
-                core.frames.T_flange_tcp, guess, settings, progress, fixed_camera=fixed)
+                core.frames.T_flange_tcp, guess, settings, progress, fixed_camera=fixed,
+                intrinsics=core.locator.intrinsics.model_for)
         except RoutineError as err:
             raise RefusedError(ErrorCode(err.code), err.message) from err
         report = result.report

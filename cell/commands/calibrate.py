@@ -203,6 +203,7 @@ def run_routine(args: argparse.Namespace) -> int:
     from cell.motion.guard import GuardedArm
     from cell.motion.limits import SafetyGuard
     from cell.vision.frames import cell_frames
+    from cell.vision.intrinsics import IntrinsicsPolicy
     from drivers.errors import DriverError
     from estimator.calib.board import Board
 
@@ -248,6 +249,7 @@ def run_routine(args: argparse.Namespace) -> int:
             result = run_hand_eye_routine(
                 arm, hw.camera, observer, T_flange_tcp, guess, settings, progress=progress,
                 fixed_camera=fixed,
+                intrinsics=IntrinsicsPolicy(cfg.camera.model(), cfg.camera.intrinsics).model_for,
             )
     except RoutineError as err:
         return fail(err.code, err.message, args.json)

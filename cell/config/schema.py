@@ -60,6 +60,10 @@ class CameraConfig(_Strict):
     width: int = Field(gt=0)
     height: int = Field(gt=0)
     dist: list[float] = Field(default_factory=list)
+    # Which intrinsics the cell computes with: these ("config": a commissioning calibration
+    # written here must win) or the ones the device reports with each frame ("device": an
+    # OAK's factory calibration). cell.vision.intrinsics.
+    intrinsics: Literal["config", "device"] = "config"
     # Which device, its frame rate, and (OAK) which one and how it exposes. The output size is
     # ``width`` x ``height``. Unset sensor settings keep the device's defaults.
     kind: Literal["sim", "oak"] = "sim"
@@ -100,8 +104,9 @@ class CameraConfig(_Strict):
                            self.width, self.height)
 
 
-class TargetConfig(_Strict):
-    """Dot centres in the target frame (mm), dot diameter, dark or light dots."""
+class DotLayout(BaseModel):
+    """Dot centres in the target frame (mm), dot diameter, dark or light dots: the fields a
+    target has wherever it is declared (``[target]``, a recipe's targets)."""
 
     points_mm: list[tuple[float, float, float]] = Field(min_length=4, max_length=100)
     dot_diameter_mm: float = Field(gt=0)
@@ -118,6 +123,10 @@ class TargetConfig(_Strict):
 
     def model(self) -> Target:
         return Target(self.points_mm, self.dot_diameter_mm, self.polarity)
+
+
+class TargetConfig(DotLayout, _Strict):
+    """The cell's target (``[target]``)."""
 
 
 Vec3 = tuple[float, float, float]

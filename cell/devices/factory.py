@@ -233,8 +233,9 @@ def _make_camera(config: CellConfig, truth: _EngineTruth | _ProcessTruth | None
             fx = true.effects
             sim_camera = SimCamera(
                 true.camera, config.target.model(), sim.T_base_target.T(), true.T_flange_camera,
-                _pose_source(truth), fps=cc.fps, noise_std=sim.noise_std,
-                blur_sigma_px=sim.blur_sigma_px, exposure_jitter=fx.gain_jitter,
+                _pose_source(truth), reported_camera=sim_truth.factory_calibration(config),
+                fps=cc.fps, noise_std=sim.noise_std, blur_sigma_px=sim.blur_sigma_px,
+                exposure_jitter=fx.gain_jitter,
                 latency_s=fx.camera_latency_s, latency_jitter_s=fx.camera_latency_jitter_s,
                 timestamp_offset_s=fx.timestamp_offset_s,
                 timestamp_jitter_s=fx.timestamp_jitter_s, motion_blur=fx.motion_blur,
@@ -283,12 +284,11 @@ def hardware_problems(config: CellConfig) -> list[Problem]:
 def _fixed_sim_camera(config: CellConfig, truth: _EngineTruth | _ProcessTruth
                       ) -> FixedSimCamera:
     """The simulated fixed camera at its true pose, watching the simulated arm's tool."""
-    sim, he = config.sim, config.hand_eye
-    true_pose = sim.T_base_camera or he.T_base_camera
-    assert true_pose is not None  # the config requires T_base_camera with a fixed mount
+    sim, true = config.sim, sim_truth.resolve(config)
     return FixedSimCamera(
-        config.camera.model(), config.target.model(), sim.T_base_target.T(), true_pose.T(),
+        true.camera, config.target.model(), sim.T_base_target.T(), true.T_flange_camera,
         _pose_source(truth), config.tool.T_flange_tcp.T(), tool_radius_mm=sim.tool_radius_mm,
+        reported_camera=sim_truth.factory_calibration(config),
         T_flange_board=None if sim.T_flange_board is None else sim.T_flange_board.T(),
         fps=config.camera.fps, noise_std=sim.noise_std, blur_sigma_px=sim.blur_sigma_px)
 

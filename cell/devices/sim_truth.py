@@ -7,19 +7,26 @@ from what the cell believes (``[camera]``, ``[hand_eye]``), so commissioning has
 recover and benchmarks something to miss.
 
 ``world = "ideal"``: the truth is the cell's config (the estimator's own error only).
-``world = "realistic"``: the truth differs from the config by typical commissioning-day amounts
-(see :data:`REALISTIC` and docs/simulator.md for where each value comes from). Explicit
-``[sim]`` / ``[sim.camera]`` values always win over the preset.
+``world = "realistic"``: the truth is a device of its own: the built-in simulated cell's lens and
+mount (:func:`as_built`) off their nominal values by typical commissioning-day amounts (see
+:data:`REALISTIC` and docs/simulator.md for where each value comes from), whatever the config
+being run says, so a commissioned config stays commissioned. Explicit ``[sim]`` /
+``[sim.camera]`` values always win over the preset.
+
+The simulated camera reports nominal intrinsics with its frames (:func:`factory_calibration`), as
+an OAK reports its factory calibration: a believed value, not the lens it renders with.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.config.schema import CellConfig
+from cell.config.schema import CellConfig, load_config
 from estimator import CameraModel
 from estimator.transforms import T_from_pose
 
@@ -105,28 +112,69 @@ class SimTruthValues:
     effects: SimEffects = IDEAL_EFFECTS
 
 
+BUILT_IN = {"hand": "sim.toml", "fixed": "sim-fixed.toml"}
+
+
+@lru_cache(maxsize=2)
+def as_built(mount: str) -> CellConfig:
+    """The simulated device as built: the built-in simulated cell for that camera mount.
+
+    The realistic world's lens and mount are offsets from this, never from the config being
+    run: commissioning writes its results into the config, and a truth that followed the
+    config would move away by exactly what commissioning corrected."""
+    return load_config(Path(__file__).parents[1] / "configs" / BUILT_IN[mount])
+
+
+def _mount(config: CellConfig) -> Matrix4:
+    """What ``config`` says the camera's mount is: T_base_camera (fixed) or T_flange_camera."""
+    he = config.hand_eye
+    if config.fixed_camera:
+        assert he.T_base_camera is not None  # the schema requires it with a fixed mount
+        return he.T_base_camera.T()
+    return he.T_flange_camera.T()
+
+
+def _nominal_lens(config: CellConfig) -> CameraModel:
+    """The built-in cell's nominal lens at ``config``'s output size (a sensor mode scales the
+    intrinsics)."""
+    nominal = as_built("fixed" if config.fixed_camera else "hand").camera.model()
+    return nominal.scaled(config.camera.width, config.camera.height)
+
+
+def factory_calibration(config: CellConfig) -> CameraModel:
+    """The intrinsics the simulated camera reports with its frames, as an OAK reports its
+    factory calibration: in the realistic world the lens's nominal values (not the true lens,
+    and not whatever the config was later given), in the ideal world the configured ones."""
+    if config.sim.world == "realistic":
+        return _nominal_lens(config)
+    return config.camera.model()
+
+
 def resolve(config: CellConfig) -> SimTruthValues:
-    """The simulated camera's true intrinsics and mount for ``config``."""
+    """The simulated camera's true intrinsics and mount for ``config`` (for a fixed camera the
+    mount is ``T_base_camera``)."""
     sim, believed = config.sim, config.camera.model()
-    T_believed = config.hand_eye.T_flange_camera.T()
+    fixed = config.fixed_camera
     if sim.world == "realistic":
-        o = REALISTIC
-        fx, fy = believed.fx * o.focal_scale[0], believed.fy * o.focal_scale[1]
-        cx, cy = believed.cx + o.principal_offset_px[0], believed.cy + o.principal_offset_px[1]
+        o, nominal = REALISTIC, _nominal_lens(config)
+        fx, fy = nominal.fx * o.focal_scale[0], nominal.fy * o.focal_scale[1]
+        cx, cy = nominal.cx + o.principal_offset_px[0], nominal.cy + o.principal_offset_px[1]
         dist: tuple[float, ...] = o.dist
-        T_mount = T_believed @ T_from_pose(np.array(o.mount_position_mm),
-                                           np.array(o.mount_rotvec_rad))
+        T_nominal = _mount(as_built("fixed" if fixed else "hand"))
+        T_mount = T_nominal @ T_from_pose(np.array(o.mount_position_mm),
+                                          np.array(o.mount_rotvec_rad))
     else:
         fx, fy, cx, cy = believed.fx, believed.fy, believed.cx, believed.cy
         dist = tuple(believed.dist)
-        T_mount = T_believed
+        T_mount = _mount(config)
     sc = sim.camera
     camera = CameraModel(
         sc.fx if sc.fx is not None else fx, sc.fy if sc.fy is not None else fy,
         sc.cx if sc.cx is not None else cx, sc.cy if sc.cy is not None else cy,
         tuple(sc.dist) if sc.dist is not None else dist, believed.width, believed.height)
-    if sim.T_flange_camera is not None:
-        T_mount = sim.T_flange_camera.T()
+    pinned = sim.T_base_camera if fixed else sim.T_flange_camera
+    if pinned is not None:
+        T_mount = pinned.T()
     return SimTruthValues(sim.world, camera, np.asarray(T_mount, dtype=float), effects(config))
 
 

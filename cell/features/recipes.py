@@ -21,10 +21,10 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from cell.config.schema import DotLayout
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, LimitError, NotFoundError, RefusedError
 from cell.files import replace_text
-from estimator.target import Target, layout_problem
 
 STORE_NAME = "recipes.json"
 FORMAT_VERSION = 1
@@ -43,31 +43,16 @@ class RecipeStoreError(CellError):
     kind = "unavailable"
 
 
-class RecipeTarget(BaseModel):
+class RecipeTarget(DotLayout):
     """One target of a product: its dot layout and how the cell approaches it."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     name: str = Field(default="main", min_length=1, max_length=64)
-    points_mm: list[tuple[float, float, float]] = Field(min_length=4, max_length=100)
-    dot_diameter_mm: float = Field(gt=0)
-    polarity: Literal["dark", "light"] = "dark"
     taught: str = ""  # a taught pose's name; "" uses [approach] T_target_tcp
     standoff_mm: float = Field(default=50.0, ge=0)
     mode: Literal["look_and_move", "servo"] = "look_and_move"
     speed_mm_s: float = Field(default=150.0, gt=0)
-
-    @field_validator("points_mm")
-    @classmethod
-    def _determines_a_pose(cls, v: list[tuple[float, float, float]]) -> list[
-            tuple[float, float, float]]:
-        problem = layout_problem(v)
-        if problem is not None:
-            raise ValueError(problem)
-        return v
-
-    def model(self) -> Target:
-        return Target(self.points_mm, self.dot_diameter_mm, self.polarity)
 
 
 class RecipeSpec(BaseModel):

@@ -22,6 +22,7 @@ from cell.errors import CellError, RefusedError, UnavailableError
 from cell.vision.consistency import consistency
 from cell.vision.frames import CellFrames, mean_pose
 from cell.vision.imagelog import ImageLog
+from cell.vision.intrinsics import IntrinsicsPolicy, IntrinsicsSource
 from cell.vision.search_window import SearchWindows
 from drivers.arm import Arm
 from drivers.camera import Camera, Frame
@@ -78,7 +79,8 @@ class Locator:
     """Owns the estimators; thread-safe. Failed frames go to the optional image log."""
 
     def __init__(self, camera_model: CameraModel, target: Target, camera: Camera, arm: Arm,
-                 frames: CellFrames, fps: float, image_log: ImageLog | None = None) -> None:
+                 frames: CellFrames, fps: float, image_log: ImageLog | None = None,
+                 intrinsics_source: IntrinsicsSource = "config") -> None:
         self.camera = camera
         self.arm = arm
         self.frames = frames
@@ -86,6 +88,7 @@ class Locator:
         self.image_log = image_log
         self.target = target
         self.camera_model = camera_model
+        self.intrinsics = IntrinsicsPolicy(camera_model, intrinsics_source)
         self._estimator = Estimator(camera_model, target)
         self._windows = SearchWindows(frames.is_fixed)  # where the next frame's dots can be
         self._estimator_lock = threading.Lock()
@@ -235,11 +238,11 @@ class Locator:
                                        "the camera delivers no new frames; check its connection")
             time.sleep(0.2 / self.fps)
 
-    def _use_intrinsics(self, model: CameraModel) -> None:
-        """Frames carry the intrinsics valid for them (an OAK reports its factory calibration);
-        when they differ from the configured ones, the frame's win."""
+    def _use_intrinsics(self, device: CameraModel) -> None:
+        """Frames carry the device's intrinsics; the policy (``[camera] intrinsics``) decides
+        which the estimators compute with (call with the estimator lock held)."""
+        model = self.intrinsics.model_for(device)
         if model != self.camera_model:
-            log.warning("camera intrinsics differ from the config; using the device's")
             self.camera_model = model
             self._estimator = Estimator(model, self.target)
             self._preview = Estimator(model, self.target)

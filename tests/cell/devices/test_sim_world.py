@@ -9,13 +9,14 @@ import pytest
 from fastapi.testclient import TestClient
 
 from api.app import create_app
-from cell.config.schema import ConfigError
+from cell.config.schema import ConfigError, load_config, parse_config
 from cell.devices.factory import build_hardware, true_kinematics
 from cell.devices.sim_truth import (
     IDEAL_EFFECTS,
     REALISTIC,
     REALISTIC_EFFECTS,
     effects,
+    factory_calibration,
     resolve,
 )
 from estimator.transforms import T_from_pose_dict, invert_T, pose_distance
@@ -23,6 +24,7 @@ from fakes.ur_sim.kinematics import UR5eKinematics
 from tests.support.cell import AUTH, running_cell, sim_config
 
 VIEW = AUTH["viewer"]
+FIXED = Path(__file__).parents[3] / "cell" / "configs" / "sim-fixed.toml"
 
 
 def test_ideal_world_is_the_config(tmp_path: Path) -> None:
@@ -58,13 +60,43 @@ def test_bad_distortion_is_refused(tmp_path: Path) -> None:
         sim_config(tmp_path, sim={"camera": {"dist": [0.1, 0.2]}})
 
 
+def test_realistic_truth_stays_put_when_commissioning_rewrites_the_config(
+        tmp_path: Path) -> None:
+    # what `cell calibrate ... --write-config` does: new [hand_eye] and [camera] values
+    config = sim_config(tmp_path, sim={"world": "realistic"})
+    written = sim_config(tmp_path, sim={"world": "realistic"},
+                         hand_eye={"T_flange_camera": {"position_mm": [1.1, 59.2, 31.4],
+                                                       "rotvec_rad": [0.004, -0.003, 0.006]}},
+                         camera={"fx": 806.4, "fy": 805.6, "cx": 643.0, "cy": 397.0})
+    before, after = resolve(config), resolve(written)
+    assert after.camera == before.camera
+    assert factory_calibration(written) == factory_calibration(config)
+    np.testing.assert_allclose(after.T_flange_camera, before.T_flange_camera, atol=1e-12)
+
+
+def test_realistic_fixed_camera_is_off_its_config_too(tmp_path: Path) -> None:
+    config = load_config(FIXED)
+    data = config.model_dump(mode="python")
+    data["sim"]["world"] = "realistic"
+    true = resolve(parse_config(data))
+    assert config.hand_eye.T_base_camera is not None
+    dpos_mm, drot_deg = pose_distance(true.T_flange_camera, config.hand_eye.T_base_camera.T())
+    assert 1.0 < dpos_mm < 3.0 and 0.1 < drot_deg < 1.0
+    assert true.camera.fx == pytest.approx(config.camera.fx * REALISTIC.focal_scale[0])
+
+
 def test_sim_truth_reports_lens_and_mount(tmp_path: Path) -> None:
     config = sim_config(tmp_path, sim={"world": "realistic"})
     with running_cell(config) as cell, TestClient(create_app(cell)) as client:
         body = client.get("/api/v1/sim/truth", headers=VIEW).json()
-        # what the camera renders with is what the route reports
+        # the camera reports its nominal lens (its "factory calibration"), renders with the
+        # true lens, and the cell computes with the configured intrinsics
+        assert client.post("/api/v1/locate", headers=AUTH["plc"]).status_code == 200
+        assert cell.hw.camera.latest_frame().camera == factory_calibration(config)
+        assert cell.core.locator.camera_model == config.camera.model()
         assert cell.sim is not None
         true = cell.sim.truth_values()
+        assert true.camera != factory_calibration(config)
     assert body["world"] == "realistic"
     assert body["camera"]["fx"] == pytest.approx(true.camera.fx)
     assert body["camera"]["dist"] == pytest.approx(list(REALISTIC.dist))
