@@ -46,15 +46,14 @@ from cell.actions.ibvs import (
     AdaptiveGain,
     Features,
     LatencyCappedGain,
-    base_tcp_twist,
-    camera_twist,
     features_from_view,
     image_error_px,
     limit_twist,
     predicted,
     remaining_motion,
 )
-from cell.actions.ibvs_settle import mean_features, settle_step, step_goal, step_size
+from cell.actions.ibvs_mount import IbvsMount
+from cell.actions.ibvs_settle import mean_features, settle_step, step_size
 from cell.actions.servo import (
     MAX_EXTRAPOLATE_S,
     PROGRESS_PERIOD_S,
@@ -70,7 +69,7 @@ from cell.motion.limits import linear_path
 from cell.motion.twist import extrapolate_tcp
 from cell.vision.locate import Located
 from drivers.errors import DriverError
-from estimator.transforms import invert_T, pose_dict, pose_distance
+from estimator.transforms import pose_dict, pose_distance
 
 log = logging.getLogger(__name__)
 Matrix4 = NDArray[np.float64]
@@ -104,6 +103,7 @@ class IbvsRun:
         self.core, self.job_id, self.motion, self.mode = core, job_id, motion, mode
         self.desired, self.T_target_tcp, self.duration_s = desired, T_target_tcp, duration_s
         self.sc, self.ic, lim = core.config.servo, core.config.ibvs, core.config.limits
+        self.mount = IbvsMount.of(core.frames, desired, core.locator.target.points_mm)
         self.gain = AdaptiveGain(self.ic.gain_at_zero_per_s, self.ic.gain_at_infinity_per_s,
                                  self.ic.slope_at_zero)
         self.max_speed_mm_s = min(self.sc.max_speed_mm_s, lim.max_speed_mm_s)
@@ -253,15 +253,13 @@ class IbvsRun:
             self._keep(view, first.located_at_s)
 
     def _control(self) -> dict[str, Any]:
-        core, sc, ic, arm = self.core, self.sc, self.ic, self.core.arm
-        T_tcp_camera = core.frames.T_tcp_camera
+        core, sc, ic, arm, mount = self.core, self.sc, self.ic, self.core.arm, self.mount
         cam = core.locator.camera_model
         t0 = time.monotonic()
         prev = np.zeros(6)
         t_prev: float | None = None
         seen = -1
         window: deque[NDArray[np.float64]] = deque(maxlen=ic.converge_frames)
-        T_camera_tcp = invert_T(T_tcp_camera)
         last_step = (float("nan"), float("nan"))
         converged_s: float | None = None
         history: list[tuple[float, float, float, float]] = []
@@ -299,7 +297,7 @@ class IbvsRun:
             if view.sequence != seen:  # a new view: its goal checked, its error judged
                 seen = view.sequence
                 phases.setdefault("first_view", tick - t0)
-                goal = view.T_base_target @ self.T_target_tcp
+                goal = mount.goal(view.T_base_target, view.T_base_tcp, self.T_target_tcp)
                 arm.guard.check_path(linear_path(T_tcp, goal), "ibvs goal estimate")
                 last_pose = pose_distance(view.T_base_tcp, goal)
                 last_px = image_error_px(view.features, desired, cam)
@@ -316,7 +314,8 @@ class IbvsRun:
                         "error_deg": last_pose[1], "dots": len(view.features.ids)})
                 if self.mode == "approach":
                     window.append(view.features.xy - desired.xy)
-                    step = remaining_motion(view.features, desired, ic.interaction, T_camera_tcp)
+                    step = remaining_motion(view.features, desired, ic.interaction,
+                                            mount.camera_tcp(view.T_base_tcp))
                     if step[0] < ic.tolerance_mm and step[1] < ic.tolerance_deg:
                         phases.setdefault("first_frame_within", tick - t0)
                     if len({e.shape for e in window}) > 1:  # the dots changed: start again
@@ -329,7 +328,7 @@ class IbvsRun:
                         mean_view = Features(desired.ids, desired.xy + np.mean(window, axis=0),
                                              view.features.depth_mm)
                         last_step = remaining_motion(mean_view, desired, ic.interaction,
-                                                     T_camera_tcp)
+                                                     mount.camera_tcp(view.T_base_tcp))
                         # and the arm nearly still: a window's mean is also small while the
                         # arm swings through the view; within the loop's delay (what the
                         # newest view is behind the arm) it may move half the tolerance
@@ -358,10 +357,7 @@ class IbvsRun:
             if self.mode == "track" and self.duration_s is not None \
                     and tick - t0 >= self.duration_s:
                 break
-            T_base_cam_now = T_tcp @ T_tcp_camera
-            T_base_cam_then = view.T_base_tcp @ T_tcp_camera
-            now_features = predicted(view.features,
-                                     invert_T(T_base_cam_now) @ T_base_cam_then,
+            now_features = predicted(view.features, mount.dots_motion(T_tcp, view.T_base_tcp),
                                      view.points_camera_mm) if ic.predict_motion \
                 else view.features
             # what the command acts on is as old as the view, or with the view moved on by
@@ -373,8 +369,7 @@ class IbvsRun:
             t_tick = tick
             gain = LatencyCappedGain(self.gain, delay_s, ic.gain_latency_product)
             caps.append(gain.cap_per_s)
-            v_c = camera_twist(now_features, desired, gain, ic.interaction)
-            twist = base_tcp_twist(v_c, T_base_cam_now, T_tcp)
+            twist = mount.tcp_twist(now_features, desired, gain, ic.interaction, T_tcp)
             t_cmd = time.monotonic()
             accepted_s = arm.last_twist_s
             dt = SERVO_MIN_DT_S if t_prev is None or accepted_s is None else min(
@@ -394,7 +389,7 @@ class IbvsRun:
         phases["stopped"] = time.monotonic() - t0
         settle: dict[str, Any] = {}
         if self.mode == "approach" and ic.settle_frames > 0:
-            settle = self._settle(T_tcp_camera, T_camera_tcp)
+            settle = self._settle()
             converged_s = time.monotonic() - t0
             phases["settled"] = converged_s
         return self._result(t0, converged_s, last_px, last_pose, history) | {
@@ -403,7 +398,7 @@ class IbvsRun:
             "gain_cap_per_s": _percentiles(caps)} | settle
 
     # -- the final settle (cell.actions.ibvs_settle) ---------------------------------------------
-    def _settle(self, T_tcp_camera: Matrix4, T_camera_tcp: Matrix4) -> dict[str, Any]:
+    def _settle(self) -> dict[str, Any]:
         """Average ``settle_frames`` views with the arm still, step by ``-L^+ e``; up to
         ``settle_steps`` times, until the step is under the settle tolerance."""
         ic, arm = self.ic, self.core.arm
@@ -411,12 +406,12 @@ class IbvsRun:
         for _ in range(ic.settle_steps):
             views = self._rest_views(ic.settle_frames, time.monotonic())
             step = settle_step(mean_features([v.features for v in views]), self.desired)
-            size = step_size(step, T_camera_tcp)
+            size = step_size(step, self.mount.camera_tcp(views[-1].T_base_tcp))
             sizes.append([round(size[0], 4), round(size[1], 5)])
             if size[0] < ic.settle_tolerance_mm and size[1] < ic.settle_tolerance_deg:
                 break
             self.motion.raise_if_cancelled("before the IBVS settle step")
-            goal = step_goal(views[-1].T_base_tcp, T_tcp_camera, step)
+            goal = self.mount.step_goal(views[-1].T_base_tcp, step)
             try:
                 arm.move_linear(goal, self.max_speed_mm_s, self.accel_mm_s2,
                                 what="IBVS settle step")

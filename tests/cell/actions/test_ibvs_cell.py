@@ -132,8 +132,8 @@ def _hide(cell: Cell, monkeypatch: pytest.MonkeyPatch, hidden: set[int]) -> None
     locator = cell.core.locator
     original = locator._estimate
 
-    def estimate(frame: Any) -> Any:
-        result = original(frame)
+    def estimate(frame: Any, *args: Any) -> Any:
+        result = original(frame, *args)
         keep = [k for k, i in enumerate(result.matched_ids) if i not in hidden]
         return replace(result, matched_ids=tuple(result.matched_ids[k] for k in keep),
                        image_points_px=result.image_points_px[keep])
