@@ -42,6 +42,7 @@ class ErrorCode(StrEnum):
     servo_timeout = "servo_timeout"
     duration_limit = "duration_limit"
     target_not_visible = "target_not_visible"
+    no_tool_plate = "no_tool_plate"  # a fixed camera's IBVS: no dot plate on the tool in view
     spread_too_large = "spread_too_large"
     calibration_inconsistent = "calibration_inconsistent"
     reprojection_too_large = "reprojection_too_large"  # a result's consistency finding

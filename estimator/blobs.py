@@ -190,6 +190,9 @@ def detect_blobs_thresholded(
     return found.blobs(), thr
 
 
+Window = tuple[int, int, int, int]  # x0, y0, x1, y1 in px, the end exclusive
+
+
 def detect_dots(
     image_u8: NDArray[np.uint8],
     polarity: Polarity = "dark",
@@ -197,16 +200,23 @@ def detect_dots(
     threshold: ThresholdSpec = None,
     *,
     coarse: bool = True,
+    window: Window | None = None,
 ) -> tuple[Detection, float | None]:
     """:func:`detect_blobs_thresholded` with the dots as a :class:`Detection`: the pipeline
-    builds Blob objects only for the dots it matches."""
+    builds Blob objects only for the dots it matches.
+
+    ``window``: only the dots wholly inside it. The threshold still comes from the whole
+    frame (the same sample, a few milliseconds even at 12 MP), so a dot inside the window gets
+    exactly the region and centre the whole frame's pass gives it; only the labelling, which
+    costs in proportion to the area, is confined to the window."""
     img = _check_image(image_u8)
     if polarity not in ("dark", "light"):
         raise ValueError(f'polarity must be "dark" or "light", got {polarity!r}')
     f = filt if filt is not None else BlobFilter()
     if threshold == "adaptive":
         mask = adaptive_binarize(img, polarity)
-        return dots_in_rois(img, polarity, f, 0.0, _whole_frame(img), mask), None
+        area = _whole_frame(img) if window is None else _clip_rois(None, window, img.shape)
+        return dots_in_rois(img, polarity, f, 0.0, area, mask), None
     sample = np.ascontiguousarray(img[::COARSE_STEP, ::COARSE_STEP])
     kind = cv2.THRESH_BINARY_INV if polarity == "dark" else cv2.THRESH_BINARY
     if threshold is None or threshold == "otsu":
@@ -222,7 +232,25 @@ def detect_dots(
     sample_mask = cv2.threshold(sample, thr, 255, kind)[1]
     sample_u8: NDArray[np.uint8] = np.asarray(sample_mask, dtype=np.uint8)
     rois = _coarse_rois(sample_u8, f, img.shape) if coarse else None
+    if window is not None:
+        rois = _clip_rois(rois, window, img.shape)
     return dots_in_rois(img, polarity, f, thr, _whole_frame(img) if rois is None else rois), thr
+
+
+def _clip_rois(rois: NDArray[np.int64] | None, window: Window, shape: tuple[int, ...]
+               ) -> NDArray[np.int64]:
+    """The regions of interest cut to the window (None: the window itself). A region cut by
+    the window's edge touches its ROI's border and is dropped, as a dot cut by the frame's
+    edge is."""
+    height, width = shape[:2]
+    x0, y0, x1, y1 = (int(v) for v in window)
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+    if rois is None:
+        return np.array([[x0, y0, max(x1, x0), max(y1, y0)]], np.int64)
+    out = np.column_stack((np.maximum(rois[:, 0], x0), np.maximum(rois[:, 1], y0),
+                           np.minimum(rois[:, 2], x1), np.minimum(rois[:, 3], y1)))
+    keep = (out[:, 2] > out[:, 0]) & (out[:, 3] > out[:, 1])
+    return np.ascontiguousarray(out[keep] if keep.any() else out[:0], dtype=np.int64)
 
 
 def _coarse_rois(

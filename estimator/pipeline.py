@@ -10,6 +10,19 @@ perspective-bias offsets at the predicted pose (they change by ~1e-3 px between 
 refined by one LM run from the prediction (:func:`estimator.solve.near_pose_unchecked`). That
 gives the full search's pose to < 1e-3 mm, for a fraction of the full search's cost.
 
+A frame the track does not explain can still be searched near where the dots were: the caller
+may pass a search window (``estimate(frame, window=...)``, see :mod:`estimator.window`); the
+full search then runs inside it only (the threshold from the whole frame, so the dots it finds
+have the whole frame's regions and centres), and the result stands only if every dot of the
+target projects, at the pose found, wholly inside the window: a dot missing there is one the
+whole frame's search would miss too (hidden, or off the plate's image), not one outside the
+window. Anything else falls back to the full search of the whole frame (``last_mode``
+"window" or "full"). Both skip the full-resolution pass (the one for dots too small for the
+coarse pass to see; hundreds of milliseconds over a 12 MP frame, which a hidden dot would
+otherwise trigger) when the dots were ``FINE_PASS_BELOW_PX`` or wider in the frame the window
+comes from: dots that size leave several sampled pixels each, so the coarse pass finds every
+one there is.
+
 Dot identities: the track keeps each dot's identity by continuity, so a symmetric layout --
 whose fresh full search is ``ambiguous`` with its equivalent poses -- is tracked like any
 other and its labels never flip between frames. When the track is lost, the next full search
@@ -27,7 +40,14 @@ from numpy.typing import NDArray
 
 from estimator.ambiguity import MAX_DEG, MAX_DOT_MM
 from estimator.bias import centroid_bias_px
-from estimator.blobs import BlobFilter, Polarity, ThresholdSpec, detect_dots
+from estimator.blobs import (
+    COARSE_STEP,
+    BlobFilter,
+    Polarity,
+    ThresholdSpec,
+    Window,
+    detect_dots,
+)
 from estimator.camera import CameraModel
 from estimator.correspondence import match_blobs
 from estimator.errors import EstimationError, TooFewBlobsError
@@ -36,9 +56,16 @@ from estimator.result import Blob, PoseResult
 from estimator.solve import near_pose_unchecked
 from estimator.target import Target
 from estimator.tracking import BlobTracker
+from estimator.window import inside_window
 
 _TRACK_MAX_RMS_PX = 1.0  # a tracked pose fitting worse than this triggers a full search
 PRIOR_MAX_FRAMES = 30  # frames after a pose that its labelling still guides a full search
+FINE_PASS_BELOW_PX = 4.0 * COARSE_STEP  # dots narrower than this may need the fine pass
+WINDOW_CLEARANCE_PX = 4.0  # beyond a dot's half axis: a dot centred further in is wholly inside
+
+
+class _NotAllInWindow(Exception):
+    """A windowed search missed a dot that may lie outside the window."""
 
 
 def _threshold_spec(value: object) -> ThresholdSpec:
@@ -88,7 +115,7 @@ class Estimator:
             raise ValueError(f"unknown detector option: {err}") from err
         self.polarity: Polarity = target.polarity
         self._tracker = BlobTracker(self.polarity, self.filter, track_margin_px)
-        self.last_mode = "none"  # "full" or "tracking": how the last estimate was found
+        self.last_mode = "none"  # "full", "window" or "tracking": how the last was found
         self._T_last: NDArray[np.float64] | None = None  # poses of the last two tracked frames
         self._T_prev: NDArray[np.float64] | None = None
         self._track_obj = np.zeros((0, 3))  # model points of the tracked dots, in track order
@@ -97,18 +124,24 @@ class Estimator:
         self._prior_T: NDArray[np.float64] | None = None  # last pose, for continuity
         self._prior_age = 0  # frames since that pose
         self._tracked_frames = 0  # consecutive tracked frames of the current track
+        self._min_dot_px = 0.0  # the narrowest matched dot's minor axis in the last result
 
     def reset(self) -> None:
         """Forget the track and the last pose: the next frame gets a fresh full search."""
         self._tracker.reset()
         self._prior_T = None
+        self._min_dot_px = 0.0
 
     @property
     def min_blobs(self) -> int:
         return max(4, self.target.n_points - self.max_missing)
 
-    def estimate(self, frame_u8: NDArray[np.uint8]) -> PoseResult:
-        """Pose of the target in this frame; raises a typed EstimationError when it cannot."""
+    def estimate(self, frame_u8: NDArray[np.uint8], window: Window | None = None
+                 ) -> PoseResult:
+        """Pose of the target in this frame; raises a typed EstimationError when it cannot.
+
+        ``window`` (x0, y0, x1, y1 px): where the dots should be when the track does not
+        explain the frame; searched before the whole frame (see the module doc)."""
         img = np.ascontiguousarray(frame_u8)
         if img.dtype != np.uint8 or img.ndim != 2:
             raise ValueError(f"expected an 8-bit grey frame (HxW uint8), got {img.dtype} "
@@ -118,10 +151,21 @@ class Estimator:
             tracked = self._track(img)
             if tracked is not None:
                 self._prior_T, self._prior_age = tracked.T_camera_target, 0
+                self._min_dot_px = min((b.minor_axis_px for b in tracked.matched_blobs),
+                                       default=0.0)
                 return tracked
             self._tracker.reset()
-        result = self._full_search(img)
+        result, fine = None, True
+        if window is not None:
+            fine = self._min_dot_px < FINE_PASS_BELOW_PX
+            try:
+                result = self._full_search(img, window, fine=fine)
+            except (EstimationError, _NotAllInWindow):
+                result = None
+        if result is None:
+            result = self._full_search(img, fine=fine)
         self._prior_T, self._prior_age = result.T_camera_target, 0
+        self._min_dot_px = min((b.minor_axis_px for b in result.matched_blobs), default=0.0)
         return result
 
     def _predicted_pose(self) -> NDArray[np.float64]:
@@ -167,11 +211,13 @@ class Estimator:
         self._tracked_frames += 1
         return pose
 
-    def _full_search(self, img: NDArray[np.uint8]) -> PoseResult:
-        found, threshold = detect_dots(img, self.polarity, self.filter, self._threshold)
-        if len(found) < self.target.n_points:  # a dot too small for the coarse pass to see?
+    def _full_search(self, img: NDArray[np.uint8], window: Window | None = None, *,
+                     fine: bool = True) -> PoseResult:
+        found, threshold = detect_dots(img, self.polarity, self.filter, self._threshold,
+                                       window=window)
+        if fine and len(found) < self.target.n_points:  # a dot too small for the coarse pass?
             found, threshold = detect_dots(
-                img, self.polarity, self.filter, self._threshold, coarse=False
+                img, self.polarity, self.filter, self._threshold, coarse=False, window=window
             )
         if len(found) < self.min_blobs:
             raise TooFewBlobsError(
@@ -184,6 +230,8 @@ class Estimator:
                            correct_bias=self.correct_bias, prior_T=prior,
                            ambiguity=self.ambiguity)
         matched = found.blobs(list(corr.blob_indices))
+        if window is not None and len(corr.model_ids) < self.target.n_points:
+            self._check_window(corr.pose.T_camera_target, matched, window)
         # A symmetric layout's labellings fit alike: any one is a consistent start, and the
         # track keeps it. Different matchings that fit alike are no start at all.
         if self.tracking and threshold is not None and corr.pose.identity != "ambiguous":
@@ -191,8 +239,19 @@ class Estimator:
             self._tracker.start(matched, corr.model_ids, threshold)
             self._track_obj = np.ascontiguousarray(self.target.points_mm[list(corr.model_ids)])
             self._T_last = self._T_prev = corr.pose.T_camera_target
-        self.last_mode = "full"
+        self.last_mode = "full" if window is None else "window"
         return self._finish(corr.pose, matched, corr.model_ids, pts[list(corr.blob_indices)])
+
+    def _check_window(self, T_camera_target: NDArray[np.float64], matched: list[Blob],
+                      window: Window) -> None:
+        """Every dot of the target, at the pose the window gave, wholly inside the window:
+        the missing ones are then missing from the whole frame too."""
+        Pc = self.target.points_mm @ T_camera_target[:3, :3].T + T_camera_target[:3, 3]
+        if Pc[:, 2].min() <= 0.0:
+            raise _NotAllInWindow
+        half = 0.5 * max(b.major_axis_px for b in matched)
+        if not inside_window(self.camera.project(Pc), window, half + WINDOW_CLEARANCE_PX):
+            raise _NotAllInWindow
 
     @staticmethod
     def _finish(

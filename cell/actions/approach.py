@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.actions.ibvs import Features
+from cell.actions.ibvs_mount import IbvsMount
 from cell.actions.ibvs_run import IbvsRun
 from cell.actions.servo import ServoGoal, ServoRun
 from cell.core import CellCore
@@ -37,7 +38,7 @@ from cell.motion.guard import Motion
 from cell.vision.consistency import consistency
 from cell.vision.frames import approach_tcp, observation_camera
 from cell.vision.locate import Located
-from estimator.transforms import pose_dict, pose_distance
+from estimator.transforms import invert_T, pose_dict, pose_distance
 
 log = logging.getLogger(__name__)
 Matrix4 = NDArray[np.float64]
@@ -83,10 +84,6 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
                            f"'look_and_move' or 'ibvs', got {mode!r}")
     if how == "ibvs":
         standoff_mm = check_ibvs_request(view, standoff_mm, use_last_locate)
-        if core.frames.is_fixed:
-            raise RefusedError(ErrorCode.not_supported,
-                               "mode 'ibvs' is for a camera on the flange; "
-                               "a fixed camera approaches by look_and_move")
     plan = ApproachPlan(
         standoff_mm=ac.standoff_mm if standoff_mm is None else float(standoff_mm),
         speed_mm_s=ac.speed_mm_s if speed_mm_s is None else float(speed_mm_s),
@@ -111,8 +108,17 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
                                    "(jogging is still possible)")
         # the servo re-estimates from every frame: one frame to start from is enough
         n_frames = 1 if how in ("servo", "ibvs") else ac.frames_per_locate
+        began_s = time.monotonic()
         if use_last_locate:
             loc = _last_locate(core)
+        elif how == "ibvs" and core.frames.is_fixed:
+            assert view is not None
+            loc = tool_plate_locate(core, plan.T_target_tcp)
+            core.arm.guard.check_goal(st.T_base_tcp, IbvsMount.of(
+                core.frames, view, core.locator.target.points_mm).goal(
+                    loc.T_base_target, loc.T_base_tcp, plan.T_target_tcp), "IBVS goal estimate")
+            first.append(loc)
+            return
         elif core.frames.is_fixed:
             loc = _fixed_locate(core, n_frames, seen)
         else:
@@ -125,9 +131,11 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
             core.arm.guard.check_goal(st.T_base_tcp, T_obs, "observation pose")
             core.arm.guard.check_goal(T_obs, goal, "approach goal")
         first.append(loc)
+        seen["first_locate_s"] = round(time.monotonic() - began_s, 4)
 
     def work(job_id: str, motion: Motion) -> dict[str, Any]:
         result = run(job_id, motion)
+        result.setdefault("first_locate_s", seen.get("first_locate_s"))
         basis = ERROR_BASIS.get("fixed" if result.get("camera_mount") == "fixed"
                                 else str(result.get("mode")))
         if basis is not None:
@@ -140,7 +148,8 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
     def run(job_id: str, motion: Motion) -> dict[str, Any]:
         if how == "ibvs":
             assert view is not None
-            return IbvsRun(core, job_id, motion, view, plan.T_target_tcp, "approach").run()
+            return IbvsRun(core, job_id, motion, view, plan.T_target_tcp,
+                           "approach").run(first[0])
         if how == "servo":
             run = ServoRun(core, job_id, motion, ServoGoal(plan.T_target_tcp, plan.standoff_mm),
                            "approach", first=first[0])
@@ -172,6 +181,34 @@ def check_ibvs_request(view: Features | None, standoff_mm: float | None,
         raise LimitError(ErrorCode.invalid_request, "mode 'ibvs' servos on live frames; "
                          "use_last_locate does not apply")
     return 0.0
+
+
+TOOL_PLATE_MM = 10.0  # the plate seen must sit this close to where it was on the tool when
+TOOL_PLATE_DEG = 3.0  # taught (hand-eye errors move it by tenths of a millimetre)
+
+
+def tool_plate_locate(core: CellCore, T_plate_tcp: Matrix4) -> Located:
+    """A fixed camera's IBVS drives a dot plate clamped to the tool: locate it and check that
+    it is one, i.e. that the plate seen sits where the taught view had it relative to the TCP
+    (``T_plate_tcp``, the taught ``T_target_tcp``). A plate on the table, a plate moved on
+    the tool, or none in view: ``no_tool_plate``, nothing moves."""
+    try:
+        loc = locate(core, 1)
+    except CellError as err:
+        if err.code in ("camera_lost", "camera_stalled"):
+            raise
+        raise RefusedError(ErrorCode.no_tool_plate, "mode 'ibvs' with a fixed camera drives the "
+                           "dot plate clamped to the tool, and the camera sees no plate: "
+                           f"{err.message}") from err
+    d_mm, d_deg = pose_distance(invert_T(loc.T_base_target) @ loc.T_base_tcp, T_plate_tcp)
+    if d_mm > TOOL_PLATE_MM or d_deg > TOOL_PLATE_DEG:
+        raise RefusedError(ErrorCode.no_tool_plate, "mode 'ibvs' with a fixed camera drives the "
+                           "dot plate clamped to the tool; the plate in view is "
+                           f"{d_mm:.1f} mm / {d_deg:.1f} deg from where the taught view had it "
+                           f"relative to the TCP (limit {TOOL_PLATE_MM:g} mm / "
+                           f"{TOOL_PLATE_DEG:g} deg): it is not on the tool, or it moved there "
+                           "(teach the view again)")
+    return loc
 
 
 def _last_locate(core: CellCore) -> Located:

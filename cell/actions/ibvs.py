@@ -16,6 +16,13 @@ straighter than with the desired one). The gain adapts to the error like ViSP's
 the largest feature error, ``l0`` the gain at zero error, ``linf`` far away and ``slope0`` its
 slope at zero.
 
+With a fixed camera (eye-to-hand) the features are dots carried by the tool (a plate clamped to
+it) and the camera stands still: the image moves with the camera's motion relative to the
+plate, which is minus the plate's own twist, so ``s_dot = -L V`` and the plate's commanded
+twist in the camera frame is ``V = +lambda L^+ e`` (:func:`carried_twist`): the law's twist with
+the sign turned. Everything else is shared: the interaction matrix, the gain, the mapping to
+the TCP (a rigid body's twist about the camera's origin, whoever carries what).
+
 The camera twist (camera frame, about the camera's origin) becomes the base-frame twist of the
 TCP (the velocity of the TCP point and the angular velocity, which is what the guarded arm
 takes) through the adjoint of the camera's pose in the base frame and the lever from the
@@ -25,11 +32,13 @@ image error vanishes at.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
 
 from estimator import CameraModel
 
@@ -53,6 +62,26 @@ class AdaptiveGain:
             return self.at_zero_per_s
         return float(span * np.exp(-self.slope_at_zero * error_inf_norm / span)
                      + self.at_infinity_per_s)
+
+
+@dataclass(frozen=True)
+class LatencyCappedGain:
+    """The adaptive gain, capped at ``product / latency_s``: a loop that acts on information
+    ``latency_s`` old is an integrator behind a delay, which rings when ``lambda * delay``
+    nears 1 (phase margin ``90 deg - lambda * delay rad``); at 0.4 the margin is 67 deg and the
+    step response does not overshoot by more than a few per cent, whatever the host's load
+    makes the delay."""
+
+    gain: AdaptiveGain
+    latency_s: float
+    product: float
+
+    @property
+    def cap_per_s(self) -> float:
+        return self.product / max(self.latency_s, 1e-3)
+
+    def __call__(self, error_inf_norm: float) -> float:
+        return min(self.gain(error_inf_norm), self.cap_per_s)
 
 
 @dataclass(frozen=True)
@@ -118,7 +147,7 @@ def feature_error(current: Features, desired: Features) -> Vec:
     return np.asarray((current.xy - desired.xy).reshape(-1), dtype=float)
 
 
-def camera_twist(current: Features, desired: Features, gain: AdaptiveGain,
+def camera_twist(current: Features, desired: Features, gain: Callable[[float], float],
                  interaction: InteractionFrom = "mean") -> Vec:
     """``v_c = -lambda(|e|_inf) L^+ e`` (camera frame, mm/s and rad/s)."""
     if len(current.ids) < MIN_FEATURES:
@@ -127,6 +156,27 @@ def camera_twist(current: Features, desired: Features, gain: AdaptiveGain,
     L = interaction_of(current, desired, interaction)
     lam = gain(float(np.max(np.abs(e))) if e.size else 0.0)
     return np.asarray(-lam * (np.linalg.pinv(L) @ e), dtype=float)
+
+
+def carried_twist(current: Features, desired: Features, gain: Callable[[float], float],
+                  interaction: InteractionFrom = "mean") -> Vec:
+    """Eye-to-hand: the twist (camera frame, about its origin) to give the body that carries
+    the dots, seen by a fixed camera: ``+lambda L^+ e``, the opposite of the camera twist
+    :func:`camera_twist` asks for (the image sees only the relative motion)."""
+    return -camera_twist(current, desired, gain, interaction)
+
+
+def view_pose(features: Features, target_points_mm: ArrayLike) -> Matrix:
+    """``T_camera_target`` of a recorded view: the rigid fit (SciPy's ``align_vectors``) of
+    the target's dots to the view's 3-D points ``(x Z, y Z, Z)``."""
+    model = np.asarray(target_points_mm, dtype=float).reshape(-1, 3)[list(features.ids)]
+    seen = np.column_stack((features.xy * features.depth_mm[:, None], features.depth_mm))
+    cm, cs = model.mean(axis=0), seen.mean(axis=0)
+    rot, _ = Rotation.align_vectors(seen - cs, model - cm)
+    T = np.eye(4)
+    T[:3, :3] = rot.as_matrix()
+    T[:3, 3] = cs - T[:3, :3] @ cm
+    return T
 
 
 def interaction_of(current: Features, desired: Features, which: InteractionFrom) -> Matrix:

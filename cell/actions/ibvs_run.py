@@ -10,22 +10,23 @@ with fewer than 4 of them is no view (the lost-target clock runs, then ``target_
 The control loop ticks at ``[servo] tick_s``. It takes the newest measured features (with
 ``[ibvs] predict_motion``, moved on by the camera's motion since their exposure, from the arm's
 pose history: :func:`cell.actions.ibvs.predicted`; at rest nothing is added), computes the law's
-camera twist (:mod:`cell.actions.ibvs`), maps it to the TCP's base-frame twist through the hand-eye
-transform, caps its speed and acceleration by the
-``[servo]`` limits, and sends it through the guarded arm's ``servo_twist`` (every tick
+camera twist (:mod:`cell.actions.ibvs`) with the adaptive gain capped at ``[ibvs]
+gain_latency_product`` over the loop's delay (the view's age when used, averaged), maps it to
+the TCP's base-frame twist through the hand-eye transform, caps its speed and acceleration by
+the ``[servo]`` limits, and sends it through the guarded arm's ``servo_twist`` (every tick
 checked, the arm's watchdog brakes if ticks stop, a stop cancels the holder). Each new view's
 pose-based goal (``T_base_target @ T_target_tcp``) is checked against the envelope like the
-servo's, and reported as the estimated pose error; the law itself never uses it.
+servo's, and reported as the estimated pose error; the law itself never uses it. An
+approach's own locate is the loop's first view.
 
-Converged (approach): the image error averaged over the last ``[ibvs] converge_frames``
-measured frames under ``tolerance_px_rms`` (RMS over the dots) and ``tolerance_px_max`` (the
-worst dot). Averaged, because the view's weakest direction (a turn about a point near the
-target, which moves the image only through perspective) is below one frame's noise: a
-single-frame test stops on a lucky frame far from the view. And the TCP motion the view still
-asks for (:func:`cell.actions.ibvs.remaining_motion`, averaged over the same frames) under
-``tolerance_mm`` / ``tolerance_deg``: the pixels alone cannot see that weakest direction
-(measured: 0.005 px RMS left 0.2-0.3 mm at the TCP under a 0.5 deg mount error, which bends
-the camera's path into it).
+Converged (approach): over the last ``[ibvs] converge_frames`` measured frames, the image error
+averaged under ``tolerance_px_rms`` (RMS over the dots) and ``tolerance_px_max`` (the worst
+dot); averaged, because the view's weakest direction (a turn about a point near the target,
+which moves the image only through perspective) is below one frame's noise. The TCP motion
+the window's mean view still asks for (:func:`cell.actions.ibvs.remaining_motion`) under
+``tolerance_mm`` / ``tolerance_deg``: the pixels alone cannot see that weakest direction, and
+the mean view's step, unlike a mean of per-frame steps, is not the frames' noise. And the arm
+nearly still: a window's mean is small too while the arm swings through the view.
 """
 
 from __future__ import annotations
@@ -44,15 +45,15 @@ from cell.actions.ibvs import (
     MIN_FEATURES,
     AdaptiveGain,
     Features,
-    base_tcp_twist,
-    camera_twist,
+    LatencyCappedGain,
     features_from_view,
     image_error_px,
     limit_twist,
     predicted,
     remaining_motion,
 )
-from cell.actions.ibvs_settle import mean_features, settle_step, step_goal, step_size
+from cell.actions.ibvs_mount import IbvsMount
+from cell.actions.ibvs_settle import mean_features, settle_step, step_size
 from cell.actions.servo import (
     MAX_EXTRAPOLATE_S,
     PROGRESS_PERIOD_S,
@@ -66,13 +67,17 @@ from cell.errors import CellError, RefusedError, UnavailableError
 from cell.motion.guard import SERVO_MIN_DT_S, Motion
 from cell.motion.limits import linear_path
 from cell.motion.twist import extrapolate_tcp
+from cell.vision.locate import Located
 from drivers.errors import DriverError
-from estimator.transforms import invert_T, pose_dict, pose_distance
+from estimator.transforms import pose_dict, pose_distance
 
 log = logging.getLogger(__name__)
 Matrix4 = NDArray[np.float64]
 IbvsMode = Literal["approach", "track"]
 HISTORY_POINTS = 100
+LATENCY_SMOOTHING_S = 0.2  # the time constant the loop's delay is averaged over
+STILL_SHARE = 0.5  # converged only if the arm moves less than this share of the tolerances
+# within the loop's delay
 
 
 @dataclass(frozen=True)
@@ -98,6 +103,7 @@ class IbvsRun:
         self.core, self.job_id, self.motion, self.mode = core, job_id, motion, mode
         self.desired, self.T_target_tcp, self.duration_s = desired, T_target_tcp, duration_s
         self.sc, self.ic, lim = core.config.servo, core.config.ibvs, core.config.limits
+        self.mount = IbvsMount.of(core.frames, desired, core.locator.target.points_mm)
         self.gain = AdaptiveGain(self.ic.gain_at_zero_per_s, self.ic.gain_at_infinity_per_s,
                                  self.ic.slope_at_zero)
         self.max_speed_mm_s = min(self.sc.max_speed_mm_s, lim.max_speed_mm_s)
@@ -173,15 +179,20 @@ class IbvsRun:
                 with self._lock:
                     self._loss.examined(frame.timestamp_s)
                 continue
-            with self._lock:
-                self._view = view
-                self._frames += 1
-                self._loss.pose(frame.timestamp_s)
-                self._lags.append(now - frame.timestamp_s)
-                self._min_dots = min(self._min_dots, len(view.features.ids))
-                self._min_border_px = min(self._min_border_px, view.border_px)
-                if view.missing:
-                    self._frames_missing_dots += 1
+            self._keep(view, now)
+
+    def _keep(self, view: View, now_s: float) -> None:
+        """``view`` is the newest; its frame counted."""
+        with self._lock:
+            self._view = view
+            self._last_sequence = max(self._last_sequence, view.sequence)
+            self._frames += 1
+            self._loss.pose(view.exposure_s)
+            self._lags.append(now_s - view.exposure_s)
+            self._min_dots = min(self._min_dots, len(view.features.ids))
+            self._min_border_px = min(self._min_border_px, view.border_px)
+            if view.missing:
+                self._frames_missing_dots += 1
 
     def _view_of(self, camera: Any, result: Any, T_base_tcp: Matrix4, exposure_s: float,
                  sequence: int) -> View | None:
@@ -210,35 +221,55 @@ class IbvsRun:
                     border, tuple(i for i in self.desired.ids if i not in common))
 
     # -- the control loop ----------------------------------------------------------------------
-    def run(self) -> dict[str, Any]:
+    def run(self, first: Located | None = None) -> dict[str, Any]:
+        """The loop; ``first``: the approach's own locate, whose frame serves as the loop's
+        first view (the next frame would otherwise be waited for and estimated again)."""
         thread = threading.Thread(target=self._frame_thread, daemon=True,
                                   name=f"ibvs-frames-{self.job_id}")
         with self._lock:
             self._loss.restart(time.monotonic())
+        if first is not None:
+            self._seed(first)
         thread.start()
         try:
-            return self._control()
+            out = self._control()
         finally:
             self._done.set()
+            joined_s = time.monotonic()
             thread.join(timeout=2.0)
+        if "phases_s" in out:
+            out["phases_s"]["frame_thread_join"] = round(time.monotonic() - joined_s, 4)
+        return out
+
+    def _seed(self, first: Located) -> None:
+        if time.monotonic() - first.frame_timestamp_s > self.core.config.limits.max_pose_age_s:
+            return
+        try:
+            view = self._view_of(self.core.locator.camera_model, first.result, first.T_base_tcp,
+                                 first.frame_timestamp_s, first.frame_sequence)
+        except (ValueError, IndexError, np.linalg.LinAlgError):
+            return
+        if view is not None:
+            self._keep(view, first.located_at_s)
 
     def _control(self) -> dict[str, Any]:
-        core, sc, ic, arm = self.core, self.sc, self.ic, self.core.arm
-        T_tcp_camera = core.frames.T_tcp_camera
+        core, sc, ic, arm, mount = self.core, self.sc, self.ic, self.core.arm, self.mount
         cam = core.locator.camera_model
         t0 = time.monotonic()
         prev = np.zeros(6)
         t_prev: float | None = None
         seen = -1
         window: deque[NDArray[np.float64]] = deque(maxlen=ic.converge_frames)
-        steps: deque[tuple[float, float]] = deque(maxlen=ic.converge_frames)
-        T_camera_tcp = invert_T(T_tcp_camera)
         last_step = (float("nan"), float("nan"))
         converged_s: float | None = None
         history: list[tuple[float, float, float, float]] = []
         last_px = (float("nan"), float("nan"))
         last_pose = (float("nan"), float("nan"))
         shown_s = 0.0
+        phases: dict[str, float] = {}  # when each phase began (s from the loop's start)
+        delay_s: float | None = None  # the loop's delay, averaged: the view's age + a tick
+        caps: list[float] = []
+        t_tick: float | None = None
         while True:
             tick = time.monotonic()
             self.motion.raise_if_cancelled("while servoing on the image")
@@ -265,7 +296,8 @@ class IbvsRun:
             desired = self.desired.subset(view.features.ids)
             if view.sequence != seen:  # a new view: its goal checked, its error judged
                 seen = view.sequence
-                goal = view.T_base_target @ self.T_target_tcp
+                phases.setdefault("first_view", tick - t0)
+                goal = mount.goal(view.T_base_target, view.T_base_tcp, self.T_target_tcp)
                 arm.guard.check_path(linear_path(T_tcp, goal), "ibvs goal estimate")
                 last_pose = pose_distance(view.T_base_tcp, goal)
                 last_px = image_error_px(view.features, desired, cam)
@@ -282,19 +314,39 @@ class IbvsRun:
                         "error_deg": last_pose[1], "dots": len(view.features.ids)})
                 if self.mode == "approach":
                     window.append(view.features.xy - desired.xy)
-                    steps.append(remaining_motion(view.features, desired, ic.interaction,
-                                                  T_camera_tcp))
+                    step = remaining_motion(view.features, desired, ic.interaction,
+                                            mount.camera_tcp(view.T_base_tcp))
+                    if step[0] < ic.tolerance_mm and step[1] < ic.tolerance_deg:
+                        phases.setdefault("first_frame_within", tick - t0)
                     if len({e.shape for e in window}) > 1:  # the dots changed: start again
                         window.clear()
                         window.append(view.features.xy - desired.xy)
                     if len(window) >= ic.converge_frames:
                         last_px = _window_px(window, cam)
-                        last_step = (float(np.mean([s[0] for s in steps])),
-                                     float(np.mean([s[1] for s in steps])))
+                        # the motion the window's mean view asks for: a mean of per-frame
+                        # steps would be each frame's noise, not the view's offset
+                        mean_view = Features(desired.ids, desired.xy + np.mean(window, axis=0),
+                                             view.features.depth_mm)
+                        last_step = remaining_motion(mean_view, desired, ic.interaction,
+                                                     mount.camera_tcp(view.T_base_tcp))
+                        # and the arm nearly still: a window's mean is also small while the
+                        # arm swings through the view; within the loop's delay (what the
+                        # newest view is behind the arm) it may move half the tolerance
+                        lag_s = 0.0 if delay_s is None else delay_s
+                        if last_px[0] < ic.tolerance_px_rms and last_px[1] < ic.tolerance_px_max:
+                            phases.setdefault("window_image_within", tick - t0)
+                        if last_step[0] < ic.tolerance_mm and last_step[1] < ic.tolerance_deg:
+                            phases.setdefault("window_view_within", tick - t0)
+                        still = float(np.linalg.norm(prev[:3])) * lag_s \
+                            < STILL_SHARE * ic.tolerance_mm \
+                            and float(np.degrees(np.linalg.norm(prev[3:]))) * lag_s \
+                            < STILL_SHARE * ic.tolerance_deg
+                        if still:
+                            phases.setdefault("window_still", tick - t0)
                         if last_px[0] < ic.tolerance_px_rms \
                                 and last_px[1] < ic.tolerance_px_max \
                                 and last_step[0] < ic.tolerance_mm \
-                                and last_step[1] < ic.tolerance_deg:
+                                and last_step[1] < ic.tolerance_deg and still:
                             converged_s = tick - t0
                             break
             if self.mode == "approach" and tick - t0 > ic.approach_timeout_s:
@@ -305,14 +357,19 @@ class IbvsRun:
             if self.mode == "track" and self.duration_s is not None \
                     and tick - t0 >= self.duration_s:
                 break
-            T_base_cam_now = T_tcp @ T_tcp_camera
-            T_base_cam_then = view.T_base_tcp @ T_tcp_camera
-            now_features = predicted(view.features,
-                                     invert_T(T_base_cam_now) @ T_base_cam_then,
+            now_features = predicted(view.features, mount.dots_motion(T_tcp, view.T_base_tcp),
                                      view.points_camera_mm) if ic.predict_motion \
                 else view.features
-            v_c = camera_twist(now_features, desired, self.gain, ic.interaction)
-            twist = base_tcp_twist(v_c, T_base_cam_now, T_tcp)
+            # what the command acts on is as old as the view, or with the view moved on by
+            # the arm's motion since its exposure, as old as the arm's state
+            age_s = max(tick - (state.timestamp_s if ic.predict_motion else view.exposure_s),
+                        0.0) + sc.tick_s
+            delay_s = age_s if delay_s is None or t_tick is None else delay_s + (
+                age_s - delay_s) * min(1.0, (tick - t_tick) / LATENCY_SMOOTHING_S)
+            t_tick = tick
+            gain = LatencyCappedGain(self.gain, delay_s, ic.gain_latency_product)
+            caps.append(gain.cap_per_s)
+            twist = mount.tcp_twist(now_features, desired, gain, ic.interaction, T_tcp)
             t_cmd = time.monotonic()
             accepted_s = arm.last_twist_s
             dt = SERVO_MIN_DT_S if t_prev is None or accepted_s is None else min(
@@ -326,16 +383,22 @@ class IbvsRun:
             rest = tick + sc.tick_s - time.monotonic()
             if rest > 0:
                 time.sleep(rest)
+        if converged_s is not None:
+            phases["converged"] = converged_s
         self._stop_still()
+        phases["stopped"] = time.monotonic() - t0
         settle: dict[str, Any] = {}
         if self.mode == "approach" and ic.settle_frames > 0:
-            settle = self._settle(T_tcp_camera, T_camera_tcp)
+            settle = self._settle()
             converged_s = time.monotonic() - t0
+            phases["settled"] = converged_s
         return self._result(t0, converged_s, last_px, last_pose, history) | {
-            "view_error_mm": last_step[0], "view_error_deg": last_step[1]} | settle
+            "view_error_mm": last_step[0], "view_error_deg": last_step[1],
+            "phases_s": {k: round(v, 4) for k, v in phases.items()},
+            "gain_cap_per_s": _percentiles(caps)} | settle
 
     # -- the final settle (cell.actions.ibvs_settle) ---------------------------------------------
-    def _settle(self, T_tcp_camera: Matrix4, T_camera_tcp: Matrix4) -> dict[str, Any]:
+    def _settle(self) -> dict[str, Any]:
         """Average ``settle_frames`` views with the arm still, step by ``-L^+ e``; up to
         ``settle_steps`` times, until the step is under the settle tolerance."""
         ic, arm = self.ic, self.core.arm
@@ -343,12 +406,12 @@ class IbvsRun:
         for _ in range(ic.settle_steps):
             views = self._rest_views(ic.settle_frames, time.monotonic())
             step = settle_step(mean_features([v.features for v in views]), self.desired)
-            size = step_size(step, T_camera_tcp)
+            size = step_size(step, self.mount.camera_tcp(views[-1].T_base_tcp))
             sizes.append([round(size[0], 4), round(size[1], 5)])
             if size[0] < ic.settle_tolerance_mm and size[1] < ic.settle_tolerance_deg:
                 break
             self.motion.raise_if_cancelled("before the IBVS settle step")
-            goal = step_goal(views[-1].T_base_tcp, T_tcp_camera, step)
+            goal = self.mount.step_goal(views[-1].T_base_tcp, step)
             try:
                 arm.move_linear(goal, self.max_speed_mm_s, self.accel_mm_s2,
                                 what="IBVS settle step")
@@ -431,6 +494,13 @@ def _window_px(window: deque[NDArray[np.float64]], camera: Any) -> tuple[float, 
     d = np.mean(np.stack(list(window)), axis=0) * np.array([camera.fx, camera.fy])
     n = np.linalg.norm(d, axis=1)
     return float(np.sqrt(np.mean(n ** 2))), float(np.max(n))
+
+
+def _percentiles(xs: list[float]) -> dict[str, float] | None:
+    if not xs:
+        return None
+    p5, p50, p95 = np.percentile(xs, [5, 50, 95])
+    return {"p5": round(float(p5), 2), "median": round(float(p50), 2), "p95": round(float(p95), 2)}
 
 
 def _downsample(rows: list[tuple[float, float, float, float]], n: int = HISTORY_POINTS

@@ -35,7 +35,9 @@ def start_ibvs_track(core: CellCore, caller: str, *, standoff_mm: float, duratio
     sc = core.config.servo
     check_ibvs_request(view, standoff_mm)
     if core.frames.is_fixed:
-        raise RefusedError(ErrorCode.not_supported, "mode 'ibvs' is for a camera on the flange")
+        raise RefusedError(ErrorCode.not_supported, "tracking by IBVS is for a camera on the "
+                           "flange (a fixed camera's IBVS drives the tool's plate to a taught "
+                           "view: approach)")
     T_tt = (core.config.approach.T_target_tcp.T() if T_target_tcp is None
             else np.asarray(T_target_tcp, dtype=float))
     duration = float(duration_s)

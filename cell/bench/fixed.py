@@ -62,8 +62,14 @@ def run(n_poses: int, tilt_deg: float, distance_mm: float, seed: int) -> None:
 
 def render_cost(n: int) -> None:
     """What one frame costs at each sensor size here: the simulated render and the estimate
-    (the servo's pose interval is at least their sum on this host)."""
+    (the servo's pose interval is at least their sum on this host), and the search that runs
+    when the track does not explain a frame: the whole frame against the window around the
+    last dots (:mod:`cell.vision.search_window`), all dots in view and with one dot hidden
+    (the tool over it, the case that costs most: the coarse pass cannot account for every
+    dot). The windowed search must give the same pose; the largest difference is printed."""
     import time
+
+    from cell.vision.search_window import SearchWindows
 
     target = Target(POINTS, 10.0, "dark")
     centre = target.points_mm.mean(axis=0)
@@ -74,16 +80,54 @@ def render_cost(n: int) -> None:
         T = make_T(R, np.array([0.0, 0.0, 1000.0]) - R @ centre)
         est = Estimator(cam, target)
         t_render, t_est = [], []
-        for _ in range(n):
+        search: dict[str, list[float]] = {}
+        worst_diff = (0.0, 0.0)
+        for k in range(n):
             t0 = time.perf_counter()
             img = render_target(cam, target, T, noise_std=1.0, blur_sigma_px=0.8, rng=rng)
             t1 = time.perf_counter()
-            est.estimate(img)
+            first = est.estimate(img)
             t_render.append(t1 - t0)
             t_est.append(time.perf_counter() - t1)
+            hidden = img.copy()  # the tool (grey 70) over one dot, a different one each frame
+            pts = np.asarray(first.image_points_px)
+            u, v = np.round(pts[k % len(pts)]).astype(int)
+            r = int(np.ceil(max(b.major_axis_px for b in first.matched_blobs)))
+            hidden[max(v - r, 0):v + r + 1, max(u - r, 0):u + r + 1] = 70
+            # the window the cell would use for the next frame, the arm having moved 20 mm
+            # in 0.3 s (the servo's pose interval at 12 MP)
+            policy = SearchWindows(True)
+            T_tcp = np.eye(4)
+            policy.seen(first, target.points_mm, cam, 0.0, T_tcp, np.eye(4))
+            moved = T_tcp.copy()
+            moved[:3, 3] += [20.0, 0.0, 0.0]
+            window = policy.window(0.3, moved, w, h)
+            for label, frame in (("all dots", img), ("one hidden", hidden)):
+                poses = {}
+                for how, win in (("full", None), ("window", window)):
+                    # no track, so every estimate searches; the first is the sighting
+                    searcher = Estimator(cam, target, tracking=False)
+                    searcher.estimate(img)
+                    t2 = time.perf_counter()
+                    try:
+                        poses[how] = searcher.estimate(frame, win).T_camera_target
+                    except EstimationError:
+                        continue
+                    finally:
+                        search.setdefault(f"{how}, {label}", []).append(
+                            time.perf_counter() - t2)
+                if len(poses) == 2:
+                    d = pose_distance(poses["full"], poses["window"])
+                    worst_diff = (max(worst_diff[0], d[0]), max(worst_diff[1], d[1]))
         print(f"{name}: render median {np.median(t_render) * 1000:.0f} ms (worst "
               f"{max(t_render) * 1000:.0f}), estimate median {np.median(t_est) * 1000:.0f} ms "
               f"(worst {max(t_est) * 1000:.0f}) over {n} frames")
+        print("  search after a lost track, median / worst ms: " + "; ".join(
+            f"{key} {np.median(ts) * 1000:.1f} / {max(ts) * 1000:.1f}"
+            for key, ts in search.items()))
+        print(f"  window size {window[2] - window[0] if window else w}x"
+              f"{window[3] - window[1] if window else h} px; windowed pose against the full "
+              f"search's: {worst_diff[0]:.2e} mm / {worst_diff[1]:.2e} deg")
 
 
 def approach(n: int, seed: int, servo: bool = False, lost_after_s: float | None = None,
@@ -183,4 +227,98 @@ def main(a: argparse.Namespace) -> int:
         render_cost(a.render)
     if a.approaches:
         approach(a.approaches, a.seed, a.servo, a.lost_after_s, a.stall_after_s, a.preview)
+    if a.ibvs:
+        ibvs(a.ibvs, a.seed, stall_after_s=a.stall_after_s)
     return 0
+
+
+# The dot plate clamped to the tool, facing the camera at home (the calibration test's).
+TOOL_BOARD = {"position_mm": [48.0, 27.7128, 134.0], "rotvec_rad": [0.0, -0.813104, -3.034545]}
+# The true camera off the configured [hand_eye] T_base_camera (2.1 mm / 0.46 deg).
+TRUE_CAMERA_OFFSET = ((1.5, -1.0, 1.2), (0.004, -0.003, 0.005))  # position mm, rotvec rad
+
+
+def ibvs(n: int, seed: int, displace_mm: float = 30.0, displace_deg: float = 6.0,
+         teach_samples: int = 10, stall_after_s: float | None = None) -> None:
+    """IBVS with the fixed camera: the plate on the tool (``TOOL_BOARD``) taught at home
+    (``POST /teach``'s routine), then ``n`` seeded displacements (``displace_mm`` in a random
+    direction, ``displace_deg`` about a random axis through the TCP), each jogged to and
+    approached back by ``mode = "ibvs"``; the simulated camera stands ``TRUE_CAMERA_OFFSET``
+    away from the configured one. Error: the true TCP against the true TCP where the view was
+    taught (simulated truth the cell does not see)."""
+    import tempfile
+    import time
+    from pathlib import Path
+
+    from cell.bench.ibvs import _jog_to, _recover, displacements
+    from cell.config.schema import load_config, parse_config
+    from cell.errors import CellError
+    from cell.features.teach import TaughtStore, teach
+    from cell.runtime import start_cell
+    from estimator.transforms import T_from_pose, T_from_pose_dict, pose_dict
+
+    rng = np.random.default_rng(seed)
+    with tempfile.TemporaryDirectory() as tmp:
+        d = load_config(Path(__file__).parents[1] / "configs" / "sim-fixed.toml").model_dump(
+            mode="python")
+        d["robot"]["kind"], d["sim"]["ur_controller"], d["gripper"]["kind"] = "sim", False, "none"
+        d["api"]["job_db"] = str(Path(tmp) / "jobs.db")
+        d["opcua"]["enabled"], d["urscript"]["xmlrpc_port"] = False, 0
+        guess = T_from_pose_dict(d["hand_eye"]["T_base_camera"])
+        truth = guess @ T_from_pose(*TRUE_CAMERA_OFFSET)
+        d["sim"].update(T_base_camera=pose_dict(truth), T_flange_board=TOOL_BOARD)
+        if stall_after_s is not None:
+            d["servo"]["stall_after_s"] = stall_after_s
+        cell = start_cell(parse_config(d))
+        try:
+            assert cell.sim is not None
+            off_mm, off_deg = pose_distance(guess, truth)
+            T_taught = cell.sim.true_T_base_tcp()
+            taught = teach(cell, TaughtStore(None), "bench", "plate", samples=teach_samples)
+            print(f"IBVS, fixed camera (12 MP), the tool's plate taught at home ({teach_samples} "
+                  f"samples, spread {taught.spread_mm:.3f} mm); camera {off_mm:.1f} mm / "
+                  f"{off_deg:.2f} deg off the config; {n} displacements of {displace_mm:g} mm / "
+                  f"{displace_deg:g} deg; stall_after_s {cell.config.servo.stall_after_s:g} s")
+            rows, failures = [], []
+            for dt, dr in displacements(rng, n, displace_mm, displace_deg):
+                T_disp = T_from_pose(dt, np.zeros(3)) @ T_taught
+                T_disp[:3, :3] = Rotation.from_rotvec(np.radians(dr)).as_matrix() \
+                    @ T_taught[:3, :3]
+                try:
+                    _jog_to(cell, T_disp)
+                except CellError as err:
+                    failures.append(f"jog {err.code}")
+                    _recover(cell)
+                    continue
+                t0 = time.monotonic()
+                try:
+                    job = cell.approach("bench", T_target_tcp=taught.T_target_tcp, mode="ibvs",
+                                        view=taught.view, wait=True, wait_timeout_s=120.0)
+                except CellError as err:
+                    failures.append(f"refused {err.code}")
+                    continue
+                took = time.monotonic() - t0
+                time.sleep(0.2)
+                d_mm, d_deg = pose_distance(cell.sim.true_T_base_tcp(), T_taught)
+                if job.state != "succeeded":
+                    failures.append(f"failed {job.error_code}")
+                    if len(failures) == 1:
+                        print(f"  first failure: {job.error_message}")
+                    _recover(cell)
+                    continue
+                r = job.result or {}
+                rows.append((d_mm, d_deg, took, r.get("estimated_error_mm"),
+                             r.get("image_error_px_rms")))
+            good = sum(1 for row in rows if row[0] < 0.1)
+            print(f"  {len(rows)}/{n} converged, {good} within 0.1 mm of the taught true TCP; "
+                  f"{len(failures)} failed ({', '.join(failures) or 'none'})")
+            if rows:
+                e = np.array([row[:3] for row in rows])
+                est = [row[3] for row in rows if row[3] is not None]
+                print(f"  true error: worst {e[:, 0].max():.3f} mm / {e[:, 1].max():.4f} deg, "
+                      f"median {np.median(e[:, 0]):.3f} mm / {np.median(e[:, 1]):.4f} deg; "
+                      f"time median {np.median(e[:, 2]):.2f} s, worst {e[:, 2].max():.2f} s"
+                      + (f"; pose-based estimate of the error median {np.median(est):.3f} mm"
+                         if est else ""))
+        finally:
+            cell.close()

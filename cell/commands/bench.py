@@ -115,6 +115,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                          "1 s; a 12 MP render here can take longer)")
     fx.add_argument("--preview", action="store_true",
                     help="approach on the colour image scaled 1/3 (1352x1013) instead of 12 MP")
+    fx.add_argument("--ibvs", type=int, default=0, metavar="N",
+                    help="also run N IBVS approaches to a taught view of the plate on the tool "
+                         "(the camera off its configured pose by a few mm / tenths of a deg)")
     fx.add_argument("--render", type=int, default=0, metavar="N",
                     help="also time N renders and estimates per sensor (a frame's cost)")
     fx.set_defaults(func=_lazy("fixed"))

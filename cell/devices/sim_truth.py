@@ -138,10 +138,7 @@ def _nominal_lens(config: CellConfig) -> CameraModel:
     """The built-in cell's nominal lens at ``config``'s output size (a sensor mode scales the
     intrinsics)."""
     nominal = as_built("fixed" if config.fixed_camera else "hand").camera.model()
-    width, height = config.camera.width, config.camera.height
-    k = width / nominal.width
-    return CameraModel(nominal.fx * k, nominal.fy * k, (nominal.cx + 0.5) * k - 0.5,
-                       (nominal.cy + 0.5) * k - 0.5, tuple(nominal.dist), width, height)
+    return nominal.scaled(config.camera.width, config.camera.height)
 
 
 def factory_calibration(config: CellConfig) -> CameraModel:

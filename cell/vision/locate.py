@@ -23,6 +23,7 @@ from cell.vision.consistency import consistency
 from cell.vision.frames import CellFrames, mean_pose
 from cell.vision.imagelog import ImageLog
 from cell.vision.intrinsics import IntrinsicsPolicy, IntrinsicsSource
+from cell.vision.search_window import SearchWindows
 from drivers.arm import Arm
 from drivers.camera import Camera, Frame
 from drivers.errors import DriverError
@@ -89,6 +90,7 @@ class Locator:
         self.camera_model = camera_model
         self.intrinsics = IntrinsicsPolicy(camera_model, intrinsics_source)
         self._estimator = Estimator(camera_model, target)
+        self._windows = SearchWindows(frames.is_fixed)  # where the next frame's dots can be
         self._estimator_lock = threading.Lock()
         # a separate one keeps the live view from disturbing locate's tracking state
         self._preview = Estimator(camera_model, target)
@@ -96,6 +98,9 @@ class Locator:
         self._lock = threading.Lock()
         self.outcomes: Counter[str] = Counter()  # ok / failed / error, for /metrics
         self.seconds_sum = 0.0
+        # per search mode ("tracking", "window", "full", "failed"): frames and seconds
+        self.search_frames: Counter[str] = Counter()
+        self.search_seconds: dict[str, float] = {}
         self.last: Located | None = None
         self.last_frame: Frame | None = None
 
@@ -103,6 +108,8 @@ class Locator:
         """New calibrated mounts; the last locate was mapped with the old ones, so drop it."""
         self.frames = frames
         self.last = None
+        with self._estimator_lock:
+            self._windows = SearchWindows(frames.is_fixed)
 
     def use_target(self, target: Target) -> bool:
         """Look for another dot layout from now on (a recipe's target); the last locate was
@@ -116,6 +123,7 @@ class Locator:
             self.target = target
             self._estimator = Estimator(self.camera_model, target)
             self._preview = Estimator(self.camera_model, target)
+            self._windows.forget()
         self.last = None
         return True
 
@@ -161,7 +169,7 @@ class Locator:
             except DriverError as err:
                 raise UnavailableError(ErrorCode(err.code),
                                        f"reading the arm pose history: {err}") from err
-            result = self._estimate(frame)
+            result = self._estimate(frame, T_base_tcp)
             estimates.append(self.frames.T_base_target(T_base_tcp, result.T_camera_target))
             rms_px.append(float(result.rms_px))
             last = (frame, result, T_base_tcp)
@@ -191,7 +199,7 @@ class Locator:
         if frame.sequence <= after_sequence:
             raise RefusedError(ErrorCode.no_new_frame, "no frame newer than the last one")
         T_base_tcp = self._pose_at(frame)
-        result = self._estimate(frame)
+        result = self._estimate(frame, T_base_tcp)
         return frame, self.frames.T_base_target(T_base_tcp, result.T_camera_target), T_base_tcp
 
     def measure_view(self, after_sequence: int, timeout_s: float = 0.5
@@ -206,7 +214,7 @@ class Locator:
         if frame.sequence <= after_sequence:
             raise RefusedError(ErrorCode.no_new_frame, "no frame newer than the last one")
         T_base_tcp = self._pose_at(frame)
-        return frame, self._estimate(frame), T_base_tcp
+        return frame, self._estimate(frame, T_base_tcp), T_base_tcp
 
     def _pose_at(self, frame: Frame) -> Matrix4:
         try:
@@ -238,13 +246,26 @@ class Locator:
             self.camera_model = model
             self._estimator = Estimator(model, self.target)
             self._preview = Estimator(model, self.target)
+            self._windows.forget()
 
-    def _estimate(self, frame: Frame) -> PoseResult:
+    def _estimate(self, frame: Frame, T_base_tcp: Matrix4) -> PoseResult:
+        """The frame's estimate; the search starts in the window where the last frame's dots
+        can be now (:mod:`cell.vision.search_window`) when the track does not hold."""
         t0 = time.perf_counter()
         try:
             with self._estimator_lock:
                 self._use_intrinsics(frame.camera)
-                result = self._estimator.estimate(frame.image)
+                h, w = frame.image.shape[:2]
+                window = self._windows.window(frame.timestamp_s, T_base_tcp, w, h)
+                try:
+                    result = self._estimator.estimate(frame.image, window)
+                except EstimationError:  # the sighting stays: the window grows with its age
+                    self._count_search("failed", t0)
+                    raise
+                self._count_search(self._estimator.last_mode, t0)
+                self._windows.seen(result, self.target.points_mm, self.camera_model,
+                                   frame.timestamp_s, T_base_tcp,
+                                   self.frames.T_base_camera(T_base_tcp))
         except EstimationError as err:
             raise self._failed(frame, "failed", RefusedError(
                 ErrorCode(err.code), f"target not located: {err.message}")) from err
@@ -256,6 +277,12 @@ class Locator:
             self.outcomes["ok"] += 1
             self.seconds_sum += time.perf_counter() - t0
         return result
+
+    def _count_search(self, mode: str, t0: float) -> None:
+        with self._lock:
+            self.search_frames[mode] += 1
+            self.search_seconds[mode] = (self.search_seconds.get(mode, 0.0)
+                                         + time.perf_counter() - t0)
 
     def _failed(self, frame: Frame, outcome: str, err: CellError) -> CellError:
         with self._lock:

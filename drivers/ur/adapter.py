@@ -72,6 +72,9 @@ log = logging.getLogger(__name__)
 
 
 RTDE_PORT = 30004
+# How long a refused streamed command waits for the RTDE stream to show the control script
+# ended (measured: 50 ms missed it on a 2-core host at load 5-12, the stream lagging the client).
+SCRIPT_END_SEEN_WITHIN_S = 0.3
 DASHBOARD_PORT = 29999
 MOVING_QD_RAD_S = 5e-3  # below this the arm counts as standing (controllers report jitter)
 UNLOCK_DELAY_S = 5.0  # a UR refuses to unlock a protective stop for this long after it
@@ -576,12 +579,17 @@ class URArm:
         if wait:
             self._wait_for_motion(2.0 * (travel / v + v / a) + 5.0)
 
-    def _script_ended(self, within_s: float = 0.05) -> bool:
+    def _script_ended(self, within_s: float = SCRIPT_END_SEEN_WITHIN_S) -> bool:
         """After a refused command: did the control script end without a safety stop (the
         controller's RTDE watchdog after a host hiccup longer than its period, or a runtime
         error)? Then it is uploaded again (True) and the caller may send its command once
-        more: the host that missed the kick is back and streams again. A safety stop raises."""
-        deadline = time.monotonic() + within_s  # the stream may lag the client by a cycle
+        more: the host that missed the kick is back and streams again. A safety stop raises.
+
+        ur_rtde refuses the command as soon as its client knows the script is gone, while
+        the RTDE stream this reads can lag the client by several cycles on a loaded host, so
+        the wait is long enough for that; the arm is already braking meanwhile (the ended
+        script stopped it), so waiting costs only the retry's delay."""
+        deadline = time.monotonic() + within_s
         while True:
             s = self._sample()
             self._raise_if_stopped(s)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import shutil
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -146,8 +147,8 @@ def test_fixed_cell_locates_and_approaches_without_an_observation_pose() -> None
 def test_fixed_cell_servo_approach_holds_the_last_pose_when_the_arm_hides_the_target() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         data = fixed_data(Path(tmp))
-        # a 12 MP frame takes ~0.6 s to render on a loaded host: the stall rule (host time
-        # without an examined frame) is the simulator's render cost, not the product's
+        # a 12 MP frame takes 0.2-0.6 s to render on a loaded host: the stall rule (host time
+        # without an examined frame) would measure the simulator's render cost here
         data["servo"]["stall_after_s"] = 5.0
         cell = start_cell(parse_config(data))
         try:
@@ -217,7 +218,7 @@ def test_fixed_camera_routine_through_http_recovers_the_true_T_base_camera(
                    headers=op)
         assert r.status_code == 200, r.text
         job = wait_job(c, r.json()["id"], timeout_s=400.0)
-        assert job["state"] == "succeeded", job
+        assert job["state"] == "succeeded", job["error"]["message"]
         res = job["result"]
         assert res["mount"] == "fixed" and res["transform"] == "T_base_camera"
         assert res["T_base_camera"] == res["T_flange_camera"]
@@ -244,6 +245,54 @@ def test_fixed_camera_routine_through_http_recovers_the_true_T_base_camera(
         written = load_config(config_file)
         assert written.fixed_camera and written.hand_eye.T_base_camera is not None
         assert pose_distance(written.hand_eye.T_base_camera.T(), truth)[0] < 0.5
+
+
+def test_fixed_camera_ibvs_brings_the_tool_plate_back_to_its_taught_view(
+        tmp_path: Path) -> None:
+    """POST /teach with the plate on the tool records the plate's view; approach by IBVS
+    from a displaced pose returns the true TCP to where it was taught although the simulated
+    camera stands 3.9 mm / 0.45 deg off the configured T_base_camera; without the plate on the
+    tool the camera sees the table's plate, and IBVS is refused with nothing moved."""
+    data = fixed_data(tmp_path)
+    guess = T_from_pose_dict(data["hand_eye"]["T_base_camera"])
+    data["sim"].update(T_base_camera=pose_dict(guess @ TRUE_OFFSET), T_flange_board=TOOL_BOARD)
+    # The colour sensor binned 2x2 (2028x1520, 1475 px focal): a 12 MP frame costs 0.2-2.5 s
+    # to render on a loaded 2-core host, a quarter of it far less (the 12 MP figures are the
+    # bench's, docs/eye-to-hand.md); the stop test over 3 frames, not 10.
+    cam = data["camera"]
+    cam.update(fx=cam["fx"] / 2, fy=cam["fy"] / 2, cx=(cam["cx"] + 0.5) / 2 - 0.5,
+               cy=(cam["cy"] + 0.5) / 2 - 0.5, width=cam["width"] // 2,
+               height=cam["height"] // 2)
+    data["servo"]["stall_after_s"] = 5.0
+    data["ibvs"].update(converge_frames=3)
+    with running_cell(parse_config(data)) as cell, TestClient(create_app(cell)) as c:
+        op = {"Authorization": "Bearer sim-operator"}
+        assert cell.sim is not None
+        T_taught = cell.sim.true_T_base_tcp()
+        r = c.post("/api/v1/teach", json={"name": "plate", "samples": 2}, headers=op)
+        assert r.status_code == 200, r.text
+        view = r.json()["view"]
+        assert view is not None and len(view["ids"]) == 6
+        cell.jog_step("test", frame="base", translation_mm=[12.0, -8.0, 6.0],
+                      rotation_deg=[1.5, -1.0, 2.0], speed_mm_s=100.0)
+        assert pose_distance(cell.sim.true_T_base_tcp(), T_taught)[0] > 10.0
+        r = c.post("/api/v1/approach", json={"taught": "plate", "mode": "ibvs", "wait": True},
+                   headers=op)
+        assert r.status_code == 200, r.text
+        job = r.json()
+        assert job["state"] == "succeeded", job["error"]["message"]
+        d_mm, d_deg = pose_distance(cell.sim.true_T_base_tcp(), T_taught)
+        print(f"fixed-camera IBVS: {d_mm:.4f} mm / {d_deg:.4f} deg from the taught true TCP, "
+              f"{job['result']['time_to_converge_s']:.2f} s")
+        assert d_mm < 0.1 and d_deg < 0.05, (d_mm, d_deg)
+        # the plate off the tool: the camera sees the work target on the table instead
+        cell.sim.set_tool_board(None)
+        time.sleep(0.3)
+        before = cell.sim.true_T_base_tcp()
+        r = c.post("/api/v1/approach", json={"taught": "plate", "mode": "ibvs", "wait": True},
+                   headers=op)
+        assert r.status_code == 409 and r.json()["error"]["code"] == "no_tool_plate", r.text
+        assert pose_distance(cell.sim.true_T_base_tcp(), before)[0] < 0.01
 
 
 # The API tests that need no eye-in-hand view, run here against the fixed-camera cell: pytest

@@ -219,3 +219,39 @@ def test_frontal_sim_target_is_not_ambiguous_and_says_why() -> None:
     # Settings that make every pose "different" are refused.
     with pytest.raises(ValueError, match="positive"):
         Estimator(cam, target, ambiguity_mm=0.0)
+
+
+def test_window_search_gives_the_full_search_pose_and_falls_back_outside_it() -> None:
+    """A window around the dots finds exactly the whole frame's dots (same threshold, same
+    regions), with a dot hidden too; a window that misses the plate, or cuts a dot, falls
+    back to the whole frame."""
+    from estimator.window import search_window
+
+    rng = np.random.default_rng(41)
+    s = random_scene(rng, CAM, n_dots=6)
+    full = Estimator(CAM, s.target, tracking=False)
+    seen = full.estimate(s.image)
+    assert seen.image_points_px is not None
+    r = int(np.ceil(max(b.major_axis_px for b in seen.matched_blobs)))
+    hidden = s.image.copy()  # the tool over one dot
+    u, v = np.round(seen.image_points_px[0]).astype(int)
+    hidden[v - r:v + r + 1, u - r:u + r + 1] = 70
+    window = search_window(seen.image_points_px, 2.0 * r, CAM.width, CAM.height)
+    assert window is not None
+    for frame in (s.image, hidden):
+        searcher = Estimator(CAM, s.target, tracking=False)
+        searcher.estimate(s.image)
+        want = Estimator(CAM, s.target, tracking=False).estimate(frame)
+        got = searcher.estimate(frame, window)
+        assert searcher.last_mode == "window"
+        assert got.matched_ids == want.matched_ids
+        assert np.array_equal(got.T_camera_target, want.T_camera_target)
+    # a window cutting through the dots: a dot is missing there but not in the frame
+    x0, y0, _, y1 = window
+    cut = (x0, y0, int(seen.image_points_px[:, 0].max()), y1)
+    searcher = Estimator(CAM, s.target, tracking=False)
+    got = searcher.estimate(s.image, cut)
+    assert searcher.last_mode == "full" and len(got.matched_ids) == 6
+    # an empty corner: nothing there, the whole frame is searched
+    got = searcher.estimate(s.image, (0, 0, 40, 40))
+    assert searcher.last_mode == "full" and len(got.matched_ids) == 6

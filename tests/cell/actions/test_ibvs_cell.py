@@ -127,18 +127,18 @@ def test_ibvs_refusals_are_typed_and_move_nothing(client: TestClient, tmp_path: 
 
 def _hide(cell: Cell, monkeypatch: pytest.MonkeyPatch, hidden: set[int]) -> None:
     """The estimator reports the dots in ``hidden`` as not matched (occluded or outside the
-    image): the matched ids and image points it returns leave them out."""
+    image): the matched ids and image points it returns leave them out (every frame the
+    locator estimates: the approach's first locate, whose frame the loop starts from, too)."""
     locator = cell.core.locator
-    original = locator.measure_view
+    original = locator._estimate
 
-    def measure_view(after: int, timeout_s: float = 0.5) -> Any:
-        frame, result, T = original(after, timeout_s)
+    def estimate(frame: Any, *args: Any) -> Any:
+        result = original(frame, *args)
         keep = [k for k, i in enumerate(result.matched_ids) if i not in hidden]
-        result = replace(result, matched_ids=tuple(result.matched_ids[k] for k in keep),
-                         image_points_px=result.image_points_px[keep])
-        return frame, result, T
+        return replace(result, matched_ids=tuple(result.matched_ids[k] for k in keep),
+                       image_points_px=result.image_points_px[keep])
 
-    monkeypatch.setattr(locator, "measure_view", measure_view)
+    monkeypatch.setattr(locator, "_estimate", estimate)
 
 
 def test_a_hidden_dot_drops_out_and_too_few_stop_the_arm(
