@@ -536,7 +536,7 @@ def _commissioning_lines(c: dict[str, Any] | None) -> list[str]:
         out.append(
             f"hand-eye: {h['views']} views in {h['routine_s']:.0f} s, verdict "
             f"{'consistent' if h['verdict_consistent'] else 'INCONSISTENT'}, "
-            f"{'applied' if h['applied'] else 'Apply refused'}; mount "
+            f"{('applied ' + str(h['applied'])) if h['applied'] else 'Apply refused'}; mount "
             f"{h['mount_error_before_mm']:.2f} mm / {h['mount_error_before_deg']:.3f} deg -> "
             f"{h['mount_error_after_mm']:.3f} mm / {h['mount_error_after_deg']:.4f} deg from "
             "the truth; each method: " + ", ".join(
