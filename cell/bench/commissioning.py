@@ -7,8 +7,10 @@ in-process simulated arm, through the Cell facade and the calibration job as the
 1. before: ``placements`` seeded look-and-move approaches (+-30 mm, +-15 deg about z), each
    job's own estimated error and consistency verdict beside the true TCP's error against the
    true goal;
-2. the hand-eye routine (``views`` views, the calibration job of the HTTP API), its result
-   against the true mount, then ``apply`` (the running cell, as the page's Apply);
+2. the lens from a circle grid's views into ``[camera]``, the cell restarted on it, then the
+   hand-eye routine (``views`` views, the calibration job of the HTTP API), every method's
+   result against the true mount, and ``apply`` (the running cell, as the page's Apply):
+   :mod:`cell.bench.commission`, the procedure of docs/commissioning.md;
 3. after: the same placements again.
 
 The truth (``SimWorld.truth_values``, the true target and TCP) is read only to score; nothing
@@ -27,15 +29,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.bench.approach import placement
-from cell.calibration.routine import RoutineSettings
-from cell.calibration.service import CalibrationService
+from cell.bench.commission import hand_eye, measure_intrinsics, with_intrinsics
 from cell.config.schema import CellConfig, load_config, parse_config
 from cell.devices.hardware import SimWorld
-from cell.errors import CellError
 from cell.runtime import start_cell
 from cell.service import Cell
 from cell.vision.frames import approach_tcp
-from estimator.transforms import T_from_pose_dict, pose_distance
+from estimator.transforms import pose_distance
 
 Matrix4 = NDArray[np.float64]
 CALLER = "bench"
@@ -129,34 +129,37 @@ def run(placements: int, views: int, seed: int, world: str) -> dict[str, Any]:
                   "the true mount")
             before = approaches(cell, targets)
             _summary("before calibration", before)
+        finally:
+            cell.close()
+        lens = measure_intrinsics(config)
+        m, t = lens["camera"], lens["truth"]
+        print(f"lens: {lens['views']} grid views in {lens['routine_s']:.0f} s, rms "
+              f"{lens['rms_px']:.3f} px, coverage {100 * lens['coverage']:.0f} %; fx "
+              f"{m['fx']:.2f} fy {m['fy']:.2f} cx {m['cx']:.2f} cy {m['cy']:.2f} (true "
+              f"{t['fx']:.2f} {t['fy']:.2f} {t['cx']:.2f} {t['cy']:.2f}); written into [camera], "
+              "the cell restarted")
+        cell = start_cell(with_intrinsics(config, m))
+        try:
             home = cell.home(CALLER, wait=True)
             if home.state != "succeeded":
                 raise RuntimeError(f"home failed: {home.error_code}")
             _sim(cell).set_target(T_home_target)
-            service = CalibrationService(cell)
-            t0 = time.monotonic()
-            job = service.wait(service.start(CALLER, RoutineSettings(n_views=views)).id, 600.0)
-            took_s = time.monotonic() - t0
-            if job.state != "succeeded" or job.result is None:
-                print(f"hand-eye routine failed: {job.error_code} {job.error_message}")
-                return {"before": before, "routine": None}
-            r = job.result
-            T = T_from_pose_dict(r["T_flange_camera"])
-            cal_mm, cal_deg = pose_distance(T, truth.T_flange_camera)
-            print(f"hand-eye routine: {len(r['views']) if 'views' in r else views} views in "
-                  f"{took_s:.0f} s, {len(r['failed_views'])} failed; result "
-                  f"{cal_mm:.3f} mm / {cal_deg:.4f} deg from the true mount "
-                  f"(requirement 0.2 mm / 0.05 deg); verdict: "
-                  f"{'consistent' if r['verdict']['consistent'] else 'inconsistent'}")
-            try:
-                service.apply(CALLER, job.id)
-            except CellError as err:  # an inconsistent verdict: refused, as on the page
-                print(f"Apply refused: {err.code}: {err.message}")
-                return {"before": before, "routine": r, "mount_error": (cal_mm, cal_deg),
-                        "applied": False}
+            h = hand_eye(cell, views)
+            print(f"hand-eye routine: {h['views']} views in {h['routine_s']:.0f} s, "
+                  f"{h['failed_views']} failed; verdict "
+                  f"{'consistent' if h['verdict_consistent'] else 'inconsistent'}; each method "
+                  "against the true mount: " + ", ".join(
+                      f"{k} {v['mm']:.3f} mm / {v['deg']:.4f} deg"
+                      for k, v in h["methods_vs_truth"].items()))
+            if not h["applied"]:
+                print(f"Apply refused: {h.get('apply_refused')}")
+                return {"before": before, "lens": lens, "hand_eye": h}
+            print(f"applied {h['applied']}: the mount is {h['mount_error_after_mm']:.3f} mm / "
+                  f"{h['mount_error_after_deg']:.4f} deg from the truth (requirement 0.2 mm / "
+                  "0.05 deg)")
             after = approaches(cell, targets)
             _summary("after applying it", after)
-            return {"before": before, "after": after, "mount_error": (cal_mm, cal_deg)}
+            return {"before": before, "lens": lens, "hand_eye": h, "after": after}
         finally:
             cell.close()
 
