@@ -19,7 +19,7 @@ from cell.vision.frames import mean_pose
 from estimator import CameraModel, EstimationError, Target
 from estimator.pipeline import Estimator
 from estimator.transforms import make_T, pose_distance
-from fakes.render import render_target
+from fakes.render import motion_smear, render_target, render_target_full_frame
 
 SENSORS = {"12MP colour (4056x3040, f 2950 px)": (4056, 3040, 2950.0),
            "1280x800 mono (f 880 px)": (1280, 800, 880.0)}
@@ -130,6 +130,85 @@ def render_cost(n: int) -> None:
               f"search's: {worst_diff[0]:.2e} mm / {worst_diff[1]:.2e} deg")
 
 
+def render_steps(n: int) -> None:
+    """Where a simulated frame's render time goes, step by step, for the two simulated cameras
+    as built (their true lens): the fixed 12 MP camera at home (sim-fixed.toml's scene, the
+    tool drawn over it) and the 1280x800 eye-in-hand camera at 300 mm (motion smear of 2 px).
+    Each step's median ms over ``n`` frames, for the straightforward full-frame computation
+    (:func:`fakes.render.render_target_full_frame`) and the render the cameras use
+    (:func:`fakes.render.render_target`, the work within the drawn box); then the totals,
+    median and worst, and the largest grey-level difference between the two images."""
+    import time
+
+    from cell.devices import sim_truth
+    from estimator.transforms import invert_T
+    from fakes.fixed_camera import draw_tool
+
+    fixed = sim_truth.as_built("fixed")
+    hand = sim_truth.as_built("hand")
+    assert fixed.hand_eye.T_base_camera is not None  # a fixed mount's config has it
+    T_fixed = invert_T(fixed.hand_eye.T_base_camera.T()) @ fixed.sim.T_base_target.T()
+    target = fixed.target.model()
+    centre = target.points_mm.mean(axis=0)
+    R = Rotation.from_rotvec([np.radians(20.0), 0, 0]).as_matrix()
+    T_hand = make_T(R, np.array([10.0, -5.0, 300.0]) - R @ centre)
+    scenes = [("fixed 12 MP", sim_truth.resolve(fixed).camera, T_fixed, fixed.sim),
+              ("hand 1280x800", sim_truth.resolve(hand).camera, T_hand, hand.sim)]
+    print(f"render steps, median ms over {n} frames (load {_load()}):")
+    table: dict[str, dict[str, str]] = {}
+    totals: list[str] = []
+    for name, cam, T, sim in scenes:
+        for label, fn in (("full frame", render_target_full_frame), ("drawn box", render_target)):
+            steps: list[dict[str, float]] = []
+            total: list[float] = []
+            images = []
+            for k in range(n):
+                rng = np.random.default_rng(k)
+                t: dict[str, float] = {}
+                t0 = time.perf_counter()
+                img = fn(cam, target, T, noise_std=sim.noise_std, blur_sigma_px=sim.blur_sigma_px,
+                         lighting_gradient=0.1, rng=rng, timings=t)
+                t1 = time.perf_counter()
+                if name.startswith("fixed"):
+                    img = draw_tool(img, np.array([[1900.0, 1000.0], [1990.0, 1000.0],
+                                                   [1990.0, 1300.0], [1900.0, 1300.0]]))
+                    t["tool (fixed camera)"] = time.perf_counter() - t1
+                else:
+                    img = motion_smear(img, (2.0, 1.0))
+                    t["motion smear (hand camera)"] = time.perf_counter() - t1
+                total.append(time.perf_counter() - t0)
+                steps.append(t)
+                images.append(img)
+            col = f"{name}, {label}"
+            for key in steps[0]:
+                table.setdefault(key, {})[col] = f"{np.median([s[key] for s in steps]) * 1000:.1f}"
+            table.setdefault("total", {})[col] = (f"{np.median(total) * 1000:.0f} "
+                                                  f"(worst {max(total) * 1000:.0f})")
+            if label == "full frame":
+                reference = images
+            else:
+                worst = max(int(np.abs(a.astype(int) - b).max())
+                            for a, b in zip(reference, images, strict=True))
+                totals.append(f"{name}: largest difference {worst} grey level(s)")
+    cols = [f"{name}, {label}" for name, *_ in scenes for label in ("full frame", "drawn box")]
+    print(f"  {'step':28s}" + "".join(f"{c:>26s}" for c in cols))
+    order = ["geometry + discs", "background fill", "noise", "lit background",
+             "plate + frame (frame)", "plate + frame (box)", "discs (paint)", "gradient (frame)",
+             "gradient (box)", "blur (frame)", "blur (box)", "add box", "clip + uint8"]
+    rank = {key: i for i, key in enumerate(order)}
+    for key, row in sorted(table.items(), key=lambda kv: rank.get(kv[0], len(order))):
+        print(f"  {key:28s}" + "".join(f"{row.get(c, '-'):>26s}" for c in cols))
+    print("  " + "; ".join(totals))
+
+
+def _load() -> str:
+    try:
+        with open("/proc/loadavg") as f:
+            return " ".join(f.read().split()[:3])
+    except OSError:
+        return "unknown"
+
+
 def approach(n: int, seed: int, servo: bool = False, lost_after_s: float | None = None,
              stall_after_s: float | None = None, preview: bool = False) -> None:
     """``n`` approaches on the simulated fixed-camera cell (sim-fixed.toml, in-process arm),
@@ -224,6 +303,7 @@ def main(a: argparse.Namespace) -> int:
     if a.poses:
         run(a.poses, a.tilt_deg, a.distance_mm, a.seed)
     if a.render:
+        render_steps(a.render)
         render_cost(a.render)
     if a.approaches:
         approach(a.approaches, a.seed, a.servo, a.lost_after_s, a.stall_after_s, a.preview)
