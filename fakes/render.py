@@ -12,7 +12,6 @@ shape matters less than speed, since the simulated camera renders several frames
 from __future__ import annotations
 
 import math
-import threading
 import time
 from dataclasses import dataclass
 
@@ -30,20 +29,22 @@ _EDGE_SAMPLES = 48  # points per straight edge, so distortion bends edges smooth
 
 
 def _plane_hits(
-    rays: NDArray[np.float64], R: NDArray[np.float64], origin_cam: NDArray[np.float64]
+    x: NDArray[np.float64], y: NDArray[np.float64], R: NDArray[np.float64],
+    origin_cam: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
     """Intersect rays (x, y, 1) with the plane through ``origin_cam`` spanned by R's x and y.
 
     Returns the in-plane coordinates (a, b) in mm, measured along R's x and y axes from the
-    origin, and a mask of rays that hit the plane in front of the camera.
+    origin, and a mask of rays that hit the plane in front of the camera. ``x`` and ``y``
+    broadcast against each other; written per component, without (N, 3) temporaries.
     """
     n = R[:, 2]
-    denom = rays @ n
+    denom = x * n[0] + y * n[1] + n[2]
     with np.errstate(divide="ignore", invalid="ignore"):
         t = (origin_cam @ n) / denom
-    P = rays * t[:, None] - origin_cam
-    a = P @ R[:, 0]
-    b = P @ R[:, 1]
+    # P = t (x, y, 1) - origin; a = P . R[:, 0], b = P . R[:, 1]
+    a = t * (x * R[0, 0] + y * R[1, 0] + R[2, 0]) - origin_cam @ R[:, 0]
+    b = t * (x * R[0, 1] + y * R[1, 1] + R[2, 1]) - origin_cam @ R[:, 1]
     return a, b, np.isfinite(t) & (t > 0)
 
 
@@ -119,11 +120,15 @@ class _Scene:
         off = (np.arange(supersample) + 0.5) / supersample - 0.5
         xs = (np.arange(x0, x1)[:, None] + off[None, :]).ravel()
         ys = (np.arange(y0, y1)[:, None] + off[None, :]).ravel()
-        gx, gy = np.meshgrid(xs, ys)
-        norm = self.camera.undistort_points(np.column_stack((gx.ravel(), gy.ravel())))
-        rays = np.column_stack((norm, np.ones(len(norm))))
+        cam = self.camera
+        if cam.has_distortion:
+            gx, gy = np.meshgrid(xs, ys)
+            norm = cam.undistort_points(np.column_stack((gx.ravel(), gy.ravel())))
+            nx, ny = norm[:, 0].reshape(gx.shape), norm[:, 1].reshape(gx.shape)
+        else:  # a pinhole's ray depends on the column and the row alone
+            nx, ny = ((xs - cam.cx) / cam.fx)[None, :], ((ys - cam.cy) / cam.fy)[:, None]
         origin = self.to_camera(disc.centre_mm)[0]
-        a, b, ok = _plane_hits(rays, self.R, origin)
+        a, b, ok = _plane_hits(nx, ny, self.R, origin)
         inside = ok & (a * a + b * b <= disc.radius_mm**2)
         h, w = y1 - y0, x1 - x0
         cov = inside.reshape(h, supersample, w, supersample).mean(axis=(1, 3))
@@ -171,31 +176,7 @@ class _Steps:
         self.t = now
 
 
-class _BufferPool:
-    """Full-frame float32 work buffers kept between renders: a fresh 48 MB array (12 MP) costs
-    the kernel's zero-fill of every page at its first write, each frame. Taken and given back
-    under a lock, so cameras rendering in different threads never share one; at most
-    ``_POOL_SIZE`` are kept."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._free: list[NDArray[np.float32]] = []
-
-    def take(self, shape: tuple[int, int]) -> NDArray[np.float32]:
-        with self._lock:
-            for i, buf in enumerate(self._free):
-                if buf.shape == shape:
-                    return self._free.pop(i)
-        return np.empty(shape, np.float32)
-
-    def give(self, buf: NDArray[np.float32]) -> None:
-        with self._lock:
-            self._free.insert(0, buf)
-            del self._free[_POOL_SIZE:]
-
-
-_POOL_SIZE = 2
-_POOL = _BufferPool()
+_BLOCK_BYTES = 1 << 20  # float32 rows per pass of the whole-frame loop: fits a core's L2
 
 
 @dataclass(frozen=True)
@@ -322,8 +303,8 @@ def render_target(
     float rounding) at a cost that scales with what is drawn. Away from the drawn box the
     scene is the background times the lighting gain, a linear field that the Gaussian blur
     leaves unchanged; so the drawing, the gain and the blur act on the drawn content minus the
-    background in its box plus the blur's reach, and the whole frame gets one pass each for the
-    noise, the lit background and the rounding, in a work buffer kept between frames.
+    background in its box plus the blur's reach, and the whole frame gets the noise, the lit
+    background and the rounding in one pass of cache-sized row blocks.
     """
     rng = rng if rng is not None else np.random.default_rng()
     steps = _Steps(timings)
@@ -332,44 +313,60 @@ def render_target(
                   clutter, rng, frame, supersample)
     steps.mark("geometry + discs")
     rows, cols = _gradient_axes(w, h, lighting_gradient, rng)
-    buf = _POOL.take((h, w))
-    try:
-        if noise_std > 0:  # the noise with the rounding's +0.5 (round half up) as its mean
-            cv2.setRNGSeed(_noise_seed(rng))
-            cv2.randn(buf, np.full(1, 0.5), np.full(1, float(noise_std)))
+    box = lay.bbox(w, h)
+    drawn = _drawn(lay, box, rows, cols, float(background), blur_sigma_px, w, h, steps)
+    # Row blocks, each noised, lit, given its part of the drawn box and rounded while it sits
+    # in the cache: the frame goes through memory once, as the uint8 image. cv2.randn over the
+    # blocks in turn draws the same numbers as over the whole frame at once.
+    seed = _noise_seed(rng) if noise_std > 0 else None
+    if seed is not None:
+        cv2.setRNGSeed(seed)
+    mean, std = np.full(1, 0.5), np.full(1, float(noise_std))  # +0.5: round half up
+    lit_rows = np.float32(background) * rows
+    lit_cols = (np.float32(background) * cols)[None, :]
+    step = max(1, _BLOCK_BYTES // (4 * w))
+    block = np.empty((min(step, h), w), np.float32)
+    image = np.empty((h, w), np.uint8)
+    for y in range(0, h, step):
+        n = min(step, h - y)
+        v = block[:n]
+        if seed is not None:
+            cv2.randn(v, mean, std)
         else:
-            buf.fill(0.5)
+            v.fill(0.5)
         steps.mark("noise")
-        bg = np.float32(background)
-        np.add(buf, (bg * rows)[:, None], out=buf)
+        np.add(v, lit_rows[y : y + n, None], out=v)
         if lighting_gradient:
-            np.add(buf, (bg * cols)[None, :], out=buf)
+            np.add(v, lit_cols, out=v)
         steps.mark("lit background")
-        box = lay.bbox(w, h)
-        if box is not None:
-            _add_drawn(buf, lay, box, rows, cols, float(background), blur_sigma_px, steps)
-        np.clip(buf, 0, 255, out=buf)
-        image = buf.astype(np.uint8)
+        if drawn is not None:
+            (x0, y0, x1, y1), delta = drawn
+            ya, yb = max(y, y0), min(y + n, y1)
+            if ya < yb:
+                v[ya - y : yb - y, x0:x1] += delta[ya - y0 : yb - y0]
+            steps.mark("add box")
+        np.clip(v, 0, 255, out=v)
+        image[y : y + n] = v  # truncates: with the +0.5, rounds half up
         steps.mark("clip + uint8")
-    finally:
-        _POOL.give(buf)
     return image
 
 
-def _add_drawn(
-    buf: NDArray[np.float32], lay: _Layout, box: tuple[int, int, int, int],
-    rows: NDArray[np.float32], cols: NDArray[np.float32], background: float,
-    blur_sigma_px: float, steps: _Steps,
-) -> None:
-    """Add the drawn content minus the background, lit and blurred, to ``buf`` around ``box``.
+def _drawn(
+    lay: _Layout, box: tuple[int, int, int, int] | None, rows: NDArray[np.float32],
+    cols: NDArray[np.float32], background: float, blur_sigma_px: float, width: int,
+    height: int, steps: _Steps,
+) -> tuple[tuple[int, int, int, int], NDArray[np.float32]] | None:
+    """The drawn content minus the background, lit and blurred, and the region it covers
+    (x0, y0, x1, y1); None when nothing is drawn.
 
-    The difference is zero outside ``box``, so a region ``box`` plus the kernel's reach holds
-    all of its blurred image; where that region meets the frame's edge the blur reflects as it
-    does over the whole frame."""
-    h, w = buf.shape
+    The difference is zero outside ``box``, so ``box`` plus the kernel's reach holds all of its
+    blurred image; where that region meets the frame's edge the blur reflects as it does over
+    the whole frame."""
+    if box is None:
+        return None
     reach = math.ceil(4.0 * blur_sigma_px) + 1 if blur_sigma_px > 0 else 0
     x0, y0 = max(box[0] - reach, 0), max(box[1] - reach, 0)
-    x1, y1 = min(box[2] + reach, w), min(box[3] + reach, h)
+    x1, y1 = min(box[2] + reach, width), min(box[3] + reach, height)
     shape = (y1 - y0, x1 - x0)
     origin = np.array([x0, y0], dtype=float)
     delta = np.zeros(shape, np.float32)
@@ -388,8 +385,7 @@ def _add_drawn(
     if blur_sigma_px > 0:
         delta = np.asarray(cv2.GaussianBlur(delta, (0, 0), blur_sigma_px), dtype=np.float32)
     steps.mark("blur (box)")
-    buf[y0:y1, x0:x1] += delta
-    steps.mark("add box")
+    return (x0, y0, x1, y1), delta
 
 
 def render_target_full_frame(

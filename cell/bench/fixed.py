@@ -194,7 +194,8 @@ def render_steps(n: int) -> None:
     print(f"  {'step':28s}" + "".join(f"{c:>26s}" for c in cols))
     order = ["geometry + discs", "background fill", "noise", "lit background",
              "plate + frame (frame)", "plate + frame (box)", "discs (paint)", "gradient (frame)",
-             "gradient (box)", "blur (frame)", "blur (box)", "add box", "clip + uint8"]
+             "gradient (box)", "blur (frame)", "blur (box)", "add box", "clip + uint8",
+             "tool (fixed camera)", "motion smear (hand camera)", "total"]
     rank = {key: i for i, key in enumerate(order)}
     for key, row in sorted(table.items(), key=lambda kv: rank.get(kv[0], len(order))):
         print(f"  {key:28s}" + "".join(f"{row.get(c, '-'):>26s}" for c in cols))
