@@ -136,8 +136,9 @@ def render_steps(n: int) -> None:
     tool drawn over it) and the 1280x800 eye-in-hand camera at 300 mm (motion smear of 2 px).
     Each step's median ms over ``n`` frames, for the straightforward full-frame computation
     (:func:`fakes.render.render_target_full_frame`) and the render the cameras use
-    (:func:`fakes.render.render_target`, the work within the drawn box); then the totals,
-    median and worst, and the largest grey-level difference between the two images."""
+    (:func:`fakes.render.render_target`, the work within the drawn box), the two in turn so
+    that both see the same load; then the totals, median and worst, and the largest grey-level
+    difference between the two images."""
     import time
 
     from cell.devices import sim_truth
@@ -148,26 +149,28 @@ def render_steps(n: int) -> None:
     hand = sim_truth.as_built("hand")
     assert fixed.hand_eye.T_base_camera is not None  # a fixed mount's config has it
     T_fixed = invert_T(fixed.hand_eye.T_base_camera.T()) @ fixed.sim.T_base_target.T()
-    target = fixed.target.model()
-    centre = target.points_mm.mean(axis=0)
+    hand_target = hand.target.model()
+    centre = hand_target.points_mm.mean(axis=0)
     R = Rotation.from_rotvec([np.radians(20.0), 0, 0]).as_matrix()
     T_hand = make_T(R, np.array([10.0, -5.0, 300.0]) - R @ centre)
-    scenes = [("fixed 12 MP", sim_truth.resolve(fixed).camera, T_fixed, fixed.sim),
-              ("hand 1280x800", sim_truth.resolve(hand).camera, T_hand, hand.sim)]
-    print(f"render steps, median ms over {n} frames (load {_load()}):")
+    scenes = [
+        ("fixed 12 MP", sim_truth.resolve(fixed).camera, fixed.target.model(), T_fixed, fixed.sim),
+        ("hand 1280x800", sim_truth.resolve(hand).camera, hand_target, T_hand, hand.sim)]
+    load = _load()
     table: dict[str, dict[str, str]] = {}
     totals: list[str] = []
-    for name, cam, T, sim in scenes:
-        for label, fn in (("full frame", render_target_full_frame), ("drawn box", render_target)):
-            steps: list[dict[str, float]] = []
-            total: list[float] = []
+    methods = (("full frame", render_target_full_frame), ("drawn box", render_target))
+    for name, cam, target, T, sim in scenes:
+        steps: dict[str, list[dict[str, float]]] = {label: [] for label, _ in methods}
+        total: dict[str, list[float]] = {label: [] for label, _ in methods}
+        worst = 0
+        for k in range(n):  # the two in turn, so that both see the same load
             images = []
-            for k in range(n):
-                rng = np.random.default_rng(k)
+            for label, fn in methods:
                 t: dict[str, float] = {}
                 t0 = time.perf_counter()
                 img = fn(cam, target, T, noise_std=sim.noise_std, blur_sigma_px=sim.blur_sigma_px,
-                         lighting_gradient=0.1, rng=rng, timings=t)
+                         lighting_gradient=0.1, rng=np.random.default_rng(k), timings=t)
                 t1 = time.perf_counter()
                 if name.startswith("fixed"):
                     img = draw_tool(img, np.array([[1900.0, 1000.0], [1990.0, 1000.0],
@@ -176,21 +179,20 @@ def render_steps(n: int) -> None:
                 else:
                     img = motion_smear(img, (2.0, 1.0))
                     t["motion smear (hand camera)"] = time.perf_counter() - t1
-                total.append(time.perf_counter() - t0)
-                steps.append(t)
+                total[label].append(time.perf_counter() - t0)
+                steps[label].append(t)
                 images.append(img)
+            worst = max(worst, int(np.abs(images[0].astype(int) - images[1]).max()))
+        for label, _ in methods:
             col = f"{name}, {label}"
-            for key in steps[0]:
-                table.setdefault(key, {})[col] = f"{np.median([s[key] for s in steps]) * 1000:.1f}"
-            table.setdefault("total", {})[col] = (f"{np.median(total) * 1000:.0f} "
-                                                  f"(worst {max(total) * 1000:.0f})")
-            if label == "full frame":
-                reference = images
-            else:
-                worst = max(int(np.abs(a.astype(int) - b).max())
-                            for a, b in zip(reference, images, strict=True))
-                totals.append(f"{name}: largest difference {worst} grey level(s)")
-    cols = [f"{name}, {label}" for name, *_ in scenes for label in ("full frame", "drawn box")]
+            for key in steps[label][0]:
+                table.setdefault(key, {})[col] = \
+                    f"{np.median([s[key] for s in steps[label]]) * 1000:.1f}"
+            table.setdefault("total", {})[col] = (f"{np.median(total[label]) * 1000:.0f} "
+                                                  f"(worst {max(total[label]) * 1000:.0f})")
+        totals.append(f"{name}: largest difference {worst} grey level(s)")
+    cols = [f"{name}, {label}" for name, *_ in scenes for label, _ in methods]
+    print(f"render steps, median ms over {n} frames, the full frame and the drawn box in turn:")
     print(f"  {'step':28s}" + "".join(f"{c:>26s}" for c in cols))
     order = ["geometry + discs", "background fill", "noise", "lit background",
              "plate + frame (frame)", "plate + frame (box)", "discs (paint)", "gradient (frame)",
@@ -199,7 +201,7 @@ def render_steps(n: int) -> None:
     rank = {key: i for i, key in enumerate(order)}
     for key, row in sorted(table.items(), key=lambda kv: rank.get(kv[0], len(order))):
         print(f"  {key:28s}" + "".join(f"{row.get(c, '-'):>26s}" for c in cols))
-    print("  " + "; ".join(totals))
+    print("  " + "; ".join(totals) + f"; load {load} to {_load()}")
 
 
 def _load() -> str:
