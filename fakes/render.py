@@ -176,7 +176,7 @@ class _Steps:
         self.t = now
 
 
-_BLOCK_BYTES = 1 << 20  # float32 rows per pass of the whole-frame loop: fits a core's L2
+_BLOCK_BYTES = 1 << 20  # the float32 rows of one pass of the whole-frame loop: in a core's L2
 
 
 @dataclass(frozen=True)
