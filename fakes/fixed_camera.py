@@ -47,6 +47,7 @@ class FixedSimCamera(SimCamera):
         self.tool_radius_mm = float(tool_radius_mm)
         self._T_flange_board = None if T_flange_board is None else np.array(T_flange_board,
                                                                              dtype=float)
+        self._tooled: tuple[int, bool, NDArray[np.uint8]] | None = None
 
     def set_tool_board(self, T_flange_board: Matrix4 | None) -> None:
         """Clamp the calibration plate to the tool at ``T_flange_board`` (None: take it off)."""
@@ -67,20 +68,22 @@ class FixedSimCamera(SimCamera):
         return self.T_base_camera, self._target_locked(t_s)
 
     def _render(self, exp: _Exposure) -> NDArray[np.uint8]:
-        image = super()._render(exp)
         with self._cond:
             board = self._T_flange_board is not None
+        cached = self._tooled
+        if cached is not None and cached[:2] == (exp.sequence, board):
+            return cached[2]
+        image = super()._render(exp)
         # The plate on the tool faces the camera and covers the tool's end; a covered lens
         # shows nothing.
-        if exp.blocked or board or exp.T_base_flange is None or self.tool_radius_mm <= 0:
-            return image
-        outline = self.tool_outline_px(exp.T_base_flange)
-        if outline is None:
-            return image
-        out = image.copy()
-        cv2.fillConvexPoly(out, np.round(outline * 16).astype(np.int32), int(TOOL_LEVEL),
-                           cv2.LINE_AA, 4)
-        return out
+        if not (exp.blocked or board or exp.T_base_flange is None or self.tool_radius_mm <= 0):
+            outline = self.tool_outline_px(exp.T_base_flange)
+            if outline is not None:
+                image = draw_tool(image, outline)
+        # the frame with the tool, so that asking again for it (live view and loop alike)
+        # neither copies 12 MP nor draws again
+        self._tooled = (exp.sequence, board, image)
+        return image
 
     def tool_outline_px(self, T_base_flange: Matrix4) -> NDArray[np.float64] | None:
         """The tool body's image (convex hull of its end rings), None when not in front."""
@@ -100,3 +103,12 @@ class FixedSimCamera(SimCamera):
         hull = cv2.convexHull(px.astype(np.float32))
         return np.asarray(hull, dtype=np.float64).reshape(-1, 2)
 
+
+
+def draw_tool(image: NDArray[np.uint8], outline_px: NDArray[np.float64]) -> NDArray[np.uint8]:
+    """A copy of ``image`` with the tool body (its convex outline, pixels) filled anti-aliased
+    over it: the rendered frame stays as it was for whoever holds it."""
+    out = image.copy()
+    cv2.fillConvexPoly(out, np.round(outline_px * 16).astype(np.int32), int(TOOL_LEVEL),
+                       cv2.LINE_AA, 4)
+    return out

@@ -19,7 +19,7 @@ from cell.vision.frames import mean_pose
 from estimator import CameraModel, EstimationError, Target
 from estimator.pipeline import Estimator
 from estimator.transforms import make_T, pose_distance
-from fakes.render import render_target
+from fakes.render import motion_smear, render_target, render_target_full_frame
 
 SENSORS = {"12MP colour (4056x3040, f 2950 px)": (4056, 3040, 2950.0),
            "1280x800 mono (f 880 px)": (1280, 800, 880.0)}
@@ -130,6 +130,88 @@ def render_cost(n: int) -> None:
               f"search's: {worst_diff[0]:.2e} mm / {worst_diff[1]:.2e} deg")
 
 
+def render_steps(n: int) -> None:
+    """Where a simulated frame's render time goes, step by step, for the two simulated cameras
+    as built (their true lens): the fixed 12 MP camera at home (sim-fixed.toml's scene, the
+    tool drawn over it) and the 1280x800 eye-in-hand camera at 300 mm (motion smear of 2 px).
+    Each step's median ms over ``n`` frames, for the straightforward full-frame computation
+    (:func:`fakes.render.render_target_full_frame`) and the render the cameras use
+    (:func:`fakes.render.render_target`, the work within the drawn box), the two in turn so
+    that both see the same load; then the totals, median and worst, and the largest grey-level
+    difference between the two images."""
+    import time
+
+    from cell.devices import sim_truth
+    from estimator.transforms import invert_T
+    from fakes.fixed_camera import draw_tool
+
+    fixed = sim_truth.as_built("fixed")
+    hand = sim_truth.as_built("hand")
+    assert fixed.hand_eye.T_base_camera is not None  # a fixed mount's config has it
+    T_fixed = invert_T(fixed.hand_eye.T_base_camera.T()) @ fixed.sim.T_base_target.T()
+    hand_target = hand.target.model()
+    centre = hand_target.points_mm.mean(axis=0)
+    R = Rotation.from_rotvec([np.radians(20.0), 0, 0]).as_matrix()
+    T_hand = make_T(R, np.array([10.0, -5.0, 300.0]) - R @ centre)
+    scenes = [
+        ("fixed 12 MP", sim_truth.resolve(fixed).camera, fixed.target.model(), T_fixed, fixed.sim),
+        ("hand 1280x800", sim_truth.resolve(hand).camera, hand_target, T_hand, hand.sim)]
+    load = _load()
+    table: dict[str, dict[str, str]] = {}
+    totals: list[str] = []
+    methods = (("full frame", render_target_full_frame), ("drawn box", render_target))
+    for name, cam, target, T, sim in scenes:
+        steps: dict[str, list[dict[str, float]]] = {label: [] for label, _ in methods}
+        total: dict[str, list[float]] = {label: [] for label, _ in methods}
+        worst = 0
+        for k in range(n):  # the two in turn, so that both see the same load
+            images = []
+            for label, fn in methods:
+                t: dict[str, float] = {}
+                t0 = time.perf_counter()
+                img = fn(cam, target, T, noise_std=sim.noise_std, blur_sigma_px=sim.blur_sigma_px,
+                         lighting_gradient=0.1, rng=np.random.default_rng(k), timings=t)
+                t1 = time.perf_counter()
+                if name.startswith("fixed"):
+                    img = draw_tool(img, np.array([[1900.0, 1000.0], [1990.0, 1000.0],
+                                                   [1990.0, 1300.0], [1900.0, 1300.0]]))
+                    t["tool (fixed camera)"] = time.perf_counter() - t1
+                else:
+                    img = motion_smear(img, (2.0, 1.0))
+                    t["motion smear (hand camera)"] = time.perf_counter() - t1
+                total[label].append(time.perf_counter() - t0)
+                steps[label].append(t)
+                images.append(img)
+            worst = max(worst, int(np.abs(images[0].astype(int) - images[1]).max()))
+        for label, _ in methods:
+            col = f"{name}, {label}"
+            for key in steps[label][0]:
+                table.setdefault(key, {})[col] = \
+                    f"{np.median([s[key] for s in steps[label]]) * 1000:.1f}"
+            table.setdefault("total", {})[col] = (f"{np.median(total[label]) * 1000:.0f} "
+                                                  f"(worst {max(total[label]) * 1000:.0f})")
+        totals.append(f"{name}: largest difference {worst} grey level(s)")
+    cols = [f"{name}, {label}" for name, *_ in scenes for label, _ in methods]
+    print(f"render steps, median ms over {n} frames, the full frame and the drawn box in turn:")
+    print(f"  {'step':28s}" + "".join(f"{c:>26s}" for c in cols))
+    order = ["geometry + discs", "background fill", "noise", "lit background",
+             "plate + frame (frame)", "plate + frame (box)", "discs (paint)", "gradient (frame)",
+             "gradient (box)", "blur (frame)", "blur (box)", "add box", "clip + uint8",
+             "tool (fixed camera)", "motion smear (hand camera)", "total"]
+    rank = {key: i for i, key in enumerate(order)}
+    for key, row in sorted(table.items(), key=lambda kv: rank.get(kv[0], len(order))):
+        print(f"  {key:28s}" + "".join(f"{row.get(c, '-'):>26s}" for c in cols))
+    print("  " + "; ".join(totals) + f"; load {load} to {_load()}")
+
+
+def _load() -> str:
+    try:
+        with open("/proc/loadavg") as f:
+            return " ".join(f.read().split()[:3])
+    except OSError:
+        return "unknown"
+
+
 def approach(n: int, seed: int, servo: bool = False, lost_after_s: float | None = None,
              stall_after_s: float | None = None, preview: bool = False) -> None:
     """``n`` approaches on the simulated fixed-camera cell (sim-fixed.toml, in-process arm),
@@ -224,6 +306,7 @@ def main(a: argparse.Namespace) -> int:
     if a.poses:
         run(a.poses, a.tilt_deg, a.distance_mm, a.seed)
     if a.render:
+        render_steps(a.render)
         render_cost(a.render)
     if a.approaches:
         approach(a.approaches, a.seed, a.servo, a.lost_after_s, a.stall_after_s, a.preview)

@@ -8,7 +8,14 @@ from scipy.spatial.transform import Rotation
 
 from estimator import CameraModel, Target
 from estimator.transforms import make_T
-from fakes.render import ellipse_centre_px, random_pose, random_scene, random_target, render_target
+from fakes.render import (
+    ellipse_centre_px,
+    random_pose,
+    random_scene,
+    random_target,
+    render_target,
+    render_target_full_frame,
+)
 
 CAM = CameraModel(800.0, 800.0, 639.5, 399.5, (), 1280, 800)
 ONE_DOT_SET = Target([[0, 0, 0], [60, 0, 0], [0, 40, 0], [70, 50, 0]], 20.0)
@@ -95,3 +102,29 @@ def test_random_pose_keeps_every_dot_in_view(planar: bool) -> None:
         T = random_pose(rng, CAM, tgt)
         px = CAM.project(tgt.points_mm @ T[:3, :3].T + T[:3, 3])
         assert (px >= 40).all() and (px[:, 0] <= 1239).all() and (px[:, 1] <= 759).all()
+
+
+@pytest.mark.parametrize("case", [
+    {"T": _tilted(30.0)},  # drawn box well inside the frame
+    {"T": _tilted(20.0, 90.0), "clutter": 2},  # the plate fills the frame
+    {"T": make_T(np.eye(3), [-120.0, -80.0, 300.0]), "frame": True, "blur_sigma_px": 1.5},
+    {"T": make_T(np.eye(3), [-520.0, -300.0, 300.0]), "lighting_gradient": 0.0},  # at a corner
+    {"T": _tilted(45.0, 400.0), "noise_std": 0.0, "distorted": True},
+    {"T": make_T(np.eye(3), [0.0, 0.0, -300.0])},  # behind the camera: nothing drawn
+])
+def test_fast_render_is_the_full_frame_computation(case: dict[str, object]) -> None:
+    """The render that works only around what is drawn gives the straightforward full-frame
+    image (same seed) within one grey level, and only rarely off by one (float rounding)."""
+    kw = dict(case)
+    T = kw.pop("T")
+    cam = CameraModel(400.0, 400.0, 319.5, 199.5,
+                      (-0.2, 0.05, 0.001, 0.0, 0.0) if kw.pop("distorted", False) else (),
+                      640, 400)
+    fast = render_target(cam, ONE_DOT_SET, T, rng=np.random.default_rng(7),  # type: ignore[arg-type]
+                         **kw)
+    full = render_target_full_frame(cam, ONE_DOT_SET, T,  # type: ignore[arg-type]
+                                    rng=np.random.default_rng(7), **kw)
+    diff = np.abs(fast.astype(int) - full)
+    assert diff.max() <= 1
+    assert diff.mean() < 2e-3
+    assert full.std() > 0.5 or kw.get("noise_std") == 0.0  # a real image, not an empty one
