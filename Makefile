@@ -30,11 +30,12 @@ lint: install
 # servers stay in one process), the real-time UR files one after another, longest work first
 # (the groups and the order are in tests/conftest.py). Most tests wait on simulated motion in
 # real time, so two workers nearly halve the time on 2 cores.
-# `make test TEST_WORKERS=0` runs the suite in one process.
+# `make test TEST_WORKERS=0` runs the suite in one process. The slowest tests are listed at
+# the end of every run, to keep the suite within its time budget.
 TEST_WORKERS ?= 2
 
 test: lint browser
-	$(BIN)/pytest -n $(TEST_WORKERS) --dist loadgroup --no-loadscope-reorder
+	$(BIN)/pytest -n $(TEST_WORKERS) --dist loadgroup --no-loadscope-reorder --durations=25
 
 # Headless Chromium for the operator-page tests: Debian's package, never a browser download.
 # Installs only when missing and we are root; otherwise the browser tests skip with a reason.

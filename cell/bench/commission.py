@@ -42,9 +42,7 @@ def measure_intrinsics(config: CellConfig) -> dict[str, Any]:
     from cell.calibration.observe import board_observer
     from cell.calibration.routine import RoutineSettings, run_hand_eye_routine
     from cell.devices import sim_truth
-    from cell.devices.factory import build_hardware
-    from cell.motion.guard import GuardedArm
-    from cell.vision.frames import cell_frames
+    from cell.runtime import start_cell
     from estimator.calib.board import Board
     from estimator.calib.intrinsics import calibrate_intrinsics
 
@@ -62,20 +60,16 @@ def measure_intrinsics(config: CellConfig) -> dict[str, Any]:
     speed = min(200.0, limits.max_speed_mm_s)
     settings = RoutineSettings(n_views=BOARD_VIEWS, speed_mm_s=speed,
                                accel_mm_s2=min(4.0 * speed, limits.max_accel_mm_s2))
-    hw = build_hardware(cfg)
     t0 = time.monotonic()
+    cell = start_cell(cfg)  # the cell's guarded arm, as `cell calibrate routine` uses it
     try:
-        T_flange_tcp = cfg.tool.T_flange_tcp.T()
-        arm = GuardedArm(hw.arm, limits)
-        arm.connect()
-        arm.power_on()
-        arm.set_tcp(T_flange_tcp)
-        hw.camera.connect()
-        with arm.slot.hold("calibration"):
-            result = run_hand_eye_routine(arm, hw.camera, board_observer(board), T_flange_tcp,
-                                          cell_frames(cfg).T_camera_mount, settings)
+        core = cell.core
+        with core.arm.slot.hold("calibration"):
+            result = run_hand_eye_routine(core.arm, core.camera, board_observer(board),
+                                          core.frames.T_flange_tcp, core.frames.T_camera_mount,
+                                          settings)
     finally:
-        hw.close()
+        cell.close()
     cal = calibrate_intrinsics(board, list(result.images))
     cam, true = cal.camera, sim_truth.resolve(cfg).camera
     return {"views": len(result.images), "routine_s": time.monotonic() - t0,
