@@ -45,7 +45,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     a.add_argument("--commissioned", action="store_true",
                    help="commission the simulated cell first, as an integrator does before a "
                         "cell works: the lens from a circle-grid plate into [camera], then the "
-                        "hand-eye routine (the HTTP API's job) and Apply")
+                        "hand-eye routine (the HTTP API's job) and Apply (its AX = XB result "
+                        "when the verdict blames the arm's poses, docs/calibration.md)")
     a.add_argument("--no-ibvs", action="store_true",
                    help="skip the IBVS section (its own cells, cell/bench/ibvs.py)")
     a.add_argument("--check", action="store_true",
