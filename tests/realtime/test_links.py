@@ -164,9 +164,10 @@ def _burn(stop: Any) -> None:
         x = (x * 31 + 7) % 1000003
 
 
-def test_twenty_approaches_succeed_with_the_host_loaded(tmp_path: Path) -> None:
+def test_ten_approaches_succeed_with_the_host_loaded(tmp_path: Path) -> None:
     """Motion end comes from the controller, not from a pose that stood still for 50 ms: two
-    CPU burners and the live view polled at 10 Hz, 20 of 20 approaches must succeed."""
+    CPU burners and the live view polled at 10 Hz, 10 of 10 approaches must succeed (the burners
+    load the whole host, so the run is kept short)."""
     stop_burn = multiprocessing.Event()
     burners = [multiprocessing.Process(target=_burn, args=(stop_burn,), daemon=True)
                for _ in range(2)]
@@ -183,16 +184,16 @@ def test_twenty_approaches_succeed_with_the_host_loaded(tmp_path: Path) -> None:
             poller.start()
             outcomes = []
             t0 = time.monotonic()
-            for k in range(20):
+            for k in range(10):
                 standoff = 40.0 + 20.0 * (k % 2)  # alternate, so every approach really moves
                 r = client.post("/api/v1/approach", json={"standoff_mm": standoff,
                                                           "wait": True}, headers=PLC)
                 assert r.status_code == 200, r.text
                 outcomes.append((r.json()["state"], r.json()["error"]))
-            print(f"20 approaches under load in {time.monotonic() - t0:.1f} s")
+            print(f"10 approaches under load in {time.monotonic() - t0:.1f} s")
             stop_poll.set()
             poller.join(2.0)
-            assert [s for s, _ in outcomes] == ["succeeded"] * 20, outcomes
+            assert [s for s, _ in outcomes] == ["succeeded"] * 10, outcomes
     finally:
         stop_burn.set()
         for p in burners:
