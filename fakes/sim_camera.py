@@ -3,7 +3,7 @@
 A background thread "exposes" a frame every 1/fps seconds: it samples the arm's flange pose at
 mid-exposure from ``pose_source`` (the simulated controller's engine), so a moving arm changes
 what the camera sees exactly as on a real cell. The image itself is rendered only when someone
-asks for the frame (:func:`fakes.render.render_target`, ~40 ms at 1280x800): the scene at that
+asks for the frame (:func:`fakes.render.render_target`, ~6-10 ms at 1280x800): the scene at that
 instant is kept, so the result is the same as rendering eagerly but the idle cell burns no CPU.
 Nor does it sample the pose 30 times a second for nobody: once no frame has been taken for
 ``IDLE_AFTER_S`` the sensor exposes only every ``IDLE_PERIOD_S`` (enough to notice a pose
