@@ -256,7 +256,8 @@ def test_routine_recovers_the_simulated_hand_eye(
     # 12 views (the default): with 8 the rotation error is ~0.02-0.05 deg, and noise alone
     # reached 0.052 deg once, past the 0.05 deg requirement.
     code, out = run_json(capsys, "calibrate", "routine", "--config", str(cfg), "--views", "12",
-                         "--write-config", str(cfg), "--save-dataset", str(saved))
+                         "--speed-mm-s", "250", "--write-config", str(cfg),
+                         "--save-dataset", str(saved))
     assert code == 0, out
     truth = T_from_pose_dict(TRUE_T_FLANGE_CAMERA)
     d_mm, d_deg = pose_distance(T_from_pose_dict(out["T_flange_camera"]), truth)
