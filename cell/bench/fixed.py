@@ -10,7 +10,8 @@ then the median, for one frame and for the 3-frame average look-and-move uses, f
 from __future__ import annotations
 
 import argparse
-from typing import Literal
+from pathlib import Path
+from typing import Any, Literal
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -212,6 +213,19 @@ def _load() -> str:
         return "unknown"
 
 
+
+def _fixed_cell_data(state_dir: Path) -> dict[str, Any]:
+    """sim-fixed.toml as a dict, with the in-process arm, no gripper, no PLC servers and its
+    job database in ``state_dir``: the benchmark's cell, to adjust before parsing."""
+    from cell.config.schema import load_config
+
+    d = load_config(Path(__file__).parents[1] / "configs" / "sim-fixed.toml").model_dump(
+        mode="python")
+    d["robot"]["kind"], d["sim"]["ur_controller"], d["gripper"]["kind"] = "sim", False, "none"
+    d["api"]["job_db"] = str(state_dir / "jobs.db")
+    d["opcua"]["enabled"], d["urscript"]["xmlrpc_port"] = False, 0
+    return d
+
 def approach(n: int, seed: int, servo: bool = False, lost_after_s: float | None = None,
              stall_after_s: float | None = None, preview: bool = False) -> None:
     """``n`` approaches on the simulated fixed-camera cell (sim-fixed.toml, in-process arm),
@@ -225,7 +239,7 @@ def approach(n: int, seed: int, servo: bool = False, lost_after_s: float | None 
     from pathlib import Path
 
     from cell.actions.approach import start_approach
-    from cell.config.schema import load_config, parse_config
+    from cell.config.schema import parse_config
     from cell.errors import CellError
     from cell.runtime import start_cell
     from cell.vision.frames import approach_tcp
@@ -233,11 +247,7 @@ def approach(n: int, seed: int, servo: bool = False, lost_after_s: float | None 
     flat = np.array([[1.0, 0, 0], [0, -1, 0], [0, 0, -1]])
     rng = np.random.default_rng(seed)
     with tempfile.TemporaryDirectory() as tmp:
-        d = load_config(Path(__file__).parents[1] / "configs" / "sim-fixed.toml").model_dump(
-            mode="python")
-        d["robot"]["kind"], d["sim"]["ur_controller"], d["gripper"]["kind"] = "sim", False, "none"
-        d["api"]["job_db"] = str(Path(tmp) / "jobs.db")
-        d["opcua"]["enabled"], d["urscript"]["xmlrpc_port"] = False, 0
+        d = _fixed_cell_data(Path(tmp))
         if preview:
             c = d["camera"]
             c.update(fx=c["fx"] / 3, fy=c["fy"] / 3, cx=(c["cx"] + 0.5) / 3 - 0.5,
@@ -334,7 +344,7 @@ def ibvs(n: int, seed: int, displace_mm: float = 30.0, displace_deg: float = 6.0
     from pathlib import Path
 
     from cell.bench.ibvs import _jog_to, _recover, displacements
-    from cell.config.schema import load_config, parse_config
+    from cell.config.schema import parse_config
     from cell.errors import CellError
     from cell.features.teach import TaughtStore, teach
     from cell.runtime import start_cell
@@ -342,11 +352,7 @@ def ibvs(n: int, seed: int, displace_mm: float = 30.0, displace_deg: float = 6.0
 
     rng = np.random.default_rng(seed)
     with tempfile.TemporaryDirectory() as tmp:
-        d = load_config(Path(__file__).parents[1] / "configs" / "sim-fixed.toml").model_dump(
-            mode="python")
-        d["robot"]["kind"], d["sim"]["ur_controller"], d["gripper"]["kind"] = "sim", False, "none"
-        d["api"]["job_db"] = str(Path(tmp) / "jobs.db")
-        d["opcua"]["enabled"], d["urscript"]["xmlrpc_port"] = False, 0
+        d = _fixed_cell_data(Path(tmp))
         guess = T_from_pose_dict(d["hand_eye"]["T_base_camera"])
         truth = guess @ T_from_pose(*TRUE_CAMERA_OFFSET)
         d["sim"].update(T_base_camera=pose_dict(truth), T_flange_board=TOOL_BOARD)
