@@ -153,9 +153,31 @@ def _wait_moving(r: Any, job: Any, svc: Service, timeout_s: float = 30.0) -> Non
     deadline = time.monotonic() + timeout_s
     while _speed_mm_s(r) < 0.5 * SPEED_MM_S:
         state = svc.get(f"/jobs/{job}")
-        assert state["state"] == "running", state["error"]
+        assert state["state"] == "running", (state["error"], svc.log.read_text()[-4000:])
         assert time.monotonic() < deadline, "the arm never reached speed"
         time.sleep(0.01)
+
+
+def _moving(svc: Service, r: Any, motion: str) -> str:
+    """Home, start ``motion`` and wait until the arm runs at speed: the job's id. A start that
+    a loaded host lets fail before the freeze (the controller's answer later than the client's
+    3 s deadline: the job ends ``arm_disconnected``, the arm still) is not what these tests
+    judge; it is started once more."""
+    for attempt in range(2):
+        _home(svc)
+        job = _start(svc, motion)
+        try:
+            _wait_moving(r, job, svc)
+            return job
+        except AssertionError as err:
+            if attempt or "arm_disconnected" not in str(err):
+                raise
+            print(f"start failed before the freeze, started again: {str(err)[:300]}")
+            deadline = time.monotonic() + 2.0  # the controller's watchdog stops the arm
+            while _speed_mm_s(r) >= STILL_SPEED_MM_S:
+                assert time.monotonic() < deadline, "the arm ran on after its client died"
+                time.sleep(0.01)
+    raise AssertionError("unreachable")
 
 
 def _recorded(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -219,9 +241,7 @@ def _start(svc: Service, motion: str) -> str:
 def test_frozen_host_mid_servo_leaves_the_arm_still(service: Service, receiver: Any,
                                                    motion: str, frozen: str,
                                                    tmp_path: Path) -> None:
-    _home(service)
-    job = _start(service, motion)
-    _wait_moving(receiver, job, service)
+    job = _moving(service, receiver, motion)
     pid = service.child_pid() if frozen == "ur_rtde_child" else service.proc.pid
     still_s, moved_mm = _still_after_freeze(receiver, pid, tmp_path)
     assert still_s <= STILL_WITHIN_S and moved_mm <= TRAVEL_WITHIN_MM, (still_s, moved_mm)
