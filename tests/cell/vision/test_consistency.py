@@ -67,7 +67,8 @@ def test_high_residuals_and_spread_are_findings_of_their_own() -> None:
 
 
 def _approach(tmp_path: Path, world_name: str) -> tuple[dict[str, Any], tuple[float, float]]:
-    config = sim_config(tmp_path, sim={"world": world_name})
+    config = sim_config(tmp_path, sim={"world": world_name},
+                        approach={"speed_mm_s": 250.0, "accel_mm_s2": 1200.0})
     with running_cell(config) as cell:
         job = cell.approach("test", standoff_mm=STANDOFF_MM, wait=True, mode="look_and_move")
         assert job.state == "succeeded" and job.result is not None, job.error_message
@@ -110,7 +111,8 @@ def test_a_locate_reports_residuals_and_spread_and_judges_no_motion(tmp_path: Pa
 def test_an_inconsistent_approach_raises_an_alarm_through_the_api(tmp_path: Path) -> None:
     """The job succeeds (the arm is where the calibration says); the operator still gets a
     standing alarm with the finding, through the same HTTP API the page reads."""
-    config = sim_config(tmp_path, sim={"world": "realistic"})
+    config = sim_config(tmp_path, sim={"world": "realistic"},
+                        approach={"speed_mm_s": 250.0, "accel_mm_s2": 1200.0})
     with running_cell(config) as cell, TestClient(create_app(cell)) as client:
         r = client.post("/api/v1/approach", json={"standoff_mm": STANDOFF_MM, "wait": True,
                                                   "mode": "look_and_move"}, headers=AUTH["plc"])
