@@ -27,7 +27,11 @@ from estimator.transforms import T_from_pose_dict, pose_distance
 
 Matrix4 = NDArray[np.float64]
 CALLER = "bench"
-HAND_EYE_VIEWS = 12  # as docs/commissioning.md runs the routine
+# as docs/commissioning.md runs the routine: enough views, tilts and rolls for the arm's
+# geometry to be fitted with the mount
+HAND_EYE_VIEWS = 24
+HAND_EYE_TILT_DEG = 30.0
+HAND_EYE_ROLL_DEG = 60.0
 BOARD_VIEWS = 14
 AX_XB_FALLBACK = "tsai"
 BOARD_COLS, BOARD_ROWS, BOARD_PITCH_MM = 10, 7, 35.0  # circles: a third of the image or more
@@ -100,14 +104,17 @@ def hand_eye(cell: Cell, views: int = HAND_EYE_VIEWS) -> dict[str, Any]:
     before = pose_distance(cell.core.frames.T_flange_camera, truth.T_flange_camera)
     service = CalibrationService(cell)
     t0 = time.monotonic()
-    job = service.wait(service.start(CALLER, RoutineSettings(n_views=views)).id, 600.0)
+    settings = RoutineSettings(n_views=views, tilt_deg=HAND_EYE_TILT_DEG,
+                               roll_deg=HAND_EYE_ROLL_DEG)
+    job = service.wait(service.start(CALLER, settings).id, 600.0)
     took = time.monotonic() - t0
     if job.state != "succeeded" or job.result is None:
         raise RuntimeError(f"hand-eye routine {job.state}: {job.error_code} {job.error_message}")
     r = job.result
     results = {name: m["T_flange_camera"] for name, m in r["methods"].items()}
-    if r.get("joint") is not None:
-        results["joint"] = r["joint"]["T_flange_camera"]
+    for refined in ("joint", "kinematic"):
+        if r.get(refined) is not None:
+            results[refined] = r[refined]["T_flange_camera"]
     scored = {name: dict(zip(("mm", "deg"), pose_distance(T_from_pose_dict(T),
                                                           truth.T_flange_camera), strict=True))
               for name, T in results.items()}

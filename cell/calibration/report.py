@@ -8,6 +8,7 @@ together (robot poses vs images), and whether the methods agree with each other.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -15,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimator.calib.handeye import BoardSpread, JointResult
+from estimator.calib.kinematic import KinematicResult
 from estimator.transforms import pose_dict, pose_distance
 
 # An image whose own board pose leaves more than this is not explained by the intrinsics.
@@ -27,6 +29,8 @@ METHOD_SPREAD_LIMIT_MM = 2.0
 METHOD_SPREAD_LIMIT_DEG = 0.2
 # Freeing the intrinsics must cut the joint rms by this factor to blame the intrinsics.
 INTRINSICS_BLAME_FACTOR = 0.5
+# The kinematic fit is chosen when it cuts the joint rms by this factor (and fits).
+KINEMATIC_BLAME_FACTOR = 0.5
 
 
 @dataclass(frozen=True)
@@ -76,9 +80,14 @@ class HandEyeReport:
     joint_free_intrinsics: JointResult | None
     chosen: str
     verdict: Verdict
+    kinematic: KinematicResult | None = None
 
     @property
     def T_flange_camera(self) -> NDArray[np.float64]:
+        if self.chosen == "kinematic":
+            if self.kinematic is None:
+                raise ValueError("no kinematic fit was run")
+            return self.kinematic.T_flange_camera
         if self.chosen == "joint":
             if self.joint is None:
                 raise ValueError("no joint refinement was run")
@@ -107,11 +116,25 @@ class HandEyeReport:
                     "rms_px": self.joint_free_intrinsics.rms_px,
                     "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
                 }
+        kinematic: dict[str, Any] | None = None
+        if self.kinematic is not None:
+            k = self.kinematic
+            kinematic = {
+                "T_flange_camera": pose_dict(k.T_flange_camera),
+                "T_base_board": pose_dict(k.T_base_board),
+                "rms_px": k.rms_px,
+                "per_view_rms_px": [float(v) for v in k.per_view_rms_px],
+                "dh_delta_theta_rad": [float(v) for v in k.delta_theta_rad],
+                "dh_delta_d_mm": [float(v) for v in k.delta_d_mm],
+                "dh_delta_a_mm": [float(v) for v in k.delta_a_mm],
+                "converged": k.converged,
+            }
         return {
             "chosen": self.chosen,
             "T_flange_camera": pose_dict(self.T_flange_camera),
             "methods": methods,
             "joint": joint,
+            "kinematic": kinematic,
             "views": [
                 {"name": n, "pnp_rms_px": float(r)}
                 for n, r in zip(self.view_names, self.pnp_rms_px, strict=True)
@@ -139,6 +162,12 @@ class HandEyeReport:
                 f"  joint: position_mm {_fmt(p['position_mm'])}  rotvec_rad "
                 f"{_fmt(p['rotvec_rad'], 5)}  reprojection rms {self.joint.rms_px:.2f} px"
             )
+        if self.kinematic is not None:
+            p = pose_dict(self.kinematic.T_flange_camera)
+            lines.append(
+                f"kinematic: position_mm {_fmt(p['position_mm'])}  rotvec_rad "
+                f"{_fmt(p['rotvec_rad'], 5)}  reprojection rms {self.kinematic.rms_px:.2f} px"
+            )
         lines.append(f"chosen: {self.chosen}")
         lines.append(self.verdict.text)
         return "\n".join(lines)
@@ -157,8 +186,11 @@ def judge(
     chosen: str,
     mean_depth_mm: float,
     focal_px: float,
+    kinematic: KinematicResult | None = None,
 ) -> Verdict:
-    """Plain-words findings; ``consistent`` is False when any finding is a contradiction."""
+    """Plain-words findings; ``consistent`` is False when any finding is a contradiction.
+    With ``chosen == "kinematic"`` the joint refinement's disagreement is explained by the
+    arm's geometry and is not one."""
     findings: list[str] = []
     consistent = True
     pnp = np.asarray(pnp_rms_px, dtype=float)
@@ -190,11 +222,47 @@ def judge(
             f"The AX = XB methods ({', '.join(names)}) agree within {worst[0]:.2f} mm / "
             f"{worst[1]:.3f} deg."
         )
+    if chosen == "kinematic":
+        # the closed-form methods share the nominal kinematics' error: their spread is no
+        # contradiction once the arm's geometry explains the images
+        consistent = not bad
     if joint is not None:
-        findings.append(_judge_joint(pnp, methods, joint, joint_free_intrinsics, chosen,
+        findings.append(_judge_joint(pnp, methods, joint, joint_free_intrinsics,
+                                     "joint" if chosen == "kinematic" else chosen,
                                      mean_depth_mm, focal_px))
-        consistent = consistent and findings[-1].startswith("The joint refinement explains")
+        if chosen != "kinematic":
+            consistent = consistent and findings[-1].startswith("The joint refinement explains")
+    if joint is not None and kinematic is not None:
+        findings.append(_judge_kinematic(joint, kinematic, chosen))
     return Verdict(consistent, tuple(findings))
+
+
+def kinematic_explains(joint: JointResult, kinematic: KinematicResult,
+                       pnp_rms_px: Sequence[float]) -> bool:
+    """Whether the arm's fitted geometry explains the images that the nominal one does not:
+    the kinematic fit is within what the images allow and well below the joint rms."""
+    allowed = max(JOINT_RMS_LIMIT_PX, JOINT_RMS_FACTOR * float(np.median(pnp_rms_px)))
+    return (kinematic.converged and kinematic.rms_px <= allowed
+            and kinematic.rms_px < KINEMATIC_BLAME_FACTOR * joint.rms_px)
+
+
+def _judge_kinematic(joint: JointResult, kinematic: KinematicResult, chosen: str) -> str:
+    k = kinematic
+    d_mm, d_deg = pose_distance(k.T_flange_camera, joint.T_flange_camera)
+    if chosen != "kinematic":
+        return (f"Fitting the arm's geometry with the mount gives {k.rms_px:.2f} px rms against "
+                f"{joint.rms_px:.2f} px: the arm's kinematics are not what the data disagree on.")
+    theta_mrad = 1000.0 * float(np.max(np.abs(k.delta_theta_rad)))
+    length_mm = float(max(np.max(np.abs(k.delta_d_mm)), np.max(np.abs(k.delta_a_mm))))
+    return (
+        f"The arm's reported poses disagree with its nominal kinematics: fitting the arm's "
+        f"geometry with the mount lowers the rms from {joint.rms_px:.2f} px to {k.rms_px:.2f} px"
+        f" (joint angle offsets up to {theta_mrad:.2f} mrad, link lengths up to "
+        f"{length_mm:.2f} mm off the published table) and moves the mount by {d_mm:.2f} mm / "
+        f"{d_deg:.3f} deg from the joint result. The kinematic result is chosen. The cell does "
+        "not correct the arm's reported poses with this geometry: approaches that finish on "
+        "their own closing views (servo, look-and-move's last cycles) do not need it."
+    )
 
 
 def _judge_joint(

@@ -45,6 +45,7 @@ from estimator import CameraModel, Target
 from estimator.calib.board import Board
 from estimator.calib.eye_to_hand import eye_to_hand_poses
 from estimator.calib.handeye import HandEyeError
+from estimator.kinematics import DHTable
 from estimator.transforms import invert_T, make_T
 
 Matrix4 = NDArray[np.float64]
@@ -89,6 +90,7 @@ class RoutineResult:
     failed: tuple[tuple[int, str], ...] = field(default_factory=tuple)  # (view, reason)
     images: tuple[NDArray[np.uint8], ...] = ()  # of the views used, as the camera gave them
     camera: CameraModel | None = None  # the intrinsics the views were solved with
+    joints_rad: tuple[NDArray[np.float64], ...] = ()  # of the views used, as the arm gave them
 
 
 def save_views(folder: str | Path, result: RoutineResult, pattern: Board | Target
@@ -199,6 +201,7 @@ def run_hand_eye_routine(
     progress: Progress | None = None,
     fixed_camera: bool = False,
     intrinsics: Callable[[CameraModel], CameraModel] | None = None,
+    arm_geometry: DHTable | None = None,
 ) -> RoutineResult:
     """Collect views around the arm's current pose and solve; the arm ends where it started.
 
@@ -208,6 +211,8 @@ def run_hand_eye_routine(
     ``T_flange_camera`` field); ``T_base_flange`` stays the flange poses as the arm gave them.
     ``intrinsics`` maps the intrinsics a frame reports to the ones to solve with (the cell's
     :class:`cell.vision.intrinsics.IntrinsicsPolicy`; None: the frame's own).
+    ``arm_geometry``: the arm's nominal DH table; with it and enough views (a camera on the
+    hand), the arm's geometry is fitted with the mount (:mod:`estimator.calib.kinematic`).
     Raises RoutineError when the target
     is not visible at the start or fewer than ``min_views`` views succeed, and lets
     ``drivers.errors`` through when the arm faults (protective stop, connection lost).
@@ -219,6 +224,7 @@ def run_hand_eye_routine(
     model_for = intrinsics or (lambda device: device)
     flange0, obs0, intrinsics_used, image0 = _capture(arm, camera, observer, tcp_inv, s,
                                                       model_for)
+    joints = [arm.joint_positions_rad()]
     if isinstance(obs0, str):
         raise RoutineError(ErrorCode.target_not_visible, f"at the start pose: {obs0}")
     centre = obs0.object_points_mm.mean(axis=0)
@@ -248,6 +254,7 @@ def run_hand_eye_routine(
                 flanges.append(flange)
                 observations.append(obs)
                 images.append(image)
+                joints.append(arm.joint_positions_rad())  # the arm stands: the view's joints
             report("views", k + 1, len(plan))
     finally:
         if s.return_to_start and arm.state().ready:
@@ -267,11 +274,13 @@ def run_hand_eye_routine(
             [o.object_points_mm for o in observations], [o.image_points_px for o in observations],
             [o.T_camera_board for o in observations], [o.rms_px for o in observations],
             chosen=s.chosen, progress=report,
+            joints_rad=None if fixed_camera or arm_geometry is None else joints,
+            arm_geometry=arm_geometry,
         )
     except HandEyeError as err:
         raise RoutineError(ErrorCode(err.code), str(err)) from err
     return RoutineResult(result, tuple(flanges), tuple(observations), tuple(failed),
-                         tuple(images), intrinsics_used)
+                         tuple(images), intrinsics_used, tuple(joints))
 
 
 def _capture(

@@ -39,6 +39,7 @@ from cell.errors import LimitError, NotFoundError, RefusedError, UnavailableErro
 from cell.jobs.store import Job
 from cell.motion.guard import Motion
 from cell.service import Cell
+from estimator.kinematics import UR_DH
 from estimator.transforms import T_from_pose_dict, pose_dict, pose_distance
 
 log = logging.getLogger(__name__)
@@ -94,7 +95,8 @@ class CalibrationService:
             result = run_hand_eye_routine(
                 core.arm, core.camera, dot_target_observer(core.target),
                 core.frames.T_flange_tcp, guess, settings, progress, fixed_camera=fixed,
-                intrinsics=core.locator.intrinsics.model_for)
+                intrinsics=core.locator.intrinsics.model_for,
+                arm_geometry=UR_DH[core.config.robot.model])
         except RoutineError as err:
             raise RefusedError(ErrorCode(err.code), err.message) from err
         report = result.report
@@ -200,6 +202,12 @@ class CalibrationService:
                                "if you accept that")
         if method is None or method == r["chosen"]:
             return T_from_pose_dict(r["T_flange_camera"])
+        if method == "kinematic":
+            if r.get("kinematic") is None:
+                raise NotFoundError(ErrorCode.method_not_found,
+                                    "this job has no kinematic fit (it needs the joints of at "
+                                    "least 16 views of a camera on the hand)")
+            return T_from_pose_dict(r["kinematic"]["T_flange_camera"])
         if method == "joint":
             if r.get("joint") is None:
                 raise NotFoundError(ErrorCode.method_not_found, "this job has no joint refinement")

@@ -15,11 +15,14 @@ from numpy.typing import NDArray
 
 from cell.calibration.dataset import HandEyeDataset
 from cell.calibration.observe import ObservationError, dot_target_observer
-from cell.calibration.report import HandEyeReport, MethodResult, judge
+from cell.calibration.report import HandEyeReport, MethodResult, judge, kinematic_explains
 from estimator import CameraModel
 from estimator.calib.board import Board, board_pose, detect_board
 from estimator.calib.eye_to_hand import eye_to_hand_poses
 from estimator.calib.handeye import SOLVERS, HandEyeError, board_spread, refine_joint
+from estimator.calib.kinematic import MIN_VIEWS as KINEMATIC_MIN_VIEWS
+from estimator.calib.kinematic import refine_kinematic
+from estimator.kinematics import DHTable
 
 Progress = Callable[[str, int, int], None]  # (stage, done, total)
 
@@ -125,11 +128,16 @@ def solve_observations(
     refine: bool = True,
     skipped: tuple[str, ...] = (),
     progress: Progress | None = None,
+    joints_rad: Sequence[NDArray[np.float64]] | None = None,
+    arm_geometry: DHTable | None = None,
 ) -> HandEyeReport:
     """Solve and judge from per-view observations of any rigid target (board or dot plate).
 
     ``T_camera_board`` is each view's own pose of the target and ``pnp_rms_px`` how well that
-    pose explains the view's image points.
+    pose explains the view's image points. With each view's ``joints_rad`` and the arm's
+    nominal ``arm_geometry`` (and enough views), the arm's geometry is fitted with the mount
+    too; when that explains the images and the nominal kinematics do not, the default choice
+    becomes the ``kinematic`` result.
     """
     if chosen not in CHOICES:
         raise HandEyeError(f"unknown method {chosen!r}; choose one of {', '.join(CHOICES)}")
@@ -152,11 +160,18 @@ def solve_observations(
         free = refine_joint(T_base_flange, image_points_px, object_points_mm, camera,
                             joint.T_flange_camera, joint.T_base_board, free_intrinsics=True)
         report("refine", 1, 1)
+    kinematic = None
+    if (joint is not None and joints_rad is not None and arm_geometry is not None
+            and len(joints_rad) >= KINEMATIC_MIN_VIEWS):
+        kinematic = refine_kinematic(joints_rad, image_points_px, object_points_mm, camera,
+                                     arm_geometry, joint.T_flange_camera, joint.T_base_board)
+        if chosen == "joint" and kinematic_explains(joint, kinematic, pnp_rms_px):
+            chosen = "kinematic"
     depth = float(np.mean([T[2, 3] for T in T_camera_board]))
     verdict = judge(tuple(names), pnp, methods, joint, free, chosen, depth,
-                    0.5 * (camera.fx + camera.fy))
+                    0.5 * (camera.fx + camera.fy), kinematic)
     return HandEyeReport(
         view_names=tuple(names), skipped_views=skipped, pnp_rms_px=pnp, methods=methods,
         joint=joint, joint_spread=joint_spread, joint_free_intrinsics=free, chosen=chosen,
-        verdict=verdict,
+        verdict=verdict, kinematic=kinematic,
     )

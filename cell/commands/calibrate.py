@@ -69,6 +69,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     rt.add_argument("--config", metavar="FILE", help="cell config (default: the simulated cell)")
     rt.add_argument("--views", type=int, default=12, help="number of views (default 12)")
     rt.add_argument("--tilt-deg", type=float, default=18.0, help="camera tilt about the target")
+    rt.add_argument("--roll-deg", type=float, default=35.0,
+                    help="largest roll about the optical axis (the arm's geometry is fitted "
+                         "too from 16 views or more: use 24 views, 30 deg tilt, 60 deg roll)")
     rt.add_argument("--speed-mm-s", type=float, default=None,
                     help="linear move speed (default: 200 or the config's limits.max_speed_mm_s "
                          "if lower; above that limit is refused)")
@@ -206,6 +209,7 @@ def run_routine(args: argparse.Namespace) -> int:
     from cell.vision.intrinsics import IntrinsicsPolicy
     from drivers.errors import DriverError
     from estimator.calib.board import Board
+    from estimator.kinematics import UR_DH
 
     try:
         cfg = load_config(args.config)
@@ -214,7 +218,7 @@ def run_routine(args: argparse.Namespace) -> int:
         accel = min(4.0 * speed, limits.max_accel_mm_s2)
         SafetyGuard(limits).check_speed(speed, accel)  # refused before anything is built
         settings = RoutineSettings(n_views=args.views, tilt_deg=args.tilt_deg,
-                                   speed_mm_s=speed, accel_mm_s2=accel,
+                                   roll_deg=args.roll_deg, speed_mm_s=speed, accel_mm_s2=accel,
                                    chosen=_method(args), min_views=min(6, args.views))
         pattern = (Board(args.board, args.cols, args.rows, args.pitch_mm) if args.board
                    else cfg.target.model())
@@ -250,6 +254,7 @@ def run_routine(args: argparse.Namespace) -> int:
                 arm, hw.camera, observer, T_flange_tcp, guess, settings, progress=progress,
                 fixed_camera=fixed,
                 intrinsics=IntrinsicsPolicy(cfg.camera.model(), cfg.camera.intrinsics).model_for,
+                arm_geometry=UR_DH[cfg.robot.model],
             )
     except RoutineError as err:
         return fail(err.code, err.message, args.json)

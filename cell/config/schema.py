@@ -149,6 +149,9 @@ class RobotConfig(_Strict):
 
     kind: Literal["ur", "sim"]  # required: a file that lost it must not run a simulated arm
     host: str = "127.0.0.1"
+    # The arm's type: its published DH table is the nominal geometry the hand-eye routine's
+    # kinematic fit starts from (the simulated arm is a UR5e).
+    model: Literal["ur3e", "ur5e", "ur10e", "ur16e"] = "ur5e"
     # The UR adapter's timing (URArm): connecting, one call to the controller, the
     # jog watchdog period, and how long unchanged RTDE data may be before the link counts as lost.
     connect_timeout_s: float = Field(default=5.0, gt=0)

@@ -11,11 +11,11 @@ is taken, so continuous motion never jumps between configurations.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from estimator.kinematics import UR_DH, DHTable, dh_link
 from estimator.transforms import invert_T
 
 TWO_PI = 2.0 * math.pi
@@ -26,44 +26,11 @@ class UnreachableError(ValueError):
     """No joint solution reaches the pose (out of reach, or none inside the joint limits)."""
 
 
-@dataclass(frozen=True)
-class DH:
-    """Standard DH table, lengths in mm; ``theta_offset_rad`` is added to each joint angle
-    (zero in the published table; a real arm's joint zeros sit a little off it)."""
-
-    d_mm: tuple[float, ...]
-    a_mm: tuple[float, ...]
-    alpha_rad: tuple[float, ...]
-    theta_offset_rad: tuple[float, ...] = (0.0,) * 6
-
-    def perturbed(self, delta_theta_rad: tuple[float, ...], delta_d_mm: tuple[float, ...],
-                  delta_a_mm: tuple[float, ...]) -> DH:
-        """This table with small per-joint errors added: an individual arm's true geometry,
-        which the nominal table (what an uncalibrated controller computes with) misses."""
-        return DH(tuple(x + dx for x, dx in zip(self.d_mm, delta_d_mm, strict=True)),
-                  tuple(x + dx for x, dx in zip(self.a_mm, delta_a_mm, strict=True)),
-                  self.alpha_rad,
-                  tuple(x + dx for x, dx in zip(self.theta_offset_rad, delta_theta_rad,
-                                                strict=True)))
-
-
-# Universal Robots' published UR5e parameters (m -> mm).
-UR5E = DH(
-    d_mm=(162.5, 0.0, 0.0, 133.3, 99.7, 99.6),
-    a_mm=(0.0, -425.0, -392.2, 0.0, 0.0, 0.0),
-    alpha_rad=(math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0),
-)
-
-
-def _dh_T(theta: float, d: float, a: float, alpha: float) -> NDArray[np.float64]:
-    ct, st = math.cos(theta), math.sin(theta)
-    ca, sa = math.cos(alpha), math.sin(alpha)
-    return np.array([
-        [ct, -st * ca, st * sa, a * ct],
-        [st, ct * ca, -ct * sa, a * st],
-        [0.0, sa, ca, d],
-        [0.0, 0.0, 0.0, 1.0],
-    ])
+# The DH table and its link transform are the estimator's (one formula for the arm the
+# simulator is and the one a kinematic calibration fits); the UR5e's is the published one.
+DH = DHTable
+UR5E = UR_DH["ur5e"]
+_dh_T = dh_link
 
 
 class UR5eKinematics:

@@ -69,7 +69,7 @@ class HandEyeRequest(_Body):
 
 
 class ApplyRequest(_Body):
-    method: Literal["tsai", "park", "horaud", "joint"] | None = Field(
+    method: Literal["tsai", "park", "horaud", "joint", "kinematic"] | None = Field(
         default=None, description="default: the job's chosen method")
     running: bool = Field(default=True, description="use it in the running cell now")
     write_config: bool = Field(default=False,
