@@ -37,7 +37,7 @@ from cell.calibration.observe import Observation, ObservationError, Observer
 from cell.calibration.report import HandEyeReport
 from cell.calibration.solve import DEFAULT_METHOD, Progress, solve_observations
 from cell.error_codes import ErrorCode
-from cell.errors import CellError, LimitError
+from cell.errors import CellError, LimitError, RefusedError
 from cell.motion.guard import GuardedArm
 from drivers.camera import Camera, Frame
 from drivers.errors import DriverError
@@ -210,8 +210,11 @@ def run_hand_eye_routine(
         for k, T_base_flange in enumerate(plan[1:], start=1):
             try:
                 arm.move_linear(T_base_flange @ T_flange_tcp, s.speed_mm_s, s.accel_mm_s2)
-            except (DriverError, LimitError) as err:  # the controller's or the guard's no
-                if not arm.state().ready:
+            except (DriverError, LimitError, RefusedError) as err:
+                # the guard's no, or the controller's (an unreachable view comes through the
+                # guard as refused, motion_failed); anything else, or a fault, ends the routine
+                if not arm.state().ready or (isinstance(err, RefusedError)
+                                             and err.code != ErrorCode.motion_failed):
                     raise
                 failed.append((k, f"move refused: {err}"))
                 report("views", k + 1, len(plan))
