@@ -106,8 +106,9 @@ def hand_eye(cell: Cell, views: int = HAND_EYE_VIEWS) -> dict[str, Any]:
         raise RuntimeError(f"hand-eye routine {job.state}: {job.error_code} {job.error_message}")
     r = job.result
     results = {name: m["T_flange_camera"] for name, m in r["methods"].items()}
-    if r.get("joint") is not None:
-        results["joint"] = r["joint"]["T_flange_camera"]
+    for refined in ("joint", "hybrid"):
+        if r.get(refined) is not None:
+            results[refined] = r[refined]["T_flange_camera"]
     scored = {name: dict(zip(("mm", "deg"), pose_distance(T_from_pose_dict(T),
                                                           truth.T_flange_camera), strict=True))
               for name, T in results.items()}

@@ -68,7 +68,7 @@ class RoutineSettings:
     settle_s: float = 0.15  # after the arm stops, before a frame counts
     frame_timeout_s: float = 2.0
     min_views: int = 6
-    chosen: str = DEFAULT_METHOD  # the pose-set is rich and the robot exact on a calibrated cell
+    chosen: str = DEFAULT_METHOD  # auto: joint, or hybrid when the arm's poses are off
     return_to_start: bool = True
     shift_mm: float = 60.0  # fixed camera only: largest move of the plate across the image
 

@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 
     from cell.calibration.report import HandEyeReport
 
-METHOD_CHOICES = ["tsai", "park", "horaud", "joint"]
+METHOD_CHOICES = ["tsai", "park", "horaud", "joint", "hybrid", "auto"]
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -34,7 +34,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     he = what.add_parser("hand-eye", help="T_flange_camera from board images and robot poses")
     he.add_argument("folder", metavar="DIR", help="ViSP eye-in-hand folder or dataset.json folder")
     he.add_argument("--method", default=None, choices=METHOD_CHOICES,
-                    help="the result to choose (all are computed and printed; default joint, "
+                    help="the result to choose (all are computed and printed; default auto, "
                          "as the routine; tsai with --no-refine)")
     he.add_argument("--no-refine", action="store_true",
                     help="skip the joint reprojection refinement")
@@ -73,7 +73,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                     help="linear move speed (default: 200 or the config's limits.max_speed_mm_s "
                          "if lower; above that limit is refused)")
     rt.add_argument("--method", default=None, choices=METHOD_CHOICES,
-                    help="the result to choose (default joint)")
+                    help="the result to choose (default auto: joint, or hybrid when the "
+                         "robot's poses are off by more than the images' noise)")
     rt.add_argument("--board", choices=["chessboard", "circles", "acircles"],
                     help="look at a calibration board instead of the cell's dot target")
     rt.add_argument("--cols", type=int, default=9)

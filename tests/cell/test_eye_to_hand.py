@@ -116,7 +116,8 @@ def test_eye_to_hand_recovers_T_base_camera() -> None:
     report = solve_observations(cam, [f"v{k}" for k in range(15)], inv, [obj] * 15, pts, own,
                                 rms)
     d_mm, d_deg = pose_distance(report.T_flange_camera, Y)
-    print(f"eye-to-hand joint: {d_mm:.3f} mm / {d_deg:.4f} deg from the true T_base_camera")
+    print(f"eye-to-hand ({report.chosen}): {d_mm:.3f} mm / {d_deg:.4f} deg from the true "
+          "T_base_camera")
     assert d_mm < 0.5 and d_deg < 0.05
     # OpenCV's eye-to-hand form of calibrateHandEye (gripper poses inverted) agrees
     R_g2b = [T[:3, :3] for T in inv]
