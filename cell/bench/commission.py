@@ -29,6 +29,7 @@ Matrix4 = NDArray[np.float64]
 CALLER = "bench"
 HAND_EYE_VIEWS = 12  # as docs/commissioning.md runs the routine
 BOARD_VIEWS = 14
+BOARD_TILT_DEG, BOARD_ROLL_DEG = 18.0, 35.0  # the lens's views: the whole grid stays in view
 AX_XB_FALLBACK = "tsai"
 BOARD_COLS, BOARD_ROWS, BOARD_PITCH_MM = 10, 7, 35.0  # circles: a third of the image or more
 BOARD_DOT_MM = 14.0
@@ -58,7 +59,8 @@ def measure_intrinsics(config: CellConfig) -> dict[str, Any]:
     board = Board("circles", cols, rows, pitch)
     limits = cfg.limits
     speed = min(200.0, limits.max_speed_mm_s)
-    settings = RoutineSettings(n_views=BOARD_VIEWS, speed_mm_s=speed,
+    settings = RoutineSettings(n_views=BOARD_VIEWS, tilt_deg=BOARD_TILT_DEG,
+                               roll_deg=BOARD_ROLL_DEG, speed_mm_s=speed,
                                accel_mm_s2=min(4.0 * speed, limits.max_accel_mm_s2))
     t0 = time.monotonic()
     cell = start_cell(cfg)  # the cell's guarded arm, as `cell calibrate routine` uses it

@@ -68,7 +68,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     rt.add_argument("--config", metavar="FILE", help="cell config (default: the simulated cell)")
     rt.add_argument("--views", type=int, default=12, help="number of views (default 12)")
-    rt.add_argument("--tilt-deg", type=float, default=18.0, help="camera tilt about the target")
+    rt.add_argument("--tilt-deg", type=float, default=30.0,
+                    help="camera tilt about the target (default 30)")
     rt.add_argument("--speed-mm-s", type=float, default=None,
                     help="linear move speed (default: 200 or the config's limits.max_speed_mm_s "
                          "if lower; above that limit is refused)")

@@ -59,9 +59,9 @@ class _Body(BaseModel):
 
 class HandEyeRequest(_Body):
     views: int = Field(default=10, ge=3, le=30, description="views including the start pose")
-    tilt_deg: float = Field(default=18.0, gt=0, le=45,
+    tilt_deg: float = Field(default=30.0, gt=0, le=45,
                             description="camera tilt about the target point")
-    roll_deg: float = Field(default=35.0, ge=0, le=90,
+    roll_deg: float = Field(default=60.0, ge=0, le=90,
                             description="largest roll about the optical axis")
     speed_mm_s: float = Field(default=200.0, gt=0, le=2000)
     method: Literal["tsai", "park", "horaud", "joint", "hybrid", "auto"] = Field(
