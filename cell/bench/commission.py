@@ -33,6 +33,7 @@ HAND_EYE_VIEWS = 24
 HAND_EYE_TILT_DEG = 30.0
 HAND_EYE_ROLL_DEG = 60.0
 BOARD_VIEWS = 14
+BOARD_TILT_DEG, BOARD_ROLL_DEG = 18.0, 35.0  # the lens's views: the whole grid stays in view
 AX_XB_FALLBACK = "tsai"
 BOARD_COLS, BOARD_ROWS, BOARD_PITCH_MM = 10, 7, 35.0  # circles: a third of the image or more
 BOARD_DOT_MM = 14.0
@@ -62,7 +63,8 @@ def measure_intrinsics(config: CellConfig) -> dict[str, Any]:
     board = Board("circles", cols, rows, pitch)
     limits = cfg.limits
     speed = min(200.0, limits.max_speed_mm_s)
-    settings = RoutineSettings(n_views=BOARD_VIEWS, speed_mm_s=speed,
+    settings = RoutineSettings(n_views=BOARD_VIEWS, tilt_deg=BOARD_TILT_DEG,
+                               roll_deg=BOARD_ROLL_DEG, speed_mm_s=speed,
                                accel_mm_s2=min(4.0 * speed, limits.max_accel_mm_s2))
     t0 = time.monotonic()
     cell = start_cell(cfg)  # the cell's guarded arm, as `cell calibrate routine` uses it
@@ -112,7 +114,7 @@ def hand_eye(cell: Cell, views: int = HAND_EYE_VIEWS) -> dict[str, Any]:
         raise RuntimeError(f"hand-eye routine {job.state}: {job.error_code} {job.error_message}")
     r = job.result
     results = {name: m["T_flange_camera"] for name, m in r["methods"].items()}
-    for refined in ("joint", "kinematic"):
+    for refined in ("joint", "hybrid", "kinematic"):
         if r.get(refined) is not None:
             results[refined] = r[refined]["T_flange_camera"]
     scored = {name: dict(zip(("mm", "deg"), pose_distance(T_from_pose_dict(T),

@@ -208,13 +208,14 @@ class CalibrationService:
                                     "this job has no kinematic fit (it needs the joints of at "
                                     "least 16 views of a camera on the hand)")
             return T_from_pose_dict(r["kinematic"]["T_flange_camera"])
-        if method == "joint":
-            if r.get("joint") is None:
-                raise NotFoundError(ErrorCode.method_not_found, "this job has no joint refinement")
-            return T_from_pose_dict(r["joint"]["T_flange_camera"])
+        if method in ("joint", "hybrid"):
+            if r.get(method) is None:
+                raise NotFoundError(ErrorCode.method_not_found,
+                                    f"this job has no {method} refinement")
+            return T_from_pose_dict(r[method]["T_flange_camera"])
         if method not in r["methods"]:
             raise NotFoundError(ErrorCode.method_not_found,
                                 f"no result for method {method!r}; have "
-                                f"{', '.join([*r['methods'], 'joint'])}")
+                                f"{', '.join([*r['methods'], 'joint', 'hybrid'])}")
         return T_from_pose_dict(r["methods"][method]["T_flange_camera"])
 

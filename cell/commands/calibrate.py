@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 
     from cell.calibration.report import HandEyeReport
 
-METHOD_CHOICES = ["tsai", "park", "horaud", "joint"]
+METHOD_CHOICES = ["tsai", "park", "horaud", "joint", "hybrid", "auto"]
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -34,7 +34,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     he = what.add_parser("hand-eye", help="T_flange_camera from board images and robot poses")
     he.add_argument("folder", metavar="DIR", help="ViSP eye-in-hand folder or dataset.json folder")
     he.add_argument("--method", default=None, choices=METHOD_CHOICES,
-                    help="the result to choose (all are computed and printed; default joint, "
+                    help="the result to choose (all are computed and printed; default auto, "
                          "as the routine; tsai with --no-refine)")
     he.add_argument("--no-refine", action="store_true",
                     help="skip the joint reprojection refinement")
@@ -68,15 +68,17 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     rt.add_argument("--config", metavar="FILE", help="cell config (default: the simulated cell)")
     rt.add_argument("--views", type=int, default=12, help="number of views (default 12)")
-    rt.add_argument("--tilt-deg", type=float, default=18.0, help="camera tilt about the target")
-    rt.add_argument("--roll-deg", type=float, default=35.0,
-                    help="largest roll about the optical axis (the arm's geometry is fitted "
-                         "too from 16 views or more: use 24 views, 30 deg tilt, 60 deg roll)")
+    rt.add_argument("--tilt-deg", type=float, default=30.0,
+                    help="camera tilt about the target (default 30)")
+    rt.add_argument("--roll-deg", type=float, default=60.0,
+                    help="largest roll about the optical axis (default 60); from 16 views on "
+                         "the arm's geometry is fitted with the mount (24 views recommended)")
     rt.add_argument("--speed-mm-s", type=float, default=None,
                     help="linear move speed (default: 200 or the config's limits.max_speed_mm_s "
                          "if lower; above that limit is refused)")
     rt.add_argument("--method", default=None, choices=METHOD_CHOICES,
-                    help="the result to choose (default joint)")
+                    help="the result to choose (default auto: joint, or hybrid when the "
+                         "robot's poses are off by more than the images' noise)")
     rt.add_argument("--board", choices=["chessboard", "circles", "acircles"],
                     help="look at a calibration board instead of the cell's dot target")
     rt.add_argument("--cols", type=int, default=9)

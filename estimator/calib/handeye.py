@@ -227,6 +227,7 @@ def refine_joint(
     T_flange_camera: Matrix4,
     T_base_board: Matrix4,
     free_intrinsics: bool = False,
+    hold_rotation: bool = False,
 ) -> JointResult:
     """Levenberg-Marquardt over 12 parameters on the reprojection error of every feature.
 
@@ -236,6 +237,14 @@ def refine_joint(
     tells whether wrong intrinsics could explain a high rms (then the rms drops a lot).
     ``object_points_mm`` is one (N, 3) array for all views, or one array per view when views
     see different subsets of the target.
+
+    With ``hold_rotation`` the rotation of ``T_flange_camera`` is kept as given (an AX = XB
+    answer) and only its translation and ``T_base_board`` are refined (9 parameters). With
+    every view pivoting about the target, the mount's roll about the optical axis is the
+    images' weak direction (it differs from turning the target about its normal only by the
+    views' tilt): flange poses a few tenths of a millimetre off (an arm without kinematic
+    calibration) turn the free fit by tenths of a degree about it, while the motions'
+    rotations, which position errors do not touch, fix it to a few hundredths.
     """
     flanges = [np.asarray(T, dtype=float) for T in T_base_flange]
     observed = [np.asarray(p, dtype=float).reshape(-1, 2) for p in image_points_px]
@@ -251,13 +260,18 @@ def refine_joint(
     ):
         raise HandEyeError("object points and image points do not match view by view")
 
+    R_held = np.asarray(T_flange_camera, dtype=float)[:3, :3]
+    n_rot = 0 if hold_rotation else 3
+
     def unpack(p: NDArray[np.float64]) -> tuple[Matrix4, Matrix4, CameraModel]:
-        X = make_T(Rotation.from_rotvec(p[0:3]).as_matrix(), p[3:6])
-        W = make_T(Rotation.from_rotvec(p[6:9]).as_matrix(), p[9:12])
+        R_X = R_held if hold_rotation else Rotation.from_rotvec(p[0:3]).as_matrix()
+        X = make_T(R_X, p[n_rot:n_rot + 3])
+        W = make_T(Rotation.from_rotvec(p[n_rot + 3:n_rot + 6]).as_matrix(),
+                   p[n_rot + 6:n_rot + 9])
         cam = camera
         if free_intrinsics:
-            cam = CameraModel(p[12], p[13], p[14], p[15], camera.dist, camera.width,
-                              camera.height)
+            f = p[n_rot + 9:]
+            cam = CameraModel(f[0], f[1], f[2], f[3], camera.dist, camera.width, camera.height)
         return X, W, cam
 
     def residuals(p: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -269,7 +283,8 @@ def refine_joint(
         return np.concatenate(out)
 
     p0 = np.concatenate([
-        Rotation.from_matrix(T_flange_camera[:3, :3]).as_rotvec(), T_flange_camera[:3, 3],
+        Rotation.from_matrix(T_flange_camera[:3, :3]).as_rotvec()[:n_rot],
+        T_flange_camera[:3, 3],
         Rotation.from_matrix(T_base_board[:3, :3]).as_rotvec(), T_base_board[:3, 3],
     ])
     if free_intrinsics:
@@ -285,8 +300,10 @@ def refine_joint(
         std = np.sqrt(np.clip(np.diag(np.linalg.inv(sol.jac.T @ sol.jac)) * sigma2, 0.0, None))
     except np.linalg.LinAlgError:
         std = np.full(len(p0), np.inf)
+    std_rot = std[0:3] if n_rot else np.zeros(3)
     return JointResult(
         T_flange_camera=X, T_base_board=W, camera=cam, rms_px=float(np.sqrt(np.mean(err**2))),
-        per_view_rms_px=per_view, std_position_mm=std[3:6], std_rotvec_deg=np.degrees(std[0:3]),
+        per_view_rms_px=per_view, std_position_mm=std[n_rot:n_rot + 3],
+        std_rotvec_deg=np.degrees(std_rot),
         converged=bool(sol.status > 0),
     )

@@ -116,7 +116,8 @@ def test_eye_to_hand_recovers_T_base_camera() -> None:
     report = solve_observations(cam, [f"v{k}" for k in range(15)], inv, [obj] * 15, pts, own,
                                 rms)
     d_mm, d_deg = pose_distance(report.T_flange_camera, Y)
-    print(f"eye-to-hand joint: {d_mm:.3f} mm / {d_deg:.4f} deg from the true T_base_camera")
+    print(f"eye-to-hand ({report.chosen}): {d_mm:.3f} mm / {d_deg:.4f} deg from the true "
+          "T_base_camera")
     assert d_mm < 0.5 and d_deg < 0.05
     # OpenCV's eye-to-hand form of calibrateHandEye (gripper poses inverted) agrees
     R_g2b = [T[:3, :3] for T in inv]
@@ -200,7 +201,7 @@ def test_fixed_camera_views_turn_the_plate_in_place_about_several_axes() -> None
         shift = np.linalg.norm(c[:2] - centre[:2])  # across the image, not in depth
         assert 0 < shift <= settings.shift_mm + 1e-6 and abs(c[2] - 700.0) < 1e-6
         rel = Rotation.from_matrix(poses[0][:3, :3].T @ T[:3, :3]).as_rotvec()
-        assert 1.0 < np.degrees(np.linalg.norm(rel)) <= 45.0
+        assert 1.0 < np.degrees(np.linalg.norm(rel)) <= settings.tilt_deg + settings.roll_deg
         axes.append(rel / np.linalg.norm(rel))
     assert np.linalg.matrix_rank(np.array(axes), tol=0.2) == 3  # about every axis
 

@@ -59,17 +59,18 @@ class _Body(BaseModel):
 
 class HandEyeRequest(_Body):
     views: int = Field(default=10, ge=3, le=30, description="views including the start pose")
-    tilt_deg: float = Field(default=18.0, gt=0, le=45,
+    tilt_deg: float = Field(default=30.0, gt=0, le=45,
                             description="camera tilt about the target point")
-    roll_deg: float = Field(default=35.0, ge=0, le=90,
+    roll_deg: float = Field(default=60.0, ge=0, le=90,
                             description="largest roll about the optical axis")
     speed_mm_s: float = Field(default=200.0, gt=0, le=2000)
-    method: Literal["tsai", "park", "horaud", "joint"] = Field(
-        default="joint", description="the result reported as chosen (all are computed)")
+    method: Literal["tsai", "park", "horaud", "joint", "hybrid", "auto"] = Field(
+        default="auto", description="the result reported as chosen (all are computed); auto: "
+        "joint when it fits within the images' own noise, else hybrid")
 
 
 class ApplyRequest(_Body):
-    method: Literal["tsai", "park", "horaud", "joint", "kinematic"] | None = Field(
+    method: Literal["tsai", "park", "horaud", "joint", "hybrid", "kinematic"] | None = Field(
         default=None, description="default: the job's chosen method")
     running: bool = Field(default=True, description="use it in the running cell now")
     write_config: bool = Field(default=False,

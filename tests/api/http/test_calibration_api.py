@@ -101,7 +101,9 @@ def test_hand_eye_routine_end_to_end(client: TestClient, tmp_path: Path) -> None
         assert set(m["T_flange_camera"]) == {"position_mm", "rotvec_rad"}
         assert m["residual"]["mean_mm"] < 1.0
     assert result["verdict"]["consistent"] is True and result["verdict"]["text"]
+    # auto: the joint fit, the simulated arm here reporting exact poses; the hybrid beside it
     assert result["chosen"] == "joint" and result["joint"]["rms_px"] < 0.5
+    assert result["hybrid"]["rms_px"] < 0.5
     d_mm, d_deg = pose_distance(T_from_pose_dict(result["T_flange_camera"]), truth)
     print(f"hand-eye via API: {d_mm:.3f} mm / {d_deg:.4f} deg from the truth "
           f"(guess was {pose_distance(guess, truth)[0]:.2f} mm off)")
@@ -111,7 +113,7 @@ def test_hand_eye_routine_end_to_end(client: TestClient, tmp_path: Path) -> None
     saved = result["dataset"]
     assert saved["saved"] is True and saved["views"] == len(result["views"])
     assert Path(saved["folder"]) == tmp_path / "calibration" / f"hand-eye-{job_id}"
-    again = solve_dataset(load_dataset(saved["folder"]), chosen="joint")
+    again = solve_dataset(load_dataset(saved["folder"]))
     d_mm, d_deg = pose_distance(again.T_flange_camera, T_from_pose_dict(result["T_flange_camera"]))
     assert d_mm < 1e-3 and d_deg < 1e-4
     # nothing applied without a request

@@ -89,6 +89,18 @@ def test_joint_refinement_recovers_truth_from_a_poor_start() -> None:
     assert joint.rms_px < 1e-6 and joint.converged
 
 
+def test_hybrid_holds_the_rotation_and_refines_the_rest() -> None:
+    flanges, points = synthetic_views(8, seed=2)
+    start_X = make_T(TRUE_X[:3, :3], TRUE_X[:3, 3] + [4.0, -3.0, 5.0])
+    start_W = TRUE_W @ T_from_pose([-6.0, 5.0, 2.0], [0.01, 0.02, -0.02])
+    held = refine_joint(flanges, points, BOARD.object_points_mm(), CAMERA, start_X, start_W,
+                        hold_rotation=True)
+    assert np.array_equal(held.T_flange_camera[:3, :3], TRUE_X[:3, :3])
+    assert pose_distance(held.T_flange_camera, TRUE_X)[0] < 1e-6 and held.rms_px < 1e-6
+    assert pose_distance(held.T_base_board, TRUE_W)[0] < 1e-6
+    assert np.all(held.std_rotvec_deg == 0.0)
+
+
 def test_noisy_views_stay_accurate_and_are_judged_consistent() -> None:
     flanges, points = synthetic_views(12, seed=3, noise_px=0.2)
     names = [f"v{i}" for i in range(len(flanges))]
@@ -101,6 +113,28 @@ def test_noisy_views_stay_accurate_and_are_judged_consistent() -> None:
     assert d_mm < 0.5 and d_deg < 0.05
     assert report.joint.rms_px == pytest.approx(0.2 * np.sqrt(2), rel=0.3)
     assert report.verdict.consistent, report.verdict.text
+    # the default (auto) takes the joint fit: it leaves no more than the images' own noise
+    default = solve_views(CAMERA, BOARD, names, flanges, points)
+    assert default.chosen == "joint" and default.verdict.consistent
+
+
+def test_auto_takes_the_motions_rotation_when_the_poses_are_slightly_off() -> None:
+    """Flange poses a few tenths of a millimetre off (an arm on its nominal kinematics): the
+    free joint fit leaves far more than the images' noise; auto chooses the hybrid, which
+    keeps the AX = XB rotation and fits the translation to every image point."""
+    flanges, points = synthetic_views(12, seed=3, noise_px=0.05)
+    rng = np.random.default_rng(11)
+    bent = [T @ T_from_pose(rng.normal(0, 0.15, 3), rng.normal(0, 1.5e-4, 3)) for T in flanges]
+    report = solve_views(CAMERA, BOARD, [f"v{i}" for i in range(12)], bent, points)
+    assert report.chosen == "hybrid" and report.hybrid is not None and report.joint is not None
+    assert report.joint.rms_px > 4.0 * float(np.median(report.pnp_rms_px))
+    assert np.allclose(report.T_flange_camera[:3, :3],
+                       report.methods["park"].T_flange_camera[:3, :3], atol=1e-12)
+    d_mm, d_deg = pose_distance(report.T_flange_camera, TRUE_X)
+    j_mm, j_deg = pose_distance(report.joint.T_flange_camera, TRUE_X)
+    assert d_deg < 0.03 and d_deg < j_deg / 5 and d_mm < j_mm, (d_mm, d_deg, j_mm, j_deg)
+    assert report.verdict.consistent, report.verdict.text
+    assert "rotation is taken from the motions" in report.verdict.text
 
 
 def test_inconsistent_robot_poses_are_called_out() -> None:
@@ -163,11 +197,16 @@ def test_real_data_verdict_explains_the_pixel_rms(visp_report: HandEyeReport) ->
     assert visp_report.joint is not None and 2.0 < visp_report.joint.rms_px < 10.0
     assert not visp_report.verdict.consistent
     text = visp_report.verdict.text
-    assert f"{visp_report.joint.rms_px:.2f} px" in text and "robot" in text
-    # the default (as the routine's) is the joint result; on these data it moves millimetres
-    # away from the AX = XB answers, which is why the verdict rejects them
-    assert visp_report.chosen == "joint"
-    assert np.allclose(visp_report.T_flange_camera, visp_report.joint.T_flange_camera)
+    hybrid = visp_report.hybrid
+    assert hybrid is not None and hybrid.rms_px > 2.0
+    assert f"{hybrid.rms_px:.2f} px" in text and "robot" in text
+    # the default (as the routine's) is the hybrid: the motions' rotation, the translation
+    # from every image point, which no single mount fits on these data (the verdict says so)
+    assert visp_report.chosen == "hybrid"
+    assert np.allclose(visp_report.T_flange_camera, hybrid.T_flange_camera)
+    # the free joint fit moves millimetres away from the AX = XB answers
+    assert pose_distance(visp_report.joint.T_flange_camera,
+                         visp_report.methods["tsai"].T_flange_camera)[0] > 2.0
     assert pose_distance(visp_report.methods["tsai"].T_flange_camera, VISP_T_FLANGE_CAMERA)[0] < 1.0
 
 
