@@ -7,17 +7,23 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 from numpy.typing import NDArray
 
 from cell.calibration.observe import Observation
 from cell.calibration.routine import RoutineSettings, run_hand_eye_routine
+from cell.calibration.solve import solve_observations
 from cell.error_codes import ErrorCode
 from cell.errors import RefusedError
 from drivers.camera import Frame
 from estimator import CameraModel
-from estimator.transforms import T_from_pose, invert_T
+from estimator.kinematics import forward
+from estimator.transforms import T_from_pose, invert_T, make_T, pose_distance
+from tests.estimator.calib.test_kinematic import CAMERA as KIN_CAMERA
+from tests.estimator.calib.test_kinematic import DOTS_MM, NOMINAL, T_FLANGE_CAMERA
+from tests.estimator.calib.test_kinematic import _views as kinematic_views
 
 CAMERA = CameraModel(800.0, 800.0, 639.5, 399.5, (), 1280, 800)
 X = T_from_pose([0.0, 60.0, 30.0], [0.0, 0.0, 0.0])
@@ -45,6 +51,9 @@ class StubArm:
 
     def state(self) -> _State:
         return _State()
+
+    def joint_positions_rad(self) -> NDArray[np.float64]:
+        return np.zeros(6)
 
     def move_linear(self, T: NDArray[np.float64], speed: float, accel: float) -> None:
         self.moves += 1
@@ -77,3 +86,31 @@ def test_an_unreachable_view_is_skipped_and_other_refusals_end_the_routine() -> 
     with pytest.raises(RefusedError):
         run_hand_eye_routine(busy, StubCamera(), _observer(busy), np.eye(4), X,  # type: ignore[arg-type]
                              settings)
+
+
+
+def _plate_pose(points_px: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The plate's pose in the camera from one view's dots (what the observer reports)."""
+    ok, rvec, tvec = cv2.solvePnP(DOTS_MM, points_px, KIN_CAMERA.K, KIN_CAMERA.dist_coeffs)
+    assert ok
+    return make_T(cv2.Rodrigues(rvec)[0], tvec.ravel())
+
+
+def test_auto_takes_the_kinematic_fit_when_the_arms_geometry_explains_the_views() -> None:
+    """Views of an arm off its nominal DH table (tests/estimator/calib/test_kinematic.py): with
+    their joints the solver chooses the kinematic fit, the verdict is consistent and the chosen
+    mount is the true one; without joints it falls back to the hybrid."""
+    joints, points, _ = kinematic_views(24)
+    flanges = [forward(NOMINAL, q) for q in joints]  # what the arm reports
+    names = [f"view-{k:02d}" for k in range(len(joints))]
+    args = (KIN_CAMERA, names, flanges, [DOTS_MM] * len(joints), points,
+            [_plate_pose(p) for p in points], [0.01] * len(joints))
+    with_joints = solve_observations(*args, joints_rad=joints, arm_geometry=NOMINAL)
+    assert with_joints.chosen == "kinematic" and with_joints.verdict.consistent, (
+        with_joints.verdict.text)
+    assert "nominal kinematics" in with_joints.verdict.text
+    d_mm, d_deg = pose_distance(with_joints.T_flange_camera, T_FLANGE_CAMERA)
+    assert d_mm < 0.05 and d_deg < 0.01, (d_mm, d_deg)
+    assert with_joints.as_dict()["kinematic"]["rms_px"] < 0.03
+    without = solve_observations(*args)
+    assert without.chosen == "hybrid" and without.kinematic is None
