@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator
+from functools import partial
 from typing import Any
 from urllib.parse import urlsplit
 
@@ -59,6 +60,12 @@ def api(url: str, method: str, path: str, **kw: Any) -> Any:
     r = httpx.request(method, f"{url}/api/v1{path}", headers=HEAD, timeout=30.0, **kw)
     assert r.status_code < 300, r.text
     return r.json()
+
+
+def _ended(url: str, job_id: str) -> str | None:
+    """A job's final state, None while it runs."""
+    state = str(api(url, "GET", f"/jobs/{job_id}")["state"])
+    return None if state == "running" else state
 
 
 def wait_idle(url: str, timeout_s: float = 60.0) -> None:
@@ -176,16 +183,23 @@ def test_operators_own_stop_is_an_info_event_not_an_alarm(
     login(page, cell, OPERATOR)
     wait_idle(cell)
     before = {a["id"] for a in api(cell, "GET", "/alarms")["alarms"]}
-    page.get_by_test_id("standoff").fill("80")
-    page.get_by_test_id("approach").click()
-    job_id = wait_until(lambda: (api(cell, "GET", "/status")["job"] or {}).get("id"), 10, "job")
-    # while it runs, nothing else that moves the arm can be started from the page
-    wait_until(lambda: page.get_by_test_id("approach").is_disabled(), 5, "approach disabled")
-    assert page.get_by_test_id("home").is_disabled()
-    assert page.get_by_test_id("jog-z-plus").is_disabled()
-    page.get_by_test_id("stop").click()
-    wait_until(lambda: api(cell, "GET", f"/jobs/{job_id}")["state"] == "cancelled", 20,
-             "cancelled")
+    for attempt in range(2):
+        page.get_by_test_id("standoff").fill("80")
+        page.get_by_test_id("approach").click()
+        job_id = wait_until(lambda: (api(cell, "GET", "/status")["job"] or {}).get("id"), 10,
+                            "job")
+        # while it runs, nothing else that moves the arm can be started from the page
+        wait_until(lambda: page.get_by_test_id("approach").is_disabled(), 5, "approach disabled")
+        assert page.get_by_test_id("home").is_disabled()
+        assert page.get_by_test_id("jog-z-plus").is_disabled()
+        page.get_by_test_id("stop").click()
+        state = wait_until(partial(_ended, cell, str(job_id)), 20, "the job's end")
+        if state == "cancelled":
+            break
+        # a loaded host let the approach arrive before the stop: home and start again
+        assert attempt == 0 and state == "succeeded", state
+        wait_idle(cell)
+        api(cell, "POST", "/arm/home", json={"wait": True})
     message = page.get_by_test_id("message")
     wait_until(lambda: "Stopped" in message.inner_text(), 5, "info line")
     assert message.get_attribute("data-kind") == "info"
