@@ -10,7 +10,13 @@ The project's format is a folder with a ``dataset.json``::
      "camera": {"fx", "fy", "cx", "cy", "width", "height", "dist": []},
      "board": {"kind": "chessboard", "cols": 9, "rows": 6, "pitch_mm": 23.6},
      "views": [{"image": "view-01.png",
-                "T_base_flange": {"position_mm": [...], "rotvec_rad": [...]}}, ...]}
+                "T_base_flange": {"position_mm": [...], "rotvec_rad": [...]},
+                "joints_rad": [q1, ..., q6]}, ...],
+     "arm": {"model": "ur5e"}}
+
+``joints_rad`` (each view's joint angles) and ``arm`` (whose published DH table they go with)
+are optional; the guided routine writes them, so a re-solve fits the arm's geometry as the
+routine did.
 
 Instead of ``"board"``, a dataset may name the cell's dot target, as the guided routine on a
 cell writes it: ``"target": {"points_mm": [[x, y, z], ...], "dot_diameter_mm": 8.0,
@@ -37,6 +43,7 @@ from cell.error_codes import ErrorCode
 from cell.errors import CellError
 from estimator import CameraModel, Target
 from estimator.calib.board import Board
+from estimator.kinematics import UR_DH
 from estimator.transforms import T_from_pose_dict, T_from_ur_pose, pose_dict
 
 FORMAT_NAME = "ur-vision-cell/hand-eye-dataset"
@@ -57,6 +64,7 @@ class View:
     name: str
     image_path: Path
     T_base_flange: NDArray[np.float64]  # 4x4, mm
+    joints_rad: NDArray[np.float64] | None = None  # (6,), as the arm reported them
 
     def load_image(self) -> NDArray[np.uint8]:
         img = cv2.imread(str(self.image_path), cv2.IMREAD_GRAYSCALE)
@@ -73,6 +81,14 @@ class HandEyeDataset:
     source: str  # "visp" or "project"
     folder: Path
     target: Target | None = None  # ... the cell's dot target
+    arm_model: str | None = None  # the arm whose published DH table the joints go with
+
+    def joints(self) -> list[NDArray[np.float64]] | None:
+        """Every view's joints, or None when the dataset cannot fit the arm's geometry."""
+        joints = [v.joints_rad for v in self.views]
+        if self.arm_model is None or any(q is None for q in joints):
+            return None
+        return [q for q in joints if q is not None]
 
 
 def load_dataset(folder: str | Path) -> HandEyeDataset:
@@ -239,12 +255,20 @@ def load_project_dataset(folder: str | Path) -> HandEyeDataset:
                     f'{{"position_mm": [x, y, z], "rotvec_rad": [rx, ry, rz]}} ({err})'
                 ) from err
             image = d / str(v["image"])
-            views.append(View(Path(v["image"]).stem, image, T))
+            q = None
+            if "joints_rad" in v:
+                q = np.asarray(v["joints_rad"], dtype=float)
+                if q.shape != (6,) or not np.all(np.isfinite(q)):
+                    raise ValueError(f"views[{k}].joints_rad must be 6 finite angles")
+            views.append(View(Path(v["image"]).stem, image, T, q))
+        arm_model = data["arm"]["model"] if "arm" in data else None
+        if arm_model is not None and arm_model not in UR_DH:
+            raise ValueError(f'"arm.model" must be one of {", ".join(UR_DH)}')
     except DatasetError:
         raise
     except (KeyError, TypeError, ValueError, AttributeError) as err:
         raise DatasetError(ErrorCode.dataset_invalid, f"{path}: {err!r}") from err
-    return HandEyeDataset(camera, board, tuple(views), "project", d, target)
+    return HandEyeDataset(camera, board, tuple(views), "project", d, target, arm_model)
 
 
 def new_dataset_folder(folder: str | Path) -> Path:
@@ -274,9 +298,12 @@ def save_project_dataset(
     pattern: Board | Target,
     views: Sequence[tuple[str, NDArray[np.float64]]],
     images: Sequence[NDArray[np.uint8]] | None = None,
+    joints_rad: Sequence[NDArray[np.float64]] | None = None,
+    arm_model: str | None = None,
 ) -> HandEyeDataset:
     """Write ``dataset.json`` (and the images when given, lossless) for ``(image file,
-    T_base_flange)`` views of a board or of the dot target."""
+    T_base_flange)`` views of a board or of the dot target, with each view's joints and the
+    arm's model when given."""
     d = Path(folder)
     try:
         d.mkdir(parents=True, exist_ok=True)
@@ -300,6 +327,10 @@ def save_project_dataset(
                           "dot_diameter_mm": pattern.dot_diameter_mm,
                           "polarity": pattern.polarity}
     data["views"] = [{"image": name, "T_base_flange": pose_dict(T)} for name, T in views]
+    if joints_rad is not None and arm_model is not None:
+        for view, q in zip(data["views"], joints_rad, strict=True):
+            view["joints_rad"] = [float(a) for a in np.asarray(q, dtype=float).reshape(6)]
+        data["arm"] = {"model": arm_model}
     try:
         (d / DATASET_FILE).write_text(json.dumps(data, indent=2) + "\n")
     except OSError as err:

@@ -96,17 +96,18 @@ class RoutineResult:
     joints_rad: tuple[NDArray[np.float64], ...] = ()  # of the views used, as the arm gave them
 
 
-def save_views(folder: str | Path, result: RoutineResult, pattern: Board | Target
-               ) -> HandEyeDataset:
-    """Write the routine's views (PNG, lossless) and flange poses as a project dataset, so
-    ``cell calibrate hand-eye FOLDER`` re-solves exactly what the routine solved (same images,
-    same observations, same answer) and the calibration can be audited or redone later."""
+def save_views(folder: str | Path, result: RoutineResult, pattern: Board | Target,
+               arm_model: str | None = None) -> HandEyeDataset:
+    """Write the routine's views (PNG, lossless), flange poses and joints (with ``arm_model``,
+    the arm they go with) as a project dataset, so ``cell calibrate hand-eye FOLDER``
+    re-solves exactly what the routine solved (same images, same observations, same answer)
+    and the calibration can be audited or redone later."""
     if result.camera is None or len(result.images) != len(result.T_base_flange):
         raise ValueError("this routine result holds no images to save")
     names = [f"view-{k:02d}.png" for k in range(len(result.images))]
     return save_project_dataset(folder, result.camera, pattern,
                                 list(zip(names, result.T_base_flange, strict=True)),
-                                result.images)
+                                result.images, result.joints_rad or None, arm_model)
 
 
 def plan_poses(

@@ -120,7 +120,8 @@ class CalibrationService:
             return None
         folder = Path(root) / f"hand-eye-{job_id}"
         try:
-            dataset = save_views(folder, result, self.cell.target)
+            dataset = save_views(folder, result, self.cell.target,
+                                 self.cell.core.config.robot.model)
         except (DatasetError, OSError) as err:
             log.warning("calibration job %s: views not saved to %s: %s", job_id, folder, err)
             return {"folder": str(folder), "saved": False, "error": str(err)}

@@ -29,7 +29,7 @@ from estimator.calib.eye_to_hand import eye_to_hand_poses
 from estimator.calib.handeye import SOLVERS, HandEyeError, board_spread, refine_joint
 from estimator.calib.kinematic import MIN_VIEWS as KINEMATIC_MIN_VIEWS
 from estimator.calib.kinematic import KinematicResult, refine_kinematic
-from estimator.kinematics import DHTable
+from estimator.kinematics import UR_DH, DHTable
 
 Progress = Callable[[str, int, int], None]  # (stage, done, total)
 
@@ -73,8 +73,9 @@ def solve_dataset(
             replace(v, T_base_flange=T) for v, T in zip(dataset.views, inverted, strict=True)))
     total = len(dataset.views)
     if dataset.board is None:
-        return _solve_target_dataset(dataset, chosen, refine, report)
-    names, flanges, points, skipped = [], [], [], []
+        return _solve_target_dataset(dataset, chosen, refine, report, fixed_camera)
+    names, flanges, points, skipped, joints = [], [], [], [], []
+    all_joints = None if fixed_camera else dataset.joints()
     for k, view in enumerate(dataset.views):
         corners = detect_board(dataset.board, view.load_image())
         if corners is None:
@@ -83,17 +84,21 @@ def solve_dataset(
             names.append(view.name)
             flanges.append(view.T_base_flange)
             points.append(corners)
+            if all_joints is not None:
+                joints.append(all_joints[k])
         report("detect", k + 1, total)
     return solve_views(dataset.camera, dataset.board, names, flanges, points, chosen, refine,
-                       tuple(skipped), report)
+                       tuple(skipped), report, *_kinematics(dataset, joints))
 
 
 def _solve_target_dataset(
-    dataset: HandEyeDataset, chosen: str, refine: bool, report: Progress
+    dataset: HandEyeDataset, chosen: str, refine: bool, report: Progress,
+    fixed_camera: bool,
 ) -> HandEyeReport:
     assert dataset.target is not None
     observe = dot_target_observer(dataset.target)
-    names, flanges, observations, skipped = [], [], [], []
+    names, flanges, observations, skipped, joints = [], [], [], [], []
+    all_joints = None if fixed_camera else dataset.joints()
     for k, view in enumerate(dataset.views):
         try:
             observations.append(observe(view.load_image(), dataset.camera))
@@ -102,12 +107,23 @@ def _solve_target_dataset(
         else:
             names.append(view.name)
             flanges.append(view.T_base_flange)
+            if all_joints is not None:
+                joints.append(all_joints[k])
         report("detect", k + 1, len(dataset.views))
     return solve_observations(
         dataset.camera, names, flanges, [o.object_points_mm for o in observations],
         [o.image_points_px for o in observations], [o.T_camera_board for o in observations],
         [o.rms_px for o in observations], chosen, refine, tuple(skipped), report,
+        *_kinematics(dataset, joints),
     )
+
+
+def _kinematics(dataset: HandEyeDataset, joints: list[NDArray[np.float64]]
+                ) -> tuple[list[NDArray[np.float64]] | None, DHTable | None]:
+    """The used views' joints and the arm's nominal table, when the dataset has them."""
+    if not joints or dataset.arm_model is None:
+        return None, None
+    return joints, UR_DH[dataset.arm_model]
 
 
 def solve_views(
@@ -120,6 +136,8 @@ def solve_views(
     refine: bool = True,
     skipped: tuple[str, ...] = (),
     progress: Progress | None = None,
+    joints_rad: Sequence[NDArray[np.float64]] | None = None,
+    arm_geometry: DHTable | None = None,
 ) -> HandEyeReport:
     """Solve and judge from detected board features (one (N, 2) array per view)."""
     poses = [board_pose(board, pts, camera) for pts in image_points_px]
@@ -127,7 +145,7 @@ def solve_views(
     return solve_observations(
         camera, names, T_base_flange, [obj] * len(poses), image_points_px,
         [p.T_camera_board for p in poses], [p.rms_px for p in poses], chosen, refine, skipped,
-        progress,
+        progress, joints_rad, arm_geometry,
     )
 
 

@@ -270,7 +270,7 @@ def run_routine(args: argparse.Namespace) -> int:
     saved = None
     if args.save_dataset:
         try:
-            saved = str(save_views(args.save_dataset, result, pattern).folder)
+            saved = str(save_views(args.save_dataset, result, pattern, cfg.robot.model).folder)
         except DatasetError as err:
             return fail(err.code, err.message, args.json)
     if not args.json:

@@ -293,7 +293,12 @@ def test_dot_target_dataset_round_trip_and_a_dataset_without_pattern(tmp_path: P
     poses = [make_T(np.eye(3), [k, 2.0 * k, 500.0]) for k in range(3)]
     images = [np.full((800, 1280), 10 * k, np.uint8) for k in range(3)]
     views = [(f"view-{k:02d}.png", T) for k, T in enumerate(poses)]
-    dataset = save_project_dataset(tmp_path / "ds", camera, target, views, images)
+    joints = [np.radians([k, -90.0, 90.0, -90.0, -90.0, 3.0 * k]) for k in range(3)]
+    dataset = save_project_dataset(tmp_path / "ds", camera, target, views, images, joints,
+                                   "ur5e")
+    assert dataset.arm_model == "ur5e"
+    saved_joints = dataset.joints()
+    assert saved_joints is not None and np.allclose(saved_joints, joints, atol=0, rtol=0)
     assert dataset.board is None and dataset.target is not None
     assert np.array_equal(dataset.target.points_mm, target.points_mm)
     assert dataset.target.dot_diameter_mm == 8.0 and dataset.target.polarity == "light"
@@ -303,7 +308,12 @@ def test_dot_target_dataset_round_trip_and_a_dataset_without_pattern(tmp_path: P
         assert pose_distance(view.T_base_flange, T)[0] < 1e-9
         assert np.array_equal(view.load_image(), img)  # PNG: lossless
     data = json.loads((tmp_path / "ds" / "dataset.json").read_text())
+    data["views"][1]["joints_rad"] = [0.0, 1.0]
+    (tmp_path / "ds" / "dataset.json").write_text(json.dumps(data))
+    with pytest.raises(DatasetError, match="joints_rad must be 6 finite angles"):
+        load_dataset(tmp_path / "ds")
     del data["target"]
+    data["views"][1]["joints_rad"] = joints[1].tolist()
     (tmp_path / "ds" / "dataset.json").write_text(json.dumps(data))
     with pytest.raises(DatasetError) as err:
         load_dataset(tmp_path / "ds")
