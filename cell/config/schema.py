@@ -202,8 +202,10 @@ class ApproachConfig(_Strict):
     standoff_mm: float = Field(default=50.0, ge=0)
     speed_mm_s: float = Field(default=150.0, gt=0)
     accel_mm_s2: float = Field(default=600.0, gt=0)
-    tolerance_mm: float = Field(default=0.1, gt=0)
-    tolerance_deg: float = Field(default=0.05, gt=0)
+    # under these, a correction is not made: an approach's own estimate stays this far inside
+    # a 0.1 mm / 0.05 deg requirement, beside the calibration's error it cannot see
+    tolerance_mm: float = Field(default=0.03, gt=0)
+    tolerance_deg: float = Field(default=0.02, gt=0)
     max_cycles: int = Field(default=4, ge=1, le=20)
     observe_distance_mm: float = Field(default=300.0, gt=0)
     settle_s: float = Field(default=0.05, ge=0)
