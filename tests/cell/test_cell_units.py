@@ -37,7 +37,7 @@ def test_builtin_sim_config_has_every_table() -> None:
     assert c.robot.kind == "ur" and c.sim.ur_controller
     assert {t.token: t.role for t in c.api.tokens} == {
         "sim-viewer": "viewer", "sim-operator": "operator", "sim-plc": "plc"}
-    assert c.approach.tolerance_mm == 0.1 and c.approach.tolerance_deg == 0.05
+    assert c.approach.tolerance_mm == 0.03 and c.approach.tolerance_deg == 0.02
     assert np.allclose(c.tool.T_flange_tcp.T()[:3, 3], [0, 0, 150])
 
 
