@@ -76,7 +76,7 @@ def measure_intrinsics(config: CellConfig) -> dict[str, Any]:
                                           settings)
     finally:
         cell.close()
-    cal = calibrate_intrinsics(board, list(result.images))
+    cal = calibrate_intrinsics(board, list(result.images), dot_diameter_mm=BOARD_DOT_MM)
     cam, true = cal.camera, sim_truth.resolve(cfg).camera
     return {"views": len(result.images), "routine_s": time.monotonic() - t0,
             "rms_px": cal.rms_px, "coverage": cal.coverage,

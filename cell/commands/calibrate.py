@@ -60,6 +60,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                     help="square size, or circle spacing along a row, in mm")
     it.add_argument("--no-distortion", action="store_true",
                     help="ideal pinhole: fix all distortion coefficients at zero")
+    it.add_argument("--dot-mm", type=float, default=None,
+                    help="circle grids: the dots' diameter in mm, to correct the perspective "
+                         "bias of their centroids (else the focal length comes out ~0.03 %% "
+                         "short with dots of 0.4 x the pitch)")
     it.set_defaults(func=run_intrinsics)
 
     rt = what.add_parser(
@@ -338,7 +342,8 @@ def run_intrinsics(args: argparse.Namespace) -> int:
         if progress is not None:
             progress("calibrate", 0, 1)
         try:
-            result = calibrate_intrinsics(board, images, distortion=not args.no_distortion)
+            result = calibrate_intrinsics(board, images, distortion=not args.no_distortion,
+                                          dot_diameter_mm=args.dot_mm)
         except IntrinsicsError as err:
             return fail(err.code, str(err), args.json)
         if progress is not None:

@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from estimator.bias import correct_image_points
 from estimator.calib.board import Board, detect_board
 from estimator.camera import CameraModel
 
@@ -102,9 +103,16 @@ def calibrate_from_points(
 
 
 def calibrate_intrinsics(
-    board: Board, images: Sequence[NDArray[np.uint8]], distortion: bool = True
+    board: Board, images: Sequence[NDArray[np.uint8]], distortion: bool = True,
+    dot_diameter_mm: float | None = None,
 ) -> IntrinsicsResult:
-    """Detect the board in every image and calibrate from those where it was found."""
+    """Detect the board in every image and calibrate from those where it was found.
+
+    A circle grid's detected points are the dots' image centroids, which perspective moves off
+    the images of the dots' centres (:mod:`estimator.bias`) by an amount that grows with the
+    tilt, so the focal length comes out biased (0.03 % low measured with 14 mm dots at 35 mm
+    pitch: 0.13 mm of distance at 450 mm). With the dots' ``dot_diameter_mm`` the points are
+    corrected with the poses and lens of the previous solution and calibrated again, twice."""
     if not images:
         raise IntrinsicsError("no images given")
     sizes = {im.shape[:2] for im in images}
@@ -120,6 +128,13 @@ def calibrate_intrinsics(
             used.append(i)
             points.append(pts)
     camera, rms, per_image, poses = calibrate_from_points(board, points, (w, h), distortion)
+    if dot_diameter_mm is not None and board.kind != "chessboard":
+        obj = board.object_points_mm()
+        for _ in range(2):
+            corrected = [correct_image_points(p, T, obj, dot_diameter_mm, camera)
+                         for p, T in zip(points, poses, strict=True)]
+            camera, rms, per_image, poses = calibrate_from_points(board, corrected, (w, h),
+                                                                  distortion)
     return IntrinsicsResult(
         camera=camera, rms_px=rms, per_image_rms_px=tuple(per_image), used=tuple(used),
         rejected=tuple(rejected), T_camera_board=tuple(poses),
