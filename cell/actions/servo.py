@@ -366,7 +366,8 @@ class ServoRun:
                        pose_age_s=None if held is None
                        else time.monotonic() - held.measured_at_s)
         if self.mode == "approach":
-            out.update(converged=True, time_to_converge_s=converged_s)
+            out.update(converged=True, time_to_converge_s=converged_s,
+                       target_velocity_mm_s=est.velocity_mm_s.tolist())
         else:
             tail = [r for r in history if r[0] >= 1.0] or history
             out.update(duration_s=time.monotonic() - t0,

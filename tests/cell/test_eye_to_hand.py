@@ -226,7 +226,8 @@ def test_fixed_camera_routine_through_http_recovers_the_true_T_base_camera(
     with running_cell(parse_config(data)) as cell, TestClient(create_app(cell)) as c:
         op = {"Authorization": "Bearer sim-operator"}
         start = cell.sim.true_T_base_tcp() if cell.sim else None
-        r = c.post("/api/v1/calibration/hand-eye", json={"views": 8, "speed_mm_s": 250},
+        r = c.post("/api/v1/calibration/hand-eye", json={"views": 8, "speed_mm_s": 250,
+                                                         "tilt_deg": 18, "roll_deg": 35},
                    headers=op)
         assert r.status_code == 200, r.text
         job = wait_job(c, r.json()["id"], timeout_s=400.0)

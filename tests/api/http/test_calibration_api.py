@@ -73,7 +73,8 @@ def test_hand_eye_routine_end_to_end(client: TestClient, tmp_path: Path) -> None
     # (progress, busy, apply, backup, refusal) and the result against the truth within a looser
     # bound (6 views measured 0.02-0.06 mm / 0.015 deg); the 0.2 mm / 0.05 deg requirement is
     # checked with 12 views by test_calibrate_cli.py's test_routine_recovers_the_simulated_hand_eye.
-    r = client.post(BASE, json={"views": 8, "speed_mm_s": 250}, headers=OP)
+    r = client.post(BASE, json={"views": 8, "speed_mm_s": 250, "tilt_deg": 18, "roll_deg": 35},
+                    headers=OP)
     assert r.status_code == 200, r.text
     job_id = r.json()["id"]
     assert r.json()["state"] == "running" and r.json()["kind"] == "hand_eye_calibration"

@@ -312,7 +312,7 @@ def test_calibration_from_the_page(page: Any, cell: str, home_target: dict[str, 
     login(page, cell, OPERATOR)
     wait_idle(cell)
     api(cell, "POST", "/approach", json={"standoff_mm": 150, "wait": True})  # target in view
-    page.get_by_test_id("calib-views").fill("6")
+    page.get_by_test_id("calib-views").fill("4")  # the flow, not the accuracy: few views
     page.get_by_test_id("calib-start").click()
     status = page.get_by_test_id("calib-status")
     seen: set[str] = set()
@@ -326,7 +326,7 @@ def test_calibration_from_the_page(page: Any, cell: str, home_target: dict[str, 
     wait_until(finished, 180, "calibration end")
     print(f"progress shown: {sorted(seen)}")
     assert status.get_attribute("data-state") == "succeeded", status.inner_text()
-    assert any("/ 6" in t for t in seen)
+    assert any("/ 4" in t for t in seen)
     result = page.get_by_test_id("calib-result").inner_text()
     assert "verdict" in result and "T_flange_camera" in result
     screenshot(page, "operator-page-calibration")

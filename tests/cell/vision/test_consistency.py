@@ -131,12 +131,19 @@ def test_an_inconsistent_approach_raises_an_alarm_through_the_api(tmp_path: Path
         assert "succeeded" in found["message"] and "base frame" in found["message"]
 
 
-def test_a_servo_approach_says_its_error_is_the_camera_frames_and_judges_no_motion(
+def test_a_servo_approach_to_a_target_at_rest_closes_on_still_views_and_judges_no_motion(
         tmp_path: Path) -> None:
     with running_cell(sim_config(tmp_path)) as cell:
         job = cell.approach("test", standoff_mm=STANDOFF_MM, wait=True, mode="servo")
-    assert job.state == "succeeded" and job.result is not None, job.error_message
-    assert job.result["estimated_error_basis"]["frame"] == "camera"
+        assert job.state == "succeeded" and job.result is not None, job.error_message
+        goal = approach_tcp(world(cell).true_T_base_target(), cell.config.approach.T_target_tcp.T(),
+                            STANDOFF_MM)
+        assert pose_distance(settled_tcp(cell), goal)[0] < 0.1
+    # the servo stopped on moving views; the stopped arm then looked again at rest
+    closing = job.result["closing"]
+    assert closing and "correction_mm" in closing[-1], closing
+    assert job.result["estimated_error_basis"]["frame"] == "base"
+    assert job.result["estimated_error_mm"] == closing[-1]["correction_mm"]
     c = job.result["consistency"]
     assert c["verdict"] == "unchecked" and c["motion"]["target_at_rest"] is False
     assert c["reprojection"]["max_rms_px"] < 1.0
