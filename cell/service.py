@@ -80,8 +80,8 @@ class Cell:
         self.core = CellCore(config, hardware, arm, slot, jobs, self.events, audit, runner,
                              locator, self.stats, frames, target)
         self.links = LinkSupervisor(self.core)
-        self.gripper_ops = GripperService(hardware.gripper, audit, self.events)
-        self.stopper = StopLine(self.core)
+        self.gripper_ops = GripperService(hardware.gripper, audit, self.events, slot, arm.gate)
+        self.stopper = StopLine(self.core, self.gripper_ops.halt)
         self.jogger = Jogger(self.core, self.stopper.stop)
         self.snapshot = CellSnapshot(self.core, self.links, self.gripper_ops)
         self.started_at = time.time()

@@ -87,6 +87,12 @@ class Arm(Protocol):
         wait: bool = True,
     ) -> None: ...
 
+    def wait_for_motion(self, timeout_s: float | None = None) -> None:
+        """Return when the last move sent with ``wait=False`` is over, as the controller says
+        (reached, stopped or ended by a fault: the caller reads where the arm is). Raises the
+        safety stops' errors, and MotionError when it does not end within ``timeout_s``
+        (None: a deadline the adapter derives from the move)."""
+
     def is_moving(self) -> bool: ...
 
     def jog(

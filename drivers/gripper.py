@@ -34,4 +34,11 @@ class Gripper(Protocol):
         self, position_mm: float, speed_pct: float = 100.0, force_pct: float = 50.0,
         wait: bool = True,
     ) -> GripperStatus: ...
+    def wait_for_motion(self, timeout_s: float | None = None) -> GripperStatus:
+        """Until the fingers of the last move (sent with ``wait=False``) stopped: at the
+        request, on an object, or halted."""
+
+    def stop(self) -> GripperStatus:
+        """Halt the fingers where they are; a grip already made keeps its object."""
+
     def status(self) -> GripperStatus: ...

@@ -177,6 +177,7 @@ class RobotiqGripper:
         self._client: ModbusSerialClient | None = None
         self._rx = b""
         self._lock = threading.Lock()  # one exchange at a time: the API polls while moves wait
+        self._requested: int | None = None  # rPR of the last move (None: none, or halted)
 
     # -- connection ------------------------------------------------------------------------
     def connect(self) -> None:
@@ -312,18 +313,36 @@ class RobotiqGripper:
             raise NotReadyError("gripper is not activated: run activate first")
         target = mm_to_position(position_mm)
         self.write_action(RACT | RGTO, target, pct_to_byte(speed_pct), pct_to_byte(force_pct))
+        self._requested = target
         if not wait:
             return self.status()
-        deadline = time.monotonic() + self.motion_timeout_s
+        return self.wait_for_motion()
+
+    def wait_for_motion(self, timeout_s: float | None = None) -> GripperStatus:
+        """Until the fingers of the last move stopped: at the request, on an object, or halted
+        by :meth:`stop` (``gGTO`` 0). MotionError on a fault, DeviceTimeoutError after
+        ``timeout_s`` (None: ``motion_timeout_s``)."""
+        target = self._requested
+        timeout_s = self.motion_timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + timeout_s
         while True:
             raw = self.read_raw()
             if raw.gFLT != 0:
                 raise MotionError(f"gripper stopped on fault {fault_text(raw.gFLT)}")
+            if raw.gGTO == 0 or target is None:
+                return raw.to_status()  # halted: the fingers stay where they are
             # gPR echoes the request once the gripper took it; until then gOBJ is stale.
             if raw.gPR == target and raw.gOBJ != GOBJ_MOVING:
                 return raw.to_status()
             if time.monotonic() > deadline:
                 raise DeviceTimeoutError(
-                    f"gripper did not reach {position_mm:.1f} mm within {self.motion_timeout_s} s"
-                )
+                    f"gripper did not reach {position_to_mm(target):.1f} mm within "
+                    f"{timeout_s} s")
             time.sleep(self.poll_interval_s)
+
+    def stop(self) -> GripperStatus:
+        """Halt the fingers where they are: the action request with ``rGTO`` cleared (the
+        manual's "stop"), activation kept. A grip already made keeps its object."""
+        self.write_action(RACT, self._requested or 0)
+        self._requested = None
+        return self.status()

@@ -75,6 +75,7 @@ class SimArm:
         self.jog_watchdog_s = jog_watchdog_s
         self.power_timeout_s = power_timeout_s
         self._connected = False
+        self._last_move: int | None = None  # the engine's id of the last move sent
 
     def close(self) -> None:
         """Disconnect, and stop the engine if this arm created it."""
@@ -165,8 +166,8 @@ class SimArm:
     ) -> None:
         self._require_connected()
         with _driver_errors():
-            cid = self.engine.move_l(ur_pose_from_T(T_base_tcp), speed_mm_s / 1000.0,
-                                     accel_mm_s2 / 1000.0)
+            cid = self._last_move = self.engine.move_l(
+                ur_pose_from_T(T_base_tcp), speed_mm_s / 1000.0, accel_mm_s2 / 1000.0)
         if wait:
             self._await(cid)
 
@@ -176,13 +177,17 @@ class SimArm:
     ) -> None:
         self._require_connected()
         with _driver_errors():
-            cid = self.engine.move_j(list(np.asarray(joints_rad, dtype=float).reshape(-1)),
-                                     speed_rad_s, accel_rad_s2)
+            cid = self._last_move = self.engine.move_j(
+                list(np.asarray(joints_rad, dtype=float).reshape(-1)), speed_rad_s, accel_rad_s2)
         if wait:
             self._await(cid)
 
-    def _await(self, cid: int) -> None:
-        outcome = self.engine.wait_for(cid, _MOVE_TIMEOUT_S)
+    def wait_for_motion(self, timeout_s: float | None = None) -> None:
+        if self._last_move is not None:
+            self._await(self._last_move, _MOVE_TIMEOUT_S if timeout_s is None else timeout_s)
+
+    def _await(self, cid: int, timeout_s: float = _MOVE_TIMEOUT_S) -> None:
+        outcome = self.engine.wait_for(cid, timeout_s)
         if outcome == CommandOutcome.SUCCEEDED:
             return
         self.engine.wait_until_idle(5.0)  # report once the safety stop has braked to rest

@@ -333,6 +333,7 @@ class StopResult(_Out):
     cancelled: str | None = Field(default=None, description="the motion that was cancelled")
     job_id: str | None = None
     arm_error: str | None = None
+    gripper_error: str | None = None  # the gripper was moving and could not be halted
 
 
 class AuditEntry(_Out):

@@ -8,8 +8,14 @@ shutdown, and later OPC UA and XML-RPC) calls :meth:`StopLine.stop`. It
 2. hands the request to the stop thread, which is idle until then and shares no queue, pool
    or lock with any other work, so a queue of reads or jobs can never delay it; requests that
    arrive while a stop is being sent are answered by the next one (a stop is idempotent),
-3. tells the arm to stop (``GuardedArm.stop`` records ``Commanded(kind="stop")``), and only
-   after that finishes the cancelled job's bookkeeping: counts, audit, the ``stop`` event.
+3. tells the arm to stop (``GuardedArm.stop`` records ``Commanded(kind="stop")``), then halts
+   the gripper if a command of the cell may be moving it, and only after that finishes the
+   cancelled job's bookkeeping: counts, audit, the ``stop`` event.
+
+Both stops are sent holding the command gate (:class:`cell.motion.guard.CommandGate`), so a
+command that passed its last check before the flag was set reaches its device before the stop
+does, and the stop ends it: once the answer says ``stopped``, nothing the cell commanded
+before or during the stop moves on.
 
 The caller gets the outcome with ``commanded_monotonic_s``, the ``time.monotonic()`` at which
 the stop was handed to the arm adapter, and ``sent_monotonic_s`` when the adapter returned (the
@@ -48,9 +54,13 @@ class _Request:
     finished: threading.Event = field(default_factory=threading.Event)
 
 
+HaltGripper = Callable[[], str | None]  # the error text when it could not, else None
+
+
 class StopLine:
-    def __init__(self, core: CellCore) -> None:
+    def __init__(self, core: CellCore, halt_gripper: HaltGripper | None = None) -> None:
         self.core = core
+        self._halt_gripper = halt_gripper
         self._queue: queue.SimpleQueue[_Request | None] = queue.SimpleQueue()
         self._thread = threading.Thread(target=self._loop, name="cell-stop", daemon=True)
         self._thread.start()
@@ -115,15 +125,18 @@ class StopLine:
         commanded_s = time.monotonic()
         arm_error = self._stop_arm()
         sent_s = time.monotonic()
+        gripper_error = self._stop_gripper()
         motion = self.core.slot.cancel()  # a motion that started meanwhile ends too
         core = self.core
         for req in batch:
             cancelled = req.motion or motion
             job_id = None if cancelled is None else cancelled.job_id
-            result = {"stopped": arm_error is None,
+            result = {"stopped": arm_error is None and gripper_error is None,
                       "cancelled": None if cancelled is None else cancelled.name,
                       "job_id": job_id, "arm_error": arm_error,
                       "commanded_monotonic_s": commanded_s, "sent_monotonic_s": sent_s}
+            if gripper_error is not None:
+                result["gripper_error"] = gripper_error
             core.stats.count_stop()
             try:
                 core.audit.record(req.caller, "stop", {"reason": req.reason},
@@ -140,6 +153,15 @@ class StopLine:
                     req.done(result)
                 except Exception:
                     log.exception("stop callback failed")
+
+    def _stop_gripper(self) -> str | None:
+        if self._halt_gripper is None:
+            return None
+        try:
+            return self._halt_gripper()
+        except Exception as err:  # the stop's answer must come whatever the gripper does
+            log.exception("halting the gripper failed")
+            return f"gripper: {err}"
 
     def _stop_arm(self) -> str | None:
         """Stop the arm now; the driver's error text if it could not, else None."""

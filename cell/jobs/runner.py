@@ -13,6 +13,7 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
+from cell.error_codes import ErrorCode
 from cell.errors import Cancelled, CellError
 from cell.jobs.audit import Auditor
 from cell.jobs.events import EventBus
@@ -90,6 +91,10 @@ class JobRunner:
             result = work(job.id, motion)
             if motion.cancel.is_set() and motion.reason is not None:
                 raise motion.reason
+            if not self.slot.release_unless_cancelled(motion):
+                # a stop reached the job after its last motion: it answered that it cancelled
+                # this job, so the job says so too
+                raise Cancelled(ErrorCode.cancelled, "stopped by request as the job ended")
             ended = self.jobs.finish(job.id, "succeeded", result)
         except Cancelled as err:
             self.arm.settle()

@@ -8,14 +8,20 @@ fails when any module other than this one calls an arm's motion methods.
 
 Rules it keeps, whoever calls it (approach, jog, teach, calibration routine, home, CLI):
 - a motion command needs the :class:`MotionSlot` held (one motion at a time) and is refused
-  once the holder has been cancelled, so a stop really stops;
+  once the holder has been cancelled, so a stop really stops. The last check of that flag and
+  the command that starts the motion happen under one lock that the stop takes too
+  (:class:`CommandGate`): a command either reaches the controller before the stop, which then
+  ends it, or sees the flag and is never sent. Checking the flag only before the path check
+  left a window (a joint move's path check asks the controller for its kinematics) in which a
+  stop could reach the controller first and the move then ran to its end;
 - the arm must be connected, powered, free of safety stops, and its state fresh;
 - speed and acceleration within the caps (and above the floor: a speed that rounds to
   nothing on the wire would creep for hours);
 - the whole interpolated path within the box and the tilt limit (see ``SafetyGuard``);
-- a blocking move returns only when the controller says it is over and the arm is at the
-  goal; any other end (cancelled, fault, short) leaves the arm commanded to stop and still
-  before the error reaches the caller, so the slot is never released over a moving arm.
+- a blocking move is sent without waiting (under the gate) and then watched to its end: it
+  returns only when the controller says it is over and the arm is at the goal; any other end
+  (cancelled, fault, short) leaves the arm commanded to stop and still before the error reaches
+  the caller, so the slot is never released over a moving arm.
 """
 
 from __future__ import annotations
@@ -141,12 +147,54 @@ class MotionSlot:
         finally:
             self.release(motion)
 
+    def release_unless_cancelled(self, motion: Motion) -> bool:
+        """Release ``motion``'s hold as one step with the check that it was not cancelled:
+        False (still held) when it was. A job that ends this way cannot be cancelled after it
+        has reported success, and a stop that cancelled it in time always sees it end
+        cancelled."""
+        with self._lock:
+            if motion.cancel.is_set():
+                return False
+            if self._motion is motion:
+                self._motion = None
+                self._generation += 1
+            return True
+
     def cancel(self, reason: CellError | None = None) -> Motion | None:
         """Cancel whatever holds the slot; returns it (None when idle)."""
-        motion = self.current
-        if motion is not None:
-            motion.cancel_with(reason)
-        return motion
+        with self._lock:
+            motion = self._motion
+            if motion is not None:
+                motion.cancel_with(reason)
+            return motion
+
+
+class CommandGate:
+    """Orders motion commands against stops.
+
+    A stop first sets the holder's cancel flag, then sends the stop holding this lock. A
+    command checks the flag and is sent holding it too. So either the command went out first
+    (and the stop, sent after it, ends it) or the flag was already set (and it is never sent).
+    Without the lock the stop could overtake a command that had passed its check, and the
+    command would start after the stop had answered. Every device the cell moves (the arm, the
+    gripper) sends its commands through the one gate.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+
+    @contextmanager
+    def command(self, motion: Motion, what: str) -> Iterator[None]:
+        """Hold the gate for one command: Cancelled (nothing sent) once ``motion`` is."""
+        with self._lock:
+            motion.raise_if_cancelled(f"before the {what}")
+            yield
+
+    @contextmanager
+    def stopping(self) -> Iterator[None]:
+        """Hold the gate while a stop is sent: no command can start meanwhile."""
+        with self._lock:
+            yield
 
 
 CommandKind = Literal["move_linear", "move_joint", "jog", "servo", "stop"]
@@ -169,15 +217,13 @@ class GuardedArm:
     """:class:`drivers.arm.Arm` with every motion command checked first (see module doc)."""
 
     def __init__(self, arm: Arm, limits: LimitsConfig, slot: MotionSlot | None = None,
-                 history: int = 2000) -> None:
+                 history: int = 2000, gate: CommandGate | None = None) -> None:
         self._arm = arm
         self.guard = SafetyGuard(limits)
         self.slot = slot if slot is not None else MotionSlot()
+        self.gate = gate if gate is not None else CommandGate()
         self._commanded: deque[Commanded] = deque(maxlen=history)
         self._lock = threading.Lock()
-        # a streamed tick and a stop never interleave: once stop() has the lock (after the
-        # slot's holder was cancelled), no tick can reach the arm after the stop
-        self._stream_lock = threading.Lock()
         self._last_twist: tuple[float, NDArray[np.float64]] | None = None  # (t, twist)
 
     @property
@@ -231,6 +277,10 @@ class GuardedArm:
     def is_moving(self) -> bool:
         return self._arm.is_moving()
 
+    def wait_for_motion(self, timeout_s: float | None = None) -> None:
+        """Watch the last move to its end (it starts nothing)."""
+        self._arm.wait_for_motion(timeout_s)
+
     def recover_protective_stop(self) -> None:
         self._arm.recover_protective_stop()
 
@@ -243,8 +293,9 @@ class GuardedArm:
         return None if last is None else last[0]
 
     def stop(self, decel_mm_s2: float = 2000.0) -> None:
-        """Always passed on: stopping is never refused."""
-        with self._stream_lock:
+        """Always passed on: stopping is never refused. Sent holding the gate, so it follows
+        any command already on its way and no command passes until it is sent."""
+        with self.gate.stopping():
             self._last_twist = None
             self._record(Commanded(time.monotonic(), "stop", None))
             self._arm.stop(decel_mm_s2)
@@ -280,7 +331,7 @@ class GuardedArm:
         self._record(Commanded(time.monotonic(), "move_linear", T_goal.copy(),
                                T_from=st.T_base_tcp.copy()))
         self._run(motion, what, T_goal, lambda: self._arm.move_linear(
-            T_goal, speed_mm_s, accel_mm_s2, wait=wait), wait)
+            T_goal, speed_mm_s, accel_mm_s2, wait=False), wait)
 
     def move_joint(self, joints_rad: NDArray[np.float64], speed_rad_s: float,
                    accel_rad_s2: float, wait: bool = True, what: str = "joint move") -> None:
@@ -294,7 +345,7 @@ class GuardedArm:
         self._record(Commanded(time.monotonic(), "move_joint", T_goal.copy(),
                                T_from=st.T_base_tcp.copy(), path=tuple(path)))
         self._run(motion, what, T_goal, lambda: self._arm.move_joint(
-            q1, speed_rad_s, accel_rad_s2, wait=wait), wait)
+            q1, speed_rad_s, accel_rad_s2, wait=False), wait)
 
     def check_joint_move(self, joints_rad: NDArray[np.float64], what: str = "joint move"
                          ) -> tuple[ArmState, list[Matrix4]]:
@@ -317,7 +368,7 @@ class GuardedArm:
     def jog(self, velocity: NDArray[np.float64], frame: JogFrame = "base",
             accel_mm_s2: float = 500.0) -> None:
         """Checked velocity command: caps, and the path ``JOG_HORIZON_S`` ahead."""
-        self._holder("jog")
+        motion = self._holder("jog")
         v = np.asarray(velocity, dtype=float).reshape(-1)
         if v.shape != (6,):
             raise RefusedError(ErrorCode.invalid_request, "a jog needs [vx, vy, vz, wx, wy, wz]")
@@ -332,7 +383,8 @@ class GuardedArm:
         self._record(Commanded(time.monotonic(), "jog", None, v.copy(), frame,
                                T_from=st.T_base_tcp.copy()))
         try:
-            self._arm.jog(v, frame, accel_mm_s2)
+            with self.gate.command(motion, "jog"):
+                self._arm.jog(v, frame, accel_mm_s2)
         except DriverError as err:
             self.settle()
             raise driver_error(err, "jogging") from err
@@ -370,8 +422,7 @@ class GuardedArm:
         if ang_deg > lim.max_angular_speed_deg_s * (1 + 1e-9):
             raise LimitError(ErrorCode.speed_limit, f"servo rotation {ang_deg:.1f} deg/s is above "
                              f"limits.max_angular_speed_deg_s = {lim.max_angular_speed_deg_s}")
-        with self._stream_lock:
-            self._holder("servo tick")
+        with self.gate.command(self._holder("servo tick"), "servo tick"):
             now = time.monotonic()
             prev = self._last_twist
             # the change is judged against the last tick or against rest, whichever is
@@ -413,9 +464,13 @@ class GuardedArm:
 
     def _run(self, motion: Motion, what: str, T_goal: Matrix4, send: Callable[[], None],
              wait: bool) -> None:
-        """Send a checked move; with ``wait`` verify how it ended (see module doc)."""
+        """Send a checked move through the gate without waiting; with ``wait`` watch it to its
+        end and verify how it ended (see module doc)."""
         try:
-            send()
+            with self.gate.command(motion, what):
+                send()
+            if wait:
+                self._arm.wait_for_motion()
         except DriverError as err:
             self.settle()
             motion.raise_if_cancelled(f"while moving to the {what}")

@@ -1,6 +1,10 @@
 """Gripper commands, one Modbus transaction at a time, and a cached status that costs reads
 nothing.
 
+A command that moves the fingers is a motion like any other: it holds the motion slot (or runs
+inside the job that holds it), is sent through the command gate the arm's commands pass, and a
+stop halts it (:meth:`GripperService.halt`), so STOP stops everything the cell commanded.
+
 A gripper that times out (a serial link gone quiet) takes a second per transaction; reading it
 inside ``/status`` made every status poll wait for that. Here a background thread refreshes the
 status twice a second and on every command, and readers get the last one with its age; a fault
@@ -12,13 +16,14 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from contextlib import AbstractContextManager, nullcontext
 from typing import Any
 
 from cell.error_codes import ErrorCode
 from cell.errors import LimitError, UnavailableError
 from cell.jobs.audit import Auditor
 from cell.jobs.events import EventBus
-from cell.motion.guard import driver_error
+from cell.motion.guard import CommandGate, Motion, MotionSlot, driver_error
 from drivers.errors import DriverError
 from drivers.gripper import Gripper, GripperStatus
 
@@ -28,10 +33,14 @@ ACTIONS = ("open", "close", "move", "activate")
 
 
 class GripperService:
-    def __init__(self, gripper: Gripper | None, audit: Auditor, events: EventBus) -> None:
+    def __init__(self, gripper: Gripper | None, audit: Auditor, events: EventBus,
+                 slot: MotionSlot | None = None, gate: CommandGate | None = None) -> None:
         self.gripper = gripper
         self.audit = audit
         self.events = events
+        self.slot = slot if slot is not None else MotionSlot()
+        self.gate = gate if gate is not None else CommandGate()
+        self._commanding = False  # a command of the cell may be moving the fingers
         self._bus_lock = threading.Lock()  # one Modbus transaction at a time
         self._lock = threading.Lock()
         self._last: dict[str, Any] | None = None
@@ -68,7 +77,9 @@ class GripperService:
 
     def command(self, caller: str, action: str, position_mm: float | None = None,
                 speed_pct: float = 100.0, force_pct: float = 50.0,
-                wait: bool = True) -> dict[str, Any]:
+                wait: bool = True, motion: Motion | None = None) -> dict[str, Any]:
+        """One gripper command, audited. It takes the motion slot (``busy`` while the arm
+        moves), unless ``motion`` says which job's motion it belongs to."""
         params = {"action": action, "position_mm": position_mm, "speed_pct": speed_pct,
                   "force_pct": force_pct, "wait": wait}
         with self.audit.command(caller, "gripper", params):
@@ -79,26 +90,59 @@ class GripperService:
                 raise LimitError(ErrorCode.invalid_request, f"unknown gripper action {action!r}")
             if action == "move" and position_mm is None:
                 raise LimitError(ErrorCode.invalid_request, "move needs position_mm")
-            with self._bus_lock:
+            holding: AbstractContextManager[Motion] = (
+                self.slot.hold("gripper") if motion is None else nullcontext(motion))
+            with holding as held, self._bus_lock:
                 try:
-                    st = self._send(g, action, position_mm, speed_pct, force_pct, wait)
+                    st = self._run(g, held, action, position_mm, speed_pct, force_pct, wait)
                 except DriverError as err:
                     self._set(None, str(err))
                     raise driver_error(err, f"gripper {action}", device="gripper") from err
             self._set(st, None)
             return st.as_dict()
 
-    @staticmethod
-    def _send(g: Gripper, action: str, position_mm: float | None, speed_pct: float,
-              force_pct: float, wait: bool) -> GripperStatus:
-        if action == "open":
-            return g.open(wait=wait)
-        if action == "close":
-            return g.close(wait=wait)
-        if action == "activate":
-            return g.activate()
-        assert position_mm is not None
-        return g.move(position_mm, speed_pct, force_pct, wait=wait)
+    def _run(self, g: Gripper, motion: Motion, action: str, position_mm: float | None,
+             speed_pct: float, force_pct: float, wait: bool) -> GripperStatus:
+        """Send through the gate without waiting, then (``wait``) watch the fingers stop; a
+        stop that halted them ends the command ``cancelled``."""
+        try:
+            with self.gate.command(motion, f"gripper {action}"):
+                self._commanding = True
+                if action == "activate":
+                    return g.activate()
+                if action == "open":
+                    st = g.open(wait=False)
+                elif action == "close":
+                    st = g.close(wait=False)
+                else:
+                    assert position_mm is not None
+                    st = g.move(position_mm, speed_pct, force_pct, wait=False)
+            if not wait:
+                return st
+            st = g.wait_for_motion()
+            motion.raise_if_cancelled(f"while the gripper moved ({action})")
+            return st
+        finally:
+            if wait or action == "activate":
+                self._commanding = False
+
+    def halt(self) -> str | None:
+        """Halt the fingers if a command of the cell may be moving them (the stop path calls
+        this after the arm's stop); the driver's error text when it could not, else None."""
+        g = self.gripper
+        if g is None:
+            return None
+        with self.gate.stopping():
+            if not self._commanding:
+                return None
+            try:
+                st = g.stop()
+            except DriverError as err:
+                self._set(None, str(err))
+                return f"gripper: {err}"
+            self._commanding = False
+        self._set(st, None)
+        return None
 
     def _poll(self) -> None:
         assert self.gripper is not None

@@ -145,6 +145,7 @@ class URArm:
         self._pstop_seen_s: float | None = None  # when this adapter first saw the stop
         self._tcp_pose: list[float] | None = None  # the TCP set with set_tcp (UR pose)
         self._jog_deadline_s: float | None = None
+        self._move_timeout_s = 30.0  # the deadline of the last move sent (see wait_for_motion)
         self._jog_decel_m_s2 = 1.0
         self._last_ts = -1.0
         self._last_ts_change_s = 0.0
@@ -556,12 +557,13 @@ class URArm:
         self._end_jog()
         distance_m = float(np.linalg.norm(np.subtract(pose[:3], s.tcp_pose[:3])))
         turn_rad = pose_distance(T_from_ur_pose(list(s.tcp_pose)), T_base_tcp)[1] * math.pi / 180
+        # A UR applies the tool speed to the rotation too (v in rad/s), so a move that
+        # mostly turns takes angle / v: the deadline is a watchdog, not the expected time.
+        self._move_timeout_s = 2.0 * (max(distance_m, turn_rad) / v + v / a) + 5.0
         if not self._ctrl("moveL", pose, v, a, True):
             self._raise_command_failure("moveL")
         if wait:
-            # A UR applies the tool speed to the rotation too (v in rad/s), so a move that
-            # mostly turns takes angle / v: the deadline is a watchdog, not the expected time.
-            self._wait_for_motion(2.0 * (max(distance_m, turn_rad) / v + v / a) + 5.0)
+            self.wait_for_motion()
 
     def move_joint(
         self, joints_rad: NDArray[np.float64], speed_rad_s: float, accel_rad_s2: float,
@@ -574,10 +576,11 @@ class URArm:
         s = self._ready_for_motion()
         self._end_jog()
         travel = float(np.max(np.abs(q - np.asarray(s.q_rad))))
+        self._move_timeout_s = 2.0 * (travel / v + v / a) + 5.0
         if not self._ctrl("moveJ", q.tolist(), v, a, True):
             self._raise_command_failure("moveJ")
         if wait:
-            self._wait_for_motion(2.0 * (travel / v + v / a) + 5.0)
+            self.wait_for_motion()
 
     def _script_ended(self, within_s: float = SCRIPT_END_SEEN_WITHIN_S) -> bool:
         """After a refused command: did the control script end without a safety stop (the
@@ -614,9 +617,12 @@ class URArm:
                           + ("" if running else " (runtime error: the target is unreachable, "
                              "outside the limits or not allowed)"))
 
-    def _wait_for_motion(self, timeout_s: float) -> None:
+    def wait_for_motion(self, timeout_s: float | None = None) -> None:
         """Until the controller says the move is over: ur_rtde's async operation ended (the
-        control script's own progress), never a guess from the pose standing still."""
+        control script's own progress), never a guess from the pose standing still. Without
+        ``timeout_s`` the deadline is the last move's own (twice its planned time, plus 5 s)."""
+        if timeout_s is None:
+            timeout_s = self._move_timeout_s
         deadline = time.monotonic() + timeout_s
         while True:
             s = self._sample()
