@@ -35,6 +35,8 @@ WRITE_REPLY = H("09 10 03 E8 00 03 01 30")
 RESET_REQUEST = H("09 10 03 E8 00 03 06 00 00 00 00 00 00 73 30")  # manual: clear rACT
 ACTIVATE_REQUEST = H("09 10 03 E8 00 03 06 01 00 00 00 00 00 72 E1")  # manual: set rACT
 CLOSE_FULL_REQUEST = H("09 10 03 E8 00 03 06 09 00 00 FF FF FF 42 29")  # manual: close
+HALT_REQUEST = H("09 10 03 E8 00 03 06 01 00 00 FF 00 00 42 D1")  # rGTO cleared, rACT kept
+HALTED = H("09 04 06 31 00 00 FF 7F 00 13 72")  # gGTO=0, activated, fingers at 0x7F
 NOT_ACTIVATED = H("09 04 06 00 00 00 00 00 00 07 53")
 ACTIVATING = H("09 04 06 11 00 00 00 00 00 04 12")
 ACTIVATED_OPEN = H("09 04 06 31 00 00 00 00 00 03 72")
@@ -103,6 +105,25 @@ def test_close_full_speed_force_waits_for_object(scripted: list[ScriptedSerial])
     g.connect()
     s = g.move(0.0, speed_pct=100, force_pct=100)
     assert s.object_detected and s.position_mm == pytest.approx(22.0, abs=0.01)
+
+
+def test_stop_clears_go_to_and_keeps_activation(scripted: list[ScriptedSerial]) -> None:
+    """The manual's stop: the action request with rGTO cleared; the wait that follows ends at
+    once (gGTO 0: the fingers stay where they are)."""
+    g, _ = make(scripted, [
+        (STATUS_REQUEST, ACTIVATED_OPEN),  # connect
+        (STATUS_REQUEST, ACTIVATED_OPEN),  # move: activated?
+        (CLOSE_FULL_REQUEST, WRITE_REPLY),
+        (STATUS_REQUEST, CLOSING),  # move(wait=False) reports
+        (HALT_REQUEST, WRITE_REPLY),
+        (STATUS_REQUEST, HALTED),  # stop reports
+        (STATUS_REQUEST, HALTED),  # wait_for_motion: halted, so over
+    ])
+    g.connect()
+    assert g.move(0.0, speed_pct=100, force_pct=100, wait=False).moving
+    halted = g.stop()
+    assert not halted.moving and halted.position_mm == pytest.approx(position_to_mm(0x7F), abs=0.01)
+    assert g.wait_for_motion().position_mm == halted.position_mm
 
 
 def test_crc_error_is_a_protocol_error(scripted: list[ScriptedSerial]) -> None:
@@ -259,6 +280,22 @@ def test_pty_no_wait_reports_motion(gripper: RobotiqGripper) -> None:
     s = gripper.status()
     assert s.moving and 0 < s.position_mm < 85.0
     gripper.open()
+
+
+def test_pty_stop_halts_the_fingers_where_they_are(gripper: RobotiqGripper) -> None:
+    gripper.activate()
+    gripper.open()
+    assert gripper.move(0.0, speed_pct=0.0, wait=False).moving  # 20 mm/s: 4 s to close
+    time.sleep(0.3)
+    halted = gripper.stop()
+    assert not halted.moving
+    t0 = time.monotonic()
+    done = gripper.wait_for_motion()
+    assert time.monotonic() - t0 < 0.5, "the wait after a stop waited for the old request"
+    time.sleep(0.3)
+    assert abs(gripper.status().position_mm - done.position_mm) < 0.34
+    assert 60.0 < done.position_mm < 85.0
+    assert gripper.open().position_mm == 85.0  # and it moves again on the next request
 
 
 def test_pty_line_faults_then_recovery(fake: FakeGripper, gripper: RobotiqGripper) -> None:
