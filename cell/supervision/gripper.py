@@ -105,11 +105,14 @@ class GripperService:
              speed_pct: float, force_pct: float, wait: bool) -> GripperStatus:
         """Send through the gate without waiting, then (``wait``) watch the fingers stop; a
         stop that halted them ends the command ``cancelled``."""
+        if action == "activate":
+            # the activation stroke runs to its end whatever rGTO says, so a stop cannot
+            # halt it, and the gate is not held for its seconds (a stop would wait for them)
+            motion.raise_if_cancelled("before the gripper's activation")
+            return g.activate()
         try:
             with self.gate.command(motion, f"gripper {action}"):
                 self._commanding = True
-                if action == "activate":
-                    return g.activate()
                 if action == "open":
                     st = g.open(wait=False)
                 elif action == "close":
@@ -123,7 +126,7 @@ class GripperService:
             motion.raise_if_cancelled(f"while the gripper moved ({action})")
             return st
         finally:
-            if wait or action == "activate":
+            if wait:
                 self._commanding = False
 
     def halt(self) -> str | None:
