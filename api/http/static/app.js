@@ -113,8 +113,10 @@ async function api(method, path, body, { raw = false, timeoutMs = 5000 } = {}) {
     let data = null;
     try { data = await resp.json(); } catch (e) { /* not JSON: use the fallback words */ }
     const code = data && data.error ? data.error.code : "";
+    const err = new ApiError(wordsFor(resp.status, data), resp.status, code);
+    err.hadToken = !!headers.Authorization;
     if (resp.status === 401 && state.token) logout(wordsFor(401, data));
-    throw new ApiError(wordsFor(resp.status, data), resp.status, code);
+    throw err;
   }
   if (raw) return resp;
   const text = await resp.text();
@@ -534,11 +536,28 @@ function releaseJog(reason) {
   if (reason && reason !== "released") say(`Jog stopped: ${reason}.`, "info");
 }
 
+// STOP needs no login: the cell takes a STOP without a token ([api] anonymous_stop, on by
+// default). Logged out the page sends it without one; a token the cell no longer accepts
+// logs the page out (api) and the STOP goes again without it, so STOP never fails for a login.
+async function stopNow(reason) {
+  try {
+    return await api("POST", "/stop", { reason });
+  } catch (e) {
+    if (e.status !== 401) throw e;
+    if (!e.hadToken) {
+      throw new ApiError("STOP without a login is switched off on this cell; log in to stop.",
+        e.status, e.code);
+    }
+    return stopNow(reason); // api() has logged out: this one goes without the token
+  }
+}
+
 function sendStop() {
   // keepalive lets the request finish even while the page is being hidden or closed.
+  const headers = { "Content-Type": "application/json" };
+  if (state.token) headers.Authorization = `Bearer ${state.token}`;
   return fetch(`${API}/stop`, {
-    method: "POST", keepalive: true, cache: "no-store",
-    headers: { Authorization: `Bearer ${state.token}`, "Content-Type": "application/json" },
+    method: "POST", keepalive: true, cache: "no-store", headers,
     body: JSON.stringify({ reason: "operator page: jog released" }),
   }).catch(() => { /* the server-side dead-man stops the arm when we cannot reach it */ });
 }
@@ -588,7 +607,7 @@ function wireCommands() {
   $("stop").addEventListener("click", async () => {
     endJogLocally();
     try {
-      await api("POST", "/stop", { reason: "operator page: STOP button" });
+      await stopNow("operator page: STOP button");
       say("Stopped.", "info");
     } catch (e) {
       say(`STOP could not be sent: ${e.message}`);

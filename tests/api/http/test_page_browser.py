@@ -71,6 +71,8 @@ def rec(stub: tuple[str, RecordingApi]) -> RecordingApi:
     r.jobs.clear()
     r.frame_headers.clear()
     r.recipes.clear()
+    r.anonymous_stop = True
+    r.stop_refuses.clear()
     return r
 
 
@@ -372,6 +374,39 @@ def test_stop_works_for_every_role(
     page.get_by_test_id("stop").click()
     wait_until(lambda: rec.of("/api/v1/stop"), what="stop request")
     wait_until(lambda: "Stopped" in page.get_by_test_id("message").inner_text(), what="ack")
+
+
+def test_stop_works_without_a_login(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    """Logged out, STOP goes without a token (the cell takes it as the anonymous caller)."""
+    url, _ = stub
+    page.goto(url + "/")
+    page.get_by_test_id("token").wait_for()
+    assert page.get_by_test_id("stop").is_enabled()
+    page.get_by_test_id("stop").click()
+    wait_until(lambda: "Stopped" in page.get_by_test_id("message").inner_text(), what="ack")
+    stops = rec.of("/api/v1/stop")
+    assert len(stops) == 1 and stops[0].authorization == "", stops
+    assert stops[0].body == {"reason": "operator page: STOP button"}
+    # a cell that does not take a STOP without a token says so in words
+    rec.anonymous_stop = False
+    page.get_by_test_id("stop").click()
+    wait_until(lambda: "STOP without a login is switched off"
+               in page.get_by_test_id("message").inner_text(), what="refusal in words")
+
+
+def test_stop_with_a_token_no_longer_accepted_goes_again_without_it(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    url, _ = stub
+    login(page, url, "tok-operator")
+    rec.stop_refuses.add("tok-operator")  # revoked since the last status poll
+    page.get_by_test_id("stop").click()
+    wait_until(lambda: "Stopped" in page.get_by_test_id("message").inner_text(), what="ack")
+    sent = [c.authorization for c in rec.of("/api/v1/stop")]
+    assert sent == ["Bearer tok-operator", ""], sent
+    assert page.get_by_test_id("token").is_visible()  # logged out
 
 
 def test_tablet_portrait_keeps_stop_in_view(
