@@ -248,19 +248,21 @@ const fmt = (v, digits = 1) => {
 const deg = (rad) => (rad * 180) / Math.PI;
 
 // One rotation has many rotation vectors: angle theta about u equals 2 pi - theta about -u,
-// and at exactly pi both u and -u. The page shows one: angle in [0, pi], and at pi (within
-// 1e-6 rad) the axis whose first non-zero component is positive, so the same pose never
-// reads once as rx -127.3 ry -127.3 and once as +127.3 +127.3.
+// and at exactly pi both u and -u. The page shows the one the cell reports
+// (estimator.transforms.canonical_rotvec): angle in [0, pi], except within PI_BAND of pi, where
+// the two readings look alike ("180.0") and the one whose axis has its first non-zero
+// component positive is shown (the same rotation, so its angle may pass pi by up to PI_BAND).
+// The same pose never reads once as rx -127.3 ry -127.3 and once as +127.3 +127.3.
+const PI_BAND = 1e-3;
 function canonicalRotvec(r) {
   let theta = Math.hypot(...r);
   if (!Number.isFinite(theta) || theta < 1e-12) return [0, 0, 0];
   let u = r.map((v) => v / theta);
   theta %= 2 * Math.PI;
   if (theta > Math.PI) { theta = 2 * Math.PI - theta; u = u.map((v) => -v); }
-  if (Math.PI - theta < 1e-6) {
-    theta = Math.PI;
-    const lead = u.find((v) => Math.abs(v) > 1e-9) || 1;
-    if (lead < 0) u = u.map((v) => -v);
+  if (Math.PI - theta <= PI_BAND && (u.find((v) => Math.abs(v) > 1e-6) || 1) < 0) {
+    theta = 2 * Math.PI - theta;
+    u = u.map((v) => -v);
   }
   return u.map((v) => v * theta);
 }
