@@ -424,6 +424,79 @@ def test_tablet_portrait_keeps_stop_in_view(
     screenshot(page, "operator-page-tablet")
 
 
+PHONE = {"width": 390, "height": 844}
+
+
+def _overlap(a: dict[str, float], b: dict[str, float]) -> bool:
+    return (a["x"] < b["x"] + b["width"] and b["x"] < a["x"] + a["width"]
+            and a["y"] < b["y"] + b["height"] and b["y"] < a["y"] + a["height"])
+
+
+def test_phone_stop_covers_no_control_and_the_job_history_is_readable(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    """On a phone the pinned STOP sits below every control however far the page is scrolled
+    (a control scrolled to is above it), and the job history's caller column can be read:
+    inside the viewport, or inside the history panel, which scrolls sideways on its own."""
+    url, _ = stub
+    rec.jobs[:] = [{"id": f"{i:08x}", "kind": "approach", "state": "succeeded",
+                    "created_at": time.time() - i, "caller": "line-2-packaging-plc(plc)",
+                    "params": {}, "result": {"reach_error_mm": 0.4}, "error": None}
+                   for i in range(3)]
+    page.set_viewport_size(PHONE)
+    login(page, url, "tok-operator")
+    wait_until(lambda: "line-2-packaging-plc" in page.get_by_test_id("history").inner_text(),
+               what="job history")
+    stop = page.get_by_test_id("stop")
+    controls = page.locator("main button:visible, main input:visible, main select:visible, "
+                            "main textarea:visible")
+    n = controls.count()
+    assert n > 20
+    for i in range(n):
+        control = controls.nth(i)
+        if control.get_attribute("data-testid") == "stop":
+            continue
+        control.evaluate("e => e.scrollIntoView({block: 'end'})")  # as far down as it goes
+        box, bar = control.bounding_box(), stop.bounding_box()
+        assert box is not None and bar is not None
+        assert bar["y"] + bar["height"] <= PHONE["height"]
+        assert not _overlap(box, bar), (control.get_attribute("data-testid"), box, bar)
+    page.evaluate("window.scrollTo(0, document.documentElement.scrollHeight)")
+    bar = stop.bounding_box()
+    assert bar is not None
+    for i in range(n):
+        box = controls.nth(i).bounding_box()
+        if controls.nth(i).get_attribute("data-testid") != "stop" and box is not None:
+            assert not _overlap(box, bar), (controls.nth(i).get_attribute("data-testid"), box)
+    # nothing makes the page wider than the phone
+    assert page.evaluate("document.documentElement.scrollWidth") <= PHONE["width"]
+    # the caller column: within the viewport, or within the panel that scrolls sideways
+    panel = page.locator(".history-panel")
+    panel.scroll_into_view_if_needed()
+    scroll = panel.evaluate("e => ({sw: e.scrollWidth, cw: e.clientWidth, "
+                            "ox: getComputedStyle(e).overflowX})")
+    pbox = panel.bounding_box()
+    assert pbox is not None and pbox["x"] >= 0 and pbox["x"] + pbox["width"] <= PHONE["width"]
+    cells = page.locator("[data-testid=history] tr td:nth-child(4)")
+    assert cells.count() == 3
+    for i in range(3):
+        cell = cells.nth(i)
+        assert "line-2-packaging-plc(plc)" in cell.inner_text()
+        cell.evaluate("e => e.scrollIntoView({block: 'center', inline: 'nearest'})")
+        box = cell.bounding_box()
+        assert box is not None and box["width"] >= 40, box
+        visible = box["x"] >= 0 and box["x"] + box["width"] <= PHONE["width"]
+        scrolled = scroll["ox"] in ("auto", "scroll") and scroll["sw"] > scroll["cw"] \
+            and box["x"] >= pbox["x"] - 1 and box["x"] + box["width"] <= pbox["x"] + pbox["width"] + 1
+        assert visible or scrolled, (box, pbox, scroll)
+        # the caller's words are on one line or wrapped whole, never cut off inside the cell
+        assert cell.evaluate("e => e.scrollWidth <= e.clientWidth + 1"), box
+    panel.evaluate("e => e.scrollLeft = 0")
+    shot = screenshot(page, "operator-page-phone")
+    page.evaluate("window.scrollTo(0, document.documentElement.scrollHeight)")
+    page.screenshot(path=str(shot.with_name("operator-page-phone-bottom.png")))
+
+
 def test_a_new_attempt_clears_the_earlier_error_line(
     page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
 ) -> None:
