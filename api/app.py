@@ -74,6 +74,7 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False,
                   description=DESCRIPTION, docs_url=None, redoc_url=None)
     app.state.cell = cell
     app.state.tokens = tokens
+    app.state.anonymous_stop = bool(getattr(cell.config.api, "anonymous_stop", True))
     app.state.closing = threading.Event()  # set at shutdown: streams end on their own
     app.state.metrics = metrics.Metrics(cell)
     app.state.live = LiveView(cell)

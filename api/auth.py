@@ -18,6 +18,7 @@ import secrets
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Annotated, Any
+from urllib.parse import parse_qs
 
 from fastapi import Depends, Query, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
@@ -159,3 +160,61 @@ def require_stream(permission: str) -> Callable[..., Awaitable[Caller]]:
 Read = Annotated[Caller, Depends(require("read"))]
 # The same, for the GET streaming routes that also take ``?token=``.
 Stream = Annotated[Caller, Depends(require_stream("read"))]
+
+
+# STOP without a token: the safe direction, so the cell's own page (and a client on the
+# cell's network) can stop without a login when ``[api] anonymous_stop`` is on (the default).
+ANONYMOUS_ROLE = "anonymous"  # no entry in PERMISSIONS: it may only stop (ALWAYS)
+
+
+def anonymous_caller(client_host: str | None) -> Caller:
+    """The caller of a STOP without a token, named by its address for the audit log."""
+    return Caller(f"anonymous@{client_host}" if client_host else "anonymous", ANONYMOUS_ROLE)
+
+
+def anonymous_stop_caller(scope: Any) -> Caller | None:
+    """The anonymous caller of a request that carries no credential at all (no
+    ``Authorization`` header, no ``?token=``) when the app accepts a STOP without one, else
+    None: any credential given is checked as usual, and an invalid one stays a 401.
+
+    A browser on another site's page must not stop the cell through an operator's browser
+    (a "simple" cross-site POST needs no preflight): such a request carries an ``Origin``
+    that is not the cell's own, and is refused."""
+    app = scope.get("app")
+    if not getattr(getattr(app, "state", None), "anonymous_stop", False):
+        return None
+    headers = {k.decode("latin-1").lower(): v.decode("latin-1")
+               for k, v in scope.get("headers", [])}
+    query = parse_qs(scope.get("query_string", b"").decode("latin-1"), keep_blank_values=True)
+    if "authorization" in headers or "token" in query:
+        return None
+    origin = headers.get("origin")
+    if origin is not None and _host_of(origin) != headers.get("host", "").lower():
+        raise AuthError(ErrorCode.unauthorized,
+                        "a STOP without a token is accepted from the cell's own page, not from "
+                        f"another site's ({origin})")
+    client = scope.get("client")
+    return anonymous_caller(client[0] if client else None)
+
+
+def _host_of(origin: str) -> str:
+    """``host[:port]`` of an ``Origin`` value (``null`` and garbage: empty)."""
+    scheme, sep, rest = origin.strip().lower().partition("://")
+    return rest.split("/")[0] if sep and scheme in ("http", "https") else ""
+
+
+def require_stop() -> Callable[..., Awaitable[Caller]]:
+    """Like ``require("stop")``, but a request with no credential at all is the anonymous
+    caller (:func:`anonymous_stop_caller`) when the app accepts a STOP without a token."""
+
+    async def dependency(
+        request: Request,
+        credentials: HTTPAuthorizationCredentials | None = Depends(bearer),  # noqa: B008
+    ) -> Caller:
+        caller = anonymous_stop_caller(request.scope)
+        if caller is None:
+            return authorise(request, header_token(request, credentials), "stop")
+        request.state.caller = caller
+        return caller
+
+    return dependency

@@ -40,11 +40,35 @@ def T_from_pose(position_mm: ArrayLike, rotvec_rad: ArrayLike) -> Matrix4:
     return make_T(R, position_mm)
 
 
+# Within this of pi a rotation's two rotation vectors (theta about u, 2 pi - theta about -u)
+# read alike at the page's 0.1 deg (both "180.0"), so they are reported as one (canonical_rotvec).
+PI_BAND_RAD = 1e-3
+# An axis component smaller than this counts as zero when picking the sign at pi.
+AXIS_ZERO = 1e-6
+
+
+def canonical_rotvec(R: ArrayLike) -> NDArray[np.float64]:
+    """The one rotation vector every report gives for the 3x3 rotation ``R``: angle in
+    [0, pi] (SciPy's), except within ``PI_BAND_RAD`` of pi, where a rotation has two readings
+    (theta about u, 2 pi - theta about -u; at exactly pi, pi about either): there the one
+    whose axis has its first component above ``AXIS_ZERO`` in magnitude positive. Always the
+    same rotation, never rounded to another one, so that angle may exceed pi by at most
+    ``PI_BAND_RAD``. Only for reports: the UR wire pose (:func:`ur_pose_from_T`) keeps
+    SciPy's reading, which a controller takes as well."""
+    rotvec = Rotation.from_matrix(np.asarray(R, dtype=float).reshape(3, 3)).as_rotvec()
+    angle = float(np.linalg.norm(rotvec))
+    if np.pi - angle <= PI_BAND_RAD:
+        axis = rotvec / angle
+        if next((float(v) for v in axis if abs(v) > AXIS_ZERO), 1.0) < 0:
+            rotvec = -axis * (2.0 * np.pi - angle)
+    return rotvec + 0.0  # no -0.0 in a report
+
+
 def pose_from_T(T: ArrayLike) -> tuple[list[float], list[float]]:
-    """(position_mm, rotvec_rad) of a transform, as plain lists for JSON."""
+    """(position_mm, rotvec_rad) of a transform, as plain lists for JSON; the rotation vector
+    is the canonical one (:func:`canonical_rotvec`), so one pose always reads the same."""
     T = np.asarray(T, dtype=float)
-    rotvec = Rotation.from_matrix(T[:3, :3]).as_rotvec()
-    return [float(v) for v in T[:3, 3]], [float(v) for v in rotvec]
+    return [float(v) for v in T[:3, 3]], [float(v) for v in canonical_rotvec(T[:3, :3])]
 
 
 def pose_dict(T: ArrayLike) -> dict[str, list[float]]:
@@ -65,9 +89,11 @@ def T_from_ur_pose(pose: Sequence[float]) -> Matrix4:
 
 
 def ur_pose_from_T(T: ArrayLike) -> list[float]:
-    """4x4 in mm -> UR wire pose ``[x, y, z (m), rx, ry, rz (rad)]``."""
-    position_mm, rotvec_rad = pose_from_T(T)
-    return [v / 1000.0 for v in position_mm] + rotvec_rad
+    """4x4 in mm -> UR wire pose ``[x, y, z (m), rx, ry, rz (rad)]``: SciPy's rotation vector
+    as it comes (angle in [0, pi]), not the reports' canonical one; a UR takes either."""
+    T = np.asarray(T, dtype=float)
+    rotvec = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+    return [float(v) / 1000.0 for v in T[:3, 3]] + [float(v) for v in rotvec]
 
 
 def translation_T(x_mm: float = 0.0, y_mm: float = 0.0, z_mm: float = 0.0) -> Matrix4:

@@ -7,7 +7,8 @@ the event loop's time went to what surrounds them in FastAPI: exception and body
 middleware, route matching over ~80 routes, dependency solving, response validation. This
 middleware answers a well-formed request of either route directly.
 
-Only the plain case: a bearer token that is valid and allowed, no query string, and for STOP
+Only the plain case: a bearer token that is valid and allowed (for STOP also none at all, with
+``[api] anonymous_stop``), no query string, and for STOP
 an ``application/json`` body that validates as :class:`api.http.schemas.StopRequest` (or none).
 Anything else, every refusal above all, goes on to the regular route unchanged (the body is
 replayed), so its error answers, audit rows and documentation stay where they are.
@@ -21,7 +22,7 @@ from typing import Any
 from pydantic import ValidationError
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from api.auth import bearer_of
+from api.auth import anonymous_stop_caller, bearer_of
 from api.http.guard import MAX_BODY_BYTES
 from api.http.schemas import StopRequest, StopResult
 from api.http.stop import snapshot_now, stop_now
@@ -82,7 +83,7 @@ class FastLane:
             plain = len(body) <= MAX_BODY_BYTES
         if body and ctype != b"application/json":
             plain = False  # a body needs its content type (the guard answers 415)
-        caller = _caller(scope, app, "stop") if plain else None
+        caller = (_caller(scope, app, "stop") or _anonymous(scope)) if plain else None
         request: StopRequest | None = None
         if caller is not None:
             try:
@@ -112,6 +113,15 @@ def _caller(scope: Scope, app: Any, permission: str) -> Any | None:
                 return None
             return caller if permission in caller.permissions else None
     return None
+
+
+def _anonymous(scope: Scope) -> Any | None:
+    """The anonymous caller of a STOP without any credential, else None (a refusal is the
+    regular route's to answer)."""
+    try:
+        return anonymous_stop_caller(scope)
+    except CellError:
+        return None
 
 
 async def _answer(send: Send, body: bytes, *extra: tuple[bytes, bytes]) -> None:

@@ -4,7 +4,9 @@ Order matters (audit issue items 6 and 7): a request without a valid token is an
 before a byte of its body is read or parsed, so an anonymous client cannot make the service
 parse 10 MB bodies; bodies are capped (413) and must be ``application/json`` (415), so a
 cross-site "simple" form POST never reaches a route. Refusals are written to the audit log with
-the path and the caller (``anonymous`` when there is none).
+the path and the caller (``anonymous`` when there is none). The one request taken without a
+token is a STOP with no credential at all, when ``[api] anonymous_stop`` is on
+(:func:`api.auth.anonymous_stop_caller`); its body is checked as every other.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from typing import Any
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from api.auth import bearer_of
+from api.auth import anonymous_stop_caller, bearer_of
 from api.http.errors import error_body
 from api.http.refusals import audit_refusal
 from cell.errors import CellError
@@ -24,6 +26,7 @@ log = logging.getLogger(__name__)
 
 MAX_BODY_BYTES = 64 * 1024  # the largest real body (a jog or an approach) is under 1 KB
 OPEN_PATHS = frozenset({"/api/v1/health"})
+STOP_PATH = "/api/v1/stop"  # with ``[api] anonymous_stop``, also taken without a token
 BODY_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 
 
@@ -48,7 +51,10 @@ class RequestGuard:
         if token is None and method in ("GET", "HEAD"):
             token = _query_token(scope)  # the routes decide whether they accept it
         try:
-            caller = app.state.tokens.lookup(token)
+            caller = anonymous_stop_caller(scope) if method == "POST" and path == STOP_PATH \
+                else None
+            if caller is None:
+                caller = app.state.tokens.lookup(token)
         except CellError as err:
             await self._refuse(scope, send, 401, err.code, err.message, "anonymous",
                                {"WWW-Authenticate": "Bearer"})

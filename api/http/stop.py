@@ -17,14 +17,15 @@ from typing import Annotated, Any
 from fastapi import Depends
 from starlette.concurrency import run_in_threadpool
 
-from api.auth import Caller, Read, Stream, require
+from api.auth import Caller, Read, Stream, require_stop
 from cell.service import Cell
 from cell.supervision.snapshot import Snap
 
 # Aliases kept for the routes that must never queue: api.auth's dependencies are async.
 ReadNow = Read
 StreamNow = Stream
-StopCaller = Annotated[Caller, Depends(require("stop"))]
+# Any valid token, or none at all when ``[api] anonymous_stop`` is on (api.auth.require_stop).
+StopCaller = Annotated[Caller, Depends(require_stop())]
 
 
 async def stop_now(cell: Cell, caller: str, reason: str) -> dict[str, Any]:

@@ -393,6 +393,9 @@ class ApiConfig(_Strict):
     image_log_dir: str = ""  # empty: no image log of failed locates
     image_log_max: int = Field(default=50, ge=1)
     metrics_public: bool = False  # true: /metrics answers without a token (for a scraper)
+    # true: POST /api/v1/stop without any token stops too (audited as anonymous@<address>);
+    # an invalid token is still refused. STOP is the safe direction: every token may stop.
+    anonymous_stop: bool = True
 
     @model_validator(mode="before")
     @classmethod

@@ -203,7 +203,7 @@ def stub_permissions(role: str) -> frozenset[str]:
     """The real API's permission table, so the stub authorises exactly as the service does."""
     from api.auth import ALWAYS, PERMISSIONS
 
-    return PERMISSIONS[role] | ALWAYS
+    return PERMISSIONS.get(role, frozenset()) | ALWAYS  # as api.auth.Caller (anonymous: stop)
 
 
 @dataclass
@@ -213,6 +213,7 @@ class Call:
     query: str
     body: Any
     t_s: float
+    authorization: str = ""  # the Authorization header as sent ("" without one)
 
 
 @dataclass
@@ -227,6 +228,9 @@ class RecordingApi:
     jobs: list[dict[str, Any]] = field(default_factory=list)  # GET /jobs
     frame_headers: dict[str, str] = field(default_factory=dict)  # added to frame.jpg
     recipes: list[dict[str, Any]] = field(default_factory=list)  # GET /recipes
+    anonymous_stop: bool = True  # POST /stop without any token is taken, as the service does
+    # tokens POST /stop no longer accepts (as a token revoked between two status polls)
+    stop_refuses: set[str] = field(default_factory=set)
 
     def of(self, path: str) -> list[Call]:
         with self.lock:
@@ -288,10 +292,16 @@ def recording_app(rec: RecordingApi) -> FastAPI:
         raw = await request.body()
         body: Any = json.loads(raw) if raw else None
         with rec.lock:
-            rec.calls.append(Call(request.method, path, request.url.query, body, time.monotonic()))
+            rec.calls.append(Call(request.method, path, request.url.query, body, time.monotonic(),
+                                  request.headers.get("authorization", "")))
         if path == "/api/v1/health":
             return await call_next(request)
-        role = STUB_TOKENS.get(request.headers.get("authorization", "").removeprefix("Bearer "))
+        token = request.headers.get("authorization", "").removeprefix("Bearer ")
+        refused = path == "/api/v1/stop" and token in rec.stop_refuses
+        role = None if refused else STUB_TOKENS.get(token)
+        if role is None and path == "/api/v1/stop" and rec.anonymous_stop \
+                and "authorization" not in request.headers:
+            role = "anonymous"
         if role is None:
             return _error(401, "unauthorized", "unknown token")
         granted = stub_permissions(role) | ({"operator"} if role == "operator" else set())

@@ -113,8 +113,10 @@ async function api(method, path, body, { raw = false, timeoutMs = 5000 } = {}) {
     let data = null;
     try { data = await resp.json(); } catch (e) { /* not JSON: use the fallback words */ }
     const code = data && data.error ? data.error.code : "";
+    const err = new ApiError(wordsFor(resp.status, data), resp.status, code);
+    err.hadToken = !!headers.Authorization;
     if (resp.status === 401 && state.token) logout(wordsFor(401, data));
-    throw new ApiError(wordsFor(resp.status, data), resp.status, code);
+    throw err;
   }
   if (raw) return resp;
   const text = await resp.text();
@@ -246,19 +248,21 @@ const fmt = (v, digits = 1) => {
 const deg = (rad) => (rad * 180) / Math.PI;
 
 // One rotation has many rotation vectors: angle theta about u equals 2 pi - theta about -u,
-// and at exactly pi both u and -u. The page shows one: angle in [0, pi], and at pi (within
-// 1e-6 rad) the axis whose first non-zero component is positive, so the same pose never
-// reads once as rx -127.3 ry -127.3 and once as +127.3 +127.3.
+// and at exactly pi both u and -u. The page shows the one the cell reports
+// (estimator.transforms.canonical_rotvec): angle in [0, pi], except within PI_BAND of pi, where
+// the two readings look alike ("180.0") and the one whose axis has its first non-zero
+// component positive is shown (the same rotation, so its angle may pass pi by up to PI_BAND).
+// The same pose never reads once as rx -127.3 ry -127.3 and once as +127.3 +127.3.
+const PI_BAND = 1e-3;
 function canonicalRotvec(r) {
   let theta = Math.hypot(...r);
   if (!Number.isFinite(theta) || theta < 1e-12) return [0, 0, 0];
   let u = r.map((v) => v / theta);
   theta %= 2 * Math.PI;
   if (theta > Math.PI) { theta = 2 * Math.PI - theta; u = u.map((v) => -v); }
-  if (Math.PI - theta < 1e-6) {
-    theta = Math.PI;
-    const lead = u.find((v) => Math.abs(v) > 1e-9) || 1;
-    if (lead < 0) u = u.map((v) => -v);
+  if (Math.PI - theta <= PI_BAND && (u.find((v) => Math.abs(v) > 1e-6) || 1) < 0) {
+    theta = 2 * Math.PI - theta;
+    u = u.map((v) => -v);
   }
   return u.map((v) => v * theta);
 }
@@ -534,11 +538,28 @@ function releaseJog(reason) {
   if (reason && reason !== "released") say(`Jog stopped: ${reason}.`, "info");
 }
 
+// STOP needs no login: the cell takes a STOP without a token ([api] anonymous_stop, on by
+// default). Logged out the page sends it without one; a token the cell no longer accepts
+// logs the page out (api) and the STOP goes again without it, so STOP never fails for a login.
+async function stopNow(reason) {
+  try {
+    return await api("POST", "/stop", { reason });
+  } catch (e) {
+    if (e.status !== 401) throw e;
+    if (!e.hadToken) {
+      throw new ApiError("STOP without a login is switched off on this cell; log in to stop.",
+        e.status, e.code);
+    }
+    return stopNow(reason); // api() has logged out: this one goes without the token
+  }
+}
+
 function sendStop() {
   // keepalive lets the request finish even while the page is being hidden or closed.
+  const headers = { "Content-Type": "application/json" };
+  if (state.token) headers.Authorization = `Bearer ${state.token}`;
   return fetch(`${API}/stop`, {
-    method: "POST", keepalive: true, cache: "no-store",
-    headers: { Authorization: `Bearer ${state.token}`, "Content-Type": "application/json" },
+    method: "POST", keepalive: true, cache: "no-store", headers,
     body: JSON.stringify({ reason: "operator page: jog released" }),
   }).catch(() => { /* the server-side dead-man stops the arm when we cannot reach it */ });
 }
@@ -588,7 +609,7 @@ function wireCommands() {
   $("stop").addEventListener("click", async () => {
     endJogLocally();
     try {
-      await api("POST", "/stop", { reason: "operator page: STOP button" });
+      await stopNow("operator page: STOP button");
       say("Stopped.", "info");
     } catch (e) {
       say(`STOP could not be sent: ${e.message}`);

@@ -93,13 +93,17 @@ def test_authentication_comes_before_the_body(client: TestClient) -> None:
     assert r.status_code == 401
     r = client.post("/api/v1/jog", json={"mode": "sideways"}, headers=OP)
     assert r.status_code == 422 and code(r) == "invalid_request"
-    # 413 for a large body, after authentication; anonymous ones are never read
+    # 413 for a large body, after authentication; anonymous ones are never read (a STOP
+    # without a token is taken, so its body is capped as every other)
     big = b'{"reason": "' + b"x" * 200_000 + b'"}'
     r = client.post("/api/v1/stop", content=big, headers={**VIEW,
                                                           "Content-Type": "application/json"})
     assert r.status_code == 413 and code(r) == "body_too_large"
-    r = client.post("/api/v1/stop", content=big, headers={"Content-Type": "application/json"})
+    r = client.post("/api/v1/approach", content=big,
+                    headers={"Content-Type": "application/json"})
     assert r.status_code == 401
+    r = client.post("/api/v1/stop", content=big, headers={"Content-Type": "application/json"})
+    assert r.status_code == 413 and code(r) == "body_too_large"
     # 403 for a valid token of the wrong role
     assert client.post("/api/v1/jog", json={"mode": "step"}, headers=VIEW).status_code == 403
     rows = audit(client)

@@ -107,11 +107,61 @@ def test_malformed_stops_get_the_routes_answers(client: TestClient,
     assert spy.answered == 0
 
 
-def test_anonymous_stops_are_refused_by_the_guard(client: TestClient,
-                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+def stops(client: TestClient) -> list[tuple[str, str]]:
+    cell = client.app.state.cell  # type: ignore[attr-defined]
+    return [(e.caller, e.outcome) for e in cell.jobs.audit_log(20) if e.command == "stop"]
+
+
+def test_a_stop_without_a_token_stops_as_anonymous(client: TestClient,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """STOP is the safe direction: with no credential at all it is taken (by the lane, and by
+    the route when the lane passes it on) and audited with the caller's address."""
     spy = Spy(monkeypatch)
     r = client.post("/api/v1/stop", json={"reason": "anon"})
-    assert r.status_code == 401 and spy.answered == 0
+    assert r.status_code == 200 and r.json()["stopped"] is True, r.text
+    assert spy.answered == 1
+    r = client.post("/api/v1/stop?via=route")  # a query: the regular route answers
+    assert r.status_code == 200 and r.json()["stopped"] is True, r.text
+    assert spy.answered == 1
+    # the cell's own page: its Origin is the host it was served from
+    r = client.post("/api/v1/stop", headers={"Origin": "http://testserver"})
+    assert r.status_code == 200, r.text
+    assert stops(client) == [("anonymous@testclient(anonymous)", "ok")] * 3
+
+
+@pytest.mark.parametrize("headers", [
+    {"Authorization": "Bearer wrong"},  # an invalid token stays refused
+    {"Authorization": "Bearer "},
+    {"Authorization": "Basic c2ltOnNpbQ=="},  # another scheme is a credential too
+    {"Origin": "https://elsewhere.example"},  # another site's page, through a browser
+    {"Origin": "null"},
+])
+def test_a_stop_with_a_bad_credential_or_from_another_site_is_refused(
+        client: TestClient, monkeypatch: pytest.MonkeyPatch, headers: dict[str, str]) -> None:
+    spy = Spy(monkeypatch)
+    for path in ("/api/v1/stop", "/api/v1/stop?via=route"):
+        r = client.post(path, json={"reason": "anon"}, headers=headers)
+        assert r.status_code == 401 and code(r) == "unauthorized", r.text
+    assert spy.answered == 0 and stops(client) == []
     cell = client.app.state.cell  # type: ignore[attr-defined]
     assert any(e.caller == "anonymous" and e.outcome == "refused:unauthorized"
                for e in cell.jobs.audit_log(10))
+
+
+def test_a_query_token_is_no_way_around_the_header(client: TestClient) -> None:
+    for token in ("sim-viewer", "wrong"):
+        r = client.post(f"/api/v1/stop?token={token}")
+        assert r.status_code == 401 and code(r) == "unauthorized", r.text
+    assert stops(client) == []
+
+
+def test_stops_without_a_token_can_be_switched_off(tmp_path: Path,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    config = sim_config(tmp_path, api={"anonymous_stop": False})
+    with running_cell(config) as cell, TestClient(create_app(cell)) as c:
+        spy = Spy(monkeypatch)
+        for path in ("/api/v1/stop", "/api/v1/stop?via=route"):
+            r = c.post(path, json={"reason": "anon"})
+            assert r.status_code == 401 and code(r) == "unauthorized", r.text
+        assert spy.answered == 0 and stops(c) == []
+        assert c.post("/api/v1/stop", headers=AUTH["viewer"]).status_code == 200

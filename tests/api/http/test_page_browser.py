@@ -71,6 +71,8 @@ def rec(stub: tuple[str, RecordingApi]) -> RecordingApi:
     r.jobs.clear()
     r.frame_headers.clear()
     r.recipes.clear()
+    r.anonymous_stop = True
+    r.stop_refuses.clear()
     return r
 
 
@@ -374,6 +376,39 @@ def test_stop_works_for_every_role(
     wait_until(lambda: "Stopped" in page.get_by_test_id("message").inner_text(), what="ack")
 
 
+def test_stop_works_without_a_login(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    """Logged out, STOP goes without a token (the cell takes it as the anonymous caller)."""
+    url, _ = stub
+    page.goto(url + "/")
+    page.get_by_test_id("token").wait_for()
+    assert page.get_by_test_id("stop").is_enabled()
+    page.get_by_test_id("stop").click()
+    wait_until(lambda: "Stopped" in page.get_by_test_id("message").inner_text(), what="ack")
+    stops = rec.of("/api/v1/stop")
+    assert len(stops) == 1 and stops[0].authorization == "", stops
+    assert stops[0].body == {"reason": "operator page: STOP button"}
+    # a cell that does not take a STOP without a token says so in words
+    rec.anonymous_stop = False
+    page.get_by_test_id("stop").click()
+    wait_until(lambda: "STOP without a login is switched off"
+               in page.get_by_test_id("message").inner_text(), what="refusal in words")
+
+
+def test_stop_with_a_token_no_longer_accepted_goes_again_without_it(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    url, _ = stub
+    login(page, url, "tok-operator")
+    rec.stop_refuses.add("tok-operator")  # revoked since the last status poll
+    page.get_by_test_id("stop").click()
+    wait_until(lambda: "Stopped" in page.get_by_test_id("message").inner_text(), what="ack")
+    sent = [c.authorization for c in rec.of("/api/v1/stop")]
+    assert sent == ["Bearer tok-operator", ""], sent
+    assert page.get_by_test_id("token").is_visible()  # logged out
+
+
 def test_tablet_portrait_keeps_stop_in_view(
     page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
 ) -> None:
@@ -387,6 +422,79 @@ def test_tablet_portrait_keeps_stop_in_view(
         box = page.get_by_test_id(testid).bounding_box()
         assert box is not None and box["height"] >= 48 and box["width"] >= 48
     screenshot(page, "operator-page-tablet")
+
+
+PHONE = {"width": 390, "height": 844}
+
+
+def _overlap(a: dict[str, float], b: dict[str, float]) -> bool:
+    return (a["x"] < b["x"] + b["width"] and b["x"] < a["x"] + a["width"]
+            and a["y"] < b["y"] + b["height"] and b["y"] < a["y"] + a["height"])
+
+
+def test_phone_stop_covers_no_control_and_the_job_history_is_readable(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    """On a phone the pinned STOP sits below every control however far the page is scrolled
+    (a control scrolled to is above it), and the job history's caller column can be read in
+    the viewport as it is, a long caller wrapped in its cell."""
+    url, _ = stub
+    callers = ["line-2-packaging-plc(plc)", "anonymous@192.168.100.23(anonymous)",
+               "operator(operator)"]
+    rec.jobs[:] = [{"id": f"{i:08x}", "kind": "approach", "state": "cancelled",
+                    "created_at": time.time() - i, "caller": caller, "params": {},
+                    "result": None, "error": {"code": "cancelled", "message": "stopped by "
+                                              "anonymous@192.168.100.23(anonymous)"}}
+                   for i, caller in enumerate(callers)]
+    page.set_viewport_size(PHONE)
+    login(page, url, "tok-operator")
+    wait_until(lambda: "line-2-packaging-plc" in page.get_by_test_id("history").inner_text(),
+               what="job history")
+    stop = page.get_by_test_id("stop")
+    controls = page.locator(".layout button:visible, .layout input:visible, "
+                            ".layout select:visible, .layout textarea:visible")
+    n = controls.count()
+    assert n > 20
+    for i in range(n):
+        control = controls.nth(i)
+        if control.get_attribute("data-testid") == "stop":
+            continue
+        control.evaluate("e => e.scrollIntoView({block: 'end'})")  # as far down as it goes
+        box, bar = control.bounding_box(), stop.bounding_box()
+        assert box is not None and bar is not None
+        assert bar["y"] + bar["height"] <= PHONE["height"]
+        assert not _overlap(box, bar), (control.get_attribute("data-testid"), box, bar)
+    page.evaluate("window.scrollTo(0, document.documentElement.scrollHeight)")
+    bar = stop.bounding_box()
+    assert bar is not None
+    for i in range(n):
+        box = controls.nth(i).bounding_box()
+        if controls.nth(i).get_attribute("data-testid") != "stop" and box is not None:
+            assert not _overlap(box, bar), (controls.nth(i).get_attribute("data-testid"), box)
+    # nothing makes the page wider than the phone
+    assert page.evaluate("document.documentElement.scrollWidth") <= PHONE["width"]
+    # the caller column is read as it is: within the viewport, without scrolling the panel
+    # sideways (a long caller wraps in its cell)
+    panel = page.locator(".history-panel")
+    panel.scroll_into_view_if_needed()
+    pbox = panel.bounding_box()
+    assert pbox is not None and pbox["x"] >= 0 and pbox["x"] + pbox["width"] <= PHONE["width"]
+    assert panel.evaluate("e => e.scrollLeft") == 0
+    cells = page.locator("[data-testid=history] tr td:nth-child(4)")
+    assert cells.count() == 3
+    for i, caller in enumerate(callers):
+        cell = cells.nth(i)
+        assert " ".join(cell.inner_text().split()).replace(" ", "") == caller
+        box = cell.bounding_box()
+        assert box is not None and box["width"] >= 40, box
+        assert box["x"] >= pbox["x"] and box["x"] + box["width"] <= pbox["x"] + pbox["width"] \
+            and box["x"] + box["width"] <= PHONE["width"], (caller, box, pbox)
+        # the caller's words are all in the cell, never cut off at its edge
+        assert cell.evaluate("e => e.scrollWidth <= e.clientWidth + 1"), box
+    panel.evaluate("e => e.scrollLeft = 0")
+    shot = screenshot(page, "operator-page-phone")
+    page.evaluate("window.scrollTo(0, document.documentElement.scrollHeight)")
+    page.screenshot(path=str(shot.with_name("operator-page-phone-bottom.png")))
 
 
 def test_a_new_attempt_clears_the_earlier_error_line(
@@ -494,14 +602,17 @@ def test_tcp_rotation_is_one_canonical_rotation_vector(
     page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
 ) -> None:
     """The same pose at angle pi, reported with either axis sign, and the same rotation past
-    pi, all read the same: angle in [0, pi], at pi the first non-zero axis component > 0."""
+    pi, all read the same: angle in [0, pi], at and within 1e-3 rad of pi the first non-zero
+    axis component > 0 (as the cell reports, estimator.transforms.canonical_rotvec)."""
     url, r = stub
     s = np.sqrt(0.5)
     login(page, url, "tok-operator")
     shown = []
     past_pi = np.pi + 5e-7  # a hair past pi about -u: pi - 5e-7 about +u
+    short = np.pi - 5e-4  # 179.97 deg about -u: reads 180.03 about +u, never -127.3 -127.3
     for rotvec in ([-np.pi * s, -np.pi * s, 0.0], [np.pi * s, np.pi * s, 0.0],
-                   [-past_pi * s, -past_pi * s, 0.0]):
+                   [-past_pi * s, -past_pi * s, 0.0], [-short * s, -short * s, 0.0],
+                   [short * s, short * s, 0.0]):
         r.robot_extra["T_base_tcp"] = {"position_mm": [1.0, 2.0, 3.0],
                                        "rotvec_rad": [float(v) for v in rotvec]}
         time.sleep(0.8)  # a few status rounds
