@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 
 from api.auth import ALWAYS, PERMISSIONS
 from api.status import STATUS
+from cell.actions.approach import JobLayout
 from cell.actions.approach_rules import check_speed, check_standoff
 from cell.actions.ibvs import Features
 from cell.error_codes import ErrorCode
@@ -231,6 +232,21 @@ def prepare_recipe(cell: Cell, ref: str | int, target: str = "",
     recipe, chosen = find_recipe(cell, ref, target, version)
     cell.core.locator.use_target(chosen.model())
     return recipe, chosen
+
+
+@contextmanager
+def recipe_selected(cell: Cell, ref: str | int, target: Any = "") -> Iterator[
+        tuple[Recipe, RecipeTarget]]:
+    """:func:`prepare_recipe` for what the block does with it (a locate, a program's goal),
+    undone when the block is refused: the locator's layout and last locate as they were."""
+    recipe, chosen = find_recipe(cell, ref, target)
+    lent = JobLayout(cell.core, chosen.model())
+    lent.apply()
+    try:
+        yield recipe, chosen
+    except BaseException:
+        lent.refused()
+        raise
 
 
 def approach_recipe(cell: Cell, caller: RemoteCaller, ref: Any, target: Any = "",
