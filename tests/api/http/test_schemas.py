@@ -94,3 +94,7 @@ def test_the_schema_still_says_number_and_boolean(served: tuple[Cell, TestClient
         for s in props["standoff_mm"]["anyOf"]]
     step = schemas["JogStep"]["properties"]["translation_mm"]
     assert [item["type"] for item in step["prefixItems"]] == ["number"] * 3
+    # a recipe's bounds are the ones it is checked against when saved
+    target = schemas["RecipeTarget"]["properties"]
+    assert (target["speed_mm_s"]["minimum"], target["speed_mm_s"]["maximum"]) == (1.0, 250.0)
+    assert target["standoff_mm"]["maximum"] == 500.0
