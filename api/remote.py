@@ -25,6 +25,8 @@ from numpy.typing import NDArray
 
 from api.auth import ALWAYS, PERMISSIONS
 from api.status import STATUS
+from cell.actions.approach import JobLayout
+from cell.actions.approach_rules import check_speed, check_standoff
 from cell.actions.ibvs import Features
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, ForbiddenError, LimitError, NotFoundError
@@ -109,6 +111,17 @@ def finite(name: str, value: Any, *, minimum: float | None = None) -> float:
     return float(value)
 
 
+def text(name: str, value: Any) -> str:
+    """A string argument (None: empty), or ``invalid_request``: a number or a flag where a
+    name is expected is refused, not turned into one."""
+    if value is None:
+        return ""
+    if not isinstance(value, str):
+        raise LimitError(ErrorCode.invalid_request,
+                         f"{name} must be a string, got {type(value).__name__} {value!r}")
+    return value
+
+
 # -- poses ------------------------------------------------------------------------------------
 def pose_mm_rad(T_base: Matrix4) -> tuple[list[float], list[float]]:
     """(position_mm, rotvec_rad) of a pose, the project's JSON form."""
@@ -128,15 +141,16 @@ def locate(cell: Cell, caller: RemoteCaller) -> Located:
     return cell.locate(caller.label)
 
 
-def approach(cell: Cell, caller: RemoteCaller, standoff_mm: Any, mode: str,
-             taught: str = "") -> Job:
+def approach(cell: Cell, caller: RemoteCaller, standoff_mm: Any, mode: Any,
+             taught: Any = "") -> Job:
     """An approach job (not waited for). ``mode`` "" is the cell's default; ``taught`` (may
     be empty) names a taught pose, whose view an ``ibvs`` approach converges on."""
     params = {"standoff_mm": standoff_mm, "mode": mode, "taught": taught}
     require(cell, caller, "approach", "approach", params)
-    mode = mode or cell.config.approach.mode  # "" is the cell's default
     try:
-        standoff = finite("standoff_mm", standoff_mm, minimum=0.0)
+        mode = text("mode", mode) or cell.config.approach.mode  # "" is the cell's default
+        taught = text("taught", taught)
+        standoff = check_standoff(finite("standoff_mm", standoff_mm, minimum=0.0))
         if mode not in APPROACH_MODES:
             raise LimitError(ErrorCode.invalid_request,
                              f"mode must be one of {', '.join(APPROACH_MODES)}"
@@ -183,11 +197,13 @@ _STORES_LOCK = threading.Lock()
 
 
 def recipe_store(cell: Cell) -> RecipeStore:
-    """The one recipe store of a cell (beside its job database), shared by every interface."""
+    """The one recipe store of a cell (beside its job database), shared by every interface;
+    it refuses to save a recipe the cell's limits would refuse to run."""
     with _STORES_LOCK:
         store = _STORES.get(cell)
         if store is None:
-            store = _STORES[cell] = RecipeStore.beside_job_db(cell.config.api.job_db)
+            store = _STORES[cell] = RecipeStore.beside_job_db(cell.config.api.job_db,
+                                                              cell.config.limits)
         return store
 
 
@@ -201,43 +217,74 @@ def recipe_ref(value: Any) -> str | int:
     return value
 
 
+def find_recipe(cell: Cell, ref: str | int, target: Any = "",
+                version: int | None = None) -> tuple[Recipe, RecipeTarget]:
+    """The recipe and its target (``""``: the first); nothing is changed."""
+    recipe = recipe_store(cell).get(ref, version)
+    return recipe, recipe.target(text("target", target))
+
+
 def prepare_recipe(cell: Cell, ref: str | int, target: str = "",
                    version: int | None = None) -> tuple[Recipe, RecipeTarget]:
-    """The recipe's target, its dot layout now the one the locator looks for."""
-    recipe = recipe_store(cell).get(ref, version)
-    chosen = recipe.target(target)
+    """The recipe's target, its dot layout now the one the locator looks for (a recipe
+    selected for what follows: Machine Vision's PrepareRecipe, a Modbus locate with a recipe).
+    A job with a recipe does not need this: it looks for the layout while it runs only."""
+    recipe, chosen = find_recipe(cell, ref, target, version)
     cell.core.locator.use_target(chosen.model())
     return recipe, chosen
 
 
-def approach_recipe(cell: Cell, caller: RemoteCaller, ref: Any, target: str = "",
-                    standoff_mm: Any = None) -> Job:
-    """An approach job with a recipe's target: its layout, taught pose, standoff (unless one
-    is given), mode and speed; the job records the recipe, its version and the target."""
+@contextmanager
+def recipe_selected(cell: Cell, ref: str | int, target: Any = "") -> Iterator[
+        tuple[Recipe, RecipeTarget]]:
+    """:func:`prepare_recipe` for what the block does with it (a locate, a program's goal),
+    undone when the block is refused: the locator's layout and last locate as they were."""
+    recipe, chosen = find_recipe(cell, ref, target)
+    lent = JobLayout(cell.core, chosen.model())
+    lent.apply()
+    try:
+        yield recipe, chosen
+    except BaseException:
+        lent.refused()
+        raise
+
+
+def approach_recipe(cell: Cell, caller: RemoteCaller, ref: Any, target: Any = "",
+                    standoff_mm: Any = None, *, speed_mm_s: Any = None,
+                    use_last_locate: bool = False, wait: bool = False) -> Job:
+    """An approach job with a recipe's target: its layout, taught pose, standoff and speed
+    (unless given: by the same rules as a plain approach), and mode; the job records the
+    recipe, its version and the target. The layout is looked for during the job only; a
+    refusal changes nothing."""
     params = {"recipe": ref, "target": target, "standoff_mm": standoff_mm}
+    if speed_mm_s is not None:
+        params["speed_mm_s"] = speed_mm_s
     require(cell, caller, "approach", "approach", params)
     try:
-        recipe, chosen = prepare_recipe(cell, recipe_ref(ref), target)
+        recipe, chosen = find_recipe(cell, recipe_ref(ref), target)
         standoff = chosen.standoff_mm if standoff_mm is None \
-            else finite("standoff_mm", standoff_mm, minimum=0.0)
+            else check_standoff(finite("standoff_mm", standoff_mm, minimum=0.0))
+        speed = chosen.speed_mm_s if speed_mm_s is None \
+            else check_speed(cell.config.limits, finite("speed_mm_s", speed_mm_s))
         T_target_tcp = taught_T_target_tcp(cell, chosen.taught) if chosen.taught else None
     except CellError:
         with audited(cell, caller, "approach", params):
             raise
-    return cell.approach(caller.label, standoff_mm=standoff, speed_mm_s=chosen.speed_mm_s,
+    return cell.approach(caller.label, standoff_mm=standoff, speed_mm_s=speed,
                          T_target_tcp=T_target_tcp, mode=chosen.mode,
-                         recipe=recipe.record(chosen))
+                         use_last_locate=use_last_locate, wait=wait,
+                         recipe=recipe.record(chosen), layout=chosen.model())
 
 
-def track_recipe(cell: Cell, caller: RemoteCaller, ref: Any, target: str = "",
+def track_recipe(cell: Cell, caller: RemoteCaller, ref: Any, target: Any = "",
                  duration_s: float | None = None) -> Job:
     """A track job with a recipe's target: its layout, taught pose and standoff, for
     ``duration_s`` (None: ``[servo] max_track_s``, i.e. until stopped); the job records the
-    recipe, its version and the target."""
+    recipe, its version and the target. The layout is looked for during the job only."""
     params = {"recipe": ref, "target": target, "duration_s": duration_s}
     require(cell, caller, "approach", "track", params)
     try:
-        recipe, chosen = prepare_recipe(cell, recipe_ref(ref), target)
+        recipe, chosen = find_recipe(cell, recipe_ref(ref), target)
         duration = cell.config.servo.max_track_s if duration_s is None \
             else finite("duration_s", duration_s, minimum=0.0)
         T_target_tcp = taught_T_target_tcp(cell, chosen.taught) if chosen.taught else None
@@ -245,7 +292,8 @@ def track_recipe(cell: Cell, caller: RemoteCaller, ref: Any, target: str = "",
         with audited(cell, caller, "track", params):
             raise
     return cell.track(caller.label, standoff_mm=chosen.standoff_mm, duration_s=duration,
-                      T_target_tcp=T_target_tcp, recipe=recipe.record(chosen))
+                      T_target_tcp=T_target_tcp, recipe=recipe.record(chosen),
+                      layout=chosen.model())
 
 
 def track(cell: Cell, caller: RemoteCaller, standoff_mm: Any, duration_s: Any) -> Job:
@@ -274,16 +322,17 @@ def home(cell: Cell, caller: RemoteCaller) -> Job:
     return cell.home(caller.label)
 
 
-def gripper(cell: Cell, caller: RemoteCaller, action: str, width_mm: Any) -> dict[str, Any]:
+def gripper(cell: Cell, caller: RemoteCaller, action: Any, width_mm: Any) -> dict[str, Any]:
     params = {"action": action, "width_mm": width_mm}
     require(cell, caller, "gripper", "gripper", params)
     position = None
-    if action == "move":
-        try:
+    try:
+        action = text("action", action)
+        if action == "move":
             position = finite("width_mm", width_mm, minimum=0.0)
-        except CellError:
-            with audited(cell, caller, "gripper", params):
-                raise
+    except CellError:
+        with audited(cell, caller, "gripper", params):
+            raise
     return cell.gripper(caller.label, action, position_mm=position)
 
 

@@ -51,7 +51,7 @@ from cell.vision.locate import Located, Locator
 from drivers.arm import ArmState, JogFrame
 from drivers.camera import Frame
 from drivers.errors import DriverError
-from estimator import PoseResult
+from estimator import PoseResult, Target
 from estimator.transforms import pose_from_T
 
 log = logging.getLogger(__name__)
@@ -180,21 +180,23 @@ class Cell:
                  use_last_locate: bool = False, wait: bool = False,
                  wait_timeout_s: float = 120.0,
                  mode: Literal["servo", "look_and_move", "ibvs"] | None = None,
-                 recipe: dict[str, Any] | None = None, view: Features | None = None) -> Job:
+                 recipe: dict[str, Any] | None = None, view: Features | None = None,
+                 layout: Target | None = None) -> Job:
         """Approach job; ``mode`` None: ``[approach] mode`` (see cell.actions.approach); ``recipe``:
-        the recipe record the job keeps; ``view``: the taught view (mode ``ibvs``)."""
+        the recipe record the job keeps; ``view``: the taught view (mode ``ibvs``); ``layout``:
+        the dot layout looked for during this job only (a recipe's target)."""
         return approach_mod.start_approach(
             self.core, caller, standoff_mm=standoff_mm, speed_mm_s=speed_mm_s,
             T_target_tcp=T_target_tcp, use_last_locate=use_last_locate, wait=wait,
-            wait_timeout_s=wait_timeout_s, mode=mode, recipe=recipe, view=view)
+            wait_timeout_s=wait_timeout_s, mode=mode, recipe=recipe, view=view, layout=layout)
 
     def track(self, caller: str, *, standoff_mm: float, T_target_tcp: Matrix4 | None = None,
               duration_s: float, wait: bool = False, wait_timeout_s: float = 120.0,
               mode: Literal["servo", "ibvs"] = "servo", view: Features | None = None,
-              recipe: dict[str, Any] | None = None) -> Job:
+              recipe: dict[str, Any] | None = None, layout: Target | None = None) -> Job:
         """Track job: hold the TCP at the standoff pose on a moving target (cell.actions.track),
         or the taught view (``mode="ibvs"``, cell.actions.ibvs_track); ``recipe``: the recipe
-        record the job keeps."""
+        record the job keeps; ``layout``: the dot layout looked for during this job only."""
         if mode == "ibvs":
             return start_ibvs_track(self.core, caller, standoff_mm=standoff_mm,
                                     duration_s=duration_s, T_target_tcp=T_target_tcp,
@@ -205,7 +207,7 @@ class Cell:
                              f"{mode!r}")
         return track.start_track(self.core, caller, standoff_mm=standoff_mm,
                                  duration_s=duration_s, T_target_tcp=T_target_tcp, wait=wait,
-                                 wait_timeout_s=wait_timeout_s, recipe=recipe)
+                                 wait_timeout_s=wait_timeout_s, recipe=recipe, layout=layout)
 
     def jog_step(self, caller: str, *, frame: JogFrame, translation_mm: Any,
                  rotation_deg: Any, speed_mm_s: float | None = None) -> Matrix4:

@@ -13,6 +13,7 @@ from typing import Any
 
 from fastapi import FastAPI
 
+from cell.actions.approach_rules import MAX_STANDOFF_MM
 from cell.config.schema import LimitsConfig
 
 # (schema, property) -> (minimum, maximum) from the limits
@@ -21,6 +22,11 @@ FIELDS: dict[tuple[str, str], Bounds] = {
     ("ApproachRequest", "speed_mm_s"): lambda lim: (lim.min_speed_mm_s, lim.max_speed_mm_s),
     ("JogStep", "speed_mm_s"): lambda lim: (lim.min_speed_mm_s, lim.max_jog_speed_mm_s),
     ("HomeRequest", "speed_deg_s"): lambda lim: (0.1, lim.max_joint_speed_deg_s),
+    ("RecipeApproachRequest", "speed_mm_s"): lambda lim: (lim.min_speed_mm_s,
+                                                          lim.max_speed_mm_s),
+    # what a recipe is checked against when saved (cell.actions.approach_rules)
+    ("RecipeTarget", "speed_mm_s"): lambda lim: (lim.min_speed_mm_s, lim.max_speed_mm_s),
+    ("RecipeTarget", "standoff_mm"): lambda lim: (0.0, MAX_STANDOFF_MM),
 }
 
 

@@ -2,17 +2,26 @@
 
 Bounds here are the first line of refusals: a malformed or absurd body is a 422 before the
 cell sees it. The cell's own safety checks still run on everything that passes.
+
+Parsing is strict wherever a request can move something: a number is a JSON number (an integer
+is fine where a float is expected) and a flag is a JSON boolean. ``"10"`` for a number, ``true``
+for a number or ``1``/``"yes"`` for a flag are refused (422 naming the field), never coerced.
 """
 
 from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, Strict, StrictBool, model_validator
 
+from cell.actions.approach_rules import MAX_STANDOFF_MM
 from cell.error_codes import ErrorCode
 
-Finite = Annotated[float, Field(allow_inf_nan=False)]
+# Strict scalars of request bodies: no strings, no booleans as numbers, no numbers as booleans.
+Num = Annotated[float, Strict(), Field(allow_inf_nan=False)]
+Int = Annotated[int, Strict()]
+Flag = StrictBool
+Finite = Num
 Vec3 = tuple[Finite, Finite, Finite]
 
 
@@ -24,11 +33,11 @@ class Pose(_Body):
     """``{"position_mm": [x, y, z], "rotvec_rad": [rx, ry, rz]}``, the project's pose object."""
 
     position_mm: tuple[
-        Annotated[float, Field(ge=-1e5, le=1e5)], Annotated[float, Field(ge=-1e5, le=1e5)],
-        Annotated[float, Field(ge=-1e5, le=1e5)]]
+        Annotated[Num, Field(ge=-1e5, le=1e5)], Annotated[Num, Field(ge=-1e5, le=1e5)],
+        Annotated[Num, Field(ge=-1e5, le=1e5)]]
     rotvec_rad: tuple[
-        Annotated[float, Field(ge=-10, le=10)], Annotated[float, Field(ge=-10, le=10)],
-        Annotated[float, Field(ge=-10, le=10)]]
+        Annotated[Num, Field(ge=-10, le=10)], Annotated[Num, Field(ge=-10, le=10)],
+        Annotated[Num, Field(ge=-10, le=10)]]
 
 
 class ErrorDetail(BaseModel):
@@ -46,18 +55,18 @@ class ErrorResponse(BaseModel):
 
 
 class LocateRequest(_Body):
-    n_frames: int = Field(default=1, ge=1, le=10, description="frames averaged")
+    n_frames: Int = Field(default=1, ge=1, le=10, description="frames averaged")
 
 
 class ApproachRequest(_Body):
-    standoff_mm: float | None = Field(default=None, ge=0, le=500)
-    speed_mm_s: float | None = Field(default=None, gt=0, le=2000)
+    standoff_mm: Num | None = Field(default=None, ge=0, le=MAX_STANDOFF_MM)
+    speed_mm_s: Num | None = Field(default=None, gt=0, le=2000)
     T_target_tcp: Pose | None = Field(
         default=None, description="tool pose in the target frame; default from config")
     taught: str | None = Field(
         default=None, min_length=1, max_length=64,
         description="use the T_target_tcp taught under this name (POST /teach) instead")
-    use_last_locate: bool = Field(
+    use_last_locate: Flag = Field(
         default=False, description="start from the last /locate result instead of locating "
         "again (refused when older than limits.max_pose_age_s)")
     mode: Literal["servo", "look_and_move", "ibvs"] | None = Field(
@@ -65,7 +74,7 @@ class ApproachRequest(_Body):
         "look_and_move: stop, locate, correct; ibvs: closed loop on the image features of "
         "the view taught under `taught` (image-based; needs `taught`, no standoff); "
         "default: the config's [approach] mode")
-    wait: bool = Field(default=False, description=(
+    wait: Flag = Field(default=False, description=(
         "false (default): answer 200 at once with the running job; follow it with GET "
         "/jobs/{id} or /events. true: answer 200 when the job has ended, whatever its end "
         "state: a failed or cancelled approach is still 200, with state 'failed' or "
@@ -75,8 +84,8 @@ class ApproachRequest(_Body):
 
 
 class TrackRequest(_Body):
-    standoff_mm: float = Field(ge=0, le=500)
-    duration_s: float = Field(gt=0, le=86400, description="capped by [servo] max_track_s")
+    standoff_mm: Num = Field(ge=0, le=MAX_STANDOFF_MM)
+    duration_s: Num = Field(gt=0, le=86400, description="capped by [servo] max_track_s")
     T_target_tcp: Pose | None = Field(
         default=None, description="tool pose in the target frame; default from config")
     taught: str | None = Field(default=None, min_length=1, max_length=64,
@@ -84,11 +93,11 @@ class TrackRequest(_Body):
     mode: Literal["servo", "ibvs"] = Field(
         default="servo", description="servo: hold the pose (pose-based); ibvs: hold the view "
         "taught under `taught` (image-based; standoff_mm must be 0)")
-    wait: bool = False
+    wait: Flag = False
 
 
-_Vel = Annotated[float, Field(ge=-1000, le=1000)]
-_AngVel = Annotated[float, Field(ge=-360, le=360)]
+_Vel = Annotated[Num, Field(ge=-1000, le=1000)]
+_AngVel = Annotated[Num, Field(ge=-360, le=360)]
 
 
 class SimTargetRequest(Pose):
@@ -98,8 +107,8 @@ class SimTargetRequest(Pose):
     angular_velocity_deg_s: tuple[_AngVel, _AngVel, _AngVel] | None = None
 
 
-_Lin = Annotated[float, Field(ge=-1000, le=1000)]
-_Ang = Annotated[float, Field(ge=-360, le=360)]
+_Lin = Annotated[Num, Field(ge=-1000, le=1000)]
+_Ang = Annotated[Num, Field(ge=-360, le=360)]
 
 
 class JogStep(_Body):
@@ -107,7 +116,7 @@ class JogStep(_Body):
     frame: Literal["base", "tool"] = "base"
     translation_mm: tuple[_Lin, _Lin, _Lin] = (0.0, 0.0, 0.0)
     rotation_deg: tuple[_Ang, _Ang, _Ang] = (0.0, 0.0, 0.0)
-    speed_mm_s: float | None = Field(default=None, gt=0, le=2000)
+    speed_mm_s: Num | None = Field(default=None, gt=0, le=2000)
 
 
 class JogContinuous(_Body):
@@ -122,10 +131,10 @@ JogRequest = Annotated[JogStep | JogContinuous, Field(discriminator="mode")]
 
 class GripperRequest(_Body):
     action: Literal["open", "close", "move", "activate"]
-    position_mm: float | None = Field(default=None, ge=0, le=85)
-    speed_pct: float = Field(default=100.0, ge=0, le=100)
-    force_pct: float = Field(default=50.0, ge=0, le=100)
-    wait: bool = True
+    position_mm: Num | None = Field(default=None, ge=0, le=85)
+    speed_pct: Num = Field(default=100.0, ge=0, le=100)
+    force_pct: Num = Field(default=50.0, ge=0, le=100)
+    wait: Flag = True
 
     @model_validator(mode="after")
     def _position_for_move(self) -> GripperRequest:
@@ -455,9 +464,9 @@ class CameraSettingsRequest(_Body):
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"exposure_us": 8000, "iso": 200}]})
-    exposure_us: int | None = Field(default=None, ge=1, le=1_000_000)
-    iso: int | None = Field(default=None, ge=1, le=100_000)
-    focus: Annotated[int, Field(ge=0, le=255)] | Literal["auto"] | None = None
+    exposure_us: Int | None = Field(default=None, ge=1, le=1_000_000)
+    iso: Int | None = Field(default=None, ge=1, le=100_000)
+    focus: Annotated[Int, Field(ge=0, le=255)] | Literal["auto"] | None = None
 
 
 class ImageEntry(_Out):

@@ -381,8 +381,10 @@ class ModbusServer(LoopThread):
         if command == Command.LOCATE:
             if recipe:
                 remote.require(self.cell, self.caller, "locate", "locate", {"recipe": recipe})
-                remote.prepare_recipe(self.cell, recipe)
-            loc = remote.locate(self.cell, self.caller)
+                with remote.recipe_selected(self.cell, recipe):
+                    loc = remote.locate(self.cell, self.caller)
+            else:
+                loc = remote.locate(self.cell, self.caller)
             return _Outcome(True, pose=self._pose(loc.T_base_target))
         if command == Command.APPROACH:
             if not math.isfinite(standoff) or standoff < 0:

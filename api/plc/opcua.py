@@ -576,7 +576,7 @@ class OpcUaServer(LoopThread):
         standoff_mm, mode, taught = self.method_args(args, 3)
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
-            job = remote.approach(self.cell, caller, standoff_mm, mode or "", taught or "")
+            job = remote.approach(self.cell, caller, standoff_mm, mode, taught)
             return self._job_answer(job.id, job.state)
 
         return await self._job_call(work)
@@ -587,7 +587,7 @@ class OpcUaServer(LoopThread):
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             standoff = None if isinstance(standoff_mm, float) and standoff_mm < 0 \
                 else standoff_mm
-            job = remote.approach_recipe(self.cell, caller, recipe, str(target or ""), standoff)
+            job = remote.approach_recipe(self.cell, caller, recipe, target, standoff)
             return self._job_answer(job.id, job.state)
 
         return await self._job_call(work)
@@ -629,7 +629,7 @@ class OpcUaServer(LoopThread):
         action, width_mm = self.method_args(args, 2)
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
-            st = remote.gripper(self.cell, caller, str(action or ""), width_mm)
+            st = remote.gripper(self.cell, caller, action, width_mm)
             return self._ok(json.dumps(st, default=str))
 
         return await self._answer(work, [])

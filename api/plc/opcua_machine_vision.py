@@ -399,7 +399,7 @@ class MachineVision:
                                     {"name": external_id})
             if external_id == self.prepared:
                 raise RefusedError(ErrorCode.recipe_prepared, "UnprepareRecipe first")
-            remote.recipe_store(self.opc.cell).delete(str(external_id or ""))
+            remote.recipe_store(self.opc.cell).delete(remote.text("ExternalId", external_id))
             return []
 
         return await self._call(work, [])

@@ -80,11 +80,11 @@ class _Methods:
     def _recipe_goal(self, caller: RemoteCaller, recipe: str | int,
                      standoff_mm: float) -> NDArray[np.float64]:
         remote.require(self.cell, caller, "locate", "recipe_pose", {"recipe": recipe})
-        _, target = remote.prepare_recipe(self.cell, remote.recipe_ref(recipe))
-        standoff = target.standoff_mm if isinstance(standoff_mm, int | float) \
-            and not isinstance(standoff_mm, bool) and standoff_mm < 0 else standoff_mm
-        goal, _ = remote.tcp_goal(self.cell, caller, "recipe_pose", standoff_mm=standoff,
-                                  taught=target.taught or None)
+        with remote.recipe_selected(self.cell, remote.recipe_ref(recipe)) as (_, target):
+            standoff = target.standoff_mm if isinstance(standoff_mm, int | float) \
+                and not isinstance(standoff_mm, bool) and standoff_mm < 0 else standoff_mm
+            goal, _ = remote.tcp_goal(self.cell, caller, "recipe_pose", standoff_mm=standoff,
+                                      taught=target.taught or None)
         return goal
 
     def try_locate(self, caller: RemoteCaller) -> list[float]:

@@ -9,6 +9,10 @@ again from frames exposed after it stopped, and repeats until the correction is 
 tolerance or the cycle limit; every cycle's correction and the final estimated error are in
 the job's result. Every goal is checked before the job starts, so a refusal moves nothing.
 
+A job with a recipe's dot layout (``layout``) has the locator look for that layout while the
+job runs (its checks included) and brings the previous layout back when it ends; a refusal
+leaves the locator exactly as it was (:class:`JobLayout`).
+
 The estimated error goes through the calibration it relies on, so the result also says how it
 was estimated (``estimated_error_basis``) and whether the evidence agrees with itself
 (``consistency``, :mod:`cell.vision.consistency`): look-and-move locates the target from two
@@ -19,6 +23,7 @@ means the hand-eye calibration or the intrinsics are off.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -26,6 +31,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from cell.actions.approach_rules import check_standoff
 from cell.actions.ibvs import Features
 from cell.actions.ibvs_mount import IbvsMount
 from cell.actions.ibvs_run import IbvsRun
@@ -38,6 +44,7 @@ from cell.motion.guard import Motion
 from cell.vision.consistency import consistency
 from cell.vision.frames import approach_tcp, observation_camera
 from cell.vision.locate import Located
+from estimator import Target
 from estimator.transforms import invert_T, pose_dict, pose_distance
 
 log = logging.getLogger(__name__)
@@ -50,6 +57,45 @@ class ApproachPlan:
     speed_mm_s: float
     accel_mm_s2: float
     T_target_tcp: Matrix4
+
+
+class JobLayout:
+    """A dot layout lent to the locator for one job: :meth:`apply` when the job's checks
+    begin, :meth:`refused` when they refuse (the locator's layout and last locate as they
+    were), :meth:`ended` when the job ends (the previous layout back; the last locate, of the
+    lent layout, dropped). ``target`` None: the locator's own layout, nothing to do."""
+
+    def __init__(self, core: CellCore, target: Target | None) -> None:
+        self._core = core
+        self._target = target
+        self._lock = threading.Lock()
+        self._lent: tuple[Target, Located | None] | None = None  # what to bring back
+
+    def apply(self) -> None:
+        if self._target is None:
+            return
+        locator = self._core.locator
+        with self._lock:
+            previous = (locator.target, locator.last)
+            if locator.use_target(self._target):
+                self._lent = previous
+
+    def refused(self) -> None:
+        self._give_back(keep_last=True)
+
+    def ended(self) -> None:
+        self._give_back(keep_last=False)
+
+    def _give_back(self, *, keep_last: bool) -> None:
+        with self._lock:
+            lent, self._lent = self._lent, None
+        if lent is None:
+            return
+        target, last = lent
+        locator = self._core.locator
+        locator.use_target(target)
+        if keep_last:
+            locator.last = last
 
 
 def observation_tcp(core: CellCore, T_base_target: Matrix4, T_target_tcp: Matrix4) -> Matrix4:
@@ -73,10 +119,11 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
                    wait_timeout_s: float = 120.0,
                    mode: Literal["servo", "look_and_move", "ibvs"] | None = None,
                    recipe: dict[str, Any] | None = None, view: Features | None = None,
-                   ) -> Job:
+                   layout: Target | None = None) -> Job:
     """Start an approach job (``mode`` default: ``[approach] mode``); with ``wait`` return
     when it has ended. ``recipe``: the recipe record the job keeps (cell.features.recipes).
-    ``view``: the taught image features an ``ibvs`` approach converges on (required for it)."""
+    ``view``: the taught image features an ``ibvs`` approach converges on (required for it).
+    ``layout``: the dot layout to look for during this job only (a recipe's target)."""
     ac = core.config.approach
     how = ac.mode if mode is None else mode
     if how not in ("servo", "look_and_move", "ibvs"):
@@ -97,10 +144,18 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
         params["recipe"] = recipe
     first: list[Located] = []
     seen: dict[str, Any] = {}  # how a fixed camera's pose was had (live or before occlusion)
+    lent = JobLayout(core, layout)
 
     def check(motion: Motion) -> None:
-        if not np.isfinite(plan.standoff_mm) or plan.standoff_mm < 0:
-            raise LimitError(ErrorCode.invalid_standoff, "standoff_mm must be a number >= 0")
+        lent.apply()
+        try:
+            checks(motion)
+        except BaseException:
+            lent.refused()
+            raise
+
+    def checks(motion: Motion) -> None:
+        check_standoff(plan.standoff_mm)
         core.arm.guard.check_speed(plan.speed_mm_s, plan.accel_mm_s2)
         st = core.arm.ready_state()
         if not core.camera.is_connected:
@@ -134,7 +189,10 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
         seen["first_locate_s"] = round(time.monotonic() - began_s, 4)
 
     def work(job_id: str, motion: Motion) -> dict[str, Any]:
-        result = run(job_id, motion)
+        try:
+            result = run(job_id, motion)
+        finally:
+            lent.ended()
         result.setdefault("first_locate_s", seen.get("first_locate_s"))
         basis = ERROR_BASIS.get("fixed" if result.get("camera_mount") == "fixed"
                                 else str(result.get("mode")))
@@ -164,8 +222,12 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
             return fixed_look_and_move(core, job_id, motion, first[0], plan, seen)
         return look_and_move(core, job_id, motion, first[0], plan)
 
-    return core.runner.start("approach", caller, params, work, check=check, needs_camera=True,
-                             wait=wait, wait_timeout_s=wait_timeout_s)
+    try:
+        return core.runner.start("approach", caller, params, work, check=check,
+                                 needs_camera=True, wait=wait, wait_timeout_s=wait_timeout_s)
+    except BaseException:
+        lent.refused()  # no job: the checks passed but it was not started after all
+        raise
 
 
 def check_ibvs_request(view: Features | None, standoff_mm: float | None,

@@ -3,7 +3,8 @@
 A job like an approach, in servo mode without convergence: it runs until ``stop``,
 ``duration_s`` (capped by ``[servo] max_track_s``) or the loss of the target
 (``target_lost``). The loop is :class:`cell.actions.servo.ServoRun`; the goal and the duration are
-checked before the job starts, so a refusal moves nothing.
+checked before the job starts, so a refusal moves nothing. A recipe's dot layout
+(``layout``) is looked for during the job only (:class:`cell.actions.approach.JobLayout`).
 """
 
 from __future__ import annotations
@@ -13,7 +14,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.actions.approach import locate
+from cell.actions.approach import JobLayout, locate
+from cell.actions.approach_rules import check_standoff
 from cell.actions.servo import ServoGoal, ServoRun
 from cell.core import CellCore
 from cell.error_codes import ErrorCode
@@ -22,6 +24,7 @@ from cell.jobs.store import Job
 from cell.motion.guard import Motion
 from cell.vision.frames import approach_tcp
 from cell.vision.locate import Located
+from estimator import Target
 from estimator.transforms import pose_dict
 
 Matrix4 = NDArray[np.float64]
@@ -29,7 +32,8 @@ Matrix4 = NDArray[np.float64]
 
 def start_track(core: CellCore, caller: str, *, standoff_mm: float, duration_s: float,
                 T_target_tcp: Matrix4 | None = None, wait: bool = False,
-                wait_timeout_s: float = 120.0, recipe: dict[str, Any] | None = None) -> Job:
+                wait_timeout_s: float = 120.0, recipe: dict[str, Any] | None = None,
+                layout: Target | None = None) -> Job:
     sc = core.config.servo
     T_tt = (core.config.approach.T_target_tcp.T() if T_target_tcp is None
             else np.asarray(T_target_tcp, dtype=float))
@@ -39,10 +43,18 @@ def start_track(core: CellCore, caller: str, *, standoff_mm: float, duration_s: 
     if recipe is not None:
         params["recipe"] = recipe  # the record of the recipe the job tracks with
     first: list[Located] = []
+    lent = JobLayout(core, layout)
 
     def check(motion: Motion) -> None:
-        if not np.isfinite(standoff) or standoff < 0:
-            raise LimitError(ErrorCode.invalid_standoff, "standoff_mm must be a number >= 0")
+        lent.apply()
+        try:
+            checks(motion)
+        except BaseException:
+            lent.refused()
+            raise
+
+    def checks(motion: Motion) -> None:
+        check_standoff(standoff)
         if not (np.isfinite(duration) and 0 < duration <= sc.max_track_s):
             raise LimitError(ErrorCode.duration_limit, f"duration_s must be within (0, "
                              f"{sc.max_track_s}] (servo.max_track_s), got {duration_s}")
@@ -55,8 +67,15 @@ def start_track(core: CellCore, caller: str, *, standoff_mm: float, duration_s: 
         first.append(loc)
 
     def work(job_id: str, motion: Motion) -> dict[str, Any]:
-        return ServoRun(core, job_id, motion, ServoGoal(T_tt, standoff), "track",
-                        duration_s=duration, first=first[0]).run()
+        try:
+            return ServoRun(core, job_id, motion, ServoGoal(T_tt, standoff), "track",
+                            duration_s=duration, first=first[0]).run()
+        finally:
+            lent.ended()
 
-    return core.runner.start("track", caller, params, work, check=check, needs_camera=True,
-                             wait=wait, wait_timeout_s=wait_timeout_s)
+    try:
+        return core.runner.start("track", caller, params, work, check=check,
+                                 needs_camera=True, wait=wait, wait_timeout_s=wait_timeout_s)
+    except BaseException:
+        lent.refused()  # no job: the checks passed but it was not started after all
+        raise

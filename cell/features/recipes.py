@@ -8,6 +8,11 @@ largest reprojection error accepted). Saving a recipe again makes a new version;
 is kept, so a job's record (recipe name, number, version, target) says exactly what it ran
 with, even after the recipe was changed. One JSON file beside the job database, replaced
 atomically; an unreadable file refuses recipe jobs and is never overwritten.
+
+Numbers are numbers (an integer is fine for a float; a string or a boolean is refused) and a
+recipe no job could run is refused when it is saved, by the rules an approach checks
+(:mod:`cell.actions.approach_rules`: the standoff's range, the configured ``[limits]`` speeds),
+with the field named (``targets.0.speed_mm_s``).
 """
 
 from __future__ import annotations
@@ -17,11 +22,12 @@ import json
 import threading
 import time
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, field_validator
 
-from cell.config.schema import DotLayout
+from cell.actions.approach_rules import check_speed, check_standoff
+from cell.config.schema import DotLayout, LimitsConfig
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, LimitError, NotFoundError, RefusedError
 from cell.files import replace_text
@@ -43,16 +49,21 @@ class RecipeStoreError(CellError):
     kind = "unavailable"
 
 
+Num = Annotated[float, Strict()]  # a JSON number: no strings, no booleans
+
+
 class RecipeTarget(DotLayout):
     """One target of a product: its dot layout and how the cell approaches it."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
+    points_mm: list[tuple[Num, Num, Num]] = Field(min_length=4, max_length=100)
+    dot_diameter_mm: Num = Field(gt=0)
     name: str = Field(default="main", min_length=1, max_length=64)
     taught: str = ""  # a taught pose's name; "" uses [approach] T_target_tcp
-    standoff_mm: float = Field(default=50.0, ge=0)
+    standoff_mm: Num = Field(default=50.0, ge=0)
     mode: Literal["look_and_move", "servo"] = "look_and_move"
-    speed_mm_s: float = Field(default=150.0, gt=0)
+    speed_mm_s: Num = Field(default=150.0, gt=0)
 
 
 class RecipeSpec(BaseModel):
@@ -61,7 +72,7 @@ class RecipeSpec(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$")
-    number: int = Field(ge=1, le=MAX_RECIPE_NUMBER)
+    number: Annotated[int, Strict()] = Field(ge=1, le=MAX_RECIPE_NUMBER)
     description: str = Field(default="", max_length=500)
     targets: list[RecipeTarget] = Field(min_length=1, max_length=16)
 
@@ -111,11 +122,24 @@ def parse_spec(data: Any) -> RecipeSpec:
         raise LimitError(ErrorCode.invalid_recipe, f"recipe {where}: {first['msg']}") from err
 
 
-class RecipeStore:
-    """Thread-safe, versioned recipes in one JSON file (``path=None``: in memory only)."""
+def check_runnable(spec: RecipeSpec, limits: LimitsConfig | None) -> None:
+    """Refuse a recipe no job could run, by the approach's own rules: each target's standoff
+    (``invalid_standoff``) and, with the cell's limits, its speed (``speed_limit``); the
+    message names the field (``targets.0.speed_mm_s``)."""
+    for i, t in enumerate(spec.targets):
+        where = f"recipe targets.{i}"
+        check_standoff(t.standoff_mm, f"{where}.standoff_mm")
+        if limits is not None:
+            check_speed(limits, t.speed_mm_s, f"{where}.speed_mm_s")
 
-    def __init__(self, path: str | Path | None) -> None:
+
+class RecipeStore:
+    """Thread-safe, versioned recipes in one JSON file (``path=None``: in memory only). With
+    ``limits``, a recipe those limits would refuse to run is refused when saved."""
+
+    def __init__(self, path: str | Path | None, limits: LimitsConfig | None = None) -> None:
         self.path = None if path is None else Path(path)
+        self.limits = limits
         self._lock = threading.Lock()
         self._error: RecipeStoreError | None = None
         self._versions: dict[str, list[Recipe]] = {}
@@ -125,10 +149,10 @@ class RecipeStore:
             self._error = err
 
     @staticmethod
-    def beside_job_db(job_db: str) -> RecipeStore:
+    def beside_job_db(job_db: str, limits: LimitsConfig | None = None) -> RecipeStore:
         if job_db == ":memory:":
-            return RecipeStore(None)
-        return RecipeStore(Path(job_db).parent / STORE_NAME)
+            return RecipeStore(None, limits)
+        return RecipeStore(Path(job_db).parent / STORE_NAME, limits)
 
     def _load(self) -> dict[str, list[Recipe]]:
         if self.path is None or not self.path.exists():
@@ -186,8 +210,9 @@ class RecipeStore:
 
     def save(self, spec: RecipeSpec, saved_by: str) -> Recipe:
         """A new version of ``spec.name`` (version 1 for a new name). A number another recipe
-        uses is refused."""
+        uses is refused, and so is one that no job could run (:func:`check_runnable`)."""
         self._usable()
+        check_runnable(spec, self.limits)
         with self._lock:
             for name, history in self._versions.items():
                 if name != spec.name and history[-1].number == spec.number:

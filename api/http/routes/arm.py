@@ -13,7 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from api.auth import Caller, require
 from api.http.errors import ERROR_RESPONSES
-from api.http.schemas import Job
+from api.http.schemas import Flag, Job, Num
 from cell.service import Cell
 
 router = APIRouter(prefix="/api/v1/arm", tags=["recovery"], responses=ERROR_RESPONSES)
@@ -23,15 +23,15 @@ Operator = Annotated[Caller, Depends(require("recover"))]
 class HomeRequest(BaseModel):
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"speed_deg_s": 30.0, "wait": True}]})
-    speed_deg_s: float | None = Field(
+    speed_deg_s: Num | None = Field(
         default=None, gt=0, le=360, description="joint speed; default 30 deg/s or the "
         "configured limits.max_joint_speed_deg_s if lower")
-    wait: bool = Field(default=False, description="answer when the job has ended")
+    wait: Flag = Field(default=False, description="answer when the job has ended")
 
 
 class PowerRequest(BaseModel):
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"on": True}]})
-    on: bool = Field(description="true: power on and release the brakes; false: power off")
+    on: Flag = Field(description="true: power on and release the brakes; false: power off")
 
 
 class ArmReply(BaseModel):

@@ -20,7 +20,16 @@ from pydantic import BaseModel, ConfigDict, Field
 from api.auth import Caller, Read, Stream
 from api.http.errors import DEVICE_ERRORS, ERROR_RESPONSES, NOT_FOUND
 from api.http.media import EventStreamResponse
-from api.http.schemas import ApplyResult, Job, TaughtDeleted, TaughtList, TaughtPoseOut
+from api.http.schemas import (
+    ApplyResult,
+    Flag,
+    Int,
+    Job,
+    Num,
+    TaughtDeleted,
+    TaughtList,
+    TaughtPoseOut,
+)
 from api.http.sse import SSE_RESPONSES, sse_response
 from cell.actions.ibvs import Features
 from cell.calibration.routine import RoutineSettings
@@ -58,12 +67,12 @@ class _Body(BaseModel):
 
 
 class HandEyeRequest(_Body):
-    views: int = Field(default=10, ge=3, le=30, description="views including the start pose")
-    tilt_deg: float = Field(default=30.0, gt=0, le=45,
+    views: Int = Field(default=10, ge=3, le=30, description="views including the start pose")
+    tilt_deg: Num = Field(default=30.0, gt=0, le=45,
                             description="camera tilt about the target point")
-    roll_deg: float = Field(default=60.0, ge=0, le=90,
+    roll_deg: Num = Field(default=60.0, ge=0, le=90,
                             description="largest roll about the optical axis")
-    speed_mm_s: float = Field(default=200.0, gt=0, le=2000)
+    speed_mm_s: Num = Field(default=200.0, gt=0, le=2000)
     method: Literal["tsai", "park", "horaud", "joint", "hybrid", "auto"] = Field(
         default="auto", description="the result reported as chosen (all are computed); auto: "
         "joint when it fits within the images' own noise, else hybrid")
@@ -72,19 +81,19 @@ class HandEyeRequest(_Body):
 class ApplyRequest(_Body):
     method: Literal["tsai", "park", "horaud", "joint", "hybrid", "kinematic"] | None = Field(
         default=None, description="default: the job's chosen method")
-    running: bool = Field(default=True, description="use it in the running cell now")
-    write_config: bool = Field(default=False,
+    running: Flag = Field(default=True, description="use it in the running cell now")
+    write_config: Flag = Field(default=False,
                                description="write it into the config file's [hand_eye] table")
-    force: bool = Field(default=False, description="apply although the verdict says the data "
+    force: Flag = Field(default=False, description="apply although the verdict says the data "
                         "disagree with themselves")
 
 
 class TeachRequest(_Body):
     name: str = Field(pattern=NAME_PATTERN.pattern, description="1-64 of [A-Za-z0-9_.-]")
-    samples: int = Field(default=5, ge=1, le=20, description="locates averaged")
-    max_spread_mm: float = Field(default=DEFAULT_MAX_SPREAD_MM, gt=0, le=50)
-    max_spread_deg: float = Field(default=DEFAULT_MAX_SPREAD_DEG, gt=0, le=10)
-    replace: bool = Field(default=True, description="false: refuse if the name is taught")
+    samples: Int = Field(default=5, ge=1, le=20, description="locates averaged")
+    max_spread_mm: Num = Field(default=DEFAULT_MAX_SPREAD_MM, gt=0, le=50)
+    max_spread_deg: Num = Field(default=DEFAULT_MAX_SPREAD_DEG, gt=0, le=10)
+    replace: Flag = Field(default=True, description="false: refuse if the name is taught")
 
 
 def install(app: FastAPI, config_path: str | Path | None = None) -> None:

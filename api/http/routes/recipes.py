@@ -16,8 +16,9 @@ from pydantic import BaseModel, ConfigDict, Field
 from api import remote
 from api.auth import Caller, require
 from api.http.errors import ERROR_RESPONSES
-from api.http.schemas import Job
+from api.http.schemas import Flag, Job, Num
 from api.remote import RemoteCaller
+from cell.actions.approach_rules import MAX_STANDOFF_MM
 from cell.features.recipes import EXAMPLE, Recipe, RecipeSpec
 from cell.service import Cell
 
@@ -25,11 +26,22 @@ router = APIRouter(prefix="/api/v1", tags=["recipes"], responses=ERROR_RESPONSES
 
 
 class RecipeApproachRequest(BaseModel):
+    """The options of ``/approach`` that make sense with a recipe (its target gives the
+    layout, the taught pose and the mode), under the same rules."""
+
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     target: str = Field(default="", description="the recipe's target (empty: its first)")
-    standoff_mm: float | None = Field(default=None, ge=0,
-                                      description="default: the target's standoff")
+    standoff_mm: Num | None = Field(default=None, ge=0, le=MAX_STANDOFF_MM,
+                                    description="default: the target's standoff")
+    speed_mm_s: Num | None = Field(default=None, gt=0, le=2000, description="default: the "
+                                   "target's speed; within [limits] like any approach")
+    use_last_locate: Flag = Field(
+        default=False, description="start from the last /locate result instead of locating "
+        "again (refused when older than limits.max_pose_age_s, or when it was of another "
+        "dot layout)")
+    wait: Flag = Field(default=False, description="as /approach: true answers when the job "
+                       "has ended, whatever its end state")
 
 
 class RecipeList(BaseModel):
@@ -67,7 +79,9 @@ def recipe_versions(request: Request, name: str,
 @router.put("/recipes", response_model=Recipe)
 def save_recipe(request: Request, body: RecipeSpec,
                 caller: Annotated[Caller, Depends(require("read"))]) -> dict[str, Any]:
-    """Save a recipe as its next version (version 1 for a new name); operators only."""
+    """Save a recipe as its next version (version 1 for a new name); operators only. A recipe
+    no job could run is refused (422 ``invalid_standoff`` or ``speed_limit`` against
+    ``[limits]``, naming the field, e.g. ``targets.0.speed_mm_s``)."""
     cell: Cell = request.app.state.cell
     rc = _remote(caller)
     remote.require_operator(cell, rc, "save_recipe", {"name": body.name})
@@ -92,7 +106,11 @@ def delete_recipe(request: Request, name: str,
 def approach_recipe(request: Request, ref: str, body: RecipeApproachRequest,
                     caller: Annotated[Caller, Depends(require("approach"))]) -> dict[str, Any]:
     """An approach job with the recipe's target (name or number): its dot layout, taught
-    pose, standoff, mode and speed; the job records the recipe, version and target."""
+    pose, standoff, mode and speed; the job records the recipe, version and target. The
+    layout is looked for during the job only; a refusal changes nothing. ``wait`` as for
+    ``/approach``."""
     cell: Cell = request.app.state.cell
-    job = remote.approach_recipe(cell, _remote(caller), ref, body.target, body.standoff_mm)
+    job = remote.approach_recipe(cell, _remote(caller), ref, body.target, body.standoff_mm,
+                                 speed_mm_s=body.speed_mm_s,
+                                 use_last_locate=body.use_last_locate, wait=body.wait)
     return job.as_dict()

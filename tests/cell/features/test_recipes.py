@@ -18,6 +18,7 @@ from cell.features.recipes import RecipeStore, parse_spec
 from cell.vision.frames import approach_tcp
 from estimator.transforms import pose_distance
 from tests.support.cell import AUTH, running_cell, settled_tcp, sim_config
+from tests.support.waiting import wait_until
 
 
 def spec(config: Any, number: int = 1, standoff_mm: float = 50.0,
@@ -124,3 +125,100 @@ def test_xmlrpc_recipe_pose_is_the_goal_for_the_recipes_standoff(tmp_path: Path)
             assert not cell.commanded()
         finally:
             server.close()
+
+
+def four_dots(config: Any, **target: Any) -> dict[str, Any]:
+    """A recipe whose layout is four of the simulated plate's six dots."""
+    out = spec(config, number=7, name="plate-4")
+    out["targets"][0]["points_mm"] = out["targets"][0]["points_mm"][:4]
+    out["targets"][0].update(target)
+    return out
+
+
+def located_dots(http: TestClient) -> int:
+    r = http.post("/api/v1/locate", json={}, headers=AUTH["plc"])
+    assert r.status_code == 200, r.text
+    return int(r.json()["quality"]["n_points"])
+
+
+def test_a_recipe_layout_is_looked_for_during_its_job_only(tmp_path: Path) -> None:
+    config = sim_config(tmp_path, approach={"speed_mm_s": 250.0, "accel_mm_s2": 1200.0})
+    # a recipe saved before the speed limits were what they are now: its jobs are refused
+    RecipeStore(tmp_path / "recipes.json").save(
+        parse_spec(four_dots(config, speed_mm_s=1e9)), "op")
+    six = len(config.target.points_mm)
+    with running_cell(config) as cell, TestClient(create_app(cell)) as http:
+        layout = cell.core.locator.target
+        assert located_dots(http) == six
+        last = cell.core.locator.last
+        r = http.post("/api/v1/recipes/plate-4/approach", json={}, headers=AUTH["plc"])
+        assert r.status_code == 422 and r.json()["error"]["code"] == "speed_limit", r.text
+        assert not cell.commanded()
+        assert cell.core.locator.target is layout and cell.core.locator.last is last
+        assert located_dots(http) == six
+        # a recipe the cell can run: its layout while its job runs, the cell's again after
+        r = http.put("/api/v1/recipes", json=four_dots(config, speed_mm_s=200.0),
+                     headers=AUTH["operator"])
+        assert r.status_code == 200, r.text
+        r = http.post("/api/v1/recipes/plate-4/approach", json={}, headers=AUTH["plc"])
+        assert r.status_code == 200, r.text
+        assert len(cell.core.locator.target.points_mm) == 4  # while the job runs
+        wait_until(lambda: cell.job(r.json()["id"]).finished, 60, "the recipe's approach")
+        assert cell.job(r.json()["id"]).state == "succeeded"
+        assert cell.core.locator.target is layout
+        assert located_dots(http) == six
+        # wait: as /approach, the answer is the ended job
+        r = http.post("/api/v1/recipes/plate-4/approach", json={"wait": True},
+                      headers=AUTH["plc"])
+        assert r.status_code == 200, r.text
+        job = r.json()
+        assert job["state"] == "succeeded", job["error"]
+        assert job["params"]["recipe"]["version"] == 2
+        assert cell.core.locator.target is layout
+        assert located_dots(http) == six
+
+
+def test_recipes_are_checked_when_saved_by_the_approachs_rules(tmp_path: Path) -> None:
+    from api import remote
+    from api.remote import RemoteCaller
+
+    config = sim_config(tmp_path)
+    with running_cell(config) as cell, TestClient(create_app(cell)) as http:
+        def put(**target: Any) -> Any:
+            body = spec(config)
+            body["targets"][0].update(target)
+            return http.put("/api/v1/recipes", json=body, headers=AUTH["operator"])
+
+        for target, code, field in (
+                ({"speed_mm_s": 1e9}, "speed_limit", "targets.0.speed_mm_s"),
+                ({"speed_mm_s": 0.01}, "speed_limit", "targets.0.speed_mm_s"),
+                ({"standoff_mm": 1e308}, "invalid_standoff", "targets.0.standoff_mm"),
+                ({"standoff_mm": "50"}, "invalid_request", "targets.0.standoff_mm"),
+                ({"speed_mm_s": True}, "invalid_request", "targets.0.speed_mm_s"),
+                ({"dot_diameter_mm": "10"}, "invalid_request", "targets.0.dot_diameter_mm")):
+            r = put(**target)
+            assert r.status_code == 422, (target, r.text)
+            assert r.json()["error"]["code"] == code, (target, r.text)
+            assert field in r.json()["error"]["message"], (target, r.text)
+        assert http.get("/api/v1/recipes", headers=AUTH["viewer"]).json()["recipes"] == []
+        r = http.put("/api/v1/recipes", json={**spec(config), "number": True},
+                     headers=AUTH["operator"])
+        assert r.status_code == 422 and "number" in r.json()["error"]["message"], r.text
+        assert put().status_code == 200
+        # one standoff rule for /approach and a recipe's approach, whatever the door
+        for path in ("/api/v1/approach", "/api/v1/recipes/plate-a/approach"):
+            r = http.post(path, json={"standoff_mm": 1e308}, headers=AUTH["plc"])
+            assert r.status_code == 422, r.text
+            assert r.json()["error"]["message"].startswith("standoff_mm:"), r.text
+        plc = RemoteCaller("opcua", "plc", "plc")
+        for start in (lambda: remote.approach(cell, plc, 1e308, ""),
+                      lambda: remote.approach_recipe(cell, plc, "plate-a", "", 1e308)):
+            with pytest.raises(CellError) as err:
+                start()
+            assert err.value.code == "invalid_standoff", err.value.message
+            assert "standoff_mm" in err.value.message
+        r = http.post("/api/v1/recipes/plate-a/approach", json={"speed_mm_s": 1000},
+                      headers=AUTH["plc"])
+        assert r.status_code == 422 and r.json()["error"]["code"] == "speed_limit", r.text
+        assert "speed_mm_s" in r.json()["error"]["message"]
+        assert not cell.commanded()
