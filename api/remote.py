@@ -59,7 +59,8 @@ class RemoteCaller:
 
     @property
     def label(self) -> str:
-        """As in the audit log: ``opcua:plc(plc)``, next to HTTP's ``plc(plc)``."""
+        """As in the audit log, the same on every door: ``<door>:<name>(<role>)``, e.g.
+        ``opcua:plc(plc)``, ``modbus:plc(plc)``, HTTP's ``http:plc(plc)``."""
         return f"{self.interface}:{self.name}({self.role})"
 
     def may(self, permission: str) -> bool:
@@ -73,16 +74,6 @@ def require(cell: Cell, caller: RemoteCaller, permission: str, command: str,
         return
     with cell.core.audit.command(caller.label, command, params):
         raise ForbiddenError(ErrorCode.forbidden, f"role {caller.role!r} may not {permission}")
-
-
-def require_operator(cell: Cell, caller: RemoteCaller, command: str,
-                     params: dict[str, Any]) -> None:
-    """Changing recipes changes what later jobs do: operators only (as teaching)."""
-    if caller.role == "operator":
-        return
-    with cell.core.audit.command(caller.label, command, params):
-        raise ForbiddenError(ErrorCode.forbidden, f"role {caller.role!r} may not change recipes; "
-                             "use an operator's account")
 
 
 @contextmanager
@@ -270,7 +261,7 @@ def stop(cell: Cell, caller: RemoteCaller) -> dict[str, Any]:
 
 
 def home(cell: Cell, caller: RemoteCaller) -> Job:
-    require(cell, caller, "recover", "home", {})
+    require(cell, caller, "home", "home", {})
     return cell.home(caller.label)
 
 
