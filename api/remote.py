@@ -226,7 +226,7 @@ def track_recipe(cell: Cell, caller: RemoteCaller, ref: Any, target: str = "",
     ``duration_s`` (None: ``[servo] max_track_s``, i.e. until stopped); the job records the
     recipe, its version and the target."""
     params = {"recipe": ref, "target": target, "duration_s": duration_s}
-    require(cell, caller, "approach", "track", params)
+    require(cell, caller, "track", "track", params)
     try:
         recipe, chosen = prepare_recipe(cell, recipe_ref(ref), target)
         duration = cell.config.servo.max_track_s if duration_s is None \
@@ -241,7 +241,7 @@ def track_recipe(cell: Cell, caller: RemoteCaller, ref: Any, target: str = "",
 
 def track(cell: Cell, caller: RemoteCaller, standoff_mm: Any, duration_s: Any) -> Job:
     params = {"standoff_mm": standoff_mm, "duration_s": duration_s}
-    require(cell, caller, "approach", "track", params)
+    require(cell, caller, "track", "track", params)
     run: Callable[..., Job] | None = getattr(cell, "track", None)
     try:
         standoff = finite("standoff_mm", standoff_mm, minimum=0.0)
