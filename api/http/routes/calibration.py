@@ -23,7 +23,7 @@ from api.http.media import EventStreamResponse
 from api.http.schemas import ApplyResult, Job, TaughtDeleted, TaughtList, TaughtPoseOut
 from api.http.sse import SSE_RESPONSES, sse_response
 from cell.actions.ibvs import Features
-from cell.calibration.routine import RoutineSettings
+from cell.calibration.routine import DEFAULT_VIEWS, RoutineSettings
 from cell.calibration.service import EVENT, CalibrationService
 from cell.error_codes import ErrorCode
 from cell.errors import LimitError
@@ -49,7 +49,8 @@ class _Body(BaseModel):
 
 
 class HandEyeRequest(_Body):
-    views: int = Field(default=10, ge=3, le=30, description="views including the start pose")
+    views: int = Field(default=DEFAULT_VIEWS, ge=3, le=30,
+                       description="views including the start pose")
     tilt_deg: float = Field(default=30.0, gt=0, le=45,
                             description="camera tilt about the target point")
     roll_deg: float = Field(default=60.0, ge=0, le=90,
