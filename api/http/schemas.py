@@ -203,7 +203,8 @@ class JobList(_Out):
 
 class Me(_Out):
     model_config = _examples({"name": "line-3-plc", "role": "plc",
-                              "permissions": ["approach", "locate", "read", "stop"]})
+                              "permissions": ["approach", "gripper", "home", "locate", "pick",
+                                              "read", "stop", "track"]})
     name: str
     role: str
     permissions: list[str]
