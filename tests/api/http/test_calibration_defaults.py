@@ -32,7 +32,8 @@ def test_the_docs_state_the_same_default() -> None:
     for path in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
         text = " ".join(path.read_text().split())
         for m in re.finditer(r"(\d+) views by default|views? \(default (\d+)\)|"
-                             r"default (\d+) views", text):
+                             r"default (\d+) views|default is (\d+) views|"
+                             r"views: default (\d+)|default, (\d+) views", text):
             stated.append((path.name, next(g for g in m.groups() if g)))
     assert stated, "no doc states the routine's default"
     assert all(n == str(DEFAULT_VIEWS) for _, n in stated), stated
