@@ -27,11 +27,32 @@ from cell.config.schema import SAMPLE_TOKENS, ConfigError
 from cell.error_codes import ErrorCode
 from cell.errors import AuthError, ForbiddenError
 
+# What each permission allows, on every door (HTTP, OPC UA, Modbus, XML-RPC); docs/plc.md has
+# the table of permissions by role and the role each door runs as.
+#   read          status, jobs, audit, recipes, taught poses, camera frames
+#   locate        locate the target (and a program's TCP goal over XML-RPC)
+#   approach      approach (with or without a recipe), prepare a recipe, automatic mode
+#   track         track the target (servo)
+#   home          the joint move to [robot] home_joints_deg
+#   gripper       open, close or move the gripper
+#   pick          reserved for the pick job (no door uses it yet)
+#   jog           jog the arm
+#   recover       unlock a protective stop, power on / off, reset the Machine Vision state
+#   teach         teach or delete a taught pose
+#   calibrate     run the hand-eye routine and apply its result
+#   edit_recipes  save or delete a recipe
+#   camera        change the camera's settings
+#   alarm_ack     acknowledge alarms
+#   sim_write     move the simulated target (simulated cells only)
+# A PLC runs production cycles (locate, approach, track, home, gripper, pick); what wants a
+# person at the cell (jogging, unlocking, power) or changes what later jobs do (teaching,
+# calibration, recipes, camera settings) stays the operator's.
+PRODUCTION = frozenset({"read", "locate", "approach", "track", "home", "gripper", "pick"})
 PERMISSIONS: dict[str, frozenset[str]] = {
     "viewer": frozenset({"read"}),
-    "operator": frozenset({"read", "locate", "approach", "track", "jog", "gripper",
-                           "sim_write", "recover", "camera", "alarm_ack"}),
-    "plc": frozenset({"read", "locate", "approach", "track"}),
+    "operator": PRODUCTION | frozenset({"jog", "recover", "teach", "calibrate", "edit_recipes",
+                                        "camera", "alarm_ack", "sim_write"}),
+    "plc": PRODUCTION,
 }
 # every valid token may stop the cell
 ALWAYS = frozenset({"stop"})
@@ -50,8 +71,8 @@ class Caller:
 
     @property
     def label(self) -> str:
-        """How the caller appears in the audit log."""
-        return f"{self.name or self.role}({self.role})"
+        """How the caller appears in the audit log: ``<door>:<name>(<role>)``, as every door."""
+        return f"http:{self.name or self.role}({self.role})"
 
 
 def token_digest(token: str, salt: str) -> str:

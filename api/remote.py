@@ -61,7 +61,8 @@ class RemoteCaller:
 
     @property
     def label(self) -> str:
-        """As in the audit log: ``opcua:plc(plc)``, next to HTTP's ``plc(plc)``."""
+        """As in the audit log, the same on every door: ``<door>:<name>(<role>)``, e.g.
+        ``opcua:plc(plc)``, ``modbus:plc(plc)``, HTTP's ``http:plc(plc)``."""
         return f"{self.interface}:{self.name}({self.role})"
 
     def may(self, permission: str) -> bool:
@@ -75,16 +76,6 @@ def require(cell: Cell, caller: RemoteCaller, permission: str, command: str,
         return
     with cell.core.audit.command(caller.label, command, params):
         raise ForbiddenError(ErrorCode.forbidden, f"role {caller.role!r} may not {permission}")
-
-
-def require_operator(cell: Cell, caller: RemoteCaller, command: str,
-                     params: dict[str, Any]) -> None:
-    """Changing recipes changes what later jobs do: operators only (as teaching)."""
-    if caller.role == "operator":
-        return
-    with cell.core.audit.command(caller.label, command, params):
-        raise ForbiddenError(ErrorCode.forbidden, f"role {caller.role!r} may not change recipes; "
-                             "use an operator's account")
 
 
 @contextmanager
@@ -282,7 +273,7 @@ def track_recipe(cell: Cell, caller: RemoteCaller, ref: Any, target: Any = "",
     ``duration_s`` (None: ``[servo] max_track_s``, i.e. until stopped); the job records the
     recipe, its version and the target. The layout is looked for during the job only."""
     params = {"recipe": ref, "target": target, "duration_s": duration_s}
-    require(cell, caller, "approach", "track", params)
+    require(cell, caller, "track", "track", params)
     try:
         recipe, chosen = find_recipe(cell, recipe_ref(ref), target)
         duration = cell.config.servo.max_track_s if duration_s is None \
@@ -298,7 +289,7 @@ def track_recipe(cell: Cell, caller: RemoteCaller, ref: Any, target: Any = "",
 
 def track(cell: Cell, caller: RemoteCaller, standoff_mm: Any, duration_s: Any) -> Job:
     params = {"standoff_mm": standoff_mm, "duration_s": duration_s}
-    require(cell, caller, "approach", "track", params)
+    require(cell, caller, "track", "track", params)
     run: Callable[..., Job] | None = getattr(cell, "track", None)
     try:
         standoff = finite("standoff_mm", standoff_mm, minimum=0.0)
@@ -318,7 +309,7 @@ def stop(cell: Cell, caller: RemoteCaller) -> dict[str, Any]:
 
 
 def home(cell: Cell, caller: RemoteCaller) -> Job:
-    require(cell, caller, "recover", "home", {})
+    require(cell, caller, "home", "home", {})
     return cell.home(caller.label)
 
 

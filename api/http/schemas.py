@@ -178,7 +178,7 @@ class JobError(_Out):
 
 
 JOB_EXAMPLE = {
-    "id": "3f2a9c1b7d4e", "kind": "approach", "caller": "plc(plc)",
+    "id": "3f2a9c1b7d4e", "kind": "approach", "caller": "http:plc(plc)",
     "params": {"standoff_mm": 40.0, "speed_mm_s": 150.0},
     "state": "failed", "progress": {"phase": "locate", "cycle": 1, "cycles": []},
     "result": None,
@@ -212,7 +212,8 @@ class JobList(_Out):
 
 class Me(_Out):
     model_config = _examples({"name": "line-3-plc", "role": "plc",
-                              "permissions": ["approach", "locate", "read", "stop"]})
+                              "permissions": ["approach", "gripper", "home", "locate", "pick",
+                                              "read", "stop", "track"]})
     name: str
     role: str
     permissions: list[str]
@@ -506,7 +507,7 @@ TAUGHT_EXAMPLE = {
     "name": "grasp-a", "T_target_tcp": {"position_mm": [0.0, 0.0, -20.0],
                                         "rotvec_rad": [0.0, 0.0, 0.0]},
     "samples": 5, "spread_mm": 0.03, "spread_deg": 0.01, "T_base_target": POSE_EXAMPLE,
-    "T_base_tcp": POSE_EXAMPLE, "taught_by": "op(operator)", "taught_at": 1796200000.0}
+    "T_base_tcp": POSE_EXAMPLE, "taught_by": "http:op(operator)", "taught_at": 1796200000.0}
 
 
 class TaughtView(_Out):

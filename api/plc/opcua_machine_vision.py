@@ -342,7 +342,8 @@ class MachineVision:
         external_id, product_id, content = self.opc.method_args(args, 3)
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
-            remote.require_operator(self.opc.cell, caller, "add_recipe", {"name": external_id})
+            remote.require(self.opc.cell, caller, "edit_recipes", "add_recipe",
+                           {"name": external_id})
             try:
                 data = json.loads(str(content or "{}"))
             except ValueError as err:
@@ -395,8 +396,8 @@ class MachineVision:
         (external_id,) = self.opc.method_args(args, 1)
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
-            remote.require_operator(self.opc.cell, caller, "remove_recipe",
-                                    {"name": external_id})
+            remote.require(self.opc.cell, caller, "edit_recipes", "remove_recipe",
+                           {"name": external_id})
             if external_id == self.prepared:
                 raise RefusedError(ErrorCode.recipe_prepared, "UnprepareRecipe first")
             remote.recipe_store(self.opc.cell).delete(remote.text("ExternalId", external_id))

@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from cell.calibration.dataset import HandEyeDataset, save_project_dataset
+from cell.calibration.defaults import DEFAULT_VIEWS
 from cell.calibration.observe import Observation, ObservationError, Observer
 from cell.calibration.report import HandEyeReport
 from cell.calibration.solve import DEFAULT_METHOD, Progress, solve_observations
@@ -61,7 +62,7 @@ class RoutineError(CellError):
 
 @dataclass(frozen=True)
 class RoutineSettings:
-    n_views: int = 14  # including the start pose
+    n_views: int = DEFAULT_VIEWS  # including the start pose
     # camera tilt about the target (alternating with 0.6 of it) and largest roll about the
     # optical axis: 30 / 60 deg rather than 18 / 35 bring the AX = XB rotation error from
     # 0.016-0.055 deg to 0.012-0.020 deg on the simulated cell (docs/calibration.md)

@@ -12,6 +12,8 @@ import sys
 from collections.abc import Callable
 from typing import Any
 
+from cell.calibration.defaults import DEFAULT_VIEWS
+
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("bench", help="benchmark the estimator against OpenCV pipelines",
@@ -128,9 +130,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                     "simulated cell with [sim] world = \"realistic\": true errors, the jobs' "
                     "own estimates and consistency verdicts (see cell/bench/commissioning.py).")
     cm.add_argument("--placements", type=int, default=5, help="random placements (default 5)")
-    cm.add_argument("--views", type=int, default=24,
-                    help="routine views (default 24, with 30 deg tilts and 60 deg rolls: "
-                         "enough to fit the arm's geometry with the mount)")
+    cm.add_argument("--views", type=int, default=DEFAULT_VIEWS,
+                    help=f"routine views (default {DEFAULT_VIEWS}, with 30 deg tilts and 60 deg "
+                         "rolls: enough to fit the arm's geometry with the mount)")
     cm.add_argument("--seed", type=int, default=0, help="random seed")
     cm.add_argument("--world", choices=("realistic", "ideal"), default="realistic")
     cm.set_defaults(func=_lazy("commissioning"))

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 from typing import TYPE_CHECKING, Any
 
+from cell.calibration.defaults import DEFAULT_VIEWS
 from cell.commands.common import EXIT_NO, EXIT_OK, fail, print_json, progress_bars
 
 if TYPE_CHECKING:
@@ -71,12 +72,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                         "(a fixed camera, per --config's mount: the plate on the tool)"
     )
     rt.add_argument("--config", metavar="FILE", help="cell config (default: the simulated cell)")
-    rt.add_argument("--views", type=int, default=12, help="number of views (default 12)")
+    rt.add_argument("--views", type=int, default=DEFAULT_VIEWS,
+                    help=f"number of views (default {DEFAULT_VIEWS})")
     rt.add_argument("--tilt-deg", type=float, default=30.0,
                     help="camera tilt about the target (default 30)")
     rt.add_argument("--roll-deg", type=float, default=60.0,
                     help="largest roll about the optical axis (default 60); from 16 views on "
-                         "the arm's geometry is fitted with the mount (24 views recommended)")
+                         "the arm's geometry is fitted with the mount")
     rt.add_argument("--speed-mm-s", type=float, default=None,
                     help="linear move speed (default: 200 or the config's limits.max_speed_mm_s "
                          "if lower; above that limit is refused)")

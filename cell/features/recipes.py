@@ -40,7 +40,7 @@ EXAMPLE: dict[str, Any] = {
     "targets": [{"name": "main", "points_mm": [[0, 0, 0], [40, 0, 0], [0, 30, 0], [40, 30, 0]],
                  "dot_diameter_mm": 6.0, "polarity": "dark", "taught": "",
                  "standoff_mm": 50.0, "mode": "look_and_move", "speed_mm_s": 150.0}],
-    "version": 2, "saved_by": "operator(operator)", "saved_at": 1760000000.0}
+    "version": 2, "saved_by": "http:operator(operator)", "saved_at": 1760000000.0}
 
 
 class RecipeStoreError(CellError):

@@ -1,7 +1,9 @@
-"""Operator recovery routes under ``/api/v1/arm``: home, unlock a protective stop, power.
+"""Routes under ``/api/v1/arm``: home, unlock a protective stop, power.
 
-Operator role, audited, refused (409 ``busy``) while another motion runs, like every other
-command; the cell does the work (:mod:`cell.actions.recovery`).
+Home needs the ``home`` permission (operator and PLC: a production cycle homes); unlock and
+power need ``recover`` (operator: they want a person at the cell). Audited, refused (409
+``busy``) while another motion runs, like every other command; the cell does the work
+(:mod:`cell.actions.recovery`).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from api.http.schemas import Flag, Job, Num
 from cell.service import Cell
 
 router = APIRouter(prefix="/api/v1/arm", tags=["recovery"], responses=ERROR_RESPONSES)
+Homer = Annotated[Caller, Depends(require("home"))]
 Operator = Annotated[Caller, Depends(require("recover"))]
 
 
@@ -56,7 +59,7 @@ def _cell(request: Request) -> Cell:
 
 
 @router.post("/home", response_model=Job)
-def home(request: Request, caller: Operator,
+def home(request: Request, caller: Homer,
          body: Annotated[HomeRequest | None, Body()] = None) -> dict[str, Any]:
     """Joint move to ``[robot] home_joints_deg`` through the guard, as a job (``stop``
     cancels it). With ``wait=true`` the answer is the ended job, also when it failed."""

@@ -17,7 +17,7 @@ from fastapi.responses import StreamingResponse
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from api.auth import Caller, Read, Stream
+from api.auth import Caller, Read, Stream, require
 from api.http.errors import DEVICE_ERRORS, ERROR_RESPONSES, NOT_FOUND
 from api.http.media import EventStreamResponse
 from api.http.schemas import (
@@ -32,10 +32,10 @@ from api.http.schemas import (
 )
 from api.http.sse import SSE_RESPONSES, sse_response
 from cell.actions.ibvs import Features
-from cell.calibration.routine import RoutineSettings
+from cell.calibration.routine import DEFAULT_VIEWS, RoutineSettings
 from cell.calibration.service import EVENT, CalibrationService
 from cell.error_codes import ErrorCode
-from cell.errors import ForbiddenError, LimitError
+from cell.errors import LimitError
 from cell.features.teach import (
     DEFAULT_MAX_SPREAD_DEG,
     DEFAULT_MAX_SPREAD_MM,
@@ -47,19 +47,10 @@ from cell.service import Cell
 
 router = APIRouter(prefix="/api/v1", responses={**ERROR_RESPONSES, **NOT_FOUND})
 
-OPERATOR_ROLES = frozenset({"operator"})
-
-
-def _operator(caller: Read) -> Caller:
-    """Calibration and teaching change what every later approach does: operators only."""
-    if caller.role not in OPERATOR_ROLES:
-        raise ForbiddenError(ErrorCode.forbidden,
-                             f"role {caller.role!r} may not calibrate or teach; "
-                             "use an operator token")
-    return caller
-
-
-Operator = Annotated[Caller, Depends(_operator)]
+# Calibration and teaching change what every later approach does: the operator's
+# permissions (api.auth.PERMISSIONS), not a PLC's.
+Calibrator = Annotated[Caller, Depends(require("calibrate"))]
+Teacher = Annotated[Caller, Depends(require("teach"))]
 
 
 class _Body(BaseModel):
@@ -67,7 +58,8 @@ class _Body(BaseModel):
 
 
 class HandEyeRequest(_Body):
-    views: Int = Field(default=10, ge=3, le=30, description="views including the start pose")
+    views: Int = Field(default=DEFAULT_VIEWS, ge=3, le=30,
+                       description="views including the start pose")
     tilt_deg: Num = Field(default=30.0, gt=0, le=45,
                             description="camera tilt about the target point")
     roll_deg: Num = Field(default=60.0, ge=0, le=90,
@@ -145,7 +137,7 @@ def taught_view(request: Request, name: str | None, mode: str | None) -> Feature
 # -- hand-eye --------------------------------------------------------------------------------
 @router.post("/calibration/hand-eye", response_model=Job, tags=["calibration"],
              responses=DEVICE_ERRORS)
-def start_hand_eye(request: Request, caller: Operator,
+def start_hand_eye(request: Request, caller: Calibrator,
                    body: Annotated[HandEyeRequest | None, Body()] = None) -> dict[str, Any]:
     """Start the hand-eye routine around the arm's current pose (the target must be in view).
     The arm moves; ``/stop`` cancels it. Poll ``GET .../{id}`` or follow
@@ -169,7 +161,7 @@ def hand_eye_job(request: Request, caller: Read, job_id: str) -> dict[str, Any]:
 
 @router.post("/calibration/hand-eye/{job_id}/apply", response_model=ApplyResult,
              tags=["calibration"], responses=DEVICE_ERRORS)
-def apply_hand_eye(request: Request, caller: Operator, job_id: str,
+def apply_hand_eye(request: Request, caller: Calibrator, job_id: str,
                    body: Annotated[ApplyRequest | None, Body()] = None) -> dict[str, Any]:
     """Use the result in the running cell and/or write it into the config file."""
     b = body or ApplyRequest()
@@ -192,7 +184,7 @@ async def calibration_events(request: Request, caller: Stream,
 # -- taught poses ----------------------------------------------------------------------------
 @router.post("/teach", response_model=TaughtPoseOut, tags=["teach"],
              responses=DEVICE_ERRORS)
-def teach_pose(request: Request, caller: Operator, body: TeachRequest) -> dict[str, Any]:
+def teach_pose(request: Request, caller: Teacher, body: TeachRequest) -> dict[str, Any]:
     """Store ``T_target_tcp`` of the arm's resting pose under ``name``: ``samples`` locates
     are averaged; their spread is reported and over the limit refused (409)."""
     cell: Cell = request.app.state.cell
@@ -211,7 +203,7 @@ def get_taught(request: Request, caller: Read, name: str) -> dict[str, Any]:
 
 
 @router.delete("/teach/{name}", response_model=TaughtDeleted, tags=["teach"])
-def delete_taught(request: Request, caller: Operator, name: str) -> dict[str, Any]:
+def delete_taught(request: Request, caller: Teacher, name: str) -> dict[str, Any]:
     cell: Cell = request.app.state.cell
     pose = _taught(request).delete(name)
     cell.jobs.audit(caller.label, "teach_delete", {"name": name}, "ok")

@@ -1,9 +1,10 @@
 """Recipes (products) over HTTP: list, versions, save (a new version), delete, and an approach
 with a recipe's target (a job that records the recipe and its version).
 
-Saving and deleting change what later jobs do: operators only, as teaching. An approach with
-a recipe needs the approach permission (operator, PLC). The store is :mod:`cell.features.recipes`,
-shared with OPC UA and Modbus through :func:`api.remote.recipe_store`.
+Saving and deleting change what later jobs do: the ``edit_recipes`` permission (operators), as
+teaching. An approach with a recipe needs the approach permission (operator, PLC). The store
+is :mod:`cell.features.recipes`, shared with OPC UA and Modbus through
+:func:`api.remote.recipe_store`.
 """
 
 from __future__ import annotations
@@ -84,7 +85,7 @@ def save_recipe(request: Request, body: RecipeSpec,
     ``[limits]``, naming the field, e.g. ``targets.0.speed_mm_s``)."""
     cell: Cell = request.app.state.cell
     rc = _remote(caller)
-    remote.require_operator(cell, rc, "save_recipe", {"name": body.name})
+    remote.require(cell, rc, "edit_recipes", "save_recipe", {"name": body.name})
     with remote.audited(cell, rc, "save_recipe", {"name": body.name}) as note:
         recipe = remote.recipe_store(cell).save(body, caller.label)
         note.detail = f"version {recipe.version}"
@@ -97,7 +98,7 @@ def delete_recipe(request: Request, name: str,
     """Remove a recipe and its history (jobs keep their record of it); operators only."""
     cell: Cell = request.app.state.cell
     rc = _remote(caller)
-    remote.require_operator(cell, rc, "delete_recipe", {"name": name})
+    remote.require(cell, rc, "edit_recipes", "delete_recipe", {"name": name})
     with remote.audited(cell, rc, "delete_recipe", {"name": name}):
         return remote.recipe_store(cell).delete(name).model_dump()
 

@@ -85,16 +85,16 @@ def test_failed_job_raises_an_alarm_until_acknowledged_and_it_survives_a_restart
         r = client.post(f"/api/v1/alarms/{alarm['id']}/ack", headers=OP)
         assert r.status_code == 200, r.text
         acked = r.json()
-        assert not acked["active"] and acked["acknowledged_by"] == "operator(operator)"
+        assert not acked["active"] and acked["acknowledged_by"] == "http:operator(operator)"
         assert all(a["id"] != alarm["id"] for a in active_alarms(client))
         again = client.post(f"/api/v1/alarms/{alarm['id']}/ack", headers=OP).json()
         assert again["acknowledged_at"] == acked["acknowledged_at"]  # the first one stands
         audit = client.get("/api/v1/audit", headers=VIEW).json()["entries"]
         acks = [e for e in audit if e["command"] == "alarm_ack"]
         assert any(e["outcome"] == "ok" and e["params"]["id"] == alarm["id"]
-                   and e["caller"] == "operator(operator)" for e in acks)
+                   and e["caller"] == "http:operator(operator)" for e in acks)
         assert any(e["outcome"] == "refused:alarm_not_found" for e in acks)
-        assert any(e["outcome"] == "refused:forbidden" and e["caller"] == "plc(plc)"
+        assert any(e["outcome"] == "refused:forbidden" and e["caller"] == "http:plc(plc)"
                    and e["command"] == "POST /api/v1/alarms/{alarm_id}/ack" for e in audit)
         log = client.get("/api/v1/alarms", params={"limit": 1, "offset": 0}, headers=VIEW).json()
         assert log["total"] >= 1 and len(log["alarms"]) == 1
@@ -233,7 +233,7 @@ def test_mjpeg_stream_delivers_jpeg_parts(client: TestClient) -> None:
 def test_a_job_interrupted_by_a_crash_raises_an_alarm_on_restart(tmp_path: Path) -> None:
     config = _config(tmp_path)
     with running_cell(config) as cell, TestClient(create_app(cell)):
-        job = cell.jobs.create("approach", "plc(plc)", {"standoff_mm": 50})  # never finished
+        job = cell.jobs.create("approach", "http:plc(plc)", {"standoff_mm": 50})  # never finished
     with running_cell(config) as cell, TestClient(create_app(cell)) as client:
         alarm = wait_until(lambda: next((a for a in active_alarms(client)
                                        if a["job_id"] == job.id), None), 10, "alarm")

@@ -71,7 +71,7 @@ def test_cross_site_simple_post_moves_nothing(client: TestClient) -> None:
     assert {e["outcome"] for e in rows} == {"refused:unauthorized",
                                             "refused:unsupported_media_type"}
     assert any(e["caller"] == "anonymous" for e in rows)
-    assert any(e["caller"] == "plc(plc)" for e in rows)
+    assert any(e["caller"] == "http:plc(plc)" for e in rows)
 
 
 def test_query_token_only_on_get_streaming_routes(client: TestClient) -> None:
@@ -108,12 +108,12 @@ def test_authentication_comes_before_the_body(client: TestClient) -> None:
     assert client.post("/api/v1/jog", json={"mode": "step"}, headers=VIEW).status_code == 403
     rows = audit(client)
     assert any(e["command"] == "POST /api/v1/jog" and e["outcome"] == "refused:invalid_request"
-               and e["caller"] == "operator(operator)" for e in rows)
+               and e["caller"] == "http:operator(operator)" for e in rows)
     assert any(e["command"] == "POST /api/v1/jog" and e["outcome"] == "refused:forbidden"
-               and e["caller"] == "viewer(viewer)" for e in rows)
+               and e["caller"] == "http:viewer(viewer)" for e in rows)
     assert any(e["command"] == "POST /api/v1/jog" and e["outcome"] == "refused:unauthorized"
                and e["caller"] == "anonymous" for e in rows)
-    assert any(e["outcome"] == "refused:body_too_large" and e["caller"] == "viewer(viewer)"
+    assert any(e["outcome"] == "refused:body_too_large" and e["caller"] == "http:viewer(viewer)"
                for e in rows)
 
 

@@ -80,7 +80,7 @@ def test_restart_after_kill_keeps_audit_and_marks_the_job(tmp_path: Path) -> Non
         entries = httpx.get(f"{url}/api/v1/audit", headers=AUTH["viewer"],
                             timeout=5).json()["entries"]
         approach = [e for e in entries if e["command"] == "approach" and e["job_id"] == job_id]
-        assert approach and approach[0]["caller"] == "plc(plc)"
+        assert approach and approach[0]["caller"] == "http:plc(plc)"
         assert approach[0]["params"]["standoff_mm"] == 40
         assert any(e["command"] == "recover" and e["job_id"] == job_id for e in entries)
 

@@ -79,8 +79,8 @@ def test_a_plain_stop_is_answered_by_the_lane(client: TestClient,
     cell = client.app.state.cell  # type: ignore[attr-defined]
     rows = [(e.caller, e.outcome, e.params) for e in cell.jobs.audit_log(10)
             if e.command == "stop"]
-    assert rows == [("plc(plc)", "ok", {"reason": "requested"}),
-                    ("plc(plc)", "ok", {"reason": "lane test"})], rows
+    assert rows == [("http:plc(plc)", "ok", {"reason": "requested"}),
+                    ("http:plc(plc)", "ok", {"reason": "lane test"})], rows
     metrics = client.get("/api/v1/metrics", headers=AUTH["viewer"]).text
     assert "cell_stop_seconds_count 2.0" in metrics
 

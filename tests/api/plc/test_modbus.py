@@ -27,6 +27,7 @@ from api.plc.modbus import (
     float_words,
     words_float,
 )
+from cell.config.schema import ModbusConfig, load_config
 from cell.features.recipes import parse_spec
 from cell.service import Cell
 from estimator.transforms import pose_distance, pose_from_T
@@ -241,3 +242,37 @@ def test_unlisted_clients_may_only_stop(tmp_path: Path) -> None:
         finally:
             client.close()
             server.close()
+
+
+def test_the_shipped_role_runs_a_production_cycle_home_and_gripper(tmp_path: Path) -> None:
+    """With the shipped config (``[modbus] role``, the sim gripper), a PLC homes the arm and
+    opens and closes the gripper: the role a PLC runs the cell with covers a cycle."""
+    assert load_config().modbus.role == ModbusConfig().role == "plc"
+    port = free_port()
+    config = sim_config(tmp_path, gripper="sim",
+                        approach={"speed_mm_s": 250.0, "accel_mm_s2": 1200.0},
+                        modbus={"port": port, "clients": ["127.0.0.1"]})
+    assert config.modbus.role == "plc"
+    with running_cell(config) as cell:
+        server = ModbusServer(cell, config.modbus)
+        server.start()
+        client = ModbusTcpClient("127.0.0.1", port=port, timeout=5)
+        assert client.connect()
+        try:
+            plc = Plc(client)
+            home_tcp = settled_tcp(cell)
+            regs = plc.wait(plc.command(Command.APPROACH, standoff_mm=60.0))
+            assert regs[Ir.STATE] == State.DONE_OK, regs
+            assert pose_distance(settled_tcp(cell), home_tcp)[0] > 10.0
+            regs = plc.wait(plc.command(Command.HOME))
+            assert regs[Ir.STATE] == State.DONE_OK and regs[Ir.ERROR] == 0, regs
+            assert pose_distance(settled_tcp(cell), home_tcp)[0] < 0.5
+            for command in (Command.GRIPPER_OPEN, Command.GRIPPER_CLOSE, Command.GRIPPER_OPEN):
+                regs = plc.wait(plc.command(command))
+                assert regs[Ir.STATE] == State.DONE_OK and regs[Ir.ERROR] == 0, (command, regs)
+        finally:
+            client.close()
+            server.close()
+        rows = [(e.command, e.outcome) for e in cell.jobs.audit_log(50)
+                if e.caller == "modbus:plc(plc)"]
+    assert ("home", "ok") in rows and ("gripper", "ok") in rows, rows

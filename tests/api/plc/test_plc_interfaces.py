@@ -246,8 +246,11 @@ def test_opcua_roles_users_and_refusals(served: Served) -> None:
                                ("Gripper", ("open", 0.0))):
                 out = await viewer.call(name, *args)
                 assert out[0] == "forbidden", (name, out)
-            assert (await plc.call("Home"))[0] == "forbidden"  # recovery is for operators
-            assert (await plc.call("Gripper", "close", 0.0))[0] == "forbidden"
+            # a PLC homes and uses the gripper (a production cycle); this cell has no gripper
+            assert (await plc.call("Gripper", "close", 0.0))[0] == "gripper_unavailable"
+            code, message, job_id = await plc.call("Home")
+            assert code == "ok" and job_id, message
+            await plc.wait_for("JobState", lambda v: v == "succeeded", 60)
             code, _, _ = await viewer.call("Stop")  # every user may stop
             assert code == "ok"
             operator = await Opc(opc_client(served.opcua_url, "operator")).open()

@@ -255,7 +255,7 @@ def test_routine_recovers_the_simulated_hand_eye(
 ) -> None:
     cfg = sim_cell_config(tmp_path / "cell.toml")
     saved = tmp_path / "views"
-    # 12 views (the default): with 8 the rotation error is ~0.02-0.05 deg, and noise alone
+    # 12 views: with 8 the rotation error is ~0.02-0.05 deg, and noise alone
     # reached 0.052 deg once, past the 0.05 deg requirement.
     # the earlier, narrower plan (18 deg tilt, 35 deg roll): half the turning of the default,
     # and the simulated arm here is exact, so it is as accurate
