@@ -126,7 +126,7 @@ def test_a_stop_without_a_token_stops_as_anonymous(client: TestClient,
     # the cell's own page: its Origin is the host it was served from
     r = client.post("/api/v1/stop", headers={"Origin": "http://testserver"})
     assert r.status_code == 200, r.text
-    assert stops(client) == [("anonymous@testclient(anonymous)", "ok")] * 3
+    assert stops(client) == [("http:anonymous@testclient(anonymous)", "ok")] * 3
 
 
 @pytest.mark.parametrize("headers", [

@@ -439,12 +439,12 @@ def test_phone_stop_covers_no_control_and_the_job_history_is_readable(
     (a control scrolled to is above it), and the job history's caller column can be read in
     the viewport as it is, a long caller wrapped in its cell."""
     url, _ = stub
-    callers = ["line-2-packaging-plc(plc)", "anonymous@192.168.100.23(anonymous)",
-               "operator(operator)"]
+    callers = ["http:line-2-packaging-plc(plc)", "http:anonymous@192.168.100.23(anonymous)",
+               "http:operator(operator)"]
     rec.jobs[:] = [{"id": f"{i:08x}", "kind": "approach", "state": "cancelled",
                     "created_at": time.time() - i, "caller": caller, "params": {},
                     "result": None, "error": {"code": "cancelled", "message": "stopped by "
-                                              "anonymous@192.168.100.23(anonymous)"}}
+                                              "http:anonymous@192.168.100.23(anonymous)"}}
                    for i, caller in enumerate(callers)]
     page.set_viewport_size(PHONE)
     login(page, url, "tok-operator")
