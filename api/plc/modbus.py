@@ -129,6 +129,7 @@ ERROR_NUMBERS: dict[str, int] = {
     "camera_stalled": 8,
     "camera_stale": 8, "protective_stop": 9, "emergency_stop": 10, "arm_not_ready": 11,
     "arm_disconnected": 11, "cancelled": 12, "motion_failed": 13, "motion_timeout": 13,
+    "controller_watchdog": 13,
     "outside_envelope": 14, "tilt_limit": 14, "move_too_far": 14, "speed_limit": 15,
     "accel_limit": 15, "gripper_unavailable": 16, "forbidden": 17, "not_supported": 18,
     "target_lost": 19, "pose_jump": 19, "recipe_store_unreadable": 20,

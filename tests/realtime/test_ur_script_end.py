@@ -12,6 +12,10 @@ import time
 import numpy as np
 import pytest
 
+from api.plc.modbus import ERROR_NUMBERS, error_number
+from api.status import STATUS
+from cell.error_codes import ErrorCode
+from cell.motion.guard import driver_error
 from drivers.errors import ControllerWatchdogError, MotionError
 from drivers.ur.adapter import URArm
 from estimator.transforms import translation_T
@@ -47,6 +51,11 @@ def test_a_watchdog_stop_is_its_own_error(ur_ctl: ControllerProcess, ur_arm: URA
     assert "RTDE watchdog ended the control script" in message
     assert "host's load" in message and "unreachable" not in message
     assert "safety NORMAL" in message
+    # the cell reports it with its own code
+    err = driver_error(caught.value, "servoing")
+    assert err.code == ErrorCode.controller_watchdog and err.kind == "conflict"
+    assert STATUS[err.kind] == 409
+    assert error_number(err.code, err.kind) == ERROR_NUMBERS["motion_failed"]
     # the adapter starts the script again for the next command
     ur_arm.servo_twist(twist, 500.0, 0.2)
     ur_arm.stop()
