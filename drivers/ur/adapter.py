@@ -620,7 +620,7 @@ class URArm:
             time.sleep(0.01)
         command = self._command_words(what)
         if s.runtime_state == RuntimeState.PLAYING:
-            raise MotionError(f"{command} was refused by the controller while its control "
+            raise MotionError(f"{command} was rejected by the controller while its control "
                               "script ran: it did not take this command (check the target "
                               "against the arm's reach and the safety limits)")
         state = (f"runtime state {_runtime_name(s.runtime_state)}, robot mode "
@@ -630,7 +630,8 @@ class URArm:
             raise ControllerWatchdogError(_watchdog_words(self.host, command, end, state))
         if end is not None and end.cause == "command":
             raise MotionError(
-                f"{command} ended the controller's control script: it ran when the command "
+                f"{command} was rejected: it ended the controller's control script: it ran "
+                "when the command "
                 f"was sent and stopped on it ({state}); the controller's log names the "
                 "runtime error (a target it cannot reach or that its limits forbid, for one)")
         ended = "" if end is None else (
@@ -638,7 +639,7 @@ class URArm:
             + ("its RTDE watchdog not armed" if end.allowed_s <= 0 else
                f"its RTDE watchdog kicked in time (kicks stopped at most "
                f"{end.silent_s * 1000:.0f} ms of the {end.allowed_s * 1000:.0f} ms allowed)"))
-        raise MotionError(f"{command} could not run: the controller's control script is not "
+        raise MotionError(f"{command} was rejected: the controller's control script is not "
                           f"running ({state}){ended}")
 
     def _command_words(self, what: str) -> str:
@@ -793,7 +794,7 @@ def _watchdog_words(host: str, command: str, end: ScriptEnd, state: str) -> str:
     if end.withheld_s > 0.0:
         why += (f"; the kicks were withheld for {end.withheld_s * 1000:.0f} ms because the "
                 "service process was not heard from in time while a streamed motion ran")
-    return (f"{command} could not run: the controller's RTDE watchdog ended the control "
+    return (f"{command} was rejected: the controller's RTDE watchdog ended the control "
             f"script on {host} ({why}); the arm braked ({state}). Look at the host's load: "
             "the service and its ur_rtde child were not scheduled in time (CPU starved by "
             "other processes, swapping, a stalled disk); the watchdog's rate is the "
