@@ -32,6 +32,8 @@ class ErrorCode(StrEnum):
     stale_pose = "stale_pose"
     motion_failed = "motion_failed"
     motion_timeout = "motion_timeout"
+    # the controller's RTDE watchdog ended the control script: the host did not write in time
+    controller_watchdog = "controller_watchdog"
     unlock_too_early = "unlock_too_early"
     no_motion_slot = "no_motion_slot"  # an internal refusal: a motion without the slot
     not_supported = "not_supported"  # a PLC interface method this cell does not offer

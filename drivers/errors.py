@@ -49,6 +49,13 @@ class MotionError(DriverError):
     code = "motion_failed"
 
 
+class ControllerWatchdogError(MotionError):
+    """The controller's RTDE watchdog ended the control script: the host stopped writing to
+    it for longer than the watchdog allows (a starved or frozen host), so the arm braked."""
+
+    code = "controller_watchdog"
+
+
 class DeviceTimeoutError(DriverError):
     """The device did not answer in time."""
 

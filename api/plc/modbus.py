@@ -19,6 +19,11 @@ Writes come only from ``[modbus] clients`` (empty: any); any other client may wr
 stop command (4) and its sequence, so every panel and PLC on the network can stop the arm.
 STOP goes to the cell's stop path from the request's own thread of its own pool, never queued
 behind a locate.
+
+A refused request (a read or write past the register map, a function the map does not have,
+another unit id, a write from an unlisted client) is answered with its Modbus exception and
+logged here once, at WARNING, in one line naming the client and the request; pymodbus' own
+loggers stay at WARNING without their frame dumps (``cell.supervision.logs``).
 """
 
 from __future__ import annotations
@@ -50,6 +55,7 @@ from cell.config.schema import ModbusConfig
 from cell.errors import CellError
 from cell.jobs.store import Job
 from cell.service import Cell
+from cell.supervision.logs import drop_library_records, quiet_library_loggers
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +65,8 @@ JOB_POLL_S = 0.01
 N_HOLDING = 5
 N_INPUT = 18
 FC_READ_HOLDING, FC_READ_INPUT = 3, 4
+FC_WRITES = (6, 16, 23)
+MAX_REFUSALS_REMEMBERED = 256  # distinct refusals logged; then the memory starts again
 _PEER: contextvars.ContextVar[str] = contextvars.ContextVar("modbus_peer", default="")
 
 
@@ -121,6 +129,7 @@ ERROR_NUMBERS: dict[str, int] = {
     "camera_stalled": 8,
     "camera_stale": 8, "protective_stop": 9, "emergency_stop": 10, "arm_not_ready": 11,
     "arm_disconnected": 11, "cancelled": 12, "motion_failed": 13, "motion_timeout": 13,
+    "controller_watchdog": 13,
     "outside_envelope": 14, "tilt_limit": 14, "move_too_far": 14, "speed_limit": 15,
     "accel_limit": 15, "gripper_unavailable": 16, "forbidden": 17, "not_supported": 18,
     "target_lost": 19, "pose_jump": 19, "recipe_store_unreadable": 20,
@@ -173,36 +182,63 @@ class _Registers(ModbusServerContext):
     def device_ids(self) -> list[int]:
         return [UNIT_ID]
 
-    def _unit(self, device_id: int) -> None:
+    def _unit(self, device_id: int, func_code: int) -> None:
         if device_id != UNIT_ID:
+            self.server.refused(f"function {func_code} for unit {device_id}",
+                                f"this cell is unit {UNIT_ID} (gateway target failed to respond)")
             raise NoSuchIdException(f"unit {device_id}: this cell is unit {UNIT_ID}")
 
     async def async_getValues(self, device_id: int, func_code: int, address: int,
                               count: int = 1) -> list[int] | list[bool] | ExcCodes:
-        self._unit(device_id)
+        self._unit(device_id, func_code)
         table = self.input if func_code == FC_READ_INPUT else self.holding
-        if func_code not in (FC_READ_INPUT, FC_READ_HOLDING, 6, 16, 23):
+        if func_code not in (FC_READ_INPUT, FC_READ_HOLDING, *FC_WRITES):
+            self.server.refused(f"function {func_code}", "the map has no such function "
+                                "(illegal function)")
             return ExcCodes.ILLEGAL_FUNCTION
         if address < 0 or count < 1 or address + count > len(table):
+            what = "input" if func_code == FC_READ_INPUT else "holding"
+            self.server.refused(
+                f"read of {what} registers {_span(address, count)}",
+                f"past the register map, which has {what} registers 0-{len(table) - 1} "
+                "(illegal data address)")
             return ExcCodes.ILLEGAL_ADDRESS
         return list(table[address:address + count])
 
     async def async_setValues(self, device_id: int, func_code: int, address: int,
                               values: Sequence[int] | Sequence[bool]) -> ExcCodes | None:
-        self._unit(device_id)
-        if func_code not in (6, 16, 23):
+        self._unit(device_id, func_code)
+        if func_code not in FC_WRITES:
+            self.server.refused(f"write with function {func_code}", "the map has no such "
+                                "function (illegal function)")
             return ExcCodes.ILLEGAL_FUNCTION
         if address < 0 or address + len(values) > N_HOLDING:
+            self.server.refused(
+                f"write of holding registers {_span(address, len(values))}",
+                f"past the register map, which has holding registers 0-{N_HOLDING - 1} "
+                "(illegal data address)")
             return ExcCodes.ILLEGAL_ADDRESS
         after = list(self.holding)
         after[address:address + len(values)] = [int(v) for v in values]
         if not self.server.may_write(_PEER.get(), after):
+            self.server.refused(f"write of command {after[Hr.COMMAND]}",
+                                "a client not in [modbus] clients may write only the stop "
+                                "command (illegal function)")
             return ExcCodes.ILLEGAL_FUNCTION
         changed = after[Hr.SEQUENCE] != self.holding[Hr.SEQUENCE]
         self.holding = after
         if changed:
             self.server.accept(after)
         return None
+
+
+def _span(address: int, count: int) -> str:
+    return str(address) if count == 1 else f"{address}-{address + count - 1}"
+
+
+def _pymodbus_said_refusal(record: logging.LogRecord) -> bool:
+    """pymodbus' ERROR line about another unit id: the server has logged it already."""
+    return "requested device id does not exist" in str(record.msg)
 
 
 class _Handler(ServerRequestHandler):
@@ -241,6 +277,7 @@ class ModbusServer(LoopThread):
         self._accepted_seq = -1
         self._commands = ThreadPoolExecutor(2, thread_name_prefix="modbus-cmd")
         self._stops = ThreadPoolExecutor(1, thread_name_prefix="modbus-stop")
+        self._refusals: set[tuple[str, str]] = set()  # (client, request) already logged
 
     @property
     def port(self) -> int:
@@ -256,8 +293,21 @@ class ModbusServer(LoopThread):
         return self._registers
 
     def start(self, timeout_s: float = 10.0) -> None:
-        logging.getLogger("pymodbus").setLevel(logging.WARNING)
+        quiet_library_loggers()
+        drop_library_records("pymodbus.logging", _pymodbus_said_refusal)
         super().start(timeout_s)
+
+    def refused(self, request: str, why: str) -> None:
+        """One WARNING line for a refused request, the first time this client sends it (a PLC
+        polling a wrong address does not fill the log)."""
+        peer = _PEER.get() or "a client"
+        key = (peer, request)
+        if key in self._refusals:
+            return
+        if len(self._refusals) >= MAX_REFUSALS_REMEMBERED:
+            self._refusals.clear()
+        self._refusals.add(key)
+        log.warning("Modbus %s from %s refused: %s", request, peer, why)
 
     def close(self) -> None:
         self._closing.set()

@@ -21,6 +21,11 @@ The server runs its own asyncio loop in its own thread, so the HTTP server's loa
 delay a PLC's Stop; cell calls run in worker threads. The calling user reaches the method
 through a context variable set by the permission ruleset, which asyncua runs for every request
 in the task that then executes it (``uaprocessor``: check, then the service call).
+
+A refused login (an unknown user, a wrong password, a session without a user name: anonymous
+or certificate login, which ``[opcua]`` does not offer) is logged here once, at WARNING, in one
+line; asyncua's own ERROR lines about it are dropped and its loggers stay at WARNING
+(``cell.supervision.logs``).
 """
 
 from __future__ import annotations
@@ -57,6 +62,7 @@ from api.remote import RemoteCaller
 from cell.config.schema import OpcUaConfig
 from cell.errors import CellError
 from cell.service import Cell
+from cell.supervision.logs import drop_library_records, quiet_library_loggers
 
 log = logging.getLogger(__name__)
 
@@ -92,10 +98,38 @@ class _Users(UserManager):
     def get_user(self, iserver: Any, username: str | None = None, password: str | None = None,
                  certificate: Any = None) -> User | None:
         u = self._users.get(username or "")
-        if u is None or password is None \
-                or not hmac.compare_digest(u.password.encode(), password.encode()):
+        if u is None:
+            log.warning("OPC UA login refused: %s is not a user in [opcua] users",
+                        repr(username) if username else "a login without a user name")
+            return None
+        if password is None or not hmac.compare_digest(u.password.encode(), password.encode()):
+            log.warning("OPC UA login of user %r refused: wrong password", u.name)
             return None
         return User(role=UserRole.User, name=u.name)
+
+
+# asyncua's server loggers whose lines about a refused login are replaced by the server's own
+_SESSION_LOG = "asyncua.server.internal_session"
+_PROCESSOR_LOG = "asyncua.server.uaprocessor"
+_LOGIN_FAULTS = frozenset({"BadIdentityTokenRejected", "BadIdentityTokenInvalid",
+                           "BadUserAccessDenied"})
+
+
+def _token_refused(record: logging.LogRecord) -> bool:
+    """asyncua's ERROR on a session that offers no user name and password (anonymous or a
+    certificate as identity): dropped, and said once at WARNING in the server's words."""
+    if "UserIdentityToken not supported" not in str(record.msg):
+        return False
+    log.warning("OPC UA login refused: anonymous (or certificate) logins are not offered; "
+                "[opcua] accepts only its users, by name and password")
+    return True
+
+
+def _login_fault(record: logging.LogRecord) -> bool:
+    """asyncua's ERROR "sending service fault response" for a refused login, which
+    ``_Users`` or ``_token_refused`` has logged already."""
+    return "service fault" in str(record.msg) and any(
+        str(arg) in _LOGIN_FAULTS for arg in (record.args or ()))
 
 
 class _Rules(SimpleRoleRuleset):
@@ -150,9 +184,9 @@ class OpcUaServer(LoopThread):
         return self.config.endpoint
 
     def start(self, timeout_s: float = 60.0) -> None:
-        library_log = logging.getLogger("asyncua")
-        if library_log.level == logging.NOTSET:  # it logs every request at INFO
-            library_log.setLevel(logging.WARNING)
+        quiet_library_loggers()  # asyncua logs every request at INFO
+        drop_library_records(_SESSION_LOG, _token_refused)
+        drop_library_records(_PROCESSOR_LOG, _login_fault)
         super().start(timeout_s)
 
     def close(self) -> None:

@@ -77,11 +77,12 @@ def _serve(args: argparse.Namespace) -> int:
     import logging
     import logging.config
 
-    from cell.supervision.logs import log_config
+    from cell.supervision.logs import log_config, quiet_library_loggers
     from estimator.kernels import warm_up
 
     logging_config = log_config(args.log_format, args.log_level)
     logging.config.dictConfig(logging_config)
+    quiet_library_loggers()
     log = logging.getLogger("cell.serve")
 
     def say(message: str) -> None:

@@ -35,6 +35,7 @@ from numpy.typing import NDArray
 from drivers.arm import ArmState, JogFrame, speedl_accel
 from drivers.errors import (
     ConnectionLostError,
+    ControllerWatchdogError,
     DriverError,
     EmergencyStopError,
     MotionError,
@@ -52,9 +53,11 @@ from drivers.ur.client_process import (
     ClientProcess,
     Create,
     Guard,
+    LastScriptEnd,
     RemoteError,
     Request,
     Sample,
+    ScriptEnd,
     StateSample,
     Subscribe,
 )
@@ -139,6 +142,7 @@ class URArm:
         self.history = PoseHistory(history_samples)
         self._clock = ControllerClock()  # the history is stamped on the controller's clock
         self._client: ClientProcess | None = None
+        self._last_command: tuple[str, tuple[Any, ...]] = ("", ())
         self._has_control = False
         self._lost_reason: str | None = "not connected"
         self._pstop_latched = False
@@ -174,6 +178,7 @@ class URArm:
         return self._request(Call(client, method, args))
 
     def _ctrl(self, method: str, *args: Any) -> Any:
+        self._last_command = (method, args)  # what a refusal names (_raise_command_failure)
         self._check_link()
         if not self._has_control:
             raise NotReadyError(f"{self.host} is not powered on: call power_on() first")
@@ -604,7 +609,11 @@ class URArm:
             time.sleep(0.005)
 
     def _raise_command_failure(self, what: str) -> None:
-        """The client said False: find out why from the stream and raise the typed error."""
+        """The client said False: find out why from the controller's state and from what the
+        ur_rtde child saw when the script ended, and raise the typed error. Only what was
+        observed is said: a safety stop (typed), the RTDE watchdog that ended the script
+        (typed), the script ended on this very command, the script not running (its state),
+        or the command refused while the script ran."""
         deadline = time.monotonic() + 0.2  # the stream may lag the client by a cycle or two
         while True:
             s = self._sample()
@@ -612,10 +621,48 @@ class URArm:
             if time.monotonic() > deadline:
                 break
             time.sleep(0.01)
-        running = s.runtime_state == RuntimeState.PLAYING
-        raise MotionError(f"{what} was rejected by the controller"
-                          + ("" if running else " (runtime error: the target is unreachable, "
-                             "outside the limits or not allowed)"))
+        command = self._command_words(what)
+        if s.runtime_state == RuntimeState.PLAYING:
+            raise MotionError(f"{command} was rejected by the controller while its control "
+                              "script ran: it did not take this command (check the target "
+                              "against the arm's reach and the safety limits)")
+        state = (f"runtime state {_runtime_name(s.runtime_state)}, robot mode "
+                 f"{robot_mode_name(s.robot_mode)}, safety {safety_mode_name(s.safety_mode)}")
+        end = self._last_script_end()
+        if end is not None and end.cause == "watchdog":
+            raise ControllerWatchdogError(_watchdog_words(self.host, command, end, state))
+        if end is not None and end.cause == "command":
+            raise MotionError(
+                f"{command} was rejected: it ended the controller's control script: it ran "
+                "when the command "
+                f"was sent and stopped on it ({state}); the controller's log names the "
+                "runtime error (a target it cannot reach or that its limits forbid, for one)")
+        ended = "" if end is None else (
+            f"; it was seen ended {max(0.0, time.monotonic() - end.at_s):.1f} s ago with "
+            + ("its RTDE watchdog not armed" if end.allowed_s <= 0 else
+               f"its RTDE watchdog kicked in time (kicks stopped at most "
+               f"{end.silent_s * 1000:.0f} ms of the {end.allowed_s * 1000:.0f} ms allowed)"))
+        raise MotionError(f"{command} was rejected: the controller's control script is not "
+                          f"running ({state}){ended}")
+
+    def _command_words(self, what: str) -> str:
+        """``what`` with the target it was sent with, when the last command was it."""
+        method, args = self._last_command
+        if method != what or not args:
+            return what
+        first = args[0]
+        if isinstance(first, list | tuple) and all(isinstance(v, float | int) for v in first):
+            return f"{what} to [{', '.join(f'{float(v):.4g}' for v in first)}]"
+        return what
+
+    def _last_script_end(self) -> ScriptEnd | None:
+        """What the ur_rtde child saw when the control script last ended (None: it saw none,
+        or cannot say)."""
+        try:
+            end = self._request(LastScriptEnd())
+        except DriverError:
+            return None
+        return end if isinstance(end, ScriptEnd) else None
 
     def wait_for_motion(self, timeout_s: float | None = None) -> None:
         """Until the controller says the move is over: ur_rtde's async operation ended (the
@@ -737,6 +784,28 @@ class URArm:
         self._pstop_latched = False
         self._pstop_seen_s = None
         self._start_control()
+
+
+def _runtime_name(code: int) -> str:
+    try:
+        return RuntimeState(code).name
+    except ValueError:
+        return f"UNKNOWN({code})"
+
+
+def _watchdog_words(host: str, command: str, end: ScriptEnd, state: str) -> str:
+    """The message of a control script the controller's RTDE watchdog ended."""
+    why = (f"this host's kicks stopped for {end.silent_s * 1000:.0f} ms, more than the "
+           f"{end.allowed_s * 1000:.0f} ms its RTDE watchdog allows ({1.0 / end.allowed_s:g} Hz)")
+    if end.withheld_s > 0.0:
+        why += (f"; the kicks were withheld for {end.withheld_s * 1000:.0f} ms because the "
+                "service process was not heard from in time while a streamed motion ran")
+    return (f"{command} was rejected: the controller's RTDE watchdog ended the control "
+            f"script on {host} ({why}); the arm braked ({state}). Look at the host's load: "
+            "the service and its ur_rtde child were not scheduled in time (CPU starved by "
+            "other processes, swapping, a stalled disk); the watchdog's rate is the "
+            "driver's, not a setting ([robot] watchdog_s is the jog watchdog, [servo] watchdog_s "
+            "the servo tick watchdog)")
 
 
 def _checked_T(T: NDArray[np.float64]) -> NDArray[np.float64]:

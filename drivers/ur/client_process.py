@@ -87,6 +87,12 @@ ENDS_STREAM = frozenset({"moveL", "moveJ", "movePath", "moveUntilContact", "spee
 # planned moves: the watchdog goes to its low rate before they start (stops are sent first and
 # the rate lowered after them, so a stop never waits behind a setWatchdog round trip)
 PLANNED_MOVES = frozenset({"moveL", "moveJ", "movePath", "moveUntilContact"})
+# commands the control script carries out (False: the script refused or ended), and how long
+# the control client's view may take to show a script that ended on one
+COMMANDS_SCRIPT_RUNS = (STREAMED_METHODS | ENDS_STREAM | {"setTcp", "setPayload"}) - {
+    "reuploadScript", "stopScript", "kickWatchdog"}
+SCRIPT_END_SEEN_S = 0.2
+SILENCE_MEMORY_S = 1.0  # a stall of the kicker counts this long for a script end seen after it
 RUNTIME_PLAYING = 2  # RTDE runtime_state: the control script runs
 PR_SET_PDEATHSIG = 1
 
@@ -145,7 +151,31 @@ class Heartbeat:
     """The parent is alive (handled inline, no reply)."""
 
 
-Request = Create | Call | Sample | Subscribe | Drop | Guard
+@dataclass(frozen=True)
+class LastScriptEnd:
+    """How the last control script this child saw end ended: a :class:`ScriptEnd` or None."""
+
+
+Request = Create | Call | Sample | Subscribe | Drop | Guard | LastScriptEnd
+
+
+@dataclass(frozen=True)
+class ScriptEnd:
+    """What this child knew when it first saw a control script no longer running.
+
+    ``cause``: ``"watchdog"`` when the controller's RTDE watchdog was armed and this host's
+    kicks had stopped for longer than the watchdog allows (``silent_s`` > ``allowed_s``: the
+    kicker thread was not scheduled, or the kicks were withheld on purpose because the
+    service process was late mid-stream, ``withheld_s``), ``"command"`` when the script ran
+    when ``method`` was sent and ended on it, ``"unknown"`` otherwise (ended while the
+    watchdog was kicked in time: a stop from the pendant or the dashboard, for one)."""
+
+    cause: Literal["watchdog", "command", "unknown"]
+    at_s: float  # time.monotonic() when it was seen (one clock for every process on a host)
+    silent_s: float  # the longest time this host's kicks had stopped, just before
+    allowed_s: float  # 1 / the watchdog's armed rate (0.0: not armed)
+    withheld_s: float = 0.0  # kicks withheld for this long (the service process was late)
+    method: str = ""  # the control call that found it ended
 
 
 @dataclass(frozen=True)
@@ -177,6 +207,8 @@ def describe(req: Request) -> str:
         return "subscribe"
     if isinstance(req, Guard):
         return "guard"
+    if isinstance(req, LastScriptEnd):
+        return "last script end"
     return f"{type(req).__name__.lower()} {req.client}"
 
 
@@ -231,6 +263,12 @@ class _Clients:
         self.last_call_streamed = False  # it was a streamed command (see STREAMED_METHODS)
         self.streaming = False  # a streamed motion was the last motion command (see kick)
         self.call_ended = threading.Event()  # an answered control call just returned
+        self.last_tick_s = time.monotonic()  # the kicker's last turn
+        self.tick_gap = (0.0, 0.0)  # (the longest recent gap between turns, when it ended)
+        self.withheld_since_s: float | None = None  # kicks withheld: the parent is late
+        self.script_live = False  # a script was seen running and its end not noted yet
+        self._end_lock = threading.Lock()
+        self.script_end: ScriptEnd | None = None  # the last end seen (see _note_end)
 
     def arm_watchdog(self) -> None:
         """setWatchdog on the control script (a new script starts without one). Refused
@@ -266,15 +304,29 @@ class _Clients:
         plus that wait outlasted the watchdog on a healthy host). A blocking call (a
         stop waiting for the arm to rest) is not kicked through: ur_rtde's kick would wait for
         the script to be ready, and its sends are not made for two threads at once."""
+        now = time.monotonic()
+        gap, self.last_tick_s = now - self.last_tick_s, now
+        if gap >= self.tick_gap[0] or now - self.tick_gap[1] > SILENCE_MEMORY_S:
+            self.tick_gap = (gap, now)
         ctrl, guard = self.objects.get("ctrl"), self.guard
         if ctrl is None or guard is None:
             return
         if self.streaming and time.monotonic() - self.parent_seen_s > guard.parent_lease_s:
+            if self.withheld_since_s is None:
+                self.withheld_since_s = time.monotonic()
+            if not self._script_running() and not self.locks["ctrl"].locked():
+                self._note_end(self._allowed_s())
             return  # the parent stalled mid-stream: let the controller stop the arm
         if not self._script_running():
+            if not self.locks["ctrl"].locked():  # else the call in flight notes it
+                self._note_end(self._allowed_s())
             self.watchdog_armed = False  # the script ended: the next one starts unguarded
             self.streaming = False
+            self.withheld_since_s = None
             return
+        self.withheld_since_s = None
+        with self._end_lock:
+            self.script_live = True
         lock = self.locks["ctrl"]
         if not lock.acquire(blocking=False):
             return
@@ -288,6 +340,42 @@ class _Clients:
                         self._set_rate(ctrl, self._wanted_hz())
         finally:
             lock.release()
+
+    def _allowed_s(self) -> float:
+        """How long the controller's watchdog lets the script go without a write (0: not
+        armed)."""
+        return 1.0 / self.armed_hz if self.watchdog_armed and self.armed_hz > 0 else 0.0
+
+    def _silent_s(self) -> float:
+        """How long this host's kicks have stopped lately: the kicker not scheduled (the
+        longest recent gap between its turns, or the time since its last), or kicks
+        withheld while the service process was late."""
+        now = time.monotonic()
+        recent = self.tick_gap[0] if now - self.tick_gap[1] <= SILENCE_MEMORY_S else 0.0
+        withheld = 0.0 if self.withheld_since_s is None else now - self.withheld_since_s
+        return max(recent, now - self.last_tick_s, withheld)
+
+    def _note_end(self, allowed_s: float, method: str = "", ran_before: bool = False,
+                  silent_at_send_s: float = 0.0) -> None:
+        """The first sight of a running script's end: what this host knew then. From a
+        control call (``method``) that found it ended, or from the kicker."""
+        with self._end_lock:
+            if not self.script_live:
+                return  # noted already, or not seen running since the last upload
+            self.script_live = False
+        now = time.monotonic()
+        withheld = 0.0 if self.withheld_since_s is None else now - self.withheld_since_s
+        if withheld < KICK_PERIOD_S:  # not one kick was withheld
+            withheld = 0.0
+        silent = max(self._silent_s(), silent_at_send_s)
+        cause: Literal["watchdog", "command", "unknown"]
+        if 0.0 < allowed_s < silent:
+            cause = "watchdog"
+        elif ran_before:  # it ran when the command was sent, and not after
+            cause = "command"
+        else:
+            cause = "unknown"
+        self.script_end = ScriptEnd(cause, now, silent, allowed_s, withheld, method)
 
     def create(self, name: ClientName) -> None:
         import dashboard_client
@@ -308,8 +396,16 @@ class _Clients:
         if obj is None:
             raise RuntimeError(f"no {name} client")
         with self.locks[name]:  # one call at a time per client object
+            ran_before = False
+            silent_s = self._silent_s()
+            allowed_s = self._allowed_s()
             if name == "ctrl":
                 self._rate_before(obj, method)
+                with contextlib.suppress(Exception):
+                    ran_before = bool(obj.isProgramRunning())
+                if ran_before:
+                    with self._end_lock:
+                        self.script_live = True
             try:
                 result = getattr(obj, method)(*args)
             finally:
@@ -318,13 +414,29 @@ class _Clients:
                     self.last_call_streamed = method in STREAMED_METHODS
                     if method in STREAMED_METHODS or method in ENDS_STREAM:
                         self.streaming = method in STREAMED_METHODS
+            # still holding the client: the kicker leaves a refused call's end to it
+            if name == "ctrl" and result is False and method in COMMANDS_SCRIPT_RUNS:
+                self._refused(obj, method, allowed_s, ran_before, silent_s)
         if name == "ctrl" and method in ENDS_STREAM and method not in PLANNED_MOVES:
             self._rate_after_stop(obj)
         if name == "ctrl" and method not in STREAMED_METHODS:
             self.call_ended.set()  # the kicker kicks now, not a tick later
         if name == "ctrl" and method == "reuploadScript" and result:
+            self.script_live = False  # until seen running (the stream may still say ended)
             self.arm_watchdog()
         return result
+
+    def _refused(self, ctrl: Any, method: str, allowed_s: float, ran_before: bool,
+                 silent_s: float) -> None:
+        """A command the script runs said False: when the script has ended (the control or
+        the receive client's view, which may lag the answer by a few cycles), note how."""
+        deadline = time.monotonic() + SCRIPT_END_SEEN_S
+        with contextlib.suppress(Exception):
+            while bool(ctrl.isProgramRunning()) and self._script_running():
+                if time.monotonic() > deadline:
+                    return  # refused by a script that still runs
+                time.sleep(0.002)
+            self._note_end(allowed_s, method, ran_before, silent_s)
 
     def _rate_before(self, ctrl: Any, method: str) -> None:
         """The watchdog's rate for what comes: the streaming rate before a streamed command
@@ -402,6 +514,8 @@ class _Clients:
             self.guard = req
             self.arm_watchdog()
             return None
+        if isinstance(req, LastScriptEnd):
+            return self.script_end
         return self.call(req.client, req.method, req.args)
 
     def data_key(self) -> tuple[float, bool] | None:
