@@ -756,6 +756,8 @@ class ClientProcess:
                     fut.set_exception(RemoteError(*value))
         code = self._proc.poll()
         self._die(f"the ur_rtde client process ended (exit code {code})")
+        with contextlib.suppress(OSError):
+            self._proc.stdout.close()  # the reader owns its pipe: a replaced child leaves none
 
     def _die(self, reason: str) -> None:
         with self._lock:
@@ -786,17 +788,24 @@ class ClientProcess:
             raise ClientDied(self.dead_reason or "timeout") from None
 
     def kill(self, reason: str) -> None:
+        """End the child and close this side's request pipe (the reader closes the reply
+        pipe when it sees the end): a cell that replaces its child for months keeps no
+        descriptors of the old ones."""
         self._die(reason)
         if self._proc.poll() is None:
             self._proc.kill()
         with contextlib.suppress(subprocess.TimeoutExpired):
             self._proc.wait(timeout=2.0)
+        self._close_stdin()
 
-    def close(self, timeout_s: float = 2.0) -> None:
-        """Let the child exit (stdin closed); kill it if it does not."""
+    def _close_stdin(self) -> None:
         if self._proc.stdin is not None:
             with contextlib.suppress(OSError):
                 self._proc.stdin.close()
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Let the child exit (stdin closed); kill it if it does not."""
+        self._close_stdin()
         try:
             self._proc.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
