@@ -122,7 +122,7 @@ def test_stop_ends_a_joint_move_whatever_the_timing(cell: Cell) -> None:
     q_home = np.radians(cell.config.robot.home_joints_deg)
     q_away = q_home + np.radians([25.0, -10.0, 15.0, 0.0, 0.0, 0.0])
     speed, accel = np.radians(30.0), np.radians(60.0)
-    for k, delay in enumerate(_delays(16, SEED)):
+    for k, delay in enumerate(_delays(12, SEED)):
         q0 = cell.arm.joint_positions_rad()
         q1 = q_away if np.max(np.abs(q_away - q0)) > np.max(np.abs(q_home - q0)) else q_home
         T_goal = cell.arm.forward_kinematics(q1)
@@ -136,7 +136,7 @@ def test_stop_ends_a_joint_move_whatever_the_timing(cell: Cell) -> None:
 
 def test_stop_ends_a_straight_move_whatever_the_timing(cell: Cell) -> None:
     T_home = cell.arm.forward_kinematics(np.radians(cell.config.robot.home_joints_deg))
-    for k, delay in enumerate(_delays(16, SEED + 1)):
+    for k, delay in enumerate(_delays(12, SEED + 1)):
         T0 = cell.arm.tcp_pose()
         T_goal = T0.copy()
         # 120 mm along x, towards home's side so the arm stays near where it started
@@ -152,7 +152,7 @@ def test_stop_ends_a_straight_move_whatever_the_timing(cell: Cell) -> None:
 def test_stop_ends_a_stream_of_servo_twists_whatever_the_timing(cell: Cell) -> None:
     accel, watchdog_s = 1000.0, 0.1
     T_home = cell.arm.forward_kinematics(np.radians(cell.config.robot.home_joints_deg))
-    for k, delay in enumerate(_delays(12, SEED + 2)):
+    for k, delay in enumerate(_delays(10, SEED + 2)):
         sign = 1.0 if tcp(cell)[1, 3] < T_home[1, 3] else -1.0
 
         def stream(sign: float = sign) -> None:
@@ -178,7 +178,7 @@ def test_stop_ends_a_stream_of_servo_twists_whatever_the_timing(cell: Cell) -> N
 def test_stop_halts_a_gripper_close_whatever_the_timing(cell: Cell) -> None:
     g = cell.hw.gripper
     assert g is not None
-    for k, delay in enumerate(_delays(10, SEED + 3)):
+    for k, delay in enumerate(_delays(8, SEED + 3)):
         cell.gripper("race", "open", wait=True)
 
         def close() -> None:  # slowest speed: 4 s from open to closed
@@ -203,7 +203,7 @@ def test_stop_cancels_the_home_job_whatever_the_timing(cell: Cell) -> None:
     q_home = np.radians(cell.config.robot.home_joints_deg)
     T_home = cell.arm.forward_kinematics(q_home)
     q_away = q_home + np.radians([0.0, 12.0, -20.0, 8.0, 0.0, 0.0])
-    for k, delay in enumerate(_delays(12, SEED + 4)):
+    for k, delay in enumerate(_delays(10, SEED + 4)):
         if pose_distance(tcp(cell), T_home)[0] < 60.0:  # set up: away from home, unraced
             with cell.core.slot.hold("set up"):
                 cell.arm.move_joint(q_away, np.radians(60.0), np.radians(120.0))

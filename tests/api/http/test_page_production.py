@@ -165,7 +165,7 @@ def test_failed_approach_raises_an_alarm_until_acknowledged(
         api(cell, "PUT", "/sim/target", json=home_target)
     acked = [a for a in api(cell, "GET", "/alarms")["alarms"] if str(a["id"]) == alarm_id]
     assert acked and not acked[0]["active"] and acked[0]["acknowledged_by"].startswith(
-        "operator")
+        "http:operator")
     audit = api(cell, "GET", "/audit")["entries"]
     assert any(e["command"] == "alarm_ack" and e["params"]["id"] == int(alarm_id)
                for e in audit)
