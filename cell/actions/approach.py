@@ -25,6 +25,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -79,6 +80,18 @@ class JobLayout:
             previous = (locator.target, locator.last)
             if locator.use_target(self._target):
                 self._lent = previous
+
+    def checked(self, checks: Callable[[Motion], None]) -> Callable[[Motion], None]:
+        """A job's pre-start ``checks`` run with the layout lent, and given back when they
+        refuse."""
+        def check(motion: Motion) -> None:
+            self.apply()
+            try:
+                checks(motion)
+            except BaseException:
+                self.refused()
+                raise
+        return check
 
     def refused(self) -> None:
         self._give_back(keep_last=True)
@@ -145,14 +158,6 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
     first: list[Located] = []
     seen: dict[str, Any] = {}  # how a fixed camera's pose was had (live or before occlusion)
     lent = JobLayout(core, layout)
-
-    def check(motion: Motion) -> None:
-        lent.apply()
-        try:
-            checks(motion)
-        except BaseException:
-            lent.refused()
-            raise
 
     def checks(motion: Motion) -> None:
         check_standoff(plan.standoff_mm)
@@ -223,7 +228,7 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
         return look_and_move(core, job_id, motion, first[0], plan)
 
     try:
-        return core.runner.start("approach", caller, params, work, check=check,
+        return core.runner.start("approach", caller, params, work, check=lent.checked(checks),
                                  needs_camera=True, wait=wait, wait_timeout_s=wait_timeout_s)
     except BaseException:
         lent.refused()  # no job: the checks passed but it was not started after all

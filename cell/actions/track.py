@@ -45,14 +45,6 @@ def start_track(core: CellCore, caller: str, *, standoff_mm: float, duration_s: 
     first: list[Located] = []
     lent = JobLayout(core, layout)
 
-    def check(motion: Motion) -> None:
-        lent.apply()
-        try:
-            checks(motion)
-        except BaseException:
-            lent.refused()
-            raise
-
     def checks(motion: Motion) -> None:
         check_standoff(standoff)
         if not (np.isfinite(duration) and 0 < duration <= sc.max_track_s):
@@ -74,7 +66,7 @@ def start_track(core: CellCore, caller: str, *, standoff_mm: float, duration_s: 
             lent.ended()
 
     try:
-        return core.runner.start("track", caller, params, work, check=check,
+        return core.runner.start("track", caller, params, work, check=lent.checked(checks),
                                  needs_camera=True, wait=wait, wait_timeout_s=wait_timeout_s)
     except BaseException:
         lent.refused()  # no job: the checks passed but it was not started after all
