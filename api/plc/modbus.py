@@ -425,7 +425,7 @@ class ModbusServer(LoopThread):
         standoff = words_float(holding[Hr.STANDOFF_MM], holding[Hr.STANDOFF_MM + 1])
         if command == Command.STOP:
             out = remote.stop(self.cell, self.caller)
-            if out.get("arm_error"):
+            if not out.get("stopped"):  # the arm, or a moving gripper, did not take it
                 return _Outcome(False, error_number("motion_failed"))
             return _Outcome(True)
         if command == Command.LOCATE:

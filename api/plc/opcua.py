@@ -642,8 +642,9 @@ class OpcUaServer(LoopThread):
             t0 = time.monotonic()
             out = remote.stop(self.cell, caller)
             job_id = out.get("job_id") or ""
-            if out.get("arm_error"):
-                return [ua.Variant("arm_error", S), ua.Variant(str(out["arm_error"]), S),
+            if not out.get("stopped"):  # the arm, or a moving gripper, did not take it
+                code = "arm_error" if out.get("arm_error") else "gripper_error"
+                return [ua.Variant(code, S), ua.Variant(str(out.get(code)), S),
                         ua.Variant(job_id, S)]
             what = f"cancelled {out['cancelled']}" if out.get("cancelled") else "nothing running"
             return self._ok(f"stopped ({what}) in {1000 * (time.monotonic() - t0):.0f} ms",
