@@ -25,6 +25,10 @@ Finite = Num
 Vec3 = tuple[Finite, Finite, Finite]
 
 
+# The largest integer SQLite stores (signed 64 bits): every id or count a route hands to a
+# database is bounded by it (or less), so a larger one is a 422, never an overflow.
+SQLITE_MAX_INT = 2**63 - 1
+
 class _Body(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
