@@ -45,6 +45,7 @@ from cell.stats import CellStats
 from cell.supervision.gripper import GripperService
 from cell.supervision.links import LinkSupervisor
 from cell.supervision.snapshot import CellSnapshot
+from cell.supervision.storage import StorageWatch, state_dirs
 from cell.vision.frames import CellFrames, cell_frames
 from cell.vision.imagelog import ImageLog
 from cell.vision.locate import Located, Locator
@@ -83,7 +84,9 @@ class Cell:
         self.gripper_ops = GripperService(hardware.gripper, audit, self.events, slot, arm.gate)
         self.stopper = StopLine(self.core, self.gripper_ops.halt)
         self.jogger = Jogger(self.core, self.stopper.stop)
-        self.snapshot = CellSnapshot(self.core, self.links, self.gripper_ops)
+        self.storage = StorageWatch(jobs, state_dirs(jobs, config.api.calibration_dir,
+                                                     config.api.image_log_dir))
+        self.snapshot = CellSnapshot(self.core, self.links, self.gripper_ops, self.storage)
         self.started_at = time.time()
 
     # -- what other modules read ---------------------------------------------------------------
@@ -117,6 +120,7 @@ class Cell:
         self.links.connect_all()
         self.gripper_ops.start()
         self.links.start()
+        self.storage.start()
         self.snapshot.start()
 
     def close(self) -> None:
@@ -128,6 +132,7 @@ class Cell:
         self.links.close()
         self.core.runner.join(timeout_s=5.0)
         self.snapshot.close()
+        self.storage.close()
         self.gripper_ops.close()
         self.stopper.close()
         self.hw.close()

@@ -23,6 +23,7 @@ from cell.errors import CellError
 log = logging.getLogger(__name__)
 
 AUDITED = frozenset({401, 403, 422})
+BODY_PARSE_ERROR = "There was an error parsing the body"  # FastAPI's 400 for an unreadable body
 
 
 def _resp(text: str) -> dict[str, Any]:
@@ -82,6 +83,11 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, err: StarletteHTTPException) -> JSONResponse:
+        if err.status_code == 400 and err.detail == BODY_PARSE_ERROR:
+            # a body the framework could not decode (not UTF-8, ...): malformed, as documented
+            message = "body: the request body could not be read as JSON text"
+            _audit(request, 422, "invalid_request", message)
+            return JSONResponse(error_body("invalid_request", message), 422)
         code = {404: "not_found", 405: "method_not_allowed"}.get(err.status_code, "http_error")
         return JSONResponse(error_body(code, str(err.detail)), err.status_code,
                             headers=getattr(err, "headers", None))

@@ -3,7 +3,8 @@
 Order matters (audit issue items 6 and 7): a request without a valid token is answered 401
 before a byte of its body is read or parsed, so an anonymous client cannot make the service
 parse 10 MB bodies; bodies are capped (413) and must be ``application/json`` (415), so a
-cross-site "simple" form POST never reaches a route. Refusals are written to the audit log with
+cross-site "simple" form POST never reaches a route, and UTF-8 (422 ``invalid_request``, as
+any malformed body). Refusals are written to the audit log with
 the path and the caller (``anonymous`` when there is none). The one request taken without a
 token is a STOP with no credential at all, when ``[api] anonymous_stop`` is on
 (:func:`api.auth.anonymous_stop_caller`); its body is checked as every other.
@@ -89,6 +90,10 @@ class RequestGuard:
             await self._refuse(scope, send, 415, "unsupported_media_type",
                                "a request body needs Content-Type: application/json", label)
             return
+        problem = _not_utf8(body)
+        if problem is not None:  # JSON is UTF-8 (RFC 8259); the framework would answer 400
+            await self._refuse(scope, send, 422, "invalid_request", problem, label)
+            return
         replayed = False
 
         async def replay() -> Message:
@@ -111,6 +116,15 @@ class RequestGuard:
         raw += [(k.lower().encode(), v.encode()) for k, v in (headers or {}).items()]
         await send({"type": "http.response.start", "status": status, "headers": raw})
         await send({"type": "http.response.body", "body": payload})
+
+
+def _not_utf8(body: bytes) -> str | None:
+    """Why ``body`` is not UTF-8 text, or None when it is (or is empty)."""
+    try:
+        body.decode("utf-8")
+    except UnicodeDecodeError as err:
+        return f"body: the request body is not valid UTF-8 (byte {err.start}: {err.reason})"
+    return None
 
 
 def _query_token(scope: Scope) -> str | None:

@@ -25,6 +25,10 @@ Finite = Num
 Vec3 = tuple[Finite, Finite, Finite]
 
 
+# The largest integer SQLite stores (signed 64 bits): every id or count a route hands to a
+# database is bounded by it (or less), so a larger one is a 422, never an overflow.
+SQLITE_MAX_INT = 2**63 - 1
+
 class _Body(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
@@ -219,17 +223,40 @@ class Me(_Out):
     permissions: list[str]
 
 
+HealthCode = Literal["arm_disconnected", "camera_lost", "protective_stop", "emergency_stop",
+                     "storage", "disk_space"]
+
+
+class HealthReason(BaseModel):
+    code: HealthCode = Field(
+        description="arm_disconnected / camera_lost: a device is not connected (also in "
+        "`missing`); protective_stop / emergency_stop: the arm is safety-stopped; storage: the "
+        "job database cannot be written; disk_space: a file system the service writes to is "
+        "nearly full")
+    message: str = Field(description="the reason in words, for people")
+
+
 class Health(_Out):
     model_config = _examples(
-        {"status": "ok", "missing": [], "arm_connected": True, "camera_connected": True},
+        {"status": "ok", "missing": [], "arm_connected": True, "camera_connected": True,
+         "reasons": []},
+        {"status": "degraded", "missing": [], "arm_connected": True, "camera_connected": True,
+         "reasons": [{"code": "protective_stop", "message": "the arm is in a protective stop: "
+                      "clear the cause, then unlock it"}]},
         {"status": "degraded", "missing": ["arm"], "arm_connected": False,
-         "camera_connected": True})
+         "camera_connected": True,
+         "reasons": [{"code": "arm_disconnected", "message": "the arm's controller is not "
+                      "connected; the cell reconnects by itself"}]})
     status: Literal["ok", "degraded"] = Field(
-        description="ok: every device connected; degraded: the process serves, the devices "
-        "in `missing` are being reconnected")
-    missing: list[str] = Field(default_factory=list)
+        description="ok: every device connected, the arm not safety-stopped, the job database "
+        "writable and the disk not near full; degraded: the process serves, `reasons` says "
+        "what is wrong")
+    missing: list[str] = Field(default_factory=list,
+                               description="devices not connected (being reconnected)")
     arm_connected: bool
     camera_connected: bool
+    reasons: list[HealthReason] = Field(
+        default_factory=list, description="why the status is degraded (empty when ok)")
 
 
 class Quality(_Out):

@@ -249,7 +249,8 @@ class AlarmLog:
             return self._get_locked(alarm_id)
 
     def _get_locked(self, alarm_id: int) -> Alarm:
-        row = self._db.execute(f"{_SELECT} WHERE id = ?", (alarm_id,)).fetchone()
+        row = None if not 0 < alarm_id < 2**63 else (  # SQLite's integers are 64-bit
+            self._db.execute(f"{_SELECT} WHERE id = ?", (alarm_id,)).fetchone())
         if row is None:
             raise NotFoundError(ErrorCode.alarm_not_found, f"no alarm with id {alarm_id}")
         return _alarm(row)

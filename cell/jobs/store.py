@@ -4,6 +4,10 @@ Why SQLite: the log must survive a crash of the service (that is when it is need
 readable by a person with the ``sqlite3`` tool. WAL lets the API read while a job writes.
 A job still marked ``running`` when the store opens was interrupted by a crash or kill; it is
 marked ``interrupted`` with a reason and the recovery is written to the audit log.
+
+The store remembers whether its last write failed (:attr:`JobStore.write_error`), so
+``/health`` can say the job database cannot be written without touching it;
+:meth:`JobStore.probe` makes one tiny write when nothing else wrote for a while.
 """
 
 from __future__ import annotations
@@ -14,6 +18,8 @@ import sqlite3
 import threading
 import time
 import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -47,6 +53,10 @@ CREATE TABLE IF NOT EXISTS audit (
     job_id TEXT,
     started_at REAL NOT NULL,
     ended_at REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS write_probe (
+    id INTEGER PRIMARY KEY CHECK (id = 1),
+    at REAL NOT NULL
 );
 """
 
@@ -109,15 +119,46 @@ class JobStore:
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=NORMAL")
         self._db.executescript(_SCHEMA)
+        # the outcome of the newest write: None after a success, else what failed and when
+        self.write_error: str | None = None
+        self.write_error_at: float | None = None  # time.time()
+        self._last_write_s = time.monotonic()  # of the newest write attempt
         self.recovered: list[str] = self._mark_interrupted()
 
     def close(self) -> None:
         with self._lock:
             self._db.close()
 
+    @contextmanager
+    def _writing(self) -> Iterator[sqlite3.Connection]:
+        """The connection, under the lock, for one write; its outcome is remembered."""
+        with self._lock:
+            self._last_write_s = time.monotonic()
+            try:
+                yield self._db
+            except sqlite3.Error as err:
+                if self.write_error is None:
+                    self.write_error_at = time.time()
+                self.write_error = f"{type(err).__name__}: {err}"
+                raise
+            self.write_error, self.write_error_at = None, None
+
+    def probe(self, idle_s: float = 0.0) -> str | None:
+        """One tiny write (a single row rewritten) unless a write succeeded within the last
+        ``idle_s`` seconds; answers :attr:`write_error` afterwards (None: writable)."""
+        if self.write_error is None and time.monotonic() - self._last_write_s < idle_s:
+            return None
+        try:
+            with self._writing() as db:
+                db.execute("INSERT OR REPLACE INTO write_probe (id, at) VALUES (1, ?)",
+                           (time.time(),))
+        except sqlite3.Error:
+            pass  # remembered by _writing
+        return self.write_error
+
     def _mark_interrupted(self) -> list[str]:
         now = time.time()
-        with self._lock:
+        with self._writing():
             rows = self._db.execute(
                 "SELECT id, pid FROM jobs WHERE state = 'running'").fetchall()
             for job_id, pid in rows:
@@ -135,7 +176,7 @@ class JobStore:
     def create(self, kind: str, caller: str, params: dict[str, Any]) -> Job:
         job_id = uuid.uuid4().hex[:12]
         now = time.time()
-        with self._lock:
+        with self._writing():
             self._db.execute(
                 "INSERT INTO jobs (id, kind, caller, params, state, created_at, pid) "
                 "VALUES (?, ?, ?, ?, 'running', ?, ?)",
@@ -145,13 +186,13 @@ class JobStore:
         return job
 
     def set_progress(self, job_id: str, progress: dict[str, Any]) -> None:
-        with self._lock:
+        with self._writing():
             self._db.execute("UPDATE jobs SET progress = ? WHERE id = ?",
                              (json.dumps(progress), job_id))
 
     def finish(self, job_id: str, state: JobState, result: dict[str, Any] | None = None,
                error_code: str | None = None, error_message: str | None = None) -> Job:
-        with self._lock:
+        with self._writing():
             self._db.execute(
                 "UPDATE jobs SET state = ?, result = ?, error_code = ?, error_message = ?, "
                 "ended_at = ? WHERE id = ? AND state = 'running'",
@@ -182,7 +223,7 @@ class JobStore:
               detail: str = "", job_id: str | None = None, started_at: float | None = None,
               ended_at: float | None = None) -> None:
         end = time.time() if ended_at is None else ended_at
-        with self._lock:
+        with self._writing():
             self._db.execute(
                 "INSERT INTO audit (caller, command, params, outcome, detail, job_id, "
                 "started_at, ended_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",

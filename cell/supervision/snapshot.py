@@ -31,6 +31,7 @@ from cell.core import CellCore
 from cell.supervision import status as status_mod
 from cell.supervision.gripper import GripperService
 from cell.supervision.links import LinkSupervisor
+from cell.supervision.storage import StorageWatch
 
 log = logging.getLogger(__name__)
 MAX_RATE_HZ = 30.0  # a faster camera does not make the reports faster than this
@@ -78,10 +79,12 @@ def with_age(body: bytes, age_s: float) -> bytes:
 
 
 class CellSnapshot:
-    def __init__(self, core: CellCore, links: LinkSupervisor, gripper: GripperService) -> None:
+    def __init__(self, core: CellCore, links: LinkSupervisor, gripper: GripperService,
+                 storage: StorageWatch | None = None) -> None:
         self.core = core
         self.links = links
         self.gripper = gripper
+        self.storage = storage
         self.period_s = 1.0 / min(core.config.camera.fps, MAX_RATE_HZ)
         self._snap: Snap | None = None
         self._reads = 0  # counted, not locked: a lost increment only delays a refresh ahead
@@ -149,7 +152,8 @@ class CellSnapshot:
             missing.append("arm")
         if not st["camera"]["connected"] and "camera" not in missing:
             missing.append("camera")
-        health = status_mod.health_from(missing)
+        health = status_mod.health_from(
+            missing, st["robot"], [] if self.storage is None else self.storage.reasons())
         robot = st["robot"]
         motion = core.slot.current
         state = None if "T_base_tcp" not in robot else {

@@ -66,12 +66,37 @@ def status(core: CellCore, links: LinkSupervisor, gripper: GripperService) -> di
     return out
 
 
-def health_from(missing: list[str]) -> dict[str, Any]:
-    """``ok`` when every device is connected, else ``degraded`` naming what is missing; the
+MISSING_REASONS = {
+    "arm": ("arm_disconnected", "the arm's controller is not connected; the cell reconnects "
+            "by itself"),
+    "camera": ("camera_lost", "the camera is not delivering frames; the cell reconnects by "
+               "itself"),
+}
+
+
+def health_from(missing: list[str], robot: dict[str, Any] | None = None,
+                storage: list[dict[str, str]] | None = None) -> dict[str, Any]:
+    """``ok`` when every device is connected, the arm is not safety-stopped and the job
+    database and the disk under it can be written, else ``degraded``; ``reasons`` says why
+    (``{code, message}`` each) and ``missing`` names the devices that are not connected. The
     process answers either way (a liveness probe must not fail because a device did)."""
-    return {"status": "degraded" if missing else "ok", "missing": missing,
-            "arm_connected": "arm" not in missing, "camera_connected": "camera" not in missing}
+    reasons = [{"code": MISSING_REASONS[name][0], "message": MISSING_REASONS[name][1]}
+               for name in missing]
+    robot = robot or {}
+    if robot.get("connected", False):
+        safety = str(robot.get("safety", ""))
+        if "EMERGENCY_STOP" in safety:
+            reasons.append({"code": "emergency_stop", "message": "the arm is emergency-stopped "
+                            f"({safety}): release the e-stop, then unlock and power on"})
+        elif robot.get("protective_stop") or safety == "PROTECTIVE_STOP":
+            reasons.append({"code": "protective_stop", "message": "the arm is in a protective "
+                            "stop: clear the cause, then unlock it"})
+    reasons += storage or []
+    return {"status": "degraded" if reasons else "ok", "missing": missing,
+            "arm_connected": "arm" not in missing, "camera_connected": "camera" not in missing,
+            "reasons": reasons}
 
 
 def health(core: CellCore, links: LinkSupervisor) -> dict[str, Any]:
+    """Devices only (the snapshot adds the arm's safety state and the storage)."""
     return health_from(links.missing())

@@ -26,13 +26,20 @@ from cell.vision.intrinsics import IntrinsicsPolicy, IntrinsicsSource
 from cell.vision.search_window import SearchWindows
 from drivers.arm import Arm
 from drivers.camera import Camera, Frame
-from drivers.errors import DriverError
+from drivers.errors import ConnectionLostError, DriverError
 from estimator import CameraModel, EstimationError, PoseResult, Target
 from estimator.pipeline import Estimator
 from estimator.transforms import invert_T, pose_dict, pose_distance
 
 log = logging.getLogger(__name__)
 Matrix4 = NDArray[np.float64]
+
+
+def _history_error(err: DriverError) -> UnavailableError:
+    """The arm's pose history unreadable: its lost link is ``arm_disconnected``."""
+    code = (ErrorCode.arm_disconnected if isinstance(err, ConnectionLostError)
+            else ErrorCode(err.code))
+    return UnavailableError(code, f"reading the arm pose history: {err}")
 
 
 @dataclass(frozen=True)
@@ -152,6 +159,7 @@ class Locator:
         (noise drops as 1/sqrt(n))."""
         if not self.camera.is_connected:
             raise UnavailableError(ErrorCode.camera_lost, "the camera is not connected")
+        self._require_arm()
         estimates: list[Matrix4] = []
         rms_px: list[float] = []
         last: tuple[Frame, PoseResult, Matrix4] | None = None
@@ -167,8 +175,7 @@ class Locator:
                 frame = self._fresh_frame(time.monotonic())
                 T_base_tcp = self._pose_at(frame)
             except DriverError as err:
-                raise UnavailableError(ErrorCode(err.code),
-                                       f"reading the arm pose history: {err}") from err
+                raise _history_error(err) from err
             result = self._estimate(frame, T_base_tcp)
             estimates.append(self.frames.T_base_target(T_base_tcp, result.T_camera_target))
             rms_px.append(float(result.rms_px))
@@ -216,15 +223,28 @@ class Locator:
         T_base_tcp = self._pose_at(frame)
         return frame, self._estimate(frame, T_base_tcp), T_base_tcp
 
+    def _require_arm(self) -> None:
+        """A frame is mapped into the base frame with the arm's pose: with the arm's link
+        down there is none to map it with (``arm_disconnected``, not a stale history)."""
+        try:
+            connected = self.arm.state().connected
+        except DriverError as err:
+            raise UnavailableError(ErrorCode.arm_disconnected,
+                                   f"reading the arm state: {err}") from err
+        if not connected:
+            raise UnavailableError(ErrorCode.arm_disconnected, "the arm is not connected, so a "
+                                   "frame cannot be mapped into the base frame; check the "
+                                   "controller and network (the cell reconnects by itself)")
+
     def _pose_at(self, frame: Frame) -> Matrix4:
         try:
             return self.arm.pose_at(frame.timestamp_s)
         except LookupError as err:
+            self._require_arm()  # a history that ends because the link did
             raise RefusedError(ErrorCode.stale_pose, "the arm's pose history does not cover the "
                                f"frame's capture time: {err}") from err
         except DriverError as err:
-            raise UnavailableError(ErrorCode(err.code),
-                                   f"reading the arm pose history: {err}") from err
+            raise _history_error(err) from err
 
     def _fresh_frame(self, after_s: float | None) -> Frame:
         """The freshest frame, captured no earlier than ``after_s`` (monotonic)."""

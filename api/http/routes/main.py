@@ -71,9 +71,12 @@ def sim_of(request: Request) -> SimWorld:
 
 @router.get("/health", response_model=Health, tags=["status"])
 async def health(request: Request) -> dict[str, Any]:
-    """Liveness without auth: 200 while the process serves. ``status`` is ``ok`` with every
-    device connected, ``degraded`` otherwise, and ``missing`` names the devices that are not
-    (the cell reconnects them by itself). From the cell's snapshot: never waits."""
+    """Liveness without auth: 200 while the process serves, whatever its state. ``status`` is
+    ``ok`` with every device connected, the arm not safety-stopped, the job database writable
+    and the disk not near full; ``degraded`` otherwise, with ``reasons`` ({code, message}
+    each: ``arm_disconnected``, ``camera_lost``, ``protective_stop``, ``emergency_stop``,
+    ``storage``, ``disk_space``). ``missing`` names the devices that are not connected (the
+    cell reconnects them by itself). From the cell's snapshot: never waits."""
     return dict((await snapshot_now(cell_of(request))).health)
 
 

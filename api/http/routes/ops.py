@@ -5,12 +5,13 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Depends, FastAPI, Query, Request
+from fastapi import APIRouter, Body, Depends, FastAPI, Path, Query, Request
 from fastapi.responses import FileResponse
 
 from api.auth import Caller, Read, require
 from api.http.errors import ERROR_RESPONSES, NOT_FOUND, UNAVAILABLE
 from api.http.schemas import (
+    SQLITE_MAX_INT,
     Alarm,
     AlarmList,
     CameraSettingsOut,
@@ -62,7 +63,8 @@ def list_alarms(request: Request, caller: Read,
              responses=NOT_FOUND)
 def acknowledge_alarm(request: Request,
                       caller: Annotated[Caller, Depends(require("alarm_ack"))],
-                      alarm_id: int) -> dict[str, Any]:
+                      alarm_id: Annotated[int, Path(ge=1, le=SQLITE_MAX_INT, description=(
+                          "the alarm's id (a positive 64-bit integer)"))]) -> dict[str, Any]:
     """Acknowledge (operator role; audited). Acknowledging an acknowledged alarm answers it
     unchanged; 404 ``alarm_not_found`` for an unknown id."""
     return _alarms(request).acknowledge(alarm_id, caller.label).as_dict()

@@ -8,13 +8,14 @@ from __future__ import annotations
 import re
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import pytest
 from fastapi.testclient import TestClient
 
 from api.app import create_app
 from cell.error_codes import ErrorCode
+from cell.errors import NotFoundError
 from tests.support.cell import AUTH, running_cell, sim_config
 from tests.support.paths import REPO
 
@@ -145,3 +146,75 @@ def test_metrics_public_switch_and_job_durations(tmp_path: Path) -> None:
             in text, text[-2000:]
         assert client.get("/api/v1/metrics").status_code == 200
         assert client.get("/api/v1/status").status_code == 401  # only the metrics are open
+
+
+NOT_UTF8 = b'{"reason": "\xff\xfe caf\xe9"}'  # JSON punctuation around bytes that are not UTF-8
+BODY_ROUTES = [("POST", "/api/v1/locate"), ("POST", "/api/v1/approach"),
+               ("POST", "/api/v1/jog"), ("POST", "/api/v1/stop"), ("POST", "/api/v1/gripper"),
+               ("PUT", "/api/v1/sim/target"), ("PUT", "/api/v1/camera/settings"),
+               ("PUT", "/api/v1/recipes")]
+
+
+def test_a_body_that_is_not_utf8_is_an_invalid_request(
+        app_and_schema: tuple[Any, dict]) -> None:
+    app, schema = app_and_schema
+    client = TestClient(app)
+    for method, path in BODY_ROUTES:
+        assert "422" in schema["paths"][path][method.lower()]["responses"], (method, path)
+        r = client.request(method, path, content=NOT_UTF8,
+                           headers={**OP, "Content-Type": "application/json"})
+        assert r.status_code == 422, (method, path, r.status_code, r.text)
+        error = r.json()["error"]
+        assert error["code"] == "invalid_request" and "UTF-8" in error["message"], error
+
+
+def test_a_body_the_framework_cannot_decode_is_the_documented_422() -> None:
+    """Behind the guard too: FastAPI's own 400 for an undecodable body becomes the 422."""
+    from fastapi import Body, FastAPI
+
+    from api.http import errors
+
+    app = FastAPI()
+    errors.install(app)
+
+    @app.post("/echo")
+    def echo(body: Annotated[dict[str, Any], Body()]) -> dict[str, Any]:
+        return body
+
+    r = TestClient(app).post("/echo", content=NOT_UTF8,
+                             headers={"Content-Type": "application/json"})
+    assert r.status_code == 422 and r.json()["error"]["code"] == "invalid_request", r.text
+
+
+SQLITE_MAX = 2**63 - 1
+
+
+def test_integer_parameters_are_bounded_to_what_sqlite_stores(tmp_path: Path) -> None:
+    with running_cell(sim_config(tmp_path)) as cell, TestClient(create_app(cell)) as client:
+        _integers_bounded(client)
+
+
+def _integers_bounded(client: TestClient) -> None:
+    app: Any = client.app
+    schema = app.openapi()
+    unbounded = [(path, method, p["name"]) for path, item in schema["paths"].items()
+                 for method, op in item.items() for p in op.get("parameters", [])
+                 for branch in p["schema"].get("anyOf", [p["schema"]])
+                 if branch.get("type") == "integer"
+                 and branch.get("maximum", SQLITE_MAX + 1) > SQLITE_MAX]
+    assert not unbounded, unbounded
+    for alarm_id in ("246149399008181101789184", str(SQLITE_MAX + 1), "0", "-1"):
+        r = client.post(f"/api/v1/alarms/{alarm_id}/ack", headers=OP)
+        assert r.status_code == 422 and r.json()["error"]["code"] == "invalid_request", r.text
+    r = client.post(f"/api/v1/alarms/{SQLITE_MAX}/ack", headers=OP)
+    assert r.status_code == 404 and r.json()["error"]["code"] == "alarm_not_found", r.text
+    for query in ("limit=246149399008181101789184", "offset=246149399008181101789184",
+                  "offset=-1"):
+        for path in ("/api/v1/jobs", "/api/v1/alarms", "/api/v1/images"):
+            r = client.get(f"{path}?{query}", headers=VIEW)
+            assert r.status_code == 422, (path, query, r.text)
+    r = client.get("/api/v1/audit?limit=246149399008181101789184", headers=VIEW)
+    assert r.status_code == 422, r.text
+    # the alarm log itself, for any other door: an id SQLite cannot hold is simply unknown
+    with pytest.raises(NotFoundError):
+        app.state.alarms.acknowledge(10**23, "test")

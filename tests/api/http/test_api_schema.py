@@ -1,4 +1,5 @@
-"""Schemathesis over the OpenAPI schema of the simulated cell: whatever the request, no 5xx.
+"""Schemathesis over the OpenAPI schema of the simulated cell: whatever the request, no 5xx,
+no bare 400, and every 422 the cell's error model.
 
 Bounded (a few examples per operation) so it stays well under a minute, and derandomized so
 every run (and CI) tries the same requests. The event and MJPEG streams are left out because
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import Any
 
 import schemathesis
 from hypothesis import HealthCheck, given, settings
@@ -17,6 +19,15 @@ from schemathesis.checks import not_a_server_error
 
 from api.app import create_app
 from tests.support.cell import AUTH, running_cell, sim_config
+
+
+def malformed_is_422(ctx: Any, response: Any, case: schemathesis.Case) -> bool:
+    """A malformed request is the documented 422 with the error model, never a bare 400 from
+    the framework (a body that is not UTF-8, ...)."""
+    assert response.status_code != 400, (case.method, case.path, response.text)
+    if response.status_code == 422:
+        assert set(response.json()["error"]) == {"code", "message"}, response.text
+    return True
 
 
 def test_no_server_errors(tmp_path: Path) -> None:
@@ -36,7 +47,8 @@ def test_no_server_errors(tmp_path: Path) -> None:
             @settings(max_examples=5, deadline=None, suppress_health_check=list(HealthCheck),
                       database=None, derandomize=True)
             def run(case: schemathesis.Case) -> None:
-                case.call_and_validate(headers=AUTH["operator"], checks=[not_a_server_error])
+                case.call_and_validate(headers=AUTH["operator"],
+                                       checks=[not_a_server_error, malformed_is_422])
 
             run()
             cell.stop("test")

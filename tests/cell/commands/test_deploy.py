@@ -50,6 +50,15 @@ def test_unit_runs_the_service_as_its_user_with_restarts_state_and_journald() ->
     assert s["WantedBy"] == ["multi-user.target"]
 
 
+def test_unit_sets_the_limits_a_long_run_needs() -> None:
+    """Open files well above systemd's default soft limit of 1024 (sockets of many clients,
+    the databases, the image log, the ur_rtde pipes), and a bound on tasks that is no
+    tighter than the service's own threads need."""
+    s = _unit_settings()
+    assert s.get("LimitNOFILE") == ["65536"], s.get("LimitNOFILE")
+    assert len(s.get("TasksMax", [])) == 1 and int(s["TasksMax"][0]) >= 1024, s.get("TasksMax")
+
+
 @pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd is not present")
 def test_unit_passes_systemd_analyze_verify(tmp_path: Path) -> None:
     # verify also checks that the executables exist: point them at this checkout's cell
