@@ -643,8 +643,8 @@ class OpcUaServer(LoopThread):
             out = remote.stop(self.cell, caller)
             job_id = out.get("job_id") or ""
             if not out.get("stopped"):  # the arm, or a moving gripper, did not take it
-                code = "arm_error" if out.get("arm_error") else "gripper_error"
-                return [ua.Variant(code, S), ua.Variant(str(out.get(code)), S),
+                which = "arm_error" if out.get("arm_error") else "gripper_error"
+                return [ua.Variant(which, S), ua.Variant(str(out.get(which)), S),
                         ua.Variant(job_id, S)]
             what = f"cancelled {out['cancelled']}" if out.get("cancelled") else "nothing running"
             return self._ok(f"stopped ({what}) in {1000 * (time.monotonic() - t0):.0f} ms",
