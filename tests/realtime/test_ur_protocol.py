@@ -383,11 +383,15 @@ def test_rtde_watchdog_stops_the_program_and_unsimulated_commands_are_refused(
     assert r.getRuntimeState() == 1
     messages = ctl.state()["messages"]
     assert any("watchdog" in m for m in messages), messages
-    assert c.reuploadScript()
+    assert c.reuploadScript()  # sends the script; returns before it runs
+    # ur_rtde's control client refuses a command at once while its own RTDE stream (another
+    # connection than the receive client's, which a loaded host may read later) does not yet
+    # show the script running: wait for both views, as a client of a real controller must
     deadline = time.monotonic() + 3.0
-    while r.getRuntimeState() != 2 and time.monotonic() < deadline:
+    while ((r.getRuntimeState() != 2 or not c.isProgramRunning())
+           and time.monotonic() < deadline):
         time.sleep(0.01)
-    assert r.getRuntimeState() == 2
+    assert r.getRuntimeState() == 2 and c.isProgramRunning()
     assert c.teachMode() and c.endTeachMode()  # simulated: nobody pushes the arm
     t0 = time.monotonic()
     # not simulated: refused at once with a message, not a silent success, not a hang
