@@ -63,8 +63,8 @@ def test_locate_approach_and_grip_through_ur_rtde(client: TestClient) -> None:
         hb = client.post("/api/v1/jog/heartbeat", headers=AUTH["operator"])
         took = time.monotonic() - sent
         assert hb.status_code == 200, (
-            hb.text, f"heartbeat sent {sent - last:.3f} s after the last, took {took:.3f} s",
-            _jog_end(cell))
+            f"{hb.text}; heartbeat sent {sent - last:.3f} s after the last, took {took:.3f} s; "
+            f"{_jog_end(cell)}")
         last = sent
         time.sleep(0.01)
     deadline = time.monotonic() + 3
@@ -73,7 +73,7 @@ def test_locate_approach_and_grip_through_ur_rtde(client: TestClient) -> None:
         time.sleep(0.02)
     time.sleep(0.5)
     rise = world(cell).true_T_base_tcp()[2, 3] - z0
-    assert 15 < rise < 45, rise  # ~1 s at 30 mm/s
+    assert 15 < rise < 45, f"rose {rise:.1f} mm; {_jog_end(cell)}"  # ~1 s at 30 mm/s
 
 
 def _jog_end(cell: Cell) -> str:
@@ -84,7 +84,16 @@ def _jog_end(cell: Cell) -> str:
         if time.monotonic() > deadline:
             return "no jog_end in the audit"
         time.sleep(0.02)
-    return f"jog ended: {ends[0].detail}"
+    return f"jog ended: {ends[0].detail}; the controller said: {_controller_said(cell)}"
+
+
+def _controller_said(cell: Cell) -> list[str]:
+    """The simulated controller's last messages (why its control script stopped)."""
+    ctl = getattr(getattr(cell.sim, "_truth", None), "ctl", None)
+    try:
+        return list(ctl.state()["messages"][-5:]) if ctl is not None else []
+    except Exception as exc:  # a diagnostic only
+        return [f"(no state: {exc})"]
 
 
 def test_protective_stop_mid_approach_through_ur_rtde(client: TestClient) -> None:
