@@ -412,6 +412,9 @@ def test_rtde_watchdog_stops_the_program_and_unsimulated_commands_are_refused(
     target = list(q)
     target[0] += 0.05
     assert c.moveJ(target, 1.0, 1.0)
+    deadline = time.monotonic() + 1.0  # the receive client's stream may lag the control's
+    while not np.allclose(r.getActualQ(), target, atol=1e-4) and time.monotonic() < deadline:
+        time.sleep(0.01)
     assert np.allclose(r.getActualQ(), target, atol=1e-4)
 
 
