@@ -91,6 +91,9 @@ class Jogger:
             except BaseException:
                 self.core.slot.release(motion)
                 raise
+            # the dead-man runs from the moment the jog is under way: the caller cannot send a
+            # heartbeat before this answer, and the first command may take a while to go out
+            jog.last_heartbeat_s = time.monotonic()
             jog.thread = threading.Thread(target=self._loop, args=(jog,), name="cell-jog",
                                           daemon=True)
             with self._lock:

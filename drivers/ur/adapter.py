@@ -526,15 +526,29 @@ class URArm:
                                       "call recover_protective_stop()")
 
     def _ensure_program(self) -> None:
-        """The control script stops on runtime errors and safety stops; upload it again."""
+        """The control script stops on runtime errors and safety stops; upload it again.
+
+        ur_rtde's reuploadScript returns once the script is sent, and its control client
+        refuses every command at once until its own RTDE stream (another connection than the
+        receive client's, read by another thread, so later on a loaded host) shows the
+        script running: the script counts as started when both views say so."""
         if self._sample().runtime_state == RuntimeState.PLAYING:
             return
         self._ctrl("reuploadScript")
         deadline = time.monotonic() + self.connect_timeout_s
-        while self._sample().runtime_state != RuntimeState.PLAYING:
+        while not (self._sample().runtime_state == RuntimeState.PLAYING
+                   and self._control_sees_script()):
             if time.monotonic() > deadline:
                 raise NotReadyError(f"{self.host}: the control script did not start")
             time.sleep(0.01)
+
+    def _control_sees_script(self) -> bool:
+        """Does ur_rtde's control client see its control script running (its own view)?"""
+        last = self._last_command
+        try:
+            return bool(self._ctrl("isProgramRunning"))
+        finally:
+            self._last_command = last
 
     def _ready_for_motion(self) -> StateSample:
         s = self._sample()

@@ -259,6 +259,10 @@ class _Clients:
         self.parent_seen_s = time.monotonic()  # the parent's last message
         self.watchdog_armed = False  # setWatchdog accepted by the script running now
         self.armed_hz = 0.0  # the rate it was armed at
+        # the rate the controller's watchdog last accepted: what guarded the script that ran
+        # (a setWatchdog refused because the script has just ended, or the kicker seeing it
+        # ended, leaves the watchdog that ended it as it was); a new upload starts without one
+        self.guarded_hz = 0.0
         self.ctrl_ended_s = 0.0  # when the last control call returned
         self.last_call_streamed = False  # it was a streamed command (see STREAMED_METHODS)
         self.streaming = False  # a streamed motion was the last motion command (see kick)
@@ -287,6 +291,8 @@ class _Clients:
         """setWatchdog at ``hz`` (the caller holds the control lock)."""
         self.watchdog_armed = bool(ctrl.setWatchdog(hz))
         self.armed_hz = hz if self.watchdog_armed else 0.0
+        if self.watchdog_armed:
+            self.guarded_hz = hz
 
     def _script_running(self) -> bool:
         recv = self.objects.get("recv")
@@ -315,11 +321,11 @@ class _Clients:
             if self.withheld_since_s is None:
                 self.withheld_since_s = time.monotonic()
             if not self._script_running() and not self.locks["ctrl"].locked():
-                self._note_end(self._allowed_s())
+                self._note_end()
             return  # the parent stalled mid-stream: let the controller stop the arm
         if not self._script_running():
             if not self.locks["ctrl"].locked():  # else the call in flight notes it
-                self._note_end(self._allowed_s())
+                self._note_end()
             self.watchdog_armed = False  # the script ended: the next one starts unguarded
             self.streaming = False
             self.withheld_since_s = None
@@ -342,9 +348,9 @@ class _Clients:
             lock.release()
 
     def _allowed_s(self) -> float:
-        """How long the controller's watchdog lets the script go without a write (0: not
-        armed)."""
-        return 1.0 / self.armed_hz if self.watchdog_armed and self.armed_hz > 0 else 0.0
+        """How long the controller's watchdog lets the live script go without a write (0: not
+        armed): the rate it last accepted, whatever was asked of it since the script ended."""
+        return 1.0 / self.guarded_hz if self.guarded_hz > 0 else 0.0
 
     def _silent_s(self) -> float:
         """How long this host's kicks have stopped lately: the kicker not scheduled (the
@@ -355,7 +361,7 @@ class _Clients:
         withheld = 0.0 if self.withheld_since_s is None else now - self.withheld_since_s
         return max(recent, now - self.last_tick_s, withheld)
 
-    def _note_end(self, allowed_s: float, method: str = "", ran_before: bool = False,
+    def _note_end(self, method: str = "", ran_before: bool = False,
                   silent_at_send_s: float = 0.0) -> None:
         """The first sight of a running script's end: what this host knew then. From a
         control call (``method``) that found it ended, or from the kicker."""
@@ -363,6 +369,7 @@ class _Clients:
             if not self.script_live:
                 return  # noted already, or not seen running since the last upload
             self.script_live = False
+            allowed_s = self._allowed_s()
         now = time.monotonic()
         withheld = 0.0 if self.withheld_since_s is None else now - self.withheld_since_s
         if withheld < KICK_PERIOD_S:  # not one kick was withheld
@@ -398,7 +405,6 @@ class _Clients:
         with self.locks[name]:  # one call at a time per client object
             ran_before = False
             silent_s = self._silent_s()
-            allowed_s = self._allowed_s()
             if name == "ctrl":
                 self._rate_before(obj, method)
                 with contextlib.suppress(Exception):
@@ -416,18 +422,19 @@ class _Clients:
                         self.streaming = method in STREAMED_METHODS
             # still holding the client: the kicker leaves a refused call's end to it
             if name == "ctrl" and result is False and method in COMMANDS_SCRIPT_RUNS:
-                self._refused(obj, method, allowed_s, ran_before, silent_s)
+                self._refused(obj, method, ran_before, silent_s)
         if name == "ctrl" and method in ENDS_STREAM and method not in PLANNED_MOVES:
             self._rate_after_stop(obj)
         if name == "ctrl" and method not in STREAMED_METHODS:
             self.call_ended.set()  # the kicker kicks now, not a tick later
         if name == "ctrl" and method == "reuploadScript" and result:
-            self.script_live = False  # until seen running (the stream may still say ended)
+            with self._end_lock:
+                self.script_live = False  # until seen running (the stream may still say ended)
+                self.guarded_hz = 0.0  # a new script starts without a watchdog
             self.arm_watchdog()
         return result
 
-    def _refused(self, ctrl: Any, method: str, allowed_s: float, ran_before: bool,
-                 silent_s: float) -> None:
+    def _refused(self, ctrl: Any, method: str, ran_before: bool, silent_s: float) -> None:
         """A command the script runs said False: when the script has ended (the control or
         the receive client's view, which may lag the answer by a few cycles), note how."""
         deadline = time.monotonic() + SCRIPT_END_SEEN_S
@@ -436,7 +443,7 @@ class _Clients:
                 if time.monotonic() > deadline:
                     return  # refused by a script that still runs
                 time.sleep(0.002)
-            self._note_end(allowed_s, method, ran_before, silent_s)
+            self._note_end(method, ran_before, silent_s)
 
     def _rate_before(self, ctrl: Any, method: str) -> None:
         """The watchdog's rate for what comes: the streaming rate before a streamed command

@@ -22,8 +22,11 @@ from tests.support.cell import AUTH, running_cell, settled_tcp, sim_config, worl
 
 @pytest.fixture
 def client(tmp_path: Path) -> Iterator[TestClient]:
+    # the longest dead-man allowed: the jog test is of jogging through ur_rtde, and on a
+    # loaded host one heartbeat request through this process can take most of the default
     config = sim_config(tmp_path, robot="ur", host=free_loopback_host(), gripper="sim",
-                        approach={"speed_mm_s": 250.0, "accel_mm_s2": 1500.0})
+                        approach={"speed_mm_s": 250.0, "accel_mm_s2": 1500.0},
+                        limits={"deadman_timeout_s": 0.25})
     with running_cell(config) as cell, TestClient(create_app(cell)) as c:
         yield c
 
@@ -54,16 +57,44 @@ def test_locate_approach_and_grip_through_ur_rtde(client: TestClient) -> None:
                     headers=AUTH["operator"])
     assert r.status_code == 200, r.text
     t_end = time.monotonic() + 0.8
-    while time.monotonic() < t_end:
-        assert client.post("/api/v1/jog/heartbeat", headers=AUTH["operator"]).status_code == 200
-        time.sleep(0.05)
+    last = time.monotonic()
+    while time.monotonic() < t_end:  # heartbeats back to back: the gap is one request's time
+        sent = time.monotonic()
+        hb = client.post("/api/v1/jog/heartbeat", headers=AUTH["operator"])
+        took = time.monotonic() - sent
+        assert hb.status_code == 200, (
+            f"{hb.text}; heartbeat sent {sent - last:.3f} s after the last (or the jog's start "
+            f"answer), took {took:.3f} s; "
+            f"{_jog_end(cell)}")
+        last = sent
+        time.sleep(0.01)
     deadline = time.monotonic() + 3
     while client.get("/api/v1/status", headers=AUTH["viewer"]).json()["state"] == "jog":
         assert time.monotonic() < deadline
         time.sleep(0.02)
     time.sleep(0.5)
     rise = world(cell).true_T_base_tcp()[2, 3] - z0
-    assert 15 < rise < 45, rise  # ~1 s at 30 mm/s
+    assert 15 < rise < 45, f"rose {rise:.1f} mm; {_jog_end(cell)}"  # ~1 s at 30 mm/s
+
+
+def _jog_end(cell: Cell) -> str:
+    """Why the last continuous jog ended, as the audit has it (the jog's thread notes its end
+    just after it lets the motion slot go)."""
+    deadline = time.monotonic() + 2.0
+    while not (ends := [e for e in cell.jobs.audit_log(50) if e.command == "jog_end"]):
+        if time.monotonic() > deadline:
+            return "no jog_end in the audit"
+        time.sleep(0.02)
+    return f"jog ended: {ends[0].detail}; the controller said: {_controller_said(cell)}"
+
+
+def _controller_said(cell: Cell) -> list[str]:
+    """The simulated controller's last messages (why its control script stopped)."""
+    ctl = getattr(getattr(cell.sim, "_truth", None), "ctl", None)
+    try:
+        return list(ctl.state()["messages"][-5:]) if ctl is not None else []
+    except Exception as exc:  # a diagnostic only
+        return [f"(no state: {exc})"]
 
 
 def test_protective_stop_mid_approach_through_ur_rtde(client: TestClient) -> None:
