@@ -29,7 +29,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="exit with status 1 when a target is missed")
     p.set_defaults(func=_bench)
     what = p.add_subparsers(dest="bench_command", required=False,
-                            metavar="{approach,service,freeze,modbus,fixed,commissioning,controller,live-view}")
+                            metavar="{approach,service,soak,freeze,modbus,fixed,commissioning,controller,live-view}")
     a = what.add_parser(
         "approach", help="servo vs look-and-move approach, conveyor tracking, lost target",
         description="On the simulated cell through the UR adapter and ur_rtde (see "
@@ -79,6 +79,21 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     svc.add_argument("--inherit-nice", action="store_true",
                      help="serve at this process's own nice value instead")
     svc.set_defaults(func=_bench_service)
+    sk = what.add_parser(
+        "soak", help="production cycles on the simulated cell service: memory, fds, threads",
+        description="Serves the simulated cell and runs home, locate, look-and-move, gripper "
+                    "close/open (every 5th cycle a servo approach and a 5 s track) while status "
+                    "and the live frame are polled at 7 Hz, an SSE stream and an RTDE reader "
+                    "are open; reports RSS, fds, threads and the job database per minute and "
+                    "their growth per hour (see cell/bench/soak.py).")
+    sk.add_argument("--minutes", type=float, default=15.0, help="soak minutes (default 15)")
+    sk.add_argument("--cycles", type=int, default=None,
+                    help="stop after this many cycles (default: when the minutes are up)")
+    sk.add_argument("--interfaces", action="store_true",
+                    help="serve OPC UA, XML-RPC and Modbus too (on sim.toml's fixed ports)")
+    sk.add_argument("--out", metavar="FILE.json", default=None,
+                    help="also write the JSON report here")
+    sk.set_defaults(func=_lazy("soak"))
     frz = what.add_parser(
         "freeze", help="freeze the service or its ur_rtde child while the arm moves",
         description="Streams 50 mm/s twists to the simulated controller, freezes the host "
