@@ -26,7 +26,6 @@ depends on what else the host runs: the report carries the host's load average.
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import os
@@ -168,8 +167,8 @@ def _step(soak: _Soak, client: httpx.Client, kind: str, path: str, body: dict[st
         raise StepFailed(f"{kind}:{_code(r)}")
     job = r.json()
     if "state" in job and "kind" in job and job["state"] != "succeeded":
-        err = job.get("error") or {}
-        raise StepFailed(f"{kind}:{err.get('code') or job['state']}")
+        error = job.get("error") or {}
+        raise StepFailed(f"{kind}:{error.get('code') or job['state']}")
     soak.note(soak.jobs, kind, t0)
 
 
@@ -417,23 +416,3 @@ def format_report(r: dict[str, Any]) -> str:
                      f"{m['status_ms_p95']!s:>11} {m['frame_ms_p95']!s:>10} "
                      f"{m['cycles']:>7} {m['failed_cycles']:>6} {m['failed_codes'] or ''}")
     return "\n".join(lines)
-
-
-def main(args: argparse.Namespace) -> int:
-    from cell.commands.common import EXIT_OK, fail, print_json, progress_bars
-
-    if args.minutes <= 0:
-        return fail("invalid_argument", "--minutes must be positive", args.json)
-    try:
-        with progress_bars(not args.json) as progress:
-            report = run_soak(args.minutes, max_cycles=args.cycles, interfaces=args.interfaces,
-                              progress=progress)
-    except RuntimeError as err:
-        return fail("bench_failed", str(err), args.json)
-    if args.out:
-        Path(args.out).write_text(json.dumps(report, indent=1))
-    if args.json:
-        print_json(report)
-    else:
-        print(format_report(report))
-    return EXIT_OK

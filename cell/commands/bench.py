@@ -93,7 +93,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                     help="serve OPC UA, XML-RPC and Modbus too (on sim.toml's fixed ports)")
     sk.add_argument("--out", metavar="FILE.json", default=None,
                     help="also write the JSON report here")
-    sk.set_defaults(func=_lazy("soak"))
+    sk.set_defaults(func=_bench_soak)
     frz = what.add_parser(
         "freeze", help="freeze the service or its ur_rtde child while the arm moves",
         description="Streams 50 mm/s twists to the simulated controller, freezes the host "
@@ -256,6 +256,31 @@ def _bench_service(args: argparse.Namespace) -> int:
         report = run_service_bench(cfg)
     except RuntimeError as err:
         return fail("bench_failed", str(err), args.json)
+    if args.json:
+        print_json(report)
+    else:
+        print(format_report(report))
+    return EXIT_OK
+
+
+def _bench_soak(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    from cell.bench.soak import format_report, run_soak
+    from cell.commands.common import EXIT_OK, fail, print_json, progress_bars
+
+    if args.minutes <= 0 or (args.cycles is not None and args.cycles < 1):
+        return fail("invalid_argument", "--minutes must be positive and --cycles at least 1",
+                    args.json)
+    try:
+        with progress_bars(not args.json) as progress:
+            report = run_soak(args.minutes, max_cycles=args.cycles,
+                              interfaces=args.interfaces, progress=progress)
+    except RuntimeError as err:
+        return fail("bench_failed", str(err), args.json)
+    if args.out:
+        Path(args.out).write_text(json.dumps(report, indent=1))
     if args.json:
         print_json(report)
     else:
