@@ -27,7 +27,6 @@ depends on what else the host runs: the report carries the host's load average.
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import threading
 import time
