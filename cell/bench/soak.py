@@ -135,6 +135,7 @@ class _Soak:
         self.events = 0
         self.rtde_reads = 0
         self.rtde_errors: Counter[str] = Counter()
+        self.error_messages: list[str] = []
 
     def note(self, series: dict[str, list[tuple[float, float]]], key: str, t0: float) -> None:
         now = time.monotonic()
@@ -148,10 +149,14 @@ class StepFailed(Exception):
         self.code = code
 
 
-def _code(r: httpx.Response) -> str:
-    """The error code of a refused request (``{"error": {"code": ...}}``), else its status."""
+def _code(r: httpx.Response, messages: list[str] | None = None) -> str:
+    """The error code of a refused request (``{"error": {"code": ...}}``), else its status;
+    its message goes to ``messages`` (the first ten)."""
     with contextlib.suppress(ValueError, AttributeError, KeyError, TypeError):
-        return str(r.json()["error"]["code"])
+        error = r.json()["error"]
+        if messages is not None and len(messages) < 10:
+            messages.append(str(error.get("message", ""))[:200])
+        return str(error["code"])
     return f"http_{r.status_code}"
 
 
@@ -163,10 +168,12 @@ def _step(soak: _Soak, client: httpx.Client, kind: str, path: str, body: dict[st
     except httpx.HTTPError as err:
         raise StepFailed(f"{kind}:{type(err).__name__}") from err
     if r.status_code != 200:
-        raise StepFailed(f"{kind}:{_code(r)}")
+        raise StepFailed(f"{kind}:{_code(r, soak.error_messages)}")
     job = r.json()
     if "state" in job and "kind" in job and job["state"] != "succeeded":
         error = job.get("error") or {}
+        if len(soak.error_messages) < 10:
+            soak.error_messages.append(str(error.get("message", ""))[:200])
         raise StepFailed(f"{kind}:{error.get('code') or job['state']}")
     soak.note(soak.jobs, kind, t0)
 
@@ -196,9 +203,12 @@ def _cycles(soak: _Soak, base: str, end_s: float, max_cycles: int | None,
                 _cycle(soak, client, n)
             except StepFailed as err:
                 code = err.code
-                # whatever state the arm was left in: stop it, so the next cycle starts clean
+                # whatever state the arm and gripper were left in: stop, activate the gripper
+                # again (a stop or a fault leaves it not ready), so the next cycle starts clean
                 with contextlib.suppress(httpx.HTTPError):
                     client.post("/api/v1/stop", json={"reason": "soak"}, headers=OPERATOR)
+                    client.post("/api/v1/gripper", json={"action": "activate", "wait": True},
+                                headers=OPERATOR)
                 time.sleep(1.0)
             with soak.lock:
                 soak.cycles.append((time.monotonic(), code))
@@ -271,7 +281,9 @@ def _rtde_reader(soak: _Soak, host: str) -> None:
 
 # -- the run -----------------------------------------------------------------------------------
 
-def _sample(pids: dict[str, int], db: Path | None) -> dict[str, float | None]:
+def _sample(service: int, db: Path | None) -> dict[str, float | None]:
+    # the ur_rtde child is looked up each time: the service starts a new one after a link loss
+    pids = service_processes(service)
     svc, ur = pids["service"], pids.get("ur_client")
     return {
         "service_rss_mb": rss_mb(svc), "service_fds": fds(svc), "service_threads": threads(svc),
@@ -291,7 +303,6 @@ def run_soak(minutes: float, max_cycles: int | None = None, interfaces: bool = F
                                    "--modbus-port", "0"]
     with serving(extra_args=extra) as (base, proc):
         time.sleep(3.0)  # let the start settle (kernels, first frames, gripper activation)
-        pids = service_processes(proc.pid)
         db = _job_db(proc.pid)
         host = urlparse(base).hostname or "127.0.0.1"
         start = time.monotonic()
@@ -308,10 +319,10 @@ def run_soak(minutes: float, max_cycles: int | None = None, interfaces: bool = F
                                     daemon=True)]
         for w in workers:
             w.start()
-        samples.append((time.monotonic(), _sample(pids, db)))
+        samples.append((time.monotonic(), _sample(proc.pid, db)))
         while not soak.stop.wait(SAMPLE_S):
-            samples.append((time.monotonic(), _sample(pids, db)))
-        samples.append((time.monotonic(), _sample(pids, db)))
+            samples.append((time.monotonic(), _sample(proc.pid, db)))
+        samples.append((time.monotonic(), _sample(proc.pid, db)))
         for w in workers:
             w.join(timeout=30.0)
         health = httpx.get(f"{base}/api/v1/health", timeout=5.0).json().get("status")
@@ -374,6 +385,7 @@ def _report(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]], s
         "sse_events": soak.events,
         "rtde_reads": soak.rtde_reads,
         "rtde_errors": dict(soak.rtde_errors),
+        "error_messages": soak.error_messages,
         "health_after": health,
         "per_minute": per_minute,
         "load": {"minutes": minutes, "max_cycles": max_cycles, "interfaces": interfaces,
