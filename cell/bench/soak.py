@@ -323,8 +323,8 @@ def run_soak(minutes: float, max_cycles: int | None = None, interfaces: bool = F
         while not soak.stop.wait(SAMPLE_S):
             samples.append((time.monotonic(), _sample(proc.pid, db)))
         samples.append((time.monotonic(), _sample(proc.pid, db)))
-        for w in workers:
-            w.join(timeout=30.0)
+        for w in workers:  # the last cycle ends before the service does (a track: ~40 s)
+            w.join(timeout=180.0)
         health = httpx.get(f"{base}/api/v1/health", timeout=5.0).json().get("status")
     return _report(soak, samples, start, minutes, max_cycles, interfaces, loadavg_before,
                    health)
