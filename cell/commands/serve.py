@@ -92,8 +92,8 @@ def _serve(args: argparse.Namespace) -> int:
             print(message, flush=True)
 
     # Before any thread starts (numba, the devices, uvicorn's pool): a bounded number of
-    # malloc arenas, and their freed pages handed back every TRIM_PERIOD_S (RSS grew by the
-    # hour otherwise; cell/supervision/memory.py)
+    # malloc arenas, and their freed pages handed back every TRIM_PERIOD_S (~15 arenas kept
+    # freed frame buffers resident; cell/supervision/memory.py, docs/performance.md)
     from cell.supervision.memory import Trimmer, limit_arenas, trim_period_s
 
     limit_arenas()
