@@ -29,7 +29,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="exit with status 1 when a target is missed")
     p.set_defaults(func=_bench)
     what = p.add_subparsers(dest="bench_command", required=False,
-                            metavar="{approach,service,freeze,modbus,fixed,commissioning,controller,live-view}")
+                            metavar="{approach,service,soak,freeze,modbus,fixed,commissioning,controller,live-view}")
     a = what.add_parser(
         "approach", help="servo vs look-and-move approach, conveyor tracking, lost target",
         description="On the simulated cell through the UR adapter and ur_rtde (see "
@@ -79,6 +79,21 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     svc.add_argument("--inherit-nice", action="store_true",
                      help="serve at this process's own nice value instead")
     svc.set_defaults(func=_bench_service)
+    sk = what.add_parser(
+        "soak", help="production cycles on the simulated cell service: memory, fds, threads",
+        description="Serves the simulated cell and runs home, locate, look-and-move, gripper "
+                    "close/open (every 5th cycle a servo approach and a 5 s track) while status "
+                    "and the live frame are polled at 7 Hz, an SSE stream and an RTDE reader "
+                    "are open; reports RSS, fds, threads and the job database per minute and "
+                    "their growth per hour (see cell/bench/soak.py).")
+    sk.add_argument("--minutes", type=float, default=15.0, help="soak minutes (default 15)")
+    sk.add_argument("--cycles", type=int, default=None,
+                    help="stop after this many cycles (default: when the minutes are up)")
+    sk.add_argument("--interfaces", action="store_true",
+                    help="serve OPC UA, XML-RPC and Modbus too (on sim.toml's fixed ports)")
+    sk.add_argument("--out", metavar="FILE.json", default=None,
+                    help="also write the JSON report here")
+    sk.set_defaults(func=_bench_soak)
     frz = what.add_parser(
         "freeze", help="freeze the service or its ur_rtde child while the arm moves",
         description="Streams 50 mm/s twists to the simulated controller, freezes the host "
@@ -241,6 +256,31 @@ def _bench_service(args: argparse.Namespace) -> int:
         report = run_service_bench(cfg)
     except RuntimeError as err:
         return fail("bench_failed", str(err), args.json)
+    if args.json:
+        print_json(report)
+    else:
+        print(format_report(report))
+    return EXIT_OK
+
+
+def _bench_soak(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    from cell.bench.soak import format_report, run_soak
+    from cell.commands.common import EXIT_OK, fail, print_json, progress_bars
+
+    if args.minutes <= 0 or (args.cycles is not None and args.cycles < 1):
+        return fail("invalid_argument", "--minutes must be positive and --cycles at least 1",
+                    args.json)
+    try:
+        with progress_bars(not args.json) as progress:
+            report = run_soak(args.minutes, max_cycles=args.cycles,
+                              interfaces=args.interfaces, progress=progress)
+    except RuntimeError as err:
+        return fail("bench_failed", str(err), args.json)
+    if args.out:
+        Path(args.out).write_text(json.dumps(report, indent=1))
     if args.json:
         print_json(report)
     else:

@@ -91,6 +91,15 @@ def _serve(args: argparse.Namespace) -> int:
         else:
             print(message, flush=True)
 
+    # Before any thread starts (numba, the devices, uvicorn's pool): a bounded number of
+    # malloc arenas, and their freed pages handed back every TRIM_PERIOD_S (~15 arenas kept
+    # freed frame buffers resident; cell/supervision/memory.py, docs/performance.md)
+    from cell.supervision.memory import Trimmer, limit_arenas, trim_period_s
+
+    limit_arenas()
+    period = trim_period_s()
+    if period > 0:
+        Trimmer(period).start()
     # Compiled once per checkout (make install does it); loading takes a fraction of a second.
     say(f"estimator kernels ready in {warm_up():.1f} s")
     scheme = "https" if args.ssl_certfile else "http"
