@@ -32,6 +32,7 @@ from cell.features.recipes import parse_spec
 from cell.service import Cell
 from estimator.transforms import pose_distance, pose_from_T
 from tests.support.cell import running_cell, settled_tcp, sim_config
+from tests.support.modbus import modbus_client
 from tests.support.net import free_port
 
 TIMEOUT_S = 60.0
@@ -225,23 +226,15 @@ def test_recipe_by_number_is_recorded_in_the_job(served: Served, plc: Plc) -> No
 def test_unlisted_clients_may_only_stop(tmp_path: Path) -> None:
     port = free_port()
     config = sim_config(tmp_path, modbus={"port": port, "clients": ["10.9.8.7"]})
-    with running_cell(config) as cell:
-        server = ModbusServer(cell, config.modbus)
-        server.start()
-        client = ModbusTcpClient("127.0.0.1", port=port, timeout=5)
-        assert client.connect()
-        try:
-            plc = Plc(client)
-            r = client.write_registers(0, [Command.LOCATE, 1, 0, 0, 0], device_id=1)
-            assert r.isError() and r.exception_code == 1
-            assert plc.inputs()[Ir.ACCEPTED_SEQUENCE] == 0
-            seq = plc.command(Command.STOP)
-            assert plc.wait(seq)[Ir.STATE] == State.DONE_OK
-            # another unit id gets no answer from this cell
-            assert client.read_input_registers(0, count=1, device_id=5).isError()
-        finally:
-            client.close()
-            server.close()
+    with running_cell(config) as cell, modbus_client(cell, config.modbus) as client:
+        plc = Plc(client)
+        r = client.write_registers(0, [Command.LOCATE, 1, 0, 0, 0], device_id=1)
+        assert r.isError() and r.exception_code == 1
+        assert plc.inputs()[Ir.ACCEPTED_SEQUENCE] == 0
+        seq = plc.command(Command.STOP)
+        assert plc.wait(seq)[Ir.STATE] == State.DONE_OK
+        # another unit id gets no answer from this cell
+        assert client.read_input_registers(0, count=1, device_id=5).isError()
 
 
 def test_the_shipped_role_runs_a_production_cycle_home_and_gripper(tmp_path: Path) -> None:
@@ -254,11 +247,7 @@ def test_the_shipped_role_runs_a_production_cycle_home_and_gripper(tmp_path: Pat
                         modbus={"port": port, "clients": ["127.0.0.1"]})
     assert config.modbus.role == "plc"
     with running_cell(config) as cell:
-        server = ModbusServer(cell, config.modbus)
-        server.start()
-        client = ModbusTcpClient("127.0.0.1", port=port, timeout=5)
-        assert client.connect()
-        try:
+        with modbus_client(cell, config.modbus) as client:
             plc = Plc(client)
             home_tcp = settled_tcp(cell)
             regs = plc.wait(plc.command(Command.APPROACH, standoff_mm=60.0))
@@ -270,9 +259,6 @@ def test_the_shipped_role_runs_a_production_cycle_home_and_gripper(tmp_path: Pat
             for command in (Command.GRIPPER_OPEN, Command.GRIPPER_CLOSE, Command.GRIPPER_OPEN):
                 regs = plc.wait(plc.command(command))
                 assert regs[Ir.STATE] == State.DONE_OK and regs[Ir.ERROR] == 0, (command, regs)
-        finally:
-            client.close()
-            server.close()
         rows = [(e.command, e.outcome) for e in cell.jobs.audit_log(50)
                 if e.caller == "modbus:plc(plc)"]
     assert ("home", "ok") in rows and ("gripper", "ok") in rows, rows

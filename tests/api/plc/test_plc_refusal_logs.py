@@ -10,12 +10,11 @@ from pathlib import Path
 
 import pytest
 from asyncua import ua
-from pymodbus.client import ModbusTcpClient
 
-from api.plc.modbus import ModbusServer
 from api.plc.opcua import OpcUaServer
 from cell.config.endpoints import opcua_cert_dir
 from tests.support.cell import running_cell, sim_config
+from tests.support.modbus import modbus_client
 from tests.support.net import free_port
 from tests.support.opcua import opc_client
 
@@ -30,20 +29,12 @@ def test_a_modbus_read_past_the_map_is_one_warning_and_no_library_output(
     port = free_port()
     config = sim_config(tmp_path, modbus={"port": port, "clients": ["127.0.0.1"]})
     caplog.set_level(logging.DEBUG)
-    with running_cell(config) as cell:
-        server = ModbusServer(cell, config.modbus)
-        server.start()
-        client = ModbusTcpClient("127.0.0.1", port=port, timeout=5)
-        assert client.connect()
-        try:
-            for _ in range(3):  # a PLC polling a wrong address: logged the first time only
-                r = client.read_input_registers(10, count=10, device_id=1)
-                assert r.isError() and r.exception_code == 2
-            assert client.read_input_registers(0, count=1, device_id=5).isError()
-            assert not client.read_input_registers(0, count=18, device_id=1).isError()
-        finally:
-            client.close()
-            server.close()
+    with running_cell(config) as cell, modbus_client(cell, config.modbus) as client:
+        for _ in range(3):  # a PLC polling a wrong address: logged the first time only
+            r = client.read_input_registers(10, count=10, device_id=1)
+            assert r.isError() and r.exception_code == 2
+        assert client.read_input_registers(0, count=1, device_id=5).isError()
+        assert not client.read_input_registers(0, count=18, device_id=1).isError()
     assert not _server_records(caplog, "pymodbus")
     assert not [r for r in caplog.records if ">>>>>" in r.getMessage()]
     ours = _server_records(caplog, "api.plc.modbus")
