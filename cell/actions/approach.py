@@ -40,6 +40,7 @@ from cell.actions.servo import ServoGoal, ServoRun
 from cell.core import CellCore
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, LimitError, RefusedError, UnavailableError
+from cell.jobs.runner import Work
 from cell.jobs.store import Job
 from cell.motion.guard import Motion
 from cell.vision.consistency import consistency
@@ -92,6 +93,19 @@ class JobLayout:
                 self.refused()
                 raise
         return check
+
+    def start_job(self, kind: str, caller: str, params: dict[str, Any], work: Work,
+                  checks: Callable[[Motion], None], *, wait: bool,
+                  wait_timeout_s: float) -> Job:
+        """Start a camera job with the layout lent to it (:meth:`checked`); given back when no
+        job starts after all."""
+        try:
+            return self._core.runner.start(kind, caller, params, work,
+                                           check=self.checked(checks), needs_camera=True,
+                                           wait=wait, wait_timeout_s=wait_timeout_s)
+        except BaseException:
+            self.refused()
+            raise
 
     def refused(self) -> None:
         self._give_back(keep_last=True)
@@ -227,12 +241,8 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
             return fixed_look_and_move(core, job_id, motion, first[0], plan, seen)
         return look_and_move(core, job_id, motion, first[0], plan)
 
-    try:
-        return core.runner.start("approach", caller, params, work, check=lent.checked(checks),
-                                 needs_camera=True, wait=wait, wait_timeout_s=wait_timeout_s)
-    except BaseException:
-        lent.refused()  # no job: the checks passed but it was not started after all
-        raise
+    return lent.start_job("approach", caller, params, work, checks, wait=wait,
+                          wait_timeout_s=wait_timeout_s)
 
 
 def check_ibvs_request(view: Features | None, standoff_mm: float | None,

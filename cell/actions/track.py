@@ -65,9 +65,5 @@ def start_track(core: CellCore, caller: str, *, standoff_mm: float, duration_s: 
         finally:
             lent.ended()
 
-    try:
-        return core.runner.start("track", caller, params, work, check=lent.checked(checks),
-                                 needs_camera=True, wait=wait, wait_timeout_s=wait_timeout_s)
-    except BaseException:
-        lent.refused()  # no job: the checks passed but it was not started after all
-        raise
+    return lent.start_job("track", caller, params, work, checks, wait=wait,
+                          wait_timeout_s=wait_timeout_s)
