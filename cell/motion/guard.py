@@ -493,23 +493,38 @@ class GuardedArm:
                            f"the arm stopped {d_mm:.2f} mm / {d_deg:.2f} deg "
                            f"short of the {what}")
 
-    def settle(self, timeout_s: float = SETTLE_TIMEOUT_S) -> bool:
-        """Command a stop and wait until the arm stands still; False if it still moves (or
-        cannot be read) after ``timeout_s``."""
+    def settle(self, timeout_s: float = SETTLE_TIMEOUT_S, decel_mm_s2: float = 2000.0,
+               poll_s: float = 0.01) -> Settled:
+        """Command a stop and wait until the arm stands still, reading it every ``poll_s`` for
+        ``timeout_s`` at most. Never raises, since it is how every failed motion and every
+        closed loop ends: a stop the driver refuses is logged and reported in the answer."""
+        t0 = time.monotonic()
+        refused: DriverError | None = None
         try:
-            self.stop()
+            self.stop(decel_mm_s2)
         except DriverError as err:
-            log.warning("stop after a failed move was not accepted: %s", err)
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
+            log.warning("a stop was not accepted: %s", err)
+            refused = err
+        while time.monotonic() < t0 + timeout_s:
             try:
                 if not self._arm.state().moving:
-                    return True
+                    return Settled(True, time.monotonic() - t0, refused)
             except DriverError:
-                return False
-            time.sleep(0.01)
+                return Settled(False, time.monotonic() - t0, refused)
+            time.sleep(poll_s)
         log.error("the arm still moves %.0f s after a stop was commanded", timeout_s)
-        return False
+        return Settled(False, time.monotonic() - t0, refused)
+
+
+@dataclass(frozen=True)
+class Settled:
+    """How a stop ended: ``still``, the arm stood within the timeout (False too when it could
+    not be read); ``took_s``, since the stop was commanded; ``refused``, the driver's error
+    when the stop command itself was not accepted."""
+
+    still: bool
+    took_s: float
+    refused: DriverError | None = None
 
 
 def jog_ahead(T: Matrix4, velocity: NDArray[np.float64], frame: JogFrame,
