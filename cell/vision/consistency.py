@@ -25,7 +25,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import pairwise
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,10 +33,23 @@ from numpy.typing import NDArray
 from cell.error_codes import ErrorCode
 from estimator.transforms import pose_distance
 
-if TYPE_CHECKING:  # locate builds its own block with this module
-    from cell.vision.locate import Located
-
 Matrix4 = NDArray[np.float64]
+
+
+class Sighting(Protocol):
+    """What the check reads of a locate (:class:`cell.vision.locate.Located`, which builds its
+    own block with this module)."""
+
+    @property
+    def T_base_target(self) -> Matrix4: ...
+    @property
+    def T_base_tcp(self) -> Matrix4: ...
+    @property
+    def spread_mm(self) -> float: ...
+    @property
+    def spread_deg(self) -> float: ...
+    @property
+    def frame_rms_px(self) -> tuple[float, ...]: ...
 
 
 @dataclass(frozen=True)
@@ -84,7 +97,7 @@ def _centre_pose(T_base_target: Matrix4, centre_mm: NDArray[np.float64]) -> Matr
     return T
 
 
-def motion_check(a: Located, b: Located, names: tuple[str, str],
+def motion_check(a: Sighting, b: Sighting, names: tuple[str, str],
                  centre_mm: NDArray[np.float64], limits: ConsistencyLimits) -> MotionCheck:
     """Compare the arm's reported motion between two locates with the target's seen motion."""
     arm_mm, arm_deg = pose_distance(a.T_base_tcp, b.T_base_tcp)
@@ -95,7 +108,7 @@ def motion_check(a: Located, b: Located, names: tuple[str, str],
     return MotionCheck(names, arm_mm, arm_deg, t_mm, t_deg, judged, ok)
 
 
-def consistency(locates: Sequence[tuple[str, Located]], centre_mm: NDArray[np.float64],
+def consistency(locates: Sequence[tuple[str, Sighting]], centre_mm: NDArray[np.float64],
                 limits: ConsistencyLimits = DEFAULT_LIMITS, target_at_rest: bool = True
                 ) -> dict[str, Any]:
     """The ``consistency`` block of a result from its named locates, in the order taken.
@@ -103,7 +116,7 @@ def consistency(locates: Sequence[tuple[str, Located]], centre_mm: NDArray[np.fl
     ``target_at_rest`` False (a conveyor, a single locate): no motion is judged, since a
     change of the target's base pose is then expected."""
     centre = np.asarray(centre_mm, dtype=float)
-    rms = [float(r) for _, loc in locates for r in (loc.rms_px_frames or (loc.result.rms_px,))]
+    rms = [float(r) for _, loc in locates for r in loc.frame_rms_px]
     max_rms = max(rms) if rms else 0.0
     spread_mm = max((loc.spread_mm for _, loc in locates), default=0.0)
     spread_deg = max((loc.spread_deg for _, loc in locates), default=0.0)

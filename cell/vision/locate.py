@@ -58,6 +58,11 @@ class Located:
     spread_deg: float = 0.0  # largest rotation of a single-frame estimate from the mean
     rms_px_frames: tuple[float, ...] = ()  # reprojection rms of each frame averaged
 
+    @property
+    def frame_rms_px(self) -> tuple[float, ...]:
+        """The reprojection rms of each frame it comes from."""
+        return self.rms_px_frames or (float(self.result.rms_px),)
+
     def as_dict(self, now_s: float) -> dict[str, Any]:
         r = self.result
         return {
