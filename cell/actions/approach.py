@@ -1,6 +1,7 @@
 """Approach: by look-and-move (observe, locate, correct, repeat, then the final move), by
-closed-loop servoing (``mode="servo"``, :mod:`cell.actions.servo`) or by image-based servoing to a
-taught view (``mode="ibvs"``, :mod:`cell.actions.ibvs_run`).
+closed-loop servoing (``mode="servo"``) or by image-based servoing to a taught view
+(``mode="ibvs"``): the closed loop of :mod:`cell.actions.loop` with its position-based or
+image-based law.
 
 The goal is ``T_base_target @ T_target_tcp @ translate(0, 0, -standoff_mm)``. The arm first
 goes to an observation pose in front of the target with the goal's orientation (so the final
@@ -35,8 +36,9 @@ from numpy.typing import NDArray
 from cell.actions.approach_rules import check_standoff
 from cell.actions.ibvs import Features
 from cell.actions.ibvs_mount import IbvsMount
-from cell.actions.ibvs_run import IbvsRun
-from cell.actions.servo import ServoGoal, ServoRun
+from cell.actions.loop.image import ImageLaw
+from cell.actions.loop.position import PositionLaw, ServoGoal
+from cell.actions.loop.runner import ClosedLoop
 from cell.core import CellCore
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, LimitError, RefusedError, UnavailableError
@@ -225,12 +227,11 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
     def run(job_id: str, motion: Motion) -> dict[str, Any]:
         if how == "ibvs":
             assert view is not None
-            return IbvsRun(core, job_id, motion, view, plan.T_target_tcp,
-                           "approach").run(first[0])
+            return ClosedLoop(core, job_id, motion, ImageLaw(
+                core, view, plan.T_target_tcp, "approach")).run(first[0])
         if how == "servo":
-            run = ServoRun(core, job_id, motion, ServoGoal(plan.T_target_tcp, plan.standoff_mm),
-                           "approach", first=first[0])
-            out = run.run()
+            out = ClosedLoop(core, job_id, motion, PositionLaw(core, ServoGoal(
+                plan.T_target_tcp, plan.standoff_mm), "approach")).run(first[0])
             if not core.frames.is_fixed and _at_rest(out):
                 _close_servo(core, motion, plan, out)
             if seen.get("pose_source") == "last_seen":  # a fixed camera, hidden at the start

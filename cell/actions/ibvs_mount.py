@@ -1,7 +1,7 @@
 """Where the camera is in the IBVS loop: on the flange (eye-in-hand) or fixed in the cell
 (eye-to-hand, watching a dot plate clamped to the tool).
 
-The loop (:mod:`cell.actions.ibvs_run`) is the same for both; what differs is the geometry, kept
+The law (:mod:`cell.actions.loop.image`) is the same for both; what differs is the geometry, kept
 here in one place:
 
 - the law's twist: the camera's (eye-in-hand) or the plate's, opposite in sign

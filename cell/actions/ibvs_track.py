@@ -1,7 +1,7 @@
 """Track in mode ``"ibvs"``: hold the taught view of a target while it moves.
 
 A job like :func:`cell.actions.track.start_track`, with the image-based loop
-(:class:`cell.actions.ibvs_run.IbvsRun` in ``track`` mode): it runs until ``stop``,
+(:mod:`cell.actions.loop` with its image-based law in ``track`` mode): it runs until ``stop``,
 ``duration_s`` (capped by ``[servo] max_track_s``) or the loss of the target. The law has no
 feed-forward of the target's motion, so a moving target is followed with a lag of
 ``speed / gain``; it is for slow drifts and for holding a view, the pose-based track for
@@ -18,7 +18,8 @@ from numpy.typing import NDArray
 
 from cell.actions.approach import check_ibvs_request, locate
 from cell.actions.ibvs import Features
-from cell.actions.ibvs_run import IbvsRun
+from cell.actions.loop.image import ImageLaw
+from cell.actions.loop.runner import ClosedLoop
 from cell.core import CellCore
 from cell.error_codes import ErrorCode
 from cell.errors import LimitError, RefusedError, UnavailableError
@@ -56,7 +57,8 @@ def start_ibvs_track(core: CellCore, caller: str, *, standoff_mm: float, duratio
 
     def work(job_id: str, motion: Motion) -> dict[str, Any]:
         assert view is not None
-        return IbvsRun(core, job_id, motion, view, T_tt, "track", duration_s=duration).run()
+        return ClosedLoop(core, job_id, motion, ImageLaw(core, view, T_tt, "track"),
+                          duration_s=duration).run()
 
     return core.runner.start("track", caller, params, work, check=check, needs_camera=True,
                              wait=wait, wait_timeout_s=wait_timeout_s)

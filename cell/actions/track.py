@@ -2,9 +2,9 @@
 
 A job like an approach, in servo mode without convergence: it runs until ``stop``,
 ``duration_s`` (capped by ``[servo] max_track_s``) or the loss of the target
-(``target_lost``). The loop is :class:`cell.actions.servo.ServoRun`; the goal and the duration are
-checked before the job starts, so a refusal moves nothing. A recipe's dot layout
-(``layout``) is looked for during the job only (:class:`cell.actions.approach.JobLayout`).
+(``target_lost``). The loop is :mod:`cell.actions.loop` with its position-based law; the goal
+and the duration are checked before the job starts, so a refusal moves nothing. A recipe's dot
+layout (``layout``) is looked for during the job only (:class:`cell.actions.approach.JobLayout`).
 """
 
 from __future__ import annotations
@@ -16,7 +16,8 @@ from numpy.typing import NDArray
 
 from cell.actions.approach import JobLayout, locate
 from cell.actions.approach_rules import check_standoff
-from cell.actions.servo import ServoGoal, ServoRun
+from cell.actions.loop.position import PositionLaw, ServoGoal
+from cell.actions.loop.runner import ClosedLoop
 from cell.core import CellCore
 from cell.error_codes import ErrorCode
 from cell.errors import LimitError, UnavailableError
@@ -60,8 +61,9 @@ def start_track(core: CellCore, caller: str, *, standoff_mm: float, duration_s: 
 
     def work(job_id: str, motion: Motion) -> dict[str, Any]:
         try:
-            return ServoRun(core, job_id, motion, ServoGoal(T_tt, standoff), "track",
-                            duration_s=duration, first=first[0]).run()
+            return ClosedLoop(core, job_id, motion, PositionLaw(core, ServoGoal(T_tt, standoff),
+                                                                "track"),
+                              duration_s=duration).run(first[0])
         finally:
             lent.ended()
 

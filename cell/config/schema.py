@@ -219,7 +219,7 @@ class ApproachConfig(_Strict):
 
 
 class ServoConfig(_Strict):
-    """Closed-loop visual servoing (approach mode "servo" and tracking, :mod:`cell.actions.servo`).
+    """Closed-loop visual servoing (approach mode "servo" and tracking, :mod:`cell.actions.loop`).
 
     The law is ``twist = feed-forward + gain * error`` with the speed capped by
     ``max_speed_mm_s`` / ``max_angular_speed_deg_s`` and by braking room, and its change per
@@ -263,7 +263,7 @@ class ServoConfig(_Strict):
 
 
 class IbvsConfig(_Strict):
-    """Image-based servoing (mode "ibvs": :mod:`cell.actions.ibvs`, :mod:`cell.actions.ibvs_run`).
+    """Image-based servoing (mode "ibvs": :mod:`cell.actions.ibvs`, :mod:`cell.actions.loop.image`).
 
     The law is ``v_c = -lambda L^+ (s - s*)`` on the dots' normalised image points, the gain
     ``lambda(x) = (l0 - linf) exp(-slope x / (l0 - linf)) + linf`` with ``x`` the largest

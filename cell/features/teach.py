@@ -14,9 +14,10 @@ the whole file atomically (temporary file, fsync, rename), so a crash leaves eit
 or the new file, never a torn one. A file that cannot be read is never overwritten.
 
 Teaching by showing: the view is recorded too (``view``: each matched dot's normalised image
-point and depth, averaged over the samples), so an IBVS approach (:mod:`cell.actions.ibvs_run`) can
-drive the image back to it. Poses taught before that have no view; they still serve servo and
-look-and-move, and IBVS to them is refused (``taught_without_view``).
+point and depth, averaged over the samples), so an IBVS approach
+(:mod:`cell.actions.loop.image`) can drive the image back to it. Poses taught before that have
+no view; they still serve servo and look-and-move, and IBVS to them is refused
+(``taught_without_view``).
 """
 
 from __future__ import annotations

@@ -139,9 +139,9 @@ class Locator:
         self.last = None
         return True
 
-    def latest_frame(self) -> Frame:
+    def latest_frame(self, timeout_s: float = 1.0) -> Frame:
         try:
-            frame = self.camera.latest_frame(timeout_s=1.0)
+            frame = self.camera.latest_frame(timeout_s=timeout_s)
         except DriverError as err:
             raise UnavailableError(ErrorCode.camera_lost, f"no camera frame: {err}") from err
         self.last_frame = frame
@@ -197,36 +197,19 @@ class Locator:
         self.last = loc
         return loc
 
-    def measure(self, after_sequence: int, timeout_s: float = 0.5
-                ) -> tuple[Frame, Matrix4, Matrix4]:
-        """One frame newer than ``after_sequence``, estimated (tracking mode after the first),
-        mapped into the base frame with the arm pose at its mid-exposure time: ``(frame,
-        T_base_target, T_base_tcp)``. For the servo loop: no averaging, no waiting for the
-        arm to rest. CellError when the frame does not show the target."""
-        try:
-            frame = self.camera.latest_frame(timeout_s=timeout_s)
-        except DriverError as err:
-            raise UnavailableError(ErrorCode.camera_lost, f"no camera frame: {err}") from err
-        self.last_frame = frame
+    def measure(self, after_sequence: int, timeout_s: float = 0.5) -> Located:
+        """One frame newer than ``after_sequence``, estimated (tracking mode after the first)
+        and mapped into the base frame with the arm pose at its mid-exposure time: a locate of
+        one frame for the closed loops, which need no averaging and no arm at rest (``last``
+        stays the last :meth:`locate`'s). CellError when the frame does not show the target."""
+        frame = self.latest_frame(timeout_s)
         if frame.sequence <= after_sequence:
             raise RefusedError(ErrorCode.no_new_frame, "no frame newer than the last one")
         T_base_tcp = self._pose_at(frame)
         result = self._estimate(frame, T_base_tcp)
-        return frame, self.frames.T_base_target(T_base_tcp, result.T_camera_target), T_base_tcp
-
-    def measure_view(self, after_sequence: int, timeout_s: float = 0.5
-                     ) -> tuple[Frame, PoseResult, Matrix4]:
-        """As :meth:`measure`, for image-based servoing: ``(frame, estimate, T_base_tcp at
-        mid-exposure)``; the estimate carries the matched dots' image points and ids."""
-        try:
-            frame = self.camera.latest_frame(timeout_s=timeout_s)
-        except DriverError as err:
-            raise UnavailableError(ErrorCode.camera_lost, f"no camera frame: {err}") from err
-        self.last_frame = frame
-        if frame.sequence <= after_sequence:
-            raise RefusedError(ErrorCode.no_new_frame, "no frame newer than the last one")
-        T_base_tcp = self._pose_at(frame)
-        return frame, self._estimate(frame, T_base_tcp), T_base_tcp
+        return Located(self.frames.T_base_target(T_base_tcp, result.T_camera_target),
+                       result.T_camera_target, T_base_tcp, result, frame.timestamp_s,
+                       frame.sequence, 1, 0.0, time.monotonic())
 
     def _require_arm(self) -> None:
         """A frame is mapped into the base frame with the arm's pose: with the arm's link
