@@ -142,6 +142,72 @@ def locate(core: CellCore, n_frames: int = 1, after_s: float | None = None) -> L
     return loc
 
 
+class TargetHidden(Exception):
+    """The camera works and its frames do not show the target: a fixed camera's view blocked
+    by the arm, a standoff too short for the camera's view, a tool without its plate."""
+
+    def __init__(self, error: CellError) -> None:
+        super().__init__(error.message)
+        self.error = error
+
+
+def seen_locate(core: CellCore, n_frames: int = 1, after_s: float | None = None) -> Located:
+    """:func:`locate`, a failure other than the camera's raising :class:`TargetHidden`."""
+    try:
+        return locate(core, n_frames, after_s)
+    except CellError as err:
+        if err.code in ("camera_lost", "camera_stalled"):
+            raise
+        raise TargetHidden(err) from err
+
+
+@dataclass(frozen=True)
+class Look:
+    """A locate from the still arm and the goal it gives, against the goal the arm went by."""
+
+    located: Located
+    goal: Matrix4
+    correction_mm: float
+    correction_deg: float
+    small: bool  # under ``[approach] tolerance_mm`` / ``_deg``: not worth a move
+
+    def row(self, **at: int) -> dict[str, Any]:
+        return at | {"correction_mm": self.correction_mm, "correction_deg": self.correction_deg,
+                     "rms_px": float(self.located.result.rms_px)}
+
+
+def look_again(core: CellCore, motion: Motion, plan: ApproachPlan, goal: Matrix4, where: str,
+               *, may_hide: bool = False) -> Look:
+    """The locate-and-correct step every look-and-move takes once the arm has arrived: wait
+    ``[approach] settle_s``, locate from frames exposed after that and correct ``goal`` by
+    it. ``may_hide``: a target not seen raises :class:`TargetHidden`."""
+    ac = core.config.approach
+    arrived = time.monotonic()
+    if ac.settle_s:
+        time.sleep(ac.settle_s)
+    motion.raise_if_cancelled(where)
+    new = (seen_locate if may_hide else locate)(core, ac.frames_per_locate,
+                                                arrived + ac.settle_s)
+    new_goal = approach_tcp(new.T_base_target, plan.T_target_tcp, plan.standoff_mm)
+    d_mm, d_deg = pose_distance(goal, new_goal)
+    return Look(new, new_goal, d_mm, d_deg, d_mm < ac.tolerance_mm and d_deg < ac.tolerance_deg)
+
+
+def reached(core: CellCore, loc: Located, goal: Matrix4, last: dict[str, Any] | None
+            ) -> dict[str, Any]:
+    """Where the arm stands against ``goal``; the estimated error is what is left unknown:
+    the ``last`` correction (estimate noise; none: 0) plus the reach error."""
+    at = core.arm.state().T_base_tcp
+    reach_mm, reach_deg = pose_distance(at, goal)
+    last_mm, last_deg = (0.0, 0.0) if last is None else (last["correction_mm"],
+                                                         last["correction_deg"])
+    return {"T_base_target": pose_dict(loc.T_base_target), "goal_T_base_tcp": pose_dict(goal),
+            "reached_T_base_tcp": pose_dict(at), "reach_error_mm": reach_mm,
+            "reach_error_deg": reach_deg,
+            "estimated_error_mm": float(np.hypot(last_mm, reach_mm)),
+            "estimated_error_deg": float(np.hypot(last_deg, reach_deg))}
+
+
 def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = None,
                    speed_mm_s: float | None = None, T_target_tcp: Matrix4 | None = None,
                    use_last_locate: bool = False, wait: bool = False,
@@ -273,13 +339,11 @@ def tool_plate_locate(core: CellCore, T_plate_tcp: Matrix4) -> Located:
     (``T_plate_tcp``, the taught ``T_target_tcp``). A plate on the table, a plate moved on
     the tool, or none in view: ``no_tool_plate``, nothing moves."""
     try:
-        loc = locate(core, 1)
-    except CellError as err:
-        if err.code in ("camera_lost", "camera_stalled"):
-            raise
+        loc = seen_locate(core, 1)
+    except TargetHidden as hidden:
         raise RefusedError(ErrorCode.no_tool_plate, "mode 'ibvs' with a fixed camera drives the "
                            "dot plate clamped to the tool, and the camera sees no plate: "
-                           f"{err.message}") from err
+                           f"{hidden}") from hidden.error
     d_mm, d_deg = pose_distance(invert_T(loc.T_base_target) @ loc.T_base_tcp, T_plate_tcp)
     if d_mm > TOOL_PLATE_MM or d_deg > TOOL_PLATE_DEG:
         raise RefusedError(ErrorCode.no_tool_plate, "mode 'ibvs' with a fixed camera drives the "
@@ -308,12 +372,12 @@ def _fixed_locate(core: CellCore, n_frames: int, seen: dict[str, Any]) -> Locate
     between the camera and the target: then the last pose seen (before the arm entered the
     view) is used, and the result says so. Without an earlier pose the error stands."""
     try:
-        loc = locate(core, n_frames)
-    except CellError as err:
+        loc = seen_locate(core, n_frames)
+    except TargetHidden as hidden:
         last = core.locator.last
-        if last is None or err.code in ("camera_lost", "camera_stalled"):
-            raise
-        seen.update(pose_source="last_seen", occluded=True, reason=err.message,
+        if last is None:
+            raise hidden.error from None
+        seen.update(pose_source="last_seen", occluded=True, reason=str(hidden),
                     pose_age_s=time.monotonic() - last.frame_timestamp_s)
         return last
     seen.update(pose_source="live", occluded=False)
@@ -327,40 +391,24 @@ def fixed_look_and_move(core: CellCore, job_id: str, motion: Motion, loc: Locate
     arm, locate again at rest and correct until under the tolerance. Once the arm hides the
     target the goal stays the one from the last pose seen, and the result says so."""
     ac = core.config.approach
-    arm = core.arm
     cycles: list[dict[str, Any]] = []
-    converged = False
+    converged = occluded_at_goal = False
     goal = approach_tcp(loc.T_base_target, plan.T_target_tcp, plan.standoff_mm)
-    occluded_at_goal = False
     for cycle in range(1, ac.max_cycles + 1):
         core.runner.progress(job_id, {"phase": "move", "cycle": cycle, "cycles": cycles})
-        arm.move_linear(goal, plan.speed_mm_s, plan.accel_mm_s2, what="approach goal")
-        arrived = time.monotonic()
-        if ac.settle_s:
-            time.sleep(ac.settle_s)
-        motion.raise_if_cancelled("at the approach goal")
+        core.arm.move_linear(goal, plan.speed_mm_s, plan.accel_mm_s2, what="approach goal")
         try:
-            new = locate(core, ac.frames_per_locate, after_s=arrived + ac.settle_s)
-        except CellError as err:
-            if err.code in ("camera_lost", "camera_stalled"):
-                raise
+            look = look_again(core, motion, plan, goal, "at the approach goal", may_hide=True)
+        except TargetHidden as hidden:
             occluded_at_goal = True
-            seen.setdefault("reason", err.message)
+            seen.setdefault("reason", str(hidden))
             break
-        new_goal = approach_tcp(new.T_base_target, plan.T_target_tcp, plan.standoff_mm)
-        d_mm, d_deg = pose_distance(goal, new_goal)
-        cycles.append({"cycle": cycle, "correction_mm": d_mm, "correction_deg": d_deg,
-                       "rms_px": float(new.result.rms_px), "spread_mm": new.spread_mm})
-        loc, goal = new, new_goal
-        if d_mm < ac.tolerance_mm and d_deg < ac.tolerance_deg:
-            converged = True
+        cycles.append(look.row(cycle=cycle) | {"spread_mm": look.located.spread_mm})
+        loc, goal, converged = look.located, look.goal, look.small
+        if converged:
             break
     if not converged:
-        arm.move_linear(goal, plan.speed_mm_s, plan.accel_mm_s2, what="approach goal")
-    reached = arm.state().T_base_tcp
-    reach_mm, reach_deg = pose_distance(reached, goal)
-    last_mm = cycles[-1]["correction_mm"] if cycles else 0.0
-    last_deg = cycles[-1]["correction_deg"] if cycles else 0.0
+        core.arm.move_linear(goal, plan.speed_mm_s, plan.accel_mm_s2, what="approach goal")
     return {
         "mode": "look_and_move",
         "camera_mount": "fixed",
@@ -373,14 +421,7 @@ def fixed_look_and_move(core: CellCore, job_id: str, motion: Motion, loc: Locate
         "occluded_at_goal": occluded_at_goal,
         "pose_age_s": seen.get("pose_age_s"),
         "occlusion_reason": seen.get("reason"),
-        "T_base_target": pose_dict(loc.T_base_target),
-        "goal_T_base_tcp": pose_dict(goal),
-        "reached_T_base_tcp": pose_dict(reached),
-        "reach_error_mm": reach_mm,
-        "reach_error_deg": reach_deg,
-        "estimated_error_mm": float(np.hypot(last_mm, reach_mm)),
-        "estimated_error_deg": float(np.hypot(last_deg, reach_deg)),
-    }
+    } | reached(core, loc, goal, cycles[-1] if cycles else None)
 
 
 def _close_at_goal(core: CellCore, motion: Motion, plan: ApproachPlan, goal: Matrix4
@@ -392,27 +433,17 @@ def _close_at_goal(core: CellCore, motion: Motion, plan: ApproachPlan, goal: Mat
     carry it. A goal the camera does not see the target from (a standoff too short for its
     view) keeps the observation pose's goal, and the steps say why. Returns the steps and the
     goal the arm stands at."""
-    ac = core.config.approach
     steps: list[dict[str, Any]] = []
-    for step in range(1, ac.max_cycles + 1):
-        arrived = time.monotonic()
-        if ac.settle_s:
-            time.sleep(ac.settle_s)
-        motion.raise_if_cancelled("at the approach goal")
+    for step in range(1, core.config.approach.max_cycles + 1):
         try:
-            seen = locate(core, ac.frames_per_locate, after_s=arrived + ac.settle_s)
-        except CellError as err:
-            if err.code in ("camera_lost", "camera_stalled"):
-                raise
-            steps.append({"step": step, "not_seen": err.message})
+            look = look_again(core, motion, plan, goal, "at the approach goal", may_hide=True)
+        except TargetHidden as hidden:
+            steps.append({"step": step, "not_seen": str(hidden)})
             break
-        new_goal = approach_tcp(seen.T_base_target, plan.T_target_tcp, plan.standoff_mm)
-        d_mm, d_deg = pose_distance(goal, new_goal)
-        steps.append({"step": step, "correction_mm": d_mm, "correction_deg": d_deg,
-                      "rms_px": float(seen.result.rms_px)})
-        if d_mm < ac.tolerance_mm and d_deg < ac.tolerance_deg:
+        steps.append(look.row(step=step))
+        if look.small:
             break
-        goal = new_goal
+        goal = look.goal
         core.arm.move_linear(goal, plan.speed_mm_s, plan.accel_mm_s2, what="approach goal")
     return steps, goal
 
@@ -488,7 +519,6 @@ def checked(core: CellCore, job_id: str, seen: list[tuple[str, Located]]) -> dic
 def look_and_move(core: CellCore, job_id: str, motion: Motion, loc: Located,
                   plan: ApproachPlan) -> dict[str, Any]:
     ac = core.config.approach
-    arm = core.arm
     cycles: list[dict[str, Any]] = []
     converged = False
     goal = approach_tcp(loc.T_base_target, plan.T_target_tcp, plan.standoff_mm)
@@ -496,42 +526,20 @@ def look_and_move(core: CellCore, job_id: str, motion: Motion, loc: Located,
     for cycle in range(1, ac.max_cycles + 1):
         core.runner.progress(job_id, {"phase": "observe", "cycle": cycle, "cycles": cycles})
         T_obs = observation_tcp(core, loc.T_base_target, plan.T_target_tcp)
-        arm.move_linear(T_obs, plan.speed_mm_s, plan.accel_mm_s2, what="observation pose")
-        arrived = time.monotonic()
-        if ac.settle_s:
-            time.sleep(ac.settle_s)
-        motion.raise_if_cancelled("at the observation pose")
+        core.arm.move_linear(T_obs, plan.speed_mm_s, plan.accel_mm_s2, what="observation pose")
         core.runner.progress(job_id, {"phase": "locate", "cycle": cycle, "cycles": cycles})
-        new = locate(core, ac.frames_per_locate, after_s=arrived + ac.settle_s)
-        new_goal = approach_tcp(new.T_base_target, plan.T_target_tcp, plan.standoff_mm)
-        d_mm, d_deg = pose_distance(goal, new_goal)
-        cycles.append({"cycle": cycle, "correction_mm": d_mm, "correction_deg": d_deg,
-                       "rms_px": float(new.result.rms_px), "spread_mm": new.spread_mm})
-        seen.append((f"cycle {cycle}", new))
-        loc, goal = new, new_goal
-        if d_mm < ac.tolerance_mm and d_deg < ac.tolerance_deg:
-            converged = True
+        look = look_again(core, motion, plan, goal, "at the observation pose")
+        cycles.append(look.row(cycle=cycle) | {"spread_mm": look.located.spread_mm})
+        seen.append((f"cycle {cycle}", look.located))
+        loc, goal, converged = look.located, look.goal, look.small
+        if converged:
             break
         motion.raise_if_cancelled("between cycles")
     core.runner.progress(job_id, {"phase": "final", "cycle": len(cycles), "cycles": cycles})
-    arm.move_linear(goal, plan.speed_mm_s, plan.accel_mm_s2, what="approach goal")
+    core.arm.move_linear(goal, plan.speed_mm_s, plan.accel_mm_s2, what="approach goal")
     closing, goal = _close_at_goal(core, motion, plan, goal)
-    reached = arm.state().T_base_tcp
-    reach_mm, reach_deg = pose_distance(reached, goal)
     last = closing[-1] if closing and "correction_mm" in closing[-1] else cycles[-1]
-    return {
-        "mode": "look_and_move",
-        "converged": converged,
-        "cycles": cycles,
-        "closing": closing,
-        "T_base_target": pose_dict(loc.T_base_target),
-        "goal_T_base_tcp": pose_dict(goal),
-        "reached_T_base_tcp": pose_dict(reached),
-        "reach_error_mm": reach_mm,
-        "reach_error_deg": reach_deg,
-        # what is left unknown: the last correction (estimate noise) plus the reach error
-        "estimated_error_mm": float(np.hypot(last["correction_mm"], reach_mm)),
-        "estimated_error_deg": float(np.hypot(last["correction_deg"], reach_deg)),
+    return {"mode": "look_and_move", "converged": converged, "cycles": cycles,
+            "closing": closing} | reached(core, loc, goal, last) | {
         "estimated_error_basis": ERROR_BASIS["look_and_move"],
-        "consistency": checked(core, job_id, seen),
-    }
+        "consistency": checked(core, job_id, seen)}
