@@ -28,7 +28,6 @@ from numpy.typing import NDArray
 from cell.actions import approach as approach_mod
 from cell.actions import recovery, track
 from cell.actions.ibvs import Features
-from cell.actions.ibvs_track import start_ibvs_track
 from cell.actions.jog import Jogger
 from cell.actions.stop import StopLine
 from cell.config.schema import CellConfig, HandEyeConfig, PoseConfig
@@ -200,12 +199,12 @@ class Cell:
               mode: Literal["servo", "ibvs"] = "servo", view: Features | None = None,
               recipe: dict[str, Any] | None = None, layout: Target | None = None) -> Job:
         """Track job: hold the TCP at the standoff pose on a moving target (cell.actions.track),
-        or the taught view (``mode="ibvs"``, cell.actions.ibvs_track); ``recipe``: the recipe
+        or the taught view (``mode="ibvs"``); ``recipe``: the recipe
         record the job keeps; ``layout``: the dot layout looked for during this job only."""
         if mode == "ibvs":
-            return start_ibvs_track(self.core, caller, standoff_mm=standoff_mm,
-                                    duration_s=duration_s, T_target_tcp=T_target_tcp,
-                                    view=view, wait=wait, wait_timeout_s=wait_timeout_s)
+            return track.start_ibvs_track(self.core, caller, standoff_mm=standoff_mm,
+                                          duration_s=duration_s, T_target_tcp=T_target_tcp,
+                                          view=view, wait=wait, wait_timeout_s=wait_timeout_s)
         if mode != "servo":
             raise LimitError(ErrorCode.invalid_request,
                              f"track mode must be 'servo' or 'ibvs', got "
