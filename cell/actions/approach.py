@@ -45,6 +45,15 @@ from cell.errors import CellError, LimitError, RefusedError, UnavailableError
 from cell.jobs.runner import Work
 from cell.jobs.store import Job
 from cell.motion.guard import Motion
+from cell.results import ApproachMode, IbvsApproach, LookAndMoveApproach, Pose, ServoApproach
+from cell.results.approach import (
+    ClosingCorrection,
+    ClosingNotSeen,
+    ClosingStep,
+    Cycle,
+    ErrorBasis,
+)
+from cell.results.consistency import Consistency
 from cell.vision.consistency import consistency
 from cell.vision.frames import approach_tcp, observation_camera
 from cell.vision.locate import Located
@@ -171,9 +180,15 @@ class Look:
     correction_deg: float
     small: bool  # under ``[approach] tolerance_mm`` / ``_deg``: not worth a move
 
-    def row(self, **at: int) -> dict[str, Any]:
-        return at | {"correction_mm": self.correction_mm, "correction_deg": self.correction_deg,
-                     "rms_px": float(self.located.result.rms_px)}
+    def cycle(self, n: int) -> Cycle:
+        return Cycle(cycle=n, correction_mm=self.correction_mm,
+                     correction_deg=self.correction_deg,
+                     rms_px=float(self.located.result.rms_px), spread_mm=self.located.spread_mm)
+
+    def closing(self, n: int) -> ClosingCorrection:
+        return ClosingCorrection(step=n, correction_mm=self.correction_mm,
+                                 correction_deg=self.correction_deg,
+                                 rms_px=float(self.located.result.rms_px))
 
 
 def look_again(core: CellCore, motion: Motion, plan: ApproachPlan, goal: Matrix4, where: str,
@@ -193,16 +208,16 @@ def look_again(core: CellCore, motion: Motion, plan: ApproachPlan, goal: Matrix4
     return Look(new, new_goal, d_mm, d_deg, d_mm < ac.tolerance_mm and d_deg < ac.tolerance_deg)
 
 
-def reached(core: CellCore, loc: Located, goal: Matrix4, last: dict[str, Any] | None
+def reached(core: CellCore, loc: Located, goal: Matrix4, last: Cycle | ClosingCorrection | None
             ) -> dict[str, Any]:
     """Where the arm stands against ``goal``; the estimated error is what is left unknown:
     the ``last`` correction (estimate noise; none: 0) plus the reach error."""
     at = core.arm.state().T_base_tcp
     reach_mm, reach_deg = pose_distance(at, goal)
-    last_mm, last_deg = (0.0, 0.0) if last is None else (last["correction_mm"],
-                                                         last["correction_deg"])
-    return {"T_base_target": pose_dict(loc.T_base_target), "goal_T_base_tcp": pose_dict(goal),
-            "reached_T_base_tcp": pose_dict(at), "reach_error_mm": reach_mm,
+    last_mm, last_deg = (0.0, 0.0) if last is None else (last.correction_mm,
+                                                         last.correction_deg)
+    return {"T_base_target": Pose.from_T(loc.T_base_target), "goal_T_base_tcp": Pose.from_T(goal),
+            "reached_T_base_tcp": Pose.from_T(at), "reach_error_mm": reach_mm,
             "reach_error_deg": reach_deg,
             "estimated_error_mm": float(np.hypot(last_mm, reach_mm)),
             "estimated_error_deg": float(np.hypot(last_deg, reach_deg))}
@@ -277,36 +292,26 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
 
     def work(job_id: str, motion: Motion) -> dict[str, Any]:
         try:
-            result = run(job_id, motion)
+            return run(job_id, motion).json_dict()
         finally:
             lent.ended()
-        result.setdefault("first_locate_s", seen.get("first_locate_s"))
-        basis = ERROR_BASIS.get("fixed" if result.get("camera_mount") == "fixed"
-                                else str(result.get("mode")))
-        if basis is not None:
-            result.setdefault("estimated_error_basis", basis)
-        if "consistency" not in result:  # servo, IBVS, a fixed camera: the first locate's
-            result["consistency"] = consistency([("initial locate", first[0])],
-                                                core.target_centre_mm, target_at_rest=False)
-        return result
 
-    def run(job_id: str, motion: Motion) -> dict[str, Any]:
+    def run(job_id: str, motion: Motion) -> LookAndMoveApproach | ServoApproach | IbvsApproach:
+        loc = first[0]
+        start: dict[str, Any] = {"first_locate_s": seen.get("first_locate_s")}
+        if how == "look_and_move" and not core.frames.is_fixed:
+            return look_and_move(core, job_id, motion, loc, plan, start)
+        # servo, IBVS, a fixed camera: the first locate's consistency
+        start["consistency"] = Consistency.model_validate(consistency(
+            [("initial locate", loc)], core.target_centre_mm, target_at_rest=False))
         if how == "ibvs":
             assert view is not None
-            return ClosedLoop(core, job_id, motion, ImageLaw(
-                core, view, plan.T_target_tcp, "approach")).run(first[0])
+            return IbvsApproach(mode=ApproachMode.ibvs, **ClosedLoop(core, job_id, motion, ImageLaw(
+                core, view, plan.T_target_tcp, "approach")).run(loc),
+                estimated_error_basis=ERROR_BASIS["ibvs"], **start)
         if how == "servo":
-            out = ClosedLoop(core, job_id, motion, PositionLaw(core, ServoGoal(
-                plan.T_target_tcp, plan.standoff_mm), "approach")).run(first[0])
-            if not core.frames.is_fixed and _at_rest(out):
-                _close_servo(core, motion, plan, out)
-            if seen.get("pose_source") == "last_seen":  # a fixed camera, hidden at the start
-                out.update(start_pose_source="last_seen", occluded=True,
-                           occlusion_reason=out.get("occlusion_reason") or seen.get("reason"))
-            return out
-        if core.frames.is_fixed:
-            return fixed_look_and_move(core, job_id, motion, first[0], plan, seen)
-        return look_and_move(core, job_id, motion, first[0], plan)
+            return servo_approach(core, job_id, motion, loc, plan, seen, start)
+        return fixed_look_and_move(core, job_id, motion, loc, plan, seen, start)
 
     return lent.start_job("approach", caller, params, work, checks, wait=wait,
                           wait_timeout_s=wait_timeout_s)
@@ -385,17 +390,18 @@ def _fixed_locate(core: CellCore, n_frames: int, seen: dict[str, Any]) -> Locate
 
 
 def fixed_look_and_move(core: CellCore, job_id: str, motion: Motion, loc: Located,
-                        plan: ApproachPlan, seen: dict[str, Any]) -> dict[str, Any]:
+                        plan: ApproachPlan, seen: dict[str, Any], start: dict[str, Any]
+                        ) -> LookAndMoveApproach:
     """Look-and-move with a fixed camera: no observation pose (the camera does not move with
     the arm); straight to the goal, then, while the camera still sees the target past the
     arm, locate again at rest and correct until under the tolerance. Once the arm hides the
     target the goal stays the one from the last pose seen, and the result says so."""
     ac = core.config.approach
-    cycles: list[dict[str, Any]] = []
+    cycles: list[Cycle] = []
     converged = occluded_at_goal = False
     goal = approach_tcp(loc.T_base_target, plan.T_target_tcp, plan.standoff_mm)
     for cycle in range(1, ac.max_cycles + 1):
-        core.runner.progress(job_id, {"phase": "move", "cycle": cycle, "cycles": cycles})
+        core.runner.progress(job_id, {"phase": "move", "cycle": cycle, "cycles": _rows(cycles)})
         core.arm.move_linear(goal, plan.speed_mm_s, plan.accel_mm_s2, what="approach goal")
         try:
             look = look_again(core, motion, plan, goal, "at the approach goal", may_hide=True)
@@ -403,29 +409,27 @@ def fixed_look_and_move(core: CellCore, job_id: str, motion: Motion, loc: Locate
             occluded_at_goal = True
             seen.setdefault("reason", str(hidden))
             break
-        cycles.append(look.row(cycle=cycle) | {"spread_mm": look.located.spread_mm})
+        cycles.append(look.cycle(cycle))
         loc, goal, converged = look.located, look.goal, look.small
         if converged:
             break
     if not converged:
         core.arm.move_linear(goal, plan.speed_mm_s, plan.accel_mm_s2, what="approach goal")
-    return {
-        "mode": "look_and_move",
-        "camera_mount": "fixed",
-        "converged": converged,
-        "cycles": cycles,
+    return LookAndMoveApproach(
+        mode=ApproachMode.look_and_move, camera_mount="fixed", converged=converged,
+        cycles=cycles,
         # the pose the goal came from: "live" (seen at the start or at the goal) or
         # "last_seen" (the arm hid the target: the last pose before it entered the view)
-        "pose_source": seen.get("pose_source", "live"),
-        "occluded": bool(seen.get("occluded", False)) or occluded_at_goal,
-        "occluded_at_goal": occluded_at_goal,
-        "pose_age_s": seen.get("pose_age_s"),
-        "occlusion_reason": seen.get("reason"),
-    } | reached(core, loc, goal, cycles[-1] if cycles else None)
+        pose_source=seen.get("pose_source", "live"),
+        occluded=bool(seen.get("occluded", False)) or occluded_at_goal,
+        occluded_at_goal=occluded_at_goal, pose_age_s=seen.get("pose_age_s"),
+        occlusion_reason=seen.get("reason"),
+        **reached(core, loc, goal, cycles[-1] if cycles else None),
+        estimated_error_basis=ERROR_BASIS["fixed"], **start)
 
 
 def _close_at_goal(core: CellCore, motion: Motion, plan: ApproachPlan, goal: Matrix4
-                   ) -> tuple[list[dict[str, Any]], Matrix4]:
+                   ) -> tuple[list[ClosingStep], Matrix4]:
     """Locate again at the goal and correct until under the tolerance (up to ``max_cycles``
     moves): the move from the observation pose to the goal runs open-loop over a few hundred
     millimetres, where an arm's kinematic error changes by tenths of a millimetre (an arm
@@ -433,14 +437,14 @@ def _close_at_goal(core: CellCore, motion: Motion, plan: ApproachPlan, goal: Mat
     carry it. A goal the camera does not see the target from (a standoff too short for its
     view) keeps the observation pose's goal, and the steps say why. Returns the steps and the
     goal the arm stands at."""
-    steps: list[dict[str, Any]] = []
+    steps: list[ClosingStep] = []
     for step in range(1, core.config.approach.max_cycles + 1):
         try:
             look = look_again(core, motion, plan, goal, "at the approach goal", may_hide=True)
         except TargetHidden as hidden:
-            steps.append({"step": step, "not_seen": str(hidden)})
+            steps.append(ClosingNotSeen(step=step, not_seen=str(hidden)))
             break
-        steps.append(look.row(step=step))
+        steps.append(look.closing(step))
         if look.small:
             break
         goal = look.goal
@@ -458,50 +462,65 @@ def _at_rest(servo_result: dict[str, Any]) -> bool:
     return velocity is not None and float(np.linalg.norm(velocity)) < AT_REST_MM_S
 
 
-def _close_servo(core: CellCore, motion: Motion, plan: ApproachPlan,
-                 out: dict[str, Any]) -> None:
-    """The servo stops on the filtered estimate of a moving view (blur, latency), which
-    spreads its end about the goal (0.03-0.14 mm measured in the realistic world); with the
-    target at rest the stopped arm closes on still views (:func:`_close_at_goal`). The
-    result's ``closing`` lists the steps and its estimate becomes the last correction."""
-    here = core.arm.state().T_base_tcp
-    steps, goal = _close_at_goal(core, motion, plan, here)
-    out["closing"] = steps
-    if steps and "correction_mm" in steps[-1]:
-        reached = core.arm.state().T_base_tcp
-        out.update(goal_T_base_tcp=pose_dict(goal), reached_T_base_tcp=pose_dict(reached),
-                   estimated_error_mm=steps[-1]["correction_mm"],
-                   estimated_error_deg=steps[-1]["correction_deg"],
-                   estimated_error_basis=ERROR_BASIS["servo_closed"])
+def servo_approach(core: CellCore, job_id: str, motion: Motion, loc: Located,
+                   plan: ApproachPlan, seen: dict[str, Any], start: dict[str, Any]
+                   ) -> ServoApproach:
+    """The servo, and with the target at rest and a camera on the hand the closing views:
+    the servo stops on the filtered estimate of a moving view (blur, latency), which spreads
+    its end about the goal (0.03-0.14 mm measured in the realistic world), and the stopped arm
+    closes on still views (:func:`_close_at_goal`). The result's ``closing`` lists the steps
+    and its estimate becomes the last correction."""
+    out = ClosedLoop(core, job_id, motion, PositionLaw(core, ServoGoal(
+        plan.T_target_tcp, plan.standoff_mm), "approach")).run(loc)
+    basis = "fixed" if core.frames.is_fixed else "servo"
+    if not core.frames.is_fixed and _at_rest(out):
+        steps, goal = _close_at_goal(core, motion, plan, core.arm.state().T_base_tcp)
+        out["closing"] = steps
+        if steps and isinstance(steps[-1], ClosingCorrection):
+            basis = "servo_closed"
+            out.update(goal_T_base_tcp=Pose.from_T(goal),
+                       reached_T_base_tcp=Pose.from_T(core.arm.state().T_base_tcp),
+                       estimated_error_mm=steps[-1].correction_mm,
+                       estimated_error_deg=steps[-1].correction_deg)
+    if seen.get("pose_source") == "last_seen":  # a fixed camera, hidden at the start
+        out.update(start_pose_source="last_seen", occluded=True,
+                   occlusion_reason=out.get("occlusion_reason") or seen.get("reason"))
+    return ServoApproach(mode=ApproachMode.servo, **out, estimated_error_basis=ERROR_BASIS[basis],
+                         **start)
 
 
 # How each approach estimates its own error, and what that estimate cannot see.
-ERROR_BASIS: dict[str, dict[str, str]] = {
-    "look_and_move": {
-        "frame": "base",
-        "text": "the last correction of the goal in the base frame (seen from the goal, or "
-                "else two locates from the same observation pose) plus the reach error; both "
-                "go through the hand-eye calibration and the intrinsics, so their error is "
-                "invisible here: see consistency"},
-    "fixed": {
-        "frame": "base",
-        "text": "the last correction of the goal in the base frame (a fixed camera seeing the "
-                "target at the goal) plus the reach error; both go through T_base_camera, so "
-                "its error is invisible here"},
-    "servo_closed": {
-        "frame": "base",
-        "text": "the last correction of the goal in the base frame, seen from still views at "
-                "the goal after the servo stopped (the target at rest); it goes through the "
-                "hand-eye calibration and the intrinsics, so their error is invisible here"},
-    "servo": {
-        "frame": "camera",
-        "text": "the TCP against the goal the camera sees from where it stands, i.e. the "
-                "target in the camera frame; a hand-eye or intrinsics error is invisible here"},
-    "ibvs": {
-        "frame": "image",
-        "text": "the dots' image features against the taught view's; the pose figures are the "
-                "camera frame's; a mount error between teaching and now is invisible here"},
+ERROR_BASIS: dict[str, ErrorBasis] = {
+    "look_and_move": ErrorBasis(
+        frame="base",
+        text="the last correction of the goal in the base frame (seen from the goal, or "
+             "else two locates from the same observation pose) plus the reach error; both "
+             "go through the hand-eye calibration and the intrinsics, so their error is "
+             "invisible here: see consistency"),
+    "fixed": ErrorBasis(
+        frame="base",
+        text="the last correction of the goal in the base frame (a fixed camera seeing the "
+             "target at the goal) plus the reach error; both go through T_base_camera, so "
+             "its error is invisible here"),
+    "servo_closed": ErrorBasis(
+        frame="base",
+        text="the last correction of the goal in the base frame, seen from still views at "
+             "the goal after the servo stopped (the target at rest); it goes through the "
+             "hand-eye calibration and the intrinsics, so their error is invisible here"),
+    "servo": ErrorBasis(
+        frame="camera",
+        text="the TCP against the goal the camera sees from where it stands, i.e. the "
+             "target in the camera frame; a hand-eye or intrinsics error is invisible here"),
+    "ibvs": ErrorBasis(
+        frame="image",
+        text="the dots' image features against the taught view's; the pose figures are the "
+             "camera frame's; a mount error between teaching and now is invisible here"),
 }
+
+
+def _rows(rows: list[Cycle]) -> list[dict[str, Any]]:
+    """Rows for a job's progress (plain JSON)."""
+    return [row.json_dict() for row in rows]
 
 
 def checked(core: CellCore, job_id: str, seen: list[tuple[str, Located]]) -> dict[str, Any]:
@@ -517,29 +536,29 @@ def checked(core: CellCore, job_id: str, seen: list[tuple[str, Located]]) -> dic
 
 
 def look_and_move(core: CellCore, job_id: str, motion: Motion, loc: Located,
-                  plan: ApproachPlan) -> dict[str, Any]:
+                  plan: ApproachPlan, start: dict[str, Any]) -> LookAndMoveApproach:
     ac = core.config.approach
-    cycles: list[dict[str, Any]] = []
+    cycles: list[Cycle] = []
     converged = False
     goal = approach_tcp(loc.T_base_target, plan.T_target_tcp, plan.standoff_mm)
     seen: list[tuple[str, Located]] = [("initial locate", loc)]
     for cycle in range(1, ac.max_cycles + 1):
-        core.runner.progress(job_id, {"phase": "observe", "cycle": cycle, "cycles": cycles})
+        core.runner.progress(job_id, {"phase": "observe", "cycle": cycle, "cycles": _rows(cycles)})
         T_obs = observation_tcp(core, loc.T_base_target, plan.T_target_tcp)
         core.arm.move_linear(T_obs, plan.speed_mm_s, plan.accel_mm_s2, what="observation pose")
-        core.runner.progress(job_id, {"phase": "locate", "cycle": cycle, "cycles": cycles})
+        core.runner.progress(job_id, {"phase": "locate", "cycle": cycle, "cycles": _rows(cycles)})
         look = look_again(core, motion, plan, goal, "at the observation pose")
-        cycles.append(look.row(cycle=cycle) | {"spread_mm": look.located.spread_mm})
+        cycles.append(look.cycle(cycle))
         seen.append((f"cycle {cycle}", look.located))
         loc, goal, converged = look.located, look.goal, look.small
         if converged:
             break
         motion.raise_if_cancelled("between cycles")
-    core.runner.progress(job_id, {"phase": "final", "cycle": len(cycles), "cycles": cycles})
+    core.runner.progress(job_id, {"phase": "final", "cycle": len(cycles), "cycles": _rows(cycles)})
     core.arm.move_linear(goal, plan.speed_mm_s, plan.accel_mm_s2, what="approach goal")
     closing, goal = _close_at_goal(core, motion, plan, goal)
-    last = closing[-1] if closing and "correction_mm" in closing[-1] else cycles[-1]
-    return {"mode": "look_and_move", "converged": converged, "cycles": cycles,
-            "closing": closing} | reached(core, loc, goal, last) | {
-        "estimated_error_basis": ERROR_BASIS["look_and_move"],
-        "consistency": checked(core, job_id, seen)}
+    last = closing[-1] if closing and isinstance(closing[-1], ClosingCorrection) else cycles[-1]
+    return LookAndMoveApproach(
+        mode=ApproachMode.look_and_move, converged=converged, cycles=cycles, closing=closing,
+        **reached(core, loc, goal, last), estimated_error_basis=ERROR_BASIS["look_and_move"],
+        consistency=Consistency.model_validate(checked(core, job_id, seen)), **start)

@@ -31,6 +31,7 @@ from cell.error_codes import ErrorCode
 from cell.errors import LimitError, RefusedError, UnavailableError
 from cell.jobs.store import Job
 from cell.motion.guard import Motion
+from cell.results import IbvsTrack, ServoTrack
 from cell.vision.frames import approach_tcp
 from cell.vision.locate import Located
 from estimator import Target
@@ -59,9 +60,9 @@ def start_track(core: CellCore, caller: str, *, standoff_mm: float, duration_s: 
 
     def work(job_id: str, motion: Motion) -> dict[str, Any]:
         try:
-            return ClosedLoop(core, job_id, motion, PositionLaw(core, ServoGoal(T_tt, standoff),
-                                                                "track"),
-                              duration_s=float(duration_s)).run(first[0])
+            return ServoTrack(mode="track", **ClosedLoop(
+                core, job_id, motion, PositionLaw(core, ServoGoal(T_tt, standoff), "track"),
+                duration_s=float(duration_s)).run(first[0])).json_dict()
         finally:
             lent.ended()
 
@@ -86,8 +87,9 @@ def start_ibvs_track(core: CellCore, caller: str, *, standoff_mm: float, duratio
 
     def work(job_id: str, motion: Motion) -> dict[str, Any]:
         assert view is not None
-        return ClosedLoop(core, job_id, motion, ImageLaw(core, view, T_tt, "track"),
-                          duration_s=float(duration_s)).run()
+        return IbvsTrack(mode="ibvs_track", **ClosedLoop(
+            core, job_id, motion, ImageLaw(core, view, T_tt, "track"),
+            duration_s=float(duration_s)).run()).json_dict()
 
     return core.runner.start("track", caller, params, work, check=check, needs_camera=True,
                              wait=wait, wait_timeout_s=wait_timeout_s)

@@ -54,10 +54,11 @@ from cell.core import CellCore
 from cell.error_codes import ErrorCode
 from cell.errors import RefusedError
 from cell.motion.limits import linear_path
+from cell.results import Pose
 from cell.vision.locate import Located
 from drivers.arm import ArmState
 from estimator import CameraModel
-from estimator.transforms import pose_dict, pose_distance
+from estimator.transforms import pose_distance
 
 log = logging.getLogger(__name__)
 Matrix4 = NDArray[np.float64]
@@ -125,7 +126,6 @@ class ImageLaw(Law[View, View]):
         self.core, self.desired, self.T_target_tcp, self.mode = core, desired, T_target_tcp, mode
         self.sc, self.ic = core.config.servo, core.config.ibvs
         self.phase = f"ibvs_{mode}"
-        self.result_mode = "ibvs" if mode == "approach" else "ibvs_track"
         self.timeout_s = self.ic.approach_timeout_s
         self.caps = StreamCaps.of(core.config)
         self.camera: CameraModel = core.locator.camera_model
@@ -280,8 +280,8 @@ class ImageLaw(Law[View, View]):
             "estimated_error_mm": self.last_pose[0], "estimated_error_deg": self.last_pose[1],
         }
         if view is not None:
-            out["T_base_target"] = pose_dict(view.T_base_target)
-            out["goal_T_base_tcp"] = pose_dict(view.T_base_target @ self.T_target_tcp)
+            out["T_base_target"] = Pose.from_T(view.T_base_target)
+            out["goal_T_base_tcp"] = Pose.from_T(view.T_base_target @ self.T_target_tcp)
         out.update(view_error_mm=self.last_step[0], view_error_deg=self.last_step[1],
                    phases_s={k: round(v, 4) for k, v in self.phases.items()},
                    gain_cap_per_s=_percentiles(self.gain_caps))

@@ -107,7 +107,6 @@ class Law(Protocol[M, A]):
     doing: str  # where a stop finds it ("while servoing")
     phase: str  # the job's progress phase
     event_mode: str  # the ``servo`` events' mode
-    result_mode: str  # the result's mode
     unseen: str  # the lost-target message's "after the last ..."
     blind_frames_examined: bool  # frames the estimator finds no target in run the lost clock
     timeout_s: float  # an approach not converged by then fails

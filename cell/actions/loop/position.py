@@ -35,10 +35,11 @@ from cell.core import CellCore
 from cell.error_codes import ErrorCode
 from cell.errors import RefusedError
 from cell.motion.limits import linear_path
+from cell.results import Pose
 from cell.vision.frames import approach_tcp
 from cell.vision.locate import Located
 from drivers.arm import ArmState
-from estimator.transforms import pose_dict, pose_distance
+from estimator.transforms import pose_distance
 
 Matrix4 = NDArray[np.float64]
 Vec = NDArray[np.float64]
@@ -77,7 +78,6 @@ class PositionLaw(Law[Located, Aim]):
         self.max_age_s = core.config.limits.max_pose_age_s
         self.phase: str = mode
         self.event_mode: str = mode
-        self.result_mode = "servo" if mode == "approach" else "track"
         self.timeout_s = sc.approach_timeout_s
         self.caps = c = StreamCaps.of(core.config)
         self.params = LawParams(sc.gain_lin_per_s, sc.gain_rot_per_s, c.max_speed_mm_s,
@@ -186,7 +186,7 @@ class PositionLaw(Law[Located, Aim]):
         reach_mm, reach_deg = pose_distance(reached, goal)
         out: dict[str, Any] = {
             "gated_frames": self.gated,
-            "T_base_target": pose_dict(est.T_base_target), "goal_T_base_tcp": pose_dict(goal),
+            "T_base_target": Pose.from_T(est.T_base_target), "goal_T_base_tcp": Pose.from_T(goal),
             "estimated_error_mm": self.last_error[0], "estimated_error_deg": self.last_error[1],
             "reach_error_mm": reach_mm, "reach_error_deg": reach_deg,
             "pose_interval_ms": ms_stats(loop.stats.gaps[1:]),

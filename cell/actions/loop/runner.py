@@ -32,9 +32,9 @@ from cell.core import CellCore
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, RefusedError, UnavailableError
 from cell.motion.guard import Motion
+from cell.results import Pose
 from cell.vision.locate import Located
 from drivers.errors import DriverError
-from estimator.transforms import pose_dict
 
 log = logging.getLogger(__name__)
 STILL_TIMEOUT_S = 2.0  # a stop waits this long at most for the arm to stand
@@ -65,7 +65,8 @@ class ClosedLoop(Generic[M, A]):
         self._shown_s = 0.0
 
     def run(self, first: Located | None = None) -> dict[str, Any]:
-        """The loop; ``first``: the job's own locate, which the law starts from."""
+        """The loop; ``first``: the job's own locate, which the law starts from. Returns the
+        fields of its result model (:mod:`cell.results.loop`) that the loop knows."""
         thread = threading.Thread(target=self._frame_thread, daemon=True,
                                   name=f"{self.law.name.lower()}-frames-{self.job_id}")
         with self.lock:  # the clocks start with the loop (the arm is still)
@@ -251,9 +252,9 @@ class ClosedLoop(Generic[M, A]):
     def _result(self, converged_s: float | None) -> dict[str, Any]:
         reached = self.core.arm.state().T_base_tcp
         out: dict[str, Any] = {
-            "mode": self.law.result_mode, "frames": self.stats.frames,
+            "frames": self.stats.frames,
             "failed_frames": self.stats.failed, "stale_frames": self.stats.stale,
-            "reached_T_base_tcp": pose_dict(reached),
+            "reached_T_base_tcp": Pose.from_T(reached),
             "pose_latency_ms": ms_stats(self.stats.lags),
             "error_history": self.history.downsampled(),
         } | self.law.result(self, reached)
