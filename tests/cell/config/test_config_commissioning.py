@@ -173,6 +173,7 @@ def test_device_settings_are_validated(tmp_path: Path) -> None:
 
 def test_robot_and_gripper_settings_reach_the_adapters(tmp_path: Path) -> None:
     """What build_hardware passes: the UR adapter's timing and the Modbus link settings."""
+    from cell.config.devices import RobotiqGripperConfig
     from cell.devices.factory import robotiq_gripper
     from drivers.ur.adapter import URArm
 
@@ -181,7 +182,8 @@ def test_robot_and_gripper_settings_reach_the_adapters(tmp_path: Path) -> None:
     text = _edit(_edit(text, "slave_id = 9", "slave_id = 12"), "baudrate = 115200",
                  "baudrate = 57600")
     cfg = load_config(_write(tmp_path, text))
-    gripper = robotiq_gripper(cfg, "/dev/ttyUSB7")
+    assert isinstance(cfg.gripper, RobotiqGripperConfig)
+    gripper = robotiq_gripper(cfg.gripper, "/dev/ttyUSB7")
     assert (gripper.port, gripper.slave_id, gripper.baudrate, gripper.timeout_s,
             gripper.retries, gripper.motion_timeout_s, gripper.activation_timeout_s) == \
         ("/dev/ttyUSB7", 12, 57600, 0.5, 3, 5.0, 10.0)
