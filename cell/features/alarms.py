@@ -3,7 +3,7 @@ is inconsistent (its ``consistency`` verdict, cell.vision.consistency) and every
 (protective or emergency stop, arm or camera lost, gripper fault) becomes an alarm that stays
 until an operator acknowledges it.
 
-Why a log of its own: a failed approach used to be visible only in the job list, below the
+Why a log of its own: in the job list a failed approach is one row among many, below the
 fold; a production cell needs something that stays on screen until a person has seen it, and
 that survives a restart (the alarms live in the job database, table ``alarms``).
 

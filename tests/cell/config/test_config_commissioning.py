@@ -1,6 +1,6 @@
-"""The strict config as a new integrator meets it: every plausible mistake from the
-commissioning issue fails to load with the key and the likely mistake named, loads when the key
-is explicitly accepted, and `cell config check` lists every problem at once without hardware."""
+"""The strict config as a new integrator meets it: every plausible mistake fails to load with
+the key and the likely mistake named, loads when the key is explicitly accepted, and `cell
+config check` lists every problem at once without hardware."""
 
 from __future__ import annotations
 
@@ -42,7 +42,7 @@ def _problems(path: Path) -> list[str]:
     return [str(p) for p in err.value.problems]
 
 
-# The mistakes the issue lists: (old text, mistaken text, key named, words of the likely mistake)
+# Plausible mistakes: (old text, mistaken text, key named, words of the likely mistake)
 MISTAKES = [
     ('T_flange_tcp = { position_mm = [0.0, 0.0, 150.0]', 'T_flange_tcp = { position_mm = '
      '[0.0, 0.0, 0.15]', "tool.T_flange_tcp.position_mm", "metres"),
