@@ -53,4 +53,4 @@ def result_from_json(kind: str, text: str | bytes) -> JobResult:
 
 def result_json(result: JobResult) -> str:
     """The JSON text the job store keeps (keys a producer did not set stay absent)."""
-    return result.model_dump_json(exclude_unset=True)
+    return result.model_dump_json()
