@@ -100,7 +100,7 @@ def test_a_mount_error_is_flagged_and_the_ideal_world_is_not(tmp_path: Path) -> 
 
 def test_a_locate_reports_residuals_and_spread_and_judges_no_motion(tmp_path: Path) -> None:
     with running_cell(sim_config(tmp_path, sim={"world": "realistic"})) as cell:
-        body = cell.locate("test", n_frames=3).as_dict(0.0)
+        body = cell.locate("test", n_frames=3).answer(0.0).json_dict()
     c = body["consistency"]
     assert c["verdict"] == "unchecked" and c["motion"]["checks"] == []
     assert len(c["reprojection"]["rms_px"]) == 3 and c["reprojection"]["max_rms_px"] < 1.0
