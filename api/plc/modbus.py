@@ -54,7 +54,7 @@ from api.remote import RemoteCaller
 from cell.config.schema import ModbusConfig
 from cell.errors import CellError
 from cell.jobs.store import Job
-from cell.results.approach import AnyApproach
+from cell.results.jobs import located_pose
 from cell.service import Cell
 from cell.supervision.logs import drop_library_records, quiet_library_loggers
 
@@ -464,8 +464,7 @@ class ModbusServer(LoopThread):
             return _Outcome(False, error_number("cancelled"))
         if job.state != "succeeded":
             return _Outcome(False, error_number(job.error_code or "internal_error"))
-        result = job.result
-        target = result.T_base_target if isinstance(result, AnyApproach) else None
+        target = located_pose(job.result)
         if target is None:
             return _Outcome(True)
         return _Outcome(True, pose=[*target.position_mm, *target.rotvec_rad])

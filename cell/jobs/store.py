@@ -84,13 +84,18 @@ class Job:
     def finished(self) -> bool:
         return self.state in FINISHED
 
+    def error(self) -> dict[str, str] | None:
+        """``{code, message}`` of a job that failed, was cancelled or interrupted."""
+        if self.error_code is None:
+            return None
+        return {"code": self.error_code, "message": self.error_message or ""}
+
     def as_dict(self) -> dict[str, Any]:
         return {
             "id": self.id, "kind": self.kind, "caller": self.caller, "params": self.params,
             "state": self.state, "progress": self.progress,
             "result": None if self.result is None else self.result.json_dict(),
-            "error": None if self.error_code is None else {
-                "code": self.error_code, "message": self.error_message or ""},
+            "error": self.error(),
             "created_at": self.created_at, "ended_at": self.ended_at,
         }
 

@@ -12,8 +12,15 @@ from typing import Any, Literal, get_args
 
 from pydantic import TypeAdapter
 
-from cell.results.approach import ApproachResult, IbvsApproach, LookAndMoveApproach, ServoApproach
+from cell.results.approach import (
+    AnyApproach,
+    ApproachResult,
+    IbvsApproach,
+    LookAndMoveApproach,
+    ServoApproach,
+)
 from cell.results.home import HomeResult
+from cell.results.pose import Pose
 from cell.results.routine import HandEyeRoutineResult
 from cell.results.track import IbvsTrack, ServoTrack, TrackResult
 
@@ -36,6 +43,14 @@ def _adapter(kind: str) -> TypeAdapter[Any]:
         return _ADAPTERS[kind]
     except KeyError:
         raise ValueError(f"no result model for jobs of kind {kind!r}") from None
+
+
+def located_pose(result: JobResult | None) -> Pose | None:
+    """The target pose a job's result reports (an approach's or a track's ``T_base_target``),
+    as the PLC doors publish it; None for other kinds, or an IBVS run that saw no view."""
+    if isinstance(result, AnyApproach | ServoTrack | IbvsTrack):
+        return result.T_base_target
+    return None
 
 
 def result_of(kind: str, data: Any) -> JobResult:
