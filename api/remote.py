@@ -4,9 +4,6 @@ Both are thin adapters: a caller with one of the API's roles (:data:`api.auth.PE
 one call on the :class:`cell.service.Cell` facade (so the same guard, job runner and audit log
 as HTTP), and the cell's own error codes. A refusal by role is audited here, because it never
 reaches the facade; everything else is audited by the facade or by :func:`audited`.
-
-Track and the servo approach come from the servo issue; until the cell has them
-(``Cell.track``, ``Cell.approach(mode=...)``) the calls answer ``not_supported``.
 """
 
 from __future__ import annotations
@@ -46,7 +43,7 @@ APPROACH_MODES = ("look_and_move", "servo", "ibvs")
 
 
 class NotSupportedError(CellError):
-    """The cell this service runs has no such command yet (e.g. track before the servo issue)."""
+    """The cell this service runs has no such command."""
 
     kind = "invalid"
 

@@ -1,6 +1,6 @@
 """The gate in front of every ``/api/v1`` route: authenticate first, then look at the body.
 
-Order matters (audit issue items 6 and 7): a request without a valid token is answered 401
+Order matters: a request without a valid token is answered 401
 before a byte of its body is read or parsed, so an anonymous client cannot make the service
 parse 10 MB bodies; bodies are capped (413) and must be ``application/json`` (415), so a
 cross-site "simple" form POST never reaches a route, and UTF-8 (422 ``invalid_request``, as

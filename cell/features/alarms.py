@@ -3,7 +3,7 @@ is inconsistent (its ``consistency`` verdict, cell.vision.consistency) and every
 (protective or emergency stop, arm or camera lost, gripper fault) becomes an alarm that stays
 until an operator acknowledges it.
 
-Why a log of its own: a failed approach used to be visible only in the job list, below the
+Why a log of its own: in the job list a failed approach is one row among many, below the
 fold; a production cell needs something that stays on screen until a person has seen it, and
 that survives a restart (the alarms live in the job database, table ``alarms``).
 
@@ -18,7 +18,6 @@ acknowledged while it lasts, and raises a new alarm when it comes back after cle
 
 from __future__ import annotations
 
-import json
 import logging
 import sqlite3
 import threading
@@ -28,6 +27,8 @@ from typing import TYPE_CHECKING, Any
 
 from cell.error_codes import ErrorCode
 from cell.errors import NotFoundError
+from cell.results.approach import ApproachBase
+from cell.results.jobs import result_from_json
 
 if TYPE_CHECKING:
     from cell.service import Cell
@@ -206,14 +207,13 @@ class AlarmLog:
                     "AND ended_at >= ? AND result LIKE '%\"inconsistent\"%' "
                     "AND 'consistency:' || id NOT IN (SELECT key FROM alarms WHERE "
                     "source = 'job') ORDER BY ended_at", (self._jobs_since,)).fetchall()
-            jobs = [(i, k, json.loads(r) if r else None, e) for i, k, r, e in rows]
+            jobs = [(i, k, result_from_json(k, r) if r else None, e) for i, k, r, e in rows]
         out = []
         for job_id, kind, result, ended in jobs:
-            c = result.get("consistency") if isinstance(result, dict) else None
-            if isinstance(c, dict) and c.get("verdict") == "inconsistent":
-                codes, findings = c.get("codes") or ["calibration_inconsistent"], \
-                    c.get("findings") or [""]
-                out.append((job_id, kind, str(codes[-1]), str(findings[-1]), ended))
+            if isinstance(result, ApproachBase) and result.consistency.verdict == "inconsistent":
+                c = result.consistency
+                codes, findings = c.codes or ["calibration_inconsistent"], c.findings or [""]
+                out.append((job_id, kind, codes[-1], findings[-1], ended))
         return out
 
     def _raise(self, key: str, source: str, code: str, message: str,

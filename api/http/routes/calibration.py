@@ -166,7 +166,7 @@ def apply_hand_eye(request: Request, caller: Calibrator, job_id: str,
     """Use the result in the running cell and/or write it into the config file."""
     b = body or ApplyRequest()
     return _calibration(request).apply(caller.label, job_id, b.method, b.running,
-                                       b.write_config, b.force)
+                                       b.write_config, b.force).json_dict()
 
 
 @router.get("/calibration/events", tags=["calibration"], responses=SSE_RESPONSES,
