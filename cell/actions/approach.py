@@ -290,9 +290,9 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
         first.append(loc)
         seen["first_locate_s"] = round(time.monotonic() - began_s, 4)
 
-    def work(job_id: str, motion: Motion) -> dict[str, Any]:
+    def work(job_id: str, motion: Motion) -> LookAndMoveApproach | ServoApproach | IbvsApproach:
         try:
-            return run(job_id, motion).json_dict()
+            return run(job_id, motion)
         finally:
             lent.ended()
 

@@ -58,11 +58,11 @@ def start_track(core: CellCore, caller: str, *, standoff_mm: float, duration_s: 
         first.append(_checked_start(core, duration_s, lambda T_bt: approach_tcp(
             T_bt, T_tt, standoff)))
 
-    def work(job_id: str, motion: Motion) -> dict[str, Any]:
+    def work(job_id: str, motion: Motion) -> ServoTrack:
         try:
             return ServoTrack(mode="track", **ClosedLoop(
                 core, job_id, motion, PositionLaw(core, ServoGoal(T_tt, standoff), "track"),
-                duration_s=float(duration_s)).run(first[0])).json_dict()
+                duration_s=float(duration_s)).run(first[0]))
         finally:
             lent.ended()
 
@@ -85,11 +85,11 @@ def start_ibvs_track(core: CellCore, caller: str, *, standoff_mm: float, duratio
     def check(motion: Motion) -> None:
         _checked_start(core, duration_s, lambda T_bt: T_bt @ T_tt)
 
-    def work(job_id: str, motion: Motion) -> dict[str, Any]:
+    def work(job_id: str, motion: Motion) -> IbvsTrack:
         assert view is not None
         return IbvsTrack(mode="ibvs_track", **ClosedLoop(
             core, job_id, motion, ImageLaw(core, view, T_tt, "track"),
-            duration_s=float(duration_s)).run()).json_dict()
+            duration_s=float(duration_s)).run())
 
     return core.runner.start("track", caller, params, work, check=check, needs_camera=True,
                              wait=wait, wait_timeout_s=wait_timeout_s)

@@ -44,7 +44,7 @@ PLOT_POINTS = 60
 
 
 class ClosedLoop(Generic[M, A]):
-    """One streamed motion's run (module doc). ``run`` returns the job's result."""
+    """One streamed motion's run (module doc)."""
 
     def __init__(self, core: CellCore, job_id: str, motion: Motion, law: Law[M, A], *,
                  duration_s: float | None = None) -> None:
