@@ -46,13 +46,7 @@ from cell.jobs.runner import Work
 from cell.jobs.store import Job
 from cell.motion.guard import Motion
 from cell.results import ApproachMode, IbvsApproach, LookAndMoveApproach, Pose, ServoApproach
-from cell.results.approach import (
-    ClosingCorrection,
-    ClosingNotSeen,
-    ClosingStep,
-    Cycle,
-    ErrorBasis,
-)
+from cell.results.approach import ClosingCorrection, ClosingNotSeen, ClosingStep, Cycle, ErrorBasis
 from cell.results.consistency import Consistency
 from cell.vision.consistency import consistency
 from cell.vision.frames import approach_tcp, observation_camera
