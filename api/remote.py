@@ -24,7 +24,6 @@ from api.auth import ALWAYS, PERMISSIONS
 from api.status import STATUS
 from cell.actions.approach import JobLayout
 from cell.actions.approach_rules import check_speed, check_standoff
-from cell.actions.ibvs import Features
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, ForbiddenError, LimitError, NotFoundError
 from cell.features.recipes import Recipe, RecipeStore, RecipeTarget
@@ -32,6 +31,7 @@ from cell.features.teach import TaughtStore
 from cell.jobs.audit import AuditNote
 from cell.jobs.store import Job
 from cell.service import Cell
+from cell.servoing.ibvs import Features
 from cell.vision.frames import approach_tcp
 from cell.vision.locate import Located
 from estimator.transforms import pose_from_T

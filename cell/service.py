@@ -27,7 +27,6 @@ from numpy.typing import NDArray
 
 from cell.actions import approach as approach_mod
 from cell.actions import recovery, track
-from cell.actions.ibvs import Features
 from cell.actions.jog import Jogger
 from cell.actions.stop import StopLine
 from cell.config.schema import CellConfig, HandEyeConfig, PoseConfig
@@ -40,6 +39,7 @@ from cell.jobs.events import EventBus
 from cell.jobs.runner import JobRunner
 from cell.jobs.store import Job, JobStore
 from cell.motion.guard import GuardedArm, MotionSlot, driver_error
+from cell.servoing.ibvs import Features
 from cell.stats import CellStats
 from cell.supervision.gripper import GripperService
 from cell.supervision.links import LinkSupervisor

@@ -4,9 +4,7 @@
   :mod:`~cell.actions.approach_rules` the standoff and speed rules every door shares (the
   HTTP bodies, recipes when saved, the PLC interfaces);
 - :mod:`~cell.actions.track`: hold the TCP at a standoff from a moving target;
-- :mod:`~cell.actions.loop`: the closed loop every streamed motion runs, and its laws; their
-  maths: :mod:`~cell.actions.servo_law`, :mod:`~cell.actions.target_filter`,
-  :mod:`~cell.actions.ibvs`, :mod:`~cell.actions.ibvs_settle`, :mod:`~cell.actions.ibvs_mount`;
+  both run the closed loop of :mod:`cell.servoing` with a position- or image-based law;
 - :mod:`~cell.actions.jog`: Cartesian steps and dead-man continuous jogs;
 - :mod:`~cell.actions.recovery`: home, unlock a protective stop, power;
 - :mod:`~cell.actions.stop`: the stop path, one thread that does nothing else.

@@ -1,6 +1,6 @@
 """Approach: by look-and-move (observe, locate, correct, repeat, then the final move), by
 closed-loop servoing (``mode="servo"``) or by image-based servoing to a taught view
-(``mode="ibvs"``): the closed loop of :mod:`cell.actions.loop` with its position-based or
+(``mode="ibvs"``): the closed loop of :mod:`cell.servoing` with its position-based or
 image-based law.
 
 The goal is ``T_base_target @ T_target_tcp @ translate(0, 0, -standoff_mm)``. The arm first
@@ -34,11 +34,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.actions.approach_rules import check_standoff
-from cell.actions.ibvs import Features
-from cell.actions.ibvs_mount import IbvsMount
-from cell.actions.loop.image import ImageLaw
-from cell.actions.loop.position import PositionLaw, ServoGoal
-from cell.actions.loop.runner import ClosedLoop
 from cell.core import CellCore
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, LimitError, RefusedError, UnavailableError
@@ -48,6 +43,11 @@ from cell.motion.guard import Motion
 from cell.results import ApproachMode, IbvsApproach, LookAndMoveApproach, Pose, ServoApproach
 from cell.results.approach import ClosingCorrection, ClosingNotSeen, ClosingStep, Cycle, ErrorBasis
 from cell.results.consistency import Consistency
+from cell.servoing.ibvs import Features
+from cell.servoing.ibvs_mount import IbvsMount
+from cell.servoing.image import ImageLaw
+from cell.servoing.position import PositionLaw, ServoGoal
+from cell.servoing.runner import ClosedLoop
 from cell.vision.consistency import consistency
 from cell.vision.frames import approach_tcp, observation_camera
 from cell.vision.locate import Located

@@ -1,7 +1,7 @@
 """Track: hold the TCP at a standoff pose relative to a moving target (a conveyor), or hold the
 taught view of a target while it moves (mode ``"ibvs"``).
 
-A job like an approach without convergence: the closed loop (:mod:`cell.actions.loop`) with its
+A job like an approach without convergence: the closed loop (:mod:`cell.servoing`) with its
 position-based law, or its image-based one, runs until ``stop``, ``duration_s`` (capped by
 ``[servo] max_track_s``) or the loss of the target (``target_lost``). The goal and the duration
 are checked before the job starts, so a refusal moves nothing. A recipe's dot layout
@@ -22,16 +22,16 @@ from numpy.typing import NDArray
 
 from cell.actions.approach import JobLayout, check_ibvs_request, locate
 from cell.actions.approach_rules import check_standoff
-from cell.actions.ibvs import Features
-from cell.actions.loop.image import ImageLaw
-from cell.actions.loop.position import PositionLaw, ServoGoal
-from cell.actions.loop.runner import ClosedLoop
 from cell.core import CellCore
 from cell.error_codes import ErrorCode
 from cell.errors import LimitError, RefusedError, UnavailableError
 from cell.jobs.store import Job
 from cell.motion.guard import Motion
 from cell.results import IbvsTrack, ServoTrack
+from cell.servoing.ibvs import Features
+from cell.servoing.image import ImageLaw
+from cell.servoing.position import PositionLaw, ServoGoal
+from cell.servoing.runner import ClosedLoop
 from cell.vision.frames import approach_tcp
 from cell.vision.locate import Located
 from estimator import Target

@@ -145,7 +145,7 @@ class ApproachConfig(Strict):
 
 
 class ServoConfig(Strict):
-    """Closed-loop visual servoing (approach mode "servo" and tracking, :mod:`cell.actions.loop`).
+    """Closed-loop visual servoing (approach mode "servo" and tracking, :mod:`cell.servoing`).
 
     The law is ``twist = feed-forward + gain * error`` with the speed capped by
     ``max_speed_mm_s`` / ``max_angular_speed_deg_s`` and by braking room, and its change per
@@ -170,9 +170,9 @@ class ServoConfig(Strict):
     tolerance_deg: float = Field(default=0.03, gt=0)
     converge_frames: int = Field(default=4, ge=1, le=100)
     lost_after_s: float = Field(default=0.1, gt=0, le=5)  # of camera time (exposures)
-    # loss is judged on camera time (cell/actions/target_loss.py); a pipeline that examines no frame
-    # for this long (host time since its newest examined exposure: a stalled camera or
-    # estimator) is lost too. Meanwhile the goal is extrapolated for at most
+    # loss is judged on camera time (cell/servoing/target_loss.py); a pipeline that examines
+    # no frame for this long (host time since its newest examined exposure: a stalled camera
+    # or estimator) is lost too. Meanwhile the goal is extrapolated for at most
     # max_predict_s past the newest pose, then held.
     stall_after_s: float = Field(default=1.0, gt=0, le=5)
     max_predict_s: float = Field(default=0.5, gt=0, le=5)
@@ -189,7 +189,7 @@ class ServoConfig(Strict):
 
 
 class IbvsConfig(Strict):
-    """Image-based servoing (mode "ibvs": :mod:`cell.actions.ibvs`, :mod:`cell.actions.loop.image`).
+    """Image-based servoing (mode "ibvs": :mod:`cell.servoing.ibvs`, :mod:`cell.servoing.image`).
 
     The law is ``v_c = -lambda L^+ (s - s*)`` on the dots' normalised image points, the gain
     ``lambda(x) = (l0 - linf) exp(-slope x / (l0 - linf)) + linf`` with ``x`` the largest
@@ -223,7 +223,7 @@ class IbvsConfig(Strict):
     # measured no faster (250 mm, 30 mm / 6 deg, 5 runs each at load 3-5: median 2.5 s
     # against 1.9 s, the same final error), its tail noisier (docs/ibvs.md)
     predict_motion: bool = False
-    # the final settle (cell.actions.ibvs_settle): after the loop's test, the arm still,
+    # the final settle (cell.servoing.ibvs_settle): after the loop's test, the arm still,
     # ``settle_frames`` frames averaged, one step ``-L^+ e``; up to ``settle_steps`` times,
     # until the step is under ``settle_tolerance_mm`` / ``_deg``. 0 frames: no settle.
     settle_frames: int = Field(default=0, ge=0, le=100)

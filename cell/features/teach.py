@@ -15,7 +15,7 @@ or the new file, never a torn one. A file that cannot be read is never overwritt
 
 Teaching by showing: the view is recorded too (``view``: each matched dot's normalised image
 point and depth, averaged over the samples), so an IBVS approach
-(:mod:`cell.actions.loop.image`) can drive the image back to it. Poses taught before that have
+(:mod:`cell.servoing.image`) can drive the image back to it. Poses taught before that have
 no view; they still serve servo and look-and-move, and IBVS to them is refused
 (``taught_without_view``).
 """
@@ -33,10 +33,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.actions.ibvs import Features, features_from_view
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, LimitError, NotFoundError, RefusedError
 from cell.files import replace_text
+from cell.servoing.ibvs import Features, features_from_view
 from cell.vision.frames import mean_pose
 from estimator.transforms import T_from_pose_dict, invert_T, pose_dict, pose_distance
 

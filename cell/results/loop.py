@@ -40,7 +40,7 @@ class FixedCameraView(Result):
 
 
 class ServoLoop(FixedCameraView):
-    """The pose-based loop's figures (:mod:`cell.actions.loop.position`)."""
+    """The pose-based loop's figures (:mod:`cell.servoing.position`)."""
 
     frames: int
     failed_frames: int
@@ -76,7 +76,7 @@ class IbvsPhases(Result):
 
 
 class IbvsLoop(Result):
-    """The image-based loop's figures (:mod:`cell.actions.loop.image`); the pose figures are the
+    """The image-based loop's figures (:mod:`cell.servoing.image`); the pose figures are the
     estimate's, the law never uses them."""
 
     frames: int

@@ -31,7 +31,6 @@ from api.http.schemas import (
     TaughtPoseOut,
 )
 from api.http.sse import SSE_RESPONSES, sse_response
-from cell.actions.ibvs import Features
 from cell.calibration.routine import DEFAULT_VIEWS, RoutineSettings
 from cell.calibration.service import EVENT, CalibrationService
 from cell.error_codes import ErrorCode
@@ -44,6 +43,7 @@ from cell.features.teach import (
     teach,
 )
 from cell.service import Cell
+from cell.servoing.ibvs import Features
 
 router = APIRouter(prefix="/api/v1", responses={**ERROR_RESPONSES, **NOT_FOUND})
 

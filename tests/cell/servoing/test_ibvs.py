@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cell.actions.ibvs import (
+from cell.servoing.ibvs import (
     AdaptiveGain,
     Features,
     LatencyCappedGain,
@@ -24,7 +24,7 @@ from cell.actions.ibvs import (
     project_normalised,
     remaining_motion,
 )
-from cell.actions.ibvs_settle import mean_features, settle_step, step_goal, step_size
+from cell.servoing.ibvs_settle import mean_features, settle_step, step_goal, step_size
 from estimator import CameraModel
 from estimator.transforms import T_from_pose, invert_T, pose_distance
 
@@ -234,8 +234,8 @@ def test_fixed_camera_drives_the_tool_plate_back_to_the_taught_view() -> None:
     turned, mapped through a configured T_base_camera 2 mm / 0.5 deg off the true one, brings
     the TCP back to where the view was taught (the error bends the path, not the goal); the
     view's pose, the dots' motion and the pose-based goal agree with the truth."""
-    from cell.actions.ibvs import view_pose
-    from cell.actions.ibvs_mount import IbvsMount
+    from cell.servoing.ibvs import view_pose
+    from cell.servoing.ibvs_mount import IbvsMount
 
     T_bc_true = T_from_pose([-930.0, -135.0, 866.0], [-1.93, 1.93, -0.52])
     T_bc_config = T_bc_true @ T_from_pose([1.5, -1.0, 1.2], [0.005, -0.004, 0.006])

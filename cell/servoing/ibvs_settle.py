@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.actions.ibvs import Features, feature_error, interaction_of
+from cell.servoing.ibvs import Features, feature_error, interaction_of
 from estimator.transforms import T_from_pose
 
 Matrix4 = NDArray[np.float64]

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cell.actions.servo_law import (
+from cell.motion.twist import extrapolate_tcp
+from cell.servoing.servo_law import (
     LawParams,
     braking_speed,
     goal_velocity,
@@ -14,8 +15,7 @@ from cell.actions.servo_law import (
     pbvs_twist,
     pose_error,
 )
-from cell.actions.target_filter import ConstantVelocityFilter
-from cell.motion.twist import extrapolate_tcp
+from cell.servoing.target_filter import ConstantVelocityFilter
 from estimator.transforms import make_T, pose_distance
 
 P = LawParams(gain_lin_per_s=10.0, gain_rot_per_s=10.0, max_speed_mm_s=250.0,

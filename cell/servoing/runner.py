@@ -3,15 +3,15 @@
 Two threads per run. The frame thread has the locator estimate every new frame and map it into
 the base frame with the arm pose at its mid-exposure time (latency compensation: the pose the
 frame was taken from, not the pose now; :meth:`cell.vision.locate.Locator.measure`) and gives
-it to the law (:mod:`~cell.actions.loop.law`). The control loop, in the job's thread, ticks at
+it to the law (:mod:`~cell.servoing.law`). The control loop, in the job's thread, ticks at
 ``[servo] tick_s``: it asks the law where to go, reads the arm, moves the TCP on by the twist
-last sent (:class:`~cell.actions.loop.clock.TwistClock`), has the law judge each new
+last sent (:class:`~cell.servoing.clock.TwistClock`), has the law judge each new
 measurement and sends the law's twist through the guarded arm, which checks every tick. So
 the loop is as fast as the arm's state, not the camera, and a frame's age costs no lag.
 
 Safety: no measurement older than ``limits.max_pose_age_s`` is used; frames exposed ``[servo]
 lost_after_s`` after the last measurement that gave none stop the arm (still before the job
-fails ``target_lost``; judged on camera time, :mod:`cell.actions.target_loss`); a stop cancels
+fails ``target_lost``; judged on camera time, :mod:`cell.servoing.target_loss`); a stop cancels
 the slot's holder, which the next tick sees, and the arm's own watchdog brakes if ticks stop
 coming. The loop stops the arm one way (:meth:`~cell.motion.guard.GuardedArm.settle`, at
 ``[servo] stop_decel_mm_s2``) before it reports a lost target, a timeout or its result.
@@ -24,15 +24,15 @@ import threading
 import time
 from typing import Any, Generic
 
-from cell.actions.loop.clock import TwistClock
-from cell.actions.loop.law import A, Law, M, Reading, Tick, Unusable
-from cell.actions.loop.record import FrameStats, History, ms_stats
-from cell.actions.target_loss import LossClock, Silence
 from cell.core import CellCore
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, RefusedError, UnavailableError
 from cell.motion.guard import Motion
 from cell.results import Pose
+from cell.servoing.clock import TwistClock
+from cell.servoing.law import A, Law, M, Reading, Tick, Unusable
+from cell.servoing.record import FrameStats, History, ms_stats
+from cell.servoing.target_loss import LossClock, Silence
 from cell.vision.locate import Located
 from drivers.errors import DriverError
 

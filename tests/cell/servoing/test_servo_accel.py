@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cell.actions.servo_law import LawParams, pbvs_twist
 from cell.config.schema import LimitsConfig
 from cell.errors import CellError
 from cell.motion.guard import GuardedArm, servo_ahead, servo_change_ok, twist_change
+from cell.servoing.servo_law import LawParams, pbvs_twist
 from drivers.arm import speedl_accel
 from estimator.transforms import make_T, pose_distance
 from fakes.sim_arm import SimArm
@@ -145,7 +145,7 @@ def test_the_guard_refuses_rotation_beyond_its_acceleration(sim: SimArm) -> None
 
 
 def test_lost_clock_runs_on_camera_time_of_the_frames_examined() -> None:
-    from cell.actions.target_loss import LossClock
+    from cell.servoing.target_loss import LossClock
 
     rng = np.random.default_rng(2)
     clock = LossClock(0.1, 1.0, floor_s=0.0)

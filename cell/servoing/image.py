@@ -6,17 +6,17 @@ lens model), their depths and 3-D positions from the frame's pose estimate. Only
 taught view also has are used (the estimator's correspondence names them), so a dot that
 leaves the image or is hidden just drops out; fewer than 4 and the frame is no view. Each tick
 takes the newest view's features (with ``[ibvs] predict_motion``, moved on by the arm's motion
-since their exposure: :func:`cell.actions.ibvs.predicted`), computes the law's camera twist
-(:mod:`cell.actions.ibvs`) with the adaptive gain capped at ``gain_latency_product`` over the
+since their exposure: :func:`cell.servoing.ibvs.predicted`), computes the law's camera twist
+(:mod:`cell.servoing.ibvs`) with the adaptive gain capped at ``gain_latency_product`` over the
 loop's delay (the view's age when used, averaged), maps it to the TCP through the camera's
-mount (:mod:`cell.actions.ibvs_mount`) and caps it by the ``[servo]`` limits. A view's
+mount (:mod:`cell.servoing.ibvs_mount`) and caps it by the ``[servo]`` limits. A view's
 pose-based goal is checked against the envelope and reported as the estimated pose error; the
 law never uses it.
 
 Converged (approach): over the last ``converge_frames`` views, the image error averaged under
 ``tolerance_px_rms`` / ``tolerance_px_max``, averaged because the view's weakest direction (a
 turn about a point near the target, seen only through perspective) is below one frame's noise;
-the TCP motion the window's mean view still asks for (:func:`cell.actions.ibvs.
+the TCP motion the window's mean view still asks for (:func:`cell.servoing.ibvs.
 remaining_motion`) under ``tolerance_mm`` / ``tolerance_deg``, since the pixels alone cannot
 see that direction; and the arm nearly still, since a window's mean is small too while the arm
 swings through the view. Then, with ``settle_frames``, the final settle
@@ -34,7 +34,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.actions.ibvs import (
+from cell.core import CellCore
+from cell.error_codes import ErrorCode
+from cell.errors import RefusedError
+from cell.motion.limits import linear_path
+from cell.results import Pose
+from cell.servoing.clock import TwistClock
+from cell.servoing.ibvs import (
     MIN_FEATURES,
     AdaptiveGain,
     Features,
@@ -45,16 +51,10 @@ from cell.actions.ibvs import (
     predicted,
     remaining_motion,
 )
-from cell.actions.ibvs_mount import IbvsMount
-from cell.actions.ibvs_settle import mean_features, settle_step, step_size
-from cell.actions.loop.clock import TwistClock
-from cell.actions.loop.law import Law, Loop, LoopMode, Reading, StreamCaps, Tick, Unusable
-from cell.actions.loop.record import FrameStats
-from cell.core import CellCore
-from cell.error_codes import ErrorCode
-from cell.errors import RefusedError
-from cell.motion.limits import linear_path
-from cell.results import Pose
+from cell.servoing.ibvs_mount import IbvsMount
+from cell.servoing.ibvs_settle import mean_features, settle_step, step_size
+from cell.servoing.law import Law, Loop, LoopMode, Reading, StreamCaps, Tick, Unusable
+from cell.servoing.record import FrameStats
 from cell.vision.locate import Located
 from drivers.arm import ArmState
 from estimator import CameraModel

@@ -3,9 +3,9 @@ the base frame, filtered, and the TCP's goal at a standoff from it.
 
 A frame's pose must pass a validation gate (near the filter's prediction, widening with the
 time since the last pose let in) before it corrects the constant-velocity filter
-(:mod:`cell.actions.target_filter`). Each tick predicts the target *now*, makes the goal
+(:mod:`cell.servoing.target_filter`). Each tick predicts the target *now*, makes the goal
 ``T_base_target @ T_target_tcp @ translate(0, 0, -standoff)`` and takes the twist of
-:mod:`cell.actions.servo_law` (feed-forward of the goal's velocity plus an exponential
+:mod:`cell.servoing.servo_law` (feed-forward of the goal's velocity plus an exponential
 approach; tracking adds an integral term near the goal). Converged: the error under ``[servo]
 tolerance_mm`` / ``tolerance_deg`` on ``converge_frames`` consecutive frames.
 
@@ -26,16 +26,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.actions.loop.clock import TwistClock
-from cell.actions.loop.law import Law, Loop, LoopMode, Reading, StreamCaps, Tick, Unusable
-from cell.actions.loop.record import FrameStats, ms_stats
-from cell.actions.servo_law import LawParams, goal_velocity, integrate, pbvs_twist, pose_error
-from cell.actions.target_filter import ConstantVelocityFilter, TargetEstimate
 from cell.core import CellCore
 from cell.error_codes import ErrorCode
 from cell.errors import RefusedError
 from cell.motion.limits import linear_path
 from cell.results import Pose
+from cell.servoing.clock import TwistClock
+from cell.servoing.law import Law, Loop, LoopMode, Reading, StreamCaps, Tick, Unusable
+from cell.servoing.record import FrameStats, ms_stats
+from cell.servoing.servo_law import LawParams, goal_velocity, integrate, pbvs_twist, pose_error
+from cell.servoing.target_filter import ConstantVelocityFilter, TargetEstimate
 from cell.vision.frames import approach_tcp
 from cell.vision.locate import Located
 from drivers.arm import ArmState

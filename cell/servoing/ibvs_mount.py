@@ -1,11 +1,11 @@
 """Where the camera is in the IBVS loop: on the flange (eye-in-hand) or fixed in the cell
 (eye-to-hand, watching a dot plate clamped to the tool).
 
-The law (:mod:`cell.actions.loop.image`) is the same for both; what differs is the geometry, kept
+The law (:mod:`cell.servoing.image`) is the same for both; what differs is the geometry, kept
 here in one place:
 
 - the law's twist: the camera's (eye-in-hand) or the plate's, opposite in sign
-  (:func:`cell.actions.ibvs.carried_twist`), both in the camera frame about its origin, and
+  (:func:`cell.servoing.ibvs.carried_twist`), both in the camera frame about its origin, and
   mapped to the TCP's base-frame twist the same way (the camera's pose in the base frame, the
   lever to the TCP): with the hand camera through the hand-eye transform, with the fixed one
   through ``[hand_eye] T_base_camera``. An error in either only bends the path;
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.actions.ibvs import (
+from cell.servoing.ibvs import (
     Features,
     InteractionFrom,
     base_tcp_twist,
@@ -34,7 +34,7 @@ from cell.actions.ibvs import (
     carried_twist,
     view_pose,
 )
-from cell.actions.ibvs_settle import step_goal
+from cell.servoing.ibvs_settle import step_goal
 from cell.vision.frames import CellFrames
 from estimator.transforms import T_from_pose, invert_T
 

@@ -2,7 +2,7 @@
 
 A law holds what its control is made of and decides per frame what a measurement is, per tick
 where to go, the twist and whether it has converged; the runner
-(:mod:`~cell.actions.loop.runner`) owns the threads and the clocks, as the caller of ViSP's
+(:mod:`~cell.servoing.runner`) owns the threads and the clocks, as the caller of ViSP's
 ``vpServo`` owns the loop while ``vpServo`` holds the features and the gain. Per frame (frame
 thread): :meth:`Law.read` outside the runner's lock, :meth:`Law.admit` under it; either may
 refuse (:class:`Unusable`). Per tick (control loop): :meth:`Law.aim` under the lock,
@@ -19,13 +19,13 @@ from typing import Any, Generic, Literal, Protocol, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.actions.loop.clock import TwistClock
-from cell.actions.loop.record import FrameStats, History
-from cell.actions.target_loss import Silence
 from cell.config.schema import CellConfig
 from cell.core import CellCore
 from cell.errors import CellError
 from cell.motion.guard import Motion
+from cell.servoing.clock import TwistClock
+from cell.servoing.record import FrameStats, History
+from cell.servoing.target_loss import Silence
 from cell.vision.locate import Located
 from drivers.arm import ArmState
 
