@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import inspect
 import math
-import threading
-import weakref
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -30,8 +28,7 @@ from cell.actions.approach_rules import check_speed, check_standoff
 from cell.actions.ibvs import Features
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, ForbiddenError, LimitError, NotFoundError
-from cell.features.recipes import Recipe, RecipeStore, RecipeTarget
-from cell.features.teach import TaughtStore
+from cell.features.recipes import Recipe, RecipeTarget
 from cell.jobs.audit import AuditNote
 from cell.jobs.store import Job
 from cell.service import Cell
@@ -174,7 +171,7 @@ def taught_pose_and_view(cell: Cell, taught: str | None, mode: str
         return None, None
     if not isinstance(taught, str):
         raise LimitError(ErrorCode.invalid_request, f"taught must be a name, got {taught!r}")
-    pose = TaughtStore.beside_job_db(cell.config.api.job_db).get(taught)
+    pose = cell.taught.get(taught)
     if mode == "ibvs" and pose.view is None:
         raise LimitError(ErrorCode.taught_without_view,
                          f"the pose {taught!r} was taught without its "
@@ -183,21 +180,6 @@ def taught_pose_and_view(cell: Cell, taught: str | None, mode: str
 
 
 # -- recipes ----------------------------------------------------------------------------------
-_STORES: weakref.WeakKeyDictionary[Cell, RecipeStore] = weakref.WeakKeyDictionary()
-_STORES_LOCK = threading.Lock()
-
-
-def recipe_store(cell: Cell) -> RecipeStore:
-    """The one recipe store of a cell (beside its job database), shared by every interface;
-    it refuses to save a recipe the cell's limits would refuse to run."""
-    with _STORES_LOCK:
-        store = _STORES.get(cell)
-        if store is None:
-            store = _STORES[cell] = RecipeStore.beside_job_db(cell.config.api.job_db,
-                                                              cell.config.limits)
-        return store
-
-
 def recipe_ref(value: Any) -> str | int:
     """A recipe named by its name or its number (a digit string is a number)."""
     if isinstance(value, bool) or not isinstance(value, str | int) or value in ("", 0):
@@ -211,7 +193,7 @@ def recipe_ref(value: Any) -> str | int:
 def find_recipe(cell: Cell, ref: str | int, target: Any = "",
                 version: int | None = None) -> tuple[Recipe, RecipeTarget]:
     """The recipe and its target (``""``: the first); nothing is changed."""
-    recipe = recipe_store(cell).get(ref, version)
+    recipe = cell.recipes.get(ref, version)
     return recipe, recipe.target(text("target", target))
 
 
@@ -328,11 +310,10 @@ def gripper(cell: Cell, caller: RemoteCaller, action: Any, width_mm: Any) -> dic
 
 
 def taught_T_target_tcp(cell: Cell, name: str) -> Matrix4:
-    """A taught tool pose from the store beside the job database (as the HTTP API reads it)."""
-    store = TaughtStore.beside_job_db(cell.config.api.job_db)
+    """A taught tool pose from the cell's taught poses."""
     if not isinstance(name, str) or not name:
         raise NotFoundError(ErrorCode.taught_not_found, f"no taught pose named {name!r}")
-    return store.get(name).T_target_tcp
+    return cell.taught.get(name).T_target_tcp
 
 
 def tcp_goal(cell: Cell, caller: RemoteCaller, command: str, *, standoff_mm: Any,

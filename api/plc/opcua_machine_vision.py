@@ -355,7 +355,7 @@ class MachineVision:
             if product_id:
                 data.setdefault("number", int(product_id) if str(product_id).isdigit()
                                 else product_id)
-            recipe = remote.recipe_store(self.opc.cell).save(parse_spec(data), caller.label)
+            recipe = self.opc.cell.recipes.save(parse_spec(data), caller.label)
             return [ua.Variant(f"{recipe.name}@{recipe.version}", S)]
 
         return await self._call(work, [ua.Variant("", S)])
@@ -400,14 +400,14 @@ class MachineVision:
                            {"name": external_id})
             if external_id == self.prepared:
                 raise RefusedError(ErrorCode.recipe_prepared, "UnprepareRecipe first")
-            remote.recipe_store(self.opc.cell).delete(remote.text("ExternalId", external_id))
+            self.opc.cell.recipes.delete(remote.text("ExternalId", external_id))
             return []
 
         return await self._call(work, [])
 
     async def _list_recipes(self, parent: ua.NodeId) -> list[ua.Variant]:
         def work(caller: RemoteCaller) -> list[ua.Variant]:
-            ids = [f"{r.name}@{r.version}" for r in remote.recipe_store(self.opc.cell).list()]
+            ids = [f"{r.name}@{r.version}" for r in self.opc.cell.recipes.list()]
             return [ua.Variant(ids, S)]
 
         return await self._call(work, [ua.Variant([], S)])

@@ -346,7 +346,6 @@ def ibvs(n: int, seed: int, displace_mm: float = 30.0, displace_deg: float = 6.0
     from cell.bench.ibvs import _jog_to, _recover, displacements
     from cell.config.schema import parse_config
     from cell.errors import CellError
-    from cell.features.teach import TaughtStore, teach
     from cell.runtime import start_cell
     from estimator.transforms import T_from_pose, T_from_pose_dict, pose_dict
 
@@ -363,7 +362,7 @@ def ibvs(n: int, seed: int, displace_mm: float = 30.0, displace_deg: float = 6.0
             assert cell.sim is not None
             off_mm, off_deg = pose_distance(guess, truth)
             T_taught = cell.sim.true_T_base_tcp()
-            taught = teach(cell, TaughtStore(None), "bench", "plate", samples=teach_samples)
+            taught = cell.teach("bench", "plate", samples=teach_samples)
             print(f"IBVS, fixed camera (12 MP), the tool's plate taught at home ({teach_samples} "
                   f"samples, spread {taught.spread_mm:.3f} mm); camera {off_mm:.1f} mm / "
                   f"{off_deg:.2f} deg off the config; {n} displacements of {displace_mm:g} mm / "

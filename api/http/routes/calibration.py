@@ -1,18 +1,16 @@
 """Routes under ``/api/v1`` for commissioning: the hand-eye routine and taught poses.
 
 Starting, applying, teaching and deleting change the cell, so they need an operator token;
-reading needs any token. ``install(app)`` mounts the routes and creates the calibration
-service and the taught-pose store (beside the job database) on ``app.state``.
+reading needs any token. The calibration service and the taught poses are the cell's
+(``Cell.calibration``, ``Cell.taught``).
 """
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from fastapi import APIRouter, Body, Depends, FastAPI, Query, Request
+from fastapi import APIRouter, Body, Depends, Query, Request
 from fastapi.responses import StreamingResponse
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
@@ -33,15 +31,13 @@ from api.http.schemas import (
 from api.http.sse import SSE_RESPONSES, sse_response
 from cell.actions.ibvs import Features
 from cell.calibration.routine import DEFAULT_VIEWS, RoutineSettings
-from cell.calibration.service import EVENT, CalibrationService
+from cell.calibration.service import EVENT
 from cell.error_codes import ErrorCode
 from cell.errors import LimitError
 from cell.features.teach import (
     DEFAULT_MAX_SPREAD_DEG,
     DEFAULT_MAX_SPREAD_MM,
     NAME_PATTERN,
-    TaughtStore,
-    teach,
 )
 from cell.service import Cell
 
@@ -88,24 +84,9 @@ class TeachRequest(_Body):
     replace: Flag = Field(default=True, description="false: refuse if the name is taught")
 
 
-def install(app: FastAPI, config_path: str | Path | None = None) -> None:
-    """Mount the routes; ``config_path`` (default ``$CELL_CONFIG``) is the file that
-    ``apply`` with ``write_config`` edits."""
-    cell: Cell = app.state.cell
-    path = config_path if config_path is not None else os.environ.get("CELL_CONFIG") or None
-    app.state.calibration = CalibrationService(cell, path)
-    app.state.taught = TaughtStore.beside_job_db(cell.config.api.job_db)
-    app.include_router(router)
-
-
-def _calibration(request: Request) -> CalibrationService:
-    service: CalibrationService = request.app.state.calibration
-    return service
-
-
-def _taught(request: Request) -> TaughtStore:
-    store: TaughtStore = request.app.state.taught
-    return store
+def _cell(request: Request) -> Cell:
+    cell: Cell = request.app.state.cell
+    return cell
 
 
 def taught_target_tcp(request: Request, name: str, given: bool = False) -> NDArray[np.float64]:
@@ -113,7 +94,7 @@ def taught_target_tcp(request: Request, name: str, given: bool = False) -> NDArr
     unknown name; 422 when the request also gives ``T_target_tcp`` itself)."""
     if given:
         raise LimitError(ErrorCode.invalid_request, "give either T_target_tcp or taught, not both")
-    return _taught(request).get(name).T_target_tcp
+    return _cell(request).taught.get(name).T_target_tcp
 
 
 def taught_view(request: Request, name: str | None, mode: str | None) -> Features | None:
@@ -126,7 +107,7 @@ def taught_view(request: Request, name: str | None, mode: str | None) -> Feature
         raise LimitError(ErrorCode.ibvs_needs_taught,
                          "mode 'ibvs' converges on a taught view: give "
                          "`taught` (POST /teach records the view)")
-    view = _taught(request).get(name).view
+    view = _cell(request).taught.get(name).view
     if view is None:
         raise LimitError(ErrorCode.taught_without_view, f"the pose {name!r} was taught without its "
                          "view (an older record): it serves servo and look_and_move; teach it "
@@ -143,20 +124,20 @@ def start_hand_eye(request: Request, caller: Calibrator,
     The arm moves; ``/stop`` cancels it. Poll ``GET .../{id}`` or follow
     ``/calibration/events``."""
     b = body or HandEyeRequest()
-    service = _calibration(request)
-    limits = service.cell.config.limits
+    cell = _cell(request)
+    limits = cell.config.limits
     settings = RoutineSettings(n_views=b.views, tilt_deg=b.tilt_deg, roll_deg=b.roll_deg,
                                speed_mm_s=b.speed_mm_s,
                                accel_mm_s2=min(4.0 * b.speed_mm_s, limits.max_accel_mm_s2),
                                min_views=min(6, b.views), chosen=b.method)
-    return service.start(caller.label, settings).as_dict()
+    return cell.calibration.start(caller.label, settings).as_dict()
 
 
 @router.get("/calibration/hand-eye/{job_id}", response_model=Job, tags=["calibration"])
 def hand_eye_job(request: Request, caller: Read, job_id: str) -> dict[str, Any]:
     """State and progress; when succeeded, ``result`` holds ``T_flange_camera`` per method
     (pose objects), the joint refinement, the residuals and the verdict."""
-    return _calibration(request).job(job_id).as_dict()
+    return _cell(request).calibration.job(job_id).as_dict()
 
 
 @router.post("/calibration/hand-eye/{job_id}/apply", response_model=ApplyResult,
@@ -165,8 +146,8 @@ def apply_hand_eye(request: Request, caller: Calibrator, job_id: str,
                    body: Annotated[ApplyRequest | None, Body()] = None) -> dict[str, Any]:
     """Use the result in the running cell and/or write it into the config file."""
     b = body or ApplyRequest()
-    return _calibration(request).apply(caller.label, job_id, b.method, b.running,
-                                       b.write_config, b.force)
+    return _cell(request).calibration.apply(caller.label, job_id, b.method, b.running,
+                                            b.write_config, b.force)
 
 
 @router.get("/calibration/events", tags=["calibration"], responses=SSE_RESPONSES,
@@ -177,7 +158,7 @@ async def calibration_events(request: Request, caller: Stream,
     """Server-sent ``calibration`` events: progress (stage, done, total), the finished job,
     and applied results. ``max_events`` ends the stream after that many."""
     # The cell's other events have their own stream (/events).
-    return sse_response(request, _calibration(request).cell.events.subscribe(), max_events,
+    return sse_response(request, _cell(request).events.subscribe(), max_events,
                         keep=lambda ev: ev["type"] == EVENT)
 
 
@@ -187,24 +168,23 @@ async def calibration_events(request: Request, caller: Stream,
 def teach_pose(request: Request, caller: Teacher, body: TeachRequest) -> dict[str, Any]:
     """Store ``T_target_tcp`` of the arm's resting pose under ``name``: ``samples`` locates
     are averaged; their spread is reported and over the limit refused (409)."""
-    cell: Cell = request.app.state.cell
-    return teach(cell, _taught(request), caller.label, body.name, body.samples,
-                 body.max_spread_mm, body.max_spread_deg, body.replace).as_dict()
+    return _cell(request).teach(caller.label, body.name, body.samples, body.max_spread_mm,
+                                body.max_spread_deg, body.replace).as_dict()
 
 
 @router.get("/teach", response_model=TaughtList, tags=["teach"])
 def list_taught(request: Request, caller: Read) -> dict[str, Any]:
-    return {"taught": [p.as_dict() for p in _taught(request).list()]}
+    return {"taught": [p.as_dict() for p in _cell(request).taught.list()]}
 
 
 @router.get("/teach/{name}", response_model=TaughtPoseOut, tags=["teach"])
 def get_taught(request: Request, caller: Read, name: str) -> dict[str, Any]:
-    return _taught(request).get(name).as_dict()
+    return _cell(request).taught.get(name).as_dict()
 
 
 @router.delete("/teach/{name}", response_model=TaughtDeleted, tags=["teach"])
 def delete_taught(request: Request, caller: Teacher, name: str) -> dict[str, Any]:
-    cell: Cell = request.app.state.cell
-    pose = _taught(request).delete(name)
+    cell = _cell(request)
+    pose = cell.taught.delete(name)
     cell.jobs.audit(caller.label, "teach_delete", {"name": name}, "ok")
     return {"deleted": pose.as_dict()}

@@ -217,4 +217,4 @@ def _integers_bounded(client: TestClient) -> None:
     assert r.status_code == 422, r.text
     # the alarm log itself, for any other door: an id SQLite cannot hold is simply unknown
     with pytest.raises(NotFoundError):
-        app.state.alarms.acknowledge(10**23, "test")
+        app.state.cell.alarms.acknowledge(10**23, "test")
