@@ -25,9 +25,8 @@ from api.auth import ALWAYS, PERMISSIONS
 from api.status import STATUS
 from cell.actions.approach import JobLayout
 from cell.actions.approach_rules import check_speed, check_standoff
-from cell.actions.ibvs import Features
 from cell.error_codes import ErrorCode
-from cell.errors import CellError, ForbiddenError, LimitError, NotFoundError
+from cell.errors import CellError, ForbiddenError, LimitError
 from cell.features.recipes import Recipe, RecipeTarget
 from cell.jobs.audit import AuditNote
 from cell.jobs.store import Job
@@ -147,7 +146,7 @@ def approach(cell: Cell, caller: RemoteCaller, standoff_mm: Any, mode: Any,
         if mode != "look_and_move" and not takes_mode:
             raise NotSupportedError(ErrorCode.not_supported,
                                     f"approach mode {mode!r} is not available in this cell")
-        T_target_tcp, view = taught_pose_and_view(cell, taught or None, mode)
+        T_target_tcp, view = cell.taught.for_job(taught or None, mode)
     except CellError:
         with audited(cell, caller, "approach", params):
             raise
@@ -158,25 +157,6 @@ def approach(cell: Cell, caller: RemoteCaller, standoff_mm: Any, mode: Any,
     if takes_mode:
         return start(caller.label, standoff_mm=standoff, mode=mode, T_target_tcp=T_target_tcp)
     return start(caller.label, standoff_mm=standoff, T_target_tcp=T_target_tcp)
-
-
-def taught_pose_and_view(cell: Cell, taught: str | None, mode: str
-                         ) -> tuple[Matrix4 | None, Features | None]:
-    """The taught pose (None without a name) and, for ``ibvs``, its view: refused as the
-    HTTP API refuses (``ibvs_needs_taught``, ``taught_without_view``, ``taught_not_found``)."""
-    if taught is None:
-        if mode == "ibvs":
-            raise LimitError(ErrorCode.ibvs_needs_taught, "mode 'ibvs' converges on a taught view: "
-                             "give the taught pose's name")
-        return None, None
-    if not isinstance(taught, str):
-        raise LimitError(ErrorCode.invalid_request, f"taught must be a name, got {taught!r}")
-    pose = cell.taught.get(taught)
-    if mode == "ibvs" and pose.view is None:
-        raise LimitError(ErrorCode.taught_without_view,
-                         f"the pose {taught!r} was taught without its "
-                         "view (an older record): teach it again for ibvs")
-    return pose.T_target_tcp, pose.view if mode == "ibvs" else None
 
 
 # -- recipes ----------------------------------------------------------------------------------
@@ -239,7 +219,7 @@ def approach_recipe(cell: Cell, caller: RemoteCaller, ref: Any, target: Any = ""
             else check_standoff(finite("standoff_mm", standoff_mm, minimum=0.0))
         speed = chosen.speed_mm_s if speed_mm_s is None \
             else check_speed(cell.config.limits, finite("speed_mm_s", speed_mm_s))
-        T_target_tcp = taught_T_target_tcp(cell, chosen.taught) if chosen.taught else None
+        T_target_tcp, _ = cell.taught.for_job(chosen.taught or None, chosen.mode)
     except CellError:
         with audited(cell, caller, "approach", params):
             raise
@@ -260,7 +240,7 @@ def track_recipe(cell: Cell, caller: RemoteCaller, ref: Any, target: Any = "",
         recipe, chosen = find_recipe(cell, recipe_ref(ref), target)
         duration = cell.config.servo.max_track_s if duration_s is None \
             else finite("duration_s", duration_s, minimum=0.0)
-        T_target_tcp = taught_T_target_tcp(cell, chosen.taught) if chosen.taught else None
+        T_target_tcp, _ = cell.taught.for_job(chosen.taught or None, None)
     except CellError:
         with audited(cell, caller, "track", params):
             raise
@@ -309,13 +289,6 @@ def gripper(cell: Cell, caller: RemoteCaller, action: Any, width_mm: Any) -> dic
     return cell.gripper(caller.label, action, position_mm=position)
 
 
-def taught_T_target_tcp(cell: Cell, name: str) -> Matrix4:
-    """A taught tool pose from the cell's taught poses."""
-    if not isinstance(name, str) or not name:
-        raise NotFoundError(ErrorCode.taught_not_found, f"no taught pose named {name!r}")
-    return cell.taught.get(name).T_target_tcp
-
-
 def tcp_goal(cell: Cell, caller: RemoteCaller, command: str, *, standoff_mm: Any,
              taught: str | None = None) -> tuple[Matrix4, Located]:
     """Robot-program-driven mode: locate now and return the TCP goal for the program's own
@@ -327,8 +300,8 @@ def tcp_goal(cell: Cell, caller: RemoteCaller, command: str, *, standoff_mm: Any
     require(cell, caller, "locate", command, params)
     with audited(cell, caller, command, params) as note:
         standoff = finite("standoff_mm", standoff_mm, minimum=0.0)
-        T_target_tcp = cell.config.approach.T_target_tcp.T() if taught is None \
-            else taught_T_target_tcp(cell, taught)
+        T_taught, _ = cell.taught.for_job(taught, None)
+        T_target_tcp = cell.config.approach.T_target_tcp.T() if T_taught is None else T_taught
         loc = cell.locate(caller.label)
         goal = approach_tcp(loc.T_base_target, T_target_tcp, standoff)
         cell.arm.guard.check_goal(cell.arm_state().T_base_tcp, goal, "the program's goal")

@@ -47,7 +47,7 @@ from api.plc.machine_vision_memory import MachineVisionMemory, Remembered
 from api.plc.modbus import UNKNOWN_ERROR, error_number
 from api.remote import RemoteCaller
 from cell.error_codes import ErrorCode
-from cell.errors import CellError, RefusedError
+from cell.errors import CellError, NotFoundError, RefusedError
 from cell.features.recipes import parse_spec
 from cell.service import Cell
 
@@ -382,8 +382,8 @@ class MachineVision:
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             if external_id not in ("", self.prepared):
-                raise remote.NotFoundError(ErrorCode.recipe_not_found,
-                                           f"recipe {external_id!r} is not prepared")
+                raise NotFoundError(ErrorCode.recipe_not_found,
+                                    f"recipe {external_id!r} is not prepared")
             self.prepared = ""
             if self.state == OPERATIONAL and self.sub_state == READY:
                 self.sub_state = INITIALIZED

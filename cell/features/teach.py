@@ -37,6 +37,7 @@ from cell.core import CellCore
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, LimitError, NotFoundError, RefusedError
 from cell.files import replace_text
+from cell.results.modes import ApproachMode
 from cell.vision.frames import mean_pose
 from cell.vision.locate import Located, Locator
 from drivers.arm import ArmState
@@ -175,13 +176,36 @@ class TaughtStore:
             return name in self._poses
 
     def get(self, name: str) -> TaughtPose:
+        """The pose taught under ``name``; anything but a taught name (a PLC may send a number
+        or an array) is ``taught_not_found``."""
         self._usable()
         with self._lock:
-            pose = self._poses.get(name)
+            pose = self._poses.get(name) if isinstance(name, str) else None
         if pose is None:
             raise NotFoundError(ErrorCode.taught_not_found, f"no taught pose named {name!r}; see "
                                 "GET /api/v1/teach for the taught names")
         return pose
+
+    def for_job(self, name: str | None, mode: str | None
+                ) -> tuple[Matrix4 | None, Features | None]:
+        """The taught pose a job names (None: none) as the job takes it: its ``T_target_tcp``
+        and, for mode ``ibvs``, the view it converges on. Every interface refuses alike:
+        ``ibvs_needs_taught`` (ibvs without a name), ``taught_not_found``,
+        ``taught_without_view`` (ibvs to a pose taught before views were recorded)."""
+        ibvs = mode == ApproachMode.ibvs
+        if name is None:
+            if ibvs:
+                raise LimitError(ErrorCode.ibvs_needs_taught,
+                                 "mode 'ibvs' converges on a taught view: give the taught "
+                                 "pose's name (teaching records its view)")
+            return None, None
+        pose = self.get(name)
+        if ibvs and pose.view is None:
+            raise LimitError(ErrorCode.taught_without_view,
+                             f"the pose {name!r} was taught without its view (an older "
+                             "record): it serves servo and look_and_move; teach it again for "
+                             "ibvs")
+        return pose.T_target_tcp, pose.view if ibvs else None
 
     def put(self, pose: TaughtPose, replace: bool = True) -> None:
         self._usable()

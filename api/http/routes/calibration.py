@@ -24,6 +24,7 @@ from api.http.schemas import (
     Int,
     Job,
     Num,
+    Pose,
     TaughtDeleted,
     TaughtList,
     TaughtPoseOut,
@@ -40,6 +41,7 @@ from cell.features.teach import (
     NAME_PATTERN,
 )
 from cell.service import Cell
+from estimator.transforms import T_from_pose
 
 router = APIRouter(prefix="/api/v1", responses={**ERROR_RESPONSES, **NOT_FOUND})
 
@@ -89,30 +91,17 @@ def _cell(request: Request) -> Cell:
     return cell
 
 
-def taught_target_tcp(request: Request, name: str, given: bool = False) -> NDArray[np.float64]:
-    """``T_target_tcp`` of a taught pose, for ``approach`` (404 ``taught_not_found`` for an
-    unknown name; 422 when the request also gives ``T_target_tcp`` itself)."""
-    if given:
+def job_tool_pose(request: Request, taught: str | None, T_target_tcp: Pose | None,
+                  mode: str | None) -> tuple[NDArray[np.float64] | None, Features | None]:
+    """The tool pose and, for ``ibvs``, the view a job request asks for: its ``T_target_tcp``
+    or the pose taught under ``taught`` (``Cell.taught.for_job``: 404 for an unknown name,
+    422 ``ibvs_needs_taught`` / ``taught_without_view``); 422 when both are given."""
+    if taught is not None and T_target_tcp is not None:
         raise LimitError(ErrorCode.invalid_request, "give either T_target_tcp or taught, not both")
-    return _cell(request).taught.get(name).T_target_tcp
-
-
-def taught_view(request: Request, name: str | None, mode: str | None) -> Features | None:
-    """The taught view for an ``ibvs`` job (None for the other modes). 422
-    ``ibvs_needs_taught`` without a taught name, ``taught_without_view`` for a pose taught
-    before views were recorded, 404 for an unknown name."""
-    if mode != "ibvs":
-        return None
-    if name is None:
-        raise LimitError(ErrorCode.ibvs_needs_taught,
-                         "mode 'ibvs' converges on a taught view: give "
-                         "`taught` (POST /teach records the view)")
-    view = _cell(request).taught.get(name).view
-    if view is None:
-        raise LimitError(ErrorCode.taught_without_view, f"the pose {name!r} was taught without its "
-                         "view (an older record): it serves servo and look_and_move; teach it "
-                         "again for ibvs")
-    return view
+    T, view = _cell(request).taught.for_job(taught, mode)
+    if T_target_tcp is not None:
+        T = T_from_pose(T_target_tcp.position_mm, T_target_tcp.rotvec_rad)
+    return T, view
 
 
 # -- hand-eye --------------------------------------------------------------------------------
