@@ -30,6 +30,7 @@ from cell.errors import CellError, ForbiddenError, LimitError
 from cell.features.recipes import Recipe, RecipeTarget
 from cell.jobs.audit import AuditNote
 from cell.jobs.store import Job
+from cell.results.modes import ApproachMode
 from cell.service import Cell
 from cell.vision.frames import approach_tcp
 from cell.vision.locate import Located
@@ -37,9 +38,6 @@ from estimator.transforms import pose_from_T
 
 Matrix4 = NDArray[np.float64]
 T = TypeVar("T")
-
-APPROACH_MODES = ("look_and_move", "servo", "ibvs")
-
 
 class NotSupportedError(CellError):
     """The cell this service runs has no such command yet (e.g. track before the servo issue)."""
@@ -135,28 +133,38 @@ def approach(cell: Cell, caller: RemoteCaller, standoff_mm: Any, mode: Any,
     params = {"standoff_mm": standoff_mm, "mode": mode, "taught": taught}
     require(cell, caller, "approach", "approach", params)
     try:
-        mode = text("mode", mode) or cell.config.approach.mode  # "" is the cell's default
+        mode = text("mode", mode)
         taught = text("taught", taught)
         standoff = check_standoff(finite("standoff_mm", standoff_mm, minimum=0.0))
-        if mode not in APPROACH_MODES:
-            raise LimitError(ErrorCode.invalid_request,
-                             f"mode must be one of {', '.join(APPROACH_MODES)}"
-                             f" (or empty), got {mode!r}")
+        how = approach_mode(cell, mode)
         takes_mode = "mode" in inspect.signature(cell.approach).parameters
-        if mode != "look_and_move" and not takes_mode:
+        if how != ApproachMode.look_and_move and not takes_mode:
             raise NotSupportedError(ErrorCode.not_supported,
                                     f"approach mode {mode!r} is not available in this cell")
-        T_target_tcp, view = cell.taught.for_job(taught or None, mode)
+        T_target_tcp, view = cell.taught.for_job(taught or None, how)
     except CellError:
         with audited(cell, caller, "approach", params):
             raise
     start: Callable[..., Job] = cell.approach
-    if mode == "ibvs":
-        return start(caller.label, standoff_mm=standoff or None, mode=mode,
+    if how == ApproachMode.ibvs:
+        return start(caller.label, standoff_mm=standoff or None, mode=how,
                      T_target_tcp=T_target_tcp, view=view)
     if takes_mode:
-        return start(caller.label, standoff_mm=standoff, mode=mode, T_target_tcp=T_target_tcp)
+        return start(caller.label, standoff_mm=standoff, mode=how, T_target_tcp=T_target_tcp)
     return start(caller.label, standoff_mm=standoff, T_target_tcp=T_target_tcp)
+
+
+def approach_mode(cell: Cell, name: str) -> ApproachMode:
+    """The approach mode a PLC names ("": the cell's ``[approach] mode``), or
+    ``invalid_request`` listing the modes."""
+    if not name:
+        return cell.config.approach.mode
+    try:
+        return ApproachMode(name)
+    except ValueError:
+        raise LimitError(ErrorCode.invalid_request,
+                         f"mode must be one of {', '.join(ApproachMode)} (or empty), got "
+                         f"{name!r}") from None
 
 
 # -- recipes ----------------------------------------------------------------------------------

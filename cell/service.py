@@ -27,7 +27,7 @@ from __future__ import annotations
 import logging
 import time
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -59,6 +59,7 @@ from cell.jobs.events import EventBus
 from cell.jobs.runner import JobRunner
 from cell.jobs.store import Job, JobStore
 from cell.motion.guard import GuardedArm, MotionSlot, driver_error
+from cell.results.modes import ApproachMode
 from cell.stats import CellStats
 from cell.supervision.gripper import GripperService
 from cell.supervision.links import LinkSupervisor
@@ -212,7 +213,7 @@ class Cell:
                  speed_mm_s: float | None = None, T_target_tcp: Matrix4 | None = None,
                  use_last_locate: bool = False, wait: bool = False,
                  wait_timeout_s: float = 120.0,
-                 mode: Literal["servo", "look_and_move", "ibvs"] | None = None,
+                 mode: ApproachMode | None = None,
                  recipe: dict[str, Any] | None = None, view: Features | None = None,
                  layout: Target | None = None) -> Job:
         """Approach job; ``mode`` None: ``[approach] mode`` (see cell.actions.approach); ``recipe``:
@@ -225,19 +226,19 @@ class Cell:
 
     def track(self, caller: str, *, standoff_mm: float, T_target_tcp: Matrix4 | None = None,
               duration_s: float, wait: bool = False, wait_timeout_s: float = 120.0,
-              mode: Literal["servo", "ibvs"] = "servo", view: Features | None = None,
+              mode: ApproachMode = ApproachMode.servo, view: Features | None = None,
               recipe: dict[str, Any] | None = None, layout: Target | None = None) -> Job:
         """Track job: hold the TCP at the standoff pose on a moving target (cell.actions.track),
-        or the taught view (``mode="ibvs"``, cell.actions.ibvs_track); ``recipe``: the recipe
-        record the job keeps; ``layout``: the dot layout looked for during this job only."""
-        if mode == "ibvs":
+        or the taught view (mode ``ibvs``, cell.actions.ibvs_track); look-and-move cannot
+        follow a moving target; ``recipe``: the recipe record the job keeps; ``layout``: the dot
+        layout looked for during this job only."""
+        if mode == ApproachMode.ibvs:
             return start_ibvs_track(self.core, caller, standoff_mm=standoff_mm,
                                     duration_s=duration_s, T_target_tcp=T_target_tcp,
                                     view=view, wait=wait, wait_timeout_s=wait_timeout_s)
-        if mode != "servo":
+        if mode != ApproachMode.servo:
             raise LimitError(ErrorCode.invalid_request,
-                             f"track mode must be 'servo' or 'ibvs', got "
-                             f"{mode!r}")
+                             f"track mode must be 'servo' or 'ibvs', got '{mode}'")
         return track.start_track(self.core, caller, standoff_mm=standoff_mm,
                                  duration_s=duration_s, T_target_tcp=T_target_tcp, wait=wait,
                                  wait_timeout_s=wait_timeout_s, recipe=recipe, layout=layout)

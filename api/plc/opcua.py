@@ -61,6 +61,7 @@ from api.plc.opcua_machine_vision import MachineVision
 from api.remote import RemoteCaller
 from cell.config.schema import OpcUaConfig
 from cell.errors import CellError
+from cell.results.modes import ApproachMode
 from cell.service import Cell
 from cell.supervision.logs import drop_library_records, quiet_library_loggers
 
@@ -354,8 +355,8 @@ class OpcUaServer(LoopThread):
                 _arg("RmsPx", D, "reprojection error")]),
             ("Approach", self._approach, [
                 _arg("standoff_mm", D, "distance back from the taught tool pose"),
-                _arg("mode", S, '"look_and_move" (default when empty), "servo" or "ibvs" '
-                     "(image-based, to the taught view; standoff 0)"),
+                _arg("mode", S, f"{', '.join(ApproachMode)} (empty: the cell's [approach] "
+                     "mode); ibvs goes to the taught view, standoff 0"),
                 _arg("taught", S, "a taught pose's name (empty: the config's tool pose); "
                      "required for ibvs")], job),
             ("ApproachRecipe", self._approach_recipe, [

@@ -27,7 +27,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,6 +43,7 @@ from cell.errors import CellError, LimitError, RefusedError, UnavailableError
 from cell.jobs.runner import Work
 from cell.jobs.store import Job
 from cell.motion.guard import Motion
+from cell.results.modes import ApproachMode
 from cell.vision.consistency import consistency
 from cell.vision.frames import approach_tcp, observation_camera
 from cell.vision.locate import Located
@@ -144,7 +145,7 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
                    speed_mm_s: float | None = None, T_target_tcp: Matrix4 | None = None,
                    use_last_locate: bool = False, wait: bool = False,
                    wait_timeout_s: float = 120.0,
-                   mode: Literal["servo", "look_and_move", "ibvs"] | None = None,
+                   mode: ApproachMode | None = None,
                    recipe: dict[str, Any] | None = None, view: Features | None = None,
                    layout: Target | None = None) -> Job:
     """Start an approach job (``mode`` default: ``[approach] mode``); with ``wait`` return
@@ -153,7 +154,7 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
     ``layout``: the dot layout to look for during this job only (a recipe's target)."""
     ac = core.config.approach
     how = ac.mode if mode is None else mode
-    if how not in ("servo", "look_and_move", "ibvs"):
+    if how not in tuple(ApproachMode):
         raise RefusedError(ErrorCode.invalid_request, f"approach mode must be 'servo', "
                            f"'look_and_move' or 'ibvs', got {mode!r}")
     if how == "ibvs":

@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from cell.results.modes import ApproachMode
 from cell.vision.frames import mean_pose
 from estimator import CameraModel, EstimationError, Target
 from estimator.pipeline import Estimator
@@ -261,7 +262,7 @@ def approach(n: int, seed: int, servo: bool = False, lost_after_s: float | None 
         try:
             assert cell.sim is not None
             errors, good, times, failures, notes = [], 0, [], [], []
-            mode: Literal["servo", "look_and_move"] = "servo" if servo else "look_and_move"
+            mode = ApproachMode.servo if servo else ApproachMode.look_and_move
             for _ in range(n):
                 R = (Rotation.from_rotvec([*rng.normal(size=2) * 0.15, 0])
                      * Rotation.from_rotvec([0, 0, rng.uniform(-0.6, 0.6)])).as_matrix() @ flat
@@ -380,8 +381,9 @@ def ibvs(n: int, seed: int, displace_mm: float = 30.0, displace_deg: float = 6.0
                     continue
                 t0 = time.monotonic()
                 try:
-                    job = cell.approach("bench", T_target_tcp=taught.T_target_tcp, mode="ibvs",
-                                        view=taught.view, wait=True, wait_timeout_s=120.0)
+                    job = cell.approach("bench", T_target_tcp=taught.T_target_tcp,
+                                        mode=ApproachMode.ibvs, view=taught.view, wait=True,
+                                        wait_timeout_s=120.0)
                 except CellError as err:
                     failures.append(f"refused {err.code}")
                     continue
