@@ -4,16 +4,12 @@ Both are thin adapters: a caller with one of the API's roles (:data:`api.auth.PE
 one call on the :class:`cell.service.Cell` facade (so the same guard, job runner and audit log
 as HTTP), and the cell's own error codes. A refusal by role is audited here, because it never
 reaches the facade; everything else is audited by the facade or by :func:`audited`.
-
-Track and the servo approach come from the servo issue; until the cell has them
-(``Cell.track``, ``Cell.approach(mode=...)``) the calls answer ``not_supported``.
 """
 
 from __future__ import annotations
 
-import inspect
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -38,12 +34,6 @@ from estimator.transforms import pose_from_T
 
 Matrix4 = NDArray[np.float64]
 T = TypeVar("T")
-
-class NotSupportedError(CellError):
-    """The cell this service runs has no such command yet (e.g. track before the servo issue)."""
-
-    kind = "invalid"
-
 
 @dataclass(frozen=True)
 class RemoteCaller:
@@ -137,21 +127,14 @@ def approach(cell: Cell, caller: RemoteCaller, standoff_mm: Any, mode: Any,
         taught = text("taught", taught)
         standoff = check_standoff(finite("standoff_mm", standoff_mm, minimum=0.0))
         how = approach_mode(cell, mode)
-        takes_mode = "mode" in inspect.signature(cell.approach).parameters
-        if how != ApproachMode.look_and_move and not takes_mode:
-            raise NotSupportedError(ErrorCode.not_supported,
-                                    f"approach mode {mode!r} is not available in this cell")
         T_target_tcp, view = cell.taught.for_job(taught or None, how)
     except CellError:
         with audited(cell, caller, "approach", params):
             raise
-    start: Callable[..., Job] = cell.approach
-    if how == ApproachMode.ibvs:
-        return start(caller.label, standoff_mm=standoff or None, mode=how,
-                     T_target_tcp=T_target_tcp, view=view)
-    if takes_mode:
-        return start(caller.label, standoff_mm=standoff, mode=how, T_target_tcp=T_target_tcp)
-    return start(caller.label, standoff_mm=standoff, T_target_tcp=T_target_tcp)
+    if how == ApproachMode.ibvs:  # to the taught view itself: a standoff of 0 is none
+        return cell.approach(caller.label, standoff_mm=standoff or None, mode=how,
+                             T_target_tcp=T_target_tcp, view=view)
+    return cell.approach(caller.label, standoff_mm=standoff, mode=how, T_target_tcp=T_target_tcp)
 
 
 def approach_mode(cell: Cell, name: str) -> ApproachMode:
@@ -260,17 +243,13 @@ def track_recipe(cell: Cell, caller: RemoteCaller, ref: Any, target: Any = "",
 def track(cell: Cell, caller: RemoteCaller, standoff_mm: Any, duration_s: Any) -> Job:
     params = {"standoff_mm": standoff_mm, "duration_s": duration_s}
     require(cell, caller, "track", "track", params)
-    run: Callable[..., Job] | None = getattr(cell, "track", None)
     try:
         standoff = finite("standoff_mm", standoff_mm, minimum=0.0)
         duration = finite("duration_s", duration_s, minimum=0.0)
-        if run is None:
-            raise NotSupportedError(ErrorCode.not_supported,
-                                    "tracking is not available in this cell")
     except CellError:
         with audited(cell, caller, "track", params):
             raise
-    return run(caller.label, standoff_mm=standoff, duration_s=duration)
+    return cell.track(caller.label, standoff_mm=standoff, duration_s=duration)
 
 
 def stop(cell: Cell, caller: RemoteCaller) -> dict[str, Any]:

@@ -5,7 +5,6 @@ Stop mid-approach, roles, malformed calls, audit rows, and ``cell serve`` servin
 from __future__ import annotations
 
 import asyncio
-import inspect
 import socket
 import subprocess
 import sys
@@ -269,12 +268,6 @@ def test_opcua_roles_users_and_refusals(served: Served) -> None:
             assert (await plc.call("Approach", 40.0, "teleport"))[0] == "invalid_request"
             assert (await plc.call("Approach", 40.0, ua.Variant("x", ua.VariantType.String))
                     )[0] == "invalid_request"
-            # until the servo issue's Cell.track and Cell.approach(mode=...) are merged (once
-            # they are, these calls would move the arm: the servo tests cover them)
-            if not hasattr(served.cell, "track"):
-                assert (await plc.call("Track", 40.0, 2.0))[0] == "not_supported"
-            if "mode" not in inspect.signature(served.cell.approach).parameters:
-                assert (await plc.call("Approach", 40.0, "servo"))[0] == "not_supported"
             assert pose_distance(tcp(served.cell), before)[0] < 0.01
             # variables belong to the cell
             with pytest.raises(ua.UaStatusCodeError):
