@@ -1,13 +1,13 @@
 """The gate in front of every ``/api/v1`` route: authenticate first, then look at the body.
 
-Order matters: a request without a valid token is answered 401 before a byte of its body is
-read or parsed, so an anonymous client cannot make the service parse 10 MB bodies; bodies are
-capped (413) and must be ``application/json`` (415), so a cross-site "simple" form POST never
-reaches a route, and UTF-8 (422 ``invalid_request``, as any malformed body). Refusals are
-written to the audit log with the path and the caller (``anonymous`` when there is none). The
-one request taken without a token is a STOP with no credential at all, when ``[api]
-anonymous_stop`` is on (:func:`api.auth.anonymous_stop_caller`); its body is checked as every
-other.
+Order matters: a request without a valid token is answered 401
+before a byte of its body is read or parsed, so an anonymous client cannot make the service
+parse 10 MB bodies; bodies are capped (413) and must be ``application/json`` (415), so a
+cross-site "simple" form POST never reaches a route, and UTF-8 (422 ``invalid_request``, as
+any malformed body). Refusals are written to the audit log with
+the path and the caller (``anonymous`` when there is none). The one request taken without a
+token is a STOP with no credential at all, when ``[api] anonymous_stop`` is on
+(:func:`api.auth.anonymous_stop_caller`); its body is checked as every other.
 """
 
 from __future__ import annotations

@@ -46,8 +46,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from cell.bench.cells import CALLER, bench_config
 from cell.bench.commission import hand_eye, measure_intrinsics, with_intrinsics
-from cell.config.schema import CellConfig, load_config, parse_config
+from cell.bench.ibvs import format_ibvs, run_bench_ibvs
+from cell.config.schema import parse_config
 from cell.devices.hardware import SimWorld
 from cell.errors import CellError
 from cell.runtime import freeze_startup_objects, start_cell
@@ -58,28 +60,9 @@ from estimator.transforms import make_T, pose_dict, pose_distance
 Progress = Callable[[str, int, int], None]
 Matrix4 = NDArray[np.float64]
 STANDOFF_MM = 50.0
-CALLER = "bench"
 
 
 WORLDS = ("realistic", "ideal")
-
-
-def bench_config(state_dir: Path, host: str, lost_after_s: float | None = None,
-                 world: str = "ideal") -> CellConfig:
-    """The built-in simulated cell on ``host``, its job database in ``state_dir``, in the
-    simulated ``world``."""
-    data = load_config().model_dump(mode="python")
-    data["sim"]["world"] = world
-    if lost_after_s is not None:
-        data["servo"]["lost_after_s"] = lost_after_s
-    data["robot"]["host"] = host
-    data["gripper"]["kind"] = "none"
-    data["api"]["job_db"] = str(state_dir / "jobs.db")
-    data["api"]["calibration_dir"] = ""
-    # both modes at the cell's speed and acceleration limits (the servo's caps are those too)
-    data["approach"]["speed_mm_s"] = data["limits"]["max_speed_mm_s"]
-    data["approach"]["accel_mm_s2"] = data["limits"]["max_accel_mm_s2"]
-    return parse_config(data)
 
 
 def placement(rng: np.random.Generator, T_home_target: Matrix4) -> Matrix4:
@@ -386,8 +369,6 @@ def run_bench_approach(*, placements: int = 10, seed: int = 0,
 
 def _ibvs_section(placements: int, seed: int, lost_after_s: float) -> dict[str, Any]:
     """IBVS, servo and look-and-move to a taught view (cell/bench/ibvs.py), its own cells."""
-    from cell.bench.ibvs import run_bench_ibvs
-
     try:
         return run_bench_ibvs(placements=placements, seed=seed, lost_after_s=lost_after_s)
     except Exception as err:  # recorded, as every other section's failure
@@ -563,8 +544,6 @@ def _lost_line(lost: dict[str, Any]) -> str:
 
 
 def _ibvs_lines(section: dict[str, Any] | None) -> list[str]:
-    from cell.bench.ibvs import format_ibvs
-
     if section is None:
         return []
     if "failed" in section:

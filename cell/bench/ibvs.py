@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from cell.bench.approach import CALLER, bench_config
+from cell.bench.cells import CALLER, bench_config
 from cell.config.schema import CellConfig, parse_config
 from cell.errors import CellError
 from cell.features.teach import TaughtPose

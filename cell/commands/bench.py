@@ -1,7 +1,8 @@
 """``cell bench``: the estimator against OpenCV pipelines on identical rendered frames.
 
-``--check`` turns the issue's speed and accuracy targets into the exit status: 1 when any is
-missed (the report is printed either way), so a CI job or an integrator's script can gate on it.
+``--check`` turns the estimator's speed and accuracy targets (``TARGETS`` in
+:mod:`cell.bench.estimator`) into the exit status: 1 when any is missed (the report is printed
+either way), so a CI job or an integrator's script can gate on it.
 """
 
 from __future__ import annotations

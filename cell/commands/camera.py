@@ -27,6 +27,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def run_snapshot(args: argparse.Namespace) -> int:
     import cv2
 
+    from cell.config.devices import OakCameraConfig
     from cell.config.schema import ConfigError, load_config
     from cell.devices.factory import build_camera
     from drivers.errors import DriverError
@@ -36,6 +37,7 @@ def run_snapshot(args: argparse.Namespace) -> int:
     except ConfigError as err:
         return fail(err.code, str(err), args.json)
     kind = config.camera.kind
+    oak = config.camera if isinstance(config.camera, OakCameraConfig) else None
     try:
         camera, release = build_camera(config)
     except (ConfigError, ValueError) as err:
@@ -69,8 +71,8 @@ def run_snapshot(args: argparse.Namespace) -> int:
         "timestamp_s": frame.timestamp_s,
         # What the camera runs with: check these against the [camera] table.
         "settings": {
-            "device_id": config.camera.device_id if kind == "oak" else None,
-            "socket": config.camera.socket if kind == "oak" else None,
+            "device_id": oak.device_id if oak is not None else None,
+            "socket": oak.socket if oak is not None else None,
             "fps": config.camera.fps, "exposure_us": in_force.exposure_us,
             "iso": in_force.iso, "focus": in_force.focus,
         },

@@ -1,10 +1,14 @@
-"""``cell gripper [--config FILE] [--port DEVICE] {status,activate,open,close}``: commission a
-serial gripper.
+"""``cell gripper [--config FILE] [--port DEVICE] {status,activate,open,close}``: commission the
+cell's gripper.
 
-The first thing an integrator runs on a new cell: it proves the RS-485 link, the slave id and
-the gripper's motion before the service depends on them. With ``--config`` the port, slave id,
-baud rate and timeouts come from the file's ``[gripper]`` table (what the service will use);
-options given on the command line override them.
+The first thing an integrator runs on a new cell: it proves the link, the address and the
+gripper's motion before the service depends on them. The gripper is the one ``--config``'s
+``[gripper]`` table names, built from its config class by the hardware factory
+(:func:`cell.devices.factory.build_gripper`), so it is driven with the settings the service will
+use; without ``--config`` it is a Robotiq-compatible gripper (``kind = "robotiq"``) with the
+table's defaults. The options override the keys of the same meaning (``--port``: ``port``,
+``--slave-id``: ``slave_id``, ``--baudrate``, ``--timeout``: ``timeout_s``) of a kind that has
+them.
 """
 
 from __future__ import annotations
@@ -16,9 +20,10 @@ from cell.commands.common import fail, print_json
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = sub.add_parser("gripper", help="drive a Robotiq-compatible gripper on a serial port")
+    p = sub.add_parser("gripper", help="drive the configured gripper (without --config: a "
+                       "Robotiq-compatible one on --port)")
     p.add_argument("--config", default=None, metavar="FILE",
-                   help="take the link settings from FILE's [gripper] table")
+                   help="the gripper and its link settings from FILE's [gripper] table")
     p.add_argument("--port", default=None, help="serial device, e.g. /dev/ttyUSB0")
     p.add_argument("--slave-id", type=int, default=None, help="Modbus slave id (default 9)")
     p.add_argument("--baudrate", type=int, default=None, help="default 115200")
@@ -29,28 +34,46 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from cell.config.schema import ConfigError, GripperConfig, load_config
+    from pydantic import ValidationError
+
+    from cell.config.devices import GripperConfig, RobotiqGripperConfig
+    from cell.config.schema import ConfigError, SimConfig, load_config
+    from cell.devices.factory import build_gripper
     from drivers.errors import DriverError
-    from drivers.robotiq import RobotiqGripper
 
     # The adapter turns pymodbus' "no response" log lines into typed errors; keep stderr clean.
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+    gc: GripperConfig = RobotiqGripperConfig()
+    sim = SimConfig()
     try:
-        gc = load_config(args.config).gripper if args.config else GripperConfig()
+        if args.config:
+            config = load_config(args.config)
+            gc, sim = config.gripper, config.sim
     except ConfigError as err:
         return fail(err.code, str(err), args.json)
-    port = args.port or gc.port
-    if not port:
+    given = {key: value for key, value in (("port", args.port), ("slave_id", args.slave_id),
+                                           ("baudrate", args.baudrate),
+                                           ("timeout_s", args.timeout)) if value is not None}
+    foreign = [key for key in given if key not in type(gc).model_fields]
+    if foreign:
+        return fail("invalid_argument", f"[gripper] kind = {gc.kind!r} has no "
+                    f"{', '.join(foreign)}", args.json)
+    try:
+        gc = type(gc).model_validate({**gc.model_dump(), **given})
+    except ValidationError as err:
+        return fail("invalid_argument", "; ".join(
+            f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in err.errors()), args.json)
+    if getattr(gc, "port", None) == "":
         return fail("invalid_argument", "no serial port: pass --port or a --config whose "
                     "[gripper] port is set", args.json)
     try:
-        gripper = RobotiqGripper(
-            port, gc.slave_id if args.slave_id is None else args.slave_id,
-            gc.baudrate if args.baudrate is None else args.baudrate,
-            gc.timeout_s if args.timeout is None else args.timeout, gc.retries,
-            motion_timeout_s=gc.motion_timeout_s, activation_timeout_s=gc.activation_timeout_s)
-    except ValueError as err:
+        gripper, release = build_gripper(gc, sim)
+    except (ConfigError, ValueError) as err:
         return fail("invalid_argument", str(err), args.json)
+    if gripper is None:
+        release()
+        return fail("invalid_argument", f"[gripper] kind = {gc.kind!r}: the cell has no gripper",
+                    args.json)
     try:
         gripper.connect()
         if args.action == "activate":
@@ -64,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     except DriverError as err:
         return fail(err.code, str(err), args.json)
     finally:
-        gripper.disconnect()
+        release()
     if args.json:
         print_json(status.as_dict())
     else:

@@ -19,6 +19,8 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from cell.config.devices import DEVICE_TABLES
+
 # Tables a config with real hardware must state: their defaults fit only the simulated cell.
 REAL_REQUIRED_TABLES: dict[str, str] = {
     "limits": "the default workspace box reaches 100 mm below the robot base",
@@ -73,13 +75,23 @@ def closest(name: str, valid: Sequence[str]) -> str | None:
     return lowered[hits[0]] if hits else None
 
 
+@dataclass(frozen=True)
+class _RawStandIns:
+    """The raw ``[sim]`` table's stand-ins, as :meth:`DeviceConfig.is_hardware` reads them."""
+
+    ur_controller: bool
+
+
 def has_real_device(data: dict[str, Any]) -> bool:
-    """True when the raw config names hardware that is not simulated (same rule as the
-    factory's ``all_simulated``): a UR arm without the simulated controller, an OAK, a Robotiq."""
-    robot, sim = _table(data, "robot"), _table(data, "sim")
-    camera, gripper = _table(data, "camera"), _table(data, "gripper")
-    real_arm = robot.get("kind") == "ur" and sim.get("ur_controller") is not True
-    return real_arm or camera.get("kind") == "oak" or gripper.get("kind") == "robotiq"
+    """True when a device table of the raw config names a kind that is real hardware: the
+    device classes' own rule (:meth:`cell.config.devices.DeviceConfig.is_hardware`), read off
+    each table's ``kind`` before the schema has validated the rest."""
+    sim = _RawStandIns(ur_controller=_table(data, "sim").get("ur_controller") is True)
+    for table in DEVICE_TABLES:
+        kind = table.config_class(_table(data, table.name))
+        if kind is not None and kind.is_hardware(sim):
+            return True
+    return False
 
 
 def check(data: dict[str, Any]) -> list[Problem]:

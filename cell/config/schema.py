@@ -6,7 +6,8 @@ Tables: ``[camera]``, ``[target]`` and ``[robot]`` (``kind`` required), ``[hand_
 ``[limits]``, ``[tool]`` and ``[hand_eye]`` (their defaults suit only the simulated cell).
 Types are strict (``width = "1280"`` is an error, not a coercion), an unknown key is answered
 with the closest valid name, and the commissioning checks (:mod:`cell.config.checks`) catch
-values in the wrong unit.
+values in the wrong unit. The device tables (``[camera]``, ``[robot]``, ``[gripper]``) have one
+class per ``kind`` (:mod:`cell.config.devices`).
 Keys stay stable, because commissioned cells keep their files.
 Without a file every command uses the built-in simulated cell (``cell/configs/sim.toml``).
 """
@@ -16,6 +17,7 @@ from __future__ import annotations
 import json
 import tomllib
 import typing
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path, PurePosixPath
 from typing import Any, Literal
@@ -26,10 +28,20 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from cell.config.checks import Problem, check, closest
+from cell.config.devices import (
+    CameraConfig,
+    DeviceConfig,
+    GripperConfig,
+    NoGripperConfig,
+    RobotConfig,
+    table_of,
+    with_own_keys,
+)
+from cell.config.strict import Strict
 from cell.error_codes import ErrorCode
 from cell.errors import CellError
 from cell.results.modes import ApproachMode, PoseMode
-from estimator import CameraModel, Target
+from estimator import Target
 from estimator.target import layout_problem
 from estimator.transforms import T_from_pose
 
@@ -45,64 +57,6 @@ class ConfigError(CellError):
     def __init__(self, message: str, problems: list[Problem] | None = None) -> None:
         super().__init__(ErrorCode.config_invalid, message)
         self.problems = problems if problems is not None else [Problem("", message)]
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-
-
-class CameraConfig(_Strict):
-    """Intrinsics for the configured output size (OpenCV model)."""
-
-    fx: float = Field(gt=0)
-    fy: float = Field(gt=0)
-    cx: float
-    cy: float
-    width: int = Field(gt=0)
-    height: int = Field(gt=0)
-    dist: list[float] = Field(default_factory=list)
-    # Which intrinsics the cell computes with: these ("config": a commissioning calibration
-    # written here must win) or the ones the device reports with each frame ("device": an
-    # OAK's factory calibration). cell.vision.intrinsics.
-    intrinsics: Literal["config", "device"] = "config"
-    # Which device, its frame rate, and (OAK) which one and how it exposes. The output size is
-    # ``width`` x ``height``. Unset sensor settings keep the device's defaults.
-    kind: Literal["sim", "oak"] = "sim"
-    # Where the camera is: on the flange ("hand", eye-in-hand; [hand_eye] T_flange_camera) or
-    # fixed in the cell ("fixed", eye-to-hand; [hand_eye] T_base_camera).
-    mount: Literal["hand", "fixed"] = "hand"
-    fps: float = Field(default=15.0, gt=0, le=120)
-    device_id: str = ""  # OAK serial number (MxId) or IP address; empty: the first device found
-    socket: Literal["CAM_A", "CAM_B", "CAM_C", "CAM_D"] = "CAM_B"  # CAM_B: OAK-D's left mono
-    exposure_us: int | None = Field(default=None, ge=1)  # manual exposure time
-    iso: int | None = Field(default=None, ge=100, le=1600)  # sensor gain
-    focus: int | Literal["auto"] | None = None  # lens position 0..255, "auto", unset: fixed
-
-    @field_validator("dist")
-    @classmethod
-    def _dist_len(cls, v: list[float]) -> list[float]:
-        if len(v) not in (0, 4, 5, 8, 12, 14):
-            raise ValueError("dist must have 0, 4, 5, 8, 12 or 14 coefficients")
-        return v
-
-    @field_validator("focus")
-    @classmethod
-    def _focus(cls, v: int | str | None) -> int | str | None:
-        if isinstance(v, int) and not 0 <= v <= 255:
-            raise ValueError(f"focus must be a lens position 0..255 or \"auto\", got {v}")
-        return v
-
-    @model_validator(mode="after")
-    def _exposure_fits(self) -> CameraConfig:
-        if self.exposure_us is not None and self.exposure_us > 1e6 / self.fps:
-            raise ValueError(f"exposure_us = {self.exposure_us} does not fit in one frame at "
-                             f"{self.fps:g} fps (at most {int(1e6 / self.fps)} us): lower it "
-                             "or the fps")
-        return self
-
-    def model(self) -> CameraModel:
-        return CameraModel(self.fx, self.fy, self.cx, self.cy, tuple(self.dist),
-                           self.width, self.height)
 
 
 class DotLayout(BaseModel):
@@ -126,14 +80,14 @@ class DotLayout(BaseModel):
         return Target(self.points_mm, self.dot_diameter_mm, self.polarity)
 
 
-class TargetConfig(DotLayout, _Strict):
+class TargetConfig(DotLayout, Strict):
     """The cell's target (``[target]``)."""
 
 
 Vec3 = tuple[float, float, float]
 
 
-class PoseConfig(_Strict):
+class PoseConfig(Strict):
     """A pose in the project's JSON form: position (mm) and rotation vector (rad)."""
 
     position_mm: Vec3 = (0.0, 0.0, 0.0)
@@ -143,35 +97,7 @@ class PoseConfig(_Strict):
         return T_from_pose(self.position_mm, self.rotvec_rad)
 
 
-class RobotConfig(_Strict):
-    """``kind = "ur"``: a UR controller at ``host`` through ur_rtde; ``"sim"``: the in-process
-    simulated arm (fast tests). ``home_joints_deg`` is where ``cell serve`` starts on a simulated
-    arm and what an operator can return to."""
-
-    kind: Literal["ur", "sim"]  # required: a file that lost it must not run a simulated arm
-    host: str = "127.0.0.1"
-    # The arm's type: its published DH table is the nominal geometry the hand-eye routine's
-    # kinematic fit starts from (the simulated arm is a UR5e).
-    model: Literal["ur3e", "ur5e", "ur10e", "ur16e"] = "ur5e"
-    # The UR adapter's timing (URArm): connecting, one call to the controller, the
-    # jog watchdog period, and how long unchanged RTDE data may be before the link counts as lost.
-    connect_timeout_s: float = Field(default=5.0, gt=0)
-    # Power on and release the brakes when the service starts and after a controller that
-    # came back (False: an operator does it from the page or POST /api/v1/arm/power).
-    power_on_at_start: bool = False
-    # Reconnect tries to a lost arm or camera: first after this, doubling up to the maximum.
-    reconnect_initial_s: float = Field(default=0.2, gt=0, le=60)
-    reconnect_max_s: float = Field(default=5.0, gt=0, le=300)
-    call_timeout_s: float = Field(default=3.0, gt=0)
-    watchdog_s: float = Field(default=0.25, gt=0)
-    # No new RTDE data for this long = the controller is gone (frozen, cable): generous,
-    # because a loaded cell PC can delay the stream reader by most of a second.
-    stale_after_s: float = Field(default=1.5, gt=0)
-    home_joints_deg: tuple[float, float, float, float, float, float] = (
-        0.0, -90.0, 90.0, -90.0, -90.0, 0.0)
-
-
-class HandEyeConfig(_Strict):
+class HandEyeConfig(Strict):
     """The hand-eye calibration result: the camera's pose on the flange (eye-in-hand,
     ``[camera] mount = "hand"``) or in the robot base frame (eye-to-hand, ``mount = "fixed"``).
     Exactly the one the mount needs may be given (checked by :class:`CellConfig`)."""
@@ -185,13 +111,13 @@ class HandEyeConfig(_Strict):
         return key in self.model_fields_set
 
 
-class ToolConfig(_Strict):
+class ToolConfig(Strict):
     """The tool centre point on the flange; also sent to the controller (set_tcp)."""
 
     T_flange_tcp: PoseConfig = PoseConfig()
 
 
-class ApproachConfig(_Strict):
+class ApproachConfig(Strict):
     """Look-and-move defaults.
 
     ``T_target_tcp`` identity means the tool z axis points into the target plate (the target
@@ -219,7 +145,7 @@ class ApproachConfig(_Strict):
     mode: PoseMode = ApproachMode.look_and_move  # ibvs needs a taught view
 
 
-class ServoConfig(_Strict):
+class ServoConfig(Strict):
     """Closed-loop visual servoing (approach mode "servo" and tracking, :mod:`cell.actions.servo`).
 
     The law is ``twist = feed-forward + gain * error`` with the speed capped by
@@ -263,7 +189,7 @@ class ServoConfig(_Strict):
     max_track_s: float = Field(default=600.0, gt=0)  # the cap on a track job's duration_s
 
 
-class IbvsConfig(_Strict):
+class IbvsConfig(Strict):
     """Image-based servoing (mode "ibvs": :mod:`cell.actions.ibvs`, :mod:`cell.actions.ibvs_run`).
 
     The law is ``v_c = -lambda L^+ (s - s*)`` on the dots' normalised image points, the gain
@@ -308,7 +234,7 @@ class IbvsConfig(_Strict):
     approach_timeout_s: float = Field(default=30.0, gt=0)
 
 
-class LimitsConfig(_Strict):
+class LimitsConfig(Strict):
     """Safety envelope checked before any motion; a refusal moves nothing."""
 
     workspace_min_mm: Vec3 = (-900.0, -900.0, -100.0)
@@ -349,7 +275,7 @@ class LimitsConfig(_Strict):
 Role = Literal["viewer", "operator", "plc"]
 
 
-class TokenConfig(_Strict):
+class TokenConfig(Strict):
     """A token in the clear (``token``), or stored as ``sha256`` = hex sha256 of ``salt`` +
     token (the service then never holds the token itself)."""
 
@@ -374,7 +300,7 @@ STATE_DEFAULTS = {"job_db": "jobs.db", "calibration_dir": "calibration",
                   "image_log_dir": "failed-locates"}
 
 
-class ApiConfig(_Strict):
+class ApiConfig(Strict):
     """Bearer tokens and their roles, and where the service keeps its state.
 
     ``state_dir`` (absolute) holds everything the service writes: the job and audit database,
@@ -422,20 +348,7 @@ class ApiConfig(_Strict):
         return v
 
 
-class GripperConfig(_Strict):
-    """``robotiq``: a 2F-85 compatible gripper on ``port``; ``sim``: the fake one on a pty."""
-
-    kind: Literal["robotiq", "sim", "none"] = "none"
-    port: str = ""
-    slave_id: int = Field(default=9, ge=1, le=247)
-    baudrate: Literal[9600, 19200, 38400, 57600, 115200] = 115200  # Robotiq's default: 115200
-    timeout_s: float = Field(default=0.5, gt=0)  # one Modbus request
-    retries: int = Field(default=1, ge=0, le=10)
-    motion_timeout_s: float = Field(default=5.0, gt=0)
-    activation_timeout_s: float = Field(default=10.0, gt=0)
-
-
-class SimCameraTruth(_Strict):
+class SimCameraTruth(Strict):
     """The simulated lens's true intrinsics (px) and Brown-Conrady distortion (k1 k2 p1 p2 k3);
     each unset value comes from the ``world`` preset, apart from what ``[camera]`` believes."""
 
@@ -453,7 +366,7 @@ class SimCameraTruth(_Strict):
         return v
 
 
-class SimConfig(_Strict):
+class SimConfig(Strict):
     """Ground truth of the simulated cell; used only by the hardware factory and /sim routes.
 
     ``world``: ``"ideal"`` (the truth is the cell's config: only the estimator errs) or
@@ -514,7 +427,7 @@ SAMPLE_OPCUA_PASSWORDS = frozenset({"sim-viewer", "sim-operator", "sim-plc"})
 OpcUaPolicy = Literal["None", "Basic256Sha256"]
 
 
-class OpcUaUserConfig(_Strict):
+class OpcUaUserConfig(Strict):
     """One OPC UA user: a name and password that map to one of the API's roles."""
 
     name: str = Field(min_length=1)
@@ -522,7 +435,7 @@ class OpcUaUserConfig(_Strict):
     role: Role
 
 
-class OpcUaConfig(_Strict):
+class OpcUaConfig(Strict):
     """The OPC UA server inside the service (off unless ``enabled``), for cell PLCs.
 
     ``security_policies``: ``"None"`` and/or ``"Basic256Sha256"`` (Sign and SignAndEncrypt).
@@ -575,7 +488,7 @@ class OpcUaConfig(_Strict):
         return self
 
 
-class UrscriptConfig(_Strict):
+class UrscriptConfig(Strict):
     """The XML-RPC endpoint a PolyScope program calls (``rpc_factory("xmlrpc", URL)``).
 
     Off while ``xmlrpc_port`` is 0. With ``require_token`` the URL carries one of the
@@ -588,7 +501,7 @@ class UrscriptConfig(_Strict):
     require_token: bool = True
 
 
-class ModbusConfig(_Strict):
+class ModbusConfig(Strict):
     """The Modbus TCP server for PLCs without OPC UA (off while ``port`` is 0); unit id 1.
 
     ``clients``: the addresses (or networks, ``192.168.1.0/24``) that may write commands;
@@ -614,7 +527,7 @@ class ModbusConfig(_Strict):
         return v
 
 
-class CommissioningConfig(_Strict):
+class CommissioningConfig(Strict):
     """Keys whose unusual value is intended: the commissioning checks let them pass."""
 
     accept: list[str] = Field(default_factory=list)
@@ -637,7 +550,7 @@ class CellConfig(BaseModel):
     ibvs: IbvsConfig = IbvsConfig()
     limits: LimitsConfig = LimitsConfig()
     api: ApiConfig = ApiConfig()
-    gripper: GripperConfig = GripperConfig()
+    gripper: GripperConfig = NoGripperConfig()
     sim: SimConfig = SimConfig()
     opcua: OpcUaConfig = OpcUaConfig()
     urscript: UrscriptConfig = UrscriptConfig()
@@ -672,10 +585,13 @@ class CellConfig(BaseModel):
         """The camera is fixed in the cell (eye-to-hand), not on the flange."""
         return self.camera.mount == "fixed"
 
+    def devices(self) -> tuple[DeviceConfig, ...]:
+        """The device tables' configs: camera, robot, gripper."""
+        return (self.camera, self.robot, self.gripper)
+
     def has_real_device(self) -> bool:
-        """Any device that is not simulated (then the commissioning rules apply)."""
-        return ((self.robot.kind == "ur" and not self.sim.ur_controller)
-                or self.camera.kind == "oak" or self.gripper.kind == "robotiq")
+        """Any device that is real hardware (then the commissioning rules apply)."""
+        return any(d.is_hardware(self.sim) for d in self.devices())
 
 
 SIM_CONFIG_NAME = "sim.toml"
@@ -686,55 +602,75 @@ _MISSING_HINTS = {
 }
 
 
-def _model_at(loc: tuple[int | str, ...]) -> type[BaseModel] | None:
-    """The config model that holds the key at ``loc`` (for naming the valid keys there)."""
-    model: type[BaseModel] = CellConfig
+@dataclass(frozen=True)
+class _At:
+    """Where a validation error's location is in the file."""
+
+    key: str  # dotted, without the kind pydantic names inside a device table
+    model: type[BaseModel] | None  # the config model at the key (None: past the models)
+    kinds: dict[str, type[DeviceConfig]]  # at a device table: its kinds' classes by name
+
+
+def _at(loc: tuple[int | str, ...]) -> _At:
+    model: type[BaseModel] | None = CellConfig
+    kinds: dict[str, type[DeviceConfig]] = {}
+    parts: list[str] = []
     for part in loc:
+        if isinstance(part, str) and part in kinds:
+            model, kinds = kinds[part], {}
+            continue
+        parts.append(str(part))
         if isinstance(part, int):
             continue
-        field = model.model_fields.get(part)
-        if field is None:
-            return None
-        nested = _nested_model(field.annotation)
-        if nested is None:
-            return None
-        model = nested
-    return model
+        field = model.model_fields.get(part) if model is not None else None
+        models = _nested_models(field.annotation) if field is not None else []
+        model = models[0] if len(models) == 1 else None
+        kinds = {m.tag(): m for m in models if issubclass(m, DeviceConfig)} \
+            if len(models) > 1 else {}
+    return _At(".".join(parts), model, kinds)
 
 
-def _nested_model(annotation: Any) -> type[BaseModel] | None:
+def _nested_models(annotation: Any) -> list[type[BaseModel]]:
     if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-        return annotation
-    for arg in typing.get_args(annotation):
-        found = _nested_model(arg)
-        if found is not None:
-            return found
-    return None
+        return [annotation]
+    return [m for arg in typing.get_args(annotation) for m in _nested_models(arg)]
+
+
+def _either(names: list[str]) -> str:
+    quoted = [repr(n) for n in names]
+    return quoted[0] if len(quoted) == 1 else f"{', '.join(quoted[:-1])} or {quoted[-1]}"
 
 
 def _schema_problems(err: ValidationError) -> list[Problem]:
     problems = []
     for e in err.errors():
         loc = tuple(e["loc"])
-        key = ".".join(str(p) for p in loc)
-        msg = e["msg"]
+        at = _at(loc)
+        key, msg = at.key, e["msg"]
         if e["type"] == "extra_forbidden":
-            model = _model_at(loc[:-1])
-            valid = list(model.model_fields) if model is not None else []
+            model = _at(loc[:-1]).model
+            table = table_of(model) if model is not None and issubclass(model, DeviceConfig) \
+                else None
+            valid = table.keys() if table is not None else \
+                list(model.model_fields) if model is not None else []
             hint = closest(str(loc[-1]), valid)
             msg = "unknown key" + (f"; did you mean {hint!r}?" if hint else
                                    (f"; valid keys: {', '.join(valid)}" if valid else ""))
         elif e["type"] == "missing" and key in _MISSING_HINTS:
             msg = _MISSING_HINTS[key]
+        elif e["type"] in ("union_tag_invalid", "union_tag_not_found") and at.kinds:
+            key = f"{key}.kind"
+            expected = _either(list(at.kinds))
+            msg = (f"Input should be {expected}" if e["type"] == "union_tag_invalid"
+                   else _MISSING_HINTS.get(key, f"required: {expected}"))
         elif isinstance(e.get("input"), str) and e["type"] in ("int_type", "float_type",
                                                                 "bool_type"):
             msg += f" (got the string {e['input']!r}: write it without quotes)"
         elif e["type"] == "value_error":
             msg = msg.removeprefix("Value error, ")
             # a table-level check whose message starts with the key it is about: name that key
-            model = _model_at(loc)
             first = msg.split(" ", 1)[0]
-            if model is not None and first.split(".", 1)[0] in model.model_fields:
+            if at.model is not None and first.split(".", 1)[0] in at.model.model_fields:
                 key = f"{key}.{first}" if key else first
         problems.append(Problem(key, msg))
     return problems
@@ -752,7 +688,8 @@ def parse_config(data: dict[str, Any], source: str = "<config>") -> CellConfig:
     try:
         # Validated as JSON in strict mode: TOML's arrays fill tuples, integers fill floats,
         # and nothing else is coerced ("1280" is not an integer).
-        config = CellConfig.model_validate_json(json.dumps(data, default=str), strict=True)
+        config = CellConfig.model_validate_json(json.dumps(with_own_keys(data), default=str),
+                                                strict=True)
     except ValidationError as err:
         problems.extend(_schema_problems(err))
     problems.extend(check(data))

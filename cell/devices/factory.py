@@ -1,327 +1,300 @@
 """THE one place that builds real or simulated hardware from the config.
 
 Everything else in the cell works on the interfaces in ``drivers`` and never asks which
-implementation it has. Choices:
-- ``[robot] kind="sim"``: the simulated arm in-process (fast tests);
-  ``kind="ur"``: the real UR adapter (ur_rtde) at ``robot.host``; with ``[sim] ur_controller``
-  the simulated UR controller is started on that (loopback) address first, in its own process
-  (see fakes.ur_controller.process), so the real adapter
-  and the real client drive the simulated arm over the wire.
-- ``[camera] kind="sim"``: the simulated eye-in-hand camera, which renders what the simulated
-  arm's camera sees; ``"oak"``: a Luxonis OAK.
-- ``[gripper] kind="sim"``: the fake gripper on a pseudo-terminal, driven through the real
+implementation it has. Each device table's kind (:mod:`cell.config.devices`) has its builder
+here, registered on its config class (``_build_arm``, ``_build_camera``, ``_build_gripper``),
+and, where a kind has rules of its own, the problems that refuse it (``device_problems``):
+
+- ``[robot] kind="ur"``: the UR adapter (ur_rtde) at ``robot.host``; with ``[sim]
+  ur_controller`` the simulated UR controller is started on that (loopback) address first, in
+  its own process, so the real adapter and the real client drive the simulated arm over the
+  wire. ``kind="sim"``: the simulated arm in-process (fast tests).
+- ``[camera] kind="sim"``: the simulated camera, which renders what the simulated arm's camera
+  sees; ``"oak"``: a Luxonis OAK.
+- ``[gripper] kind="sim"``: the simulated gripper on a pseudo-terminal, driven through the real
   Modbus RTU adapter; ``"robotiq"``: the adapter on ``gripper.port``; ``"none"``.
+
+The simulated parts come from one call, :func:`fakes.sim_cell.build_sim_cell`, given what to
+simulate (:func:`simulated_cell_spec`) and the simulated world's truth
+(:mod:`cell.devices.sim_truth`).
 """
 
 from __future__ import annotations
 
 import contextlib
-import os
-import signal
-import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from functools import singledispatch
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 import numpy as np
-from numpy.typing import NDArray
 
 from cell.config.checks import Problem
-from cell.config.schema import CellConfig, ConfigError
+from cell.config.devices import (
+    CameraConfig,
+    CameraConfigBase,
+    DeviceConfig,
+    GripperConfig,
+    NoGripperConfig,
+    OakCameraConfig,
+    RobotConfigBase,
+    RobotiqGripperConfig,
+    RobotiqLink,
+    SimCameraConfig,
+    SimGripperConfig,
+    SimRobotConfig,
+    UrRobotConfig,
+)
+from cell.config.schema import CellConfig, ConfigError, SimConfig
 from cell.devices import sim_truth
 from cell.devices.hardware import Hardware
 from drivers.arm import Arm
 from drivers.camera import Camera, CameraSettings
 from drivers.gripper import Gripper
 from drivers.robotiq import RobotiqGripper
-from estimator.transforms import T_from_ur_pose, invert_T
-from fakes.fixed_camera import FixedSimCamera
-from fakes.gripper import FakeGripper, LineFault
-from fakes.sim_arm import SimArm
 from fakes.sim_camera import SimCamera
-from fakes.ur_controller.process import ControllerProcess
-from fakes.ur_sim.engine import MotionEngine
-from fakes.ur_sim.kinematics import UR5E, UR5eKinematics
+from fakes.sim_cell import (
+    ArmSpec,
+    CameraSpec,
+    FixedMount,
+    GripperSpec,
+    SensorEffects,
+    SimCellSpec,
+    SimulatedCell,
+    build_sim_cell,
+)
 
 if TYPE_CHECKING:
     from drivers.oak.camera import OakSettings  # imported when used: depthai loads slowly
 
-Matrix4 = NDArray[np.float64]
-PoseSource = Callable[[], tuple[Matrix4, float]]
-
-
-def true_kinematics(config: CellConfig) -> UR5eKinematics | None:
-    """The arm's true geometry when it differs from the nominal table the controller reports
-    with (``[sim]`` DH errors; None: the nominal table is the truth)."""
-    fx = sim_truth.effects(config)
-    if fx.kinematics_exact:
-        return None
-    return UR5eKinematics(UR5E.perturbed(fx.dh_delta_theta_rad, fx.dh_delta_d_mm,
-                                         fx.dh_delta_a_mm))
-
-
-def _true_flange_and_tcp(kin: UR5eKinematics | None, q: Any, tcp_pose: Any, tcp_offset: Any
-                         ) -> tuple[Matrix4, Matrix4]:
-    """``(T_base_flange, T_base_tcp)`` where the arm really is: the controller's report
-    (nominal kinematics) or, with a true geometry, its forward kinematics at the joints."""
-    T_flange_tcp = T_from_ur_pose(tcp_offset)
-    if kin is None:
-        T_tcp = T_from_ur_pose(tcp_pose)
-        return T_tcp @ invert_T(T_flange_tcp), T_tcp
-    T_flange = kin.forward(q)
-    return T_flange, T_flange @ T_flange_tcp
-
-
-class _EngineTruth:
-    """The simulated arm's true state, read from an in-process engine."""
-
-    def __init__(self, engine: MotionEngine, kin: UR5eKinematics | None = None) -> None:
-        self.engine = engine
-        self.kin = kin
-
-    def flange_and_tcp(self) -> tuple[Matrix4, Matrix4, float]:
-        snap = self.engine.snapshot()
-        T_flange, T_tcp = _true_flange_and_tcp(self.kin, snap.q, snap.tcp_pose, snap.tcp_offset)
-        return T_flange, T_tcp, snap.host_monotonic_s
-
-    def protective_stop(self, reason: str) -> None:
-        self.engine.trigger_protective_stop(reason)
-
-
-class _ProcessTruth:
-    """The same, from a simulated controller in its own process (over its control channel).
-
-    ur_rtde's constructors hold the GIL while talking to the controller, so a controller in
-    the client's process would deadlock; time.monotonic is system-wide, so its timestamps
-    compare with ours. The controller can be killed and started again (a controller reboot):
-    meanwhile the arm stands where it was, so the last pose read stays the truth.
-    """
-
-    def __init__(self, host: str, start: bool, kin: UR5eKinematics | None = None) -> None:
-        self.host = host
-        self.kin = kin
-        self.ctl: ControllerProcess | None = ControllerProcess(host) if start else None
-        self._last: tuple[Matrix4, Matrix4] | None = None
-
-    def flange_and_tcp(self) -> tuple[Matrix4, Matrix4, float]:
-        ctl = self.ctl
-        try:
-            if ctl is None or not ctl.alive:
-                raise RuntimeError("the simulated controller is not running")
-            st = ctl.state()
-        except Exception as err:  # down: the brakes hold the arm where it was
-            if self._last is None:
-                raise RuntimeError(f"no simulated arm pose yet: {err}") from err
-            return self._last[0], self._last[1], time.monotonic()
-        T_flange, T_tcp = _true_flange_and_tcp(self.kin, st["q"], st["tcp_pose"],
-                                               st["tcp_offset"])
-        self._last = (T_flange, T_tcp)
-        return T_flange, T_tcp, float(st["host_monotonic_s"])
-
-    def protective_stop(self, reason: str) -> None:
-        if self.ctl is None:
-            raise RuntimeError("the simulated controller is not running")
-        self.ctl.protective_stop()
-
-    def start_controller(self) -> None:
-        if self.ctl is not None and self.ctl.alive:
-            raise RuntimeError(f"a simulated controller already runs on {self.host}")
-        if self.ctl is not None:
-            self.ctl.close()
-        self.ctl = ControllerProcess(self.host)
-
-    def kill_controller(self) -> None:
-        if self.ctl is not None and self.ctl.alive:
-            self.ctl.kill()
-
-    def freeze_controller(self, frozen: bool) -> None:
-        if self.ctl is None or not self.ctl.alive:
-            raise RuntimeError("the simulated controller is not running")
-        os.kill(self.ctl.pid, signal.SIGSTOP if frozen else signal.SIGCONT)
-
-    def close(self) -> None:
-        if self.ctl is not None:
-            self.ctl.close()
-
-
-class _SimWorld:
-    """Ground truth and fault switches over the simulated arm and camera."""
-
-    def __init__(self, truth: _EngineTruth | _ProcessTruth, camera: SimCamera,
-                 gripper: FakeGripper | None = None, world: str = "ideal",
-                 effects: sim_truth.SimEffects = sim_truth.IDEAL_EFFECTS) -> None:
-        self._truth = truth
-        self._camera = camera
-        self._gripper = gripper
-        self._world = world
-        self._effects = effects
-
-    def truth_values(self) -> sim_truth.SimTruthValues:
-        return sim_truth.SimTruthValues(self._world, self._camera.camera,
-                                        self._camera.T_flange_camera.copy(), self._effects)
-
-    def true_T_base_target(self, at_s: float | None = None) -> Matrix4:
-        return self._camera.target_at(time.monotonic() if at_s is None else at_s)
-
-    def true_T_base_tcp(self) -> Matrix4:
-        return self._truth.flange_and_tcp()[1]
-
-    def true_tcp_sample(self) -> tuple[Matrix4, float]:
-        _, T_tcp, t_s = self._truth.flange_and_tcp()
-        return T_tcp, t_s
-
-    def set_target(self, T_base_target: Matrix4, velocity_mm_s: NDArray[np.float64] | None = None,
-                   angular_velocity_rad_s: NDArray[np.float64] | None = None) -> None:
-        self._camera.set_target_pose(T_base_target, velocity_mm_s, angular_velocity_rad_s)
-
-    def set_tool_board(self, T_flange_board: Matrix4 | None) -> None:
-        """Clamp the calibration plate to the tool (None: take it off); fixed cameras only."""
-        if not isinstance(self._camera, FixedSimCamera):
-            raise RuntimeError("only a simulated fixed camera sees a plate on the tool")
-        self._camera.set_tool_board(T_flange_board)
-
-    def set_camera_blocked(self, blocked: bool) -> None:
-        self._camera.set_blocked(blocked)
-
-    def trigger_protective_stop(self, reason: str = "test") -> None:
-        self._truth.protective_stop(reason)
-
-    def set_camera_lost(self, lost: bool) -> None:
-        self._camera.set_lost(lost)
-
-    def kill_controller(self) -> None:
-        self._process_truth().kill_controller()
-
-    def freeze_controller(self, frozen: bool) -> None:
-        self._process_truth().freeze_controller(frozen)
-
-    def inject_gripper_fault(self, fault: LineFault, count: int = 1) -> None:
-        if self._gripper is None:
-            raise RuntimeError("this simulated cell has no simulated gripper")
-        self._gripper.inject_line_fault(fault, count)
-
-    def start_controller(self) -> None:
-        self._process_truth().start_controller()
-
-    def _process_truth(self) -> _ProcessTruth:
-        if not isinstance(self._truth, _ProcessTruth):
-            raise RuntimeError("the in-process simulated arm has no controller to restart")
-        return self._truth
-
-
-def _pose_source(truth: _EngineTruth | _ProcessTruth) -> PoseSource:
-    """``(T_base_flange, time.monotonic())`` of the simulated arm: where the camera really is."""
-
-    def source() -> tuple[Matrix4, float]:
-        T_flange, _, t = truth.flange_and_tcp()
-        return T_flange, t
-
-    return source
-
-
-def _make_camera(config: CellConfig, truth: _EngineTruth | _ProcessTruth | None
-                 ) -> tuple[Camera, SimCamera | None]:
-    """The configured camera; a simulated one renders what the simulated arm's camera sees."""
-    cc, sim = config.camera, config.sim
-    if cc.kind == "sim":
-        if truth is None:
-            raise ConfigError(SIM_CAMERA_NEEDS_SIM_ARM)
-        sim_camera: SimCamera
-        if config.fixed_camera:
-            sim_camera = _fixed_sim_camera(config, truth)
-        else:
-            true = sim_truth.resolve(config)
-            fx = true.effects
-            sim_camera = SimCamera(
-                true.camera, config.target.model(), sim.T_base_target.T(), true.T_flange_camera,
-                _pose_source(truth), reported_camera=sim_truth.factory_calibration(config),
-                fps=cc.fps, noise_std=sim.noise_std, blur_sigma_px=sim.blur_sigma_px,
-                exposure_jitter=fx.gain_jitter,
-                latency_s=fx.camera_latency_s, latency_jitter_s=fx.camera_latency_jitter_s,
-                timestamp_offset_s=fx.timestamp_offset_s,
-                timestamp_jitter_s=fx.timestamp_jitter_s, motion_blur=fx.motion_blur,
-                flicker_depth=fx.flicker_depth, flicker_hz=fx.flicker_hz)
-        if cc.exposure_us is not None or cc.iso is not None or cc.focus is not None:
-            try:
-                sim_camera.apply_settings(CameraSettings(cc.exposure_us, cc.iso, cc.focus))
-            except ValueError as err:
-                raise ConfigError(f"camera: {err}") from err
-        return sim_camera, sim_camera
-    from drivers.oak.camera import OakCamera
-
-    return OakCamera(oak_settings(config)), None
-
+Sim = SimulatedCell[Any]
 
 SIM_CAMERA_NEEDS_SIM_ARM = ("camera.kind = \"sim\" needs a simulated robot (robot.kind = "
                             "\"sim\" or sim.ur_controller = true)")
 ROBOTIQ_NEEDS_PORT = "gripper.port: a serial device is needed for kind = \"robotiq\""
 
 
-def hardware_problems(config: CellConfig) -> list[Problem]:
-    """Every reason :func:`build_hardware` would refuse this config, found without building
-    or touching anything: the same rules, so ``cell config check`` fails on what ``cell serve``
-    refuses."""
-    problems: list[Problem] = []
-    cc = config.camera
-    if cc.kind == "sim":
-        if config.robot.kind == "ur" and not config.sim.ur_controller:
-            problems.append(Problem("camera.kind", SIM_CAMERA_NEEDS_SIM_ARM))
-        if cc.exposure_us is not None or cc.iso is not None or cc.focus is not None:
-            try:
-                SimCamera.check_settings(CameraSettings(cc.exposure_us, cc.iso, cc.focus),
-                                         cc.fps)
-            except ValueError as err:
-                problems.append(Problem("camera", str(err)))
-    else:
-        try:
-            oak_settings(config)
-        except ConfigError as err:
-            problems.append(Problem("camera", str(err)))
-    if config.gripper.kind == "robotiq" and not config.gripper.port:
-        problems.append(Problem("gripper.port", ROBOTIQ_NEEDS_PORT))
-    return problems
+# -- what to simulate ---------------------------------------------------------------------------
+def simulated_cell_spec(config: CellConfig) -> SimCellSpec:
+    """What of ``config``'s cell the fakes simulate: the arm when its kind is not real
+    hardware (the in-process arm, or the UR controller ``[sim]`` starts), the simulated camera
+    and the simulated gripper."""
+    arm = None if config.robot.is_hardware(config.sim) else _arm_spec(config)
+    camera = _camera_spec(config) if isinstance(config.camera, SimCameraConfig) else None
+    return SimCellSpec(arm, camera, _gripper_spec(config.gripper, config.sim))
 
 
-def _fixed_sim_camera(config: CellConfig, truth: _EngineTruth | _ProcessTruth
-                      ) -> FixedSimCamera:
-    """The simulated fixed camera at its true pose, watching the simulated arm's tool."""
+def _arm_spec(config: CellConfig, in_process: bool = False) -> ArmSpec:
+    rc, sim, fx = config.robot, config.sim, sim_truth.effects(config)
+    host = rc.host if isinstance(rc, UrRobotConfig) and not in_process else None
+    return ArmSpec(home_joints_rad=tuple(float(q) for q in np.radians(rc.home_joints_deg)),
+                   dh_delta_theta_rad=fx.dh_delta_theta_rad, dh_delta_d_mm=fx.dh_delta_d_mm,
+                   dh_delta_a_mm=fx.dh_delta_a_mm, controller_host=host,
+                   controller_running_at_start=sim.controller_running_at_start)
+
+
+def _camera_spec(config: CellConfig) -> CameraSpec:
     sim, true = config.sim, sim_truth.resolve(config)
-    fx = true.effects  # the same sensor timing, blur and light as on the flange
-    return FixedSimCamera(
-        true.camera, config.target.model(), sim.T_base_target.T(), true.T_flange_camera,
-        _pose_source(truth), config.tool.T_flange_tcp.T(), tool_radius_mm=sim.tool_radius_mm,
-        reported_camera=sim_truth.factory_calibration(config),
-        T_flange_board=None if sim.T_flange_board is None else sim.T_flange_board.T(),
-        fps=config.camera.fps, noise_std=sim.noise_std, blur_sigma_px=sim.blur_sigma_px,
-        exposure_jitter=fx.gain_jitter, latency_s=fx.camera_latency_s,
-        latency_jitter_s=fx.camera_latency_jitter_s, timestamp_offset_s=fx.timestamp_offset_s,
-        timestamp_jitter_s=fx.timestamp_jitter_s, motion_blur=fx.motion_blur,
-        flicker_depth=fx.flicker_depth, flicker_hz=fx.flicker_hz)
+    fx = true.effects  # a fixed camera is the same sensor: the same timing, blur and light
+    fixed = None
+    if config.fixed_camera:
+        fixed = FixedMount(config.tool.T_flange_tcp.T(), sim.tool_radius_mm,
+                           None if sim.T_flange_board is None else sim.T_flange_board.T())
+    return CameraSpec(
+        lens=true.camera, reported_lens=sim_truth.factory_calibration(config),
+        T_mount=true.T_flange_camera, target=config.target.model(),
+        T_base_target=sim.T_base_target.T(), fps=config.camera.fps, noise_std=sim.noise_std,
+        blur_sigma_px=sim.blur_sigma_px, fixed=fixed,
+        effects=SensorEffects(
+            gain_jitter=fx.gain_jitter, latency_s=fx.camera_latency_s,
+            latency_jitter_s=fx.camera_latency_jitter_s,
+            timestamp_offset_s=fx.timestamp_offset_s, timestamp_jitter_s=fx.timestamp_jitter_s,
+            motion_blur=fx.motion_blur, flicker_depth=fx.flicker_depth,
+            flicker_hz=fx.flicker_hz))
 
 
-def oak_settings(config: CellConfig) -> OakSettings:
+def _gripper_spec(gripper: GripperConfig, sim: SimConfig) -> GripperSpec | None:
+    if not isinstance(gripper, SimGripperConfig):
+        return None
+    return GripperSpec(gripper.slave_id, sim.gripper_object_width_mm)
+
+
+# -- one builder per kind -----------------------------------------------------------------------
+@singledispatch
+def _build_arm(robot: RobotConfigBase, sim: Sim) -> Arm:
+    raise NotImplementedError(f"no builder for [robot] kind = {type(robot).tag()!r}")
+
+
+@_build_arm.register
+def _ur_arm(robot: UrRobotConfig, sim: Sim) -> Arm:
+    from drivers.ur.adapter import URArm
+
+    return URArm(robot.host, connect_timeout_s=robot.connect_timeout_s,
+                 call_timeout_s=robot.call_timeout_s, watchdog_s=robot.watchdog_s,
+                 stale_after_s=robot.stale_after_s)
+
+
+@_build_arm.register
+def _sim_arm(robot: SimRobotConfig, sim: Sim) -> Arm:
+    if sim.arm is None:
+        raise RuntimeError("the simulated cell was built without its in-process arm")
+    return sim.arm
+
+
+@singledispatch
+def _build_camera(camera: CameraConfigBase, sim: Sim) -> Camera:
+    raise NotImplementedError(f"no builder for [camera] kind = {type(camera).tag()!r}")
+
+
+@_build_camera.register
+def _sim_camera(camera: SimCameraConfig, sim: Sim) -> Camera:
+    if sim.camera is None:
+        raise ConfigError(SIM_CAMERA_NEEDS_SIM_ARM)
+    settings = _sensor_settings(camera)
+    if settings is not None:
+        try:
+            sim.camera.apply_settings(settings)
+        except ValueError as err:
+            raise ConfigError(f"camera: {err}") from err
+    return sim.camera
+
+
+@_build_camera.register
+def _oak_camera(camera: OakCameraConfig, sim: Sim) -> Camera:
+    from drivers.oak.camera import OakCamera
+
+    return OakCamera(oak_settings(camera))
+
+
+@singledispatch
+def _build_gripper(gripper: DeviceConfig, sim: Sim) -> Gripper | None:
+    raise NotImplementedError(f"no builder for [gripper] kind = {type(gripper).tag()!r}")
+
+
+@_build_gripper.register
+def _robotiq(gripper: RobotiqGripperConfig, sim: Sim) -> Gripper | None:
+    if not gripper.port:
+        raise ConfigError(ROBOTIQ_NEEDS_PORT)
+    return robotiq_gripper(gripper, gripper.port)
+
+
+@_build_gripper.register
+def _sim_gripper(gripper: SimGripperConfig, sim: Sim) -> Gripper | None:
+    if sim.gripper is None:
+        raise RuntimeError("the simulated cell was built without its gripper")
+    return robotiq_gripper(gripper, sim.gripper.port)
+
+
+@_build_gripper.register
+def _no_gripper(gripper: NoGripperConfig, sim: Sim) -> Gripper | None:
+    return None
+
+
+# Each device table's builders, by the table's name: every kind of the table has its own.
+BUILDERS = {"robot": _build_arm, "camera": _build_camera, "gripper": _build_gripper}
+
+
+def _sensor_settings(camera: CameraConfigBase) -> CameraSettings | None:
+    """The sensor settings ``[camera]`` states (None: the device's defaults)."""
+    if camera.exposure_us is None and camera.iso is None and camera.focus is None:
+        return None
+    return CameraSettings(camera.exposure_us, camera.iso, camera.focus)
+
+
+def oak_settings(camera: OakCameraConfig) -> OakSettings:
     """The OAK adapter's settings from ``[camera]``; unset sensor values keep its defaults."""
     from drivers.oak.camera import OakSettings
 
-    cc = config.camera
     sensor: dict[str, Any] = {}
-    if cc.exposure_us is not None:
-        sensor["exposure_us"] = cc.exposure_us
-    if cc.iso is not None:
-        sensor["iso"] = cc.iso
+    if camera.exposure_us is not None:
+        sensor["exposure_us"] = camera.exposure_us
+    if camera.iso is not None:
+        sensor["iso"] = camera.iso
     try:
-        return OakSettings(width=cc.width, height=cc.height, fps=cc.fps, socket=cc.socket,
-                           device_id=cc.device_id or None, focus=cc.focus, **sensor)
+        return OakSettings(width=camera.width, height=camera.height, fps=camera.fps,
+                           socket=camera.socket, device_id=camera.device_id or None,
+                           focus=camera.focus, **sensor)
     except ValueError as err:
         raise ConfigError(f"camera: {err}") from err
 
 
-def robotiq_gripper(config: CellConfig, port: str) -> RobotiqGripper:
-    """The Modbus RTU adapter with ``[gripper]``'s link and timing settings."""
-    gc = config.gripper
-    return RobotiqGripper(port, slave_id=gc.slave_id, baudrate=gc.baudrate,
-                          timeout_s=gc.timeout_s, retries=gc.retries,
-                          motion_timeout_s=gc.motion_timeout_s,
-                          activation_timeout_s=gc.activation_timeout_s)
+def robotiq_gripper(link: RobotiqLink, port: str) -> RobotiqGripper:
+    """The Modbus RTU adapter on ``port`` with the link and timing settings of ``link``."""
+    return RobotiqGripper(port, slave_id=link.slave_id, baudrate=link.baudrate,
+                          timeout_s=link.timeout_s, retries=link.retries,
+                          motion_timeout_s=link.motion_timeout_s,
+                          activation_timeout_s=link.activation_timeout_s)
+
+
+# -- what refuses a kind ------------------------------------------------------------------------
+@singledispatch
+def device_problems(device: DeviceConfig, config: CellConfig) -> list[Problem]:
+    """Why the factory would refuse to build ``device`` in ``config``'s cell (a kind without
+    rules of its own: nothing)."""
+    return []
+
+
+@device_problems.register
+def _sim_camera_problems(camera: SimCameraConfig, config: CellConfig) -> list[Problem]:
+    problems = []
+    if config.robot.is_hardware(config.sim):
+        problems.append(Problem("camera.kind", SIM_CAMERA_NEEDS_SIM_ARM))
+    settings = _sensor_settings(camera)
+    if settings is not None:
+        try:
+            SimCamera.check_settings(settings, camera.fps)
+        except ValueError as err:
+            problems.append(Problem("camera", str(err)))
+    return problems
+
+
+@device_problems.register
+def _oak_problems(camera: OakCameraConfig, config: CellConfig) -> list[Problem]:
+    try:
+        oak_settings(camera)
+    except ConfigError as err:
+        return [Problem("camera", str(err))]
+    return []
+
+
+@device_problems.register
+def _robotiq_problems(gripper: RobotiqGripperConfig, config: CellConfig) -> list[Problem]:
+    return [] if gripper.port else [Problem("gripper.port", ROBOTIQ_NEEDS_PORT)]
+
+
+def hardware_problems(config: CellConfig) -> list[Problem]:
+    """Every reason :func:`build_hardware` refuses this config, found without building or
+    touching anything, so ``cell config check`` fails on what ``cell serve`` refuses."""
+    return [p for device in config.devices() for p in device_problems(device, config)]
+
+
+def all_simulated(config: CellConfig) -> bool:
+    """True when the config builds only fakes (then the sample API tokens are allowed)."""
+    return not config.has_real_device()
+
+
+# -- building -----------------------------------------------------------------------------------
+def build_hardware(config: CellConfig) -> Hardware:
+    """Create (not connect) the devices the config names; Cell.start connects them."""
+    problems = hardware_problems(config)
+    if problems:
+        raise ConfigError("cannot build the hardware:\n  "
+                          + "\n  ".join(str(p) for p in problems), problems)
+    sim = build_sim_cell(simulated_cell_spec(config), sim_truth.resolve(config))
+    closers: list[Callable[[], None]] = [sim.close]
+    try:
+        arm = _build_arm(config.robot, sim)
+        closers.append(arm.disconnect)
+        camera = _build_camera(config.camera, sim)
+        closers.append(camera.disconnect)
+        gripper = _build_gripper(config.gripper, sim)
+        if gripper is not None:
+            closers.append(gripper.disconnect)
+    except BaseException:
+        _release(closers)
+        raise
+    simulated = all_simulated(config)
+    return Hardware(arm=arm, camera=camera, gripper=gripper, simulated=simulated,
+                    sim=sim.world if simulated else None, closers=closers)
 
 
 def build_camera(config: CellConfig) -> tuple[Camera, Callable[[], None]]:
@@ -330,93 +303,45 @@ def build_camera(config: CellConfig) -> tuple[Camera, Callable[[], None]]:
     A simulated camera needs a simulated arm to hang on: it gets an in-process one at the
     configured home pose, so it shows what the simulated cell sees at home.
     """
-    truth = None
-    engine = None
-    if config.camera.kind == "sim":
-        home_rad = [float(v) for v in np.radians(config.robot.home_joints_deg)]
-        engine = MotionEngine(q_rad=home_rad)
-        truth = _EngineTruth(engine, true_kinematics(config))
+    spec = SimCellSpec()
+    if isinstance(config.camera, SimCameraConfig):
+        spec = SimCellSpec(arm=_arm_spec(config, in_process=True), camera=_camera_spec(config))
+    return _one_device(_build_camera, config.camera, spec)
+
+
+def build_gripper(gripper: GripperConfig, sim: SimConfig | None = None
+                  ) -> tuple[Gripper | None, Callable[[], None]]:
+    """Only the gripper (None for ``kind = "none"``), for commissioning commands, and a
+    function that releases it; a simulated one holds ``sim``'s object."""
+    spec = SimCellSpec(gripper=_gripper_spec(gripper, sim if sim is not None else SimConfig()))
+    return _one_device(_build_gripper, gripper, spec)
+
+
+class _Device(Protocol):
+    def disconnect(self) -> None: ...
+
+
+D = TypeVar("D", bound=_Device | None)
+
+
+def _one_device(build: Callable[[Any, Sim], D], device: CameraConfig | GripperConfig,
+                spec: SimCellSpec) -> tuple[D, Callable[[], None]]:
+    sim = build_sim_cell(spec, None)
     try:
-        camera, _ = _make_camera(config, truth)
+        built = build(device, sim)
     except BaseException:
-        if engine is not None:
-            engine.close()
+        sim.close()
         raise
 
     def release() -> None:
-        camera.disconnect()
-        if engine is not None:
-            engine.close()
+        if built is not None:
+            built.disconnect()
+        sim.close()
 
-    return camera, release
-
-
-def all_simulated(config: CellConfig) -> bool:
-    """True when the config builds only fakes (then the sample API tokens are allowed)."""
-    return not config.has_real_device()
+    return built, release
 
 
-def build_hardware(config: CellConfig) -> Hardware:
-    """Create (not connect) the devices the config names; Cell.start connects them."""
-    closers: list[Callable[[], None]] = []
-    try:
-        return _build(config, closers)
-    except BaseException:
-        for close in reversed(closers):
-            with contextlib.suppress(Exception):  # cleaning up after a failed build
-                close()
-        raise
-
-
-def _build(config: CellConfig, closers: list[Callable[[], None]]) -> Hardware:
-    rc, sim = config.robot, config.sim
-    truth: _EngineTruth | _ProcessTruth | None = None
-    arm: Arm
-    if rc.kind == "sim":
-        engine = MotionEngine(q_rad=[float(v) for v in np.radians(rc.home_joints_deg)])
-        closers.append(engine.close)
-        truth = _EngineTruth(engine, true_kinematics(config))
-        arm = SimArm(engine)
-        closers.append(arm.disconnect)
-    else:
-        if sim.ur_controller:
-            process_truth = _ProcessTruth(rc.host, start=sim.controller_running_at_start,
-                                          kin=true_kinematics(config))
-            closers.append(process_truth.close)
-            truth = process_truth
-        from drivers.ur.adapter import URArm
-
-        arm = URArm(rc.host, connect_timeout_s=rc.connect_timeout_s,
-                    call_timeout_s=rc.call_timeout_s, watchdog_s=rc.watchdog_s,
-                    stale_after_s=rc.stale_after_s)
-        closers.append(arm.disconnect)
-
-    camera, sim_camera = _make_camera(config, truth)
-    closers.append(camera.disconnect)
-
-    gripper: Gripper | None = None
-    fake: FakeGripper | None = None
-    gc = config.gripper
-    if gc.kind == "sim":
-        fake = FakeGripper(slave_id=gc.slave_id, object_width_mm=sim.gripper_object_width_mm,
-                           activation_time_s=0.2)
-        fake.start()
-        closers.append(fake.stop)
-        gripper = robotiq_gripper(config, fake.port)
-        closers.append(gripper.disconnect)
-    elif gc.kind == "robotiq":
-        if not gc.port:
-            raise ConfigError(ROBOTIQ_NEEDS_PORT)
-        gripper = robotiq_gripper(config, gc.port)
-        closers.append(gripper.disconnect)
-
-    simulated = all_simulated(config)
-    world = None
-    if simulated and truth is not None and sim_camera is not None:
-        world = _SimWorld(truth, sim_camera, fake, config.sim.world,
-                          sim_truth.effects(config))
-    hw = Hardware(arm=arm, camera=camera, gripper=gripper, simulated=simulated, sim=world,
-                  closers=list(closers))
-    closers.clear()
-    return hw
-
+def _release(closers: list[Callable[[], None]]) -> None:
+    for close in reversed(closers):
+        with contextlib.suppress(Exception):  # cleaning up after a failed build
+            close()

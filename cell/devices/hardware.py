@@ -41,6 +41,9 @@ class SimWorld(Protocol):
                    angular_velocity_rad_s: NDArray[np.float64] | None = None) -> None:
         """Place the target now; with velocities (base frame) it drifts from now on."""
 
+    def set_tool_board(self, T_flange_board: NDArray[np.float64] | None) -> None:
+        """Clamp the calibration plate to the tool (None: take it off); fixed cameras only."""
+
     def set_camera_blocked(self, blocked: bool) -> None:
         """Cover (True) or uncover the lens: frames come, the target is not in them."""
 

@@ -15,6 +15,10 @@ being run says, so a commissioned config stays commissioned. Explicit ``[sim]`` 
 
 The simulated camera reports nominal intrinsics with its frames (:func:`factory_calibration`), as
 an OAK reports its factory calibration: a believed value, not the lens it renders with.
+
+Who reads it: the hardware factory builds the simulated devices to it (``fakes.sim_cell``), and
+the simulated world hands it back (``Hardware.sim.truth_values()``) to the only parts of the cell
+that may see the truth: the benchmarks, which score against it, and the ``/sim`` routes.
 """
 
 from __future__ import annotations

@@ -3,9 +3,9 @@ is inconsistent (its ``consistency`` verdict, cell.vision.consistency) and every
 (protective or emergency stop, arm or camera lost, gripper fault) becomes an alarm that stays
 until an operator acknowledges it.
 
-Why a log of its own: in the job list alone a failed approach is below the fold; a production
-cell needs something that stays on screen until a person has seen it, and that survives a
-restart (the alarms live in the job database, table ``alarms``).
+Why a log of its own: in the job list a failed approach is one row among many, below the
+fold; a production cell needs something that stays on screen until a person has seen it, and
+that survives a restart (the alarms live in the job database, table ``alarms``).
 
 The alarms are derived, not reported: twice a second the log reads the jobs that ended badly
 from the job table and the faults from the cell's status, so no code path of the cell has to

@@ -12,29 +12,29 @@
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING, Literal
+from collections.abc import Callable, Mapping
+from typing import Literal
 
-if TYPE_CHECKING:
-    from fakes.ur_controller.server import URController
-    from fakes.ur_controller.tcp import TcpService
+from fakes.ur_controller.tcp import TcpService
+from fakes.ur_sim import MotionEngine
 
 Port = Literal["rtde", "script", "dashboard", "primary", "secondary"]
 
 
 class Faults:
-    """The fault switches of one :class:`URController`."""
+    """The fault switches of one controller: its ports' services, its engine, and how it
+    dies (``kill``)."""
 
-    def __init__(self, ctl: URController) -> None:
-        self._ctl = ctl
+    def __init__(self, services: Mapping[Port, TcpService], engine: MotionEngine,
+                 kill: Callable[[], None]) -> None:
+        self._table = dict(services)
+        self._engine = engine
+        self._kill = kill
         self.frozen = False
         self._stall_until_s = 0.0
 
     def _services(self, ports: tuple[Port, ...]) -> list[TcpService]:
-        ctl = self._ctl
-        table = {"rtde": ctl.rtde.service, "script": ctl.script, "dashboard": ctl.dashboard,
-                 "primary": ctl.client_interfaces.services["primary"],
-                 "secondary": ctl.client_interfaces.services["secondary"]}
-        return [table[p] for p in ports]
+        return [self._table[p] for p in ports]
 
     def drop_connections(self, ports: tuple[Port, ...] = ("rtde", "script", "dashboard",
                                                           "primary", "secondary"),
@@ -51,17 +51,17 @@ class Faults:
         return time.monotonic() < self._stall_until_s
 
     def protective_stop(self, after_s: float = 0.0) -> None:
-        self._ctl.engine.inject("protective_stop", after_s)
+        self._engine.inject("protective_stop", after_s)
 
     def emergency_stop(self, after_s: float = 0.0) -> None:
-        self._ctl.engine.inject("emergency_stop", after_s)
+        self._engine.inject("emergency_stop", after_s)
 
     def release_emergency_stop(self) -> None:
-        self._ctl.engine.release_emergency_stop()
+        self._engine.release_emergency_stop()
 
     def kill(self) -> None:
         """The controller dies: connections reset, nothing listens any more."""
-        self._ctl.close(reset=True)
+        self._kill()
 
     def freeze(self) -> None:
         """The controller stops answering without closing anything it has open."""

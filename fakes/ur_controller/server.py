@@ -84,7 +84,11 @@ class URController:
             (primary_port, secondary_port, script_port))
         self.script = self.client_interfaces.services["realtime"]
         self.dashboard = dashboard_service(host, self, dashboard_port)
-        self.faults = Faults(self)
+        self.faults = Faults(
+            {"rtde": self.rtde.service, "script": self.script, "dashboard": self.dashboard,
+             "primary": self.client_interfaces.services["primary"],
+             "secondary": self.client_interfaces.services["secondary"]},
+            self.engine, lambda: self.close(reset=True))
         self._alive = True
         self._t0_host = self.engine.snapshot().host_monotonic_s - self.engine.controller_time_s()
         self.engine.set_cycle_hook(self._cycle_once, self._wants_cycles, IDLE_CYCLE_S)

@@ -342,6 +342,7 @@ def test_settings_before_connect_are_used_on_connect() -> None:
 def test_config_camera_settings_reach_the_oak_adapter(tmp_path: Path) -> None:
     """[camera] device id, socket, size, fps, exposure, iso and focus -> the adapter -> the
     host-only pipeline's frames."""
+    from cell.config.devices import OakCameraConfig
     from cell.config.schema import load_config
     from cell.devices.factory import oak_settings
 
@@ -354,7 +355,9 @@ def test_config_camera_settings_reach_the_oak_adapter(tmp_path: Path) -> None:
                                                                             "iso = 640")
     text = text.replace("# focus = 130", "focus = 130")
     (tmp_path / "cell.toml").write_text(text)
-    settings = oak_settings(load_config(tmp_path / "cell.toml"))
+    camera = load_config(tmp_path / "cell.toml").camera
+    assert isinstance(camera, OakCameraConfig)
+    settings = oak_settings(camera)
     assert (settings.width, settings.height, settings.fps) == (64, 40, 40.0)
     assert settings.device_id == "14442C10D13EABCE00" and settings.socket == "CAM_A"
     assert (settings.exposure_us, settings.iso, settings.focus) == (3500, 640, 130)

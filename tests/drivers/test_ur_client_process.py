@@ -13,8 +13,8 @@ def _fds() -> int:
 
 
 def test_children_killed_or_closed_leave_no_descriptors() -> None:
-    """A cell replaces its child after every lost link (about 20 an hour in a soak); each
-    replacement used to keep its two pipes open until the service ran out of descriptors."""
+    """A cell replaces its child after every lost link (about 20 an hour in a soak); a
+    replaced child whose two pipes stayed open would leave the service without descriptors."""
     ClientProcess("127.0.0.1").kill("warm up")  # the first child loads what stays loaded
     before = _fds()
     # held, as a callback or a late reply can hold a replaced child: its pipes must be closed

@@ -108,7 +108,7 @@ def test_unlock_and_home_over_http(tmp_path: Path) -> None:
         assert r.status_code == 409 and r.json()["error"]["code"] == "protective_stop", r.text
         held = settled_tcp(cell)
         robot = client.get("/api/v1/status", headers=VIEW).json()["robot"]
-        assert robot["protective_stop"] and not robot["moving"], robot  # audit item 9
+        assert robot["protective_stop"] and not robot["moving"], robot
         time.sleep(5.0)
         r = client.post("/api/v1/arm/unlock", headers=OP)
         assert r.status_code == 200 and r.json()["unlocked"] and r.json()["ready"], r.text
@@ -129,7 +129,8 @@ def test_unlock_and_home_over_http(tmp_path: Path) -> None:
 
 
 def test_a_frozen_controller_is_told_to_stop_first_when_it_answers_again(tmp_path: Path) -> None:
-    """Audit item 4: frozen mid-approach and resumed, the arm went on 21-126 mm."""
+    """Frozen mid-approach and resumed, the controller is told to stop before the arm goes on
+    (left alone it goes on 21-126 mm)."""
     with ur_client(tmp_path) as client:
         cell = cell_of(client)
         world(cell).set_target(np.asarray(world(cell).true_T_base_target()) @ np.array(

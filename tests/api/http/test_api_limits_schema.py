@@ -1,4 +1,4 @@
-"""The OpenAPI schema's speed bounds are the configured limits (audit item 3), and a speed
+"""The OpenAPI schema's speed bounds are the configured limits, and a speed
 that rounds to nothing on the wire is a limit refusal over HTTP, not a runtime error."""
 
 from __future__ import annotations

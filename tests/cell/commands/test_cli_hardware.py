@@ -79,6 +79,29 @@ def test_gripper_link_settings_from_the_config(fake_gripper_link: Path, tmp_path
     assert rc == 2 and out["error"]["code"] == "invalid_argument"  # type: ignore[index]
 
 
+def test_gripper_of_each_kind_from_the_config(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The simulated cell's gripper (kind = "sim") is driven on its own pseudo-terminal; a cell
+    without a gripper, or an option its kind does not take, is refused."""
+    sim_toml = REPO / "cell" / "configs" / "sim.toml"
+
+    def gripper(*args: str) -> tuple[int, dict[str, object]]:
+        rc = main(["gripper", *args, "--json"])
+        return rc, json.loads(capsys.readouterr().out)
+
+    rc, status = gripper("--config", str(sim_toml), "activate")
+    assert rc == 0 and status["activated"] is True and status["position_mm"] == 85.0
+    rc, out = gripper("--config", str(sim_toml), "--port", "/dev/ttyUSB0", "status")
+    assert rc == 2 and out["error"]["code"] == "invalid_argument"  # type: ignore[index]
+    assert "has no port" in out["error"]["message"]  # type: ignore[index]
+    none = tmp_path / "none.toml"
+    none.write_text(sim_toml.read_text().replace('[gripper]\nkind = "sim"\n',
+                                                 '[gripper]\nkind = "none"\n'))
+    rc, out = gripper("--config", str(none), "status")
+    assert rc == 2 and out["error"]["code"] == "invalid_argument"  # type: ignore[index]
+    assert "no gripper" in out["error"]["message"]  # type: ignore[index]
+
+
 def test_gripper_missing_port_is_connection_lost(tmp_path: Path) -> None:
     rc, out = cell("gripper", "--port", str(tmp_path / "nothing"), "status", "--json")
     assert rc == 2 and out["error"]["code"] == "connection_lost"  # type: ignore[index]

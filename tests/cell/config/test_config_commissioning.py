@@ -1,6 +1,6 @@
-"""The strict config as a new integrator meets it: every plausible mistake from the
-commissioning issue fails to load with the key and the likely mistake named, loads when the key
-is explicitly accepted, and `cell config check` lists every problem at once without hardware."""
+"""The strict config as a new integrator meets it: every plausible mistake fails to load with
+the key and the likely mistake named, loads when the key is explicitly accepted, and `cell
+config check` lists every problem at once without hardware."""
 
 from __future__ import annotations
 
@@ -42,7 +42,7 @@ def _problems(path: Path) -> list[str]:
     return [str(p) for p in err.value.problems]
 
 
-# The mistakes the issue lists: (old text, mistaken text, key named, words of the likely mistake)
+# Plausible mistakes: (old text, mistaken text, key named, words of the likely mistake)
 MISTAKES = [
     ('T_flange_tcp = { position_mm = [0.0, 0.0, 150.0]', 'T_flange_tcp = { position_mm = '
      '[0.0, 0.0, 0.15]', "tool.T_flange_tcp.position_mm", "metres"),
@@ -173,6 +173,7 @@ def test_device_settings_are_validated(tmp_path: Path) -> None:
 
 def test_robot_and_gripper_settings_reach_the_adapters(tmp_path: Path) -> None:
     """What build_hardware passes: the UR adapter's timing and the Modbus link settings."""
+    from cell.config.devices import RobotiqGripperConfig
     from cell.devices.factory import robotiq_gripper
     from drivers.ur.adapter import URArm
 
@@ -181,7 +182,8 @@ def test_robot_and_gripper_settings_reach_the_adapters(tmp_path: Path) -> None:
     text = _edit(_edit(text, "slave_id = 9", "slave_id = 12"), "baudrate = 115200",
                  "baudrate = 57600")
     cfg = load_config(_write(tmp_path, text))
-    gripper = robotiq_gripper(cfg, "/dev/ttyUSB7")
+    assert isinstance(cfg.gripper, RobotiqGripperConfig)
+    gripper = robotiq_gripper(cfg.gripper, "/dev/ttyUSB7")
     assert (gripper.port, gripper.slave_id, gripper.baudrate, gripper.timeout_s,
             gripper.retries, gripper.motion_timeout_s, gripper.activation_timeout_s) == \
         ("/dev/ttyUSB7", 12, 57600, 0.5, 3, 5.0, 10.0)

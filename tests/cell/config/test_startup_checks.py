@@ -1,5 +1,5 @@
-"""Every start path validates the whole config before touching hardware (audit item 5): the
-sample or weak tokens on a real-hardware config are refused while the arm is still unpowered."""
+"""Every start path validates the whole config before touching hardware: the sample or weak
+tokens on a real-hardware config are refused while the arm is still unpowered."""
 
 from __future__ import annotations
 

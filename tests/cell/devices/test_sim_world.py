@@ -9,8 +9,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from api.app import create_app
-from cell.config.schema import ConfigError, load_config, parse_config
-from cell.devices.factory import build_hardware, true_kinematics
+from cell.config.schema import CellConfig, ConfigError, load_config, parse_config
+from cell.devices.factory import build_hardware, simulated_cell_spec
 from cell.devices.sim_truth import (
     IDEAL_EFFECTS,
     REALISTIC,
@@ -123,6 +123,11 @@ def test_realistic_arm_reports_nominal_kinematics_off_the_true_tcp(tmp_path: Pat
 
 
 def test_true_kinematics_stay_within_a_millimetre_over_the_workspace(tmp_path: Path) -> None:
+    def true_kinematics(config: CellConfig) -> UR5eKinematics | None:
+        arm = simulated_cell_spec(config).arm
+        assert arm is not None
+        return arm.true_kinematics()
+
     kin = true_kinematics(sim_config(tmp_path, sim={"world": "realistic"}))
     assert kin is not None and true_kinematics(sim_config(tmp_path)) is None
     nominal = UR5eKinematics()

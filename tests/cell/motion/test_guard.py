@@ -41,8 +41,8 @@ def assert_paths_within(commanded: list, guard: SafetyGuard) -> None:
 
 
 def test_tilt_is_checked_along_the_path_not_only_at_its_ends(tmp_path: Path) -> None:
-    """Audit item 1: two approaches whose goals are within 60 deg but whose moveL between
-    them swept the tool through 83.6 deg. (The second starts from the first's last locate,
+    """Two approaches whose goals are within 60 deg but whose moveL between them would sweep
+    the tool through 83.6 deg. (The second starts from the first's last locate,
     taken head-on from its observation pose: the oblique view at its goal is the estimator's
     business, not the guard's.)"""
     with running_cell(sim_config(tmp_path, limits={"max_pose_age_s": 30.0})) as cell:
@@ -60,7 +60,7 @@ def test_tilt_is_checked_along_the_path_not_only_at_its_ends(tmp_path: Path) -> 
 
 
 def test_jogging_outside_the_box_only_reduces_the_violation(tmp_path: Path) -> None:
-    """Audit item 2: with the TCP above the box top, +z must be refused in every form."""
+    """With the TCP above the box top, +z must be refused in every form."""
     with running_cell(sim_config(tmp_path)) as cell:
         z0 = float(tcp(cell)[2, 3])
         box_top = z0 - 38.0  # the audit's 338 mm over a 300 mm top
@@ -94,7 +94,8 @@ def test_jogging_outside_the_box_only_reduces_the_violation(tmp_path: Path) -> N
 @pytest.mark.parametrize("speed", [0.005, 5e-324, 1e-300])
 def test_speeds_that_round_to_nothing_are_refused_with_a_limit_code(
         tmp_path: Path, speed: float) -> None:
-    """Audit item 3: a creeping step used to fail after 0.07 s while the arm kept moving."""
+    """Refused before anything moves: a creeping step would fail after 0.07 s while the arm
+    kept moving."""
     with running_cell(sim_config(tmp_path)) as cell:
         before = tcp(cell)
         with pytest.raises(LimitError) as err:
@@ -111,7 +112,7 @@ def test_speeds_that_round_to_nothing_are_refused_with_a_limit_code(
 
 class _FailsAfterSending(SimArm):
     """A controller that takes the move and then reports it failed while the arm goes on
-    moving (what a misread motion end used to look like)."""
+    moving (what a misread motion end looks like)."""
 
     def move_linear(self, T_base_tcp: np.ndarray, speed_mm_s: float, accel_mm_s2: float,
                     wait: bool = True) -> None:
@@ -146,7 +147,7 @@ def test_a_failed_move_ends_with_the_arm_stopped_and_still_before_the_slot_is_fr
 
 
 def test_gripper_timeouts_do_not_slow_status_and_stops_are_not_moving(tmp_path: Path) -> None:
-    """Audit item 9: a gripper that times out made /status take 1 s."""
+    """A gripper that times out on every request (up to 1 s each) does not slow /status."""
     with running_cell(sim_config(tmp_path, gripper="sim")) as cell:
         world(cell).inject_gripper_fault("no_answer", 1000)
         worst = 0.0
@@ -169,7 +170,7 @@ def test_gripper_timeouts_do_not_slow_status_and_stops_are_not_moving(tmp_path: 
 
 def test_losing_the_camera_mid_approach_fails_it_at_once_and_stops_the_arm(
         tmp_path: Path) -> None:
-    """Audit item 9: the loss used to be noticed only at the next locate (1.7 s later)."""
+    """The loss fails the approach when it happens, not at the next locate (1.7 s later)."""
     with running_cell(sim_config(tmp_path)) as cell:
         world(cell).set_target(translation_T(60.0, 40.0, 0.0) @ world(cell).true_T_base_target())
         job = cell.approach("test", speed_mm_s=60.0)

@@ -1,0 +1,56 @@
+"""Which result each kind of job returns, and reading one back by its kind.
+
+A job's kind names its result's model: an approach returns an :data:`ApproachResult` (by its
+mode), a track a :data:`TrackResult`, home a :class:`HomeResult`, the hand-eye routine a
+:class:`HandEyeRoutineResult`. The job store keeps a result as its JSON and reads it back
+through :func:`result_of` with the job's kind.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal, get_args
+
+from pydantic import TypeAdapter
+
+from cell.results.approach import ApproachResult, IbvsApproach, LookAndMoveApproach, ServoApproach
+from cell.results.home import HomeResult
+from cell.results.routine import HandEyeRoutineResult
+from cell.results.track import IbvsTrack, ServoTrack, TrackResult
+
+JobKind = Literal["approach", "track", "home", "hand_eye_calibration"]
+JOB_KINDS: tuple[JobKind, ...] = get_args(JobKind)
+
+JobResult = (LookAndMoveApproach | ServoApproach | IbvsApproach | ServoTrack | IbvsTrack
+             | HomeResult | HandEyeRoutineResult)
+
+_ADAPTERS: dict[str, TypeAdapter[Any]] = {
+    "approach": TypeAdapter(ApproachResult),
+    "track": TypeAdapter(TrackResult),
+    "home": TypeAdapter(HomeResult),
+    "hand_eye_calibration": TypeAdapter(HandEyeRoutineResult),
+}
+
+
+def _adapter(kind: str) -> TypeAdapter[Any]:
+    try:
+        return _ADAPTERS[kind]
+    except KeyError:
+        raise ValueError(f"no result model for jobs of kind {kind!r}") from None
+
+
+def result_of(kind: str, data: Any) -> JobResult:
+    """A result of a job of ``kind`` from its model, or from its JSON object as a dict;
+    pydantic's ValidationError when it is not one."""
+    result: JobResult = _adapter(kind).validate_python(data)
+    return result
+
+
+def result_from_json(kind: str, text: str | bytes) -> JobResult:
+    """A result of a job of ``kind`` from the JSON text the job store keeps."""
+    result: JobResult = _adapter(kind).validate_json(text)
+    return result
+
+
+def result_json(result: JobResult) -> str:
+    """The JSON text the job store keeps (keys a producer did not set stay absent)."""
+    return result.model_dump_json(exclude_unset=True)
