@@ -16,6 +16,14 @@ from pydantic import BaseModel, ConfigDict, Field, Strict, StrictBool, model_val
 
 from cell.actions.approach_rules import MAX_STANDOFF_MM
 from cell.error_codes import ErrorCode
+from cell.results import (
+    ApproachResult,
+    HandEyeRoutineResult,
+    HomeResult,
+    LocateResult,
+    TrackResult,
+)
+from cell.results.calibration import CalibrationApplied
 from cell.results.modes import ApproachMode, TrackMode
 
 # Strict scalars of request bodies: no strings, no booleans as numbers, no numbers as booleans.
@@ -34,7 +42,7 @@ class _Body(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
-class Pose(_Body):
+class PoseIn(_Body):
     """``{"position_mm": [x, y, z], "rotvec_rad": [rx, ry, rz]}``, the project's pose object."""
 
     position_mm: tuple[
@@ -66,7 +74,7 @@ class LocateRequest(_Body):
 class ApproachRequest(_Body):
     standoff_mm: Num | None = Field(default=None, ge=0, le=MAX_STANDOFF_MM)
     speed_mm_s: Num | None = Field(default=None, gt=0, le=2000)
-    T_target_tcp: Pose | None = Field(
+    T_target_tcp: PoseIn | None = Field(
         default=None, description="tool pose in the target frame; default from config")
     taught: str | None = Field(
         default=None, min_length=1, max_length=64,
@@ -91,7 +99,7 @@ class ApproachRequest(_Body):
 class TrackRequest(_Body):
     standoff_mm: Num = Field(ge=0, le=MAX_STANDOFF_MM)
     duration_s: Num = Field(gt=0, le=86400, description="capped by [servo] max_track_s")
-    T_target_tcp: Pose | None = Field(
+    T_target_tcp: PoseIn | None = Field(
         default=None, description="tool pose in the target frame; default from config")
     taught: str | None = Field(default=None, min_length=1, max_length=64,
                                description="use the T_target_tcp taught under this name")
@@ -105,7 +113,7 @@ _Vel = Annotated[Num, Field(ge=-1000, le=1000)]
 _AngVel = Annotated[Num, Field(ge=-360, le=360)]
 
 
-class SimTargetRequest(Pose):
+class SimTargetRequest(PoseIn):
     """A target pose and, optionally, the drift it starts now (base frame)."""
 
     velocity_mm_s: tuple[_Vel, _Vel, _Vel] | None = None
@@ -166,6 +174,11 @@ def _examples(*examples: dict[str, Any]) -> ConfigDict:
     return ConfigDict(extra="allow", json_schema_extra={"examples": list(examples)})
 
 
+def _documented(*examples: dict[str, Any]) -> ConfigDict:
+    """A cell result's examples in the schema; the result's own config stays (closed)."""
+    return ConfigDict(json_schema_extra={"examples": list(examples)})
+
+
 POSE_EXAMPLE = {"position_mm": [-480.0, -130.0, 350.0], "rotvec_rad": [3.1416, 0.0, 0.0]}
 
 
@@ -191,21 +204,69 @@ JOB_EXAMPLE = {
     "created_at": 1796200000.0, "ended_at": 1796200002.5}
 
 
-class Job(_Out):
-    """A long-running command (approach, hand-eye calibration). ``result`` is set when it
-    succeeded, ``error`` when it failed, was cancelled or interrupted."""
+class _JobFields(_Out):
+    """What every job says; ``result`` is set when it succeeded, ``error`` when it failed,
+    was cancelled or interrupted."""
 
-    model_config = _examples(JOB_EXAMPLE)
     id: str
-    kind: str
     caller: str
     params: dict[str, Any]
     state: Literal["running", "succeeded", "failed", "cancelled", "interrupted"]
     progress: dict[str, Any]
-    result: dict[str, Any] | None
     error: JobError | None
     created_at: float = Field(description="UNIX seconds")
     ended_at: float | None
+
+
+class ApproachJob(_JobFields):
+    """An approach; its result by the approach's ``mode`` (look_and_move, servo, ibvs)."""
+
+    model_config = _examples(JOB_EXAMPLE)
+    kind: Literal["approach"]
+    result: ApproachResult | None
+
+
+class TrackJob(_JobFields):
+    """Tracking; its result by ``mode`` (track: pose-based, ibvs_track: a taught view)."""
+
+    model_config = _examples(JOB_EXAMPLE | {
+        "id": "8c1d2e3f4a5b", "kind": "track", "params": {"standoff_mm": 60.0,
+                                                          "duration_s": 10.0},
+        "state": "running", "progress": {"phase": "track", "t_s": 2.5, "error_mm": 0.4},
+        "error": None, "ended_at": None})
+    kind: Literal["track"]
+    result: TrackResult | None
+
+
+class HomeJob(_JobFields):
+    """The joint move to the configured home pose."""
+
+    model_config = _examples(JOB_EXAMPLE | {
+        "id": "5e6f7a8b9c0d", "kind": "home", "params": {"home_joints_deg": [
+            0.0, -90.0, 90.0, -90.0, -90.0, 0.0], "speed_deg_s": 30.0},
+        "state": "succeeded", "progress": {"phase": "moving"},
+        "result": {"joints_deg": [0.0, -90.0, 90.0, -90.0, -90.0, 0.0],
+                   "T_base_tcp": POSE_EXAMPLE}, "error": None})
+    kind: Literal["home"]
+    result: HomeResult | None
+
+
+class HandEyeJob(_JobFields):
+    """The hand-eye routine; its result holds every method's mount, the refinements, the
+    residuals and the verdict."""
+
+    model_config = _examples(JOB_EXAMPLE | {
+        "id": "1a2b3c4d5e6f", "kind": "hand_eye_calibration", "caller": "http:op(operator)",
+        "params": {"views": 12, "tilt_deg": 30.0, "roll_deg": 60.0, "speed_mm_s": 200.0,
+                   "method": "auto"},
+        "state": "running", "progress": {"stage": "views", "done": 4, "total": 12},
+        "error": None, "ended_at": None})
+    kind: Literal["hand_eye_calibration"]
+    result: HandEyeRoutineResult | None
+
+
+# A long-running command, by its ``kind``: each kind's result is its own typed model.
+Job = Annotated[ApproachJob | TrackJob | HomeJob | HandEyeJob, Field(discriminator="kind")]
 
 
 class JobList(_Out):
@@ -279,24 +340,22 @@ LOCATED_EXAMPLE = {
     "T_base_tcp": POSE_EXAMPLE,
     "quality": {"rms_px": 0.12, "max_residual_px": 0.2, "ambiguous": False, "converged": True,
                 "n_points": 6, "covariance": None, "frame_age_s": 0.05, "n_frames": 1,
-                "spread_mm": 0.0},
-    "frame_sequence": 1234}
+                "spread_mm": 0.0, "spread_deg": 0.0},
+    "frame_sequence": 1234,
+    "consistency": {
+        "verdict": "unchecked", "codes": [], "findings": [],
+        "reprojection": {"rms_px": [0.12], "max_rms_px": 0.12, "limit_px": 1.0},
+        "frame_spread": {"max_mm": 0.0, "max_deg": 0.0, "limit_mm": 0.5, "limit_deg": 0.2},
+        "motion": {"target_at_rest": False, "checks": [], "judged": 0,
+                   "max_target_moved_mm": None, "max_target_moved_deg": None,
+                   "limit_mm": 0.5, "limit_deg": 0.15, "min_arm_motion_mm": 5.0,
+                   "min_arm_motion_deg": 2.0}}}
 
 
-class Located(_Out):
-    """Where the target is, in the base frame and the camera frame, and how well it fits."""
+class Located(LocateResult):
+    """The locate answer (:class:`cell.results.locate.LocateResult`) with its example."""
 
-    model_config = _examples(LOCATED_EXAMPLE)
-    T_base_target: PoseOut
-    T_camera_target: PoseOut
-    T_base_tcp: PoseOut = Field(description="the arm pose at the frame's capture time")
-    quality: Quality
-    frame_sequence: int
-    consistency: dict[str, Any] | None = Field(default=None, description=(
-        "whether the evidence agrees with itself: verdict (consistent, inconsistent, "
-        "unchecked), codes and findings, reprojection residuals of the frames averaged and "
-        "their spread; an approach's result carries the same block with the arm's motion "
-        "against the target's seen motion (docs/commissioning.md)"))
+    model_config = _documented(LOCATED_EXAMPLE)
 
 
 class RobotStatus(_Out):
@@ -518,17 +577,14 @@ class ImageList(_Out):
     enabled: bool = Field(description="false when [api] image_log_dir is not set")
 
 
-class ApplyResult(_Out):
-    model_config = _examples({"job_id": "3f2a9c1b7d4e", "T_flange_camera": POSE_EXAMPLE,
-                              "running": True, "written_config": None})
-    job_id: str
-    T_flange_camera: PoseOut = Field(description="the applied mount (T_base_camera for a "
-                                     "fixed camera)")
-    mount: str = Field("hand", description="\"hand\" (eye-in-hand) or \"fixed\"")
-    transform: str = Field("T_flange_camera", description="what the applied mount is")
-    T_base_camera: PoseOut | None = Field(None, description="a fixed camera's applied pose")
-    running: bool = Field(description="in use by the running cell now")
-    written_config: str | None = Field(description="the config file written, if any")
+class ApplyResult(CalibrationApplied):
+    """The answer of applying a calibration (:class:`cell.results.calibration.
+    CalibrationApplied`) with its example."""
+
+    model_config = _documented({
+        "job_id": "3f2a9c1b7d4e", "T_flange_camera": POSE_EXAMPLE, "mount": "hand",
+        "transform": "T_flange_camera", "running": True, "written_config": None,
+        "config_change": None})
 
 
 TAUGHT_EXAMPLE = {

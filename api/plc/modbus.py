@@ -54,6 +54,7 @@ from api.remote import RemoteCaller
 from cell.config.schema import ModbusConfig
 from cell.errors import CellError
 from cell.jobs.store import Job
+from cell.results.jobs import located_pose
 from cell.service import Cell
 from cell.supervision.logs import drop_library_records, quiet_library_loggers
 
@@ -463,13 +464,10 @@ class ModbusServer(LoopThread):
             return _Outcome(False, error_number("cancelled"))
         if job.state != "succeeded":
             return _Outcome(False, error_number(job.error_code or "internal_error"))
-        pose = None
-        result = job.result or {}
-        target = result.get("T_base_target") or (result.get("locate") or {}).get("T_base_target")
-        if isinstance(target, dict) and "position_mm" in target:
-            pose = [float(v) for v in target["position_mm"]] + \
-                [float(v) for v in target["rotvec_rad"]]
-        return _Outcome(True, pose=pose)
+        target = located_pose(job.result)
+        if target is None:
+            return _Outcome(True)
+        return _Outcome(True, pose=[*target.position_mm, *target.rotvec_rad])
 
     @staticmethod
     def _pose(T_base: Any) -> list[float]:

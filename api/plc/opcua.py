@@ -61,7 +61,10 @@ from api.plc.opcua_machine_vision import MachineVision
 from api.remote import RemoteCaller
 from cell.config.schema import OpcUaConfig
 from cell.errors import CellError
+from cell.jobs.store import Job
+from cell.results.locate import LocateQuality
 from cell.results.modes import ApproachMode
+from cell.results.pose import Pose
 from cell.service import Cell
 from cell.supervision.logs import drop_library_records, quiet_library_loggers
 
@@ -80,6 +83,14 @@ _POLICIES: dict[str, list[ua.SecurityPolicyType]] = {
     "Basic256Sha256": [ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt,
                        ua.SecurityPolicyType.Basic256Sha256_Sign],
 }
+
+
+def job_result(job: Job) -> dict[str, Any]:
+    """``JobResult``: the ended job, its typed result as every interface publishes it, its
+    error and the recipe it ran with."""
+    return {"job_id": job.id, "kind": job.kind, "state": job.state,
+            "result": None if job.result is None else job.result.json_dict(),
+            "error": job.error(), "recipe": job.params.get("recipe")}
 
 
 def _has_subscriptions(server: Server) -> bool:
@@ -168,6 +179,7 @@ class OpcUaServer(LoopThread):
         self._wake: asyncio.Event | None = None
         self._last_job_id = ""
         self._ended_job: dict[str, Any] | None = None  # the last job, as it ended
+        self._ended_record: Job | None = None  # its record, read from the job store once
         self._nodes: dict[str, Any] = {}
         self._written: dict[str, ua.Variant] = {}  # the last value written to each node
         self._updated_s = 0.0  # time.monotonic() of the last variable update
@@ -383,23 +395,22 @@ class OpcUaServer(LoopThread):
         pose.rotvec_rad = list(rotvec_rad)
         return pose
 
-    def _pose_of(self, d: dict[str, Any]) -> Any:
-        return self._pose([float(v) for v in d["position_mm"]],
-                          [float(v) for v in d["rotvec_rad"]])
+    def _pose_of(self, pose: Pose) -> Any:
+        return self._pose(list(pose.position_mm), list(pose.rotvec_rad))
 
     @staticmethod
-    def _ur(d: dict[str, Any]) -> list[float]:
-        return [float(v) / 1000.0 for v in d["position_mm"]] + [float(v) for v in d["rotvec_rad"]]
+    def _ur(pose: Pose) -> list[float]:
+        return [v / 1000.0 for v in pose.position_mm] + list(pose.rotvec_rad)
 
-    def _quality(self, q: dict[str, Any] | None) -> Any:
+    def _quality(self, q: LocateQuality | None) -> Any:
         out = self._types["LocateQuality"]()
         out.valid = q is not None
         if q is not None:
-            out.rms_px = float(q["rms_px"])
-            out.max_residual_px = float(q["max_residual_px"])
-            out.ambiguous = bool(q["ambiguous"])
-            out.n_points = int(q["n_points"])
-            out.age_s = float(q["frame_age_s"])
+            out.rms_px = q.rms_px
+            out.max_residual_px = q.max_residual_px
+            out.ambiguous = q.ambiguous
+            out.n_points = q.n_points
+            out.age_s = q.frame_age_s
         return out
 
     def _snapshot(self) -> dict[str, Any]:
@@ -455,16 +466,17 @@ class OpcUaServer(LoopThread):
             **self._job_end_values(job),
         }
         if "T_base_tcp" in robot:
-            values["TcpPose"] = ua.Variant(self._pose_of(robot["T_base_tcp"]),
-                                           ua.VariantType.ExtensionObject)
-            values["TcpPoseUR"] = ua.Variant(self._ur(robot["T_base_tcp"]), D)
-        last = st.get("last_locate")
+            tcp = Pose.model_validate(robot["T_base_tcp"])
+            values["TcpPose"] = ua.Variant(self._pose_of(tcp), ua.VariantType.ExtensionObject)
+            values["TcpPoseUR"] = ua.Variant(self._ur(tcp), D)
+        located = self.cell.last_locate
+        last = None if located is None else located.answer(time.monotonic())
         if last is not None:
-            values["LastLocatePose"] = ua.Variant(self._pose_of(last["T_base_target"]),
+            values["LastLocatePose"] = ua.Variant(self._pose_of(last.T_base_target),
                                                   ua.VariantType.ExtensionObject)
-            values["LastLocatePoseUR"] = ua.Variant(self._ur(last["T_base_target"]), D)
+            values["LastLocatePoseUR"] = ua.Variant(self._ur(last.T_base_target), D)
         values["LastLocateQuality"] = ua.Variant(
-            self._quality(None if last is None else last["quality"]),
+            self._quality(None if last is None else last.quality),
             ua.VariantType.ExtensionObject)
         await self._write(values)
         if job is not None and job.get("ended_at") and job["id"] != self._ended_sent:
@@ -472,18 +484,23 @@ class OpcUaServer(LoopThread):
         if self.machine_vision is not None:
             await self.machine_vision.update(st, job)
 
-    @staticmethod
-    def _job_end_values(job: dict[str, Any] | None) -> dict[str, ua.Variant]:
+    def ended_job(self, job_id: str) -> Job | None:
+        """The record of a job that has ended, read from the job store once: what the result
+        variables (``JobResult``, the Machine Vision result) serialise."""
+        record = self._ended_record
+        if record is None or record.id != job_id:
+            record = self.cell.jobs.get(job_id)
+            self._ended_record = record if record is not None and record.finished else None
+        return record
+
+    def _job_end_values(self, job: dict[str, Any] | None) -> dict[str, ua.Variant]:
         """The job's result and error code: empty while it runs, set with its end state."""
         S = ua.VariantType.String
-        if job is None or not job.get("ended_at"):
+        record = None if job is None or not job.get("ended_at") else self.ended_job(job["id"])
+        if record is None:
             return {"JobResult": ua.Variant("{}", S), "JobErrorCode": ua.Variant("", S)}
-        error = job.get("error") or {}
-        result = {"job_id": job["id"], "kind": job["kind"], "state": job["state"],
-                  "result": job.get("result"), "error": job.get("error"),
-                  "recipe": (job.get("params") or {}).get("recipe")}
-        return {"JobResult": ua.Variant(json.dumps(result, default=str), S),
-                "JobErrorCode": ua.Variant(str(error.get("code") or ""), S)}
+        return {"JobResult": ua.Variant(json.dumps(job_result(record), default=str), S),
+                "JobErrorCode": ua.Variant(record.error_code or "", S)}
 
     async def _write(self, values: dict[str, ua.Variant]) -> None:
         """Every changed value in ONE write service call, so a client's Read (served on this

@@ -49,6 +49,8 @@ from api.remote import RemoteCaller
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, NotFoundError, RefusedError
 from cell.features.recipes import parse_spec
+from cell.jobs.store import Job
+from cell.results.jobs import located_pose
 from cell.service import Cell
 
 
@@ -66,6 +68,8 @@ class OpcHost(Protocol):
     async def write_nodes(self, values: dict[Any, ua.Variant]) -> list[bool]: ...
 
     async def show_started(self, job_id: str) -> None: ...
+
+    def ended_job(self, job_id: str) -> Job | None: ...
 
     def current_caller(self) -> RemoteCaller | None: ...
 
@@ -213,10 +217,12 @@ class MachineVision:
         params = job.get("params") or {}
         error = job.get("error") or {}
         result_id = f"r-{job['id']}"
+        record = self.opc.ended_job(job["id"])
+        located = None if record is None else located_pose(record.result)
         recipe = params.get("recipe") or {}
         body = {"result_id": result_id, "job_id": job["id"], "state": job["state"],
                 "recipe": recipe, "meas_id": params.get("meas_id", ""),
-                "located": (job.get("result") or {}).get("T_base_target"),
+                "located": None if located is None else located.json_dict(),
                 "error": error.get("code") or "", "error_number":
                     error_number(error["code"]) if error.get("code") else 0,
                 "message": error.get("message") or ""}

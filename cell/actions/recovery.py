@@ -16,8 +16,9 @@ from cell.error_codes import ErrorCode
 from cell.errors import RefusedError
 from cell.jobs.store import Job
 from cell.motion.guard import Motion, driver_error
+from cell.results.home import HomeResult
+from cell.results.pose import Pose
 from drivers.errors import DriverError, UnlockTooEarlyError
-from estimator.transforms import pose_dict
 
 
 def start_home(core: CellCore, caller: str, *, speed_deg_s: float | None = None,
@@ -33,12 +34,12 @@ def start_home(core: CellCore, caller: str, *, speed_deg_s: float | None = None,
         core.arm.guard.check_joint_speed(np.radians(speed), np.radians(accel))
         core.arm.check_joint_move(q_home, "home pose")
 
-    def work(job_id: str, motion: Motion) -> dict[str, Any]:
+    def work(job_id: str, motion: Motion) -> HomeResult:
         core.runner.progress(job_id, {"phase": "moving"})
         core.arm.move_joint(q_home, np.radians(speed), np.radians(accel), what="home pose")
         st = core.arm.state()
-        return {"joints_deg": np.degrees(st.joints_rad).tolist(),
-                "T_base_tcp": pose_dict(st.T_base_tcp)}
+        return HomeResult(joints_deg=np.degrees(st.joints_rad).tolist(),
+                          T_base_tcp=Pose.from_T(st.T_base_tcp))
 
     return core.runner.start("home", caller, params, work, check=check, wait=wait,
                              wait_timeout_s=wait_timeout_s)

@@ -52,6 +52,7 @@ from cell.bench.ibvs import format_ibvs, run_bench_ibvs
 from cell.config.schema import parse_config
 from cell.devices.hardware import SimWorld
 from cell.errors import CellError
+from cell.results import ServoApproach
 from cell.runtime import freeze_startup_objects, start_cell
 from cell.service import Cell
 from cell.vision.frames import approach_tcp
@@ -136,9 +137,10 @@ def _approach(cell: Cell, mode: str, T_target: Matrix4, T_target_tcp: Matrix4
                            "error_mm": d_mm, "error_deg": d_deg}
     if job.state != "succeeded":
         row["error"] = f"{job.error_code}: {job.error_message}"
-    elif job.result is not None and mode == "servo":
-        row["time_to_converge_s"] = job.result.get("time_to_converge_s")
-        row["pose_interval_ms"] = job.result.get("pose_interval_ms")
+    elif isinstance(job.result, ServoApproach):
+        row["time_to_converge_s"] = job.result.time_to_converge_s
+        interval = job.result.pose_interval_ms
+        row["pose_interval_ms"] = None if interval is None else interval.json_dict()
     return row
 
 

@@ -22,8 +22,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.config.schema import CellConfig, parse_config
+from cell.results import HandEyeRoutineResult
 from cell.service import Cell
-from estimator.transforms import T_from_pose_dict, pose_distance
+from estimator.transforms import pose_distance
 
 Matrix4 = NDArray[np.float64]
 CALLER = "bench"
@@ -109,29 +110,29 @@ def hand_eye(cell: Cell, views: int = HAND_EYE_VIEWS) -> dict[str, Any]:
                                roll_deg=HAND_EYE_ROLL_DEG)
     job = service.wait(service.start(CALLER, settings).id, 600.0)
     took = time.monotonic() - t0
-    if job.state != "succeeded" or job.result is None:
-        raise RuntimeError(f"hand-eye routine {job.state}: {job.error_code} {job.error_message}")
     r = job.result
-    results = {name: m["T_flange_camera"] for name, m in r["methods"].items()}
-    for refined in ("joint", "hybrid", "kinematic"):
-        if r.get(refined) is not None:
-            results[refined] = r[refined]["T_flange_camera"]
-    scored = {name: dict(zip(("mm", "deg"), pose_distance(T_from_pose_dict(T),
-                                                          truth.T_flange_camera), strict=True))
-              for name, T in results.items()}
+    if job.state != "succeeded" or not isinstance(r, HandEyeRoutineResult):
+        raise RuntimeError(f"hand-eye routine {job.state}: {job.error_code} {job.error_message}")
+    results = {name: m.T_flange_camera for name, m in r.methods.items()}
+    refined = {"joint": r.joint, "hybrid": r.hybrid, "kinematic": r.kinematic}
+    results.update({name: fit.T_flange_camera for name, fit in refined.items()
+                    if fit is not None})
+    scored = {name: dict(zip(("mm", "deg"), pose_distance(pose.T(), truth.T_flange_camera),
+                             strict=True))
+              for name, pose in results.items()}
     out: dict[str, Any] = {
-        "views": views, "failed_views": len(r["failed_views"]), "routine_s": took,
-        "chosen": r["chosen"], "verdict_consistent": bool(r["verdict"]["consistent"]),
-        "verdict": r["verdict"]["text"], "methods_vs_truth": scored,
+        "views": views, "failed_views": len(r.failed_views), "routine_s": took,
+        "chosen": r.chosen, "verdict_consistent": r.verdict.consistent,
+        "verdict": r.verdict.text, "methods_vs_truth": scored,
         "mount_error_before_mm": before[0], "mount_error_before_deg": before[1]}
     try:
         service.apply(CALLER, job.id)
-        out["applied"] = r["chosen"]
+        out["applied"] = r.chosen
     except CellError as err:  # an inconsistent verdict: the page refuses Apply too
         out["apply_refused"] = f"{err.code}: {err.message}"
         # docs/commissioning.md: when the verdict blames the robot's reported poses, the
         # AX = XB result (rotation from the motions' rotations alone) is applied, forced
-        if err.code == "calibration_inconsistent" and "flange poses" in r["verdict"]["text"]:
+        if err.code == "calibration_inconsistent" and "flange poses" in r.verdict.text:
             service.apply(CALLER, job.id, method=AX_XB_FALLBACK, force=True)
             out["applied"] = f"{AX_XB_FALLBACK} (forced: the verdict blames the arm's poses)"
         else:

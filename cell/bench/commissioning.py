@@ -32,7 +32,7 @@ from cell.bench.approach import placement
 from cell.bench.commission import hand_eye, measure_intrinsics, with_intrinsics
 from cell.config.schema import CellConfig, load_config, parse_config
 from cell.devices.hardware import SimWorld
-from cell.results.modes import ApproachMode
+from cell.results import ApproachMode, LookAndMoveApproach
 from cell.runtime import start_cell
 from cell.service import Cell
 from cell.vision.frames import approach_tcp
@@ -84,17 +84,17 @@ def approaches(cell: Cell, targets: list[Matrix4]) -> list[dict[str, Any]]:
         time.sleep(0.15)  # frames exposed before the placement are not this run's
         job = cell.approach(CALLER, standoff_mm=STANDOFF_MM, wait=True,
                             mode=ApproachMode.look_and_move)
-        if job.state != "succeeded" or job.result is None:
+        r = job.result
+        if job.state != "succeeded" or not isinstance(r, LookAndMoveApproach):
             runs.append({"ok": False, "error": job.error_code})
             continue
         goal = approach_tcp(_sim(cell).true_T_base_target(), T_target_tcp, STANDOFF_MM)
         err_mm, err_deg = pose_distance(_settled_tcp(cell), goal)
-        c = job.result["consistency"]
+        c = r.consistency
         runs.append({"ok": True, "true_mm": err_mm, "true_deg": err_deg,
-                     "estimated_mm": job.result["estimated_error_mm"],
-                     "verdict": c["verdict"],
-                     "target_moved_mm": c["motion"]["max_target_moved_mm"],
-                     "target_moved_deg": c["motion"]["max_target_moved_deg"]})
+                     "estimated_mm": r.estimated_error_mm, "verdict": c.verdict,
+                     "target_moved_mm": c.motion.max_target_moved_mm,
+                     "target_moved_deg": c.motion.max_target_moved_deg})
     return runs
 
 

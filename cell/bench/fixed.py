@@ -242,6 +242,7 @@ def approach(n: int, seed: int, servo: bool = False, lost_after_s: float | None 
     from cell.actions.approach import start_approach
     from cell.config.schema import parse_config
     from cell.errors import CellError
+    from cell.results import LookAndMoveApproach, ServoApproach
     from cell.runtime import start_cell
     from cell.vision.frames import approach_tcp
 
@@ -284,9 +285,13 @@ def approach(n: int, seed: int, servo: bool = False, lost_after_s: float | None 
                 ok = rec is not None and rec.state == "succeeded"
                 if ok:
                     errors.append((d_mm, d_deg))
-                    r = (rec.result if rec is not None else None) or {}
-                    notes.append((r.get("pose_source", "live"), r.get("frames"),
-                                  (r.get("pose_interval_ms") or {}).get("median")))
+                    r = rec.result if rec is not None else None
+                    loop = r if isinstance(r, ServoApproach) else None
+                    source = (r.pose_source if isinstance(r, LookAndMoveApproach | ServoApproach)
+                              else None)
+                    interval = None if loop is None else loop.pose_interval_ms
+                    notes.append((source or "live", None if loop is None else loop.frames,
+                                  None if interval is None else interval.median))
                 else:
                     failures.append(f"failed {rec.error_code if rec is not None else '?'}")
                     if rec is not None and rec.error_message and len(failures) == 1:
@@ -347,6 +352,7 @@ def ibvs(n: int, seed: int, displace_mm: float = 30.0, displace_deg: float = 6.0
     from cell.bench.ibvs import _jog_to, _recover, displacements
     from cell.config.schema import parse_config
     from cell.errors import CellError
+    from cell.results import IbvsApproach
     from cell.runtime import start_cell
     from estimator.transforms import T_from_pose, T_from_pose_dict, pose_dict
 
@@ -396,9 +402,9 @@ def ibvs(n: int, seed: int, displace_mm: float = 30.0, displace_deg: float = 6.0
                         print(f"  first failure: {job.error_message}")
                     _recover(cell)
                     continue
-                r = job.result or {}
-                rows.append((d_mm, d_deg, took, r.get("estimated_error_mm"),
-                             r.get("image_error_px_rms")))
+                r = job.result
+                assert isinstance(r, IbvsApproach)
+                rows.append((d_mm, d_deg, took, r.estimated_error_mm, r.image_error_px_rms))
             good = sum(1 for row in rows if row[0] < 0.1)
             print(f"  {len(rows)}/{n} converged, {good} within 0.1 mm of the taught true TCP; "
                   f"{len(failures)} failed ({', '.join(failures) or 'none'})")

@@ -37,6 +37,7 @@ from cell.bench.cells import CALLER, bench_config
 from cell.config.schema import CellConfig, parse_config
 from cell.errors import CellError
 from cell.features.teach import TaughtPose
+from cell.results import IbvsApproach
 from cell.runtime import start_cell
 from cell.service import Cell
 from estimator.transforms import T_from_pose, invert_T, pose_distance
@@ -175,14 +176,19 @@ def _one(cell: Cell, mode: str, taught: TaughtPose, T_taught_true: Matrix4) -> d
     d_mm, d_deg = pose_distance(cell.sim.true_T_base_tcp(), T_taught_true)
     row: dict[str, Any] = {"mode": mode, "state": job.state, "time_s": took, "error_mm": d_mm,
                            "error_deg": d_deg, "min_dot_margin_px": dots.min_margin_px}
-    r = job.result or {}
     if job.state != "succeeded":
         row["error"] = f"{job.error_code}: {job.error_message}"
-    elif mode == "ibvs":
-        row.update({k: r.get(k) for k in (
-            "time_to_converge_s", "image_error_px_rms", "image_error_px_max",
-            "estimated_error_mm", "estimated_error_deg", "min_dots_used",
-            "view_error_mm", "settle_steps_mm_deg", "first_locate_s", "phases_s")})
+    elif isinstance(job.result, IbvsApproach):
+        r = job.result
+        settle = r.settle_steps_mm_deg
+        row.update(time_to_converge_s=r.time_to_converge_s,
+                   image_error_px_rms=r.image_error_px_rms,
+                   image_error_px_max=r.image_error_px_max,
+                   estimated_error_mm=r.estimated_error_mm,
+                   estimated_error_deg=r.estimated_error_deg, min_dots_used=r.min_dots_used,
+                   view_error_mm=r.view_error_mm,
+                   settle_steps_mm_deg=None if settle is None else [list(s) for s in settle],
+                   first_locate_s=r.first_locate_s, phases_s=r.phases_s.json_dict())
     return row
 
 

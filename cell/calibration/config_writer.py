@@ -31,6 +31,8 @@ from numpy.typing import NDArray
 from cell.config.schema import CellConfig, ConfigError, parse_config
 from cell.error_codes import ErrorCode
 from cell.errors import CellError
+from cell.results.calibration import ConfigFileChange, MountTransform
+from cell.results.pose import Pose
 from estimator.transforms import pose_dict, pose_distance, pose_from_T
 
 TABLE = "hand_eye"
@@ -54,17 +56,18 @@ class ConfigChange:
     backup: Path
     old_T_flange_camera: NDArray[np.float64]
     new_T_flange_camera: NDArray[np.float64]
-    key: str = "T_flange_camera"  # the [hand_eye] key written (T_base_camera: a fixed camera)
+    key: MountTransform = "T_flange_camera"  # the [hand_eye] key written
 
     def distance(self) -> tuple[float, float]:
         return pose_distance(self.new_T_flange_camera, self.old_T_flange_camera)
 
-    def as_dict(self) -> dict[str, Any]:
+    def record(self) -> ConfigFileChange:
+        """The change as the apply answer and ``cell calibrate --json`` report it."""
         d_mm, d_deg = self.distance()
-        return {"file": str(self.path), "backup": str(self.backup),
-                "old_T_flange_camera": pose_dict(self.old_T_flange_camera),
-                "new_T_flange_camera": pose_dict(self.new_T_flange_camera),
-                "distance_mm": d_mm, "distance_deg": d_deg, "key": self.key}
+        return ConfigFileChange(file=str(self.path), backup=str(self.backup),
+                                old_T_flange_camera=Pose.from_T(self.old_T_flange_camera),
+                                new_T_flange_camera=Pose.from_T(self.new_T_flange_camera),
+                                distance_mm=d_mm, distance_deg=d_deg, key=self.key)
 
     def summary(self) -> str:
         old = pose_dict(self.old_T_flange_camera)
@@ -124,7 +127,7 @@ def write_hand_eye(
     except ConfigError as err:
         raise ConfigWriteError(f"cannot update {p}: it is not a valid cell config ({err}); fix "
                                "it first (`cell config check FILE`)") from err
-    key = "T_base_camera" if old_config.fixed_camera else "T_flange_camera"
+    key: MountTransform = "T_base_camera" if old_config.fixed_camera else "T_flange_camera"
     table = hand_eye_table(T_flange_camera, comment, key)
     new_text = _replace_table(old_text, table)
     try:

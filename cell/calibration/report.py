@@ -15,6 +15,20 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from cell.results.calibration import (
+    CalibrationVerdict,
+    FreeIntrinsics,
+    HandEyeSolution,
+    JointSolution,
+    KinematicSolution,
+    MeanResidual,
+    MethodResidual,
+    MethodSolution,
+    MountFields,
+    RefinedSolution,
+    ViewFit,
+)
+from cell.results.pose import Pose
 from estimator.calib.handeye import BoardSpread, JointResult
 from estimator.calib.kinematic import KinematicResult
 from estimator.transforms import pose_dict, pose_distance
@@ -53,18 +67,16 @@ class MethodResult:
     T_flange_camera: NDArray[np.float64]
     spread: BoardSpread
 
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "T_flange_camera": pose_dict(self.T_flange_camera),
-            "T_base_board": pose_dict(self.spread.T_base_board_mean),
-            "residual": {
-                "mean_mm": self.spread.mean_mm, "mean_deg": self.spread.mean_deg,
-                "max_mm": float(self.spread.per_view_mm.max()),
-                "max_deg": float(self.spread.per_view_deg.max()),
-                "per_view_mm": [float(v) for v in self.spread.per_view_mm],
-                "per_view_deg": [float(v) for v in self.spread.per_view_deg],
-            },
-        }
+    def solution(self) -> MethodSolution:
+        return MethodSolution(
+            T_flange_camera=Pose.from_T(self.T_flange_camera),
+            T_base_board=Pose.from_T(self.spread.T_base_board_mean),
+            residual=MethodResidual(
+                mean_mm=self.spread.mean_mm, mean_deg=self.spread.mean_deg,
+                max_mm=float(self.spread.per_view_mm.max()),
+                max_deg=float(self.spread.per_view_deg.max()),
+                per_view_mm=[float(v) for v in self.spread.per_view_mm],
+                per_view_deg=[float(v) for v in self.spread.per_view_deg]))
 
 
 @dataclass(frozen=True)
@@ -108,66 +120,54 @@ class HandEyeReport:
             return refined.T_flange_camera
         return self.methods[self.chosen].T_flange_camera
 
-    def as_dict(self) -> dict[str, Any]:
-        methods = {name: m.as_dict() for name, m in self.methods.items()}
-        joint: dict[str, Any] | None = None
-        if self.joint is not None:
-            joint = {
-                "T_flange_camera": pose_dict(self.joint.T_flange_camera),
-                "T_base_board": pose_dict(self.joint.T_base_board),
-                "rms_px": self.joint.rms_px,
-                "per_view_rms_px": [float(v) for v in self.joint.per_view_rms_px],
-                "std_position_mm": [float(v) for v in self.joint.std_position_mm],
-                "std_rotvec_deg": [float(v) for v in self.joint.std_rotvec_deg],
-                "converged": self.joint.converged,
-            }
-            if self.joint_spread is not None:
-                joint["residual"] = {"mean_mm": self.joint_spread.mean_mm,
-                                     "mean_deg": self.joint_spread.mean_deg}
-            if self.joint_free_intrinsics is not None:
-                c = self.joint_free_intrinsics.camera
-                joint["free_intrinsics"] = {
-                    "rms_px": self.joint_free_intrinsics.rms_px,
-                    "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
-                }
-        hybrid: dict[str, Any] | None = None
-        if self.hybrid is not None:
-            hybrid = {
-                "T_flange_camera": pose_dict(self.hybrid.T_flange_camera),
-                "T_base_board": pose_dict(self.hybrid.T_base_board),
-                "rms_px": self.hybrid.rms_px,
-                "per_view_rms_px": [float(v) for v in self.hybrid.per_view_rms_px],
-                "std_position_mm": [float(v) for v in self.hybrid.std_position_mm],
-                "converged": self.hybrid.converged,
-            }
-        kinematic: dict[str, Any] | None = None
-        if self.kinematic is not None:
-            k = self.kinematic
-            kinematic = {
-                "T_flange_camera": pose_dict(k.T_flange_camera),
-                "T_base_board": pose_dict(k.T_base_board),
-                "rms_px": k.rms_px,
-                "per_view_rms_px": [float(v) for v in k.per_view_rms_px],
-                "dh_delta_theta_rad": [float(v) for v in k.delta_theta_rad],
-                "dh_delta_d_mm": [float(v) for v in k.delta_d_mm],
-                "dh_delta_a_mm": [float(v) for v in k.delta_a_mm],
-                "converged": k.converged,
-            }
-        return {
-            "chosen": self.chosen,
-            "T_flange_camera": pose_dict(self.T_flange_camera),
-            "methods": methods,
-            "joint": joint,
-            "hybrid": hybrid,
-            "kinematic": kinematic,
-            "views": [
-                {"name": n, "pnp_rms_px": float(r)}
-                for n, r in zip(self.view_names, self.pnp_rms_px, strict=True)
-            ],
-            "skipped_views": list(self.skipped_views),
-            "verdict": {"consistent": self.verdict.consistent,
-                        "findings": list(self.verdict.findings), "text": self.verdict.text},
-        }
+    def solution(self) -> HandEyeSolution:
+        """The report as the hand-eye solution every interface publishes."""
+        return HandEyeSolution(
+            chosen=self.chosen,
+            T_flange_camera=Pose.from_T(self.T_flange_camera),
+            methods={name: m.solution() for name, m in self.methods.items()},
+            joint=None if self.joint is None else self._joint_solution(self.joint),
+            hybrid=None if self.hybrid is None else RefinedSolution(
+                T_flange_camera=Pose.from_T(self.hybrid.T_flange_camera),
+                T_base_board=Pose.from_T(self.hybrid.T_base_board),
+                rms_px=self.hybrid.rms_px,
+                per_view_rms_px=[float(v) for v in self.hybrid.per_view_rms_px],
+                std_position_mm=[float(v) for v in self.hybrid.std_position_mm],
+                converged=self.hybrid.converged),
+            kinematic=None if self.kinematic is None else KinematicSolution(
+                T_flange_camera=Pose.from_T(self.kinematic.T_flange_camera),
+                T_base_board=Pose.from_T(self.kinematic.T_base_board),
+                rms_px=self.kinematic.rms_px,
+                per_view_rms_px=[float(v) for v in self.kinematic.per_view_rms_px],
+                dh_delta_theta_rad=[float(v) for v in self.kinematic.delta_theta_rad],
+                dh_delta_d_mm=[float(v) for v in self.kinematic.delta_d_mm],
+                dh_delta_a_mm=[float(v) for v in self.kinematic.delta_a_mm],
+                converged=self.kinematic.converged),
+            views=[ViewFit(name=n, pnp_rms_px=float(r))
+                   for n, r in zip(self.view_names, self.pnp_rms_px, strict=True)],
+            skipped_views=list(self.skipped_views),
+            verdict=CalibrationVerdict(consistent=self.verdict.consistent,
+                                       findings=list(self.verdict.findings),
+                                       text=self.verdict.text))
+
+    def _joint_solution(self, joint: JointResult) -> JointSolution:
+        extra: dict[str, Any] = {}
+        if self.joint_spread is not None:
+            extra["residual"] = MeanResidual(mean_mm=self.joint_spread.mean_mm,
+                                             mean_deg=self.joint_spread.mean_deg)
+        free = self.joint_free_intrinsics
+        if free is not None:
+            c = free.camera
+            extra["free_intrinsics"] = FreeIntrinsics(rms_px=free.rms_px, fx=c.fx, fy=c.fy,
+                                                      cx=c.cx, cy=c.cy)
+        return JointSolution(
+            T_flange_camera=Pose.from_T(joint.T_flange_camera),
+            T_base_board=Pose.from_T(joint.T_base_board),
+            rms_px=joint.rms_px,
+            per_view_rms_px=[float(v) for v in joint.per_view_rms_px],
+            std_position_mm=[float(v) for v in joint.std_position_mm],
+            std_rotvec_deg=[float(v) for v in joint.std_rotvec_deg],
+            converged=joint.converged, **extra)
 
     def summary(self) -> str:
         """Plain-text table for people at the cell."""
@@ -432,9 +432,10 @@ def _judge_joint(
     return text
 
 
-def mount_fields(fixed_camera: bool, T_mount: NDArray[np.float64]) -> dict[str, Any]:
+def mount_fields(fixed_camera: bool, T_mount: NDArray[np.float64]) -> MountFields:
     """What a result's transform is, for readers of its ``T_flange_camera`` field: a fixed
     camera's result is ``T_base_camera`` (also given under that name)."""
     if not fixed_camera:
-        return {"mount": "hand", "transform": "T_flange_camera"}
-    return {"mount": "fixed", "transform": "T_base_camera", "T_base_camera": pose_dict(T_mount)}
+        return MountFields(mount="hand", transform="T_flange_camera")
+    return MountFields(mount="fixed", transform="T_base_camera",
+                       T_base_camera=Pose.from_T(T_mount))

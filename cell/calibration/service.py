@@ -18,7 +18,6 @@ import logging
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,8 +39,11 @@ from cell.error_codes import ErrorCode
 from cell.errors import LimitError, NotFoundError, RefusedError, UnavailableError
 from cell.jobs.store import Job
 from cell.motion.guard import Motion
+from cell.results.calibration import CalibrationApplied
+from cell.results.pose import Pose
+from cell.results.routine import FailedView, HandEyeRoutineResult, MountChange, SavedViews
 from estimator.kinematics import UR_DH
-from estimator.transforms import T_from_pose_dict, pose_dict, pose_distance
+from estimator.transforms import pose_distance
 
 log = logging.getLogger(__name__)
 Matrix4 = NDArray[np.float64]
@@ -79,13 +81,13 @@ class CalibrationService:
             if not core.camera.is_connected:
                 raise UnavailableError(ErrorCode.camera_lost, "calibration needs the camera")
 
-        def work(job_id: str, motion: Motion) -> dict[str, Any]:
+        def work(job_id: str, motion: Motion) -> HandEyeRoutineResult:
             return self._run(job_id, settings)
 
         return core.runner.start(JOB_KIND, caller, params, work, check=check, needs_camera=True,
                                  on_change=self._publish, motion_name="calibration")
 
-    def _run(self, job_id: str, settings: RoutineSettings) -> dict[str, Any]:
+    def _run(self, job_id: str, settings: RoutineSettings) -> HandEyeRoutineResult:
         core = self.core
         fixed = core.frames.is_fixed
         guess = core.frames.T_camera_mount  # T_base_camera for a fixed camera
@@ -105,17 +107,16 @@ class CalibrationService:
         except RoutineError as err:
             raise RefusedError(ErrorCode(err.code), err.message) from err
         report = result.report
-        out = report.as_dict()
-        out.update(mount_fields(fixed, report.T_flange_camera))
-        out["failed_views"] = [{"view": k, "reason": r} for k, r in result.failed]
+        mount = mount_fields(fixed, report.T_flange_camera)
         d_mm, d_deg = pose_distance(report.T_flange_camera, guess)
-        out["change_from_current"] = {out["transform"]: pose_dict(guess),
-                                      "distance_mm": d_mm, "distance_deg": d_deg}
-        out["applied"] = None
-        out["dataset"] = self._save(job_id, result)
-        return out
+        return HandEyeRoutineResult(
+            **report.solution().set_values(), **mount.set_values(),
+            failed_views=[FailedView(view=k, reason=r) for k, r in result.failed],
+            change_from_current=MountChange(**{mount.transform: Pose.from_T(guess)},
+                                            distance_mm=d_mm, distance_deg=d_deg),
+            applied=None, dataset=self._save(job_id, result))
 
-    def _save(self, job_id: str, result: RoutineResult) -> dict[str, Any] | None:
+    def _save(self, job_id: str, result: RoutineResult) -> SavedViews | None:
         """Save the views as a dataset (see ``[api] calibration_dir``) -> where, or why not.
 
         A failure to save does not fail the calibration, whose result stands on its own; it
@@ -129,8 +130,8 @@ class CalibrationService:
                                  self.core.config.robot.model)
         except (DatasetError, OSError) as err:
             log.warning("calibration job %s: views not saved to %s: %s", job_id, folder, err)
-            return {"folder": str(folder), "saved": False, "error": str(err)}
-        return {"folder": str(dataset.folder), "saved": True, "views": len(dataset.views)}
+            return SavedViews(folder=str(folder), saved=False, error=str(err))
+        return SavedViews(folder=str(dataset.folder), saved=True, views=len(dataset.views))
 
     def _publish(self, job: Job) -> None:
         self.core.events.publish(EVENT, {"job_id": job.id, "state": job.state,
@@ -154,7 +155,7 @@ class CalibrationService:
     # -- apply -------------------------------------------------------------------------------
     def apply(self, caller: str, job_id: str, method: str | None = None,
               running: bool = True, write_config: bool = False,
-              force: bool = False) -> dict[str, Any]:
+              force: bool = False) -> CalibrationApplied:
         """Use a finished job's ``T_flange_camera`` (its chosen method unless ``method``;
         ``T_base_camera`` for a fixed camera, in the ``[hand_eye]`` key of that name):
         in the running cell (``running``) and/or the config file (``write_config``).
@@ -186,42 +187,44 @@ class CalibrationService:
                         raise RefusedError(ErrorCode(err.code), str(err)) from err
                 if running:
                     self._set_hand_eye(T)
-        out = {"job_id": job_id, "T_flange_camera": pose_dict(T),
-               **mount_fields(core.frames.is_fixed, T), "running": running,
-               "written_config": str(self.config_path) if write_config else None,
-               # the old and new mount and the timestamped backup of the old file
-               "config_change": None if change is None else change.as_dict()}
-        core.events.publish(EVENT, {"job_id": job_id, "state": "applied", "applied": out})
+        out = CalibrationApplied(
+            job_id=job_id, T_flange_camera=Pose.from_T(T),
+            **mount_fields(core.frames.is_fixed, T).set_values(), running=running,
+            written_config=str(self.config_path) if write_config else None,
+            config_change=None if change is None else change.record())
+        core.events.publish(EVENT, {"job_id": job_id, "state": "applied",
+                                    "applied": out.json_dict()})
         return out
 
     @staticmethod
     def _result_T(job: Job, method: str | None, force: bool) -> Matrix4:
-        if job.state != "succeeded" or job.result is None:
+        r = job.result
+        if job.state != "succeeded" or not isinstance(r, HandEyeRoutineResult):
             raise RefusedError(ErrorCode.job_not_succeeded,
                                f"calibration job {job.id} is {job.state}; "
                                "only a succeeded job can be applied")
-        r = job.result
-        if not r["verdict"]["consistent"] and not force:
+        if not r.verdict.consistent and not force:
             raise RefusedError(ErrorCode.calibration_inconsistent,
                                "the calibration data disagree with "
-                               f"themselves ({r['verdict']['text']}); apply with force=true only "
+                               f"themselves ({r.verdict.text}); apply with force=true only "
                                "if you accept that")
-        if method is None or method == r["chosen"]:
-            return T_from_pose_dict(r["T_flange_camera"])
+        if method is None or method == r.chosen:
+            return r.T_flange_camera.T()
         if method == "kinematic":
-            if r.get("kinematic") is None:
+            if r.kinematic is None:
                 raise NotFoundError(ErrorCode.method_not_found,
                                     "this job has no kinematic fit (it needs the joints of at "
                                     "least 16 views of a camera on the hand)")
-            return T_from_pose_dict(r["kinematic"]["T_flange_camera"])
+            return r.kinematic.T_flange_camera.T()
         if method in ("joint", "hybrid"):
-            if r.get(method) is None:
+            refined = r.joint if method == "joint" else r.hybrid
+            if refined is None:
                 raise NotFoundError(ErrorCode.method_not_found,
                                     f"this job has no {method} refinement")
-            return T_from_pose_dict(r[method]["T_flange_camera"])
-        if method not in r["methods"]:
+            return refined.T_flange_camera.T()
+        if method not in r.methods:
             raise NotFoundError(ErrorCode.method_not_found,
                                 f"no result for method {method!r}; have "
-                                f"{', '.join([*r['methods'], 'joint', 'hybrid'])}")
-        return T_from_pose_dict(r["methods"][method]["T_flange_camera"])
+                                f"{', '.join([*r.methods, 'joint', 'hybrid'])}")
+        return r.methods[method].T_flange_camera.T()
 

@@ -124,7 +124,7 @@ def _write(args: argparse.Namespace, report: HandEyeReport, note: str
         return fail(err.code, str(err), args.json)
     if not args.json:
         print(f"wrote ({report.chosen}) {change.summary()}")
-    return change.as_dict()
+    return change.record().json_dict()
 
 
 def _json_write_fields(written: dict[str, Any] | str | None, path: str | None
@@ -190,8 +190,8 @@ def run_hand_eye(args: argparse.Namespace) -> int:
     if isinstance(written, int):
         return written
     if args.json:
-        out = report.as_dict()
-        out.update(mount_fields(fixed, report.T_flange_camera))
+        out = (report.solution().json_dict()
+               | mount_fields(fixed, report.T_flange_camera).json_dict())
         out["dataset"] = {"folder": str(dataset.folder), "format": dataset.source}
         out.update(_json_write_fields(written, args.write_config))
         print_json(out)
@@ -292,8 +292,8 @@ def run_routine(args: argparse.Namespace) -> int:
     if isinstance(written, int):
         return written
     if args.json:
-        out = report.as_dict()
-        out.update(mount_fields(fixed, report.T_flange_camera))
+        out = (report.solution().json_dict()
+               | mount_fields(fixed, report.T_flange_camera).json_dict())
         out["failed_views"] = [{"view": k, "reason": r} for k, r in result.failed]
         out.update(_json_write_fields(written, args.write_config))
         out["dataset"] = saved

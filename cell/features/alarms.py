@@ -18,7 +18,6 @@ acknowledged while it lasts, and raises a new alarm when it comes back after cle
 
 from __future__ import annotations
 
-import json
 import logging
 import sqlite3
 import threading
@@ -31,6 +30,8 @@ from cell.error_codes import ErrorCode
 from cell.errors import NotFoundError
 from cell.jobs.events import EventBus
 from cell.jobs.store import JobStore
+from cell.results.approach import ApproachBase
+from cell.results.jobs import result_from_json
 
 log = logging.getLogger(__name__)
 
@@ -210,14 +211,13 @@ class AlarmLog:
                     "AND ended_at >= ? AND result LIKE '%\"inconsistent\"%' "
                     "AND 'consistency:' || id NOT IN (SELECT key FROM alarms WHERE "
                     "source = 'job') ORDER BY ended_at", (self._jobs_since,)).fetchall()
-            jobs = [(i, k, json.loads(r) if r else None, e) for i, k, r, e in rows]
+            jobs = [(i, k, result_from_json(k, r) if r else None, e) for i, k, r, e in rows]
         out = []
         for job_id, kind, result, ended in jobs:
-            c = result.get("consistency") if isinstance(result, dict) else None
-            if isinstance(c, dict) and c.get("verdict") == "inconsistent":
-                codes, findings = c.get("codes") or ["calibration_inconsistent"], \
-                    c.get("findings") or [""]
-                out.append((job_id, kind, str(codes[-1]), str(findings[-1]), ended))
+            if isinstance(result, ApproachBase) and result.consistency.verdict == "inconsistent":
+                c = result.consistency
+                codes, findings = c.codes or ["calibration_inconsistent"], c.findings or [""]
+                out.append((job_id, kind, codes[-1], findings[-1], ended))
         return out
 
     def _raise(self, key: str, source: str, code: str, message: str,

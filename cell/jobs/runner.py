@@ -19,12 +19,14 @@ from cell.jobs.audit import Auditor
 from cell.jobs.events import EventBus
 from cell.jobs.store import Job, JobStore
 from cell.motion.guard import GuardedArm, Motion, MotionSlot, driver_error
+from cell.results.jobs import JobResult, result_of
 from cell.stats import CellStats
 from drivers.errors import DriverError
 
 log = logging.getLogger(__name__)
 
-Work = Callable[[str, Motion], dict[str, Any]]  # (job id, motion) -> result
+# (job id, motion) -> the result of the job's kind, as its model or its JSON object
+Work = Callable[[str, Motion], JobResult | dict[str, Any]]
 Check = Callable[[Motion], None]  # raises CellError to refuse; runs holding the slot
 OnEnd = Callable[[Job], None]  # told of the started and the ended job, after the "job" event
 
@@ -88,7 +90,10 @@ class JobRunner:
 
     def _run(self, job: Job, motion: Motion, work: Work, on_change: OnEnd | None) -> None:
         try:
-            result = work(job.id, motion)
+            # the one boundary where a job's result becomes the model of its kind: a work
+            # that returns its JSON object is validated here, and one that does not fit its
+            # kind's model fails the job (internal_error) rather than publish an unknown shape
+            result = result_of(job.kind, work(job.id, motion))
             if motion.cancel.is_set() and motion.reason is not None:
                 raise motion.reason
             if not self.slot.release_unless_cancelled(motion):

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
+from cell.results.jobs import JobResult, result_from_json, result_json
+
 JobState = Literal["running", "succeeded", "failed", "cancelled", "interrupted"]
 FINISHED: tuple[JobState, ...] = ("succeeded", "failed", "cancelled", "interrupted")
 
@@ -63,7 +65,8 @@ CREATE TABLE IF NOT EXISTS write_probe (
 
 @dataclass(frozen=True)
 class Job:
-    """One long-running command (an approach) as stored; times are UNIX seconds."""
+    """One long-running command (an approach) as stored; times are UNIX seconds. ``result``
+    is the model of its kind (:mod:`cell.results.jobs`), set when it succeeded."""
 
     id: str
     kind: str
@@ -71,7 +74,7 @@ class Job:
     params: dict[str, Any]
     state: JobState
     progress: dict[str, Any]
-    result: dict[str, Any] | None
+    result: JobResult | None
     error_code: str | None
     error_message: str | None
     created_at: float
@@ -81,12 +84,18 @@ class Job:
     def finished(self) -> bool:
         return self.state in FINISHED
 
+    def error(self) -> dict[str, str] | None:
+        """``{code, message}`` of a job that failed, was cancelled or interrupted."""
+        if self.error_code is None:
+            return None
+        return {"code": self.error_code, "message": self.error_message or ""}
+
     def as_dict(self) -> dict[str, Any]:
         return {
             "id": self.id, "kind": self.kind, "caller": self.caller, "params": self.params,
-            "state": self.state, "progress": self.progress, "result": self.result,
-            "error": None if self.error_code is None else {
-                "code": self.error_code, "message": self.error_message or ""},
+            "state": self.state, "progress": self.progress,
+            "result": None if self.result is None else self.result.json_dict(),
+            "error": self.error(),
             "created_at": self.created_at, "ended_at": self.ended_at,
         }
 
@@ -190,13 +199,13 @@ class JobStore:
             self._db.execute("UPDATE jobs SET progress = ? WHERE id = ?",
                              (json.dumps(progress), job_id))
 
-    def finish(self, job_id: str, state: JobState, result: dict[str, Any] | None = None,
+    def finish(self, job_id: str, state: JobState, result: JobResult | None = None,
                error_code: str | None = None, error_message: str | None = None) -> Job:
         with self._writing():
             self._db.execute(
                 "UPDATE jobs SET state = ?, result = ?, error_code = ?, error_message = ?, "
                 "ended_at = ? WHERE id = ? AND state = 'running'",
-                (state, None if result is None else json.dumps(result), error_code,
+                (state, None if result is None else result_json(result), error_code,
                  error_message, time.time(), job_id))
         job = self.get(job_id)
         assert job is not None
@@ -247,5 +256,6 @@ _SELECT_JOBS = ("SELECT id, kind, caller, params, state, progress, result, error
 def _job(row: tuple[Any, ...]) -> Job:
     return Job(
         id=row[0], kind=row[1], caller=row[2], params=json.loads(row[3]), state=row[4],
-        progress=json.loads(row[5]), result=None if row[6] is None else json.loads(row[6]),
+        progress=json.loads(row[5]),
+        result=None if row[6] is None else result_from_json(row[1], row[6]),
         error_code=row[7], error_message=row[8], created_at=row[9], ended_at=row[10])

@@ -103,5 +103,5 @@ class IbvsApproach(ApproachBase, IbvsLoop):
     settle_steps_mm_deg: list[tuple[float, float]] | None = None  # each step's size
 
 
-ApproachResult = Annotated[LookAndMoveApproach | ServoApproach | IbvsApproach,
-                           Field(discriminator="mode")]
+AnyApproach = LookAndMoveApproach | ServoApproach | IbvsApproach
+ApproachResult = Annotated[AnyApproach, Field(discriminator="mode")]

@@ -1,18 +1,19 @@
-"""The base every result model shares: immutable, closed, and one way to publish it.
+"""The base every result model shares: immutable, closed, and publishing only what was set.
 
 A result lists every key a client may see. Keys a result always carries are required fields
 (``None`` where the value may be missing); a key that only some results carry (a fixed
 camera's occlusion fields, the closing steps of an approach at rest) has the default ``None``
-and is published only when its producer set it. So :meth:`Result.json_dict` dumps with
-``exclude_unset``: a key a producer did not set stays absent, an explicit ``None`` is ``null``.
-No other field has a default, since an unset default would vanish from the published JSON.
+and is published only when its producer set it: every dump of a result (``json_dict``, the job
+store's JSON, FastAPI's response) leaves out the fields its producer did not set, and an
+explicit ``None`` is ``null``. No other field has a default, since an unset default would
+vanish from the published JSON.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, SerializerFunctionWrapHandler, model_serializer
 
 
 class Result(BaseModel):
@@ -21,6 +22,17 @@ class Result(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, ser_json_inf_nan="constants")
 
+    @model_serializer(mode="wrap")
+    def _only_set(self, handler: SerializerFunctionWrapHandler):  # type: ignore[no-untyped-def]
+        # no return annotation: the serialised schema stays the model's own (OpenAPI)
+        data = handler(self)
+        return {name: value for name, value in data.items() if name in self.model_fields_set}
+
     def json_dict(self) -> dict[str, Any]:
         """The JSON object every interface publishes (plain lists, numbers and strings)."""
-        return self.model_dump(mode="json", exclude_unset=True)
+        return self.model_dump(mode="json")
+
+    def set_values(self) -> dict[str, Any]:
+        """The fields its producer set, by name, as they are: to build a result that carries
+        this one's fields flat (the routine's result from the solution's)."""
+        return {name: getattr(self, name) for name in self.model_fields_set}

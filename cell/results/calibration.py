@@ -8,6 +8,9 @@ from typing import Literal
 from cell.results.base import Result
 from cell.results.pose import Pose
 
+# what a hand-eye result's transform is: the flange's camera, or a fixed camera in the base
+MountTransform = Literal["T_flange_camera", "T_base_camera"]
+
 
 class MethodResidual(Result):
     """ViSP's consistency residual: each view's ``T_base_board`` from their mean."""
@@ -108,11 +111,11 @@ class MountFields(Result):
     given under that name."""
 
     mount: Literal["hand", "fixed"]
-    transform: Literal["T_flange_camera", "T_base_camera"]
+    transform: MountTransform
     T_base_camera: Pose | None = None  # a fixed camera
 
 
-class ConfigChange(Result):
+class ConfigFileChange(Result):
     """What writing the config file changed, and where the old file is kept."""
 
     file: str
@@ -121,7 +124,7 @@ class ConfigChange(Result):
     new_T_flange_camera: Pose
     distance_mm: float
     distance_deg: float
-    key: Literal["T_flange_camera", "T_base_camera"]
+    key: MountTransform
 
 
 class CalibrationApplied(MountFields):
@@ -131,4 +134,4 @@ class CalibrationApplied(MountFields):
     T_flange_camera: Pose
     running: bool
     written_config: str | None
-    config_change: ConfigChange | None
+    config_change: ConfigFileChange | None

@@ -12,8 +12,15 @@ from typing import Any, Literal, get_args
 
 from pydantic import TypeAdapter
 
-from cell.results.approach import ApproachResult, IbvsApproach, LookAndMoveApproach, ServoApproach
+from cell.results.approach import (
+    AnyApproach,
+    ApproachResult,
+    IbvsApproach,
+    LookAndMoveApproach,
+    ServoApproach,
+)
 from cell.results.home import HomeResult
+from cell.results.pose import Pose
 from cell.results.routine import HandEyeRoutineResult
 from cell.results.track import IbvsTrack, ServoTrack, TrackResult
 
@@ -38,6 +45,14 @@ def _adapter(kind: str) -> TypeAdapter[Any]:
         raise ValueError(f"no result model for jobs of kind {kind!r}") from None
 
 
+def located_pose(result: JobResult | None) -> Pose | None:
+    """The target pose a job's result reports (an approach's or a track's ``T_base_target``),
+    as the PLC doors publish it; None for other kinds, or an IBVS run that saw no view."""
+    if isinstance(result, AnyApproach | ServoTrack | IbvsTrack):
+        return result.T_base_target
+    return None
+
+
 def result_of(kind: str, data: Any) -> JobResult:
     """A result of a job of ``kind`` from its model, or from its JSON object as a dict;
     pydantic's ValidationError when it is not one."""
@@ -53,4 +68,4 @@ def result_from_json(kind: str, text: str | bytes) -> JobResult:
 
 def result_json(result: JobResult) -> str:
     """The JSON text the job store keeps (keys a producer did not set stay absent)."""
-    return result.model_dump_json(exclude_unset=True)
+    return result.model_dump_json()

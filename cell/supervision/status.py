@@ -61,7 +61,7 @@ def status(core: CellCore, links: LinkSupervisor, gripper: GripperService) -> di
         job = None if j is None else j.as_dict()
     out["job"] = job
     last = core.locator.last
-    out["last_locate"] = None if last is None else last.as_dict(now)
+    out["last_locate"] = None if last is None else last.answer(now).json_dict()
     out["links"] = links.snapshot()
     return out
 

@@ -12,13 +12,15 @@ import threading
 import time
 from collections import Counter
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, RefusedError, UnavailableError
+from cell.results.consistency import Consistency
+from cell.results.locate import LocateQuality, LocateResult
+from cell.results.pose import Pose
 from cell.vision.consistency import consistency
 from cell.vision.frames import CellFrames, mean_pose
 from cell.vision.imagelog import ImageLog
@@ -29,7 +31,7 @@ from drivers.camera import Camera, Frame
 from drivers.errors import ConnectionLostError, DriverError
 from estimator import CameraModel, EstimationError, PoseResult, Target
 from estimator.pipeline import Estimator
-from estimator.transforms import invert_T, pose_dict, pose_distance
+from estimator.transforms import invert_T, pose_distance
 
 log = logging.getLogger(__name__)
 Matrix4 = NDArray[np.float64]
@@ -58,28 +60,26 @@ class Located:
     spread_deg: float = 0.0  # largest rotation of a single-frame estimate from the mean
     rms_px_frames: tuple[float, ...] = ()  # reprojection rms of each frame averaged
 
-    def as_dict(self, now_s: float) -> dict[str, Any]:
+    def answer(self, now_s: float) -> LocateResult:
+        """The locate answer every interface publishes; ``now_s`` (time.monotonic()) dates
+        the frame's age."""
         r = self.result
-        return {
-            "T_base_target": pose_dict(self.T_base_target),
-            "T_camera_target": pose_dict(self.T_camera_target),
-            "T_base_tcp": pose_dict(self.T_base_tcp),
-            "quality": {
-                "rms_px": float(r.rms_px),
-                "max_residual_px": float(np.max(r.residuals_px)) if len(r.residuals_px) else 0.0,
-                "ambiguous": bool(r.ambiguous),
-                "converged": bool(r.converged),
-                "n_points": len(r.matched_ids),
-                "covariance": None if r.covariance is None else r.covariance.tolist(),
-                "frame_age_s": max(0.0, now_s - self.frame_timestamp_s),
-                "n_frames": self.n_frames,
-                "spread_mm": self.spread_mm,
-                "spread_deg": self.spread_deg,
-            },
-            "frame_sequence": self.frame_sequence,
+        return LocateResult(
+            T_base_target=Pose.from_T(self.T_base_target),
+            T_camera_target=Pose.from_T(self.T_camera_target),
+            T_base_tcp=Pose.from_T(self.T_base_tcp),
+            quality=LocateQuality(
+                rms_px=float(r.rms_px),
+                max_residual_px=float(np.max(r.residuals_px)) if len(r.residuals_px) else 0.0,
+                ambiguous=bool(r.ambiguous), converged=bool(r.converged),
+                n_points=len(r.matched_ids),
+                covariance=None if r.covariance is None else r.covariance.tolist(),
+                frame_age_s=max(0.0, now_s - self.frame_timestamp_s), n_frames=self.n_frames,
+                spread_mm=self.spread_mm, spread_deg=self.spread_deg),
+            frame_sequence=self.frame_sequence,
             # one locate, one arm pose: residuals and frame spread, no motion to judge
-            "consistency": consistency([("locate", self)], np.zeros(3), target_at_rest=False),
-        }
+            consistency=Consistency.model_validate(
+                consistency([("locate", self)], np.zeros(3), target_at_rest=False)))
 
 
 class Locator:

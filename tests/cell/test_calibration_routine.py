@@ -111,6 +111,7 @@ def test_auto_takes_the_kinematic_fit_when_the_arms_geometry_explains_the_views(
     assert "nominal kinematics" in with_joints.verdict.text
     d_mm, d_deg = pose_distance(with_joints.T_flange_camera, T_FLANGE_CAMERA)
     assert d_mm < 0.05 and d_deg < 0.01, (d_mm, d_deg)
-    assert with_joints.as_dict()["kinematic"]["rms_px"] < 0.03
+    kinematic = with_joints.solution().kinematic
+    assert kinematic is not None and kinematic.rms_px < 0.03
     without = solve_observations(*args)
     assert without.chosen == "hybrid" and without.kinematic is None

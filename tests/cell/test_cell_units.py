@@ -17,6 +17,7 @@ from cell.errors import LimitError, RefusedError, UnavailableError
 from cell.jobs.events import EventBus
 from cell.jobs.store import JobStore
 from cell.motion.limits import SafetyGuard
+from cell.results import HomeResult, Pose
 from cell.vision.frames import (
     CellFrames,
     approach_tcp,
@@ -170,8 +171,10 @@ def test_safety_guard_refusals() -> None:
 def test_job_store_records_and_marks_interrupted_jobs(tmp_path: Path) -> None:
     db = tmp_path / "jobs.db"
     store = JobStore(db)
-    done = store.create("approach", "op", {"standoff_mm": 50})
-    store.finish(done.id, "succeeded", {"ok": True})
+    done = store.create("home", "op", {"speed_deg_s": 30.0})
+    home = HomeResult(joints_deg=[0.0, -90.0, 90.0, -90.0, -90.0, 0.0],
+                      T_base_tcp=Pose.from_T(np.eye(4)))
+    store.finish(done.id, "succeeded", home)
     running = store.create("approach", "plc", {"standoff_mm": 20})
     store.set_progress(running.id, {"cycle": 2})
     store.audit("op", "locate", {"n_frames": 1}, "ok", "rms 0.1")
@@ -185,7 +188,8 @@ def test_job_store_records_and_marks_interrupted_jobs(tmp_path: Path) -> None:
     assert again.recovered == [running.id]
     job = again.get(running.id)
     assert job is not None and job.state == "interrupted" and job.error_code == "interrupted"
-    assert again.get(done.id).state == "succeeded"  # type: ignore[union-attr]
+    finished = again.get(done.id)
+    assert finished is not None and finished.state == "succeeded" and finished.result == home
     commands = [e.command for e in again.audit_log()]
     assert commands[:2] == ["recover", "locate"]
     assert JobStore(db).recovered == []

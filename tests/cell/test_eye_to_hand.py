@@ -146,9 +146,10 @@ def test_fixed_cell_locates_and_approaches_without_an_observation_pose() -> None
                 job = start_approach(core, "test", wait=True)
                 rec = core.jobs.get(job.id)
                 assert rec is not None and rec.state == "succeeded", rec
-                assert rec.result is not None and rec.result["pose_source"] == expect
-                assert rec.result["occluded"] == (expect == "last_seen") or \
-                    rec.result["occluded_at_goal"]
+                assert rec.result is not None
+                result = rec.result.json_dict()
+                assert result["pose_source"] == expect
+                assert result["occluded"] == (expect == "last_seen") or result["occluded_at_goal"]
                 d_mm, _ = pose_distance(cell.sim.true_T_base_tcp(), goal)
                 assert d_mm < 0.1, d_mm
         finally:
@@ -171,8 +172,9 @@ def test_fixed_cell_servo_approach_holds_the_last_pose_when_the_arm_hides_the_ta
                 job = start_approach(core, "test", wait=True, mode="servo")
                 rec = core.jobs.get(job.id)
                 assert rec is not None and rec.state == "succeeded", rec
-                r = rec.result
-                assert r is not None and r["mode"] == "servo" and r["camera_mount"] == "fixed"
+                assert rec.result is not None
+                r = rec.result.json_dict()
+                assert r["mode"] == "servo" and r["camera_mount"] == "fixed"
                 if second:
                     assert r["start_pose_source"] == "last_seen" and r["occluded"]
                 if r["pose_source"] == "last_seen":

@@ -24,7 +24,7 @@ from api.http.schemas import (
     Int,
     Job,
     Num,
-    Pose,
+    PoseIn,
     TaughtDeleted,
     TaughtList,
     TaughtPoseOut,
@@ -91,7 +91,7 @@ def _cell(request: Request) -> Cell:
     return cell
 
 
-def job_tool_pose(request: Request, taught: str | None, T_target_tcp: Pose | None,
+def job_tool_pose(request: Request, taught: str | None, T_target_tcp: PoseIn | None,
                   mode: str | None) -> tuple[NDArray[np.float64] | None, Features | None]:
     """The tool pose and, for ``ibvs``, the view a job request asks for: its ``T_target_tcp``
     or the pose taught under ``taught`` (``Cell.taught.for_job``: 404 for an unknown name,
@@ -136,7 +136,7 @@ def apply_hand_eye(request: Request, caller: Calibrator, job_id: str,
     """Use the result in the running cell and/or write it into the config file."""
     b = body or ApplyRequest()
     return _cell(request).calibration.apply(caller.label, job_id, b.method, b.running,
-                                            b.write_config, b.force)
+                                            b.write_config, b.force).json_dict()
 
 
 @router.get("/calibration/events", tags=["calibration"], responses=SSE_RESPONSES,

@@ -113,7 +113,7 @@ def locate(request: Request, caller: Annotated[Caller, Depends(require("locate")
         raise
     finally:
         request.app.state.metrics.locate.labels(outcome).observe(time.perf_counter() - t0)
-    return loc.as_dict(time.monotonic())
+    return loc.answer(time.monotonic()).json_dict()
 
 
 @router.post("/approach", response_model=Job, tags=["motion"],

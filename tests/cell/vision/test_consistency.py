@@ -74,7 +74,7 @@ def _approach(tmp_path: Path, world_name: str) -> tuple[dict[str, Any], tuple[fl
         assert job.state == "succeeded" and job.result is not None, job.error_message
         goal = approach_tcp(world(cell).true_T_base_target(), config.approach.T_target_tcp.T(),
                             STANDOFF_MM)
-        return job.result, pose_distance(settled_tcp(cell), goal)
+        return job.result.json_dict(), pose_distance(settled_tcp(cell), goal)
 
 
 @pytest.mark.slow
@@ -100,7 +100,7 @@ def test_a_mount_error_is_flagged_and_the_ideal_world_is_not(tmp_path: Path) -> 
 
 def test_a_locate_reports_residuals_and_spread_and_judges_no_motion(tmp_path: Path) -> None:
     with running_cell(sim_config(tmp_path, sim={"world": "realistic"})) as cell:
-        body = cell.locate("test", n_frames=3).as_dict(0.0)
+        body = cell.locate("test", n_frames=3).answer(0.0).json_dict()
     c = body["consistency"]
     assert c["verdict"] == "unchecked" and c["motion"]["checks"] == []
     assert len(c["reprojection"]["rms_px"]) == 3 and c["reprojection"]["max_rms_px"] < 1.0
@@ -140,10 +140,11 @@ def test_a_servo_approach_to_a_target_at_rest_closes_on_still_views_and_judges_n
                             STANDOFF_MM)
         assert pose_distance(settled_tcp(cell), goal)[0] < 0.1
     # the servo stopped on moving views; the stopped arm then looked again at rest
-    closing = job.result["closing"]
+    result = job.result.json_dict()
+    closing = result["closing"]
     assert closing and "correction_mm" in closing[-1], closing
-    assert job.result["estimated_error_basis"]["frame"] == "base"
-    assert job.result["estimated_error_mm"] == closing[-1]["correction_mm"]
-    c = job.result["consistency"]
+    assert result["estimated_error_basis"]["frame"] == "base"
+    assert result["estimated_error_mm"] == closing[-1]["correction_mm"]
+    c = result["consistency"]
     assert c["verdict"] == "unchecked" and c["motion"]["target_at_rest"] is False
     assert c["reprojection"]["max_rms_px"] < 1.0
