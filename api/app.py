@@ -24,9 +24,9 @@ from api.http.live import LiveView
 from api.http.page import mount_page
 from api.http.request_timer import RequestTimer
 from api.http.routes.arm import router as arm_router
-from api.http.routes.calibration import install as install_calibration
+from api.http.routes.calibration import router as calibration_router
 from api.http.routes.main import router, sim_router
-from api.http.routes.ops import install as install_ops
+from api.http.routes.ops import router as ops_router
 from api.http.routes.recipes import router as recipes_router
 from api.http.routes.servo import router as servo_router
 from api.plc.interfaces import Interfaces
@@ -65,7 +65,6 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False,
             await asyncio.to_thread(doors.start)
         yield
         doors.close()
-        alarms.close()
         app.state.metrics.close()
         if close_cell_on_shutdown:
             cell.close()
@@ -83,9 +82,8 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False,
     app.include_router(arm_router)  # operator recovery: home, unlock, power
     app.include_router(servo_router)  # POST /track
     app.include_router(recipes_router)  # recipes (products) and approaches with one
-    install_calibration(app)  # hand-eye routine and taught poses
-    alarms = install_ops(app)  # alarms, camera settings, image log
-    alarms.start()
+    app.include_router(calibration_router)  # hand-eye routine and taught poses
+    app.include_router(ops_router)  # alarms, camera settings, image log
     if cell.sim is not None:
         app.include_router(sim_router)
     app.add_middleware(RequestGuard)
@@ -127,7 +125,7 @@ def app_from_environment() -> FastAPI:
                             _port_from_environment("CELL_OPCUA_PORT"),
                             _port_from_environment("CELL_XMLRPC_PORT"),
                             _port_from_environment("CELL_MODBUS_PORT"))
-        cell = start_cell(config)
+        cell = start_cell(config, config_path=os.environ.get("CELL_CONFIG") or None)
     except Exception as err:  # a clear line instead of a traceback from inside uvicorn
         code = getattr(err, "code", "startup_failed")
         print(f"error ({code}): the cell could not start: {err}", file=sys.stderr)

@@ -8,11 +8,8 @@ reaches the facade; everything else is audited by the facade or by :func:`audite
 
 from __future__ import annotations
 
-import inspect
 import math
-import threading
-import weakref
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -25,28 +22,18 @@ from api.status import STATUS
 from cell.actions.approach import JobLayout
 from cell.actions.approach_rules import check_speed, check_standoff
 from cell.error_codes import ErrorCode
-from cell.errors import CellError, ForbiddenError, LimitError, NotFoundError
-from cell.features.recipes import Recipe, RecipeStore, RecipeTarget
-from cell.features.teach import TaughtStore
+from cell.errors import CellError, ForbiddenError, LimitError
+from cell.features.recipes import Recipe, RecipeTarget
 from cell.jobs.audit import AuditNote
 from cell.jobs.store import Job
+from cell.results.modes import ApproachMode
 from cell.service import Cell
-from cell.servoing.ibvs import Features
 from cell.vision.frames import approach_tcp
 from cell.vision.locate import Located
 from estimator.transforms import pose_from_T
 
 Matrix4 = NDArray[np.float64]
 T = TypeVar("T")
-
-APPROACH_MODES = ("look_and_move", "servo", "ibvs")
-
-
-class NotSupportedError(CellError):
-    """The cell this service runs has no such command."""
-
-    kind = "invalid"
-
 
 @dataclass(frozen=True)
 class RemoteCaller:
@@ -136,65 +123,34 @@ def approach(cell: Cell, caller: RemoteCaller, standoff_mm: Any, mode: Any,
     params = {"standoff_mm": standoff_mm, "mode": mode, "taught": taught}
     require(cell, caller, "approach", "approach", params)
     try:
-        mode = text("mode", mode) or cell.config.approach.mode  # "" is the cell's default
+        mode = text("mode", mode)
         taught = text("taught", taught)
         standoff = check_standoff(finite("standoff_mm", standoff_mm, minimum=0.0))
-        if mode not in APPROACH_MODES:
-            raise LimitError(ErrorCode.invalid_request,
-                             f"mode must be one of {', '.join(APPROACH_MODES)}"
-                             f" (or empty), got {mode!r}")
-        takes_mode = "mode" in inspect.signature(cell.approach).parameters
-        if mode != "look_and_move" and not takes_mode:
-            raise NotSupportedError(ErrorCode.not_supported,
-                                    f"approach mode {mode!r} is not available in this cell")
-        T_target_tcp, view = taught_pose_and_view(cell, taught or None, mode)
+        how = approach_mode(cell, mode)
+        T_target_tcp, view = cell.taught.for_job(taught or None, how)
     except CellError:
         with audited(cell, caller, "approach", params):
             raise
-    start: Callable[..., Job] = cell.approach
-    if mode == "ibvs":
-        return start(caller.label, standoff_mm=standoff or None, mode=mode,
-                     T_target_tcp=T_target_tcp, view=view)
-    if takes_mode:
-        return start(caller.label, standoff_mm=standoff, mode=mode, T_target_tcp=T_target_tcp)
-    return start(caller.label, standoff_mm=standoff, T_target_tcp=T_target_tcp)
+    if how == ApproachMode.ibvs:  # to the taught view itself: a standoff of 0 is none
+        return cell.approach(caller.label, standoff_mm=standoff or None, mode=how,
+                             T_target_tcp=T_target_tcp, view=view)
+    return cell.approach(caller.label, standoff_mm=standoff, mode=how, T_target_tcp=T_target_tcp)
 
 
-def taught_pose_and_view(cell: Cell, taught: str | None, mode: str
-                         ) -> tuple[Matrix4 | None, Features | None]:
-    """The taught pose (None without a name) and, for ``ibvs``, its view: refused as the
-    HTTP API refuses (``ibvs_needs_taught``, ``taught_without_view``, ``taught_not_found``)."""
-    if taught is None:
-        if mode == "ibvs":
-            raise LimitError(ErrorCode.ibvs_needs_taught, "mode 'ibvs' converges on a taught view: "
-                             "give the taught pose's name")
-        return None, None
-    if not isinstance(taught, str):
-        raise LimitError(ErrorCode.invalid_request, f"taught must be a name, got {taught!r}")
-    pose = TaughtStore.beside_job_db(cell.config.api.job_db).get(taught)
-    if mode == "ibvs" and pose.view is None:
-        raise LimitError(ErrorCode.taught_without_view,
-                         f"the pose {taught!r} was taught without its "
-                         "view (an older record): teach it again for ibvs")
-    return pose.T_target_tcp, pose.view if mode == "ibvs" else None
+def approach_mode(cell: Cell, name: str) -> ApproachMode:
+    """The approach mode a PLC names ("": the cell's ``[approach] mode``), or
+    ``invalid_request`` listing the modes."""
+    if not name:
+        return cell.config.approach.mode
+    try:
+        return ApproachMode(name)
+    except ValueError:
+        raise LimitError(ErrorCode.invalid_request,
+                         f"mode must be one of {', '.join(ApproachMode)} (or empty), got "
+                         f"{name!r}") from None
 
 
 # -- recipes ----------------------------------------------------------------------------------
-_STORES: weakref.WeakKeyDictionary[Cell, RecipeStore] = weakref.WeakKeyDictionary()
-_STORES_LOCK = threading.Lock()
-
-
-def recipe_store(cell: Cell) -> RecipeStore:
-    """The one recipe store of a cell (beside its job database), shared by every interface;
-    it refuses to save a recipe the cell's limits would refuse to run."""
-    with _STORES_LOCK:
-        store = _STORES.get(cell)
-        if store is None:
-            store = _STORES[cell] = RecipeStore.beside_job_db(cell.config.api.job_db,
-                                                              cell.config.limits)
-        return store
-
-
 def recipe_ref(value: Any) -> str | int:
     """A recipe named by its name or its number (a digit string is a number)."""
     if isinstance(value, bool) or not isinstance(value, str | int) or value in ("", 0):
@@ -208,7 +164,7 @@ def recipe_ref(value: Any) -> str | int:
 def find_recipe(cell: Cell, ref: str | int, target: Any = "",
                 version: int | None = None) -> tuple[Recipe, RecipeTarget]:
     """The recipe and its target (``""``: the first); nothing is changed."""
-    recipe = recipe_store(cell).get(ref, version)
+    recipe = cell.recipes.get(ref, version)
     return recipe, recipe.target(text("target", target))
 
 
@@ -254,7 +210,7 @@ def approach_recipe(cell: Cell, caller: RemoteCaller, ref: Any, target: Any = ""
             else check_standoff(finite("standoff_mm", standoff_mm, minimum=0.0))
         speed = chosen.speed_mm_s if speed_mm_s is None \
             else check_speed(cell.config.limits, finite("speed_mm_s", speed_mm_s))
-        T_target_tcp = taught_T_target_tcp(cell, chosen.taught) if chosen.taught else None
+        T_target_tcp, _ = cell.taught.for_job(chosen.taught or None, chosen.mode)
     except CellError:
         with audited(cell, caller, "approach", params):
             raise
@@ -275,7 +231,7 @@ def track_recipe(cell: Cell, caller: RemoteCaller, ref: Any, target: Any = "",
         recipe, chosen = find_recipe(cell, recipe_ref(ref), target)
         duration = cell.config.servo.max_track_s if duration_s is None \
             else finite("duration_s", duration_s, minimum=0.0)
-        T_target_tcp = taught_T_target_tcp(cell, chosen.taught) if chosen.taught else None
+        T_target_tcp, _ = cell.taught.for_job(chosen.taught or None, None)
     except CellError:
         with audited(cell, caller, "track", params):
             raise
@@ -287,17 +243,13 @@ def track_recipe(cell: Cell, caller: RemoteCaller, ref: Any, target: Any = "",
 def track(cell: Cell, caller: RemoteCaller, standoff_mm: Any, duration_s: Any) -> Job:
     params = {"standoff_mm": standoff_mm, "duration_s": duration_s}
     require(cell, caller, "track", "track", params)
-    run: Callable[..., Job] | None = getattr(cell, "track", None)
     try:
         standoff = finite("standoff_mm", standoff_mm, minimum=0.0)
         duration = finite("duration_s", duration_s, minimum=0.0)
-        if run is None:
-            raise NotSupportedError(ErrorCode.not_supported,
-                                    "tracking is not available in this cell")
     except CellError:
         with audited(cell, caller, "track", params):
             raise
-    return run(caller.label, standoff_mm=standoff, duration_s=duration)
+    return cell.track(caller.label, standoff_mm=standoff, duration_s=duration)
 
 
 def stop(cell: Cell, caller: RemoteCaller) -> dict[str, Any]:
@@ -324,14 +276,6 @@ def gripper(cell: Cell, caller: RemoteCaller, action: Any, width_mm: Any) -> dic
     return cell.gripper(caller.label, action, position_mm=position)
 
 
-def taught_T_target_tcp(cell: Cell, name: str) -> Matrix4:
-    """A taught tool pose from the store beside the job database (as the HTTP API reads it)."""
-    store = TaughtStore.beside_job_db(cell.config.api.job_db)
-    if not isinstance(name, str) or not name:
-        raise NotFoundError(ErrorCode.taught_not_found, f"no taught pose named {name!r}")
-    return store.get(name).T_target_tcp
-
-
 def tcp_goal(cell: Cell, caller: RemoteCaller, command: str, *, standoff_mm: Any,
              taught: str | None = None) -> tuple[Matrix4, Located]:
     """Robot-program-driven mode: locate now and return the TCP goal for the program's own
@@ -343,8 +287,8 @@ def tcp_goal(cell: Cell, caller: RemoteCaller, command: str, *, standoff_mm: Any
     require(cell, caller, "locate", command, params)
     with audited(cell, caller, command, params) as note:
         standoff = finite("standoff_mm", standoff_mm, minimum=0.0)
-        T_target_tcp = cell.config.approach.T_target_tcp.T() if taught is None \
-            else taught_T_target_tcp(cell, taught)
+        T_taught, _ = cell.taught.for_job(taught, None)
+        T_target_tcp = cell.config.approach.T_target_tcp.T() if T_taught is None else T_taught
         loc = cell.locate(caller.label)
         goal = approach_tcp(loc.T_base_target, T_target_tcp, standoff)
         cell.arm.guard.check_goal(cell.arm_state().T_base_tcp, goal, "the program's goal")

@@ -36,7 +36,7 @@ class ErrorCode(StrEnum):
     controller_watchdog = "controller_watchdog"
     unlock_too_early = "unlock_too_early"
     no_motion_slot = "no_motion_slot"  # an internal refusal: a motion without the slot
-    not_supported = "not_supported"  # a PLC interface method this cell does not offer
+    not_supported = "not_supported"  # a mode this cell cannot run (its camera mount)
     # servoing and tracking
     target_lost = "target_lost"
     pose_jump = "pose_jump"

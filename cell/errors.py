@@ -65,11 +65,5 @@ class ForbiddenError(CellError):
     kind = "forbidden"
 
 
-class NotSupportedError(CellError):
-    """The cell this service runs has no such command (a PLC method it does not offer)."""
-
-    kind = "invalid"
-
-
 class Cancelled(RefusedError):
     """The running motion was cancelled by a stop."""

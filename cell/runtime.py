@@ -50,8 +50,11 @@ def check_startable(config: CellConfig) -> None:
 GIL_SWITCH_INTERVAL_S = 0.001
 
 
-def start_cell(config: CellConfig | str | Path | None = None) -> Cell:
+def start_cell(config: CellConfig | str | Path | None = None,
+               config_path: str | Path | None = None) -> Cell:
     """Validate, build and start the cell; on failure everything built so far is released.
+    ``config_path``: the file an applied calibration may rewrite (``cell serve``'s config
+    file; None: writing the calibration into a config file is refused).
 
     A device that cannot be reached does not stop the start: the cell serves, reports it
     (``/health``: degraded) and reconnects it in the background."""
@@ -66,7 +69,7 @@ def start_cell(config: CellConfig | str | Path | None = None) -> Cell:
         raise
     image_log = ImageLog(cfg.api.image_log_dir, cfg.api.image_log_max) \
         if cfg.api.image_log_dir else None
-    cell = Cell(cfg, hw, jobs, image_log)
+    cell = Cell(cfg, hw, jobs, image_log, config_path)
     try:
         cell.start()
     except BaseException:

@@ -7,7 +7,13 @@ wires together, each with one responsibility:
 - :mod:`cell.jobs`: the lifecycle of every job, the audit log, the events;
 - :mod:`cell.actions`: what moves the arm (approach, track and its servo, jog, recovery, stop);
 - :mod:`cell.vision`: the frame chain and locate;
-- :mod:`cell.supervision`: devices that drop and come back, what is reported, the gripper.
+- :mod:`cell.supervision`: devices that drop and come back, what is reported, the gripper;
+- :mod:`cell.features`: the taught poses, the recipes, the alarms, the camera settings;
+- :mod:`cell.calibration`: the hand-eye routine as a job, and applying its result.
+
+The stores live here, built once with the cell and closed with it, so every interface (HTTP,
+OPC UA, Modbus, XML-RPC) reads and writes the same ones: ``taught``, ``recipes``,
+``alarms``, ``calibration``.
 
 docs/architecture.md draws the whole house.
 
@@ -20,7 +26,8 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any, Literal
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,16 +36,28 @@ from cell.actions import approach as approach_mod
 from cell.actions import recovery, track
 from cell.actions.jog import Jogger
 from cell.actions.stop import StopLine
+from cell.calibration.service import CalibrationService
 from cell.config.schema import CellConfig, HandEyeConfig, PoseConfig
 from cell.core import CellCore
 from cell.devices.hardware import Hardware, SimWorld
 from cell.error_codes import ErrorCode
 from cell.errors import LimitError, NotFoundError
+from cell.features.alarms import AlarmLog
+from cell.features.camera_control import apply_camera_settings, camera_settings
+from cell.features.recipes import RecipeStore
+from cell.features.teach import (
+    DEFAULT_MAX_SPREAD_DEG,
+    DEFAULT_MAX_SPREAD_MM,
+    TaughtPose,
+    TaughtStore,
+    teach,
+)
 from cell.jobs.audit import Auditor
 from cell.jobs.events import EventBus
 from cell.jobs.runner import JobRunner
 from cell.jobs.store import Job, JobStore
 from cell.motion.guard import GuardedArm, MotionSlot, driver_error
+from cell.results.modes import ApproachMode
 from cell.servoing.ibvs import Features
 from cell.stats import CellStats
 from cell.supervision.gripper import GripperService
@@ -49,7 +68,7 @@ from cell.vision.frames import CellFrames, cell_frames
 from cell.vision.imagelog import ImageLog
 from cell.vision.locate import Located, Locator
 from drivers.arm import ArmState, JogFrame
-from drivers.camera import Frame
+from drivers.camera import FocusSetting, Frame
 from drivers.errors import DriverError
 from estimator import PoseResult, Target
 from estimator.transforms import pose_from_T
@@ -59,10 +78,14 @@ Matrix4 = NDArray[np.float64]
 
 
 class Cell:
-    """The cell service. Thread-safe: the API calls it from many worker threads."""
+    """The cell service. Thread-safe: the API calls it from many worker threads.
+
+    ``config_path``: the file ``config`` was read from, which an applied calibration may
+    rewrite (None: a built-in config, and writing it is refused)."""
 
     def __init__(self, config: CellConfig, hardware: Hardware, jobs: JobStore,
-                 image_log: ImageLog | None = None) -> None:
+                 image_log: ImageLog | None = None,
+                 config_path: str | Path | None = None) -> None:
         self.config = config
         self.hw = hardware
         self.jobs = jobs
@@ -86,6 +109,10 @@ class Cell:
         self.storage = StorageWatch(jobs, state_dirs(jobs, config.api.calibration_dir,
                                                      config.api.image_log_dir))
         self.snapshot = CellSnapshot(self.core, self.links, self.gripper_ops, self.storage)
+        self.taught = TaughtStore.beside_job_db(config.api.job_db)
+        self.recipes = RecipeStore.beside_job_db(config.api.job_db, config.limits)
+        self.alarms = AlarmLog(jobs, self.events, self.status)
+        self.calibration = CalibrationService(self.core, self.set_hand_eye, config_path)
         self.started_at = time.time()
 
     # -- what other modules read ---------------------------------------------------------------
@@ -121,6 +148,7 @@ class Cell:
         self.links.start()
         self.storage.start()
         self.snapshot.start()
+        self.alarms.start()
 
     def close(self) -> None:
         """Stop the arm first, then everything else."""
@@ -128,6 +156,7 @@ class Cell:
             self.stop("service", reason="shutdown")
         except Exception:
             log.exception("stop at shutdown failed")
+        self.alarms.close()
         self.links.close()
         self.core.runner.join(timeout_s=5.0)
         self.snapshot.close()
@@ -183,7 +212,7 @@ class Cell:
                  speed_mm_s: float | None = None, T_target_tcp: Matrix4 | None = None,
                  use_last_locate: bool = False, wait: bool = False,
                  wait_timeout_s: float = 120.0,
-                 mode: Literal["servo", "look_and_move", "ibvs"] | None = None,
+                 mode: ApproachMode | None = None,
                  recipe: dict[str, Any] | None = None, view: Features | None = None,
                  layout: Target | None = None) -> Job:
         """Approach job; ``mode`` None: ``[approach] mode`` (see cell.actions.approach); ``recipe``:
@@ -196,19 +225,19 @@ class Cell:
 
     def track(self, caller: str, *, standoff_mm: float, T_target_tcp: Matrix4 | None = None,
               duration_s: float, wait: bool = False, wait_timeout_s: float = 120.0,
-              mode: Literal["servo", "ibvs"] = "servo", view: Features | None = None,
+              mode: ApproachMode = ApproachMode.servo, view: Features | None = None,
               recipe: dict[str, Any] | None = None, layout: Target | None = None) -> Job:
         """Track job: hold the TCP at the standoff pose on a moving target (cell.actions.track),
-        or the taught view (``mode="ibvs"``); ``recipe``: the recipe
-        record the job keeps; ``layout``: the dot layout looked for during this job only."""
-        if mode == "ibvs":
+        or the taught view (mode ``ibvs``); look-and-move cannot follow a moving target;
+        ``recipe``: the recipe record the job keeps; ``layout``: the dot layout looked for
+        during this job only."""
+        if mode == ApproachMode.ibvs:
             return track.start_ibvs_track(self.core, caller, standoff_mm=standoff_mm,
                                           duration_s=duration_s, T_target_tcp=T_target_tcp,
                                           view=view, wait=wait, wait_timeout_s=wait_timeout_s)
-        if mode != "servo":
+        if mode != ApproachMode.servo:
             raise LimitError(ErrorCode.invalid_request,
-                             f"track mode must be 'servo' or 'ibvs', got "
-                             f"{mode!r}")
+                             f"track mode must be 'servo' or 'ibvs', got '{mode}'")
         return track.start_track(self.core, caller, standoff_mm=standoff_mm,
                                  duration_s=duration_s, T_target_tcp=T_target_tcp, wait=wait,
                                  wait_timeout_s=wait_timeout_s, recipe=recipe, layout=layout)
@@ -241,6 +270,24 @@ class Cell:
                 speed_pct: float = 100.0, force_pct: float = 50.0,
                 wait: bool = True) -> dict[str, Any]:
         return self.gripper_ops.command(caller, action, position_mm, speed_pct, force_pct, wait)
+
+    def teach(self, caller: str, name: str, samples: int = 5,
+              max_spread_mm: float = DEFAULT_MAX_SPREAD_MM,
+              max_spread_deg: float = DEFAULT_MAX_SPREAD_DEG,
+              replace: bool = True) -> TaughtPose:
+        """Teach ``name`` at the arm's resting pose into :attr:`taught`
+        (cell.features.teach); nothing moves."""
+        return teach(self, self.taught, caller, name, samples, max_spread_mm, max_spread_deg,
+                     replace)
+
+    def camera_settings(self) -> dict[str, Any]:
+        return camera_settings(self.core)
+
+    def apply_camera_settings(self, caller: str, *, exposure_us: int | None = None,
+                              iso: int | None = None,
+                              focus: FocusSetting | None = None) -> dict[str, Any]:
+        return apply_camera_settings(self.core, caller, exposure_us=exposure_us, iso=iso,
+                                     focus=focus)
 
     def stop(self, caller: str, reason: str = "requested") -> dict[str, Any]:
         """Always accepted, through the one stop path (cell.actions.stop): the motion slot's holder

@@ -24,6 +24,7 @@ from cell.results import (
     TrackResult,
 )
 from cell.results.calibration import CalibrationApplied
+from cell.results.modes import ApproachMode, TrackMode
 
 # Strict scalars of request bodies: no strings, no booleans as numbers, no numbers as booleans.
 Num = Annotated[float, Strict(), Field(allow_inf_nan=False)]
@@ -81,7 +82,7 @@ class ApproachRequest(_Body):
     use_last_locate: Flag = Field(
         default=False, description="start from the last /locate result instead of locating "
         "again (refused when older than limits.max_pose_age_s)")
-    mode: Literal["servo", "look_and_move", "ibvs"] | None = Field(
+    mode: ApproachMode | None = Field(
         default=None, description="servo: closed loop on every frame (pose-based); "
         "look_and_move: stop, locate, correct; ibvs: closed loop on the image features of "
         "the view taught under `taught` (image-based; needs `taught`, no standoff); "
@@ -102,9 +103,9 @@ class TrackRequest(_Body):
         default=None, description="tool pose in the target frame; default from config")
     taught: str | None = Field(default=None, min_length=1, max_length=64,
                                description="use the T_target_tcp taught under this name")
-    mode: Literal["servo", "ibvs"] = Field(
-        default="servo", description="servo: hold the pose (pose-based); ibvs: hold the view "
-        "taught under `taught` (image-based; standoff_mm must be 0)")
+    mode: TrackMode = Field(
+        default=ApproachMode.servo, description="servo: hold the pose (pose-based); ibvs: hold "
+        "the view taught under `taught` (image-based; standoff_mm must be 0)")
     wait: Flag = False
 
 

@@ -63,6 +63,7 @@ from cell.config.schema import OpcUaConfig
 from cell.errors import CellError
 from cell.jobs.store import Job
 from cell.results.locate import LocateQuality
+from cell.results.modes import ApproachMode
 from cell.results.pose import Pose
 from cell.service import Cell
 from cell.supervision.logs import drop_library_records, quiet_library_loggers
@@ -366,8 +367,8 @@ class OpcUaServer(LoopThread):
                 _arg("RmsPx", D, "reprojection error")]),
             ("Approach", self._approach, [
                 _arg("standoff_mm", D, "distance back from the taught tool pose"),
-                _arg("mode", S, '"look_and_move" (default when empty), "servo" or "ibvs" '
-                     "(image-based, to the taught view; standoff 0)"),
+                _arg("mode", S, f"{', '.join(ApproachMode)} (empty: the cell's [approach] "
+                     "mode); ibvs goes to the taught view, standoff 0"),
                 _arg("taught", S, "a taught pose's name (empty: the config's tool pose); "
                      "required for ibvs")], job),
             ("ApproachRecipe", self._approach_recipe, [

@@ -47,7 +47,7 @@ from api.plc.machine_vision_memory import MachineVisionMemory, Remembered
 from api.plc.modbus import UNKNOWN_ERROR, error_number
 from api.remote import RemoteCaller
 from cell.error_codes import ErrorCode
-from cell.errors import CellError, RefusedError
+from cell.errors import CellError, NotFoundError, RefusedError
 from cell.features.recipes import parse_spec
 from cell.jobs.store import Job
 from cell.results.jobs import located_pose
@@ -361,7 +361,7 @@ class MachineVision:
             if product_id:
                 data.setdefault("number", int(product_id) if str(product_id).isdigit()
                                 else product_id)
-            recipe = remote.recipe_store(self.opc.cell).save(parse_spec(data), caller.label)
+            recipe = self.opc.cell.recipes.save(parse_spec(data), caller.label)
             return [ua.Variant(f"{recipe.name}@{recipe.version}", S)]
 
         return await self._call(work, [ua.Variant("", S)])
@@ -388,8 +388,8 @@ class MachineVision:
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             if external_id not in ("", self.prepared):
-                raise remote.NotFoundError(ErrorCode.recipe_not_found,
-                                           f"recipe {external_id!r} is not prepared")
+                raise NotFoundError(ErrorCode.recipe_not_found,
+                                    f"recipe {external_id!r} is not prepared")
             self.prepared = ""
             if self.state == OPERATIONAL and self.sub_state == READY:
                 self.sub_state = INITIALIZED
@@ -406,14 +406,14 @@ class MachineVision:
                            {"name": external_id})
             if external_id == self.prepared:
                 raise RefusedError(ErrorCode.recipe_prepared, "UnprepareRecipe first")
-            remote.recipe_store(self.opc.cell).delete(remote.text("ExternalId", external_id))
+            self.opc.cell.recipes.delete(remote.text("ExternalId", external_id))
             return []
 
         return await self._call(work, [])
 
     async def _list_recipes(self, parent: ua.NodeId) -> list[ua.Variant]:
         def work(caller: RemoteCaller) -> list[ua.Variant]:
-            ids = [f"{r.name}@{r.version}" for r in remote.recipe_store(self.opc.cell).list()]
+            ids = [f"{r.name}@{r.version}" for r in self.opc.cell.recipes.list()]
             return [ua.Variant(ids, S)]
 
         return await self._call(work, [ua.Variant([], S)])

@@ -28,7 +28,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -221,7 +221,7 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
                    speed_mm_s: float | None = None, T_target_tcp: Matrix4 | None = None,
                    use_last_locate: bool = False, wait: bool = False,
                    wait_timeout_s: float = 120.0,
-                   mode: Literal["servo", "look_and_move", "ibvs"] | None = None,
+                   mode: ApproachMode | None = None,
                    recipe: dict[str, Any] | None = None, view: Features | None = None,
                    layout: Target | None = None) -> Job:
     """Start an approach job (``mode`` default: ``[approach] mode``); with ``wait`` return
@@ -230,10 +230,10 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
     ``layout``: the dot layout to look for during this job only (a recipe's target)."""
     ac = core.config.approach
     how = ac.mode if mode is None else mode
-    if how not in ("servo", "look_and_move", "ibvs"):
+    if how not in tuple(ApproachMode):
         raise RefusedError(ErrorCode.invalid_request, f"approach mode must be 'servo', "
                            f"'look_and_move' or 'ibvs', got {mode!r}")
-    if how == "ibvs":
+    if how == ApproachMode.ibvs:
         standoff_mm = check_ibvs_request(view, standoff_mm, use_last_locate)
     plan = ApproachPlan(
         standoff_mm=ac.standoff_mm if standoff_mm is None else float(standoff_mm),
@@ -258,11 +258,11 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
             raise UnavailableError(ErrorCode.camera_lost, "the camera is lost: approach needs it "
                                    "(jogging is still possible)")
         # the servo re-estimates from every frame: one frame to start from is enough
-        n_frames = 1 if how in ("servo", "ibvs") else ac.frames_per_locate
+        n_frames = 1 if how in (ApproachMode.servo, ApproachMode.ibvs) else ac.frames_per_locate
         began_s = time.monotonic()
         if use_last_locate:
             loc = _last_locate(core)
-        elif how == "ibvs" and core.frames.is_fixed:
+        elif how == ApproachMode.ibvs and core.frames.is_fixed:
             assert view is not None
             loc = tool_plate_locate(core, plan.T_target_tcp)
             core.arm.guard.check_goal(st.T_base_tcp, IbvsMount.of(
@@ -275,7 +275,8 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
         else:
             loc = locate(core, n_frames)
         goal = approach_tcp(loc.T_base_target, plan.T_target_tcp, plan.standoff_mm)
-        if how in ("servo", "ibvs") or core.frames.is_fixed:  # straight at the goal: checked
+        streamed = how in (ApproachMode.servo, ApproachMode.ibvs)
+        if streamed or core.frames.is_fixed:  # straight at the goal: checked
             core.arm.guard.check_goal(st.T_base_tcp, goal, "approach goal")
         else:  # both goals are checked now, so that a refusal moves nothing
             T_obs = observation_tcp(core, loc.T_base_target, plan.T_target_tcp)
@@ -293,17 +294,17 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
     def run(job_id: str, motion: Motion) -> LookAndMoveApproach | ServoApproach | IbvsApproach:
         loc = first[0]
         start: dict[str, Any] = {"first_locate_s": seen.get("first_locate_s")}
-        if how == "look_and_move" and not core.frames.is_fixed:
+        if how == ApproachMode.look_and_move and not core.frames.is_fixed:
             return look_and_move(core, job_id, motion, loc, plan, start)
         # servo, IBVS, a fixed camera: the first locate's consistency
         start["consistency"] = Consistency.model_validate(consistency(
             [("initial locate", loc)], core.target_centre_mm, target_at_rest=False))
-        if how == "ibvs":
+        if how == ApproachMode.ibvs:
             assert view is not None
             return IbvsApproach(mode=ApproachMode.ibvs, **ClosedLoop(core, job_id, motion, ImageLaw(
                 core, view, plan.T_target_tcp, "approach")).run(loc),
                 estimated_error_basis=ERROR_BASIS["ibvs"], **start)
-        if how == "servo":
+        if how == ApproachMode.servo:
             return servo_approach(core, job_id, motion, loc, plan, seen, start)
         return fixed_look_and_move(core, job_id, motion, loc, plan, seen, start)
 

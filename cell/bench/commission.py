@@ -99,13 +99,12 @@ def hand_eye(cell: Cell, views: int = HAND_EYE_VIEWS) -> dict[str, Any]:
     routine and Apply. Every method's result and the mount before and after are scored
     against the simulated mount. RuntimeError when the routine itself fails."""
     from cell.calibration.routine import RoutineSettings
-    from cell.calibration.service import CalibrationService
     from cell.errors import CellError
 
     assert cell.sim is not None, "commissioning is scored on the simulated cell"
     truth = cell.sim.truth_values()
     before = pose_distance(cell.core.frames.T_flange_camera, truth.T_flange_camera)
-    service = CalibrationService(cell)
+    service = cell.calibration
     t0 = time.monotonic()
     settings = RoutineSettings(n_views=views, tilt_deg=HAND_EYE_TILT_DEG,
                                roll_deg=HAND_EYE_ROLL_DEG)

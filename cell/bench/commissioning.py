@@ -32,7 +32,7 @@ from cell.bench.approach import placement
 from cell.bench.commission import hand_eye, measure_intrinsics, with_intrinsics
 from cell.config.schema import CellConfig, load_config, parse_config
 from cell.devices.hardware import SimWorld
-from cell.results import LookAndMoveApproach
+from cell.results import ApproachMode, LookAndMoveApproach
 from cell.runtime import start_cell
 from cell.service import Cell
 from cell.vision.frames import approach_tcp
@@ -82,7 +82,8 @@ def approaches(cell: Cell, targets: list[Matrix4]) -> list[dict[str, Any]]:
             raise RuntimeError(f"home failed: {home.error_code} {home.error_message}")
         _sim(cell).set_target(T_target)
         time.sleep(0.15)  # frames exposed before the placement are not this run's
-        job = cell.approach(CALLER, standoff_mm=STANDOFF_MM, wait=True, mode="look_and_move")
+        job = cell.approach(CALLER, standoff_mm=STANDOFF_MM, wait=True,
+                            mode=ApproachMode.look_and_move)
         r = job.result
         if job.state != "succeeded" or not isinstance(r, LookAndMoveApproach):
             runs.append({"ok": False, "error": job.error_code})

@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from cell.results.modes import ApproachMode
 from cell.vision.frames import mean_pose
 from estimator import CameraModel, EstimationError, Target
 from estimator.pipeline import Estimator
@@ -262,7 +263,7 @@ def approach(n: int, seed: int, servo: bool = False, lost_after_s: float | None 
         try:
             assert cell.sim is not None
             errors, good, times, failures, notes = [], 0, [], [], []
-            mode: Literal["servo", "look_and_move"] = "servo" if servo else "look_and_move"
+            mode = ApproachMode.servo if servo else ApproachMode.look_and_move
             for _ in range(n):
                 R = (Rotation.from_rotvec([*rng.normal(size=2) * 0.15, 0])
                      * Rotation.from_rotvec([0, 0, rng.uniform(-0.6, 0.6)])).as_matrix() @ flat
@@ -351,7 +352,6 @@ def ibvs(n: int, seed: int, displace_mm: float = 30.0, displace_deg: float = 6.0
     from cell.bench.ibvs import _jog_to, _recover, displacements
     from cell.config.schema import parse_config
     from cell.errors import CellError
-    from cell.features.teach import TaughtStore, teach
     from cell.results import IbvsApproach
     from cell.runtime import start_cell
     from estimator.transforms import T_from_pose, T_from_pose_dict, pose_dict
@@ -369,7 +369,7 @@ def ibvs(n: int, seed: int, displace_mm: float = 30.0, displace_deg: float = 6.0
             assert cell.sim is not None
             off_mm, off_deg = pose_distance(guess, truth)
             T_taught = cell.sim.true_T_base_tcp()
-            taught = teach(cell, TaughtStore(None), "bench", "plate", samples=teach_samples)
+            taught = cell.teach("bench", "plate", samples=teach_samples)
             print(f"IBVS, fixed camera (12 MP), the tool's plate taught at home ({teach_samples} "
                   f"samples, spread {taught.spread_mm:.3f} mm); camera {off_mm:.1f} mm / "
                   f"{off_deg:.2f} deg off the config; {n} displacements of {displace_mm:g} mm / "
@@ -387,8 +387,9 @@ def ibvs(n: int, seed: int, displace_mm: float = 30.0, displace_deg: float = 6.0
                     continue
                 t0 = time.monotonic()
                 try:
-                    job = cell.approach("bench", T_target_tcp=taught.T_target_tcp, mode="ibvs",
-                                        view=taught.view, wait=True, wait_timeout_s=120.0)
+                    job = cell.approach("bench", T_target_tcp=taught.T_target_tcp,
+                                        mode=ApproachMode.ibvs, view=taught.view, wait=True,
+                                        wait_timeout_s=120.0)
                 except CellError as err:
                     failures.append(f"refused {err.code}")
                     continue

@@ -36,7 +36,7 @@ from scipy.spatial.transform import Rotation
 from cell.bench.cells import CALLER, bench_config
 from cell.config.schema import CellConfig, parse_config
 from cell.errors import CellError
-from cell.features.teach import TaughtPose, TaughtStore, teach
+from cell.features.teach import TaughtPose
 from cell.results import IbvsApproach
 from cell.runtime import start_cell
 from cell.service import Cell
@@ -216,7 +216,7 @@ def run_world(world: str, placements: int, seed: int, displace_mm: float, displa
                 _to_view_distance(cell, view_distance_mm)
             assert cell.sim is not None
             T_taught_true = cell.sim.true_T_base_tcp()
-            taught = teach(cell, TaughtStore(None), CALLER, "bench", samples=teach_samples)
+            taught = cell.teach(CALLER, "bench", samples=teach_samples)
             for i, (dt, dr) in enumerate(displacements(rng, placements, displace_mm,
                                                        displace_deg)):
                 T_disp = T_from_pose(dt, np.zeros(3)) @ T_taught_true

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +34,7 @@ from cell.calibration.routine import (
     save_views,
 )
 from cell.calibration.solve import CHOICES
+from cell.core import CellCore
 from cell.error_codes import ErrorCode
 from cell.errors import LimitError, NotFoundError, RefusedError, UnavailableError
 from cell.jobs.store import Job
@@ -40,7 +42,6 @@ from cell.motion.guard import Motion
 from cell.results.calibration import CalibrationApplied
 from cell.results.pose import Pose
 from cell.results.routine import FailedView, HandEyeRoutineResult, MountChange, SavedViews
-from cell.service import Cell
 from estimator.kinematics import UR_DH
 from estimator.transforms import pose_distance
 
@@ -52,17 +53,21 @@ EVENT = "calibration"
 
 
 class CalibrationService:
-    """Hand-eye calibration jobs on one cell; ``config_path`` is the file ``apply`` may write
-    (None: the cell runs a built-in config, and writing is refused)."""
+    """Hand-eye calibration jobs on one cell (its shared parts, ``core``); ``set_hand_eye``
+    puts an applied mount into the running cell (``Cell.set_hand_eye``); ``config_path`` is
+    the file ``apply`` may write (None: the cell runs a built-in config, and writing is
+    refused)."""
 
-    def __init__(self, cell: Cell, config_path: str | Path | None = None) -> None:
-        self.cell = cell
+    def __init__(self, core: CellCore, set_hand_eye: Callable[[Matrix4], None],
+                 config_path: str | Path | None = None) -> None:
+        self.core = core
+        self._set_hand_eye = set_hand_eye
         self.config_path = None if config_path is None else Path(config_path)
 
     # -- start -------------------------------------------------------------------------------
     def start(self, caller: str, settings: RoutineSettings) -> Job:
         """Start the routine around the arm's current pose; returns the running job."""
-        core = self.cell.core
+        core = self.core
         params = {"views": settings.n_views, "tilt_deg": settings.tilt_deg,
                   "roll_deg": settings.roll_deg, "speed_mm_s": settings.speed_mm_s,
                   "method": settings.chosen}
@@ -83,7 +88,7 @@ class CalibrationService:
                                  on_change=self._publish, motion_name="calibration")
 
     def _run(self, job_id: str, settings: RoutineSettings) -> HandEyeRoutineResult:
-        core = self.cell.core
+        core = self.core
         fixed = core.frames.is_fixed
         guess = core.frames.T_camera_mount  # T_base_camera for a fixed camera
 
@@ -116,25 +121,25 @@ class CalibrationService:
 
         A failure to save does not fail the calibration, whose result stands on its own; it
         is reported in the result and logged."""
-        root = self.cell.config.api.calibration_dir
+        root = self.core.config.api.calibration_dir
         if not root:
             return None
         folder = Path(root) / f"hand-eye-{job_id}"
         try:
-            dataset = save_views(folder, result, self.cell.target,
-                                 self.cell.core.config.robot.model)
+            dataset = save_views(folder, result, self.core.target,
+                                 self.core.config.robot.model)
         except (DatasetError, OSError) as err:
             log.warning("calibration job %s: views not saved to %s: %s", job_id, folder, err)
             return SavedViews(folder=str(folder), saved=False, error=str(err))
         return SavedViews(folder=str(dataset.folder), saved=True, views=len(dataset.views))
 
     def _publish(self, job: Job) -> None:
-        self.cell.events.publish(EVENT, {"job_id": job.id, "state": job.state,
+        self.core.events.publish(EVENT, {"job_id": job.id, "state": job.state,
                                          **job.progress, "job": job.as_dict()})
 
     # -- read --------------------------------------------------------------------------------
     def job(self, job_id: str) -> Job:
-        job = self.cell.jobs.get(job_id)
+        job = self.core.jobs.get(job_id)
         if job is None or job.kind != JOB_KIND:
             raise NotFoundError(ErrorCode.job_not_found, f"no hand-eye calibration job {job_id!r}")
         return job
@@ -160,8 +165,8 @@ class CalibrationService:
         """
         params = {"job_id": job_id, "method": method, "running": running,
                   "write_config": write_config, "force": force}
-        cell = self.cell
-        with cell.core.audit.command(caller, "apply_calibration", params) as note:
+        core = self.core
+        with core.audit.command(caller, "apply_calibration", params) as note:
             note.job_id = job_id
             T = self._result_T(self.job(job_id), method, force)
             if not running and not write_config:
@@ -172,7 +177,7 @@ class CalibrationService:
                                    "the cell runs a built-in config; start it "
                                    "with a config file (CELL_CONFIG) to write the result")
             change = None
-            with cell.core.slot.hold("apply_calibration"):
+            with core.slot.hold("apply_calibration"):
                 if write_config:
                     assert self.config_path is not None
                     try:
@@ -181,13 +186,13 @@ class CalibrationService:
                     except ConfigWriteError as err:
                         raise RefusedError(ErrorCode(err.code), str(err)) from err
                 if running:
-                    cell.set_hand_eye(T)
+                    self._set_hand_eye(T)
         out = CalibrationApplied(
             job_id=job_id, T_flange_camera=Pose.from_T(T),
-            **mount_fields(cell.core.frames.is_fixed, T).set_values(), running=running,
+            **mount_fields(core.frames.is_fixed, T).set_values(), running=running,
             written_config=str(self.config_path) if write_config else None,
             config_change=None if change is None else change.record())
-        cell.events.publish(EVENT, {"job_id": job_id, "state": "applied",
+        core.events.publish(EVENT, {"job_id": job_id, "state": "applied",
                                     "applied": out.json_dict()})
         return out
 

@@ -40,6 +40,7 @@ from cell.config.devices import (
 from cell.config.strict import Strict
 from cell.error_codes import ErrorCode
 from cell.errors import CellError
+from cell.results.modes import ApproachMode, PoseMode
 from estimator import Target
 from estimator.target import layout_problem
 from estimator.transforms import T_from_pose
@@ -141,7 +142,7 @@ class ApproachConfig(Strict):
     # loaded 2-core host 3-5 of 10 servo runs still end target_lost at the default
     # [servo] lost_after_s (look-and-move: 10 of 10), so look-and-move stays the default
     # until servo holds under load (docs/performance.md, the approach benchmark).
-    mode: Literal["servo", "look_and_move"] = "look_and_move"  # ibvs needs a taught view
+    mode: PoseMode = ApproachMode.look_and_move  # ibvs needs a taught view
 
 
 class ServoConfig(Strict):

@@ -22,16 +22,16 @@ import logging
 import sqlite3
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from cell.error_codes import ErrorCode
 from cell.errors import NotFoundError
+from cell.jobs.events import EventBus
+from cell.jobs.store import JobStore
 from cell.results.approach import ApproachBase
 from cell.results.jobs import result_from_json
-
-if TYPE_CHECKING:
-    from cell.service import Cell
 
 log = logging.getLogger(__name__)
 
@@ -106,12 +106,16 @@ def faults_in(status: dict[str, Any]) -> dict[str, tuple[str, str]]:
 
 
 class AlarmLog:
-    """The cell's alarms, persisted beside its jobs. ``start()`` begins watching."""
+    """The cell's alarms, persisted beside its ``jobs``, published on its ``events``; the
+    faults are read from ``status`` (``Cell.status``). ``start()`` begins watching."""
 
-    def __init__(self, cell: Cell, poll_s: float = 0.5) -> None:
-        self.cell = cell
+    def __init__(self, jobs: JobStore, events: EventBus, status: Callable[[], dict[str, Any]],
+                 poll_s: float = 0.5) -> None:
+        self.jobs = jobs
+        self.events = events
+        self.status = status
         self.poll_s = poll_s
-        path = str(cell.jobs.path)
+        path = str(jobs.path)
         self._db = sqlite3.connect(path, check_same_thread=False, isolation_level=None,
                                    timeout=10.0)
         self._db.execute("PRAGMA journal_mode=WAL")
@@ -167,7 +171,7 @@ class AlarmLog:
                                 f"result is inconsistent: {words}", job_id, ended)
             if alarm is not None:
                 raised.append(alarm)
-        faults = faults_in(self.cell.status())
+        faults = faults_in(self.status())
         for code, (source, message) in faults.items():
             if code not in self._present:
                 alarm = self._raise(f"fault:{code}:{time.time_ns()}", source, code, message)
@@ -179,9 +183,9 @@ class AlarmLog:
     def _ended_jobs(self) -> list[tuple[Any, ...]]:
         """Jobs that ended badly since the log began and have no alarm yet (the job table is
         in the same database file; an in-memory store is read through its own API)."""
-        if str(self.cell.jobs.path) == ":memory:":
+        if str(self.jobs.path) == ":memory:":
             return [(j.id, j.kind, j.state, j.error_code, j.error_message, j.ended_at)
-                    for j in self.cell.jobs.list_jobs(50)
+                    for j in self.jobs.list_jobs(50)
                     if j.state in ALARMED_JOB_STATES and (j.ended_at or 0) >= self._jobs_since
                     and not (j.state == "cancelled"
                              and j.error_code == STOPPED_ON_REQUEST_CODE)]
@@ -197,8 +201,8 @@ class AlarmLog:
         """Succeeded jobs whose ``consistency`` verdict is inconsistent (a mount error leaves
         the arm where the calibration says, not where the target is) and have no alarm yet:
         ``(id, kind, code, finding, ended_at)``."""
-        if str(self.cell.jobs.path) == ":memory:":
-            jobs = [(j.id, j.kind, j.result, j.ended_at) for j in self.cell.jobs.list_jobs(50)
+        if str(self.jobs.path) == ":memory:":
+            jobs = [(j.id, j.kind, j.result, j.ended_at) for j in self.jobs.list_jobs(50)
                     if j.state == "succeeded" and (j.ended_at or 0) >= self._jobs_since]
         else:
             with self._lock:
@@ -227,7 +231,7 @@ class AlarmLog:
                 return None
             alarm = self._get_locked(int(cur.lastrowid or 0))
         log.warning("alarm %d (%s): %s", alarm.id, alarm.code, alarm.message)
-        self.cell.events.publish(EVENT, {"alarm": alarm.as_dict()})
+        self.events.publish(EVENT, {"alarm": alarm.as_dict()})
         return alarm
 
     # -- reading and acknowledging ---------------------------------------------------------
@@ -265,13 +269,13 @@ class AlarmLog:
                                  "AND acked_at IS NULL", (t0, caller, alarm_id))
                 alarm = self._get_locked(alarm_id)
         except NotFoundError as err:
-            self.cell.jobs.audit(caller, "alarm_ack", {"id": alarm_id},
+            self.jobs.audit(caller, "alarm_ack", {"id": alarm_id},
                                  f"refused:{err.code}", err.message, None, t0)
             raise
         first = alarm.acknowledged_by == caller and alarm.acknowledged_at == t0
-        self.cell.jobs.audit(caller, "alarm_ack", {"id": alarm_id, "code": alarm.code}, "ok",
+        self.jobs.audit(caller, "alarm_ack", {"id": alarm_id, "code": alarm.code}, "ok",
                              "" if first else "already acknowledged", alarm.job_id, t0)
-        self.cell.events.publish(EVENT, {"alarm": alarm.as_dict()})
+        self.events.publish(EVENT, {"alarm": alarm.as_dict()})
         return alarm
 
 

@@ -9,27 +9,25 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
+from cell.core import CellCore
 from cell.error_codes import ErrorCode
 from cell.errors import LimitError, UnavailableError
 from drivers.camera import CameraSettings, FocusSetting
 from drivers.errors import DriverError
 
-if TYPE_CHECKING:
-    from cell.service import Cell
 
-
-def camera_settings(cell: Cell) -> dict[str, Any]:
+def camera_settings(core: CellCore) -> dict[str, Any]:
     """The settings in force (None for a control this camera does not have)."""
     try:
-        return asdict(cell.hw.camera.get_settings())
+        return asdict(core.camera.get_settings())
     except DriverError as err:
         raise UnavailableError(ErrorCode.camera_lost,
                                f"reading the camera settings: {err}") from err
 
 
-def apply_camera_settings(cell: Cell, caller: str, *, exposure_us: int | None = None,
+def apply_camera_settings(core: CellCore, caller: str, *, exposure_us: int | None = None,
                           iso: int | None = None,
                           focus: FocusSetting | None = None) -> dict[str, Any]:
     """Change the given settings (None: leave as is); returns those in force."""
@@ -37,7 +35,7 @@ def apply_camera_settings(cell: Cell, caller: str, *, exposure_us: int | None = 
     t0 = time.time()
     try:
         try:
-            applied = cell.hw.camera.apply_settings(
+            applied = core.camera.apply_settings(
                 CameraSettings(exposure_us=exposure_us, iso=iso, focus=focus))
         except ValueError as err:
             raise LimitError(ErrorCode.invalid_camera_setting, str(err)) from err
@@ -45,10 +43,10 @@ def apply_camera_settings(cell: Cell, caller: str, *, exposure_us: int | None = 
             raise UnavailableError(ErrorCode.camera_lost, f"changing the camera settings: {err}") \
                 from err
     except (LimitError, UnavailableError) as err:
-        cell.jobs.audit(caller, "camera_settings", params, f"refused:{err.code}", err.message,
+        core.jobs.audit(caller, "camera_settings", params, f"refused:{err.code}", err.message,
                         None, t0)
         raise
     out = asdict(applied)
-    cell.jobs.audit(caller, "camera_settings", params, "ok", "", None, t0)
-    cell.events.publish("camera_settings", {"settings": out})
+    core.jobs.audit(caller, "camera_settings", params, "ok", "", None, t0)
+    core.events.publish("camera_settings", {"settings": out})
     return out

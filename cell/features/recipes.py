@@ -22,7 +22,7 @@ import json
 import threading
 import time
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, field_validator
 
@@ -31,6 +31,7 @@ from cell.config.schema import DotLayout, LimitsConfig
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, LimitError, NotFoundError, RefusedError
 from cell.files import replace_text
+from cell.results.modes import ApproachMode, PoseMode
 
 STORE_NAME = "recipes.json"
 FORMAT_VERSION = 1
@@ -62,7 +63,7 @@ class RecipeTarget(DotLayout):
     name: str = Field(default="main", min_length=1, max_length=64)
     taught: str = ""  # a taught pose's name; "" uses [approach] T_target_tcp
     standoff_mm: Num = Field(default=50.0, ge=0)
-    mode: Literal["look_and_move", "servo"] = "look_and_move"
+    mode: PoseMode = ApproachMode.look_and_move
     speed_mm_s: Num = Field(default=150.0, gt=0)
 
 

@@ -28,21 +28,21 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
+from cell.core import CellCore
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, LimitError, NotFoundError, RefusedError
 from cell.files import replace_text
+from cell.results.modes import ApproachMode
 from cell.servoing.ibvs import Features, features_from_view
 from cell.vision.frames import mean_pose
+from cell.vision.locate import Located, Locator
+from drivers.arm import ArmState
 from estimator.transforms import T_from_pose_dict, invert_T, pose_dict, pose_distance
-
-if TYPE_CHECKING:
-    from cell.service import Cell
-    from cell.vision.locate import Located
 
 Matrix4 = NDArray[np.float64]
 
@@ -177,13 +177,36 @@ class TaughtStore:
             return name in self._poses
 
     def get(self, name: str) -> TaughtPose:
+        """The pose taught under ``name``; anything but a taught name (a PLC may send a number
+        or an array) is ``taught_not_found``."""
         self._usable()
         with self._lock:
-            pose = self._poses.get(name)
+            pose = self._poses.get(name) if isinstance(name, str) else None
         if pose is None:
             raise NotFoundError(ErrorCode.taught_not_found, f"no taught pose named {name!r}; see "
                                 "GET /api/v1/teach for the taught names")
         return pose
+
+    def for_job(self, name: str | None, mode: str | None
+                ) -> tuple[Matrix4 | None, Features | None]:
+        """The taught pose a job names (None: none) as the job takes it: its ``T_target_tcp``
+        and, for mode ``ibvs``, the view it converges on. Every interface refuses alike:
+        ``ibvs_needs_taught`` (ibvs without a name), ``taught_not_found``,
+        ``taught_without_view`` (ibvs to a pose taught before views were recorded)."""
+        ibvs = mode == ApproachMode.ibvs
+        if name is None:
+            if ibvs:
+                raise LimitError(ErrorCode.ibvs_needs_taught,
+                                 "mode 'ibvs' converges on a taught view: give the taught "
+                                 "pose's name (teaching records its view)")
+            return None, None
+        pose = self.get(name)
+        if ibvs and pose.view is None:
+            raise LimitError(ErrorCode.taught_without_view,
+                             f"the pose {name!r} was taught without its view (an older "
+                             "record): it serves servo and look_and_move; teach it again for "
+                             "ibvs")
+        return pose.T_target_tcp, pose.view if ibvs else None
 
     def put(self, pose: TaughtPose, replace: bool = True) -> None:
         self._usable()
@@ -267,7 +290,18 @@ def combine(name: str, samples: list[Sample], caller: str, max_spread_mm: float,
                       if all(s.view is not None for s in samples) else None)
 
 
-def teach(cell: Cell, store: TaughtStore, caller: str, name: str, samples: int = 5,
+class TeachingCell(Protocol):
+    """What teaching uses of the running cell (:class:`cell.service.Cell` teaches with itself):
+    its shared parts, the arm's state and the audited locate."""
+
+    core: CellCore
+
+    def arm_state(self) -> ArmState: ...
+
+    def locate(self, caller: str, n_frames: int = 1) -> Located: ...
+
+
+def teach(cell: TeachingCell, store: TaughtStore, caller: str, name: str, samples: int = 5,
           max_spread_mm: float = DEFAULT_MAX_SPREAD_MM,
           max_spread_deg: float = DEFAULT_MAX_SPREAD_DEG, replace: bool = True) -> TaughtPose:
     """Locate ``samples`` times from distinct frames at the arm's resting pose and store the
@@ -293,19 +327,18 @@ def teach(cell: Cell, store: TaughtStore, caller: str, name: str, samples: int =
     return taught
 
 
-def located_view(cell: Cell, loc: Located) -> Features | None:
+def located_view(locator: Locator, loc: Located) -> Features | None:
     """The image features of a locate's last frame (None when it kept no image points)."""
     r = loc.result
     if r.image_points_px is None or not r.matched_ids:
         return None
-    locator = cell.core.locator
     return features_from_view(locator.camera_model, r.matched_ids, r.image_points_px,
                               r.T_camera_target, locator.target.points_mm)
 
 
-def _samples(cell: Cell, caller: str, n: int) -> list[Sample]:
+def _samples(cell: TeachingCell, caller: str, n: int) -> list[Sample]:
     """``n`` locates, each from a frame not used before (the camera runs at its own rate)."""
-    period_s = 1.0 / cell.config.camera.fps
+    period_s = 1.0 / cell.core.config.camera.fps
     deadline = time.monotonic() + 5.0 + 3.0 * n * period_s
     out: list[Sample] = []
     seen: set[int] = set()
@@ -318,5 +351,5 @@ def _samples(cell: Cell, caller: str, n: int) -> list[Sample]:
             continue
         seen.add(loc.frame_sequence)
         out.append(Sample(loc.T_base_target, loc.T_base_tcp, loc.frame_sequence,
-                          located_view(cell, loc)))
+                          located_view(cell.core.locator, loc)))
     return out

@@ -31,7 +31,7 @@ def recipe(config: Any, **target: Any) -> dict[str, Any]:
 def test_plc_arguments_are_not_coerced_and_nothing_moves(tmp_path: Path) -> None:
     config = sim_config(tmp_path)
     with running_cell(config) as cell:
-        remote.recipe_store(cell).save(parse_spec(recipe(config)), "test")
+        cell.recipes.save(parse_spec(recipe(config)), "test")
         before = settled_tcp(cell)
         calls: list[tuple[Callable[[], Any], str]] = [
             (lambda: remote.approach(cell, PLC, 40.0, False, ""), "mode"),
@@ -59,7 +59,7 @@ def test_a_recipe_sent_by_a_plc_is_parsed_strictly_and_checked(tmp_path: Path) -
                                     ({"standoff_mm": False}, "invalid_recipe", "standoff_mm"),
                                     ({"speed_mm_s": 1e9}, "speed_limit", "speed_mm_s")):
             with pytest.raises(CellError) as err:
-                remote.recipe_store(cell).save(parse_spec(recipe(config, **target)), "test")
+                cell.recipes.save(parse_spec(recipe(config, **target)), "test")
             assert err.value.code == code, err.value.message
             assert f"targets.0.{field}" in err.value.message
-        assert remote.recipe_store(cell).list() == []
+        assert cell.recipes.list() == []

@@ -216,16 +216,16 @@ TRUE_OFFSET = T_from_pose(np.array([2.0, -1.5, 3.0]), np.array([0.004, -0.003, 0
 
 
 def test_fixed_camera_routine_through_http_recovers_the_true_T_base_camera(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    config_file = tmp_path / "cell.toml"
+        tmp_path: Path) -> None:
+    config_file = tmp_path / "cell.toml"  # the file apply may write
     shutil.copy(FIXED, config_file)
-    monkeypatch.setenv("CELL_CONFIG", str(config_file))  # the file apply may write
     data = fixed_data(tmp_path)
     guess = T_from_pose_dict(data["hand_eye"]["T_base_camera"])
     truth = guess @ TRUE_OFFSET
     data["sim"].update(T_base_camera=pose_dict(truth), T_flange_board=TOOL_BOARD)
     binned_2x2(data)  # and 8 views: the HTTP flow and the result's labels are what is tested
-    with running_cell(parse_config(data)) as cell, TestClient(create_app(cell)) as c:
+    with running_cell(parse_config(data), config_file) as cell, \
+            TestClient(create_app(cell)) as c:
         op = {"Authorization": "Bearer sim-operator"}
         start = cell.sim.true_T_base_tcp() if cell.sim else None
         r = c.post("/api/v1/calibration/hand-eye", json={"views": 8, "speed_mm_s": 250,

@@ -39,8 +39,10 @@ def sim_config(tmp_path: Path, *, robot: str = "sim", host: str = "127.0.0.1",
 
 
 @contextmanager
-def running_cell(config: CellConfig) -> Iterator[Cell]:
-    cell = start_cell(config)
+def running_cell(config: CellConfig, config_path: Path | None = None) -> Iterator[Cell]:
+    """A started cell, closed after the block; ``config_path``: the file an applied
+    calibration may write (as ``cell serve``'s config file)."""
+    cell = start_cell(config, config_path)
     try:
         yield cell
     finally:

@@ -1,18 +1,16 @@
 """Routes under ``/api/v1`` for commissioning: the hand-eye routine and taught poses.
 
 Starting, applying, teaching and deleting change the cell, so they need an operator token;
-reading needs any token. ``install(app)`` mounts the routes and creates the calibration
-service and the taught-pose store (beside the job database) on ``app.state``.
+reading needs any token. The calibration service and the taught poses are the cell's
+(``Cell.calibration``, ``Cell.taught``).
 """
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from fastapi import APIRouter, Body, Depends, FastAPI, Query, Request
+from fastapi import APIRouter, Body, Depends, Query, Request
 from fastapi.responses import StreamingResponse
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
@@ -26,24 +24,24 @@ from api.http.schemas import (
     Int,
     Job,
     Num,
+    PoseIn,
     TaughtDeleted,
     TaughtList,
     TaughtPoseOut,
 )
 from api.http.sse import SSE_RESPONSES, sse_response
 from cell.calibration.routine import DEFAULT_VIEWS, RoutineSettings
-from cell.calibration.service import EVENT, CalibrationService
+from cell.calibration.service import EVENT
 from cell.error_codes import ErrorCode
 from cell.errors import LimitError
 from cell.features.teach import (
     DEFAULT_MAX_SPREAD_DEG,
     DEFAULT_MAX_SPREAD_MM,
     NAME_PATTERN,
-    TaughtStore,
-    teach,
 )
 from cell.service import Cell
 from cell.servoing.ibvs import Features
+from estimator.transforms import T_from_pose
 
 router = APIRouter(prefix="/api/v1", responses={**ERROR_RESPONSES, **NOT_FOUND})
 
@@ -88,50 +86,22 @@ class TeachRequest(_Body):
     replace: Flag = Field(default=True, description="false: refuse if the name is taught")
 
 
-def install(app: FastAPI, config_path: str | Path | None = None) -> None:
-    """Mount the routes; ``config_path`` (default ``$CELL_CONFIG``) is the file that
-    ``apply`` with ``write_config`` edits."""
-    cell: Cell = app.state.cell
-    path = config_path if config_path is not None else os.environ.get("CELL_CONFIG") or None
-    app.state.calibration = CalibrationService(cell, path)
-    app.state.taught = TaughtStore.beside_job_db(cell.config.api.job_db)
-    app.include_router(router)
+def _cell(request: Request) -> Cell:
+    cell: Cell = request.app.state.cell
+    return cell
 
 
-def _calibration(request: Request) -> CalibrationService:
-    service: CalibrationService = request.app.state.calibration
-    return service
-
-
-def _taught(request: Request) -> TaughtStore:
-    store: TaughtStore = request.app.state.taught
-    return store
-
-
-def taught_target_tcp(request: Request, name: str, given: bool = False) -> NDArray[np.float64]:
-    """``T_target_tcp`` of a taught pose, for ``approach`` (404 ``taught_not_found`` for an
-    unknown name; 422 when the request also gives ``T_target_tcp`` itself)."""
-    if given:
+def job_tool_pose(request: Request, taught: str | None, T_target_tcp: PoseIn | None,
+                  mode: str | None) -> tuple[NDArray[np.float64] | None, Features | None]:
+    """The tool pose and, for ``ibvs``, the view a job request asks for: its ``T_target_tcp``
+    or the pose taught under ``taught`` (``Cell.taught.for_job``: 404 for an unknown name,
+    422 ``ibvs_needs_taught`` / ``taught_without_view``); 422 when both are given."""
+    if taught is not None and T_target_tcp is not None:
         raise LimitError(ErrorCode.invalid_request, "give either T_target_tcp or taught, not both")
-    return _taught(request).get(name).T_target_tcp
-
-
-def taught_view(request: Request, name: str | None, mode: str | None) -> Features | None:
-    """The taught view for an ``ibvs`` job (None for the other modes). 422
-    ``ibvs_needs_taught`` without a taught name, ``taught_without_view`` for a pose taught
-    before views were recorded, 404 for an unknown name."""
-    if mode != "ibvs":
-        return None
-    if name is None:
-        raise LimitError(ErrorCode.ibvs_needs_taught,
-                         "mode 'ibvs' converges on a taught view: give "
-                         "`taught` (POST /teach records the view)")
-    view = _taught(request).get(name).view
-    if view is None:
-        raise LimitError(ErrorCode.taught_without_view, f"the pose {name!r} was taught without its "
-                         "view (an older record): it serves servo and look_and_move; teach it "
-                         "again for ibvs")
-    return view
+    T, view = _cell(request).taught.for_job(taught, mode)
+    if T_target_tcp is not None:
+        T = T_from_pose(T_target_tcp.position_mm, T_target_tcp.rotvec_rad)
+    return T, view
 
 
 # -- hand-eye --------------------------------------------------------------------------------
@@ -143,20 +113,20 @@ def start_hand_eye(request: Request, caller: Calibrator,
     The arm moves; ``/stop`` cancels it. Poll ``GET .../{id}`` or follow
     ``/calibration/events``."""
     b = body or HandEyeRequest()
-    service = _calibration(request)
-    limits = service.cell.config.limits
+    cell = _cell(request)
+    limits = cell.config.limits
     settings = RoutineSettings(n_views=b.views, tilt_deg=b.tilt_deg, roll_deg=b.roll_deg,
                                speed_mm_s=b.speed_mm_s,
                                accel_mm_s2=min(4.0 * b.speed_mm_s, limits.max_accel_mm_s2),
                                min_views=min(6, b.views), chosen=b.method)
-    return service.start(caller.label, settings).as_dict()
+    return cell.calibration.start(caller.label, settings).as_dict()
 
 
 @router.get("/calibration/hand-eye/{job_id}", response_model=Job, tags=["calibration"])
 def hand_eye_job(request: Request, caller: Read, job_id: str) -> dict[str, Any]:
     """State and progress; when succeeded, ``result`` holds ``T_flange_camera`` per method
     (pose objects), the joint refinement, the residuals and the verdict."""
-    return _calibration(request).job(job_id).as_dict()
+    return _cell(request).calibration.job(job_id).as_dict()
 
 
 @router.post("/calibration/hand-eye/{job_id}/apply", response_model=ApplyResult,
@@ -165,8 +135,8 @@ def apply_hand_eye(request: Request, caller: Calibrator, job_id: str,
                    body: Annotated[ApplyRequest | None, Body()] = None) -> dict[str, Any]:
     """Use the result in the running cell and/or write it into the config file."""
     b = body or ApplyRequest()
-    return _calibration(request).apply(caller.label, job_id, b.method, b.running,
-                                       b.write_config, b.force).json_dict()
+    return _cell(request).calibration.apply(caller.label, job_id, b.method, b.running,
+                                            b.write_config, b.force).json_dict()
 
 
 @router.get("/calibration/events", tags=["calibration"], responses=SSE_RESPONSES,
@@ -177,7 +147,7 @@ async def calibration_events(request: Request, caller: Stream,
     """Server-sent ``calibration`` events: progress (stage, done, total), the finished job,
     and applied results. ``max_events`` ends the stream after that many."""
     # The cell's other events have their own stream (/events).
-    return sse_response(request, _calibration(request).cell.events.subscribe(), max_events,
+    return sse_response(request, _cell(request).events.subscribe(), max_events,
                         keep=lambda ev: ev["type"] == EVENT)
 
 
@@ -187,24 +157,23 @@ async def calibration_events(request: Request, caller: Stream,
 def teach_pose(request: Request, caller: Teacher, body: TeachRequest) -> dict[str, Any]:
     """Store ``T_target_tcp`` of the arm's resting pose under ``name``: ``samples`` locates
     are averaged; their spread is reported and over the limit refused (409)."""
-    cell: Cell = request.app.state.cell
-    return teach(cell, _taught(request), caller.label, body.name, body.samples,
-                 body.max_spread_mm, body.max_spread_deg, body.replace).as_dict()
+    return _cell(request).teach(caller.label, body.name, body.samples, body.max_spread_mm,
+                                body.max_spread_deg, body.replace).as_dict()
 
 
 @router.get("/teach", response_model=TaughtList, tags=["teach"])
 def list_taught(request: Request, caller: Read) -> dict[str, Any]:
-    return {"taught": [p.as_dict() for p in _taught(request).list()]}
+    return {"taught": [p.as_dict() for p in _cell(request).taught.list()]}
 
 
 @router.get("/teach/{name}", response_model=TaughtPoseOut, tags=["teach"])
 def get_taught(request: Request, caller: Read, name: str) -> dict[str, Any]:
-    return _taught(request).get(name).as_dict()
+    return _cell(request).taught.get(name).as_dict()
 
 
 @router.delete("/teach/{name}", response_model=TaughtDeleted, tags=["teach"])
 def delete_taught(request: Request, caller: Teacher, name: str) -> dict[str, Any]:
-    cell: Cell = request.app.state.cell
-    pose = _taught(request).delete(name)
+    cell = _cell(request)
+    pose = cell.taught.delete(name)
     cell.jobs.audit(caller.label, "teach_delete", {"name": name}, "ok")
     return {"deleted": pose.as_dict()}

@@ -21,7 +21,7 @@ from api.http import overlay
 from api.http.errors import CONFLICT, DEVICE_ERRORS, ERROR_RESPONSES, NOT_FOUND, UNAVAILABLE
 from api.http.live import LiveView
 from api.http.media import EventStreamResponse, JPEGResponse, MJPEGResponse, PNGResponse
-from api.http.routes.calibration import taught_target_tcp, taught_view
+from api.http.routes.calibration import job_tool_pose
 from api.http.schemas import (
     ApproachRequest,
     AuditLog,
@@ -129,14 +129,11 @@ def approach(request: Request, caller: Annotated[Caller, Depends(require("approa
     before anything moved are 404 (unknown taught pose), 409 (busy, protective stop, target
     not located, stale pose), 422 (limits) or 503 (camera lost, arm disconnected)."""
     b = body or ApproachRequest()
-    T = None if b.T_target_tcp is None else T_from_pose(b.T_target_tcp.position_mm,
-                                                       b.T_target_tcp.rotvec_rad)
-    if b.taught is not None:
-        T = taught_target_tcp(request, b.taught, given=T is not None)
+    T, view = job_tool_pose(request, b.taught, b.T_target_tcp, b.mode)
     job = cell_of(request).approach(caller.label, standoff_mm=b.standoff_mm,
                                     speed_mm_s=b.speed_mm_s, T_target_tcp=T,
                                     use_last_locate=b.use_last_locate, wait=b.wait,
-                                    mode=b.mode, view=taught_view(request, b.taught, b.mode))
+                                    mode=b.mode, view=view)
     return job.as_dict()
 
 

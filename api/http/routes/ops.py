@@ -1,11 +1,11 @@
-"""Routes under ``/api/v1`` for running a production day: alarms, camera settings, the image
-log of failed locates. ``install(app)`` mounts them and starts the cell's alarm log."""
+"""Routes under ``/api/v1`` for running a production day: the cell's alarms
+(``Cell.alarms``), camera settings, the image log of failed locates."""
 
 from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Depends, FastAPI, Path, Query, Request
+from fastapi import APIRouter, Body, Depends, Path, Query, Request
 from fastapi.responses import FileResponse
 
 from api.auth import Caller, Read, require
@@ -20,29 +20,14 @@ from api.http.schemas import (
 )
 from cell.error_codes import ErrorCode
 from cell.errors import NotFoundError
-from cell.features.alarms import AlarmLog
-from cell.features.camera_control import apply_camera_settings, camera_settings
 from cell.service import Cell
 
 router = APIRouter(prefix="/api/v1", responses=ERROR_RESPONSES)
 
 
-def install(app: FastAPI) -> AlarmLog:
-    cell: Cell = app.state.cell
-    alarms = AlarmLog(cell)
-    app.state.alarms = alarms
-    app.include_router(router)
-    return alarms
-
-
 def _cell(request: Request) -> Cell:
     cell: Cell = request.app.state.cell
     return cell
-
-
-def _alarms(request: Request) -> AlarmLog:
-    alarms: AlarmLog = request.app.state.alarms
-    return alarms
 
 
 # -- alarms ----------------------------------------------------------------------------------
@@ -54,7 +39,7 @@ def list_alarms(request: Request, caller: Read,
     """Alarms newest first: failed, cancelled and interrupted jobs and faults (protective or
     emergency stop, arm or camera lost, gripper fault). An alarm stays ``active`` until
     acknowledged; alarms survive a restart of the service."""
-    items, total, n_active = _alarms(request).list(active, limit, offset)
+    items, total, n_active = _cell(request).alarms.list(active, limit, offset)
     return {"alarms": [a.as_dict() for a in items], "active": n_active, "total": total,
             "offset": offset}
 
@@ -67,7 +52,7 @@ def acknowledge_alarm(request: Request,
                           "the alarm's id (a positive 64-bit integer)"))]) -> dict[str, Any]:
     """Acknowledge (operator role; audited). Acknowledging an acknowledged alarm answers it
     unchanged; 404 ``alarm_not_found`` for an unknown id."""
-    return _alarms(request).acknowledge(alarm_id, caller.label).as_dict()
+    return _cell(request).alarms.acknowledge(alarm_id, caller.label).as_dict()
 
 
 # -- camera settings ------------------------------------------------------------------------
@@ -76,7 +61,7 @@ def acknowledge_alarm(request: Request,
 def get_camera_settings(request: Request, caller: Read) -> dict[str, Any]:
     """Exposure (µs), gain (ISO) and focus (0..255 or "auto") in force; null for a control
     this camera does not have."""
-    return camera_settings(_cell(request))
+    return _cell(request).camera_settings()
 
 
 @router.put("/camera/settings", response_model=CameraSettingsOut, tags=["vision"],
@@ -86,8 +71,8 @@ def put_camera_settings(request: Request,
                         body: Annotated[CameraSettingsRequest, Body()]) -> dict[str, Any]:
     """Change the settings given (operator role; audited). A value the camera does not
     accept is 422 ``invalid_camera_setting`` naming the setting, and nothing changes."""
-    return apply_camera_settings(_cell(request), caller.label, exposure_us=body.exposure_us,
-                                 iso=body.iso, focus=body.focus)
+    return _cell(request).apply_camera_settings(caller.label, exposure_us=body.exposure_us,
+                                                iso=body.iso, focus=body.focus)
 
 
 # -- image log -------------------------------------------------------------------------------

@@ -3,8 +3,7 @@ with a recipe's target (a job that records the recipe and its version).
 
 Saving and deleting change what later jobs do: the ``edit_recipes`` permission (operators), as
 teaching. An approach with a recipe needs the approach permission (operator, PLC). The store
-is :mod:`cell.features.recipes`, shared with OPC UA and Modbus through
-:func:`api.remote.recipe_store`.
+is the cell's (``Cell.recipes``, :mod:`cell.features.recipes`), the one OPC UA and Modbus use.
 """
 
 from __future__ import annotations
@@ -66,7 +65,7 @@ def list_recipes(request: Request,
                  caller: Annotated[Caller, Depends(require("read"))]) -> dict[str, Any]:
     """The newest version of every recipe, by number."""
     cell: Cell = request.app.state.cell
-    return {"recipes": [r.model_dump() for r in remote.recipe_store(cell).list()]}
+    return {"recipes": [r.model_dump() for r in cell.recipes.list()]}
 
 
 @router.get("/recipes/{name}", response_model=RecipeVersions)
@@ -74,7 +73,7 @@ def recipe_versions(request: Request, name: str,
                     caller: Annotated[Caller, Depends(require("read"))]) -> dict[str, Any]:
     """Every stored version of one recipe, oldest first."""
     cell: Cell = request.app.state.cell
-    return {"versions": [r.model_dump() for r in remote.recipe_store(cell).versions(name)]}
+    return {"versions": [r.model_dump() for r in cell.recipes.versions(name)]}
 
 
 @router.put("/recipes", response_model=Recipe)
@@ -87,7 +86,7 @@ def save_recipe(request: Request, body: RecipeSpec,
     rc = _remote(caller)
     remote.require(cell, rc, "edit_recipes", "save_recipe", {"name": body.name})
     with remote.audited(cell, rc, "save_recipe", {"name": body.name}) as note:
-        recipe = remote.recipe_store(cell).save(body, caller.label)
+        recipe = cell.recipes.save(body, caller.label)
         note.detail = f"version {recipe.version}"
     return recipe.model_dump()
 
@@ -100,7 +99,7 @@ def delete_recipe(request: Request, name: str,
     rc = _remote(caller)
     remote.require(cell, rc, "edit_recipes", "delete_recipe", {"name": name})
     with remote.audited(cell, rc, "delete_recipe", {"name": name}):
-        return remote.recipe_store(cell).delete(name).model_dump()
+        return cell.recipes.delete(name).model_dump()
 
 
 @router.post("/recipes/{ref}/approach", response_model=Job)

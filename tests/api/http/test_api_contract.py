@@ -16,6 +16,7 @@ from fastapi.testclient import TestClient
 from api.app import create_app
 from cell.error_codes import ErrorCode
 from cell.errors import NotFoundError
+from cell.results.modes import ApproachMode
 from tests.support.cell import AUTH, running_cell, sim_config
 from tests.support.paths import REPO
 
@@ -83,6 +84,21 @@ def test_statuses_and_wait_semantics_are_documented(app_and_schema: tuple[Any, d
     for path in ("/api/v1/locate", "/api/v1/approach", "/api/v1/jog", "/api/v1/gripper"):
         assert {"409", "503"} <= set(paths[path]["post"]["responses"]), path
     assert {"413", "415"} <= set(approach["responses"])
+
+
+def test_the_schema_lists_the_approach_modes_each_request_takes(
+        app_and_schema: tuple[Any, dict]) -> None:
+    _, schema = app_and_schema
+    comps = schema["components"]["schemas"]
+
+    def modes(model: str) -> list[str]:
+        prop = comps[model]["properties"]["mode"]
+        found = _ref(prop)
+        return list(comps[found[0]]["enum"] if found else prop["enum"])
+
+    assert modes("ApproachRequest") == [m.value for m in ApproachMode]
+    assert modes("TrackRequest") == ["servo", "ibvs"]
+    assert modes("RecipeTarget") == ["look_and_move", "servo"]
 
 
 def test_error_codes_are_an_enum_that_covers_every_raised_code(
@@ -217,4 +233,4 @@ def _integers_bounded(client: TestClient) -> None:
     assert r.status_code == 422, r.text
     # the alarm log itself, for any other door: an id SQLite cannot hold is simply unknown
     with pytest.raises(NotFoundError):
-        app.state.alarms.acknowledge(10**23, "test")
+        app.state.cell.alarms.acknowledge(10**23, "test")

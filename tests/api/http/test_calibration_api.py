@@ -33,12 +33,11 @@ BASE = "/api/v1/calibration/hand-eye"
 
 
 @pytest.fixture
-def client(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[TestClient]:
-    config_file = tmp_path / "cell.toml"
+def client(tmp_path: Path) -> Iterator[TestClient]:
+    config_file = tmp_path / "cell.toml"  # the file apply may write
     shutil.copy(REPO / "cell" / "configs" / "sim.toml", config_file)
-    monkeypatch.setenv("CELL_CONFIG", str(config_file))  # the file apply may write
     config = sim_config(tmp_path, sim={"T_flange_camera": TRUE_T_FLANGE_CAMERA})
-    with running_cell(config) as cell, TestClient(create_app(cell)) as c:
+    with running_cell(config, config_file) as cell, TestClient(create_app(cell)) as c:
         yield c
 
 

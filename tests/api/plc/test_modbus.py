@@ -16,7 +16,6 @@ import numpy as np
 import pytest
 from pymodbus.client import ModbusTcpClient
 
-from api import remote
 from api.plc.modbus import (
     ERROR_NUMBERS,
     Alarm,
@@ -210,7 +209,7 @@ def test_recipe_by_number_is_recorded_in_the_job(served: Served, plc: Plc) -> No
     spec = parse_spec({"name": "plate-a", "number": 3, "targets": [{
         "points_mm": [list(p) for p in t.points_mm], "dot_diameter_mm": t.dot_diameter_mm,
         "polarity": t.polarity, "standoff_mm": 60.0}]})
-    store = remote.recipe_store(cell)
+    store = cell.recipes
     store.save(spec, "test")
     saved = store.save(spec, "test")
     assert saved.version == 2

@@ -5,7 +5,6 @@ Stop mid-approach, roles, malformed calls, audit rows, and ``cell serve`` servin
 from __future__ import annotations
 
 import asyncio
-import inspect
 import socket
 import subprocess
 import sys
@@ -30,7 +29,7 @@ from api.app import create_app
 from api.plc.opcua import OpcUaServer
 from api.plc.xmlrpc import XmlRpcServer
 from cell.config.endpoints import opcua_cert_dir
-from cell.features.teach import TaughtPose, TaughtStore
+from cell.features.teach import TaughtPose
 from cell.service import Cell
 from cell.vision.frames import approach_tcp
 from estimator.transforms import T_from_pose, T_from_pose_dict, T_from_ur_pose, pose_distance
@@ -269,12 +268,6 @@ def test_opcua_roles_users_and_refusals(served: Served) -> None:
             assert (await plc.call("Approach", 40.0, "teleport"))[0] == "invalid_request"
             assert (await plc.call("Approach", 40.0, ua.Variant("x", ua.VariantType.String))
                     )[0] == "invalid_request"
-            # until the servo issue's Cell.track and Cell.approach(mode=...) are merged (once
-            # they are, these calls would move the arm: the servo tests cover them)
-            if not hasattr(served.cell, "track"):
-                assert (await plc.call("Track", 40.0, 2.0))[0] == "not_supported"
-            if "mode" not in inspect.signature(served.cell.approach).parameters:
-                assert (await plc.call("Approach", 40.0, "servo"))[0] == "not_supported"
             assert pose_distance(tcp(served.cell), before)[0] < 0.01
             # variables belong to the cell
             with pytest.raises(ua.UaStatusCodeError):
@@ -388,9 +381,9 @@ def test_xmlrpc_locate_and_approach_pose_match_the_http_api(served: Served) -> N
     expected = approach_tcp(T_http, served.cell.config.approach.T_target_tcp.T(), 40.0)
     assert close_to(goal, expected), pose_distance(goal, expected)
 
-    # a taught tool pose, read from the store the API writes
+    # a taught tool pose, read from the cell's store that HTTP's teach writes
     T_target_tcp = T_from_pose([10.0, -5.0, 0.0], [0.0, 0.0, 0.3])
-    TaughtStore.beside_job_db(served.cell.config.api.job_db).put(TaughtPose(
+    served.cell.taught.put(TaughtPose(
         "grasp", T_target_tcp, 1, 0.0, 0.0, T_true, before, "test", time.time()))
     taught = struct_T(rpc.taught_pose("grasp", 25.0))
     assert close_to(taught, approach_tcp(T_http, T_target_tcp, 25.0))

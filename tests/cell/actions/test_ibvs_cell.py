@@ -103,7 +103,7 @@ def test_ibvs_refusals_are_typed_and_move_nothing(client: TestClient, tmp_path: 
                                            "duration_s": 1}, headers=PLC)
     assert r.status_code == 422 and r.json()["error"]["code"] == "ibvs_needs_taught"
     # a pose taught before views were recorded: servo and look-and-move only
-    store: TaughtStore = client.app.state.taught  # type: ignore[attr-defined]
+    store = cell.taught
     old: TaughtPose = replace(store.get("fresh"), name="old", view=None)
     store.put(old)
     text = (tmp_path / "taught_poses.json").read_text()

@@ -98,7 +98,6 @@ def test_xmlrpc_recipe_pose_is_the_goal_for_the_recipes_standoff(tmp_path: Path)
     import socket
     import xmlrpc.client
 
-    from api import remote
     from api.plc.xmlrpc import XmlRpcServer
     from estimator.transforms import T_from_ur_pose
 
@@ -107,8 +106,7 @@ def test_xmlrpc_recipe_pose_is_the_goal_for_the_recipes_standoff(tmp_path: Path)
         port = int(s.getsockname()[1])
     config = sim_config(tmp_path, urscript={"xmlrpc_port": port})
     with running_cell(config) as cell:
-        remote.recipe_store(cell).save(parse_spec(spec(config, number=4, standoff_mm=80.0)),
-                                       "test")
+        cell.recipes.save(parse_spec(spec(config, number=4, standoff_mm=80.0)), "test")
         server = XmlRpcServer(cell, config.urscript)
         server.start()
         try:

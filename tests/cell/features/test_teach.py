@@ -6,17 +6,20 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from cell.actions.ibvs import Features
 from fastapi.testclient import TestClient
 from scipy.spatial.transform import Rotation
 
 from api.app import create_app
 from cell.errors import CellError, LimitError, NotFoundError, RefusedError
 from cell.features.teach import STORE_NAME, Sample, TaughtPose, TaughtStore, combine
+from cell.results.modes import ApproachMode
 from cell.service import Cell
 from estimator.transforms import T_from_pose, T_from_pose_dict, invert_T, make_T, pose_distance
 from tests.support.cell import AUTH, running_cell, sim_config, tcp, world
@@ -84,6 +87,27 @@ def test_failed_write_changes_nothing(tmp_path: Path, monkeypatch: pytest.Monkey
     assert [p.name for p in store.list()] == ["a"]
     assert path.read_text() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == [STORE_NAME]
+
+
+def test_a_job_takes_its_taught_pose_and_view_from_one_lookup(tmp_path: Path) -> None:
+    store = TaughtStore(tmp_path / STORE_NAME)
+    view = Features((1, 2, 3, 4), np.zeros((4, 2)), np.full(4, 300.0))
+    store.put(replace(_pose("shown"), view=view))
+    store.put(_pose("old"))  # taught before views were recorded
+    assert store.for_job(None, None) == (None, None)
+    assert store.for_job(None, ApproachMode.servo) == (None, None)
+    T, no_view = store.for_job("shown", ApproachMode.servo)
+    assert np.allclose(T, _pose("shown").T_target_tcp) and no_view is None
+    T, shown = store.for_job("shown", ApproachMode.ibvs)
+    assert shown is view
+    for name, mode, code in ((None, ApproachMode.ibvs, "ibvs_needs_taught"),
+                             ("old", ApproachMode.ibvs, "taught_without_view"),
+                             ("nope", None, "taught_not_found"),
+                             ("", None, "taught_not_found"),
+                             (5, None, "taught_not_found")):
+        with pytest.raises(CellError) as err:
+            store.for_job(name, mode)  # type: ignore[arg-type]
+        assert err.value.code == code, (name, mode)
 
 
 # -- averaging -------------------------------------------------------------------------------
