@@ -12,7 +12,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-from cell.actions.ibvs import Features
 from fastapi.testclient import TestClient
 from scipy.spatial.transform import Rotation
 
@@ -21,6 +20,7 @@ from cell.errors import CellError, LimitError, NotFoundError, RefusedError
 from cell.features.teach import STORE_NAME, Sample, TaughtPose, TaughtStore, combine
 from cell.results.modes import ApproachMode
 from cell.service import Cell
+from cell.servoing.ibvs import Features
 from estimator.transforms import T_from_pose, T_from_pose_dict, invert_T, make_T, pose_distance
 from tests.support.cell import AUTH, running_cell, sim_config, tcp, world
 
