@@ -25,8 +25,8 @@ from drivers.errors import DriverError
 
 log = logging.getLogger(__name__)
 
-# (job id, motion) -> the result of the job's kind, as its model or its JSON object
-Work = Callable[[str, Motion], JobResult | dict[str, Any]]
+# (job id, motion) -> the result model of the job's kind
+Work = Callable[[str, Motion], JobResult]
 Check = Callable[[Motion], None]  # raises CellError to refuse; runs holding the slot
 OnEnd = Callable[[Job], None]  # told of the started and the ended job, after the "job" event
 
@@ -90,9 +90,8 @@ class JobRunner:
 
     def _run(self, job: Job, motion: Motion, work: Work, on_change: OnEnd | None) -> None:
         try:
-            # the one boundary where a job's result becomes the model of its kind: a work
-            # that returns its JSON object is validated here, and one that does not fit its
-            # kind's model fails the job (internal_error) rather than publish an unknown shape
+            # a result that is not a model of the job's kind fails the job (internal_error)
+            # rather than publish a shape the job's schema does not show
             result = result_of(job.kind, work(job.id, motion))
             if motion.cancel.is_set() and motion.reason is not None:
                 raise motion.reason
