@@ -220,21 +220,46 @@ def test_busy_stop_during_approach_and_protective_stop(client: TestClient) -> No
     assert client.get("/api/v1/status", headers=VIEW).json()["state"] == "protective_stop"
 
 
-def test_continuous_jog_with_dead_man(client: TestClient) -> None:
-    cell = cell_of(client)
-    z0 = tcp(cell)[2, 3]
-    r = client.post("/api/v1/jog/heartbeat", headers=OP)
-    assert r.status_code == 409 and error_code(r) == "not_jogging"
+def _jog_end_reason(client: TestClient) -> str:
+    end = next(e for e in client.get("/api/v1/audit", headers=VIEW).json()["entries"]
+               if e["command"] == "jog_end")
+    return str(end["detail"])
+
+
+def _hold_jog(client: TestClient, hold_s: float, deadman_s: float) -> float | None:
+    """Start a continuous jog up and beat its dead-man for ``hold_s``; the time of the last
+    heartbeat, or None when the dead-man fired because this host let a heartbeat go out later
+    than the dead-man period (the product's right answer to a late heartbeat)."""
     r = client.post("/api/v1/jog", json={"mode": "continuous", "frame": "base",
                                          "linear_mm_s": [0, 0, 40]}, headers=OP)
     assert r.status_code == 200, r.text
-    t_end = time.monotonic() + 1.0
+    t_end = time.monotonic() + hold_s
+    sent_ok = time.monotonic()
     while True:
-        assert client.post("/api/v1/jog/heartbeat", headers=OP).status_code == 200
-        last_beat = time.time()
+        sent = time.monotonic()
+        r = client.post("/api/v1/jog/heartbeat", headers=OP)
+        if r.status_code != 200:
+            late_s = time.monotonic() - sent_ok  # at least the gap the service saw
+            reason = _jog_end_reason(client)
+            assert "dead-man" in reason and late_s > deadman_s, (r.text, reason, late_s)
+            return None
+        sent_ok, last_beat = sent, time.time()
         if time.monotonic() > t_end:
-            break
+            return last_beat
         time.sleep(0.02)  # well inside the 200 ms dead-man period, also on a loaded host
+
+
+def test_continuous_jog_with_dead_man(client: TestClient) -> None:
+    cell = cell_of(client)
+    deadman_s = cell.config.limits.deadman_timeout_s
+    r = client.post("/api/v1/jog/heartbeat", headers=OP)
+    assert r.status_code == 409 and error_code(r) == "not_jogging"
+    for _ in range(3):
+        z0 = settled_tcp(cell, timeout_s=1.5)[2, 3]
+        last_beat = _hold_jog(client, 1.0, deadman_s)
+        if last_beat is not None:
+            break
+    assert last_beat is not None, "every try had a heartbeat later than the dead-man period"
     # no more heartbeats: the dead-man stops the jog
     deadline = time.monotonic() + 3.0
     while client.get("/api/v1/status", headers=VIEW).json()["state"] == "jog":
