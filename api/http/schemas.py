@@ -321,19 +321,6 @@ class Health(_Out):
         default_factory=list, description="why the status is degraded (empty when ok)")
 
 
-class Quality(_Out):
-    rms_px: float
-    max_residual_px: float
-    ambiguous: bool
-    converged: bool
-    n_points: int
-    covariance: list[list[float]] | None
-    frame_age_s: float
-    n_frames: int
-    spread_mm: float
-    spread_deg: float = 0.0
-
-
 LOCATED_EXAMPLE = {
     "T_base_target": {"position_mm": [-480.1, -129.9, 0.1], "rotvec_rad": [0.0, 0.0, 0.001]},
     "T_camera_target": {"position_mm": [1.2, -3.4, 350.2], "rotvec_rad": [3.14, 0.0, 0.0]},
