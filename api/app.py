@@ -27,6 +27,7 @@ from api.http.routes.arm import router as arm_router
 from api.http.routes.calibration import router as calibration_router
 from api.http.routes.main import router, sim_router
 from api.http.routes.ops import router as ops_router
+from api.http.routes.pick import router as pick_router
 from api.http.routes.recipes import router as recipes_router
 from api.http.routes.servo import router as servo_router
 from api.plc.interfaces import Interfaces
@@ -81,6 +82,7 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False,
     app.include_router(router)
     app.include_router(arm_router)  # operator recovery: home, unlock, power
     app.include_router(servo_router)  # POST /track
+    app.include_router(pick_router)  # POST /pick
     app.include_router(recipes_router)  # recipes (products) and approaches with one
     app.include_router(calibration_router)  # hand-eye routine and taught poses
     app.include_router(ops_router)  # alarms, camera settings, image log

@@ -44,6 +44,10 @@ class ErrorCode(StrEnum):
     servo_timeout = "servo_timeout"
     duration_limit = "duration_limit"
     target_not_visible = "target_not_visible"
+    # picking
+    grasp_missed = "grasp_missed"
+    grip_out_of_window = "grip_out_of_window"
+    gripper_fault = "gripper_fault"
     no_tool_plate = "no_tool_plate"  # a fixed camera's IBVS: no dot plate on the tool in view
     spread_too_large = "spread_too_large"
     calibration_inconsistent = "calibration_inconsistent"
@@ -76,6 +80,7 @@ class ErrorCode(StrEnum):
     invalid_camera_setting = "invalid_camera_setting"
     ibvs_needs_taught = "ibvs_needs_taught"
     taught_without_view = "taught_without_view"
+    taught_wrong_frame = "taught_wrong_frame"
     # not found (404)
     job_not_found = "job_not_found"
     taught_not_found = "taught_not_found"

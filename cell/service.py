@@ -33,6 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.actions import approach as approach_mod
+from cell.actions import pick as pick_mod
 from cell.actions import recovery, track
 from cell.actions.jog import Jogger
 from cell.actions.stop import StopLine
@@ -41,13 +42,14 @@ from cell.config.schema import CellConfig, HandEyeConfig, PoseConfig
 from cell.core import CellCore
 from cell.devices.hardware import Hardware, SimWorld
 from cell.error_codes import ErrorCode
-from cell.errors import LimitError, NotFoundError
+from cell.errors import CellError, LimitError, NotFoundError
 from cell.features.alarms import AlarmLog
 from cell.features.camera_control import apply_camera_settings, camera_settings
 from cell.features.recipes import RecipeStore
 from cell.features.teach import (
     DEFAULT_MAX_SPREAD_DEG,
     DEFAULT_MAX_SPREAD_MM,
+    TaughtFrame,
     TaughtPose,
     TaughtStore,
     teach,
@@ -242,6 +244,44 @@ class Cell:
                                  duration_s=duration_s, T_target_tcp=T_target_tcp, wait=wait,
                                  wait_timeout_s=wait_timeout_s, recipe=recipe, layout=layout)
 
+    def pick(self, caller: str, *, recipe: str | int | None = None, target: str = "",
+             place: str | None = None, standoff_mm: float | None = None,
+             mode: ApproachMode | None = None, wait: bool = False,
+             wait_timeout_s: float = 180.0) -> Job:
+        """Pick job (cell.actions.pick): the next part of the recipe's target (None: the
+        cell's ``[target]`` with ``[approach]`` and ``[pick]``'s values), placed at the
+        base-frame pose taught as ``place`` (None: kept in the gripper after the retract). A
+        refusal (unknown recipe or pose, a pose the arm cannot reach) moves nothing."""
+        params = {"recipe": recipe, "target": target, "place": place, "standoff_mm": standoff_mm,
+                  "mode": mode}
+        try:
+            record, layout, plan = self._pick_plan(recipe, target, place, standoff_mm, mode)
+        except CellError:
+            with self.core.audit.command(caller, "pick", params):
+                raise
+        return pick_mod.start_pick(self.core, self.gripper_ops if self.hw.gripper else None,
+                                   caller, plan, recipe=record, layout=layout, wait=wait,
+                                   wait_timeout_s=wait_timeout_s)
+
+    def _pick_plan(self, recipe: str | int | None, target: str, place: str | None,
+                   standoff_mm: float | None, mode: ApproachMode | None
+                   ) -> tuple[dict[str, Any] | None, Target | None, pick_mod.PickPlan]:
+        placed = None if place is None else (place, self.taught.get(place).place_pose())
+        if recipe is None:
+            T_target_tcp, _ = self.taught.for_job(None, mode)
+            return None, None, pick_mod.resolve_plan(
+                self.core, standoff_mm=standoff_mm, speed_mm_s=None, T_target_tcp=T_target_tcp,
+                mode=mode, place=placed)
+        found = self.recipes.get(recipe)
+        chosen = found.target(target)
+        T_target_tcp, _ = self.taught.for_job(chosen.taught or None, chosen.mode)
+        return found.record(chosen), chosen.model(), pick_mod.resolve_plan(
+            self.core, standoff_mm=chosen.standoff_mm if standoff_mm is None else standoff_mm,
+            speed_mm_s=chosen.speed_mm_s, T_target_tcp=T_target_tcp,
+            mode=chosen.mode if mode is None else mode, place=placed,
+            grasp_speed_mm_s=chosen.grasp_speed_mm_s, retract_mm=chosen.retract_mm,
+            grip_window_mm=(chosen.grip_min_mm, chosen.grip_max_mm))
+
     def jog_step(self, caller: str, *, frame: JogFrame, translation_mm: Any,
                  rotation_deg: Any, speed_mm_s: float | None = None) -> Matrix4:
         return self.jogger.step(caller, frame=frame, translation_mm=translation_mm,
@@ -274,11 +314,11 @@ class Cell:
     def teach(self, caller: str, name: str, samples: int = 5,
               max_spread_mm: float = DEFAULT_MAX_SPREAD_MM,
               max_spread_deg: float = DEFAULT_MAX_SPREAD_DEG,
-              replace: bool = True) -> TaughtPose:
-        """Teach ``name`` at the arm's resting pose into :attr:`taught`
-        (cell.features.teach); nothing moves."""
+              replace: bool = True, frame: TaughtFrame = "target") -> TaughtPose:
+        """Teach ``name`` at the arm's resting pose into :attr:`taught`, relative to the target
+        or in the base frame (cell.features.teach); nothing moves."""
         return teach(self, self.taught, caller, name, samples, max_spread_mm, max_spread_deg,
-                     replace)
+                     replace, frame)
 
     def camera_settings(self) -> dict[str, Any]:
         return camera_settings(self.core)

@@ -24,7 +24,8 @@ from cell.results import (
     TrackResult,
 )
 from cell.results.calibration import CalibrationApplied
-from cell.results.modes import ApproachMode, TrackMode
+from cell.results.modes import ApproachMode, PoseMode, TrackMode
+from cell.results.pick import PickResult
 
 # Strict scalars of request bodies: no strings, no booleans as numbers, no numbers as booleans.
 Num = Annotated[float, Strict(), Field(allow_inf_nan=False)]
@@ -94,6 +95,24 @@ class ApproachRequest(_Body):
         "'cancelled' and error {code, message} in the job. Refusals before anything moved "
         "are 4xx/5xx as usual. The wait is bounded; a job still running then is answered "
         "with state 'running'."))
+
+
+class PickRequest(_Body):
+    recipe: Annotated[str, Field(min_length=1, max_length=64)] | Int | None = Field(
+        default=None, description="a recipe's name or number (its target's layout, taught "
+        "pose, standoff, mode and pick values); null: the cell's [target], [approach], [pick]")
+    target: str = Field(default="", max_length=64,
+                        description="the recipe's target by name; \"\": its first")
+    place: str | None = Field(
+        default=None, min_length=1, max_length=64,
+        description="a pose taught in the base frame (POST /teach with frame \"base\") to "
+        "place the part at; null: keep it in the gripper after the retract")
+    standoff_mm: Num | None = Field(default=None, ge=0, le=MAX_STANDOFF_MM,
+                                    description="the pre-pick pose's distance from the grasp")
+    mode: PoseMode | None = Field(default=None, description="how the pre-pick pose is "
+                                  "approached: look_and_move or servo")
+    wait: Flag = Field(default=False, description="as for /approach: true answers when the "
+                       "pick has ended, whatever its end state")
 
 
 class TrackRequest(_Body):
@@ -265,8 +284,22 @@ class HandEyeJob(_JobFields):
     result: HandEyeRoutineResult | None
 
 
+class PickJob(_JobFields):
+    """A pick: the part taken, the grip's verdict, where the part should end, each phase's
+    seconds."""
+
+    model_config = _examples(JOB_EXAMPLE | {
+        "id": "7b8c9d0e1f2a", "kind": "pick", "params": {"standoff_mm": 50.0,
+                                                         "place": "tray-1"},
+        "state": "running", "progress": {"phase": "grasp", "phases_s": {
+            "locate": 0.21, "approach": 2.4}}, "error": None, "ended_at": None})
+    kind: Literal["pick"]
+    result: PickResult | None
+
+
 # A long-running command, by its ``kind``: each kind's result is its own typed model.
-Job = Annotated[ApproachJob | TrackJob | HomeJob | HandEyeJob, Field(discriminator="kind")]
+Job = Annotated[ApproachJob | TrackJob | HomeJob | HandEyeJob | PickJob,
+                Field(discriminator="kind")]
 
 
 class JobList(_Out):
@@ -575,7 +608,7 @@ class ApplyResult(CalibrationApplied):
 
 
 TAUGHT_EXAMPLE = {
-    "name": "grasp-a", "T_target_tcp": {"position_mm": [0.0, 0.0, -20.0],
+    "name": "grasp-a", "frame": "target", "T_target_tcp": {"position_mm": [0.0, 0.0, -20.0],
                                         "rotvec_rad": [0.0, 0.0, 0.0]},
     "samples": 5, "spread_mm": 0.03, "spread_deg": 0.01, "T_base_target": POSE_EXAMPLE,
     "T_base_tcp": POSE_EXAMPLE, "taught_by": "http:op(operator)", "taught_at": 1796200000.0}
@@ -590,15 +623,17 @@ class TaughtView(_Out):
 
 
 class TaughtPoseOut(_Out):
-    """A taught tool pose in the target frame, with how it was taught."""
+    """A taught pose, with how it was taught: a tool pose relative to the target (``frame``
+    ``target``), or a base-frame pose (``base``: a place pose; no target in it)."""
 
     model_config = _examples(TAUGHT_EXAMPLE)
     name: str
-    T_target_tcp: PoseOut
+    frame: Literal["target", "base"]
+    T_target_tcp: PoseOut | None = Field(description="null for a base-frame pose")
     samples: int
     spread_mm: float
     spread_deg: float
-    T_base_target: PoseOut
+    T_base_target: PoseOut | None = Field(description="null for a base-frame pose")
     T_base_tcp: PoseOut
     taught_by: str
     taught_at: float

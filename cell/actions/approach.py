@@ -293,23 +293,37 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
 
     def run(job_id: str, motion: Motion) -> LookAndMoveApproach | ServoApproach | IbvsApproach:
         loc = first[0]
-        start: dict[str, Any] = {"first_locate_s": seen.get("first_locate_s")}
-        if how == ApproachMode.look_and_move and not core.frames.is_fixed:
-            return look_and_move(core, job_id, motion, loc, plan, start)
-        # servo, IBVS, a fixed camera: the first locate's consistency
-        start["consistency"] = Consistency.model_validate(consistency(
-            [("initial locate", loc)], core.target_centre_mm, target_at_rest=False))
         if how == ApproachMode.ibvs:
             assert view is not None
+            start: dict[str, Any] = {"first_locate_s": seen.get("first_locate_s"),
+                                     "consistency": first_consistency(core, loc)}
             return IbvsApproach(mode=ApproachMode.ibvs, **ClosedLoop(core, job_id, motion, ImageLaw(
                 core, view, plan.T_target_tcp, "approach")).run(loc),
                 estimated_error_basis=ERROR_BASIS["ibvs"], **start)
-        if how == ApproachMode.servo:
-            return servo_approach(core, job_id, motion, loc, plan, seen, start)
-        return fixed_look_and_move(core, job_id, motion, loc, plan, seen, start)
+        return pose_approach(core, job_id, motion, loc, plan, how, seen)
 
     return lent.start_job("approach", caller, params, work, checks, wait=wait,
                           wait_timeout_s=wait_timeout_s)
+
+
+def first_consistency(core: CellCore, loc: Located) -> Consistency:
+    return Consistency.model_validate(consistency(
+        [("initial locate", loc)], core.target_centre_mm, target_at_rest=False))
+
+
+def pose_approach(core: CellCore, job_id: str, motion: Motion, loc: Located, plan: ApproachPlan,
+                  how: ApproachMode, seen: dict[str, Any]
+                  ) -> LookAndMoveApproach | ServoApproach:
+    """Approach ``plan``'s goal from the first locate ``loc`` by pose (look-and-move or the
+    servo; a fixed camera's look-and-move corrects at the goal); ``seen``: how the first
+    locate was had (``first_locate_s``, a fixed camera's pose source)."""
+    start: dict[str, Any] = {"first_locate_s": seen.get("first_locate_s")}
+    if how == ApproachMode.look_and_move and not core.frames.is_fixed:
+        return look_and_move(core, job_id, motion, loc, plan, start)
+    start["consistency"] = first_consistency(core, loc)
+    if how == ApproachMode.servo:
+        return servo_approach(core, job_id, motion, loc, plan, seen, start)
+    return fixed_look_and_move(core, job_id, motion, loc, plan, seen, start)
 
 
 def check_ibvs_request(view: Features | None, standoff_mm: float | None,

@@ -234,6 +234,31 @@ class IbvsConfig(Strict):
     approach_timeout_s: float = Field(default=30.0, gt=0)
 
 
+class PickConfig(Strict):
+    """How a pick grasps, checks its grip and leaves (``[pick]``); a recipe's target may set
+    its own grasp speed, retract distance and grip window.
+
+    The pick approaches the pre-pick pose (the standoff), moves blind along the tool axis to
+    the grasp pose at ``grasp_speed_mm_s``, closes, and accepts the grip when the gripper
+    stopped on an object with the fingers ``grip_min_mm``..``grip_max_mm`` apart. It leaves
+    ``retract_mm`` back along the tool axis, and reaches a place pose from
+    ``place_clearance_mm`` above it (along the tool axis), where it opens and leaves again.
+    """
+
+    grasp_speed_mm_s: float = Field(default=50.0, gt=0)
+    retract_mm: float = Field(default=80.0, ge=0, le=500)
+    place_clearance_mm: float = Field(default=80.0, ge=0, le=500)
+    place_speed_mm_s: float = Field(default=150.0, gt=0)
+    grip_min_mm: float = Field(default=1.0, ge=0)
+    grip_max_mm: float = Field(default=84.0, gt=0)
+
+    @model_validator(mode="after")
+    def _window(self) -> PickConfig:
+        if self.grip_min_mm >= self.grip_max_mm:
+            raise ValueError("pick.grip_min_mm must be below pick.grip_max_mm")
+        return self
+
+
 class LimitsConfig(Strict):
     """Safety envelope checked before any motion; a refusal moves nothing."""
 
@@ -548,6 +573,7 @@ class CellConfig(BaseModel):
     approach: ApproachConfig = ApproachConfig()
     servo: ServoConfig = ServoConfig()
     ibvs: IbvsConfig = IbvsConfig()
+    pick: PickConfig = PickConfig()
     limits: LimitsConfig = LimitsConfig()
     api: ApiConfig = ApiConfig()
     gripper: GripperConfig = NoGripperConfig()

@@ -65,6 +65,11 @@ class RecipeTarget(DotLayout):
     standoff_mm: Num = Field(default=50.0, ge=0)
     mode: PoseMode = ApproachMode.look_and_move
     speed_mm_s: Num = Field(default=150.0, gt=0)
+    # a pick's own values (None: the configured [pick] one)
+    grasp_speed_mm_s: Num | None = Field(default=None, gt=0)
+    retract_mm: Num | None = Field(default=None, ge=0, le=500)
+    grip_min_mm: Num | None = Field(default=None, ge=0)
+    grip_max_mm: Num | None = Field(default=None, gt=0)
 
 
 class RecipeSpec(BaseModel):

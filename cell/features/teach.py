@@ -13,6 +13,11 @@ state directory (the config file may be read-only and is hand-edited). Every cha
 the whole file atomically (temporary file, fsync, rename), so a crash leaves either the old
 or the new file, never a torn one. A file that cannot be read is never overwritten.
 
+A place pose is taught in the base frame (``frame="base"``): the resting TCP itself, averaged
+over several readings of the arm, with no target in it; a pick releases its part there. Such a
+pose has no ``T_target_tcp`` and is refused where a tool pose relative to the target is asked
+for (``taught_wrong_frame``), as a target-relative pose is refused as a place pose.
+
 Teaching by showing: the view is recorded too (``view``: each matched dot's normalised image
 point and depth, averaged over the samples), so an IBVS approach
 (:mod:`cell.servoing.image`) can drive the image back to it. Poses taught before that have
@@ -28,7 +33,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -54,6 +59,7 @@ DEFAULT_MAX_SPREAD_DEG = 0.2
 # The arm must rest while teaching: a TCP that moves more than this between samples is refused.
 STILL_MM = 0.05
 STILL_DEG = 0.02
+TaughtFrame = Literal["target", "base"]
 
 
 class TeachStoreError(CellError):
@@ -65,36 +71,66 @@ class TeachStoreError(CellError):
 @dataclass(frozen=True)
 class TaughtPose:
     name: str
-    T_target_tcp: Matrix4
+    T_target_tcp: Matrix4 | None  # None: a base-frame pose
     samples: int
     spread_mm: float  # largest distance of one sample from the mean
     spread_deg: float
-    T_base_target: Matrix4  # where the target was when taught (for the record)
+    T_base_target: Matrix4 | None  # where the target was when taught (None: a base-frame pose)
     T_base_tcp: Matrix4
     taught_by: str
     taught_at: float  # UNIX seconds
     view: Features | None = None  # the desired image features (None: taught without them)
+    frame: TaughtFrame = "target"
 
     def as_dict(self) -> dict[str, Any]:
         return {**self._pose_dict(), "view": view_dict(self.view)}
 
     def _pose_dict(self) -> dict[str, Any]:
         return {
-            "name": self.name, "T_target_tcp": pose_dict(self.T_target_tcp),
+            "name": self.name, "frame": self.frame,
+            "T_target_tcp": _pose_or_none(self.T_target_tcp),
             "samples": self.samples, "spread_mm": self.spread_mm, "spread_deg": self.spread_deg,
-            "T_base_target": pose_dict(self.T_base_target),
+            "T_base_target": _pose_or_none(self.T_base_target),
             "T_base_tcp": pose_dict(self.T_base_tcp),
             "taught_by": self.taught_by, "taught_at": self.taught_at,
         }
 
     @staticmethod
     def from_dict(d: dict[str, Any]) -> TaughtPose:
+        frame: TaughtFrame = "base" if d.get("frame") == "base" else "target"
         return TaughtPose(
-            name=str(d["name"]), T_target_tcp=T_from_pose_dict(d["T_target_tcp"]),
+            name=str(d["name"]), T_target_tcp=_T_or_none(d.get("T_target_tcp")),
             samples=int(d["samples"]), spread_mm=float(d["spread_mm"]),
-            spread_deg=float(d["spread_deg"]), T_base_target=T_from_pose_dict(d["T_base_target"]),
+            spread_deg=float(d["spread_deg"]), T_base_target=_T_or_none(d.get("T_base_target")),
             T_base_tcp=T_from_pose_dict(d["T_base_tcp"]), taught_by=str(d["taught_by"]),
-            taught_at=float(d["taught_at"]), view=view_from_dict(d.get("view")))
+            taught_at=float(d["taught_at"]), view=view_from_dict(d.get("view")), frame=frame)
+
+    def tool_pose(self) -> Matrix4:
+        """``T_target_tcp``; a base-frame pose is refused (``taught_wrong_frame``)."""
+        if self.T_target_tcp is None:
+            raise LimitError(ErrorCode.taught_wrong_frame,
+                             f"the pose {self.name!r} is taught in the base frame (a place "
+                             "pose): a job that approaches a target needs a pose taught "
+                             "relative to the target")
+        return self.T_target_tcp
+
+    def place_pose(self) -> Matrix4:
+        """``T_base_tcp`` of a base-frame pose; a target-relative one is refused
+        (``taught_wrong_frame``): where it puts the tool depends on where a target was."""
+        if self.frame != "base":
+            raise LimitError(ErrorCode.taught_wrong_frame,
+                             f"the pose {self.name!r} is taught relative to the target; a "
+                             "place pose is taught in the base frame (POST /teach with "
+                             "frame \"base\")")
+        return self.T_base_tcp
+
+
+def _pose_or_none(T: Matrix4 | None) -> dict[str, Any] | None:
+    return None if T is None else pose_dict(T)
+
+
+def _T_or_none(d: dict[str, Any] | None) -> Matrix4 | None:
+    return None if d is None else T_from_pose_dict(d)
 
 
 def view_dict(view: Features | None) -> dict[str, Any] | None:
@@ -201,12 +237,13 @@ class TaughtStore:
                                  "pose's name (teaching records its view)")
             return None, None
         pose = self.get(name)
+        T_target_tcp = pose.tool_pose()
         if ibvs and pose.view is None:
             raise LimitError(ErrorCode.taught_without_view,
                              f"the pose {name!r} was taught without its view (an older "
                              "record): it serves servo and look_and_move; teach it again for "
                              "ibvs")
-        return pose.T_target_tcp, pose.view if ibvs else None
+        return T_target_tcp, pose.view if ibvs else None
 
     def put(self, pose: TaughtPose, replace: bool = True) -> None:
         self._usable()
@@ -303,13 +340,19 @@ class TeachingCell(Protocol):
 
 def teach(cell: TeachingCell, store: TaughtStore, caller: str, name: str, samples: int = 5,
           max_spread_mm: float = DEFAULT_MAX_SPREAD_MM,
-          max_spread_deg: float = DEFAULT_MAX_SPREAD_DEG, replace: bool = True) -> TaughtPose:
-    """Locate ``samples`` times from distinct frames at the arm's resting pose and store the
-    averaged ``T_target_tcp`` under ``name``. Nothing moves; every refusal stores nothing."""
+          max_spread_deg: float = DEFAULT_MAX_SPREAD_DEG, replace: bool = True,
+          frame: TaughtFrame = "target") -> TaughtPose:
+    """Store the pose at the arm's resting pose under ``name``: relative to the target
+    (``samples`` locates from distinct frames, their ``T_target_tcp`` averaged), or in the base
+    frame (``samples`` readings of the resting TCP, no camera). Nothing moves; every refusal
+    stores nothing."""
     params = {"name": name, "samples": samples, "max_spread_mm": max_spread_mm,
-              "max_spread_deg": max_spread_deg, "replace": replace}
+              "max_spread_deg": max_spread_deg, "replace": replace, "frame": frame}
     with cell.core.audit.command(caller, "teach", params) as note:
         check_name(name)
+        if frame not in ("target", "base"):
+            raise LimitError(ErrorCode.invalid_request,
+                             f"frame must be 'target' or 'base', got {frame!r}")
         if not 1 <= samples <= 50:
             raise LimitError(ErrorCode.invalid_request, "samples must be 1..50")
         if not replace and store.has(name):
@@ -320,11 +363,38 @@ def teach(cell: TeachingCell, store: TaughtStore, caller: str, name: str, sample
         with cell.core.slot.hold("teach"):
             if cell.arm_state().moving:
                 raise RefusedError(ErrorCode.arm_moving, "the arm is moving; teach when it rests")
-            taught = combine(name, _samples(cell, caller, samples), caller, max_spread_mm,
-                             max_spread_deg)
+            if frame == "base":
+                taught = combine_base(name, _tcp_samples(cell, samples), caller)
+            else:
+                taught = combine(name, _samples(cell, caller, samples), caller, max_spread_mm,
+                                 max_spread_deg)
         store.put(taught, replace=replace)
         note.detail = (f"spread {taught.spread_mm:.3f} mm / {taught.spread_deg:.3f} deg")
     return taught
+
+
+def combine_base(name: str, tcps: list[Matrix4], caller: str) -> TaughtPose:
+    """A base-frame pose from resting TCP readings; an arm that moved between them is refused."""
+    for T in tcps[1:]:
+        d_mm, d_deg = pose_distance(tcps[0], T)
+        if d_mm > STILL_MM or d_deg > STILL_DEG:
+            raise RefusedError(ErrorCode.arm_moving,
+                               f"the arm moved {d_mm:.3f} mm / {d_deg:.3f} deg "
+                               "while teaching; let it rest and teach again")
+    T_mean = mean_pose(tcps)
+    dists = [pose_distance(T_mean, T) for T in tcps]
+    return TaughtPose(check_name(name), None, len(tcps), max(d[0] for d in dists),
+                      max(d[1] for d in dists), None, T_mean, caller, time.time(), frame="base")
+
+
+def _tcp_samples(cell: TeachingCell, n: int) -> list[Matrix4]:
+    """``n`` readings of the resting TCP, one controller state apart."""
+    out: list[Matrix4] = []
+    for i in range(n):
+        if i:
+            time.sleep(0.01)
+        out.append(np.asarray(cell.arm_state().T_base_tcp, dtype=float))
+    return out
 
 
 def located_view(locator: Locator, loc: Located) -> Features | None:

@@ -2,8 +2,8 @@
 
 A job's kind names its result's model: an approach returns an :data:`ApproachResult` (by its
 mode), a track a :data:`TrackResult`, home a :class:`HomeResult`, the hand-eye routine a
-:class:`HandEyeRoutineResult`. The job store keeps a result as its JSON and reads it back
-through :func:`result_of` with the job's kind.
+:class:`HandEyeRoutineResult`, a pick a :class:`PickResult`. The job store keeps a result as
+its JSON and reads it back through :func:`result_of` with the job's kind.
 """
 
 from __future__ import annotations
@@ -20,21 +20,23 @@ from cell.results.approach import (
     ServoApproach,
 )
 from cell.results.home import HomeResult
+from cell.results.pick import PickResult
 from cell.results.pose import Pose
 from cell.results.routine import HandEyeRoutineResult
 from cell.results.track import IbvsTrack, ServoTrack, TrackResult
 
-JobKind = Literal["approach", "track", "home", "hand_eye_calibration"]
+JobKind = Literal["approach", "track", "home", "hand_eye_calibration", "pick"]
 JOB_KINDS: tuple[JobKind, ...] = get_args(JobKind)
 
 JobResult = (LookAndMoveApproach | ServoApproach | IbvsApproach | ServoTrack | IbvsTrack
-             | HomeResult | HandEyeRoutineResult)
+             | HomeResult | HandEyeRoutineResult | PickResult)
 
 _ADAPTERS: dict[str, TypeAdapter[Any]] = {
     "approach": TypeAdapter(ApproachResult),
     "track": TypeAdapter(TrackResult),
     "home": TypeAdapter(HomeResult),
     "hand_eye_calibration": TypeAdapter(HandEyeRoutineResult),
+    "pick": TypeAdapter(PickResult),
 }
 
 
@@ -50,6 +52,8 @@ def located_pose(result: JobResult | None) -> Pose | None:
     as the PLC doors publish it; None for other kinds, or an IBVS run that saw no view."""
     if isinstance(result, AnyApproach | ServoTrack | IbvsTrack):
         return result.T_base_target
+    if isinstance(result, PickResult):
+        return result.part.T_base_target
     return None
 
 

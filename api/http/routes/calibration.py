@@ -84,6 +84,9 @@ class TeachRequest(_Body):
     max_spread_mm: Num = Field(default=DEFAULT_MAX_SPREAD_MM, gt=0, le=50)
     max_spread_deg: Num = Field(default=DEFAULT_MAX_SPREAD_DEG, gt=0, le=10)
     replace: Flag = Field(default=True, description="false: refuse if the name is taught")
+    frame: Literal["target", "base"] = Field(
+        default="target", description="target: the tool pose relative to the located target "
+        "(approach to it); base: the resting TCP in the base frame, no camera (a place pose)")
 
 
 def _cell(request: Request) -> Cell:
@@ -155,10 +158,11 @@ async def calibration_events(request: Request, caller: Stream,
 @router.post("/teach", response_model=TaughtPoseOut, tags=["teach"],
              responses=DEVICE_ERRORS)
 def teach_pose(request: Request, caller: Teacher, body: TeachRequest) -> dict[str, Any]:
-    """Store ``T_target_tcp`` of the arm's resting pose under ``name``: ``samples`` locates
-    are averaged; their spread is reported and over the limit refused (409)."""
+    """Store the arm's resting pose under ``name``: with ``frame`` ``target`` its
+    ``T_target_tcp`` (``samples`` locates averaged; their spread is reported and over the limit
+    refused, 409); with ``base`` the TCP in the base frame (a pick's place pose)."""
     return _cell(request).teach(caller.label, body.name, body.samples, body.max_spread_mm,
-                                body.max_spread_deg, body.replace).as_dict()
+                                body.max_spread_deg, body.replace, body.frame).as_dict()
 
 
 @router.get("/teach", response_model=TaughtList, tags=["teach"])
