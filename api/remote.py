@@ -137,6 +137,23 @@ def approach(cell: Cell, caller: RemoteCaller, standoff_mm: Any, mode: Any,
     return cell.approach(caller.label, standoff_mm=standoff, mode=how, T_target_tcp=T_target_tcp)
 
 
+def pick(cell: Cell, caller: RemoteCaller, recipe: Any = "", target: Any = "",
+         place: Any = "") -> Job:
+    """A pick job (not waited for): the next part of the recipe's target (``recipe`` "": the
+    cell's own target), placed at the base-frame pose taught as ``place`` ("": kept in the
+    gripper)."""
+    params = {"recipe": recipe, "target": target, "place": place}
+    require(cell, caller, "pick", "pick", params)
+    try:
+        ref = None if recipe in ("", None) else recipe_ref(recipe)
+        chosen_target = text("target", target)
+        place_name = text("place", place) or None
+    except CellError:
+        with audited(cell, caller, "pick", params):
+            raise
+    return cell.pick(caller.label, recipe=ref, target=chosen_target, place=place_name)
+
+
 def approach_mode(cell: Cell, name: str) -> ApproachMode:
     """The approach mode a PLC names ("": the cell's ``[approach] mode``), or
     ``invalid_request`` listing the modes."""

@@ -2,10 +2,12 @@
 
 One unit (id 1). Holding registers (the PLC writes): 0 command, 1 command sequence, 2 recipe
 number (0: none), 3-4 standoff_mm (float32, big-endian word order; 0.0: the recipe's or the
-configured standoff). Input registers (the PLC reads): 0 accepted sequence, 1 state, 2 error
-number, 3 finished sequence, 4-15 the last pose x, y, z (mm), rx, ry, rz (rad) as float32,
-16 heartbeat (+1 every 100 ms), 17 alarm bits. The full map, the error table and the handshake's
-timing are in docs/plc.md.
+configured standoff), 5 place number (a pick places at the base-frame pose taught as
+``place-<n>``; 0: keeps the part). Input registers (the PLC reads): 0 accepted sequence,
+1 state, 2 error number, 3 finished sequence, 4-15 the last pose x, y, z (mm), rx, ry, rz (rad)
+as float32, 16 heartbeat (+1 every 100 ms), 17 alarm bits, and a pick's 18 part id, 19 parts
+seen, 20 grip verdict, 21-22 finger width (float32). The full map, the error table and the
+handshake's timing are in docs/plc.md.
 
 The handshake cannot race: the cell acts only when the sequence register changes, and it acts
 inside the write's own request, so when the write's response reaches the PLC the accepted
@@ -55,6 +57,7 @@ from cell.config.schema import ModbusConfig
 from cell.errors import CellError
 from cell.jobs.store import Job
 from cell.results.jobs import located_pose
+from cell.results.pick import PickResult
 from cell.service import Cell
 from cell.supervision.logs import drop_library_records, quiet_library_loggers
 
@@ -63,8 +66,8 @@ log = logging.getLogger(__name__)
 UNIT_ID = 1
 HEARTBEAT_PERIOD_S = 0.1
 JOB_POLL_S = 0.01
-N_HOLDING = 5
-N_INPUT = 18
+N_HOLDING = 6
+N_INPUT = 23
 FC_READ_HOLDING, FC_READ_INPUT = 3, 4
 FC_WRITES = (6, 16, 23)
 MAX_REFUSALS_REMEMBERED = 256  # distinct refusals logged; then the memory starts again
@@ -78,6 +81,7 @@ class Command(IntEnum):
     STOP = 4
     GRIPPER_OPEN = 5
     GRIPPER_CLOSE = 6
+    PICK = 7
 
 
 class State(IntEnum):
@@ -94,6 +98,7 @@ class Hr(IntEnum):
     SEQUENCE = 1
     RECIPE = 2
     STANDOFF_MM = 3  # and 4
+    PLACE = 5  # a pick's place pose: the one taught as place-<n>; 0: none
 
 
 class Ir(IntEnum):
@@ -106,6 +111,19 @@ class Ir(IntEnum):
     POSE = 4  # 4..15: x, y, z (mm), rx, ry, rz (rad), float32 each
     HEARTBEAT = 16
     ALARMS = 17
+    PART_ID = 18  # the last pick's part
+    PARTS_SEEN = 19  # parts of the layout its locate saw
+    GRIP = 20  # GripVerdict
+    GRIP_WIDTH_MM = 21  # and 22: float32, where the fingers stopped
+
+
+class GripVerdict(IntEnum):
+    """Input register 20 after a pick."""
+
+    NONE = 0  # no pick ended yet, or it ended before closing
+    HELD = 1
+    MISSED = 2
+    OUT_OF_WINDOW = 3
 
 
 class Alarm(IntEnum):
@@ -136,7 +154,8 @@ ERROR_NUMBERS: dict[str, int] = {
     "target_lost": 19, "pose_jump": 19, "recipe_store_unreadable": 20,
     "recipe_store_write_failed": 20, "not_ready": 21, "recipe_prepared": 22,
     "recipe_number_taken": 23, "invalid_recipe": 24, "unauthorized": 17,
-    "result_not_found": 25,
+    "result_not_found": 25, "grasp_missed": 26, "grip_out_of_window": 27, "gripper_fault": 28,
+    "unreachable": 29, "taught_wrong_frame": 30,
     "internal_error": 99,
 }
 ERROR_BY_KIND: dict[str, int] = {"invalid": 90, "conflict": 91, "unavailable": 92,
@@ -161,10 +180,12 @@ def words_float(hi: int, lo: int) -> float:
 class _Outcome:
     """What one command ended with, for the input registers."""
 
-    def __init__(self, ok: bool, error: int = 0, pose: list[float] | None = None) -> None:
+    def __init__(self, ok: bool, error: int = 0, pose: list[float] | None = None,
+                 pick: tuple[int, int, int, float] | None = None) -> None:
         self.ok = ok
         self.error = error
         self.pose = pose
+        self.pick = pick  # part id, parts seen, grip verdict, finger width (mm)
 
 
 class _Registers(ModbusServerContext):
@@ -401,6 +422,12 @@ class ModbusServer(LoopThread):
         if outcome.pose is not None:
             for i, v in enumerate(outcome.pose):
                 regs.input[Ir.POSE + 2 * i:Ir.POSE + 2 * i + 2] = float_words(v)
+        if outcome.pick is not None:
+            part_id, seen, verdict, width_mm = outcome.pick
+            regs.input[Ir.PART_ID] = part_id & 0xFFFF
+            regs.input[Ir.PARTS_SEEN] = seen & 0xFFFF
+            regs.input[Ir.GRIP] = verdict
+            regs.input[Ir.GRIP_WIDTH_MM:Ir.GRIP_WIDTH_MM + 2] = float_words(width_mm)
         regs.input[Ir.STATE] = State.DONE_OK if outcome.ok else State.FAILED
         regs.input[Ir.ERROR] = outcome.error
         if not outcome.ok:
@@ -449,6 +476,11 @@ class ModbusServer(LoopThread):
             return self._job_outcome(job)
         if command == Command.HOME:
             return self._job_outcome(remote.home(self.cell, self.caller))
+        if command == Command.PICK:
+            place = holding[Hr.PLACE]
+            job = remote.pick(self.cell, self.caller, recipe or "", "",
+                              f"place-{place}" if place else "")
+            return self._pick_outcome(self._job_outcome(job), job.id)
         if command in (Command.GRIPPER_OPEN, Command.GRIPPER_CLOSE):
             action = "open" if command == Command.GRIPPER_OPEN else "close"
             remote.gripper(self.cell, self.caller, action, None)
@@ -468,6 +500,23 @@ class ModbusServer(LoopThread):
         if target is None:
             return _Outcome(True)
         return _Outcome(True, pose=[*target.position_mm, *target.rotvec_rad])
+
+    def _pick_outcome(self, outcome: _Outcome, job_id: str) -> _Outcome:
+        """A pick's registers: the part and the grip from its result; a pick that failed on
+        its grip says which way."""
+        job = self.cell.job(job_id)
+        result = job.result
+        if isinstance(result, PickResult):
+            verdict = {"held": GripVerdict.HELD, "missed": GripVerdict.MISSED,
+                       "out_of_window": GripVerdict.OUT_OF_WINDOW}[result.grip.verdict]
+            outcome.pick = (result.part.id, result.part.parts_seen, verdict,
+                            result.grip.width_mm)
+        else:
+            verdict = {"grasp_missed": GripVerdict.MISSED,
+                       "grip_out_of_window": GripVerdict.OUT_OF_WINDOW}.get(
+                           job.error_code or "", GripVerdict.NONE)
+            outcome.pick = (0, 0, verdict, math.nan)
+        return outcome
 
     @staticmethod
     def _pose(T_base: Any) -> list[float]:

@@ -5,7 +5,7 @@ One object ``Cell`` under Objects holds the variables (``State``, ``RobotMode``,
 ``LastLocateQuality``, ``JobId``, ``JobKind``, ``JobState``, ``JobPhase``, ``JobProgress``,
 ``CameraConnected``, ``Alarms``, ``JobResult``, ``JobErrorCode``) and the methods ``Locate()``,
 ``Approach(standoff_mm, mode, taught)``, ``ApproachRecipe(recipe, target, standoff_mm)``,
-``Track(standoff_mm, duration_s)``, ``Stop()``, ``Home()``, ``Gripper(action, width_mm)``. Every
+``Track(standoff_mm, duration_s)``, ``Pick(recipe, target, place)``, ``Stop()``, ``Home()``, ``Gripper(action, width_mm)``. Every
 method answers ``Code`` ("ok" or the HTTP API's error code) and ``Message`` first; a refusal is
 an answer, not an OPC UA fault, so a PLC reads one place. Poses are the structure ``Pose``
 (``position_mm``, ``rotvec_rad``) and, as ``...UR``, a UR pose (m, rotation vector).
@@ -379,6 +379,11 @@ class OpcUaServer(LoopThread):
             ("Track", self._track, [
                 _arg("standoff_mm", D, "distance kept from the target"),
                 _arg("duration_s", D, "how long to follow it")], job),
+            ("Pick", self._pick, [
+                _arg("recipe", S, "the recipe's name or number (empty: the cell's target)"),
+                _arg("target", S, "the recipe's target (empty: its first)"),
+                _arg("place", S, "a pose taught in the base frame to place the part at "
+                     "(empty: keep it in the gripper)")], job),
             ("Stop", self._stop_call, [], job),
             ("Home", self._home, [], job),
             ("Gripper", self._gripper, [
@@ -649,6 +654,15 @@ class OpcUaServer(LoopThread):
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             job = remote.track(self.cell, caller, standoff_mm, duration_s)
+            return self._job_answer(job.id, job.state)
+
+        return await self._job_call(work)
+
+    async def _pick(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
+        recipe, target, place = self.method_args(args, 3)
+
+        def work(caller: RemoteCaller) -> list[ua.Variant]:
+            job = remote.pick(self.cell, caller, recipe, target, place)
             return self._job_answer(job.id, job.state)
 
         return await self._job_call(work)

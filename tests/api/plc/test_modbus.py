@@ -45,7 +45,7 @@ class Plc:
     seq: int = 0
 
     def inputs(self) -> list[int]:
-        r = self.client.read_input_registers(0, count=18, device_id=1)
+        r = self.client.read_input_registers(0, count=23, device_id=1)
         assert not r.isError(), r
         return list(r.registers)
 
@@ -199,8 +199,8 @@ def test_refusals_have_error_numbers_and_change_nothing(served: Served, plc: Plc
     assert not r.isError()
     time.sleep(0.2)
     assert plc.inputs()[Ir.STATE] == State.FAILED
-    assert plc.client.read_input_registers(10, count=10, device_id=1).isError()
-    assert plc.client.read_holding_registers(0, count=6, device_id=1).isError()
+    assert plc.client.read_input_registers(20, count=10, device_id=1).isError()
+    assert plc.client.read_holding_registers(0, count=7, device_id=1).isError()
 
 
 def test_recipe_by_number_is_recorded_in_the_job(served: Served, plc: Plc) -> None:
