@@ -5,8 +5,8 @@ One object ``Cell`` under Objects holds the variables (``State``, ``RobotMode``,
 ``LastLocateQuality``, ``JobId``, ``JobKind``, ``JobState``, ``JobPhase``, ``JobProgress``,
 ``CameraConnected``, ``Alarms``, ``JobResult``, ``JobErrorCode``) and the methods ``Locate()``,
 ``Approach(standoff_mm, mode, taught)``, ``ApproachRecipe(recipe, target, standoff_mm)``,
-``Track(standoff_mm, duration_s)``, ``Pick(recipe, target, place)``, ``Stop()``, ``Home()``, ``Gripper(action, width_mm)``. Every
-method answers ``Code`` ("ok" or the HTTP API's error code) and ``Message`` first; a refusal is
+``Track(standoff_mm, duration_s)``, ``Pick(recipe, target, place)``, ``Stop()``, ``Home()``,
+``Gripper(action, width_mm)``. Every method answers ``Code`` ("ok" or the HTTP API's error code) and ``Message`` first; a refusal is
 an answer, not an OPC UA fault, so a PLC reads one place. Poses are the structure ``Pose``
 (``position_mm``, ``rotvec_rad``) and, as ``...UR``, a UR pose (m, rotation vector).
 
