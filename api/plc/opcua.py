@@ -6,8 +6,9 @@ One object ``Cell`` under Objects holds the variables (``State``, ``RobotMode``,
 ``CameraConnected``, ``Alarms``, ``JobResult``, ``JobErrorCode``) and the methods ``Locate()``,
 ``Approach(standoff_mm, mode, taught)``, ``ApproachRecipe(recipe, target, standoff_mm)``,
 ``Track(standoff_mm, duration_s)``, ``Pick(recipe, target, place)``, ``Stop()``, ``Home()``,
-``Gripper(action, width_mm)``. Every method answers ``Code`` ("ok" or the HTTP API's error code) and ``Message`` first; a refusal is
-an answer, not an OPC UA fault, so a PLC reads one place. Poses are the structure ``Pose``
+``Gripper(action, width_mm)``. Every method answers ``Code`` ("ok" or the HTTP API's error
+code) and ``Message`` first; a refusal is an answer, not an OPC UA fault, so a PLC reads one
+place. Poses are the structure ``Pose``
 (``position_mm``, ``rotvec_rad``) and, as ``...UR``, a UR pose (m, rotation vector).
 
 Jobs are consistent at a method's return: before the answer of a method that starts a job is
