@@ -22,8 +22,8 @@ const OFFLINE_AFTER_MS = 1500;
 // answer comes from GET /me. STOP is not listed: every valid token may stop.
 const ROLE_ACTIONS = {
   viewer: [],
-  operator: ["jog", "locate", "approach", "track", "gripper", "camera", "alarm_ack"],
-  plc: ["locate", "approach", "track"],
+  operator: ["jog", "locate", "approach", "track", "gripper", "pick", "camera", "alarm_ack"],
+  plc: ["locate", "approach", "track", "pick"],
 };
 // Controls marked data-needs="operator" (home, unlock, teach, calibration) need that role.
 const OPERATOR_ONLY = "operator";
@@ -339,6 +339,7 @@ function renderJob(job) {
     if (job.error && job.error.message) text += ` — ${job.error.message}`;
     const r = job.result || {};
     if (Number.isFinite(r.reach_error_mm)) text += ` — reached within ${fmt(r.reach_error_mm, 2)} mm`;
+    if (r.part) text += ` — ${describePick(r)}`;
   }
   $("job").textContent = text;
   $("job").title = text;
@@ -346,6 +347,14 @@ function renderJob(job) {
   $("job").dataset.state = job.state;
   if (job.id === state.resultJobId) $("result").textContent = text;
   renderServo(p);
+}
+
+// A pick's line: the part it took, the grip, where it went, and each phase's seconds.
+function describePick(r) {
+  const phases = Object.entries(r.phases_s || {}).map(([k, v]) => `${k} ${fmt(v, 1)} s`).join(", ");
+  const where = r.place ? `placed at ${r.place.taught}` : "kept in the gripper";
+  return `part ${r.part.id} of ${r.part.parts_seen}, grip ${r.grip.verdict} at `
+    + `${fmt(r.grip.width_mm, 1)} mm, ${where}; ${fmt(r.cycle_s, 1)} s (${phases})`;
 }
 
 function setBusy(busy) {
@@ -643,6 +652,21 @@ function wireCommands() {
     return `${how} approach started (job ${job.id})`;
   }));
 
+  $("pick").addEventListener("click", () => command("Pick", async () => {
+    const body = { wait: false };
+    const recipe = chosenRecipe();
+    if (recipe) {
+      body.recipe = recipe.name;
+      body.target = recipeTarget(recipe).name;
+    }
+    if ($("place").value) body.place = $("place").value;
+    const job = await api("POST", "/pick", body);
+    state.lastJob = job;
+    state.resultJobId = job.id;
+    renderJob(job);
+    return `pick started (job ${job.id})`;
+  }));
+
   $("track-start").addEventListener("click", () => command("Track", async () => {
     const standoff = Number($("standoff").value);
     if (!Number.isFinite(standoff) || $("standoff").value === "" || standoff < 0) {
@@ -793,6 +817,7 @@ async function refreshHistory() {
   $("history").replaceChildren(...r.jobs.map((j) => {
     const res = j.result || {};
     const detail = j.error ? j.error.message
+      : res.part ? describePick(res)
       : Number.isFinite(res.reach_error_mm) ? `reached within ${fmt(res.reach_error_mm, 2)} mm` : "";
     return el("tr", { dataset: { state: j.state, jobId: j.id } },
       el("td", { textContent: when(j.created_at) }), el("td", { textContent: `${j.kind} ${j.id}${recipeLabel(j)}` }),
@@ -825,12 +850,22 @@ async function loadTaught(select) {
     const r = await api("GET", "/teach");
     const sel = $("taught");
     const keep = select !== undefined ? select : sel.value;
+    // tool poses relative to the target for the approach; base-frame poses are place poses
+    const tools = r.taught.filter((t) => t.frame !== "base");
+    const places = r.taught.filter((t) => t.frame === "base");
     sel.replaceChildren(el("option", { value: "", textContent: "default (config)" }),
-      ...r.taught.map((t) => el("option", { value: t.name, textContent: t.name })));
-    sel.value = r.taught.some((t) => t.name === keep) ? keep : "";
+      ...tools.map((t) => el("option", { value: t.name, textContent: t.name })));
+    sel.value = tools.some((t) => t.name === keep) ? keep : "";
+    const place = $("place");
+    const keepPlace = place.value;
+    place.replaceChildren(el("option", { value: "", textContent: "keep in the gripper" }),
+      ...places.map((t) => el("option", { value: t.name, textContent: t.name })));
+    place.value = places.some((t) => t.name === keepPlace) ? keepPlace : "";
     $("taught-list").replaceChildren(...r.taught.map((t) => el("li", {
-      textContent: `${t.name}: ${showPose(t.T_target_tcp)} (spread ${fmt(t.spread_mm, 2)} mm, `
-        + `${t.taught_by})` })));
+      textContent: t.frame === "base"
+        ? `${t.name} (base frame): ${showPose(t.T_base_tcp)} (${t.taught_by})`
+        : `${t.name}: ${showPose(t.T_target_tcp)} (spread ${fmt(t.spread_mm, 2)} mm, `
+          + `${t.taught_by})` })));
   } catch (e) { /* a service without taught poses: the default stays */ }
 }
 
@@ -965,8 +1000,10 @@ function wireExtras() {
     if (!/^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$/.test(name)) {
       throw new ApiError("give the pose a name of letters, digits, '_', '.' or '-'", 0, "input");
     }
-    const t = await api("POST", "/teach", { name, samples: 3 }, { timeoutMs: 20000 });
-    await loadTaught(t.name);
+    const frame = $("teach-frame").value;
+    const t = await api("POST", "/teach", { name, samples: 3, frame }, { timeoutMs: 20000 });
+    await loadTaught(frame === "base" ? undefined : t.name);
+    if (t.frame === "base") return `taught the place pose ${t.name}: ${showPose(t.T_base_tcp)}`;
     return `taught ${t.name}: ${showPose(t.T_target_tcp)} (spread ${fmt(t.spread_mm, 2)} mm)`;
   }));
 
