@@ -131,7 +131,8 @@ def choose_part(core: CellCore, n_frames: int) -> Chosen:
 
 class Phases:
     """Each phase's seconds, and the phase the pick is in (for the job's progress and a stop's
-    message)."""
+    message). While the pick approaches, the job's progress shows the approach's own steps
+    (``observe``, ``locate``, ``final`` or the servo's figures), as an approach job's does."""
 
     def __init__(self, core: CellCore, job_id: str) -> None:
         self.core, self.job_id = core, job_id

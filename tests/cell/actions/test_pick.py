@@ -3,6 +3,8 @@ nothing, and the whole cycle against the simulator's truth."""
 
 from __future__ import annotations
 
+import dataclasses
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -13,7 +15,8 @@ from fastapi.testclient import TestClient
 from api.app import create_app
 from cell.service import Cell
 from estimator.transforms import T_from_pose_dict, pose_dict, pose_distance
-from tests.support.cell import AUTH, running_cell, sim_config, world
+from tests.support.cell import AUTH, running_cell, settled_tcp, sim_config, world
+from tests.support.jobs import wait_job
 
 OP, PLC = AUTH["operator"], AUTH["plc"]
 
@@ -111,3 +114,33 @@ def test_pick_and_place_on_a_raised_part(client: TestClient) -> None:
     grasp = T_from_pose_dict(res["grasp_T_base_tcp"])
     assert pose_distance(grasp, T_part)[0] < 0.5  # the tool pose is the part's frame
     _ = pose_dict
+
+
+@pytest.mark.parametrize("phase", ["approach", "grasp", "verify", "retract", "place"])
+def test_a_stop_in_each_phase_leaves_the_arm_still_and_the_job_cancelled(
+        client: TestClient, phase: str) -> None:
+    cell = cell_of(client)
+    T_part = _raise_target(cell, 60.0)
+    T_place = T_part.copy()
+    T_place[:3, 3] += [0.0, 120.0, 60.0]
+    r = client.post("/api/v1/teach", json={"name": "tray", "frame": "base"}, headers=OP)
+    assert r.status_code == 200
+    cell.taught.put(dataclasses.replace(cell.taught.get("tray"), T_base_tcp=(
+        T_place @ cell.config.approach.T_target_tcp.T())))
+    job = client.post("/api/v1/pick", json={"place": "tray"}, headers=PLC).json()
+    deadline = time.monotonic() + 60
+    # during its approach a pick's progress shows the approach's own steps
+    phases = {"approach", "observe", "locate", "final"} if phase == "approach" else {phase}
+    while cell.job(job["id"]).progress.get("phase") not in phases:
+        assert cell.job(job["id"]).state == "running", (phase, cell.job(job["id"]).as_dict())
+        assert time.monotonic() < deadline, f"the pick never reached {phase}"
+        time.sleep(0.005)
+    r = client.post("/api/v1/stop", json={"reason": f"stop in {phase}"}, headers=OP)
+    assert r.status_code == 200 and r.json()["stopped"] is True
+    still = settled_tcp(cell)
+    time.sleep(0.3)
+    assert pose_distance(world(cell).true_T_base_tcp(), still)[0] < 0.01
+    ended = wait_job(client, job["id"], headers=OP)
+    assert ended["state"] == "cancelled", ended
+    assert f"pick phase {phase}" in ended["error"]["message"]
+    assert "gripper left as it was" in ended["error"]["message"]
