@@ -30,6 +30,7 @@ from cell.results.modes import ApproachMode
 from cell.service import Cell
 from cell.vision.frames import approach_tcp
 from cell.vision.locate import Located
+from cell.vision.parts import LocatedParts
 from estimator.transforms import pose_from_T
 
 Matrix4 = NDArray[np.float64]
@@ -114,6 +115,13 @@ def ur_pose(T_base: Matrix4) -> list[float]:
 def locate(cell: Cell, caller: RemoteCaller) -> Located:
     require(cell, caller, "locate", "locate", {"n_frames": 1})
     return cell.locate(caller.label)
+
+
+def locate_all(cell: Cell, caller: RemoteCaller, recipe: Any = "") -> LocatedParts:
+    """Every part in view: of the layout in use, or of the targets of ``recipe`` (a name or
+    a number; "" for none)."""
+    require(cell, caller, "locate", "locate", {"all": True, "recipe": recipe})
+    return cell.locate_all(caller.label, None if recipe in ("", None) else recipe_ref(recipe))
 
 
 def approach(cell: Cell, caller: RemoteCaller, standoff_mm: Any, mode: Any,

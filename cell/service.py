@@ -69,6 +69,7 @@ from cell.supervision.storage import StorageWatch, state_dirs
 from cell.vision.frames import CellFrames, cell_frames
 from cell.vision.imagelog import ImageLog
 from cell.vision.locate import Located, Locator
+from cell.vision.parts import LocatedParts
 from drivers.arm import ArmState, JogFrame
 from drivers.camera import FocusSetting, Frame
 from drivers.errors import DriverError
@@ -99,7 +100,8 @@ class Cell:
         frames = cell_frames(config)
         target = config.target.model()
         locator = Locator(config.camera.model(), target, hardware.camera, arm, frames,
-                          config.camera.fps, image_log, config.camera.intrinsics)
+                          config.camera.fps, image_log, config.camera.intrinsics,
+                          config.locate.order, config.locate.same_part_mm)
         audit = Auditor(jobs, self.stats)
         runner = JobRunner(jobs, slot, arm, self.events, audit, self.stats)
         self.core = CellCore(config, hardware, arm, slot, jobs, self.events, audit, runner,
@@ -209,6 +211,20 @@ class Cell:
             loc = approach_mod.locate(self.core, n_frames)
             note.detail = f"rms {loc.result.rms_px:.3f} px"
             return loc
+
+    def locate_all(self, caller: str, recipe: str | int | None = None) -> LocatedParts:
+        """Every part in view: of the layout in use, or of every target of ``recipe``
+        (name or number; its targets' names name the layouts)."""
+        layouts = None
+        if recipe is not None:
+            layouts = {t.name: t.model() for t in self.recipes.get(recipe).targets}
+        with self.core.audit.command(caller, "locate", {"all": True, "recipe": recipe}) as note:
+            parts = self.core.locator.locate_all(layouts)
+            note.detail = f"{len(parts.instances)} part(s)"
+            self.core.events.publish("parts", {"parts": [
+                {"id": p.id, "layout": p.layout, "T_base_target": p.T_base_target.json_dict()}
+                for p in parts.instances]})
+            return parts
 
     def approach(self, caller: str, *, standoff_mm: float | None = None,
                  speed_mm_s: float | None = None, T_target_tcp: Matrix4 | None = None,

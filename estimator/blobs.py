@@ -89,6 +89,15 @@ class BlobFilter:
         return INERTIA_MARGIN * math.cos(math.radians(self.max_tilt_deg))
 
 
+def threshold_spec(value: object) -> ThresholdSpec:
+    """A detector's ``threshold`` option checked: None, "otsu", "adaptive" or a grey level."""
+    if value is None or value in ("otsu", "adaptive"):
+        return value
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    raise ValueError(f'threshold must be a grey level, "otsu" or "adaptive", got {value!r}')
+
+
 def _check_image(image_u8: NDArray[np.uint8]) -> NDArray[np.uint8]:
     img = np.asarray(image_u8)
     if img.dtype != np.uint8 or img.ndim != 2:

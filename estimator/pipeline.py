@@ -44,9 +44,9 @@ from estimator.blobs import (
     COARSE_STEP,
     BlobFilter,
     Polarity,
-    ThresholdSpec,
     Window,
     detect_dots,
+    threshold_spec,
 )
 from estimator.camera import CameraModel
 from estimator.correspondence import match_blobs
@@ -66,14 +66,6 @@ WINDOW_CLEARANCE_PX = 4.0  # beyond a dot's half axis: a dot centred further in 
 
 class _NotAllInWindow(Exception):
     """A windowed search missed a dot that may lie outside the window."""
-
-
-def _threshold_spec(value: object) -> ThresholdSpec:
-    if value is None or value in ("otsu", "adaptive"):
-        return value
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
-        return float(value)
-    raise ValueError(f'threshold must be a grey level, "otsu" or "adaptive", got {value!r}')
 
 
 class Estimator:
@@ -108,7 +100,7 @@ class Estimator:
             raise ValueError("ambiguity_mm and ambiguity_deg must be positive")
         self.ambiguity = (float(ambiguity_mm), float(ambiguity_deg))
         opts = dict(detector_options)
-        self._threshold = _threshold_spec(opts.pop("threshold", None))
+        self._threshold = threshold_spec(opts.pop("threshold", None))
         try:
             self.filter = BlobFilter(**{k: float(v) for k, v in opts.items()})  # type: ignore[arg-type]
         except TypeError as err:

@@ -20,6 +20,7 @@ from cell.results import (
     ApproachResult,
     HandEyeRoutineResult,
     HomeResult,
+    LocateAllResult,
     LocateResult,
     TrackResult,
 )
@@ -69,7 +70,12 @@ class ErrorResponse(BaseModel):
 
 
 class LocateRequest(_Body):
-    n_frames: Int = Field(default=1, ge=1, le=10, description="frames averaged")
+    n_frames: Int = Field(default=1, ge=1, le=10, description="frames averaged (not with all)")
+    all: Flag = Field(default=False, description="every part in view, as instances")
+    recipe: str | None = Field(
+        default=None, min_length=1, max_length=64,
+        description="with all: the parts of this recipe's targets (name or number) instead "
+                    "of the layout in use")
 
 
 class ApproachRequest(_Body):
@@ -376,6 +382,30 @@ class Located(LocateResult):
     """The locate answer (:class:`cell.results.locate.LocateResult`) with its example."""
 
     model_config = _documented(LOCATED_EXAMPLE)
+
+
+LOCATED_ALL_EXAMPLE = {
+    "instances": [{
+        "id": 3, "layout": "target", "T_base_target": POSE_EXAMPLE,
+        "T_camera_target": {"position_mm": [12.0, -8.0, 300.0], "rotvec_rad": [0.0, 0.0, 0.1]},
+        "centre_base_mm": [-420.0, -100.0, 0.0],
+        "quality": {"rms_px": 0.12, "max_residual_px": 0.2, "ambiguous": False,
+                    "converged": True, "identity": "unique", "n_points": 6, "n_dots": 6,
+                    "covariance": None},
+        "flags": [], "reasons": [], "pickable": True}],
+    "unresolved": [{"n_dots": 3, "box_px": [1210.0, 300.0, 1270.0, 380.0],
+                    "flags": ["border"],
+                    "reason": "3 dot(s) near the image border: a part cut off by it cannot be "
+                              "solved"}],
+    "order": "nearest_to_camera_axis", "layouts": ["target"], "T_base_tcp": POSE_EXAMPLE,
+    "frame_sequence": 1234, "frame_age_s": 0.03}
+
+
+class LocatedAll(LocateAllResult):
+    """The answer of a locate of every part (:class:`cell.results.locate.LocateAllResult`)
+    with its example."""
+
+    model_config = _documented(LOCATED_ALL_EXAMPLE)
 
 
 class RobotStatus(_Out):

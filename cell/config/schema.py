@@ -1,9 +1,10 @@
 """Cell configuration: one TOML file, validated strictly; every error names the offending key.
 
 Tables: ``[camera]``, ``[target]`` and ``[robot]`` (``kind`` required), ``[hand_eye]``,
-``[tool]``, ``[approach]``, ``[servo]``, ``[limits]``, ``[api]``, ``[gripper]``, ``[sim]``,
-``[opcua]``, ``[urscript]``, ``[commissioning]``. A config with any real device must also state
-``[limits]``, ``[tool]`` and ``[hand_eye]`` (their defaults suit only the simulated cell).
+``[tool]``, ``[approach]``, ``[locate]``, ``[servo]``, ``[limits]``, ``[api]``, ``[gripper]``,
+``[sim]``, ``[opcua]``, ``[urscript]``, ``[commissioning]``. A config with any real device must
+also state ``[limits]``, ``[tool]`` and ``[hand_eye]`` (their defaults suit only the simulated
+cell).
 Types are strict (``width = "1280"`` is an error, not a coercion), an unknown key is answered
 with the closest valid name, and the commissioning checks (:mod:`cell.config.checks`) catch
 values in the wrong unit. The device tables (``[camera]``, ``[robot]``, ``[gripper]``) have one
@@ -40,6 +41,7 @@ from cell.config.devices import (
 from cell.config.strict import Strict
 from cell.error_codes import ErrorCode
 from cell.errors import CellError
+from cell.results.locate import PickOrder
 from cell.results.modes import ApproachMode, PoseMode
 from estimator import Target
 from estimator.target import layout_problem
@@ -143,6 +145,14 @@ class ApproachConfig(Strict):
     # [servo] lost_after_s (look-and-move: 10 of 10), so look-and-move stays the default
     # until servo holds under load (docs/performance.md, the approach benchmark).
     mode: PoseMode = ApproachMode.look_and_move  # ibvs needs a taught view
+
+
+class LocateConfig(Strict):
+    """Locating every part in view (``POST /locate {"all": true}``): the order the parts are
+    given in, and how far a part may lie from where it was seen last and keep its id."""
+
+    order: PickOrder = "nearest_to_camera_axis"
+    same_part_mm: float = Field(default=5.0, gt=0)
 
 
 class ServoConfig(Strict):
@@ -571,6 +581,7 @@ class CellConfig(BaseModel):
     hand_eye: HandEyeConfig = HandEyeConfig()
     tool: ToolConfig = ToolConfig()
     approach: ApproachConfig = ApproachConfig()
+    locate: LocateConfig = LocateConfig()
     servo: ServoConfig = ServoConfig()
     ibvs: IbvsConfig = IbvsConfig()
     pick: PickConfig = PickConfig()

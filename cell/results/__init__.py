@@ -11,8 +11,8 @@ Modbus, XML-RPC) share one definition. Pure data: nothing here moves or measures
   returns which, and reading one back;
 - :mod:`~cell.results.loop`, :mod:`~cell.results.consistency`, :mod:`~cell.results.stats`:
   the blocks they share;
-- :mod:`~cell.results.locate`, :mod:`~cell.results.calibration`: the locate answer, the
-  hand-eye solution and the answer of applying it;
+- :mod:`~cell.results.locate`, :mod:`~cell.results.calibration`: the locate answers (one
+  target, or every part in view), the hand-eye solution and the answer of applying it;
 - :mod:`~cell.results.modes`: the approach modes.
 """
 
@@ -25,7 +25,7 @@ from cell.results.approach import (
 from cell.results.base import Result
 from cell.results.home import HomeResult
 from cell.results.jobs import JobKind, JobResult, result_from_json, result_json, result_of
-from cell.results.locate import LocateResult
+from cell.results.locate import LocateAllResult, LocatedInstance, LocateResult
 from cell.results.modes import ApproachMode
 from cell.results.pose import Pose
 from cell.results.routine import HandEyeRoutineResult
@@ -40,7 +40,9 @@ __all__ = [
     "IbvsTrack",
     "JobKind",
     "JobResult",
+    "LocateAllResult",
     "LocateResult",
+    "LocatedInstance",
     "LookAndMoveApproach",
     "Pose",
     "Result",

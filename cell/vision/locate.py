@@ -11,6 +11,7 @@ import logging
 import threading
 import time
 from collections import Counter
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,22 +20,26 @@ from numpy.typing import NDArray
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, RefusedError, UnavailableError
 from cell.results.consistency import Consistency
-from cell.results.locate import LocateQuality, LocateResult
+from cell.results.locate import LocateQuality, LocateResult, PickOrder
 from cell.results.pose import Pose
 from cell.vision.consistency import consistency
 from cell.vision.frames import CellFrames, mean_pose
 from cell.vision.imagelog import ImageLog
+from cell.vision.instance_ids import InstanceIds
 from cell.vision.intrinsics import IntrinsicsPolicy, IntrinsicsSource
+from cell.vision.parts import LocatedParts, located_parts
 from cell.vision.search_window import SearchWindows
 from drivers.arm import Arm
 from drivers.camera import Camera, Frame
 from drivers.errors import ConnectionLostError, DriverError
 from estimator import CameraModel, EstimationError, PoseResult, Target
+from estimator.instances import InstanceFinder
 from estimator.pipeline import Estimator
 from estimator.transforms import invert_T, pose_distance
 
 log = logging.getLogger(__name__)
 Matrix4 = NDArray[np.float64]
+IN_USE = "target"  # the name of the layout in use, when a locate of all parts names none
 
 
 def _history_error(err: DriverError) -> UnavailableError:
@@ -92,7 +97,9 @@ class Locator:
 
     def __init__(self, camera_model: CameraModel, target: Target, camera: Camera, arm: Arm,
                  frames: CellFrames, fps: float, image_log: ImageLog | None = None,
-                 intrinsics_source: IntrinsicsSource = "config") -> None:
+                 intrinsics_source: IntrinsicsSource = "config",
+                 order: PickOrder = "nearest_to_camera_axis", same_part_mm: float = 5.0
+                 ) -> None:
         self.camera = camera
         self.arm = arm
         self.frames = frames
@@ -115,11 +122,16 @@ class Locator:
         self.search_seconds: dict[str, float] = {}
         self.last: Located | None = None
         self.last_frame: Frame | None = None
+        self.order: PickOrder = order
+        self.part_ids = InstanceIds(same_part_mm)
+        self.last_parts: LocatedParts | None = None
 
     def set_frames(self, frames: CellFrames) -> None:
         """New calibrated mounts; the last locate was mapped with the old ones, so drop it."""
         self.frames = frames
         self.last = None
+        self.last_parts = None
+        self.part_ids.forget()
         with self._estimator_lock:
             self._windows = SearchWindows(frames.is_fixed)
 
@@ -196,6 +208,33 @@ class Locator:
                       tuple(rms_px))
         self.last = loc
         return loc
+
+    def locate_all(self, layouts: Mapping[str, Target] | None = None) -> LocatedParts:
+        """Every part of ``layouts`` (by name; None: the layout in use, named ``target``) in
+        the freshest frame, mapped with the arm pose at its capture time, numbered and
+        ordered (:mod:`cell.vision.parts`). No part in view is an answer, not an error.
+        Does not touch the single-target search's tracking state."""
+        if not self.camera.is_connected:
+            raise UnavailableError(ErrorCode.camera_lost, "the camera is not connected")
+        self._require_arm()
+        frame = self._fresh_frame(None)
+        T_base_tcp = self._pose_at(frame)
+        wanted = dict(layouts) if layouts else {IN_USE: self.target}
+        t0 = time.perf_counter()
+        try:
+            with self._estimator_lock:
+                self._use_intrinsics(frame.camera)
+                model = self.camera_model
+            search = InstanceFinder(model, wanted).find(frame.image)
+        except Exception as err:  # an estimator bug must not take the service down
+            log.exception("the search for every part failed on frame %d", frame.sequence)
+            raise self._failed(frame, "error", RefusedError(
+                ErrorCode.estimator_failed, f"the estimator failed unexpectedly: {err!r}")) from err
+        self._count_search("parts", t0)
+        parts = located_parts(search, wanted, self.frames, T_base_tcp, self.part_ids,
+                              self.order, frame.timestamp_s, frame.sequence)
+        self.last_parts = parts
+        return parts
 
     def measure(self, after_sequence: int, timeout_s: float = 0.5) -> Located:
         """One frame newer than ``after_sequence``, estimated (tracking mode after the first)

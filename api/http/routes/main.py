@@ -35,6 +35,7 @@ from api.http.schemas import (
     JogRequest,
     JogStepResult,
     Located,
+    LocatedAll,
     LocateRequest,
     Me,
     SimTarget,
@@ -46,6 +47,7 @@ from api.http.schemas import (
 )
 from api.http.sse import SSE_RESPONSES, sse_response
 from api.http.stop import ReadNow, StopCaller, StreamNow, snapshot_now, stop_now
+from api.remote import recipe_ref
 from cell.devices.hardware import SimWorld
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, NotFoundError
@@ -98,21 +100,35 @@ async def status(request: Request, caller: ReadNow) -> Response:
                     headers={"Cache-Control": "no-store"})
 
 
-@router.post("/locate", response_model=Located, tags=["vision"], responses=DEVICE_ERRORS)
+@router.post("/locate", response_model=Located | LocatedAll, tags=["vision"],
+             responses={**DEVICE_ERRORS, **NOT_FOUND})
 def locate(request: Request, caller: Annotated[Caller, Depends(require("locate"))],
            body: Annotated[LocateRequest | None, Body()] = None) -> dict[str, Any]:
-    """Locate the target now: ``T_base_target``, ``T_camera_target`` and quality."""
+    """Locate the target now: ``T_base_target``, ``T_camera_target`` and quality.
+
+    ``all``: every part in view instead, as ``instances`` (each with its ``id``, stable while
+    the part stays put, ``T_base_target``, ``quality``, ``flags`` border/overlap,
+    ``pickable``) in the ``[locate] order``, and the dots no layout explains
+    (``unresolved``); of the layout in use, or of ``recipe``'s targets (404 for an unknown
+    recipe). No part in view is an empty list, not an error."""
     cell = cell_of(request)
+    b = body or LocateRequest()
     t0 = time.perf_counter()
     outcome = "error"
     try:
-        loc = cell.locate(caller.label, (body or LocateRequest()).n_frames)
+        if b.all:
+            parts = cell.locate_all(caller.label, None if b.recipe is None
+                                    else recipe_ref(b.recipe))
+        else:
+            loc = cell.locate(caller.label, b.n_frames)
         outcome = "ok"
     except CellError as err:
         outcome = err.code
         raise
     finally:
         request.app.state.metrics.locate.labels(outcome).observe(time.perf_counter() - t0)
+    if b.all:
+        return parts.answer(time.monotonic()).json_dict()
     return loc.answer(time.monotonic()).json_dict()
 
 
@@ -286,7 +302,8 @@ async def events(request: Request, caller: StreamNow,
                  max_events: Annotated[int | None, Query(ge=1, le=100000)] = None
                  ) -> StreamingResponse:
     """Server-sent events: ``state`` (pose and mode at camera rate), ``job``, ``jog``,
-    ``locate``, ``stop``. ``max_events`` ends the stream after that many (for scripts)."""
+    ``locate``, ``parts`` (a locate of every part: their ids and poses), ``stop``.
+    ``max_events`` ends the stream after that many (for scripts)."""
     return sse_response(request, cell_of(request).events.subscribe(), max_events)
 
 

@@ -72,5 +72,10 @@ def test_the_job_schema_is_a_union_by_kind_with_each_kind_s_typed_result(
             "change_from_current", "dataset"} <= set(routine["required"])
 
     located = schema["paths"]["/api/v1/locate"]["post"]["responses"]["200"]["content"]
-    locate = _resolve(located["application/json"]["schema"], components)
-    assert {"T_base_target", "quality", "consistency"} <= set(locate["required"])
+    # the single target's answer, or with {"all": true} every part's
+    single, every = (_resolve(s, components)
+                     for s in located["application/json"]["schema"]["anyOf"])
+    assert {"T_base_target", "quality", "consistency"} <= set(single["required"])
+    assert {"instances", "unresolved", "order"} <= set(every["required"])
+    instance = _resolve(every["properties"]["instances"]["items"], components)
+    assert {"id", "T_base_target", "quality", "flags", "pickable"} <= set(instance["required"])
