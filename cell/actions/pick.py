@@ -8,7 +8,8 @@ leg named, and nothing moves.
 
 The phases:
 
-- ``locate``: every part of the layout in view; the configured order picks the next one.
+- ``locate``: every part of the layout in view; the configured order (``[locate] order``)
+  picks the next one, which the pick's own locates then follow among the others.
 - ``approach``: to the pre-pick pose (the standoff back along the tool axis), closing on the
   part as an approach does (look-and-move or the servo); its refined pose sets the grasp.
 - ``grasp``: blind along the tool axis to the grasp pose at the grasp speed.
@@ -116,17 +117,30 @@ def legs_for(plan: PickPlan, T_base_target: Matrix4) -> Legs:
 
 @dataclass(frozen=True)
 class Chosen:
-    """The part a pick takes: its id in the locate, the locate, how many parts it saw."""
+    """The part a pick takes: its id and layout in the locate of every part, that part located
+    on its own (followed among the others), and how many parts the locate saw."""
 
     part_id: int
+    layout: str
     located: Located
     parts_seen: int
 
 
 def choose_part(core: CellCore, n_frames: int) -> Chosen:
-    """The next part in the configured order, from one locate of every part in view."""
-    loc = locate(core, n_frames)
-    return Chosen(0, loc, 1)
+    """The first pickable part in the configured order (``[locate] order``) of one locate of
+    every part of the layout in view; from then on the locator follows that part
+    (:meth:`cell.vision.locate.Locator.follow`), so the pick's own locates see it and not its
+    neighbours. The caller ends the following."""
+    parts = core.locator.locate_all()
+    pickable = [p for p in parts.instances if p.pickable]
+    if not pickable:
+        why = "; ".join(f"part {p.id}: {' '.join(p.reasons)}" for p in parts.instances)
+        raise RefusedError(ErrorCode.target_not_visible,
+                           f"no part to pick in view: {len(parts.instances)} part(s) seen"
+                           + (f" ({why})" if why else ""))
+    part = pickable[0]
+    core.locator.follow(np.asarray(part.centre_base_mm, dtype=float))
+    return Chosen(part.id, part.layout, locate(core, n_frames), len(parts.instances))
 
 
 class Phases:
@@ -184,9 +198,13 @@ def start_pick(core: CellCore, gripper: GripperCommands | None, caller: str, pla
             raise UnavailableError(ErrorCode.camera_lost, "the camera is lost: a pick needs it")
         t0 = time.monotonic()
         n_frames = 1 if plan.mode == ApproachMode.servo else core.config.approach.frames_per_locate
-        part = choose_part(core, n_frames)
-        first_locate_s.append(time.monotonic() - t0)
-        check_legs(core, st.T_base_tcp, legs_for(plan, part.located.T_base_target))
+        try:
+            part = choose_part(core, n_frames)
+            first_locate_s.append(time.monotonic() - t0)
+            check_legs(core, st.T_base_tcp, legs_for(plan, part.located.T_base_target))
+        except BaseException:
+            core.locator.follow(None)
+            raise
         chosen.append(part)
 
     def work(job_id: str, motion: Motion) -> PickResult:
@@ -194,6 +212,7 @@ def start_pick(core: CellCore, gripper: GripperCommands | None, caller: str, pla
             return run_pick(core, gripper, caller, job_id, motion, plan, chosen[0],
                             first_locate_s[0])
         finally:
+            core.locator.follow(None)
             lent.ended()
 
     return lent.start_job("pick", caller, params, work, checks, wait=wait,
@@ -269,8 +288,8 @@ def _cycle(core: CellCore, gripper: GripperCommands, caller: str, job_id: str, m
         place = Place(taught=plan.place_name, T_base_tcp=Pose.from_T(T_released),
                       T_base_part_goal=Pose.from_T(legs.place @ T_tcp_part))
     return PickResult(
-        part=PickedPart(id=part.part_id, T_base_target=Pose.from_T(T_base_target),
-                        parts_seen=part.parts_seen),
+        part=PickedPart(id=part.part_id, layout=part.layout,
+                        T_base_target=Pose.from_T(T_base_target), parts_seen=part.parts_seen),
         approach=approached, grasp_T_base_tcp=Pose.from_T(T_grasp_reached), grip=grip,
         retracted_T_base_tcp=Pose.from_T(legs.retract), place=place,
         phases_s=dict(phases.seconds), cycle_s=phases.cycle_s())

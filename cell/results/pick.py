@@ -26,6 +26,7 @@ class PickedPart(Result):
     how many parts that locate saw."""
 
     id: int
+    layout: str
     T_base_target: Pose
     parts_seen: int
 

@@ -40,6 +40,8 @@ from estimator.transforms import invert_T, pose_distance
 log = logging.getLogger(__name__)
 Matrix4 = NDArray[np.float64]
 IN_USE = "target"  # the name of the layout in use, when a locate of all parts names none
+# A followed part is the one whose dots' centre lies this close to where it was seen last.
+FOLLOW_MM = 20.0
 
 
 def _history_error(err: DriverError) -> UnavailableError:
@@ -125,6 +127,7 @@ class Locator:
         self.order: PickOrder = order
         self.part_ids = InstanceIds(same_part_mm)
         self.last_parts: LocatedParts | None = None
+        self._followed_mm: NDArray[np.float64] | None = None  # see follow()
 
     def set_frames(self, frames: CellFrames) -> None:
         """New calibrated mounts; the last locate was mapped with the old ones, so drop it."""
@@ -150,6 +153,18 @@ class Locator:
             self._windows.forget()
         self.last = None
         return True
+
+    def follow(self, centre_base_mm: NDArray[np.float64] | None) -> None:
+        """Locate one part among several (a pick's): from now on every estimate searches the
+        frame for every part of the layout and takes the one whose dots' centre lies within
+        ``FOLLOW_MM`` of where it was seen last, starting at ``centre_base_mm`` (None: back to
+        the single-target search). Identical parts side by side would otherwise be one
+        ambiguous target to the single search, which may lock onto the neighbour."""
+        with self._lock:
+            self._followed_mm = (None if centre_base_mm is None
+                                 else np.asarray(centre_base_mm, dtype=float).reshape(3).copy())
+        with self._estimator_lock:
+            self._windows.forget()
 
     def latest_frame(self, timeout_s: float = 1.0) -> Frame:
         try:
@@ -297,7 +312,12 @@ class Locator:
 
     def _estimate(self, frame: Frame, T_base_tcp: Matrix4) -> PoseResult:
         """The frame's estimate; the search starts in the window where the last frame's dots
-        can be now (:mod:`cell.vision.search_window`) when the track does not hold."""
+        can be now (:mod:`cell.vision.search_window`) when the track does not hold. A
+        followed part (:meth:`follow`) is found among every part in the frame."""
+        with self._lock:
+            followed = self._followed_mm
+        if followed is not None:
+            return self._estimate_followed(frame, T_base_tcp, followed)
         t0 = time.perf_counter()
         try:
             with self._estimator_lock:
@@ -324,6 +344,42 @@ class Locator:
             self.outcomes["ok"] += 1
             self.seconds_sum += time.perf_counter() - t0
         return result
+
+    def _estimate_followed(self, frame: Frame, T_base_tcp: Matrix4,
+                           followed_mm: NDArray[np.float64]) -> PoseResult:
+        t0 = time.perf_counter()
+        try:
+            with self._estimator_lock:
+                self._use_intrinsics(frame.camera)
+                search = InstanceFinder(self.camera_model, {IN_USE: self.target}).find(
+                    frame.image)
+        except Exception as err:  # an estimator bug must not take the service down
+            log.exception("the search for the followed part failed on frame %d", frame.sequence)
+            raise self._failed(frame, "error", RefusedError(
+                ErrorCode.estimator_failed, f"the estimator failed unexpectedly: {err!r}")) from err
+        self._count_search("parts", t0)
+        T_base_camera = self.frames.T_base_camera(T_base_tcp)
+        centre_target = self.target.points_mm.mean(axis=0)
+        best: tuple[float, PoseResult, NDArray[np.float64]] | None = None
+        for inst in search.instances:
+            T = T_base_camera @ inst.pose.T_camera_target
+            centre = T[:3, :3] @ centre_target + T[:3, 3]
+            d = float(np.linalg.norm(centre - followed_mm))
+            if best is None or d < best[0]:
+                best = (d, inst.pose, centre)
+        if best is None or best[0] > FOLLOW_MM:
+            where = ", ".join(f"{v:.1f}" for v in followed_mm)
+            nearest = "" if best is None else f"; the nearest is {best[0]:.1f} mm away"
+            raise self._failed(frame, "failed", RefusedError(
+                ErrorCode.target_not_visible,
+                f"the part being followed (dots' centre at [{where}] mm) is not in this frame: "
+                f"{len(search.instances)} part(s) seen{nearest}"))
+        with self._lock:
+            if self._followed_mm is not None:
+                self._followed_mm = best[2]
+            self.outcomes["ok"] += 1
+            self.seconds_sum += time.perf_counter() - t0
+        return best[1]
 
     def _count_search(self, mode: str, t0: float) -> None:
         with self._lock:
