@@ -7,9 +7,10 @@ matters for two things a fixed camera sees and an eye-in-hand one does not:
 - the tool body: a cylinder of ``tool_radius_mm`` from ``WRIST_MM`` behind the flange to the
   TCP, drawn over the scene, so an arm that moves between the camera and the target hides dots
   (the cell has to cope with that occlusion as on a real cell);
-- a calibration plate clamped to the tool (``T_flange_board``, the target's dot layout): while
-  it is mounted the camera sees that plate, carried by the arm, and the work target is off the
-  table (one plate of the layout in view, as the calibration procedure asks).
+- a calibration plate clamped to the tool (``T_flange_board``, the dot layout of the world's
+  first part, the cell's target): while it is mounted the camera sees that plate, carried by
+  the arm, and the parts are off the table (one plate of the layout in view, as the calibration
+  procedure asks).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from numpy.typing import NDArray
 
 from estimator import CameraModel, Target
 from estimator.transforms import invert_T
+from fakes.parts import SimParts
 from fakes.sim_camera import PoseSource, SimCamera, _Exposure
 
 Matrix4 = NDArray[np.float64]
@@ -30,18 +32,19 @@ _RING_POINTS = 24
 
 
 class FixedSimCamera(SimCamera):
-    """Renders the target (or the tool's plate) from a fixed ``T_base_camera``; the tool
+    """Renders the parts (or the tool's plate) from a fixed ``T_base_camera``; the tool
     hides what is behind it."""
 
     def __init__(
-        self, camera: CameraModel, target: Target, T_base_target: Matrix4,
-        T_base_camera: Matrix4, flange_source: PoseSource, T_flange_tcp: Matrix4, *,
+        self, camera: CameraModel, parts: SimParts, T_base_camera: Matrix4,
+        flange_source: PoseSource, T_flange_tcp: Matrix4, *,
         tool_radius_mm: float = 30.0, T_flange_board: Matrix4 | None = None,
         reported_camera: CameraModel | None = None, **options: float | int | None,
     ) -> None:
-        super().__init__(camera, target, T_base_target, np.asarray(T_base_camera, dtype=float),
+        super().__init__(camera, parts, np.asarray(T_base_camera, dtype=float),
                          flange_source, reported_camera=reported_camera,
                          **options)  # type: ignore[arg-type]
+        self.board: Target = parts.first_layout()
         self.T_base_camera = np.array(T_base_camera, dtype=float)
         self.T_flange_tcp = np.array(T_flange_tcp, dtype=float)
         self.tool_radius_mm = float(tool_radius_mm)
@@ -62,10 +65,11 @@ class FixedSimCamera(SimCamera):
         with self._cond:
             return None if self._T_flange_board is None else self._T_flange_board.copy()
 
-    def _view(self, T_base_flange: Matrix4, t_s: float) -> tuple[Matrix4, Matrix4]:
+    def _view(self, T_base_flange: Matrix4, t_s: float
+              ) -> tuple[Matrix4, list[tuple[Target, Matrix4]]]:
         if self._T_flange_board is not None:
-            return self.T_base_camera, T_base_flange @ self._T_flange_board
-        return self.T_base_camera, self._target_locked(t_s)
+            return self.T_base_camera, [(self.board, T_base_flange @ self._T_flange_board)]
+        return self.T_base_camera, self.parts.scene_at(t_s, T_base_flange)
 
     def _render(self, exp: _Exposure) -> NDArray[np.uint8]:
         with self._cond:

@@ -3,9 +3,11 @@
 The real adapter (:class:`drivers.robotiq.RobotiqGripper`) talks to it through a real serial
 device, so the framing, timing and error paths under test are the ones a cell sees. pymodbus
 decodes requests and encodes answers (framing, CRC); this module holds the gripper's behaviour:
-activation takes time, the fingers move at the speed ``rSP`` asks for in real time, an object
-of a configurable width stops them and sets ``gOBJ``, and faults can be injected (garbage or a
-wrong CRC instead of an answer, silence, a device fault code).
+activation takes time, the fingers move at the speed ``rSP`` asks for in real time, a part they
+close on (:class:`Grasp`: the simulated world's parts, or a bench piece of a fixed width) stops
+them and sets ``gOBJ`` (2: stopped on an object while closing; 3: at the requested position,
+nothing touched), and faults can be injected (garbage or a wrong CRC instead of an answer,
+silence, a device fault code).
 
 ``python -m fakes.gripper --link PATH`` serves until killed.
 """
@@ -24,7 +26,7 @@ import tty
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Literal, Protocol
 
 from pymodbus.framer import FramerRTU
 from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
@@ -77,10 +79,42 @@ def finger_position(opening_mm: float) -> float:
     return float(mm_to_position(opening_mm))
 
 
+def opening_mm(position: float) -> float:
+    """How far apart the fingers are (mm) at ``position`` units (gPO)."""
+    return STROKE_MM - position * MM_PER_BIT
+
+
 def speed_units_per_s(rsp: int) -> float:
     """Finger speed for an ``rSP`` byte, in position units (1/255 of the stroke) per second."""
     mm_s = MIN_SPEED_MM_S + (MAX_SPEED_MM_S - MIN_SPEED_MM_S) * rsp / 255.0
     return mm_s / MM_PER_BIT
+
+
+class Grasp(Protocol):
+    """What lies between the fingers: asked when they start to close, told when they open."""
+
+    def grip(self, opening_mm: float, closing_to_mm: float) -> float | None:
+        """Fingers ``opening_mm`` apart start closing towards ``closing_to_mm``: the width of
+        the part they will stop on (held from now on), or None (nothing in their way)."""
+        ...
+
+    def release(self) -> None:
+        """The fingers open: whatever they held is let go."""
+        ...
+
+
+@dataclass(frozen=True)
+class BenchPiece:
+    """A test piece clamped on a bench gripper: always between the fingers, ``width_mm``
+    wide (a gripper served on its own, with no simulated world around it)."""
+
+    width_mm: float
+
+    def grip(self, opening_mm: float, closing_to_mm: float) -> float | None:
+        return self.width_mm if closing_to_mm < self.width_mm <= opening_mm + 1e-9 else None
+
+    def release(self) -> None:
+        return None
 
 
 @dataclass
@@ -96,12 +130,12 @@ class GripperModel:
     """The register-level behaviour, independent of the wire; time comes from ``clock``."""
 
     def __init__(
-        self, activation_time_s: float = 0.5, object_width_mm: float | None = None,
+        self, activation_time_s: float = 0.5, grasp: Grasp | None = None,
         clock: Callable[[], float] = time.monotonic,
         limits: tuple[int, int] = (POS_OPEN_LIMIT, POS_CLOSED_LIMIT),
     ) -> None:
         self.activation_time_s = activation_time_s
-        self.object_width_mm = object_width_mm
+        self.grasp = grasp
         self.open_limit, self.closed_limit = limits
         self._clock = clock
         self.request = [0, 0, 0, 0, 0, 0]  # the six action-request bytes
@@ -115,10 +149,10 @@ class GripperModel:
     def now(self) -> float:
         return self._clock()
 
-    def set_object(self, width_mm: float | None) -> None:
-        """Put an object of this width between the fingers (None removes it)."""
+    def set_grasp(self, grasp: Grasp | None) -> None:
+        """What the fingers close on from the next motion on (None: nothing)."""
         with self.lock:
-            self.object_width_mm = width_mm
+            self.grasp = grasp
 
     def inject_fault(self, gflt: int) -> None:
         """Raise a device fault (e.g. 0x0E overcurrent): motion stops until a reset."""
@@ -153,10 +187,13 @@ class GripperModel:
         rsp = self.request[4]
         target = min(max(self.request[3], self.open_limit), self.closed_limit)
         stop_at = None
-        if self.object_width_mm is not None:
-            contact = finger_position(self.object_width_mm)
-            if self._pos <= contact < target:
-                stop_at = contact
+        if self.grasp is not None:
+            if target > self._pos:
+                width_mm = self.grasp.grip(opening_mm(self._pos), opening_mm(target))
+                if width_mm is not None:
+                    stop_at = min(max(finger_position(width_mm), self._pos), float(target))
+            elif target < self._pos:
+                self.grasp.release()
         self._motion = _Motion(self._pos, target, speed_units_per_s(rsp), self.now(), stop_at)
         self._gobj = GOBJ_MOVING
 
@@ -179,6 +216,8 @@ class GripperModel:
             if not was_active:
                 self._activate_started = self.now()
                 self._pos = float(self.open_limit)  # activation runs a full stroke, ends open
+                if self.grasp is not None:
+                    self.grasp.release()
             if not new[0] & RGTO:
                 self._motion = None
                 return
@@ -232,11 +271,11 @@ class FakeGripper:
 
     def __init__(
         self, link: str | Path | None = None, slave_id: int = DEFAULT_SLAVE_ID,
-        activation_time_s: float = 0.5, object_width_mm: float | None = None,
+        activation_time_s: float = 0.5, grasp: Grasp | None = None,
     ) -> None:
         self.link = Path(link) if link is not None else None
         self.slave_id = slave_id
-        self.model = GripperModel(activation_time_s, object_width_mm)
+        self.model = GripperModel(activation_time_s, grasp)
         self._framer = FramerRTU(DecodePDU(is_server=True))
         self._line_faults: list[LineFault] = []
         self._master = self._slave = -1
@@ -357,10 +396,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--link", required=True, help="symlink to create for the serial device")
     parser.add_argument("--slave-id", type=int, default=DEFAULT_SLAVE_ID)
     parser.add_argument("--object-mm", type=float, default=None,
-                        help="width of an object between the fingers (none by default)")
+                        help="width of a test piece clamped between the fingers (none by "
+                        "default)")
     parser.add_argument("--activation-s", type=float, default=0.5)
     args = parser.parse_args(argv)
-    fake = FakeGripper(args.link, args.slave_id, args.activation_s, args.object_mm).start()
+    piece = None if args.object_mm is None else BenchPiece(args.object_mm)
+    fake = FakeGripper(args.link, args.slave_id, args.activation_s, piece).start()
     stopped = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stopped.set())
     print(f"fake gripper ready on {fake.port} -> {fake._slave_name} (slave {fake.slave_id})",

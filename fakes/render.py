@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -180,8 +181,8 @@ _BLOCK_BYTES = 1 << 20  # the float32 rows of one pass of the whole-frame loop: 
 
 
 @dataclass(frozen=True)
-class _Layout:
-    """What one frame draws, in pixels: the plate's outline, the frame's sides, and each disc's
+class _PartLayout:
+    """What one part draws, in pixels: its plate's outline, its frame's sides, and each disc's
     coverage patch (x0, y0, patch), far discs first so that a near one covers a far one."""
 
     plate_px: NDArray[np.float64] | None
@@ -190,12 +191,25 @@ class _Layout:
     plate_level: float
     dot_level: float
 
+
+@dataclass(frozen=True)
+class _Layout:
+    """What one frame draws: its parts, far ones first, so that a nearer part (its plate and
+    its dots) covers what lies behind it where they overlap in the image."""
+
+    parts: list[_PartLayout]
+
     def bbox(self, width: int, height: int) -> tuple[int, int, int, int] | None:
         """Pixel box (x0, y0, x1, y1) holding everything drawn, None when nothing is."""
-        boxes = [(x0, y0, x0 + p.shape[1], y0 + p.shape[0]) for x0, y0, p in self.discs]
-        for poly in ([self.plate_px] if self.plate_px is not None else []) + self.frame_px:
-            boxes.append((int(np.floor(poly[:, 0].min())) - 2, int(np.floor(poly[:, 1].min())) - 2,
-                          int(np.ceil(poly[:, 0].max())) + 3, int(np.ceil(poly[:, 1].max())) + 3))
+        boxes = []
+        for part in self.parts:
+            boxes += [(x0, y0, x0 + p.shape[1], y0 + p.shape[0]) for x0, y0, p in part.discs]
+            polys = ([part.plate_px] if part.plate_px is not None else []) + part.frame_px
+            for poly in polys:
+                boxes.append((int(np.floor(poly[:, 0].min())) - 2,
+                              int(np.floor(poly[:, 1].min())) - 2,
+                              int(np.ceil(poly[:, 0].max())) + 3,
+                              int(np.ceil(poly[:, 1].max())) + 3))
         if not boxes:
             return None
         b = np.array(boxes)
@@ -205,11 +219,25 @@ class _Layout:
 
 
 def _layout(
-    camera: CameraModel, target: Target, T_camera_target: NDArray[np.float64],
+    camera: CameraModel, scene: Sequence[tuple[Target, NDArray[np.float64]]],
     plate_size_mm: tuple[float, float] | None, plate_margin_mm: float | None, distort: bool,
     clutter: int, rng: np.random.Generator, frame: bool, supersample: int,
 ) -> _Layout:
-    """The scene's geometry (see :func:`render_target`): the only random draw is the clutter."""
+    """The scene's geometry (see :func:`render_scene`), the parts ordered far to near by the
+    depth of their dots' centre: the only random draw is the clutter."""
+    parts = [_part_layout(camera, target, T, plate_size_mm, plate_margin_mm, distort, clutter,
+                          rng, frame, supersample) for target, T in scene]
+    depth = [float((np.asarray(T, dtype=float) @ np.r_[t.points_mm.mean(axis=0), 1.0])[2])
+             for t, T in scene]
+    return _Layout([parts[i] for i in np.argsort(depth, kind="stable")[::-1]])
+
+
+def _part_layout(
+    camera: CameraModel, target: Target, T_camera_target: NDArray[np.float64],
+    plate_size_mm: tuple[float, float] | None, plate_margin_mm: float | None, distort: bool,
+    clutter: int, rng: np.random.Generator, frame: bool, supersample: int,
+) -> _PartLayout:
+    """One part's geometry; its only random draw is the clutter."""
     scene = _Scene(camera, np.asarray(T_camera_target, dtype=float), distort)
     plate_level, dot_level = default_levels(target.polarity)
     d = target.dot_diameter_mm
@@ -249,7 +277,7 @@ def _layout(
         got = scene.disc_coverage(discs[i], supersample)
         if got is not None:
             patches.append(got)
-    return _Layout(plate_px, frame_px, patches, plate_level, dot_level)
+    return _PartLayout(plate_px, frame_px, patches, plate_level, dot_level)
 
 
 def _gradient_axes(
@@ -288,9 +316,37 @@ def render_target(
     supersample: int = 4,
     timings: dict[str, float] | None = None,
 ) -> NDArray[np.uint8]:
-    """Grey image (height x width, uint8) of the target seen from ``T_camera_target``.
+    """Grey image (height x width, uint8) of the target seen from ``T_camera_target``: the scene
+    of one part (:func:`render_scene`)."""
+    return render_scene(
+        camera, [(target, T_camera_target)], plate_size_mm=plate_size_mm,
+        plate_margin_mm=plate_margin_mm, blur_sigma_px=blur_sigma_px, noise_std=noise_std,
+        lighting_gradient=lighting_gradient, distort=distort, clutter=clutter, rng=rng,
+        background=background, frame=frame, supersample=supersample, timings=timings)
 
-    The plate is centred on the dots' bounding box, ``plate_margin_mm`` (default 2 dot
+
+def render_scene(
+    camera: CameraModel,
+    scene: Sequence[tuple[Target, NDArray[np.float64]]],
+    *,
+    plate_size_mm: tuple[float, float] | None = None,
+    plate_margin_mm: float | None = None,
+    blur_sigma_px: float = 0.7,
+    noise_std: float = 1.5,
+    lighting_gradient: float = 0.15,
+    distort: bool = True,
+    clutter: int = 0,
+    rng: np.random.Generator | None = None,
+    background: float = 110.0,
+    frame: bool = False,
+    supersample: int = 4,
+    timings: dict[str, float] | None = None,
+) -> NDArray[np.uint8]:
+    """Grey image (height x width, uint8) of the parts in ``scene`` (each a target and its
+    ``T_camera_target``; none: the background alone), a nearer part's plate and dots over a
+    farther one's where they overlap in the image.
+
+    Each part's plate is centred on its dots' bounding box, ``plate_margin_mm`` (default 2 dot
     diameters, 2.6 with ``frame``, plus 1.5x the dots' z range) beyond it, unless
     ``plate_size_mm`` (w, h) is given; it lies in the target plane at the largest dot z, so
     dots with smaller z stand out of it towards the camera. ``lighting_gradient`` scales
@@ -309,8 +365,8 @@ def render_target(
     rng = rng if rng is not None else np.random.default_rng()
     steps = _Steps(timings)
     h, w = camera.height, camera.width
-    lay = _layout(camera, target, T_camera_target, plate_size_mm, plate_margin_mm, distort,
-                  clutter, rng, frame, supersample)
+    lay = _layout(camera, scene, plate_size_mm, plate_margin_mm, distort, clutter, rng, frame,
+                  supersample)
     steps.mark("geometry + discs")
     rows, cols = _gradient_axes(w, h, lighting_gradient, rng)
     box = lay.bbox(w, h)
@@ -370,16 +426,19 @@ def _drawn(
     shape = (y1 - y0, x1 - x0)
     origin = np.array([x0, y0], dtype=float)
     delta = np.zeros(shape, np.float32)
-    if lay.plate_px is not None:
-        delta += (lay.plate_level - background) * _fill_polygons(shape, [lay.plate_px - origin])
-    if lay.frame_px:
-        cov = np.minimum(sum(_fill_polygons(shape, [p - origin]) for p in lay.frame_px), 1.0)
-        delta += (lay.dot_level - background - delta) * cov
-    steps.mark("plate + frame (box)")
-    for px, py, cov in lay.discs:
-        patch = delta[py - y0 : py - y0 + cov.shape[0], px - x0 : px - x0 + cov.shape[1]]
-        patch += (lay.dot_level - background - patch) * cov
-    steps.mark("discs (paint)")
+    for part in lay.parts:
+        if part.plate_px is not None:
+            cov = _fill_polygons(shape, [part.plate_px - origin])
+            delta += (part.plate_level - background - delta) * cov
+        if part.frame_px:
+            cov = np.minimum(sum(_fill_polygons(shape, [p - origin]) for p in part.frame_px),
+                             1.0)
+            delta += (part.dot_level - background - delta) * cov
+        steps.mark("plate + frame (box)")
+        for px, py, cov in part.discs:
+            patch = delta[py - y0 : py - y0 + cov.shape[0], px - x0 : px - x0 + cov.shape[1]]
+            patch += (part.dot_level - background - patch) * cov
+        steps.mark("discs (paint)")
     delta *= np.add(rows[y0:y1, None], cols[None, x0:x1])
     steps.mark("gradient (box)")
     if blur_sigma_px > 0:
@@ -411,21 +470,23 @@ def render_target_full_frame(
     rng = rng if rng is not None else np.random.default_rng()
     steps = _Steps(timings)
     h, w = camera.height, camera.width
-    lay = _layout(camera, target, T_camera_target, plate_size_mm, plate_margin_mm, distort,
+    lay = _layout(camera, [(target, T_camera_target)], plate_size_mm, plate_margin_mm, distort,
                   clutter, rng, frame, supersample)
     steps.mark("geometry + discs")
     img = np.full((h, w), background, np.float32)
     steps.mark("background fill")
-    if lay.plate_px is not None:
-        img += (lay.plate_level - background) * _fill_polygons((h, w), [lay.plate_px])
-    if lay.frame_px:
-        frame_cov = np.minimum(sum(_fill_polygons((h, w), [p]) for p in lay.frame_px), 1.0)
-        img += (lay.dot_level - img) * frame_cov
-    steps.mark("plate + frame (frame)")
-    for x0, y0, cov in lay.discs:
-        patch = img[y0 : y0 + cov.shape[0], x0 : x0 + cov.shape[1]]
-        patch += (lay.dot_level - patch) * cov
-    steps.mark("discs (paint)")
+    for part in lay.parts:
+        if part.plate_px is not None:
+            img += (part.plate_level - img) * _fill_polygons((h, w), [part.plate_px])
+        if part.frame_px:
+            frame_cov = np.minimum(sum(_fill_polygons((h, w), [p]) for p in part.frame_px),
+                                   1.0)
+            img += (part.dot_level - img) * frame_cov
+        steps.mark("plate + frame (frame)")
+        for x0, y0, cov in part.discs:
+            patch = img[y0 : y0 + cov.shape[0], x0 : x0 + cov.shape[1]]
+            patch += (part.dot_level - patch) * cov
+        steps.mark("discs (paint)")
     rows, cols = _gradient_axes(w, h, lighting_gradient, rng)
     if lighting_gradient:
         np.multiply(img, np.add(rows[:, None], cols[None, :]), out=img)

@@ -2,8 +2,10 @@
 
 A background thread "exposes" a frame every 1/fps seconds: it samples the arm's flange pose at
 mid-exposure from ``pose_source`` (the simulated controller's engine), so a moving arm changes
-what the camera sees exactly as on a real cell. The image itself is rendered only when someone
-asks for the frame (:func:`fakes.render.render_target`, ~6-10 ms at 1280x800): the scene at that
+what the camera sees exactly as on a real cell, and every part of the world
+(:class:`fakes.parts.SimParts`) where it truly is then. The image itself is rendered only when
+someone asks for the frame (:func:`fakes.render.render_scene`, ~6-10 ms a part at 1280x800): the
+scene at that
 instant is kept, so the result is the same as rendering eagerly but the idle cell burns no CPU.
 Nor does it sample the pose 30 times a second for nobody: once no frame has been taken for
 ``IDLE_AFTER_S`` the sensor exposes only every ``IDLE_PERIOD_S`` (enough to notice a pose
@@ -34,13 +36,13 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from drivers.camera import CameraSettings, Frame
 from drivers.errors import ConnectionLostError, DeviceTimeoutError
 from estimator import CameraModel, Target
 from estimator.transforms import invert_T
-from fakes.render import motion_smear, render_target
+from fakes.parts import SimParts
+from fakes.render import motion_smear, render_scene
 
 Matrix4 = NDArray[np.float64]
 PoseSource = Callable[[], tuple[Matrix4, float]]  # () -> (T_base_flange mm, time.monotonic())
@@ -63,14 +65,14 @@ class _Exposure:
 
     sequence: int
     timestamp_s: float
-    T_camera_target: Matrix4
+    scene: tuple[tuple[Target, Matrix4], ...]  # each part's layout and T_camera_part
     gain: float  # exposure x ISO relative to nominal, times the frame's jitter
     blocked: bool
     blur_sigma_px: float  # the lens blur plus any defocus
     T_base_flange: Matrix4 | None = None  # the arm's flange then (what a fixed camera may see)
     true_time_s: float = 0.0  # the true mid-exposure time (timestamp_s is what the cell sees)
     available_s: float = 0.0  # when the frame reaches the host
-    smear_px: tuple[float, float] = (0.0, 0.0)  # image motion of the target over the exposure
+    smear_px: tuple[float, float] = (0.0, 0.0)  # image motion of part 0 over the exposure
 
 
 @dataclass(frozen=True)
@@ -86,11 +88,12 @@ class ExposureTruth:
 
 
 class SimCamera:
-    """Renders the target as seen from ``T_base_flange @ T_flange_camera`` at each frame."""
+    """Renders the world's parts as seen from ``T_base_flange @ T_flange_camera`` at each
+    frame."""
 
     def __init__(
-        self, camera: CameraModel, target: Target, T_base_target: Matrix4,
-        T_flange_camera: Matrix4, pose_source: PoseSource, *, fps: float = 15.0,
+        self, camera: CameraModel, parts: SimParts, T_flange_camera: Matrix4,
+        pose_source: PoseSource, *, fps: float = 15.0,
         exposure_s: float = 0.004, noise_std: float = 1.5, blur_sigma_px: float = 0.7,
         lighting_gradient: float = 0.1, exposure_jitter: float = 0.03, seed: int | None = None,
         latency_s: float = 0.0, latency_jitter_s: float = 0.0, timestamp_offset_s: float = 0.0,
@@ -106,13 +109,8 @@ class SimCamera:
         # what the device says its intrinsics are (an OAK's factory calibration): a
         # calibration, so not necessarily ``camera``, the lens the images are rendered with
         self.reported_camera = camera if reported_camera is None else reported_camera
-        self.target = target
+        self.parts = parts
         self.T_flange_camera = np.array(T_flange_camera, dtype=float)
-        self._T_base_target = np.array(T_base_target, dtype=float)
-        # the target's drift (a conveyor): base-frame velocity and angular velocity from t0
-        self._target_t0_s = time.monotonic()
-        self._target_v_mm_s = np.zeros(3)
-        self._target_w_rad_s = np.zeros(3)
         self.pose_source = pose_source
         self.fps = fps
         self.exposure_s = exposure_s
@@ -150,35 +148,7 @@ class SimCamera:
         self._wake = threading.Event()  # a reader wants a frame from a resting sensor
         self._last_taken_s = time.monotonic()
 
-    # -- scene and faults --------------------------------------------------------------------
-    @property
-    def T_base_target(self) -> Matrix4:
-        """The true target pose now (ground truth for tests)."""
-        return self.target_at(time.monotonic())
-
-    def target_at(self, t_s: float) -> Matrix4:
-        """The true target pose at monotonic time ``t_s``: where it was placed, moved on at
-        its velocity (translation of its origin, rotation about it, base frame)."""
-        with self._cond:
-            return self._target_locked(t_s)
-
-    def set_target_pose(self, T_base_target: Matrix4,
-                        velocity_mm_s: NDArray[np.float64] | None = None,
-                        angular_velocity_rad_s: NDArray[np.float64] | None = None) -> None:
-        """Place the target now; with velocities it drifts from this instant on."""
-        T = np.array(T_base_target, dtype=float)
-        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-            raise ValueError("T_base_target must be a finite 4x4 transform")
-        v = np.zeros(3) if velocity_mm_s is None else np.asarray(velocity_mm_s, dtype=float)
-        w = (np.zeros(3) if angular_velocity_rad_s is None
-             else np.asarray(angular_velocity_rad_s, dtype=float))
-        if v.shape != (3,) or w.shape != (3,) or not np.all(np.isfinite(np.r_[v, w])):
-            raise ValueError("target velocities must be 3 finite values each")
-        with self._cond:
-            self._T_base_target = T
-            self._target_v_mm_s, self._target_w_rad_s = v.copy(), w.copy()
-            self._target_t0_s = time.monotonic()
-
+    # -- faults ------------------------------------------------------------------------------
     def drop_frames(self, count: int = 1, probability: float | None = None) -> None:
         """Skip the next ``count`` exposures; with ``probability``, drop that share from now on."""
         with self._cond:
@@ -328,14 +298,11 @@ class SimCamera:
             img = np.empty((h, w), np.float32)
             cv2.randn(img, np.full(1, BLOCKED_LEVEL), np.full(1, float(self.noise_std)))
             image = np.asarray(cv2.convertScaleAbs(img), dtype=np.uint8)
-        elif exp.T_camera_target[2, 3] <= 0:  # target behind the camera: only the background
-            image = render_target(self.camera, self.target, _far_away(),
-                                  blur_sigma_px=exp.blur_sigma_px, noise_std=self.noise_std,
-                                  lighting_gradient=0.0, rng=rng)
-        else:
-            image = render_target(
-                self.camera, self.target, exp.T_camera_target, blur_sigma_px=exp.blur_sigma_px,
-                noise_std=self.noise_std, lighting_gradient=self.lighting_gradient, rng=rng,
+        else:  # a part whose origin is behind the camera is not drawn
+            front = [(t, T) for t, T in exp.scene if T[2, 3] > 0]
+            image = render_scene(
+                self.camera, front, blur_sigma_px=exp.blur_sigma_px, noise_std=self.noise_std,
+                lighting_gradient=self.lighting_gradient if front else 0.0, rng=rng,
             )
         if self.motion_blur and not exp.blocked:
             image = motion_smear(image, exp.smear_px)
@@ -361,8 +328,9 @@ class SimCamera:
                 return
             gain = self._brightness() * (1.0 + float(self._rng.normal(0.0, self.exposure_jitter)))
             gain *= self._flicker_locked(float(t_s))
-            T_base_camera, T_base_seen = self._view(T_base_flange, float(t_s))
-            T_camera_target = invert_T(T_base_camera) @ T_base_seen
+            T_base_camera, seen = self._view(T_base_flange, float(t_s))
+            T_camera_base = invert_T(T_base_camera)
+            scene = tuple((t, T_camera_base @ T) for t, T in seen)
             smear = (0.0, 0.0)
             if self.motion_blur and prev is not None and 0.0 < t_s - prev[1] <= MAX_SMEAR_SPAN_S:
                 smear = self._smear_locked(prev, (T_base_flange, float(t_s)))
@@ -371,7 +339,7 @@ class SimCamera:
             if self.timestamp_jitter_s > 0:
                 stamp += float(self._rng.normal(0.0, self.timestamp_jitter_s))
             exp = _Exposure(
-                self._sequence, stamp, T_camera_target, gain, self._blocked, self._blur_px(),
+                self._sequence, stamp, scene, gain, self._blocked, self._blur_px(),
                 T_base_flange, t_true, t_true, smear)
             if self.latency_s > 0 or self.latency_jitter_s > 0:
                 jitter = abs(float(self._rng.normal(0.0, self.latency_jitter_s))) \
@@ -397,13 +365,16 @@ class SimCamera:
 
     def _smear_locked(self, start: tuple[Matrix4, float], end: tuple[Matrix4, float]
                       ) -> tuple[float, float]:
-        """The image motion (px) of the target's centre over one exposure: its motion between
-        two pose samples (the previous exposure's and this one's) scaled to the exposure time,
-        as a constant velocity over that span."""
-        centre = np.r_[self.target.points_mm.mean(axis=0), 1.0]
+        """The image motion (px) of part 0's centre over one exposure: its motion between two
+        pose samples (the previous exposure's and this one's) scaled to the exposure time, as
+        a constant velocity over that span."""
         px = []
         for T_flange, t in (start, end):
-            T_base_camera, T_base_seen = self._view(T_flange, t)
+            T_base_camera, seen = self._view(T_flange, t)
+            if not seen:
+                return (0.0, 0.0)
+            target, T_base_seen = seen[0]
+            centre = np.r_[target.points_mm.mean(axis=0), 1.0]
             p = (invert_T(T_base_camera) @ T_base_seen @ centre)[:3]
             if p[2] <= 1e-6:
                 return (0.0, 0.0)
@@ -414,18 +385,12 @@ class SimCamera:
         d = (px[1] - px[0]) * (self.exposure_s / span_s)
         return (float(d[0]), float(d[1]))
 
-    def _view(self, T_base_flange: Matrix4, t_s: float) -> tuple[Matrix4, Matrix4]:
-        """``(T_base_camera, T_base_target)`` of one exposure (call with the lock held): the
-        camera rides on the flange; a fixed camera (:mod:`fakes.fixed_camera`) overrides."""
-        return T_base_flange @ self.T_flange_camera, self._target_locked(t_s)
-
-    def _target_locked(self, t_s: float) -> Matrix4:
-        dt = t_s - self._target_t0_s
-        T = self._T_base_target.copy()
-        if np.any(self._target_w_rad_s):
-            T[:3, :3] = Rotation.from_rotvec(self._target_w_rad_s * dt).as_matrix() @ T[:3, :3]
-        T[:3, 3] += self._target_v_mm_s * dt
-        return T
+    def _view(self, T_base_flange: Matrix4, t_s: float
+              ) -> tuple[Matrix4, list[tuple[Target, Matrix4]]]:
+        """``(T_base_camera, [(layout, T_base_part), ...])`` of one exposure (call with the
+        lock held): the camera rides on the flange and sees every part; a fixed camera
+        (:mod:`fakes.fixed_camera`) overrides."""
+        return T_base_flange @ self.T_flange_camera, self.parts.scene_at(t_s, T_base_flange)
 
     def _resting(self) -> bool:
         with self._cond:
@@ -461,9 +426,3 @@ class SimCamera:
             if next_start < time.monotonic() - period:  # fell behind (loaded host): skip ahead
                 next_start = time.monotonic()
 
-
-def _far_away() -> Matrix4:
-    """A pose that puts the target far outside the view, for an empty scene."""
-    T = np.eye(4)
-    T[:3, 3] = (1e6, 1e6, 1e3)
-    return T

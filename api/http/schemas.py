@@ -145,6 +145,31 @@ class SimTargetRequest(PoseIn):
     angular_velocity_deg_s: tuple[_AngVel, _AngVel, _AngVel] | None = None
 
 
+MAX_SIM_PARTS = 64
+
+
+class SimPartIn(SimTargetRequest):
+    """One part: its true pose in the base frame, optionally drifting from now on (base
+    frame), its dot layout and the width the simulated fingers close on."""
+
+    layout: str | None = Field(
+        default=None, min_length=1, max_length=129,
+        description="null: the cell's [target]; \"<recipe>\": that recipe's first target; "
+        "\"<recipe>/<target>\": the recipe's named target")
+    width_mm: Num | None = Field(default=None, gt=0, le=85,
+                                 description="default: [sim] part_width_mm")
+
+
+class SimPartsRequest(_Body):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={
+        "examples": [{"parts": [
+            {"position_mm": [-480.0, -100.0, 0.0], "rotvec_rad": [3.1416, 0.0, 0.0]},
+            {"position_mm": [-330.0, -100.0, 0.0], "rotvec_rad": [3.1416, 0.0, 0.0],
+             "layout": "plate-a/main", "velocity_mm_s": [0.0, 10.0, 0.0]}]}]})
+    parts: list[SimPartIn] = Field(min_length=1, max_length=MAX_SIM_PARTS,
+                                   description="every part of the world, ids 0, 1, ... in order")
+
+
 _Lin = Annotated[Num, Field(ge=-1000, le=1000)]
 _Ang = Annotated[Num, Field(ge=-360, le=360)]
 
@@ -540,19 +565,43 @@ class SimEffectsOut(_Out):
     flicker_hz: float
 
 
+SIM_PART_EXAMPLE = {"id": 0, "layout": None, "T_base_part": POSE_EXAMPLE, "held": False,
+                    "width_mm": 40.0, "velocity_mm_s": [0.0, 0.0, 0.0], "T_tcp_part": None}
+
+
+class SimPartOut(_Out):
+    """One simulated part's truth now."""
+
+    model_config = _examples(SIM_PART_EXAMPLE)
+    id: int = Field(description="its place in the last PUT /sim/parts list (0: the target)")
+    layout: str | None = Field(description="as placed (null: the cell's [target])")
+    T_base_part: PoseOut
+    held: bool = Field(description="the simulated gripper holds it")
+    width_mm: float
+    velocity_mm_s: list[float] = Field(description="its drift (base frame; 0 while held)")
+    T_tcp_part: PoseOut | None = Field(description="where it sits in the fingers (held only)")
+
+
+class SimParts(_Out):
+    model_config = _examples({"parts": [SIM_PART_EXAMPLE]})
+    parts: list[SimPartOut]
+
+
 class SimTruth(_Out):
     model_config = _examples({
         "T_base_target": POSE_EXAMPLE, "T_base_tcp": POSE_EXAMPLE, "world": "realistic",
         "T_flange_camera": POSE_EXAMPLE,
         "camera": {"fx": 1008.0, "fy": 1007.0, "cx": 643.5, "cy": 397.5,
-                   "dist": [-0.045, 0.012, 0.0004, -0.0003, 0.0], "width": 1280, "height": 800}})
-    T_base_target: PoseOut
+                   "dist": [-0.045, 0.012, 0.0004, -0.0003, 0.0], "width": 1280, "height": 800},
+        "parts": [SIM_PART_EXAMPLE]})
+    T_base_target: PoseOut = Field(description="part 0's true pose")
     T_base_tcp: PoseOut
     world: str
     T_flange_camera: PoseOut
     T_base_camera: PoseOut | None = Field(None, description="a fixed camera's true pose")
     camera: SimCameraTruthOut
     effects: SimEffectsOut
+    parts: list[SimPartOut] = Field(description="every part, by id")
 
 
 class SimTarget(_Out):

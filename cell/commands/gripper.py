@@ -37,18 +37,17 @@ def run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from cell.config.devices import GripperConfig, RobotiqGripperConfig
-    from cell.config.schema import ConfigError, SimConfig, load_config
+    from cell.config.schema import ConfigError, load_config
     from cell.devices.factory import build_gripper
     from drivers.errors import DriverError
 
     # The adapter turns pymodbus' "no response" log lines into typed errors; keep stderr clean.
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     gc: GripperConfig = RobotiqGripperConfig()
-    sim = SimConfig()
     try:
         if args.config:
             config = load_config(args.config)
-            gc, sim = config.gripper, config.sim
+            gc = config.gripper
     except ConfigError as err:
         return fail(err.code, str(err), args.json)
     given = {key: value for key, value in (("port", args.port), ("slave_id", args.slave_id),
@@ -67,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
         return fail("invalid_argument", "no serial port: pass --port or a --config whose "
                     "[gripper] port is set", args.json)
     try:
-        gripper, release = build_gripper(gc, sim)
+        gripper, release = build_gripper(gc)
     except (ConfigError, ValueError) as err:
         return fail("invalid_argument", str(err), args.json)
     if gripper is None:

@@ -202,7 +202,8 @@ class RobotiqGripperConfig(RobotiqLink):
 
 class SimGripperConfig(RobotiqLink):
     """The simulated gripper on a pseudo-terminal, driven through the real Modbus RTU adapter
-    (an object between its fingers: ``[sim] gripper_object_width_mm``)."""
+    (it closes on the simulated world's parts: ``PUT /api/v1/sim/parts``, ``[sim]
+    part_width_mm``)."""
 
     kind: Literal["sim"] = "sim"
 

@@ -448,6 +448,9 @@ class SimConfig(Strict):
     gain_jitter: float | None = Field(default=None, ge=0, le=0.5)
     flicker_depth: float | None = Field(default=None, ge=0, le=1)
     flicker_hz: float = Field(default=100.0, gt=0)
+    # The width the simulated fingers close on: of the target (the world's part 0) and of
+    # every part placed later without a width of its own (PUT /api/v1/sim/parts).
+    part_width_mm: float = Field(default=40.0, gt=0, le=85)
 
     @field_validator("dh_delta_theta_rad", "dh_delta_d_mm", "dh_delta_a_mm")
     @classmethod
@@ -455,7 +458,6 @@ class SimConfig(Strict):
         if v is not None and len(v) != 6:
             raise ValueError(f"one value per joint: 6 values, got {len(v)}")
         return v
-    gripper_object_width_mm: float | None = Field(default=None, ge=0, le=85)
 
 
 SAMPLE_OPCUA_PASSWORDS = frozenset({"sim-viewer", "sim-operator", "sim-plc"})

@@ -44,7 +44,7 @@ from cell.config.devices import (
     SimRobotConfig,
     UrRobotConfig,
 )
-from cell.config.schema import CellConfig, ConfigError, SimConfig
+from cell.config.schema import CellConfig, ConfigError
 from cell.devices import sim_truth
 from cell.devices.hardware import Hardware
 from drivers.arm import Arm
@@ -57,6 +57,7 @@ from fakes.sim_cell import (
     CameraSpec,
     FixedMount,
     GripperSpec,
+    PartsSpec,
     SensorEffects,
     SimCellSpec,
     SimulatedCell,
@@ -76,11 +77,18 @@ ROBOTIQ_NEEDS_PORT = "gripper.port: a serial device is needed for kind = \"robot
 # -- what to simulate ---------------------------------------------------------------------------
 def simulated_cell_spec(config: CellConfig) -> SimCellSpec:
     """What of ``config``'s cell the fakes simulate: the arm when its kind is not real
-    hardware (the in-process arm, or the UR controller ``[sim]`` starts), the simulated camera
-    and the simulated gripper."""
+    hardware (the in-process arm, or the UR controller ``[sim]`` starts), the simulated camera,
+    the simulated gripper, and with a simulated arm the world's parts (the target at ``[sim]
+    T_base_target``)."""
     arm = None if config.robot.is_hardware(config.sim) else _arm_spec(config)
     camera = _camera_spec(config) if isinstance(config.camera, SimCameraConfig) else None
-    return SimCellSpec(arm, camera, _gripper_spec(config.gripper, config.sim))
+    return SimCellSpec(arm, camera, _gripper_spec(config.gripper),
+                       _parts_spec(config) if arm is not None else None)
+
+
+def _parts_spec(config: CellConfig) -> PartsSpec:
+    return PartsSpec(config.target.model(), config.sim.T_base_target.T(),
+                     config.sim.part_width_mm)
 
 
 def _arm_spec(config: CellConfig, in_process: bool = False) -> ArmSpec:
@@ -101,8 +109,7 @@ def _camera_spec(config: CellConfig) -> CameraSpec:
                            None if sim.T_flange_board is None else sim.T_flange_board.T())
     return CameraSpec(
         lens=true.camera, reported_lens=sim_truth.factory_calibration(config),
-        T_mount=true.T_flange_camera, target=config.target.model(),
-        T_base_target=sim.T_base_target.T(), fps=config.camera.fps, noise_std=sim.noise_std,
+        T_mount=true.T_flange_camera, fps=config.camera.fps, noise_std=sim.noise_std,
         blur_sigma_px=sim.blur_sigma_px, fixed=fixed,
         effects=SensorEffects(
             gain_jitter=fx.gain_jitter, latency_s=fx.camera_latency_s,
@@ -112,10 +119,10 @@ def _camera_spec(config: CellConfig) -> CameraSpec:
             flicker_hz=fx.flicker_hz))
 
 
-def _gripper_spec(gripper: GripperConfig, sim: SimConfig) -> GripperSpec | None:
+def _gripper_spec(gripper: GripperConfig) -> GripperSpec | None:
     if not isinstance(gripper, SimGripperConfig):
         return None
-    return GripperSpec(gripper.slave_id, sim.gripper_object_width_mm)
+    return GripperSpec(gripper.slave_id)
 
 
 # -- one builder per kind -----------------------------------------------------------------------
@@ -305,15 +312,16 @@ def build_camera(config: CellConfig) -> tuple[Camera, Callable[[], None]]:
     """
     spec = SimCellSpec()
     if isinstance(config.camera, SimCameraConfig):
-        spec = SimCellSpec(arm=_arm_spec(config, in_process=True), camera=_camera_spec(config))
+        spec = SimCellSpec(arm=_arm_spec(config, in_process=True), camera=_camera_spec(config),
+                           parts=_parts_spec(config))
     return _one_device(_build_camera, config.camera, spec)
 
 
-def build_gripper(gripper: GripperConfig, sim: SimConfig | None = None
-                  ) -> tuple[Gripper | None, Callable[[], None]]:
+def build_gripper(gripper: GripperConfig) -> tuple[Gripper | None, Callable[[], None]]:
     """Only the gripper (None for ``kind = "none"``), for commissioning commands, and a
-    function that releases it; a simulated one holds ``sim``'s object."""
-    spec = SimCellSpec(gripper=_gripper_spec(gripper, sim if sim is not None else SimConfig()))
+    function that releases it; a simulated one, without a world around it, closes on
+    nothing."""
+    spec = SimCellSpec(gripper=_gripper_spec(gripper))
     return _one_device(_build_gripper, gripper, spec)
 
 

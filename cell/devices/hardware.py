@@ -2,14 +2,14 @@
 
 The cell's business code sees only these interfaces, never which implementation is behind
 them. ``sim`` is the one exception by design: on simulated hardware it gives the API its
-``/sim`` routes (ground truth, placing the target) and tests their fault switches; on real
-hardware it is None and those routes do not exist.
+``/sim`` routes (ground truth, placing the target and the parts) and tests their fault
+switches; on real hardware it is None and those routes do not exist.
 """
 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
@@ -20,13 +20,59 @@ from cell.devices.sim_truth import SimTruthValues
 from drivers.arm import Arm
 from drivers.camera import Camera
 from drivers.gripper import Gripper
+from estimator import Target
+
+Matrix4 = NDArray[np.float64]
+Vector3 = NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class SimPart:
+    """A part to place in the simulated world: its dot layout (``layout_name`` as the caller
+    named it, None for the cell's ``[target]``), its true pose, an optional drift in the base
+    frame from the moment it is placed (a conveyor) and the width the fingers close on (None:
+    ``[sim] part_width_mm``)."""
+
+    layout_name: str | None
+    layout: Target
+    T_base_part: Matrix4
+    velocity_mm_s: Vector3 | None = None
+    angular_velocity_rad_s: Vector3 | None = None
+    width_mm: float | None = None
+
+
+class SimPartTruth(Protocol):
+    """One simulated part's truth now: ``T_tcp_part`` is where it sits in the closed fingers
+    (None unless ``held``)."""
+
+    @property
+    def id(self) -> int: ...
+
+    @property
+    def layout_name(self) -> str | None: ...
+
+    @property
+    def T_base_part(self) -> Matrix4: ...
+
+    @property
+    def held(self) -> bool: ...
+
+    @property
+    def width_mm(self) -> float: ...
+
+    @property
+    def velocity_mm_s(self) -> Vector3: ...
+
+    @property
+    def T_tcp_part(self) -> Matrix4 | None: ...
 
 
 class SimWorld(Protocol):
     """Ground truth and fault switches of a simulated cell."""
 
     def true_T_base_target(self, at_s: float | None = None) -> NDArray[np.float64]:
-        """The true target pose now, or at monotonic time ``at_s`` (a moving target)."""
+        """The true target pose (part 0's) now, or at monotonic time ``at_s`` (a moving
+        target)."""
 
     def true_T_base_tcp(self) -> NDArray[np.float64]: ...
 
@@ -39,7 +85,15 @@ class SimWorld(Protocol):
     def set_target(self, T_base_target: NDArray[np.float64],
                    velocity_mm_s: NDArray[np.float64] | None = None,
                    angular_velocity_rad_s: NDArray[np.float64] | None = None) -> None:
-        """Place the target now; with velocities (base frame) it drifts from now on."""
+        """Place the target (part 0) now; with velocities (base frame) it drifts from now on.
+        The other parts stay where they are."""
+
+    def place_parts(self, parts: Sequence[SimPart]) -> None:
+        """Replace every part with ``parts`` (ids 0, 1, ... in order; the fingers hold none
+        of them); ValueError, with nothing changed, for one the world cannot take."""
+
+    def parts_truth(self) -> Sequence[SimPartTruth]:
+        """Every part's true pose now and whether the gripper holds it, by id."""
 
     def set_tool_board(self, T_flange_board: NDArray[np.float64] | None) -> None:
         """Clamp the calibration plate to the tool (None: take it off); fixed cameras only."""

@@ -1,6 +1,7 @@
-"""Build the simulated parts of one cell from a :class:`~fakes.sim_cell.spec.SimCellSpec`:
-the arm (its engine here, or the simulated controller in its own process), the camera that
-sees from where that arm really is, the gripper on a pseudo-terminal, and the world over them.
+"""Build the simulated devices of one cell from a :class:`~fakes.sim_cell.spec.SimCellSpec`:
+the arm (its engine here, or the simulated controller in its own process), the world's parts,
+the camera that sees them from where that arm really is, the gripper on a pseudo-terminal that
+closes on them where the arm really is, and the world over them.
 """
 
 from __future__ import annotations
@@ -12,10 +13,12 @@ from typing import Any, Generic
 
 from fakes.fixed_camera import FixedSimCamera
 from fakes.gripper import FakeGripper
+from fakes.parts import SimParts
 from fakes.sim_arm import SimArm
 from fakes.sim_camera import PoseSource, SimCamera
 from fakes.sim_cell.arm_truth import ArmTruth, EngineTruth, Matrix4, ProcessTruth
-from fakes.sim_cell.spec import ArmSpec, CameraSpec, GripperSpec, SimCellSpec
+from fakes.sim_cell.grasp import PartsGrasp
+from fakes.sim_cell.spec import ArmSpec, CameraSpec, GripperSpec, PartsSpec, SimCellSpec
 from fakes.sim_cell.world import SimulatedWorld, TruthT
 from fakes.ur_sim.engine import MotionEngine
 
@@ -30,6 +33,7 @@ class SimulatedCell(Generic[TruthT]):
     """
 
     arm: SimArm | None = None
+    parts: SimParts | None = None
     camera: SimCamera | None = None
     gripper: FakeGripper | None = None
     world: SimulatedWorld[TruthT] | None = None
@@ -44,21 +48,28 @@ class SimulatedCell(Generic[TruthT]):
 
 
 def build_sim_cell(spec: SimCellSpec, truth: TruthT) -> SimulatedCell[TruthT]:
-    """The simulated parts ``spec`` names, and the world over them described by ``truth``.
-    A camera needs an arm to hang on (ValueError without one)."""
+    """The simulated devices ``spec`` names, and the world over them described by ``truth``.
+    A camera needs an arm to hang on and parts to see (ValueError without them); the gripper
+    closes on the parts where the arm is (on nothing without either)."""
     built = SimulatedCell[TruthT]()
     try:
         arm_truth = _arm(spec.arm, built) if spec.arm is not None else None
+        built.parts = _parts(spec.parts) if spec.parts is not None else None
         if spec.camera is not None:
             if arm_truth is None:
                 raise ValueError("a simulated camera needs a simulated arm to hang on")
-            built.camera = _camera(spec.camera, arm_truth)
+            if built.parts is None:
+                raise ValueError("a simulated camera needs the world's parts to see")
+            built.camera = _camera(spec.camera, built.parts, arm_truth)
             built.closers.append(built.camera.disconnect)
         if spec.gripper is not None:
-            built.gripper = _gripper(spec.gripper)
+            grasp = (PartsGrasp(built.parts, arm_truth)
+                     if built.parts is not None and arm_truth is not None else None)
+            built.gripper = _gripper(spec.gripper, grasp)
             built.closers.append(built.gripper.stop)
-        if arm_truth is not None and built.camera is not None:
-            built.world = SimulatedWorld(arm_truth, built.camera, built.gripper, truth)
+        if arm_truth is not None and built.camera is not None and built.parts is not None:
+            built.world = SimulatedWorld(arm_truth, built.camera, built.parts, built.gripper,
+                                         truth)
         return built
     except BaseException:
         built.close()
@@ -89,7 +100,11 @@ def _flange_source(arm: ArmTruth) -> PoseSource:
     return source
 
 
-def _camera(spec: CameraSpec, arm: ArmTruth) -> SimCamera:
+def _parts(spec: PartsSpec) -> SimParts:
+    return SimParts.one(spec.layout, spec.T_base_part, spec.width_mm)
+
+
+def _camera(spec: CameraSpec, parts: SimParts, arm: ArmTruth) -> SimCamera:
     fx = spec.effects
     sensor: dict[str, Any] = dict(
         reported_camera=spec.reported_lens, fps=spec.fps, noise_std=spec.noise_std,
@@ -99,15 +114,14 @@ def _camera(spec: CameraSpec, arm: ArmTruth) -> SimCamera:
         motion_blur=fx.motion_blur, flicker_depth=fx.flicker_depth, flicker_hz=fx.flicker_hz)
     if spec.fixed is not None:
         return FixedSimCamera(
-            spec.lens, spec.target, spec.T_base_target, spec.T_mount, _flange_source(arm),
+            spec.lens, parts, spec.T_mount, _flange_source(arm),
             spec.fixed.T_flange_tcp, tool_radius_mm=spec.fixed.tool_radius_mm,
             T_flange_board=spec.fixed.T_flange_board, **sensor)
-    return SimCamera(spec.lens, spec.target, spec.T_base_target, spec.T_mount,
-                     _flange_source(arm), **sensor)
+    return SimCamera(spec.lens, parts, spec.T_mount, _flange_source(arm), **sensor)
 
 
-def _gripper(spec: GripperSpec) -> FakeGripper:
-    gripper = FakeGripper(slave_id=spec.slave_id, object_width_mm=spec.object_width_mm,
+def _gripper(spec: GripperSpec, grasp: PartsGrasp | None) -> FakeGripper:
+    gripper = FakeGripper(slave_id=spec.slave_id, grasp=grasp,
                           activation_time_s=spec.activation_time_s)
     gripper.start()
     return gripper

@@ -73,13 +73,11 @@ class FixedMount:
 class CameraSpec:
     """The simulated camera: the lens it renders with and the one it reports (a calibration,
     as an OAK reports its factory's), where it is (``T_mount``: on the flange, or in the base
-    frame with ``fixed``), the target it sees and the sensor."""
+    frame with ``fixed``) and the sensor; it sees the world's parts."""
 
     lens: CameraModel
     reported_lens: CameraModel
     T_mount: Matrix4
-    target: Target
-    T_base_target: Matrix4
     fps: float
     noise_std: float
     blur_sigma_px: float
@@ -89,17 +87,29 @@ class CameraSpec:
 
 @dataclass(frozen=True)
 class GripperSpec:
-    """The simulated gripper: its Modbus slave id and the object between its fingers."""
+    """The simulated gripper: its Modbus slave id; it closes on the world's parts."""
 
     slave_id: int
-    object_width_mm: float | None = None
     activation_time_s: float = 0.2
+
+
+@dataclass(frozen=True, eq=False)
+class PartsSpec:
+    """The world's parts at the start: one, the cell's target (``layout``) at
+    ``T_base_part``; ``width_mm`` is what the fingers close on, for it and for every part
+    placed later without a width of its own."""
+
+    layout: Target
+    T_base_part: Matrix4
+    width_mm: float
 
 
 @dataclass(frozen=True)
 class SimCellSpec:
-    """The parts of one cell to simulate (None: that device is real, or absent)."""
+    """The parts of one cell to simulate (None: that device is real, or absent) and the
+    world's parts (None: none; a camera needs them)."""
 
     arm: ArmSpec | None = None
     camera: CameraSpec | None = None
     gripper: GripperSpec | None = None
+    parts: PartsSpec | None = None

@@ -6,7 +6,7 @@ the ``/sim`` routes and the benchmarks score against it; the rest of the cell ne
 
 from __future__ import annotations
 
-import time
+from collections.abc import Sequence
 from typing import Generic, TypeVar
 
 import numpy as np
@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 
 from fakes.fixed_camera import FixedSimCamera
 from fakes.gripper import FakeGripper, LineFault
+from fakes.parts import PartPlacement, PartTruth, SimParts
 from fakes.sim_camera import SimCamera
 from fakes.sim_cell.arm_truth import ArmTruth, ProcessTruth
 
@@ -22,16 +23,18 @@ TruthT = TypeVar("TruthT")
 
 
 class SimulatedWorld(Generic[TruthT]):
-    """Ground truth and fault switches over one simulated arm, camera and gripper.
+    """Ground truth and fault switches over one simulated arm, camera, gripper and the parts.
 
     ``truth`` is how its builder describes the world it built (the lens, mount and effects
-    resolved from a cell's config); :meth:`truth_values` hands it back unchanged.
+    resolved from a cell's config); :meth:`truth_values` hands it back unchanged. The target
+    (:meth:`true_T_base_target`, :meth:`set_target`) is part 0.
     """
 
-    def __init__(self, arm: ArmTruth, camera: SimCamera, gripper: FakeGripper | None,
-                 truth: TruthT) -> None:
+    def __init__(self, arm: ArmTruth, camera: SimCamera, parts: SimParts,
+                 gripper: FakeGripper | None, truth: TruthT) -> None:
         self._arm = arm
         self._camera = camera
+        self._parts = parts
         self._gripper = gripper
         self._truth = truth
 
@@ -39,7 +42,9 @@ class SimulatedWorld(Generic[TruthT]):
         return self._truth
 
     def true_T_base_target(self, at_s: float | None = None) -> Matrix4:
-        return self._camera.target_at(time.monotonic() if at_s is None else at_s)
+        """Part 0 at ``at_s`` (a part on a conveyor), or now; a held part where the arm is."""
+        return self._parts.first_at(self._parts.now() if at_s is None else at_s,
+                                    lambda: self._arm.flange_and_tcp()[0])
 
     def true_T_base_tcp(self) -> Matrix4:
         return self._arm.flange_and_tcp()[1]
@@ -50,7 +55,16 @@ class SimulatedWorld(Generic[TruthT]):
 
     def set_target(self, T_base_target: Matrix4, velocity_mm_s: NDArray[np.float64] | None = None,
                    angular_velocity_rad_s: NDArray[np.float64] | None = None) -> None:
-        self._camera.set_target_pose(T_base_target, velocity_mm_s, angular_velocity_rad_s)
+        self._parts.place_first(T_base_target, velocity_mm_s, angular_velocity_rad_s)
+
+    def place_parts(self, parts: Sequence[PartPlacement]) -> None:
+        """Replace the world's parts (ValueError, nothing changed, for one it cannot take)."""
+        self._parts.place(parts)
+
+    def parts_truth(self) -> list[PartTruth]:
+        """Every part's true pose now, and whether the gripper holds it."""
+        T_flange, T_tcp, t_s = self._arm.flange_and_tcp()
+        return self._parts.truth(t_s, T_flange, T_tcp)
 
     def set_tool_board(self, T_flange_board: Matrix4 | None) -> None:
         """Clamp the calibration plate to the tool (None: take it off); fixed cameras only."""

@@ -22,6 +22,7 @@ from drivers.gripper import Gripper
 from drivers.robotiq import RobotiqGripper, mm_to_position, position_to_mm
 from fakes.gripper import (
     MANUAL_EXAMPLE_OPEN_LIMIT,
+    BenchPiece,
     FakeGripper,
     GripperModel,
     speed_units_per_s,
@@ -266,7 +267,7 @@ def test_pty_activate_open_close_move(gripper: RobotiqGripper) -> None:
 
 def test_pty_object_stops_the_fingers(fake: FakeGripper, gripper: RobotiqGripper) -> None:
     gripper.activate()
-    fake.model.set_object(30.0)
+    fake.model.set_grasp(BenchPiece(30.0))
     s = gripper.close()
     assert s.object_detected and s.position_mm == pytest.approx(30.0, abs=0.34)
     opened = gripper.open()

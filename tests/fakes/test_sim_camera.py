@@ -20,6 +20,7 @@ from drivers.camera import Camera, Frame
 from drivers.errors import ConnectionLostError
 from estimator import CameraModel, Estimator, Target
 from estimator.transforms import T_from_pose, T_from_ur_pose, invert_T, translation_T
+from fakes.parts import SimParts
 from fakes.render import default_levels
 from fakes.sim_arm import SimArm
 from fakes.sim_camera import SimCamera
@@ -76,7 +77,7 @@ class SlidingPose:
 
 
 def make_camera(pose_source: object, **kw: object) -> SimCamera:
-    return SimCamera(CAM, TARGET, T_BASE_TARGET, T_FLANGE_CAMERA, pose_source,  # type: ignore[arg-type]
+    return SimCamera(CAM, SimParts.one(TARGET, T_BASE_TARGET), T_FLANGE_CAMERA, pose_source,  # type: ignore[arg-type]
                      seed=1, **kw)  # type: ignore[arg-type]
 
 
@@ -128,15 +129,15 @@ def test_timestamp_is_when_a_moving_arm_was_there() -> None:
 
 def test_target_pose_can_move_at_run_time(camera: SimCamera) -> None:
     moved = translation_T(0.0, 20.0) @ T_BASE_TARGET
-    camera.set_target_pose(moved)
+    camera.parts.place_first(moved)
     frame = camera.latest_frame(timeout_s=2.0)
     frame = camera.latest_frame(timeout_s=2.0)
     shift = dot_centres(frame.image).mean(axis=0) - CAM.project(
         (T_CAMERA_TARGET0[:3, :3] @ TARGET.points_mm.T).T + T_CAMERA_TARGET0[:3, 3]).mean(axis=0)
     assert np.linalg.norm(shift) > 20.0  # 20 mm at 500 mm with f = 800 px: ~32 px
     with pytest.raises(ValueError):
-        camera.set_target_pose(np.full((4, 4), np.nan))
-    assert np.allclose(camera.T_base_target, moved)
+        camera.parts.place_first(np.full((4, 4), np.nan))
+    assert np.allclose(camera.parts.first_at(time.monotonic(), lambda: T_BASE_FLANGE0), moved)
 
 
 def test_dropped_frames_leave_sequence_gaps(camera: SimCamera) -> None:
@@ -218,8 +219,8 @@ def test_closed_loop_estimator_sees_the_arm_move() -> None:
 
         T_base_flange0, _ = pose_source()
         T_base_target = T_base_flange0 @ T_FLANGE_CAMERA @ T_CAMERA_TARGET0
-        cam = SimCamera(CAM, TARGET, T_base_target, T_FLANGE_CAMERA, pose_source, fps=15.0,
-                        seed=3)
+        cam = SimCamera(CAM, SimParts.one(TARGET, T_base_target), T_FLANGE_CAMERA, pose_source,
+                        fps=15.0, seed=3)
         cam.connect()
         try:
             before = estimate(cam.latest_frame(timeout_s=2.0).image)

@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 
 from estimator import CameraModel, Target
 from estimator.transforms import T_from_pose, translation_T
+from fakes.parts import SimParts
 from fakes.render import motion_smear
 from fakes.sim_camera import ExposureTruth, SimCamera
 
@@ -23,6 +24,10 @@ T_BASE_TARGET = T_BASE_FLANGE0 @ T_FLANGE_CAMERA @ T_from_pose([-50.0, -35.0, 50
                                                                [0.0, 0.0, 0.0])
 REALISTIC_TIMING = {"latency_s": 0.033, "latency_jitter_s": 0.001,
                     "timestamp_offset_s": 0.002, "timestamp_jitter_s": 0.0002}
+
+
+def _parts() -> SimParts:
+    return SimParts.one(TARGET, T_BASE_TARGET)
 
 
 def _static() -> tuple[NDArray[np.float64], float]:
@@ -58,7 +63,7 @@ def _truth(cam: SimCamera, sequence: int) -> ExposureTruth:
 
 
 def test_ideal_frames_are_stamped_true_and_available_at_once() -> None:
-    cam = SimCamera(CAM, TARGET, T_BASE_TARGET, T_FLANGE_CAMERA, _static, seed=1)
+    cam = SimCamera(CAM, _parts(), T_FLANGE_CAMERA, _static, seed=1)
     for seq, stamp, _ in _frames(cam, 8):
         e = _truth(cam, seq)
         assert stamp == e.true_time_s == e.available_s
@@ -66,7 +71,7 @@ def test_ideal_frames_are_stamped_true_and_available_at_once() -> None:
 
 
 def test_latency_and_timestamp_error_follow_the_truth() -> None:
-    cam = SimCamera(CAM, TARGET, T_BASE_TARGET, T_FLANGE_CAMERA, _static, seed=1,
+    cam = SimCamera(CAM, _parts(), T_FLANGE_CAMERA, _static, seed=1,
                     **REALISTIC_TIMING)  # type: ignore[arg-type]
     rows = _frames(cam, 15)
     errors = np.array([stamp - _truth(cam, seq).true_time_s for seq, stamp, _ in rows])
@@ -80,13 +85,13 @@ def test_latency_and_timestamp_error_follow_the_truth() -> None:
 
 def test_motion_blur_smears_along_the_true_motion() -> None:
     speed, exposure = 500.0, 0.02  # 10 mm in the exposure at 500 mm: 16 px at f = 800
-    blurred = SimCamera(CAM, TARGET, T_BASE_TARGET, T_FLANGE_CAMERA, _Sliding(speed), seed=1,
+    blurred = SimCamera(CAM, _parts(), T_FLANGE_CAMERA, _Sliding(speed), seed=1,
                         exposure_s=exposure, motion_blur=True)
     seq = _frames(blurred, 3)[-1][0]
     dx, dy = _truth(blurred, seq).smear_px
     assert abs(dx) == pytest.approx(800.0 * speed * exposure / 500.0, rel=0.1)
     assert abs(dy) < 0.1 * abs(dx)
-    sharp = SimCamera(CAM, TARGET, T_BASE_TARGET, T_FLANGE_CAMERA, _Sliding(speed), seed=1,
+    sharp = SimCamera(CAM, _parts(), T_FLANGE_CAMERA, _Sliding(speed), seed=1,
                       exposure_s=exposure)
     assert _truth(sharp, _frames(sharp, 3)[-1][0]).smear_px == (0.0, 0.0)
 
@@ -103,11 +108,11 @@ def test_motion_smear_widens_by_the_smear_length() -> None:
 
 
 def test_flicker_varies_the_gain_frame_to_frame() -> None:
-    steady = SimCamera(CAM, TARGET, T_BASE_TARGET, T_FLANGE_CAMERA, _static, seed=1,
+    steady = SimCamera(CAM, _parts(), T_FLANGE_CAMERA, _static, seed=1,
                        exposure_jitter=0.0)
     gains = [_truth(steady, s).gain for s, _, _ in _frames(steady, 6)]
     assert gains == [1.0] * 6
-    flicker = SimCamera(CAM, TARGET, T_BASE_TARGET, T_FLANGE_CAMERA, _static, seed=1,
+    flicker = SimCamera(CAM, _parts(), T_FLANGE_CAMERA, _static, seed=1,
                         exposure_jitter=0.0, flicker_depth=0.1, flicker_hz=100.0)
     gains = [_truth(flicker, s).gain for s, _, _ in _frames(flicker, 12)]
     # 4 ms of a 10 ms flicker period: the mean over the exposure swings by up to ~7.6 %

@@ -38,6 +38,9 @@ from api.http.schemas import (
     LocatedAll,
     LocateRequest,
     Me,
+    SimPartIn,
+    SimParts,
+    SimPartsRequest,
     SimTarget,
     SimTargetRequest,
     SimTruth,
@@ -48,7 +51,7 @@ from api.http.schemas import (
 from api.http.sse import SSE_RESPONSES, sse_response
 from api.http.stop import ReadNow, StopCaller, StreamNow, snapshot_now, stop_now
 from api.remote import recipe_ref
-from cell.devices.hardware import SimWorld
+from cell.devices.hardware import SimPart, SimPartTruth, SimWorld
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, NotFoundError
 from cell.service import Cell
@@ -309,8 +312,9 @@ async def events(request: Request, caller: StreamNow,
 
 @sim_router.get("/truth", response_model=SimTruth)
 def sim_truth(request: Request, caller: Read) -> dict[str, Any]:
-    """Ground truth of the simulated cell: where the target and the TCP really are, and the
-    camera's true mount and lens (commissioning must recover them; the config may differ)."""
+    """Ground truth of the simulated cell: where the target (part 0), every part and the TCP
+    really are, which part the gripper holds, and the camera's true mount and lens
+    (commissioning must recover them; the config may differ)."""
     sim = sim_of(request)
     true = sim.truth_values()
     cam = true.camera
@@ -322,14 +326,24 @@ def sim_truth(request: Request, caller: Read) -> dict[str, Any]:
             "T_base_camera": pose_dict(true.T_flange_camera) if fixed else None,
             "camera": {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
                        "dist": list(cam.dist), "width": cam.width, "height": cam.height},
-            "effects": dataclasses.asdict(true.effects)}
+            "effects": dataclasses.asdict(true.effects),
+            "parts": [_part_out(p) for p in sim.parts_truth()]}
+
+
+def _part_out(part: SimPartTruth) -> dict[str, Any]:
+    return {"id": part.id, "layout": part.layout_name, "T_base_part": pose_dict(part.T_base_part),
+            "held": part.held, "width_mm": part.width_mm,
+            "velocity_mm_s": [float(v) for v in part.velocity_mm_s],
+            "T_tcp_part": None if part.T_tcp_part is None else pose_dict(part.T_tcp_part)}
 
 
 @sim_router.put("/target", response_model=SimTarget)
 def sim_target(request: Request, caller: Annotated[Caller, Depends(require("sim_write"))],
                body: SimTargetRequest) -> dict[str, Any]:
-    """Place the simulated target at a pose in the base frame; with ``velocity_mm_s`` and
-    ``angular_velocity_deg_s`` (base frame) it drifts from now on, like a conveyor."""
+    """Place the simulated target (part 0: its layout and width kept, out of the gripper if it
+    held it) at a pose in the base frame; with ``velocity_mm_s`` and ``angular_velocity_deg_s``
+    (base frame) it drifts from now on, like a conveyor. The other parts stay where they
+    are."""
     T = T_from_pose(body.position_mm, body.rotvec_rad)
     v = None if body.velocity_mm_s is None else np.asarray(body.velocity_mm_s, dtype=float)
     w = (None if body.angular_velocity_deg_s is None
@@ -338,3 +352,34 @@ def sim_target(request: Request, caller: Annotated[Caller, Depends(require("sim_
     return {"T_base_target": pose_dict(T),
             "velocity_mm_s": list(body.velocity_mm_s or (0.0, 0.0, 0.0)),
             "angular_velocity_deg_s": list(body.angular_velocity_deg_s or (0.0, 0.0, 0.0))}
+
+
+@sim_router.put("/parts", response_model=SimParts)
+def sim_parts(request: Request, caller: Annotated[Caller, Depends(require("sim_write"))],
+              body: SimPartsRequest) -> dict[str, Any]:
+    """Replace the simulated world's parts: each at a pose in the base frame, drifting from
+    now on at its velocities (base frame) like a conveyor, with a dot layout (null: the cell's
+    ``[target]``; ``"<recipe>"`` or ``"<recipe>/<target>"``: a recipe's target) and a width
+    the fingers close on. Ids follow the list (0: the target of ``/sim/target`` and
+    ``/locate``'s truth); the gripper holds none of them afterwards. The camera renders every
+    part in view; the simulated gripper closing at a part's grasp pose picks it
+    (docs/simulator.md). An unknown recipe or target is 404, nothing placed."""
+    cell = cell_of(request)
+    parts = [_sim_part(cell, p) for p in body.parts]
+    sim = sim_of(request)
+    sim.place_parts(parts)
+    return {"parts": [_part_out(p) for p in sim.parts_truth()]}
+
+
+def _sim_part(cell: Cell, part: SimPartIn) -> SimPart:
+    if part.layout is None:
+        layout = cell.config.target.model()
+    else:
+        recipe, _, target = part.layout.partition("/")
+        layout = cell.recipes.get(recipe).target(target).model()
+    w = (None if part.angular_velocity_deg_s is None
+         else np.radians(np.asarray(part.angular_velocity_deg_s, dtype=float)))
+    return SimPart(part.layout, layout, T_from_pose(part.position_mm, part.rotvec_rad),
+                   None if part.velocity_mm_s is None else np.asarray(part.velocity_mm_s,
+                                                                       dtype=float),
+                   w, part.width_mm)

@@ -15,7 +15,7 @@ from fastapi.testclient import TestClient
 from api.app import create_app
 from cell.service import Cell
 from cell.vision.frames import approach_tcp
-from estimator.transforms import T_from_pose_dict, pose_distance
+from estimator.transforms import T_from_pose_dict, pose_distance, translation_T
 from fakes.ur_controller.process import free_loopback_host
 from tests.support.cell import AUTH, running_cell, settled_tcp, sim_config, world
 
@@ -35,6 +35,8 @@ def test_locate_approach_and_grip_through_ur_rtde(client: TestClient) -> None:
     cell: Cell = client.app.state.cell  # type: ignore[attr-defined]
     status = client.get("/api/v1/status", headers=AUTH["viewer"]).json()
     assert status["robot"]["mode"] == "RUNNING" and status["gripper"]["activated"]
+    # the plate on a 30 mm fixture, so that its grasp pose (its origin) is inside the workspace
+    world(cell).set_target(translation_T(0.0, 0.0, 30.0) @ world(cell).true_T_base_target())
     r = client.post("/api/v1/locate", json={"n_frames": 2}, headers=AUTH["plc"])
     assert r.status_code == 200, r.text
     T_true = world(cell).true_T_base_target()
@@ -46,8 +48,14 @@ def test_locate_approach_and_grip_through_ur_rtde(client: TestClient) -> None:
     d_mm, d_deg = pose_distance(world(cell).true_T_base_tcp(), approach_tcp(T_true, np.eye(4), 30))
     print(f"final TCP error through ur_rtde: {d_mm:.3f} mm / {d_deg:.3f} deg")
     assert d_mm <= 0.3 and d_deg <= 0.1
+    # down the last 30 mm along the tool axis to the plate's grasp pose, and take it
+    r = client.post("/api/v1/jog", json={"mode": "step", "frame": "tool",
+                                         "translation_mm": [0, 0, 30]}, headers=AUTH["operator"])
+    assert r.status_code == 200, r.text
+    settled_tcp(cell)
     r = client.post("/api/v1/gripper", json={"action": "close"}, headers=AUTH["operator"])
     assert r.status_code == 200 and r.json()["object_detected"], r.text
+    assert any(p.held for p in world(cell).parts_truth())
     r = client.post("/api/v1/gripper", json={"action": "move", "position_mm": 60},
                     headers=AUTH["operator"])
     assert r.status_code == 200 and abs(r.json()["position_mm"] - 60) < 1.0, r.text
