@@ -148,8 +148,8 @@ class Phases:
     message). While the pick approaches, the job's progress shows the approach's own steps
     (``observe``, ``locate``, ``final`` or the servo's figures), as an approach job's does."""
 
-    def __init__(self, core: CellCore, job_id: str) -> None:
-        self.core, self.job_id = core, job_id
+    def __init__(self, core: CellCore, job_id: str, part: dict[str, Any]) -> None:
+        self.core, self.job_id, self.part = core, job_id, part
         self.seconds: dict[PickPhase, float] = {}
         self.current: PickPhase | None = None
         self.began_s = time.monotonic()
@@ -157,7 +157,8 @@ class Phases:
     @contextmanager
     def phase(self, name: PickPhase) -> Iterator[None]:
         self.current = name
-        self.core.runner.progress(self.job_id, {"phase": name, "phases_s": dict(self.seconds)})
+        self.core.runner.progress(self.job_id, {"phase": name, "part": self.part,
+                                                "phases_s": dict(self.seconds)})
         t0 = time.monotonic()
         yield
         self.seconds[name] = round(time.monotonic() - t0, 4)
@@ -231,7 +232,9 @@ def check_legs(core: CellCore, T_from: Matrix4, legs: Legs, after_pre_pick: bool
 def run_pick(core: CellCore, gripper: GripperCommands | None, caller: str, job_id: str,
              motion: Motion, plan: PickPlan, part: Chosen, locate_s: float) -> PickResult:
     assert gripper is not None
-    phases = Phases(core, job_id)
+    phases = Phases(core, job_id, {
+        "id": part.part_id, "layout": part.layout,
+        "T_base_target": pose_dict(part.located.T_base_target), "parts_seen": part.parts_seen})
     phases.seconds["locate"] = round(locate_s, 4)
     try:
         return _cycle(core, gripper, caller, job_id, motion, plan, part, phases)

@@ -7,12 +7,14 @@ import dataclasses
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
 from api.app import create_app
+from cell.features.teach import TaughtPose
 from cell.service import Cell
 from estimator.transforms import T_from_pose_dict, pose_dict, pose_distance
 from tests.support.cell import AUTH, running_cell, settled_tcp, sim_config, world
@@ -97,23 +99,103 @@ def _raise_target(cell: Cell, dz_mm: float) -> np.ndarray:
     return T
 
 
-def test_pick_and_place_on_a_raised_part(client: TestClient) -> None:
+def _place_parts(client: TestClient, offsets_mm: list[tuple[float, float]],
+                 height_mm: float = 60.0) -> list[np.ndarray]:
+    """Parts like the config's target, on blocks ``height_mm`` high, moved in the base
+    frame from where home sees the target."""
+    T0 = world(cell_of(client)).true_T_base_target()
+    poses = []
+    for dx, dy in offsets_mm:
+        T = T0.copy()
+        T[:3, 3] += [dx, dy, height_mm]
+        poses.append(T)
+    r = client.put("/api/v1/sim/parts", json={"parts": [pose_dict(T) for T in poses]},
+                   headers=OP)
+    assert r.status_code == 200, r.text
+    time.sleep(0.3)  # frames exposed before the parts were placed are not of this scene
+    return poses
+
+
+def _teach_place(cell: Cell, name: str, T_base_tcp: np.ndarray) -> None:
+    """A place pose as POST /teach {"frame": "base"} stores it, at a pose no jog reaches
+    exactly."""
+    cell.taught.put(TaughtPose(name, None, 1, 0.0, 0.0, None, T_base_tcp, "test", 0.0,
+                               frame="base"))
+
+
+def _truth(client: TestClient) -> list[dict[str, Any]]:
+    parts: list[dict[str, Any]] = client.get("/api/v1/sim/truth", headers=OP).json()["parts"]
+    return parts
+
+
+def test_pick_and_place_two_parts_against_the_truth(client: TestClient) -> None:
+    """Two parts in view: each pick takes one (a different one), holds it by the gripper's
+    word and the simulator's, and puts it where the taught place pose says, within 0.3 mm
+    and 0.1 deg of the part's goal (simulator truth)."""
     cell = cell_of(client)
-    T_part = _raise_target(cell, 60.0)
-    T_place = T_part.copy()
-    T_place[:3, 3] += [0.0, 150.0, 80.0]
-    assert cell.sim is not None
-    r = client.post("/api/v1/pick", json={"wait": True}, headers=PLC)
-    job = r.json()
-    assert r.status_code == 200 and job["state"] == "succeeded", job
-    res = job["result"]
-    assert res["grip"]["verdict"] == "held" and res["part"]["parts_seen"] == 1
-    assert set(res["phases_s"]) == {"locate", "approach", "grasp", "verify", "retract"}
-    assert res["cycle_s"] >= sum(v for k, v in res["phases_s"].items() if k != "locate")
-    assert res["place"] is None
-    grasp = T_from_pose_dict(res["grasp_T_base_tcp"])
-    assert pose_distance(grasp, T_part)[0] < 0.5  # the tool pose is the part's frame
-    _ = pose_dict
+    _place_parts(client, [(0.0, 0.0), (0.0, 140.0)])
+    T_tt = cell.config.approach.T_target_tcp.T()
+    picked: set[int] = set()
+    T_home_part = world(cell).true_T_base_target().copy()
+    for k, dy in enumerate((0.0, 130.0)):
+        T_place_part = T_home_part.copy()
+        T_place_part[:3, 3] += [-200.0, dy, 40.0]
+        _teach_place(cell, f"tray-{k}", T_place_part @ T_tt)
+        r = client.post("/api/v1/pick", json={"wait": True, "place": f"tray-{k}"}, headers=PLC)
+        job = r.json()
+        assert r.status_code == 200 and job["state"] == "succeeded", job
+        res = job["result"]
+        assert res["grip"] == {"verdict": "held", "object_detected": True, "width_mm":
+                               pytest.approx(40.0, abs=0.5), "window_mm": [1.0, 84.0]}
+        assert set(res["phases_s"]) == {"locate", "approach", "grasp", "verify", "retract",
+                                        "place"}
+        assert res["part"]["id"] not in picked
+        picked.add(res["part"]["id"])
+        goal = T_from_pose_dict(res["place"]["T_base_part_goal"])
+        assert pose_distance(goal, T_place_part)[0] < 0.3  # the grip the cell measured
+        placed = [p for p in _truth(client)
+                  if pose_distance(T_from_pose_dict(p["T_base_part"]), goal)[0] < 5.0]
+        assert len(placed) == 1 and not placed[0]["held"]
+        d_mm, d_deg = pose_distance(T_from_pose_dict(placed[0]["T_base_part"]), goal)
+        assert d_mm <= 0.3 and d_deg <= 0.1, (d_mm, d_deg)
+    assert cell.gripper_ops.status()["object_detected"] is False  # opened at the place pose
+
+
+def test_a_part_moved_after_the_last_look_is_a_missed_grasp(client: TestClient) -> None:
+    """The part slips 8 mm once the pick has looked its last: the fingers close on nothing,
+    the pick opens, retracts and fails ``grasp_missed``; the other part stays put."""
+    cell = cell_of(client)
+    _place_parts(client, [(0.0, 0.0), (0.0, 140.0)])
+    job = client.post("/api/v1/pick", json={}, headers=PLC).json()
+    deadline = time.monotonic() + 60
+    while cell.job(job["id"]).progress.get("phase") != "grasp":
+        assert cell.job(job["id"]).state == "running", cell.job(job["id"]).as_dict()
+        assert time.monotonic() < deadline
+        time.sleep(0.005)
+    before = _truth(client)
+    seen = T_from_pose_dict(cell.job(job["id"]).progress["part"]["T_base_target"])
+    chosen = min(before, key=lambda p: pose_distance(T_from_pose_dict(p["T_base_part"]),
+                                                     seen)[0])
+    others = [p for p in before if p["id"] != chosen["id"]]
+    T = T_from_pose_dict(chosen["T_base_part"])
+    T[:3, 3] += [8.0, 0.0, 0.0]
+    r = client.put("/api/v1/sim/parts", json={"parts": [
+        pose_dict(T) if p["id"] == chosen["id"] else p["T_base_part"] for p in before]},
+        headers=OP)
+    assert r.status_code == 200
+    ended = wait_job(client, job["id"], headers=OP)
+    assert ended["state"] == "failed" and ended["error"]["code"] == "grasp_missed", ended
+    status = cell.gripper_ops.status()
+    assert status is not None and status["object_detected"] is False
+    assert status["position_mm"] > 80.0  # open
+    after = _truth(client)
+    assert not any(p["held"] for p in after)
+    for p in others:
+        q = next(a for a in after if a["id"] == p["id"])
+        assert pose_distance(T_from_pose_dict(q["T_base_part"]),
+                             T_from_pose_dict(p["T_base_part"]))[0] < 1e-6
+    # retracted: the TCP back along the tool axis from where it closed
+    assert world(cell).true_T_base_tcp()[2, 3] > T[2, 3] + 50.0
 
 
 @pytest.mark.parametrize("phase", ["approach", "grasp", "verify", "retract", "place"])
