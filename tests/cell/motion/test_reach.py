@@ -107,7 +107,7 @@ def test_refused_corner_leaves_the_true_tcp_and_commands_untouched(tmp_path: Pat
 
 def test_a_reachable_sequence_reports_the_joints_the_arm_will_have(
         open_arm: tuple[GuardedArm, MotionEngine]) -> None:
-    arm, engine = open_arm
+    arm, _ = open_arm
     T0 = arm.tcp_pose()
     pre = T0 @ T_from_pose([30.0, -20.0, -40.0], [0.0, 0.0, 0.3])
     grasp = pre @ T_from_pose([0.0, 0.0, 40.0], [0.0, 0.0, 0.0])
@@ -138,7 +138,7 @@ def test_joint_limit_is_refused_naming_the_joint() -> None:
         err = _refused(arm, turned, "wrist 3 joint would reach")
         assert "range -30..30 deg" in err.message
         with arm.slot.hold("test"), pytest.raises(LimitError) as joint:
-            arm.move_joint(np.radians(HOME_DEG + [0, 0, 0, 0, 0, 40.0]), 0.5, 1.0)
+            arm.move_joint(np.radians(HOME_DEG + np.array([0, 0, 0, 0, 0, 40.0])), 0.5, 1.0)
         assert joint.value.code == "unreachable" and "wrist 3" in joint.value.message
         # within the range it moves
         ok = arm.tcp_pose() @ T_from_pose([0, 0, 0], [0.0, 0.0, math.radians(20.0)])
