@@ -316,7 +316,8 @@ def tcp_goal(cell: Cell, caller: RemoteCaller, command: str, *, standoff_mm: Any
         T_target_tcp = cell.config.approach.T_target_tcp.T() if T_taught is None else T_taught
         loc = cell.locate(caller.label)
         goal = approach_tcp(loc.T_base_target, T_target_tcp, standoff)
-        cell.arm.guard.check_goal(cell.arm_state().T_base_tcp, goal, "the program's goal")
+        st = cell.arm_state()
+        cell.arm.guard.check_goal(st.T_base_tcp, goal, "the program's goal", st)
         position_mm, _ = pose_mm_rad(goal)
         note.detail = "goal " + ", ".join(f"{v:.2f}" for v in position_mm) + " mm"
         return goal, loc

@@ -70,6 +70,7 @@ class ErrorCode(StrEnum):
     outside_envelope = "outside_envelope"
     tilt_limit = "tilt_limit"
     move_too_far = "move_too_far"
+    unreachable = "unreachable"  # no joint solution, a joint limit or a singularity on the way
     speed_limit = "speed_limit"
     accel_limit = "accel_limit"
     jog_speed_limit = "jog_speed_limit"

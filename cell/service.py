@@ -96,7 +96,7 @@ class Cell:
         self.events = EventBus()
         self.stats = CellStats()
         slot = MotionSlot()
-        arm = GuardedArm(hardware.arm, config.limits, slot)
+        arm = GuardedArm(hardware.arm, config.limits, slot, model=config.robot.model)
         frames = cell_frames(config)
         target = config.target.model()
         locator = Locator(config.camera.model(), target, hardware.camera, arm, frames,

@@ -2,9 +2,10 @@
 
 ``T_i = Rz(theta_i + theta_offset_i) Tz(d_i) Tx(a_i) Rx(alpha_i)``, lengths in mm, the chain
 from the base (frame 0) to the flange (frame 6). The tables are Universal Robots' published
-nominal values for the e-Series: what an uncalibrated controller computes its TCP with. A
-real arm's joints and links sit a little off them (:meth:`DHTable.perturbed`); the kinematic
-fit in :mod:`estimator.calib.kinematic` estimates by how much.
+nominal values for the e-Series, the UR20 and the UR30: what an uncalibrated controller
+computes its TCP with (the inverse: :mod:`estimator.inverse_kinematics`). A real arm's
+joints and links sit a little off them (:meth:`DHTable.perturbed`); the kinematic fit in
+:mod:`estimator.calib.kinematic` estimates by how much.
 """
 
 from __future__ import annotations
@@ -63,7 +64,7 @@ def forward(table: DHTable, q_rad: ArrayLike) -> Matrix4:
 _HALF_PI = math.pi / 2
 _ALPHA = (_HALF_PI, 0.0, 0.0, _HALF_PI, -_HALF_PI, 0.0)
 
-# Universal Robots' published DH parameters of the e-Series (m -> mm).
+# Universal Robots' published DH parameters of the e-Series and the UR20 / UR30 (m -> mm).
 UR_DH: dict[str, DHTable] = {
     "ur3e": DHTable((151.85, 0.0, 0.0, 131.05, 85.35, 92.1),
                     (0.0, -243.55, -213.2, 0.0, 0.0, 0.0), _ALPHA),
@@ -73,4 +74,8 @@ UR_DH: dict[str, DHTable] = {
                      (0.0, -612.7, -571.55, 0.0, 0.0, 0.0), _ALPHA),
     "ur16e": DHTable((180.7, 0.0, 0.0, 174.15, 119.85, 116.55),
                      (0.0, -478.4, -360.0, 0.0, 0.0, 0.0), _ALPHA),
+    "ur20": DHTable((236.3, 0.0, 0.0, 201.0, 159.3, 154.3),
+                    (0.0, -862.0, -728.7, 0.0, 0.0, 0.0), _ALPHA),
+    "ur30": DHTable((236.3, 0.0, 0.0, 201.0, 159.3, 154.3),
+                    (0.0, -637.0, -503.7, 0.0, 0.0, 0.0), _ALPHA),
 }

@@ -267,7 +267,8 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
             loc = tool_plate_locate(core, plan.T_target_tcp)
             core.arm.guard.check_goal(st.T_base_tcp, IbvsMount.of(
                 core.frames, view, core.locator.target.points_mm).goal(
-                    loc.T_base_target, loc.T_base_tcp, plan.T_target_tcp), "IBVS goal estimate")
+                    loc.T_base_target, loc.T_base_tcp, plan.T_target_tcp), "IBVS goal estimate",
+                st)
             first.append(loc)
             return
         elif core.frames.is_fixed:
@@ -277,11 +278,11 @@ def start_approach(core: CellCore, caller: str, *, standoff_mm: float | None = N
         goal = approach_tcp(loc.T_base_target, plan.T_target_tcp, plan.standoff_mm)
         streamed = how in (ApproachMode.servo, ApproachMode.ibvs)
         if streamed or core.frames.is_fixed:  # straight at the goal: checked
-            core.arm.guard.check_goal(st.T_base_tcp, goal, "approach goal")
-        else:  # both goals are checked now, so that a refusal moves nothing
+            core.arm.guard.check_goal(st.T_base_tcp, goal, "approach goal", st)
+        else:  # both goals are checked now (reach too), so that a refusal moves nothing
             T_obs = observation_tcp(core, loc.T_base_target, plan.T_target_tcp)
-            core.arm.guard.check_goal(st.T_base_tcp, T_obs, "observation pose")
-            core.arm.guard.check_goal(T_obs, goal, "approach goal")
+            core.arm.guard.check_goal(st.T_base_tcp, T_obs, "observation pose", st)
+            core.arm.guard.check_goal(T_obs, goal, "approach goal", st)
         first.append(loc)
         seen["first_locate_s"] = round(time.monotonic() - began_s, 4)
 

@@ -112,5 +112,5 @@ def _checked_start(core: CellCore, duration_s: float, goal: Callable[[Matrix4], 
     if not core.camera.is_connected:
         raise UnavailableError(ErrorCode.camera_lost, "the camera is lost: tracking needs it")
     loc = locate(core, 1)
-    core.arm.guard.check_goal(st.T_base_tcp, goal(loc.T_base_target), "tracking goal")
+    core.arm.guard.check_goal(st.T_base_tcp, goal(loc.T_base_target), "tracking goal", st)
     return loc

@@ -250,7 +250,7 @@ def run_routine(args: argparse.Namespace) -> int:
         return fail(err.code, str(err), args.json)
     try:
         T_flange_tcp = cfg.tool.T_flange_tcp.T()
-        arm = GuardedArm(hw.arm, limits)  # every view pose checked, as in the service
+        arm = GuardedArm(hw.arm, limits, model=cfg.robot.model)  # checked as in the service
         arm.connect()
         arm.power_on()
         arm.set_tcp(T_flange_tcp)

@@ -135,8 +135,8 @@ class RobotConfigBase(DeviceConfig):
     simulated arm and what an operator can return to."""
 
     # The arm's type: its published DH table is the nominal geometry the hand-eye routine's
-    # kinematic fit starts from (the simulated arm is a UR5e).
-    model: Literal["ur3e", "ur5e", "ur10e", "ur16e"] = "ur5e"
+    # kinematic fit starts from and the reach check solves with (the simulated arm is a UR5e).
+    model: Literal["ur3e", "ur5e", "ur10e", "ur16e", "ur20", "ur30"] = "ur5e"
     # Power on and release the brakes when the service starts and after a controller that
     # came back (False: an operator does it from the page or POST /api/v1/arm/power).
     power_on_at_start: bool = False

@@ -87,6 +87,7 @@ class TargetConfig(DotLayout, Strict):
 
 
 Vec3 = tuple[float, float, float]
+Joints6 = tuple[float, float, float, float, float, float]
 
 
 class PoseConfig(Strict):
@@ -295,6 +296,15 @@ class LimitsConfig(Strict):
     # standing UR arm's state comes every 0.1 s (quiet pushes) and a pose takes ~0.1 s
     max_pose_age_s: float = Field(default=2.0, ge=0.5)
     deadman_timeout_s: float = Field(default=0.2, gt=0, le=0.25)
+    # Reach (cell/motion/reach.py): every pose of a move, as the arm's joints will take it,
+    # inside the joint range and this far from a singularity: the wrist (joint 5 at 0 or
+    # 180 deg), the elbow (joint 3 at 0 or 180 deg: stretched or folded) and the shoulder (the
+    # wrist centre's distance from joint 1's axis, in the arm's plane)
+    joint_min_deg: Joints6 = (-360.0,) * 6
+    joint_max_deg: Joints6 = (360.0,) * 6
+    wrist_singularity_margin_deg: float = Field(default=5.0, ge=0, lt=90)
+    elbow_singularity_margin_deg: float = Field(default=5.0, ge=0, lt=90)
+    shoulder_singularity_margin_mm: float = Field(default=50.0, ge=0)
 
     @model_validator(mode="after")
     def _box(self) -> LimitsConfig:
@@ -304,6 +314,8 @@ class LimitsConfig(Strict):
         if self.min_speed_mm_s > min(self.max_speed_mm_s, self.max_jog_speed_mm_s):
             raise ValueError("min_speed_mm_s must not exceed max_speed_mm_s or "
                              "max_jog_speed_mm_s")
+        if any(lo >= hi for lo, hi in zip(self.joint_min_deg, self.joint_max_deg, strict=True)):
+            raise ValueError("joint_min_deg must be below joint_max_deg for every joint")
         return self
 
 

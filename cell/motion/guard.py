@@ -30,7 +30,7 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Literal
@@ -43,6 +43,7 @@ from cell.config.schema import LimitsConfig
 from cell.error_codes import ErrorCode
 from cell.errors import Cancelled, CellError, LimitError, RefusedError, UnavailableError
 from cell.motion.limits import SafetyGuard, linear_path
+from cell.motion.reach import ArmAt, PhaseReach, Posture, ReachReport
 from cell.motion.twist import extrapolate_tcp
 from drivers.arm import Arm, ArmState, JogFrame
 from drivers.errors import (
@@ -217,9 +218,10 @@ class GuardedArm:
     """:class:`drivers.arm.Arm` with every motion command checked first (see module doc)."""
 
     def __init__(self, arm: Arm, limits: LimitsConfig, slot: MotionSlot | None = None,
-                 history: int = 2000, gate: CommandGate | None = None) -> None:
+                 history: int = 2000, gate: CommandGate | None = None,
+                 model: str = "ur5e") -> None:
         self._arm = arm
-        self.guard = SafetyGuard(limits)
+        self.guard = SafetyGuard(limits, model)
         self.slot = slot if slot is not None else MotionSlot()
         self.gate = gate if gate is not None else CommandGate()
         self._commanded: deque[Commanded] = deque(maxlen=history)
@@ -327,7 +329,7 @@ class GuardedArm:
         self.guard.check_speed(float(speed_mm_s), float(accel_mm_s2))
         st = self.ready_state()
         T_goal = np.asarray(T_base_tcp, dtype=float)
-        self.guard.check_goal(st.T_base_tcp, T_goal, what)
+        self.guard.check_goal(st.T_base_tcp, T_goal, what, st)
         self._record(Commanded(time.monotonic(), "move_linear", T_goal.copy(),
                                T_from=st.T_base_tcp.copy()))
         self._run(motion, what, T_goal, lambda: self._arm.move_linear(
@@ -355,6 +357,7 @@ class GuardedArm:
         if q1.shape != (6,) or not np.all(np.isfinite(q1)):
             raise RefusedError(ErrorCode.invalid_pose, f"the {what} needs 6 finite joint values")
         st = self.ready_state()
+        self.guard.reach.check_joints(q1, what, st)
         q0 = np.asarray(st.joints_rad, dtype=float)
         n = max(2, int(np.ceil(np.degrees(np.max(np.abs(q1 - q0))) / JOINT_PATH_STEP_DEG)) + 1)
         try:
@@ -364,6 +367,37 @@ class GuardedArm:
             raise driver_error(err, f"checking the {what}") from err
         self.guard.check_path(path, what)
         return st, path
+
+    def check_reachable(self, poses: Sequence[tuple[str, Matrix4]],
+                        moves: Literal["linear", "joint"] = "linear") -> ReachReport:
+        """A sequence of TCP poses, each with its phase's name ("pre-pick", "grasp",
+        "retract", "place"), checked before anything moves: each reached from the one before
+        (the first from where the arm is) by a straight move (``linear``: in the arm's
+        configuration, along the sampled path) or a joint move (``joint``: the solution
+        nearest the joints before), against the box, the tilt limit and the reach. Reports
+        the joints at each pose, up to the first that fails and why; it moves nothing."""
+        at: ArmAt = self.ready_state()
+        out: list[PhaseReach] = []
+        for phase, T in poses:
+            T_goal = np.asarray(T, dtype=float)
+            what = f"move to the {phase} pose"
+            try:
+                if T_goal.shape != (4, 4) or not np.all(np.isfinite(T_goal)):
+                    raise LimitError(ErrorCode.invalid_pose, f"the {phase} pose is not finite")
+                if moves == "linear":
+                    self.guard.check_goal(at.T_base_tcp, T_goal, what)
+                    q = self.guard.reach.check_path(linear_path(at.T_base_tcp, T_goal), what,
+                                                    at)[-1]
+                else:
+                    q = self.guard.reach.joints_for(T_goal, what, at)
+                    self.guard.check_path(self.guard.reach.joint_path(
+                        at.joints_rad, q, at, JOINT_PATH_STEP_DEG), what)
+            except LimitError as err:
+                out.append(PhaseReach(phase, T_goal, None, err))
+                break
+            out.append(PhaseReach(phase, T_goal, q))
+            at = Posture(q, T_goal)
+        return ReachReport(tuple(out))
 
     def jog(self, velocity: NDArray[np.float64], frame: JogFrame = "base",
             accel_mm_s2: float = 500.0) -> None:
@@ -379,7 +413,7 @@ class GuardedArm:
                                f"(0, {self.limits.max_accel_mm_s2}]")
         st = self.ready_state()
         self.guard.check_jog_ahead(st.T_base_tcp, jog_ahead(st.T_base_tcp, v, frame,
-                                                            JOG_HORIZON_S))
+                                                            JOG_HORIZON_S), st)
         self._record(Commanded(time.monotonic(), "jog", None, v.copy(), frame,
                                T_from=st.T_base_tcp.copy()))
         try:
@@ -445,7 +479,7 @@ class GuardedArm:
                 T_now = extrapolate_tcp(T_read, prev[1], min(max(moved_s, 0.0), watchdog_s))
             T_ahead = servo_ahead(T_now, v, accel_mm_s2, watchdog_s, alpha)
             path = linear_path(T_now, T_ahead)
-            self.guard.check_path(path, "servo motion")
+            self.guard.check_path(path, "servo motion", st)
             if T_now is not T_read:
                 # and from the reading itself, never less careful than without the move-on
                 # (its end points only: the box is convex, the turn within a tick tiny; the

@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from cell.config.schema import LimitsConfig
 from cell.error_codes import ErrorCode
 from cell.errors import LimitError, RefusedError, UnavailableError
+from cell.motion.reach import ArmAt, ReachCheck
 from cell.vision.frames import tilt_deg
 from drivers.arm import ArmState
 
@@ -52,11 +53,13 @@ class SafetyGuard:
     inside the limits, every pose along the commanded path stays inside; from a pose
     outside (an arm left there by hand, or limits tightened), the path may never make the
     violation worse and must end with it reduced, so an operator can always jog back in but
-    never further out.
+    never further out. Given where the arm is (``at``), the path is also checked as the arm
+    will take it (:class:`cell.motion.reach.ReachCheck`: joints, range, singularities).
     """
 
-    def __init__(self, limits: LimitsConfig) -> None:
+    def __init__(self, limits: LimitsConfig, model: str = "ur5e") -> None:
         self.limits = limits
+        self.reach = ReachCheck(limits, model)
         self._lo = np.asarray(limits.workspace_min_mm, dtype=float)
         self._hi = np.asarray(limits.workspace_max_mm, dtype=float)
 
@@ -117,10 +120,12 @@ class SafetyGuard:
                              f"joint acceleration {a:.3g} deg/s^2 is outside (0, "
                              f"{lim.max_joint_accel_deg_s2}] deg/s^2")
 
-    def check_goal(self, T_from: ArrayLike, T_goal: ArrayLike, what: str = "goal") -> None:
+    def check_goal(self, T_from: ArrayLike, T_goal: ArrayLike, what: str = "goal",
+                   at: ArmAt | None = None) -> None:
         """A straight move from ``T_from`` to ``T_goal``: finite, within the single-move
         distance, and along the whole interpolated path (not only at its ends: orientation
-        is interpolated, so tilt can peak in between) within the box and the tilt limit."""
+        is interpolated, so tilt can peak in between) within the box and the tilt limit,
+        and, given the arm's joints ``at``, within its reach in the configuration it is in."""
         A = np.asarray(T_from, dtype=float)
         B = np.asarray(T_goal, dtype=float)
         if B.shape != (4, 4) or not np.all(np.isfinite(B)):
@@ -129,10 +134,12 @@ class SafetyGuard:
         if dist > self.limits.max_move_mm:
             raise LimitError(ErrorCode.move_too_far, f"the {what} is {dist:.1f} mm away (limit "
                              f"{self.limits.max_move_mm} mm for one move)")
-        self.check_path(linear_path(A, B), what)
+        self.check_path(linear_path(A, B), what, at)
 
-    def check_path(self, path: list[NDArray[np.float64]], what: str) -> None:
-        """Every pose of a sampled path (first = where the arm is) under the path rule."""
+    def check_path(self, path: list[NDArray[np.float64]], what: str,
+                   at: ArmAt | None = None) -> None:
+        """Every pose of a sampled path (first = where the arm is) under the path rule; with
+        ``at`` (the arm's joints and TCP), reachable along the way as well."""
         start, goal = path[0], path[-1]
         box0, tilt0 = self.box_violation_mm(start[:3, 3]), self.tilt_excess_deg(start)
         moves = float(np.linalg.norm(goal[:3, 3] - start[:3, 3])) > _EPS
@@ -164,6 +171,8 @@ class SafetyGuard:
                     ErrorCode.tilt_limit,
                     f"the {what} tilts the tool {tilt_deg(T):.1f} deg from vertical {where} "
                     f"(limit {self.limits.tilt_limit_deg} deg)")
+        if at is not None:
+            self.reach.check_path(path, what, at)
 
     def check_jog_speed(self, linear_mm_s: ArrayLike, angular_deg_s: ArrayLike) -> None:
         lin = np.asarray(linear_mm_s, dtype=float)
@@ -202,9 +211,10 @@ class SafetyGuard:
                 f"limits.max_jog_step_mm = {lim.max_jog_step_mm} / max_jog_step_deg = "
                 f"{lim.max_jog_step_deg}: use approach or several steps")
 
-    def check_jog_ahead(self, T_now: ArrayLike, T_ahead: ArrayLike) -> None:
+    def check_jog_ahead(self, T_now: ArrayLike, T_ahead: ArrayLike,
+                        at: ArmAt | None = None) -> None:
         """A continuous jog continued to ``T_ahead``, under the path rule (LimitError)."""
-        self.check_path(linear_path(T_now, T_ahead), "jog")
+        self.check_path(linear_path(T_now, T_ahead), "jog", at)
 
 
 def pose_angle_deg(T_a: ArrayLike, T_b: ArrayLike) -> float:

@@ -3,9 +3,9 @@
 The simulated controller must report joint and TCP values that agree with each other and with
 what a real UR5e would report, so both directions come from the same DH table (standard DH:
 ``T_i = Rz(theta_i) Tz(d_i) Tx(a_i) Rx(alpha_i)``). Transforms are 4x4 in mm like the rest of
-the project. The inverse is the closed form for UR's geometry (three parallel shoulder/elbow/
-wrist-1 axes plus a spherical-ish wrist): up to 8 solutions, from which the one nearest a seed
-is taken, so continuous motion never jumps between configurations.
+the project. The inverse is the estimator's closed form for UR's geometry (the one the cell's
+reachability check uses): up to 8 solutions, from which the one nearest a seed is taken, so
+continuous motion never jumps between configurations.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from estimator.inverse_kinematics import UrInverse
 from estimator.kinematics import UR_DH, DHTable, dh_link
 from estimator.transforms import invert_T
 
@@ -47,6 +48,7 @@ class UR5eKinematics:
         # the last (q, T_base_tcp, J): IK's final check and the safety check ask for the same q
         self._memo: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None = (
             None)
+        self._inverse: UrInverse | None = None  # built on first use: a perturbed table has none
 
     def set_tcp(self, T_flange_tcp: ArrayLike) -> None:
         T = np.asarray(T_flange_tcp, dtype=float).reshape(4, 4)
@@ -126,54 +128,16 @@ class UR5eKinematics:
     # -- inverse ----------------------------------------------------------------------------
     def inverse_all(self, T_base_flange: ArrayLike, q6_hint_rad: float = 0.0
                     ) -> list[NDArray[np.float64]]:
-        """Every closed-form solution with angles in (-pi, pi] (up to 8), unverified limits.
+        """Every closed-form solution with angles in (-pi, pi] (up to 8), unverified limits
+        (:class:`estimator.inverse_kinematics.UrInverse`, the one the cell checks reach with).
 
         At the wrist singularity (q5 = 0 or pi) only q4 +- q6 is determined: q6 is then set to
         ``q6_hint_rad`` and q4 takes up the rest.
         """
-        T = np.asarray(T_base_flange, dtype=float).reshape(4, 4)
-        d1, _, _, d4, d5, d6 = self.dh.d_mm
-        a2, a3 = self.dh.a_mm[1], self.dh.a_mm[2]
-        p06 = T[:3, 3]
-        x6, y6, z6 = T[:3, 0], T[:3, 1], T[:3, 2]
-        p05 = p06 - d6 * z6
-        r = math.hypot(p05[0], p05[1])
-        if r < abs(d4) - _EPS:
-            return []
-        psi = math.atan2(p05[1], p05[0])
-        phi = math.asin(min(1.0, d4 / r))
-        out: list[NDArray[np.float64]] = []
-        for t1 in (psi + phi, psi + math.pi - phi):
-            z1 = np.array([math.sin(t1), -math.cos(t1), 0.0])
-            c5 = (float(p06 @ z1) - d4) / d6
-            if abs(c5) > 1.0 + 1e-9:
-                continue
-            c5 = max(-1.0, min(1.0, c5))
-            for t5 in (math.acos(c5), -math.acos(c5)):
-                s5 = math.sin(t5)
-                if abs(s5) < 1e-7:
-                    t6 = q6_hint_rad
-                else:
-                    t6 = math.atan2(-float(y6 @ z1) / s5, float(x6 @ z1) / s5)
-                T01 = _dh_T(t1, d1, 0.0, self.dh.alpha_rad[0])
-                T45 = _dh_T(t5, d5, 0.0, self.dh.alpha_rad[4])
-                T56 = _dh_T(t6, d6, 0.0, self.dh.alpha_rad[5])
-                T14 = invert_T(T01) @ T @ invert_T(T45 @ T56)
-                p13 = T14 @ np.array([0.0, -d4, 0.0, 1.0])
-                px, py = float(p13[0]), float(p13[1])
-                c3 = (px * px + py * py - a2 * a2 - a3 * a3) / (2.0 * a2 * a3)
-                if abs(c3) > 1.0 + 1e-9:
-                    continue
-                c3 = max(-1.0, min(1.0, c3))
-                for t3 in (math.acos(c3), -math.acos(c3)):
-                    t2 = math.atan2(py, px) - math.atan2(
-                        a3 * math.sin(t3), a2 + a3 * math.cos(t3))
-                    T13 = _dh_T(t2, 0.0, a2, 0.0) @ _dh_T(t3, 0.0, a3, 0.0)
-                    T34 = invert_T(T13) @ T14
-                    t4 = math.atan2(T34[1, 0], T34[0, 0])
-                    q = np.array([t1, t2, t3, t4, t5, t6])
-                    out.append(np.arctan2(np.sin(q), np.cos(q)))
-        return out
+        if self._inverse is None:
+            self._inverse = UrInverse(self.dh)
+        sols = self._inverse.solve_all(T_base_flange, q6_hint_rad)
+        return [q.copy() for q, ok in zip(sols.q_rad, sols.exists, strict=True) if ok]
 
     def _wrap_near(self, q: NDArray[np.float64], q_near: NDArray[np.float64]) -> (
             NDArray[np.float64] | None):
