@@ -156,7 +156,7 @@ ERROR_NUMBERS: dict[str, int] = {
     "recipe_store_write_failed": 20, "not_ready": 21, "recipe_prepared": 22,
     "recipe_number_taken": 23, "invalid_recipe": 24, "unauthorized": 17,
     "result_not_found": 25, "grasp_missed": 26, "grip_out_of_window": 27, "gripper_fault": 28,
-    "unreachable": 29, "taught_wrong_frame": 30,
+    "taught_wrong_frame": 30,
     "internal_error": 99,
 }
 ERROR_BY_KIND: dict[str, int] = {"invalid": 90, "conflict": 91, "unavailable": 92,

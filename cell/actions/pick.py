@@ -35,7 +35,13 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.actions.approach import ApproachPlan, JobLayout, locate, pose_approach
+from cell.actions.approach import (
+    ApproachPlan,
+    JobLayout,
+    locate,
+    observation_tcp,
+    pose_approach,
+)
 from cell.actions.approach_rules import check_standoff
 from cell.core import CellCore
 from cell.error_codes import ErrorCode
@@ -91,6 +97,7 @@ class PickPlan:
 class Legs:
     """The poses a pick visits once the part is chosen, in order."""
 
+    T_base_target: Matrix4
     pre_pick: Matrix4
     grasp: Matrix4
     retract: Matrix4
@@ -110,7 +117,8 @@ def legs_for(plan: PickPlan, T_base_target: Matrix4) -> Legs:
     grasp = approach_tcp(T_base_target, a.T_target_tcp, 0.0)
     above = None if plan.T_base_tcp_place is None else (
         plan.T_base_tcp_place @ translation_T(0.0, 0.0, -plan.place_clearance_mm))
-    return Legs(pre_pick=approach_tcp(T_base_target, a.T_target_tcp, a.standoff_mm),
+    return Legs(T_base_target=T_base_target,
+                pre_pick=approach_tcp(T_base_target, a.T_target_tcp, a.standoff_mm),
                 grasp=grasp, retract=grasp @ translation_T(0.0, 0.0, -plan.retract_mm),
                 above_place=above, place=plan.T_base_tcp_place)
 
@@ -194,7 +202,7 @@ def start_pick(core: CellCore, gripper: GripperCommands | None, caller: str, pla
         core.arm.guard.check_speed(plan.approach.speed_mm_s, plan.approach.accel_mm_s2)
         core.arm.guard.check_speed(plan.grasp_speed_mm_s, plan.approach.accel_mm_s2)
         core.arm.guard.check_speed(plan.place_speed_mm_s, plan.approach.accel_mm_s2)
-        st = core.arm.ready_state()
+        core.arm.ready_state()
         if not core.camera.is_connected:
             raise UnavailableError(ErrorCode.camera_lost, "the camera is lost: a pick needs it")
         t0 = time.monotonic()
@@ -202,7 +210,7 @@ def start_pick(core: CellCore, gripper: GripperCommands | None, caller: str, pla
         try:
             part = choose_part(core, n_frames)
             first_locate_s.append(time.monotonic() - t0)
-            check_legs(core, st.T_base_tcp, legs_for(plan, part.located.T_base_target))
+            check_legs(core, legs_for(plan, part.located.T_base_target), plan)
         except BaseException:
             core.locator.follow(None)
             raise
@@ -220,13 +228,21 @@ def start_pick(core: CellCore, gripper: GripperCommands | None, caller: str, pla
                           wait_timeout_s=wait_timeout_s)
 
 
-def check_legs(core: CellCore, T_from: Matrix4, legs: Legs, after_pre_pick: bool = False) -> None:
-    """Every straight leg of the pick through the guard's goal check, from where the arm is
-    (``after_pre_pick``: the legs after it, from the pre-pick pose reached); the first refusal
-    names the leg."""
-    for name, T in legs.named()[1 if after_pre_pick else 0:]:
-        core.arm.guard.check_goal(T_from, T, f"pick: {name}")
-        T_from = T
+def check_legs(core: CellCore, legs: Legs, plan: PickPlan,
+               after_pre_pick: bool = False) -> None:
+    """Every leg of the pick, from where the arm is, through the guard: the box, the tilt
+    and the arm's reach along each straight path (``GuardedArm.check_reachable``); a
+    look-and-move approach passes its observation pose first. ``after_pre_pick``: the legs
+    after the pre-pick pose, from the pre-pick pose reached. The first refusal names its
+    leg; nothing moves."""
+    named = legs.named()
+    if after_pre_pick:
+        named = named[1:]
+    elif plan.mode == ApproachMode.look_and_move and not core.frames.is_fixed:
+        named = [("observation", observation_tcp(core, legs.T_base_target,
+                                                 plan.approach.T_target_tcp)), *named]
+    core.arm.check_reachable([(f"pick {name}", T) for name, T in named]
+                             ).raise_if_unreachable()
 
 
 def run_pick(core: CellCore, gripper: GripperCommands | None, caller: str, job_id: str,
@@ -251,7 +267,7 @@ def _cycle(core: CellCore, gripper: GripperCommands, caller: str, job_id: str, m
                                    {"first_locate_s": phases.seconds["locate"]})
     T_base_target = approached.T_base_target.T()
     legs = legs_for(plan, T_base_target)
-    check_legs(core, core.arm.state().T_base_tcp, legs, after_pre_pick=True)
+    check_legs(core, legs, plan, after_pre_pick=True)
     with phases.phase("grasp"):
         core.arm.move_linear(legs.grasp, plan.grasp_speed_mm_s, a.accel_mm_s2, what="grasp")
     T_grasp_reached = core.arm.state().T_base_tcp
