@@ -226,3 +226,22 @@ def test_a_stop_in_each_phase_leaves_the_arm_still_and_the_job_cancelled(
     assert ended["state"] == "cancelled", ended
     assert f"pick phase {phase}" in ended["error"]["message"]
     assert "gripper left as it was" in ended["error"]["message"]
+
+
+def test_a_place_pose_out_of_the_arms_reach_is_refused_before_anything_moves(
+        client: TestClient) -> None:
+    """Inside the workspace box, beyond a UR5e's 850 mm: refused ``unreachable`` with the leg
+    named, no job, no command, the part untouched."""
+    cell = cell_of(client)
+    _place_parts(client, [(0.0, 0.0)])
+    T_far = world(cell).true_T_base_target() @ cell.config.approach.T_target_tcp.T()
+    T_far[:3, 3] = [-820.0, 320.0, 120.0]
+    _teach_place(cell, "far", T_far)
+    before = _truth(client)
+    jobs = cell.jobs.count_jobs()
+    r = client.post("/api/v1/pick", json={"place": "far", "wait": True}, headers=PLC)
+    assert r.status_code == 422, r.text
+    error = r.json()["error"]
+    assert error["code"] == "unreachable" and "place pose" in error["message"], error
+    assert not cell.commanded() and cell.jobs.count_jobs() == jobs
+    assert _truth(client) == before
