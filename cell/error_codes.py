@@ -44,6 +44,9 @@ class ErrorCode(StrEnum):
     servo_timeout = "servo_timeout"
     duration_limit = "duration_limit"
     target_not_visible = "target_not_visible"
+    # the calibration check
+    calibration_drift = "calibration_drift"
+    no_reference = "no_reference"
     # picking
     grasp_missed = "grasp_missed"
     grip_out_of_window = "grip_out_of_window"

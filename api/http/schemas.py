@@ -25,6 +25,7 @@ from cell.results import (
     TrackResult,
 )
 from cell.results.calibration import CalibrationApplied
+from cell.results.check import CheckResult, ReferenceResult
 from cell.results.modes import ApproachMode, PoseMode, TrackMode
 from cell.results.pick import PickResult
 
@@ -328,9 +329,31 @@ class PickJob(_JobFields):
     result: PickResult | None
 
 
+class ReferenceJob(_JobFields):
+    """Recording the calibration reference: its views and the plate's pose."""
+
+    model_config = _examples(JOB_EXAMPLE | {
+        "id": "2b3c4d5e6f7a", "kind": "calibration_reference", "params": {"views": 4},
+        "state": "running", "progress": {"stage": "views", "done": 1, "total": 4},
+        "error": None, "ended_at": None})
+    kind: Literal["calibration_reference"]
+    result: ReferenceResult | None
+
+
+class CheckJob(_JobFields):
+    """A calibration check: the verdict, the change at the tool, each view's figures."""
+
+    model_config = _examples(JOB_EXAMPLE | {
+        "id": "3c4d5e6f7a8b", "kind": "calibration_check", "params": {},
+        "state": "running", "progress": {"stage": "views", "done": 2, "total": 4},
+        "error": None, "ended_at": None})
+    kind: Literal["calibration_check"]
+    result: CheckResult | None
+
+
 # A long-running command, by its ``kind``: each kind's result is its own typed model.
-Job = Annotated[ApproachJob | TrackJob | HomeJob | HandEyeJob | PickJob,
-                Field(discriminator="kind")]
+Job = Annotated[ApproachJob | TrackJob | HomeJob | HandEyeJob | PickJob | ReferenceJob
+                | CheckJob, Field(discriminator="kind")]
 
 
 class JobList(_Out):
@@ -620,7 +643,7 @@ class Alarm(_Out):
     id: int
     code: str = Field(description="an ErrorCode value, or a fault: protective_stop, "
                       "emergency_stop, arm_disconnected, camera_lost, gripper_fault")
-    source: Literal["job", "arm", "camera", "gripper"]
+    source: Literal["job", "arm", "camera", "gripper", "calibration"]
     job_id: str | None
     message: str
     raised_at: float = Field(description="UNIX seconds")
