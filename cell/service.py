@@ -38,6 +38,7 @@ from cell.actions import recovery, track
 from cell.actions.jog import Jogger
 from cell.actions.stop import StopLine
 from cell.calibration.check import CalibrationCheck, ReferenceStore
+from cell.calibration.schedule import CheckSchedule
 from cell.calibration.service import CalibrationService
 from cell.config.schema import CellConfig, HandEyeConfig, PoseConfig
 from cell.core import CellCore
@@ -120,6 +121,7 @@ class Cell:
         self.calibration = CalibrationService(self.core, self.set_hand_eye, config_path)
         self.reference = ReferenceStore.beside_job_db(config.api.job_db)
         self.checks = CalibrationCheck(self.core, self.reference)
+        self.check_schedule = CheckSchedule(self.checks)
         self.started_at = time.time()
 
     # -- what other modules read ---------------------------------------------------------------
@@ -156,6 +158,7 @@ class Cell:
         self.storage.start()
         self.snapshot.start()
         self.alarms.start()
+        self.check_schedule.start()
 
     def close(self) -> None:
         """Stop the arm first, then everything else."""
@@ -163,6 +166,7 @@ class Cell:
             self.stop("service", reason="shutdown")
         except Exception:
             log.exception("stop at shutdown failed")
+        self.check_schedule.close()
         self.alarms.close()
         self.links.close()
         self.core.runner.join(timeout_s=5.0)

@@ -227,6 +227,14 @@ class JobStore:
                 (*args, limit, offset)).fetchall()
         return [_job(r) for r in rows]
 
+    def count_since(self, created_after: float, kinds: tuple[str, ...]) -> int:
+        """Jobs of ``kinds`` created after UNIX time ``created_after``."""
+        marks = ", ".join("?" * len(kinds))
+        with self._lock:
+            return int(self._db.execute(
+                f"SELECT COUNT(*) FROM jobs WHERE kind IN ({marks}) AND created_at > ?",
+                (*kinds, created_after)).fetchone()[0])
+
     def count_jobs(self) -> int:
         with self._lock:
             return int(self._db.execute("SELECT COUNT(*) FROM jobs").fetchone()[0])

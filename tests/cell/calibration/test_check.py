@@ -84,3 +84,30 @@ def test_check_ok_then_a_moved_plate_drifts_raises_the_alarm_and_refuses_jobs(
     assert len(cell.commanded()) > n
     history = client.get("/api/v1/calibration/checks", headers=OP).json()["jobs"]
     assert [j["result"]["verdict"] for j in history] == ["drifted", "ok"]
+
+
+def test_a_check_is_scheduled_every_n_jobs_between_jobs(tmp_path: Path) -> None:
+    """``every_jobs = 2``: after two approaches the cell checks by itself once the arm is
+    idle; a job never overlaps it."""
+    config = sim_config(tmp_path, check={"every_jobs": 2})
+    with running_cell(config) as cell, TestClient(create_app(cell)) as client:
+        r = client.post("/api/v1/calibration/reference", json={"wait": True}, headers=OP)
+        assert r.json()["state"] == "succeeded"
+        time.sleep(3.0)
+        assert not cell.jobs.list_jobs(5, kind="calibration_check")  # nothing due yet
+        for _ in range(2):
+            r = client.post("/api/v1/approach", json={"wait": True}, headers=PLC)
+            assert r.json()["state"] == "succeeded", r.json()
+        deadline = time.monotonic() + 30
+        while not (checks := cell.jobs.list_jobs(5, kind="calibration_check")):
+            assert time.monotonic() < deadline, "no scheduled check"
+            time.sleep(0.2)
+        job = checks[0]
+        assert job.caller == "schedule"
+        while cell.job(job.id).state == "running":
+            time.sleep(0.2)
+        assert cell.job(job.id).state == "succeeded"
+        approaches = cell.jobs.list_jobs(5, kind="approach")
+        assert all((a.ended_at or 0) <= job.created_at for a in approaches)
+        time.sleep(3.0)
+        assert len(cell.jobs.list_jobs(5, kind="calibration_check")) == 1  # not due again
