@@ -39,6 +39,12 @@ def _check(client: TestClient) -> dict:  # type: ignore[type-arg]
     return job["result"]  # type: ignore[no-any-return]
 
 
+def _metrics(client: TestClient) -> dict[str, float]:
+    text = client.get("/metrics", headers=OP).text
+    return {line.split()[0]: float(line.split()[1]) for line in text.splitlines()
+            if line.startswith("cell_calibration_")}
+
+
 def test_a_check_needs_a_reference_and_moves_nothing_without_one(client: TestClient) -> None:
     r = client.post("/api/v1/calibration/check", json={"wait": True}, headers=PLC)
     assert r.status_code == 409 and r.json()["error"]["code"] == "no_reference"
@@ -82,6 +88,14 @@ def test_check_ok_then_a_moved_plate_drifts_raises_the_alarm_and_refuses_jobs(
     r = client.post("/api/v1/approach", json={"wait": True}, headers=PLC)
     assert r.status_code == 200 and r.json()["state"] == "succeeded", r.json()
     assert len(cell.commanded()) > n
+    # between checks the jobs' own evidence is published; the newest check too
+    motion = r.json()["result"]["consistency"]["motion"]
+    metrics = _metrics(client)
+    assert metrics["cell_calibration_disagreement_mm"] == pytest.approx(
+        motion["max_target_moved_mm"])
+    assert metrics["cell_calibration_check_tcp_error_mm"] == pytest.approx(
+        drifted["tcp_error_mm"])
+    assert metrics["cell_calibration_check_drifted"] == 1.0
     history = client.get("/api/v1/calibration/checks", headers=OP).json()["jobs"]
     assert [j["result"]["verdict"] for j in history] == ["drifted", "ok"]
 
