@@ -127,3 +127,4 @@ class ErrorCode(StrEnum):
     config_invalid = "config_invalid"
     config_write_failed = "config_write_failed"
     no_config_file = "no_config_file"
+    storage_failed = "storage_failed"

@@ -14,6 +14,12 @@ subscriber keeps the cell's monitor publishing state at camera rate, which costs
 time the motion threads need on a small cell PC.) New alarms are published on the event bus
 (``alarm`` events). A fault raises one alarm when it appears, not one per poll; it may be
 acknowledged while it lasts, and raises a new alarm when it comes back after clearing.
+
+Each poll reads only the jobs that ended since the last one (an index range over ``ended_at``
+from a mark kept in ``alarm_meta``), so a database of months costs what a fresh one does. A job
+database that cannot be written is the fault ``storage_failed``; alarms that cannot be written
+meanwhile are kept in memory (listed, acknowledged, published as any other) and written when
+the database takes writes again.
 """
 
 from __future__ import annotations
@@ -23,16 +29,15 @@ import sqlite3
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from cell.error_codes import ErrorCode
 from cell.errors import NotFoundError
 from cell.jobs.events import EventBus
-from cell.jobs.store import JobStore
+from cell.jobs.store import Job, JobStore
 from cell.results.approach import ApproachBase
 from cell.results.check import CheckResult
-from cell.results.jobs import result_from_json
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +47,9 @@ ALARMED_JOB_STATES = ("failed", "cancelled", "interrupted")
 # in the job history, the audit log and the ``stop`` event, not an alarm to acknowledge.
 # A stop forced by a fault carries the fault's code and stays an alarm.
 STOPPED_ON_REQUEST_CODE = "cancelled"
+# Jobs that ended this long before the newest end seen are read again on the next poll: a job
+# whose end was written late (a slow commit, a clock step) is not missed.
+OVERLAP_S = 5.0
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS alarms (
@@ -63,7 +71,7 @@ CREATE TABLE IF NOT EXISTS alarm_meta (key TEXT PRIMARY KEY, value REAL NOT NULL
 @dataclass(frozen=True)
 class Alarm:
     id: int
-    source: str  # job, arm, camera, gripper, calibration
+    source: str  # job, arm, camera, gripper, calibration, storage
     code: str
     message: str
     job_id: str | None
@@ -106,6 +114,15 @@ def faults_in(status: dict[str, Any]) -> dict[str, tuple[str, str]]:
     return out
 
 
+def storage_fault(write_error: str | None) -> dict[str, tuple[str, str]]:
+    """``storage_failed`` while the job database cannot be written."""
+    if write_error is None:
+        return {}
+    return {ErrorCode.storage_failed.value: (
+        "storage", f"the job database cannot be written ({write_error}): new jobs are "
+        "refused and job ends are kept in memory until it can; free space on the disk")}
+
+
 class AlarmLog:
     """The cell's alarms, persisted beside its ``jobs``, published on its ``events``; the
     faults are read from ``status`` (``Cell.status``). ``start()`` begins watching."""
@@ -122,15 +139,25 @@ class AlarmLog:
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.executescript(_SCHEMA)
         self._lock = threading.Lock()
+        # alarms that could not be written: id -> (key, alarm), written when writes work again
+        self._unsaved: dict[int, tuple[str, Alarm]] = {}
+        now = time.time()
         with self._lock:
-            self._db.execute("INSERT OR IGNORE INTO alarm_meta (key, value) VALUES "
-                             "('jobs_since', ?)", (time.time(),))
-            # jobs that ended before the alarm log existed are history, not alarms
-            self._jobs_since = float(self._db.execute(
-                "SELECT value FROM alarm_meta WHERE key = 'jobs_since'").fetchone()[0])
+            try:
+                self._db.execute("INSERT OR IGNORE INTO alarm_meta (key, value) VALUES "
+                                 "('jobs_since', ?)", (now,))
+            except sqlite3.Error as err:
+                log.error("the alarm log cannot be written: %s", err)
+            meta = dict(self._db.execute("SELECT key, value FROM alarm_meta"))
+        # jobs that ended before the alarm log existed are history, not alarms; ends read
+        # up to 'jobs_seen' were judged by an earlier run
+        self._jobs_since = float(meta.get("jobs_since", now))
+        self._seen_until = float(meta.get("jobs_seen", self._jobs_since))
+        self._seen_saved = self._seen_until
+        self._handled: dict[str, float] = {}  # job id -> its end, within the overlap
         # faults already alarmed and unacknowledged count as seen: no duplicate on restart
         self._present: set[str] = {a.code for a in self.list(active_only=True, limit=1000)[0]
-                                   if a.source != "job"}
+                                   if a.source not in ("job", "calibration")}
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -159,26 +186,27 @@ class AlarmLog:
 
     def check(self) -> list[Alarm]:
         """Raise what is new: finished jobs that failed, faults that appeared."""
+        if self._unsaved and self.jobs.write_error is None:
+            self._flush()
         raised = []
-        for job_id, kind, state, code, words, ended in self._ended_jobs():
-            alarm = self._raise(f"job:{job_id}", "job", code or state,
-                                f"{kind.replace('_', ' ')} job {job_id} {state}: "
-                                f"{words or state}", job_id, ended)
-            if alarm is not None:
-                raised.append(alarm)
-        raised += self.check_drift()
-        for job_id, kind, code, words, ended in self._inconsistent_jobs():
-            alarm = self._raise(f"consistency:{job_id}", "job", code,
-                                f"{kind.replace('_', ' ')} job {job_id} succeeded, but its "
-                                f"result is inconsistent: {words}", job_id, ended)
-            if alarm is not None:
-                raised.append(alarm)
-        faults = faults_in(self.status())
+        ended = self._newly_ended()
+        for job in ended:
+            if job.state in ALARMED_JOB_STATES and not (
+                    job.state == "cancelled" and job.error_code == STOPPED_ON_REQUEST_CODE):
+                raised += self._raised(
+                    f"job:{job.id}", "job", job.error_code or job.state,
+                    f"{job.kind.replace('_', ' ')} job {job.id} {job.state}: "
+                    f"{job.error_message or job.state}", job.id, job.ended_at)
+        raised += self._drift_alarms(ended)
+        for job_id, kind, code, words, at in _inconsistent(ended):
+            raised += self._raised(f"consistency:{job_id}", "job", code,
+                                   f"{kind.replace('_', ' ')} job {job_id} succeeded, but its "
+                                   f"result is inconsistent: {words}", job_id, at)
+        self._mark_seen(ended)
+        faults = {**faults_in(self.status()), **storage_fault(self.jobs.write_error)}
         for code, (source, message) in faults.items():
             if code not in self._present:
-                alarm = self._raise(f"fault:{code}:{time.time_ns()}", source, code, message)
-                if alarm is not None:
-                    raised.append(alarm)
+                raised += self._raised(f"fault:{code}:{time.time_ns()}", source, code, message)
         self._present = set(faults)
         return raised
 
@@ -186,119 +214,148 @@ class AlarmLog:
         """Raise ``calibration_drift`` for each calibration check that said ``drifted`` and has
         no alarm yet (also called before a job the drift policy may refuse, so a check that
         just ended counts at once)."""
+        recent = [j for j in self.jobs.ended_since(self._seen_until - OVERLAP_S)
+                  if j.ended_at is not None and j.ended_at >= self._jobs_since]
+        return self._drift_alarms(recent)
+
+    def _drift_alarms(self, ended: list[Job]) -> list[Alarm]:
         raised = []
-        for job_id, result, ended in self._drifted_checks():
-            alarm = self._raise(
-                f"drift:{job_id}", "calibration", ErrorCode.calibration_drift,
-                f"calibration check {job_id}: drifted by {result.tcp_error_mm:.3f} mm / "
-                f"{result.tcp_error_deg:.3f} deg at the tool (tolerance "
-                f"{result.tolerance_mm:g} mm / {result.tolerance_deg:g} deg); re-calibrate, or "
-                "acknowledge if the cell is fine", job_id, ended)
-            if alarm is not None:
-                raised.append(alarm)
+        for job in ended:
+            result = job.result
+            if job.kind == "calibration_check" and job.state == "succeeded" \
+                    and isinstance(result, CheckResult) and result.verdict == "drifted":
+                raised += self._raised(
+                    f"drift:{job.id}", "calibration", ErrorCode.calibration_drift,
+                    f"calibration check {job.id}: drifted by {result.tcp_error_mm:.3f} mm / "
+                    f"{result.tcp_error_deg:.3f} deg at the tool (tolerance "
+                    f"{result.tolerance_mm:g} mm / {result.tolerance_deg:g} deg); "
+                    "re-calibrate, or acknowledge if the cell is fine", job.id, job.ended_at)
         return raised
 
     def active_drift(self) -> Alarm | None:
         """The newest unacknowledged ``calibration_drift`` alarm, if any."""
+        code = ErrorCode.calibration_drift.value
+        kept = [a for _, a in self._unsaved.values() if a.code == code and a.active]
+        if kept:
+            return max(kept, key=lambda a: a.id)
         with self._lock:
             row = self._db.execute(
                 f"{_SELECT} WHERE acked_at IS NULL AND code = ? ORDER BY id DESC LIMIT 1",
-                (ErrorCode.calibration_drift.value,)).fetchone()
+                (code,)).fetchone()
         return None if row is None else _alarm(row)
 
-    def _drifted_checks(self) -> list[tuple[str, CheckResult, float]]:
-        if str(self.jobs.path) == ":memory:":
-            rows = [(j.id, j.result, j.ended_at) for j in self.jobs.list_jobs(50)
-                    if j.kind == "calibration_check" and j.state == "succeeded"
-                    and (j.ended_at or 0) >= self._jobs_since]
-            jobs = [(i, r, e) for i, r, e in rows if isinstance(r, CheckResult)]
-        else:
-            with self._lock:
-                found = self._db.execute(
-                    "SELECT id, result, ended_at FROM jobs WHERE kind = 'calibration_check' "
-                    "AND state = 'succeeded' AND ended_at >= ? "
-                    "AND 'drift:' || id NOT IN (SELECT key FROM alarms WHERE "
-                    "source = 'calibration') ORDER BY ended_at", (self._jobs_since,)).fetchall()
-            jobs = []
-            for i, r, e in found:
-                result = result_from_json("calibration_check", r) if r else None
-                if isinstance(result, CheckResult):
-                    jobs.append((i, result, e))
-        return [(i, r, float(e or 0)) for i, r, e in jobs if r.verdict == "drifted"]
+    def _newly_ended(self) -> list[Job]:
+        """Jobs that ended since the last poll (and since the log began) not judged yet."""
+        jobs = self.jobs.ended_since(max(self._jobs_since, self._seen_until - OVERLAP_S))
+        return [j for j in jobs if j.id not in self._handled]
 
-    def _ended_jobs(self) -> list[tuple[Any, ...]]:
-        """Jobs that ended badly since the log began and have no alarm yet (the job table is
-        in the same database file; an in-memory store is read through its own API)."""
-        if str(self.jobs.path) == ":memory:":
-            return [(j.id, j.kind, j.state, j.error_code, j.error_message, j.ended_at)
-                    for j in self.jobs.list_jobs(50)
-                    if j.state in ALARMED_JOB_STATES and (j.ended_at or 0) >= self._jobs_since
-                    and not (j.state == "cancelled"
-                             and j.error_code == STOPPED_ON_REQUEST_CODE)]
-        with self._lock:
-            return self._db.execute(
-                "SELECT id, kind, state, error_code, error_message, ended_at FROM jobs "
-                "WHERE state IN ('failed', 'cancelled', 'interrupted') AND ended_at >= ? "
-                "AND NOT (state = 'cancelled' AND IFNULL(error_code, '') = ?) "
-                "AND 'job:' || id NOT IN (SELECT key FROM alarms WHERE source = 'job') "
-                "ORDER BY ended_at", (self._jobs_since, STOPPED_ON_REQUEST_CODE)).fetchall()
-
-    def _inconsistent_jobs(self) -> list[tuple[Any, ...]]:
-        """Succeeded jobs whose ``consistency`` verdict is inconsistent (a mount error leaves
-        the arm where the calibration says, not where the target is) and have no alarm yet:
-        ``(id, kind, code, finding, ended_at)``."""
-        if str(self.jobs.path) == ":memory:":
-            jobs = [(j.id, j.kind, j.result, j.ended_at) for j in self.jobs.list_jobs(50)
-                    if j.state == "succeeded" and (j.ended_at or 0) >= self._jobs_since]
-        else:
+    def _mark_seen(self, ended: list[Job]) -> None:
+        """Remember the judged ends; the mark is saved so a restart does not judge again."""
+        for job in ended:
+            self._handled[job.id] = job.ended_at or 0.0
+            self._seen_until = max(self._seen_until, job.ended_at or 0.0)
+        horizon = self._seen_until - 2 * OVERLAP_S
+        self._handled = {i: t for i, t in self._handled.items() if t >= horizon}
+        if self._seen_until > self._seen_saved and self.jobs.write_error is None:
             with self._lock:
-                rows = self._db.execute(
-                    "SELECT id, kind, result, ended_at FROM jobs WHERE state = 'succeeded' "
-                    "AND ended_at >= ? AND result LIKE '%\"inconsistent\"%' "
-                    "AND 'consistency:' || id NOT IN (SELECT key FROM alarms WHERE "
-                    "source = 'job') ORDER BY ended_at", (self._jobs_since,)).fetchall()
-            jobs = [(i, k, result_from_json(k, r) if r else None, e) for i, k, r, e in rows]
-        out = []
-        for job_id, kind, result, ended in jobs:
-            if isinstance(result, ApproachBase) and result.consistency.verdict == "inconsistent":
-                c = result.consistency
-                codes, findings = c.codes or ["calibration_inconsistent"], c.findings or [""]
-                out.append((job_id, kind, codes[-1], findings[-1], ended))
-        return out
+                try:
+                    self._db.execute("INSERT OR REPLACE INTO alarm_meta (key, value) VALUES "
+                                     "('jobs_seen', ?)", (self._seen_until,))
+                    self._seen_saved = self._seen_until
+                except sqlite3.Error as err:
+                    log.warning("could not save the alarm log's mark: %s", err)
+
+    def _raised(self, key: str, source: str, code: str, message: str,
+                job_id: str | None = None, at: float | None = None) -> list[Alarm]:
+        alarm = self._raise(key, source, code, message, job_id, at)
+        return [] if alarm is None else [alarm]
 
     def _raise(self, key: str, source: str, code: str, message: str,
                job_id: str | None = None, at: float | None = None) -> Alarm | None:
+        raised_at = time.time() if at is None else at
         with self._lock:
-            cur = self._db.execute(
-                "INSERT OR IGNORE INTO alarms (key, source, code, message, job_id, raised_at) "
-                "VALUES (?, ?, ?, ?, ?, ?)",
-                (key, source, code, message, job_id, time.time() if at is None else at))
-            if cur.rowcount == 0:
+            if any(k == key for k, _ in self._unsaved.values()):
                 return None
-            alarm = self._get_locked(int(cur.lastrowid or 0))
+            try:
+                cur = self._db.execute(
+                    "INSERT OR IGNORE INTO alarms (key, source, code, message, job_id, "
+                    "raised_at) VALUES (?, ?, ?, ?, ?, ?)",
+                    (key, source, code, message, job_id, raised_at))
+            except sqlite3.Error as err:
+                alarm = Alarm(self._next_id_locked(), source, code, message, job_id,
+                              raised_at, None, None)
+                self._unsaved[alarm.id] = (key, alarm)
+                log.error("alarm %d kept in memory, the database cannot be written: %s",
+                          alarm.id, err)
+            else:
+                if cur.rowcount == 0:
+                    return None
+                alarm = self._get_locked(int(cur.lastrowid or 0))
         log.warning("alarm %d (%s): %s", alarm.id, alarm.code, alarm.message)
         self.events.publish(EVENT, {"alarm": alarm.as_dict()})
         return alarm
+
+    def _next_id_locked(self) -> int:
+        stored = self._db.execute("SELECT IFNULL(MAX(id), 0) FROM alarms").fetchone()[0]
+        return max([int(stored), *self._unsaved]) + 1
+
+    def _flush(self) -> None:
+        """Write the alarms kept in memory (with their ids); kept when it fails."""
+        with self._lock:
+            kept = list(self._unsaved.items())
+            try:
+                self._db.execute("BEGIN IMMEDIATE")
+                for alarm_id, (key, a) in kept:
+                    self._db.execute(
+                        "INSERT OR IGNORE INTO alarms (id, key, source, code, message, job_id, "
+                        "raised_at, acked_at, acked_by) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                        (alarm_id, key, a.source, a.code, a.message, a.job_id, a.raised_at,
+                         a.acknowledged_at, a.acknowledged_by))
+                self._db.execute("COMMIT")
+            except sqlite3.Error as err:
+                if self._db.in_transaction:
+                    self._db.execute("ROLLBACK")
+                log.debug("alarms still kept in memory: %s", err)
+                return
+            for alarm_id, _ in kept:
+                self._unsaved.pop(alarm_id, None)
+        log.warning("%d alarms kept in memory are written", len(kept))
+
+    def prune(self, acked_before_s: float, limit: int) -> int:
+        """Delete up to ``limit`` alarms acknowledged before UNIX time ``acked_before_s``,
+        oldest acknowledgement first (an active alarm is never deleted); how many went."""
+        with self._lock:
+            cur = self._db.execute(
+                "DELETE FROM alarms WHERE id IN (SELECT id FROM alarms WHERE acked_at < ? "
+                "ORDER BY acked_at LIMIT ?)", (acked_before_s, limit))
+            return max(0, cur.rowcount)
 
     # -- reading and acknowledging ---------------------------------------------------------
     def list(self, active_only: bool = False, limit: int = 50,
              offset: int = 0) -> tuple[list[Alarm], int, int]:
         """(alarms newest first, how many match, how many are active)."""
+        kept = sorted((a for _, a in self._unsaved.values() if a.active or not active_only),
+                      key=lambda a: -a.id)
+        shown = kept[offset:offset + limit]
         where = "WHERE acked_at IS NULL" if active_only else ""
         with self._lock:
             rows = self._db.execute(
                 f"{_SELECT} {where} ORDER BY id DESC LIMIT ? OFFSET ?",
-                (limit, offset)).fetchall()
+                (limit - len(shown), max(0, offset - len(kept)))).fetchall()
             total = self._db.execute(f"SELECT COUNT(*) FROM alarms {where}").fetchone()[0]
             active = self._db.execute(
                 "SELECT COUNT(*) FROM alarms WHERE acked_at IS NULL").fetchone()[0]
-        return [_alarm(r) for r in rows], int(total), int(active)
+        n_active = sum(1 for _, a in self._unsaved.values() if a.active)
+        return (shown + [_alarm(r) for r in rows], int(total) + len(kept),
+                int(active) + n_active)
 
     def get(self, alarm_id: int) -> Alarm:
         with self._lock:
             return self._get_locked(alarm_id)
 
     def _get_locked(self, alarm_id: int) -> Alarm:
+        if alarm_id in self._unsaved:
+            return self._unsaved[alarm_id][1]
         row = None if not 0 < alarm_id < 2**63 else (  # SQLite's integers are 64-bit
             self._db.execute(f"{_SELECT} WHERE id = ?", (alarm_id,)).fetchone())
         if row is None:
@@ -310,19 +367,39 @@ class AlarmLog:
         t0 = time.time()
         try:
             with self._lock:
-                self._get_locked(alarm_id)
-                self._db.execute("UPDATE alarms SET acked_at = ?, acked_by = ? WHERE id = ? "
-                                 "AND acked_at IS NULL", (t0, caller, alarm_id))
                 alarm = self._get_locked(alarm_id)
+                if alarm_id in self._unsaved:
+                    if alarm.active:
+                        alarm = replace(alarm, acknowledged_at=t0, acknowledged_by=caller)
+                        self._unsaved[alarm_id] = (self._unsaved[alarm_id][0], alarm)
+                else:
+                    self._db.execute("UPDATE alarms SET acked_at = ?, acked_by = ? WHERE "
+                                     "id = ? AND acked_at IS NULL", (t0, caller, alarm_id))
+                    alarm = self._get_locked(alarm_id)
         except NotFoundError as err:
             self.jobs.audit(caller, "alarm_ack", {"id": alarm_id},
-                                 f"refused:{err.code}", err.message, None, t0)
+                            f"refused:{err.code}", err.message, None, t0)
             raise
         first = alarm.acknowledged_by == caller and alarm.acknowledged_at == t0
         self.jobs.audit(caller, "alarm_ack", {"id": alarm_id, "code": alarm.code}, "ok",
-                             "" if first else "already acknowledged", alarm.job_id, t0)
+                        "" if first else "already acknowledged", alarm.job_id, t0)
         self.events.publish(EVENT, {"alarm": alarm.as_dict()})
         return alarm
+
+
+def _inconsistent(ended: list[Job]) -> list[tuple[str, str, str, str, float | None]]:
+    """Succeeded jobs whose ``consistency`` verdict is inconsistent (a mount error leaves the
+    arm where the calibration says, not where the target is): ``(id, kind, code, finding,
+    ended_at)``."""
+    out = []
+    for job in ended:
+        result = job.result
+        if job.state == "succeeded" and isinstance(result, ApproachBase) \
+                and result.consistency.verdict == "inconsistent":
+            c = result.consistency
+            codes, findings = c.codes or ["calibration_inconsistent"], c.findings or [""]
+            out.append((job.id, job.kind, codes[-1], findings[-1], job.ended_at))
+    return out
 
 
 _SELECT = ("SELECT id, source, code, message, job_id, raised_at, acked_at, acked_by "
