@@ -66,8 +66,9 @@ from cell.servoing.ibvs import Features
 from cell.stats import CellStats
 from cell.supervision.gripper import GripperService
 from cell.supervision.links import LinkSupervisor
+from cell.supervision.retention import Retention
 from cell.supervision.snapshot import CellSnapshot
-from cell.supervision.storage import StorageWatch, state_dirs
+from cell.supervision.storage import StorageWatch, state_dirs, stop_unrecordable_jobs
 from cell.vision.frames import CellFrames, cell_frames
 from cell.vision.imagelog import ImageLog
 from cell.vision.locate import Located, Locator
@@ -113,7 +114,9 @@ class Cell:
         self.stopper = StopLine(self.core, self.gripper_ops.halt)
         self.jogger = Jogger(self.core, self.stopper.stop)
         self.storage = StorageWatch(jobs, state_dirs(jobs, config.api.calibration_dir,
-                                                     config.api.image_log_dir))
+                                                     config.api.image_log_dir),
+                                    busy=lambda: slot.current is not None)
+        stop_unrecordable_jobs(jobs, slot, self.stopper.submit)
         self.snapshot = CellSnapshot(self.core, self.links, self.gripper_ops, self.storage)
         self.taught = TaughtStore.beside_job_db(config.api.job_db)
         self.recipes = RecipeStore.beside_job_db(config.api.job_db, config.limits)
@@ -122,6 +125,8 @@ class Cell:
         self.reference = ReferenceStore.beside_job_db(config.api.job_db)
         self.checks = CalibrationCheck(self.core, self.reference)
         self.check_schedule = CheckSchedule(self.checks)
+        self.retention = Retention(config.retention, jobs, self.alarms.prune, image_log,
+                                   idle=lambda: slot.current is None)
         self.started_at = time.time()
 
     # -- what other modules read ---------------------------------------------------------------
@@ -159,6 +164,7 @@ class Cell:
         self.snapshot.start()
         self.alarms.start()
         self.check_schedule.start()
+        self.retention.start()
 
     def close(self) -> None:
         """Stop the arm first, then everything else."""
@@ -167,6 +173,7 @@ class Cell:
         except Exception:
             log.exception("stop at shutdown failed")
         self.check_schedule.close()
+        self.retention.close()
         self.alarms.close()
         self.links.close()
         self.core.runner.join(timeout_s=5.0)

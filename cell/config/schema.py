@@ -596,6 +596,26 @@ class CheckConfig(Strict):
     frames_per_view: int = Field(default=3, ge=1, le=10)
 
 
+class RetentionConfig(Strict):
+    """How long the cell keeps what it writes (``[retention]``), by age and by size, pruned in
+    the background in small batches (:mod:`cell.supervision.retention`).
+
+    Ages in days (0: kept by age forever, the size bounds still apply). ``database_max_mb``
+    bounds the job database's used pages: beyond it the oldest jobs go first, then the oldest
+    audit rows, then the oldest acknowledged alarms, whatever their age. Active alarms and
+    running jobs are never deleted; hand-eye calibration jobs (the evidence of a calibration)
+    only by size. ``images_*`` bound the image log of failed locates."""
+
+    jobs_days: float = Field(default=180.0, ge=0)
+    audit_days: float = Field(default=730.0, ge=0)
+    alarms_days: float = Field(default=365.0, ge=0)
+    database_max_mb: float = Field(default=4096.0, gt=0)
+    images_days: float = Field(default=90.0, ge=0)
+    images_max_mb: float = Field(default=1024.0, gt=0)
+    period_s: float = Field(default=300.0, gt=0)
+    batch_rows: int = Field(default=500, ge=1, le=100_000)
+
+
 class CommissioningConfig(Strict):
     """Keys whose unusual value is intended: the commissioning checks let them pass."""
 
@@ -627,6 +647,7 @@ class CellConfig(BaseModel):
     urscript: UrscriptConfig = UrscriptConfig()
     modbus: ModbusConfig = ModbusConfig()
     check: CheckConfig = CheckConfig()
+    retention: RetentionConfig = RetentionConfig()
     commissioning: CommissioningConfig = CommissioningConfig()
 
     @model_validator(mode="after")

@@ -63,6 +63,7 @@ CREATE TABLE IF NOT EXISTS jobs (
 CREATE INDEX IF NOT EXISTS jobs_created ON jobs (created_at);
 CREATE INDEX IF NOT EXISTS jobs_kind ON jobs (kind, created_at);
 CREATE INDEX IF NOT EXISTS jobs_ended ON jobs (ended_at);
+CREATE INDEX IF NOT EXISTS jobs_running ON jobs (state) WHERE state = 'running';
 CREATE TABLE IF NOT EXISTS audit (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
     caller TEXT NOT NULL,
@@ -256,7 +257,7 @@ class JobStore:
         with self._lock:
             rows = self._db.execute(
                 f"{_SELECT_JOBS} WHERE state = 'running'").fetchall()
-        pids = dict(self._db.execute("SELECT id, pid FROM jobs WHERE state = 'running'"))
+            pids = dict(self._db.execute("SELECT id, pid FROM jobs WHERE state = 'running'"))
         for row in rows:
             job, pid = _job(row), pids.get(row[0])
             message = (f"the service (pid {pid}) stopped while this job was running; the arm "
@@ -391,6 +392,71 @@ class JobStore:
 
 _INSERT_AUDIT = ("INSERT INTO audit (caller, command, params, outcome, detail, job_id, "
                  "started_at, ended_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?)")
+class Pruning:
+    """The retention's deletes on one store, each a bounded batch through an index."""
+
+    def __init__(self, store: JobStore) -> None:
+        self.store = store
+
+    def jobs(self, created_before_s: float, limit: int, keep_kinds: tuple[str, ...] = ()
+             ) -> int:
+        """Delete up to ``limit`` ended jobs created before ``created_before_s``, oldest
+        first, except those of ``keep_kinds``; how many went."""
+        marks = ", ".join("?" * len(keep_kinds))
+        keep = f"AND kind NOT IN ({marks}) " if keep_kinds else ""
+        return self._delete(
+            "DELETE FROM jobs WHERE rowid IN (SELECT rowid FROM jobs WHERE created_at < ? "
+            f"AND state != 'running' {keep}ORDER BY created_at LIMIT ?)",
+            (created_before_s, *keep_kinds, limit))
+
+    def audit(self, ended_before_s: float, limit: int) -> int:
+        """Delete those of the oldest ``limit`` audit rows that ended before
+        ``ended_before_s`` (rows are written in time order: the oldest ids are the oldest
+        rows, and the batch never scans beyond them)."""
+        return self._delete(
+            "DELETE FROM audit WHERE id IN (SELECT id FROM audit ORDER BY id LIMIT ?) "
+            "AND ended_at < ?", (limit, ended_before_s))
+
+    def used_bytes(self) -> int:
+        """The pages in use (the file less its free pages)."""
+        db, lock = self.store._db, self.store._lock
+        with lock:
+            pages = db.execute("PRAGMA page_count").fetchone()[0]
+            free = db.execute("PRAGMA freelist_count").fetchone()[0]
+            size = db.execute("PRAGMA page_size").fetchone()[0]
+        return int((pages - free) * size)
+
+    def incremental(self) -> bool:
+        with self.store._lock:
+            return int(self.store._db.execute("PRAGMA auto_vacuum").fetchone()[0]) == 2
+
+    def release(self, pages: int) -> int:
+        """Hand up to ``pages`` free pages back to the file system (incremental vacuum);
+        how many it handed back."""
+        with self.store._writing() as db:
+            before = int(db.execute("PRAGMA freelist_count").fetchone()[0])
+            # a script runs the pragma to its end (each step of it frees one page)
+            db.executescript(f"PRAGMA incremental_vacuum({int(pages)});")
+            return before - int(db.execute("PRAGMA freelist_count").fetchone()[0])
+
+    def checkpoint(self) -> None:
+        """Copy the WAL into the file and empty it: the file takes its shrunken size, and
+        the WAL its smallest (a reader in the way leaves it for the next pass)."""
+        with self.store._writing() as db:
+            db.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchall()
+
+    def make_incremental(self) -> None:
+        """Rewrite a database made without incremental auto-vacuum (one VACUUM: writes wait
+        meanwhile; the retention does this only while the cell is idle and the file small)."""
+        with self.store._writing() as db:
+            db.execute("PRAGMA auto_vacuum = INCREMENTAL")
+            db.execute("VACUUM")
+
+    def _delete(self, sql: str, args: tuple[Any, ...]) -> int:
+        with self.store._writing() as db:
+            return max(0, db.execute(sql, args).rowcount)
+
+
 # The columns in the order _job reads them.
 _SELECT_JOBS = ("SELECT id, kind, caller, params, state, progress, result, error_code, "
                 "error_message, created_at, ended_at FROM jobs")

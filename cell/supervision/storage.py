@@ -6,6 +6,11 @@ the store remembers it) and the free space of each file system the service write
 job database's directory, the calibration and image log directories). ``/health`` reads the
 newest outcome (:meth:`StorageWatch.reasons`) from the cell's snapshot: nothing here runs on a
 reader's path, and nothing scans the database.
+
+While a job runs the probe looks every ``JOB_CHECK_PERIOD_S``: a disk that fails mid-job is
+seen within that, and :func:`stop_unrecordable_jobs` stops the job (``storage_failed``, the
+arm commanded to stop): a cell whose record cannot be written does not go on producing. The
+job's end reaches every interface from memory (:mod:`cell.jobs.unsaved`).
 """
 
 from __future__ import annotations
@@ -14,12 +19,18 @@ import logging
 import os
 import shutil
 import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 
+from cell.error_codes import ErrorCode
+from cell.errors import UnavailableError
 from cell.jobs import JobStore
+from cell.motion.guard import MotionSlot
 
 log = logging.getLogger(__name__)
 CHECK_PERIOD_S = 2.0
+JOB_CHECK_PERIOD_S = 0.25
 # A file system the service writes to is "near full" below either of these: the job and audit
 # log, taught poses and the image log of failed locates must keep fitting, and a log that
 # fails to write is lost exactly when it is needed.
@@ -48,9 +59,11 @@ def disk_reason(path: Path) -> Reason | None:
 class StorageWatch:
     """The job store's writability and the free disk space, checked in the background."""
 
-    def __init__(self, jobs: JobStore, dirs: list[Path]) -> None:
+    def __init__(self, jobs: JobStore, dirs: list[Path],
+                 busy: Callable[[], bool] = lambda: False) -> None:
         self.jobs = jobs
         self.dirs = dirs
+        self.busy = busy  # whether a job runs: the probe then looks more often
         self._disk: list[Reason] = []
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -71,12 +84,16 @@ class StorageWatch:
         error = self.jobs.write_error
         if error is not None:
             out.insert(0, {"code": "storage", "message": "the job database cannot be written "
-                           f"({self.jobs.path}): {error}; jobs and the audit log are not kept"})
+                           f"({self.jobs.path}): {error}; new jobs are refused and job ends "
+                           f"are kept in memory ({self.jobs.unsaved} waiting)"})
         return out
 
     def check(self) -> None:
         """One look at the store and the disks (the background thread's, and at start)."""
         self.jobs.probe(idle_s=CHECK_PERIOD_S)
+        self.check_disks()
+
+    def check_disks(self) -> None:
         disk: list[Reason] = []
         seen: set[int] = set()
         for d in self.dirs:
@@ -94,11 +111,35 @@ class StorageWatch:
         self._disk = disk
 
     def _loop(self) -> None:
-        while not self._stop.wait(CHECK_PERIOD_S):
+        disks_s = time.monotonic()
+        while not self._stop.wait(JOB_CHECK_PERIOD_S if self.busy() else CHECK_PERIOD_S):
             try:
-                self.check()
+                if self.busy():
+                    self.jobs.probe(idle_s=JOB_CHECK_PERIOD_S)
+                else:
+                    self.jobs.probe(idle_s=CHECK_PERIOD_S)
+                if time.monotonic() - disks_s >= CHECK_PERIOD_S:
+                    disks_s = time.monotonic()
+                    self.check_disks()
             except Exception:  # the watch must outlive any one bad look
                 log.exception("storage check failed")
+
+
+def stop_unrecordable_jobs(jobs: JobStore, slot: MotionSlot,
+                           stop: Callable[[str, str], object]) -> None:
+    """When a write to ``jobs`` fails, the job holding ``slot`` ends ``storage_failed`` and
+    ``stop(caller, reason)`` stops the arm (the job's end then comes from memory)."""
+
+    def failed(error: str) -> None:
+        motion = slot.current
+        if motion is None or motion.job_id is None:
+            return
+        slot.cancel(UnavailableError(
+            ErrorCode.storage_failed, f"the job database cannot be written ({error}): the "
+            "job was stopped, its record is kept in memory until the disk takes writes again"))
+        stop("service", "storage_failed")
+
+    jobs.on_write_failed(failed)
 
 
 def state_dirs(jobs: JobStore, *others: str) -> list[Path]:

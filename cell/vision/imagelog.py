@@ -48,6 +48,28 @@ class ImageLog:
             old.unlink(missing_ok=True)
             old.with_suffix(".json").unlink(missing_ok=True)
 
+    def prune(self, saved_before_s: float, max_bytes: int) -> int:
+        """Delete the entries saved before UNIX time ``saved_before_s`` and then the oldest
+        until the rest take at most ``max_bytes``; how many went."""
+        with self._lock:
+            sized = []
+            for png in self.entries():
+                try:
+                    st = png.stat()
+                    info = png.with_suffix(".json")
+                    sized.append((png, st.st_mtime, st.st_size
+                                  + (info.stat().st_size if info.exists() else 0)))
+                except OSError:
+                    continue
+            total, gone = sum(n for _, _, n in sized), 0
+            for png, saved_s, n in sized:
+                if saved_s >= saved_before_s and total <= max_bytes:
+                    break
+                png.unlink(missing_ok=True)
+                png.with_suffix(".json").unlink(missing_ok=True)
+                total, gone = total - n, gone + 1
+            return gone
+
     def page(self, offset: int = 0, limit: int = 20) -> tuple[list[dict[str, Any]], int]:
         """Entries newest first with what was recorded about each, and how many there are."""
         pngs = self.entries()[::-1]
