@@ -643,7 +643,7 @@ class Alarm(_Out):
     id: int
     code: str = Field(description="an ErrorCode value, or a fault: protective_stop, "
                       "emergency_stop, arm_disconnected, camera_lost, gripper_fault")
-    source: Literal["job", "arm", "camera", "gripper", "calibration"]
+    source: Literal["job", "arm", "camera", "gripper", "calibration", "storage"]
     job_id: str | None
     message: str
     raised_at: float = Field(description="UNIX seconds")

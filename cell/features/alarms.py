@@ -50,6 +50,9 @@ STOPPED_ON_REQUEST_CODE = "cancelled"
 # Jobs that ended this long before the newest end seen are read again on the next poll: a job
 # whose end was written late (a slow commit, a clock step) is not missed.
 OVERLAP_S = 5.0
+# A database whose alarm log kept no mark yet (written by a version that judged every poll
+# from the start): ends older than this were judged by that version while it ran.
+FIRST_LOOK_BACK_S = 3600.0
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS alarms (
@@ -152,7 +155,8 @@ class AlarmLog:
         # jobs that ended before the alarm log existed are history, not alarms; ends read
         # up to 'jobs_seen' were judged by an earlier run
         self._jobs_since = float(meta.get("jobs_since", now))
-        self._seen_until = float(meta.get("jobs_seen", self._jobs_since))
+        self._seen_until = float(meta["jobs_seen"]) if "jobs_seen" in meta else \
+            max(self._jobs_since, now - FIRST_LOOK_BACK_S)
         self._seen_saved = self._seen_until
         self._handled: dict[str, float] = {}  # job id -> its end, within the overlap
         # faults already alarmed and unacknowledged count as seen: no duplicate on restart
