@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 
 from estimator import CameraModel
 from estimator.transforms import T_from_pose, invert_T, translation_T
+from fakes.fixed_camera import FixedSimCamera
 from fakes.parts import Placement, SimParts
 from fakes.sim_camera import SimCamera
 from fakes.sim_cell.arm_truth import Matrix4
@@ -155,3 +156,20 @@ def test_a_fixed_reference_is_never_gripped() -> None:
     assert parts.grip(0.0, T_BASE_FLANGE0, T_BASE_TARGET, 85.0, 0.0) is None
     with pytest.raises(ValueError, match="fixed reference"):
         parts.set_slip(0, translation_T(1.0))
+
+
+def test_a_knocked_fixed_camera_renders_from_its_new_pose_in_the_base_frame() -> None:
+    T_base_camera0 = T_BASE_FLANGE0 @ T_FLANGE_CAMERA
+    parts = SimParts.one(TARGET, T_BASE_TARGET)
+    away = T_from_pose([0.0, 0.0, 2000.0], [0.0, 0.0, 0.0])  # the tool far out of the view
+    camera = FixedSimCamera(CAM, parts, T_base_camera0, StaticPose(away), np.eye(4),
+                            tool_radius_mm=0.0, seed=1, noise_std=0.0)
+    world = SimulatedWorld(StillArm(), camera, parts, None, Truth(CAM, T_base_camera0))
+    delta = T_from_pose([1.5, 0.0, 0.0], [0.0, 0.0, 0.01])
+    world.set_faults(Faults(T_mount_delta=delta))
+    np.testing.assert_allclose(world.truth_values().T_flange_camera, T_base_camera0 @ delta)
+    knocked = T_FLANGE_CAMERA @ delta  # the same camera pose, seen from the flange at rest
+    assert _error_px(_frame(camera), _expected_px(CAM, knocked)) < 0.5
+    world.clear_faults()
+    np.testing.assert_array_equal(camera.T_base_camera, T_base_camera0)
+    assert _error_px(_frame(camera), _expected_px(CAM, T_FLANGE_CAMERA)) < 0.5
