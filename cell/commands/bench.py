@@ -73,6 +73,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                     help="checks with nothing changed (default 10)")
     dr.add_argument("--burners", type=int, default=0,
                     help="CPU-burning processes beside the clean checks (default 0)")
+    dr.add_argument("--translations", type=float, nargs="*", default=None, metavar="MM",
+                    help="knock sizes in mm (default 0.2 0.5 1 2)")
+    dr.add_argument("--rotations", type=float, nargs="*", default=None, metavar="DEG",
+                    help="knock sizes in deg (default 0.1 0.2 0.3 1)")
     dr.add_argument("--seed", type=int, default=0, help="random seed")
     dr.add_argument("--world", choices=("realistic", "ideal"), default="realistic")
     dr.add_argument("--no-commission", action="store_true",
@@ -223,11 +227,13 @@ def _bench_drift(args: argparse.Namespace) -> int:
     if args.repeats < 1 or args.clean_checks < 0 or args.burners < 0:
         return fail("invalid_argument", "--repeats must be at least 1, --clean-checks and "
                     "--burners at least 0", args.json)
+    sizes = {k: tuple(v) for k, v in (("translations_mm", args.translations),
+                                      ("rotations_deg", args.rotations)) if v is not None}
     with progress_bars(not args.json) as progress:
         report = run_bench_drift(repeats=args.repeats, clean_checks=args.clean_checks,
                                  seed=args.seed, world=args.world,
                                  commissioned=not args.no_commission, burners=args.burners,
-                                 progress=progress)
+                                 progress=progress, **sizes)
     return _report(args, report, format_report(report))
 
 
