@@ -177,7 +177,7 @@ def run_bench_drift(*, repeats: int = 3, clean_checks: int = 10, seed: int = 0,
                         state, result, error = _check(cell)
                         row.update(state=state, error=error)
                         if result is not None:
-                            row.update(verdict=result.verdict,
+                            row.update(verdict=result.verdict, cause=result.cause,
                                        tcp_error_mm=result.tcp_error_mm,
                                        tcp_error_deg=result.tcp_error_deg,
                                        spread_mm=result.spread_mm, took_s=result.took_s)
