@@ -479,8 +479,12 @@ class ModbusServer(LoopThread):
             return self._job_outcome(remote.home(self.cell, self.caller))
         if command == Command.PICK:
             place = holding[Hr.PLACE]
-            job = remote.pick(self.cell, self.caller, recipe or "", "",
-                              f"place-{place}" if place else "")
+            try:
+                job = remote.pick(self.cell, self.caller, recipe or "", "",
+                                  f"place-{place}" if place else "")
+            except CellError as err:  # refused before a part was chosen: no part, no grip
+                return _Outcome(False, error_number(err.code, err.kind),
+                                pick=(0, 0, GripVerdict.NONE, math.nan))
             return self._pick_outcome(self._job_outcome(job), job.id)
         if command in (Command.GRIPPER_OPEN, Command.GRIPPER_CLOSE):
             action = "open" if command == Command.GRIPPER_OPEN else "close"

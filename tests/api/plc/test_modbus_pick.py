@@ -128,7 +128,8 @@ def test_a_place_number_never_taught_is_refused_and_moves_nothing(served: Served
 def test_a_part_slipped_after_the_last_look_is_a_missed_grasp(served: Served) -> None:
     """The chosen part moves 8 mm once the pick is in its grasp phase: the fingers close on
     nothing, error 26 (grasp_missed), verdict 2 with the part the pick had chosen, the
-    gripper open and no part held."""
+    gripper open and no part held. A pick then refused before choosing a part leaves no
+    part, count or verdict of the missed one in the registers."""
     cell, plc = served.cell, served.plc
     place_parts(served.http, [(0.0, 0.0), (0.0, 140.0)])
     seq = plc.command(Command.PICK)
@@ -165,3 +166,11 @@ def test_a_part_slipped_after_the_last_look_is_a_missed_grasp(served: Served) ->
     assert not any(p["held"] for p in after)
     moved = next(p for p in after if p["id"] == slipping["id"])
     assert pose_distance(T_from_pose_dict(moved["T_base_part"]), T)[0] < 1e-6
+
+    # a pick refused before choosing a part clears the last pick's registers
+    place_parts(served.http, [(0.0, 1000.0)])  # out of the camera's view
+    regs = plc.wait(plc.command(Command.PICK))
+    assert regs[Ir.STATE] == State.FAILED, regs
+    assert regs[Ir.ERROR] == ERROR_NUMBERS["target_not_visible"] == 6
+    assert regs[Ir.PART_ID] == regs[Ir.PARTS_SEEN] == regs[Ir.GRIP] == 0
+    assert math.isnan(_width_mm(regs))
