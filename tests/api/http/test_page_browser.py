@@ -877,3 +877,53 @@ def test_sim_cell_approach_with_a_recipe_chosen_on_the_page(page: Any, sim_cell:
     print(f"page recipe approach: TCP {d_mm:.2f} mm from the recipe's standoff goal (truth)")
     assert d_mm < 2.0
     screenshot(page, "operator-page-sim-recipe")
+
+
+def test_sim_cell_pick_and_place_from_the_page(page: Any, sim_cell: str) -> None:
+    """A part on a block under the home view and a place pose taught in the base frame; the
+    operator chooses the place on the page and presses Pick: the job line names the part, the
+    grip and the phases, and the part lies at its goal (simulator truth)."""
+    from estimator.transforms import T_from_pose_dict, pose_dict, pose_distance
+
+    url = sim_cell
+    auth = {"Authorization": f"Bearer {SIM_OPERATOR}"}
+
+    def call(method: str, path: str, **kw: Any) -> Any:
+        r = httpx.request(method, f"{url}/api/v1{path}", headers=auth, timeout=30.0, **kw)
+        assert r.status_code == 200, r.text
+        return r.json()
+
+    login(page, url, SIM_OPERATOR)
+    page.get_by_test_id("stop").click()  # nothing left running from an earlier test
+    home = call("POST", "/arm/home")
+    wait_until(lambda: call("GET", f"/jobs/{home['id']}")["state"] != "running", 60, "home")
+    call("POST", "/teach", json={"name": "tray-page", "frame": "base"})  # at the home pose
+    T_part = T_from_pose_dict(_truth(url)["T_base_target"])
+    T_part[:3, 3] += [0.0, 0.0, 60.0]  # on a 60 mm block
+    call("PUT", "/sim/parts", json={"parts": [pose_dict(T_part)]})
+    time.sleep(0.3)  # frames of the scene before the part was placed are not this one's
+
+    page.reload()
+    place = page.get_by_test_id("place")
+    wait_until(lambda: "tray-page" in place.locator("option").all_inner_texts(), 10,
+               "the place pose on the page")
+    place.select_option("tray-page")
+    wait_until(lambda: page.get_by_test_id("pick").is_enabled(), 15, "pick enabled")
+    page.get_by_test_id("pick").click()
+    job_line = page.get_by_test_id("job")
+    wait_until(lambda: "succeeded" in job_line.inner_text()
+               or "failed" in job_line.inner_text(), 120, "the pick's end")
+    text = job_line.inner_text()
+    assert "succeeded" in text and "part " in text and "of 1, grip held at" in text, text
+    assert "placed at tray-page" in text and "place " in text.split("(")[-1], text
+    job = call("GET", f"/jobs/{text.split()[1].rstrip(':')}")
+    assert job["kind"] == "pick" and job["params"]["place"] == "tray-page"
+    goal = T_from_pose_dict(job["result"]["place"]["T_base_part_goal"])
+    (part,) = call("GET", "/sim/truth")["parts"]
+    assert not part["held"]
+    d_mm, d_deg = pose_distance(T_from_pose_dict(part["T_base_part"]), goal)
+    print(f"page pick: part {d_mm:.3f} mm / {d_deg:.3f} deg from its goal (truth)")
+    assert d_mm <= 0.3 and d_deg <= 0.1
+    wait_until(lambda: "placed at tray-page" in page.get_by_test_id("history").inner_text(),
+               15, "the pick in the history")
+    screenshot(page, "operator-page-sim-pick")
