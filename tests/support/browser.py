@@ -229,6 +229,7 @@ class RecordingApi:
     frame_headers: dict[str, str] = field(default_factory=dict)  # added to frame.jpg
     recipes: list[dict[str, Any]] = field(default_factory=list)  # GET /recipes
     taught: list[dict[str, Any]] = field(default_factory=list)  # GET /teach
+    checks: list[dict[str, Any]] = field(default_factory=list)  # GET /calibration/checks
     anonymous_stop: bool = True  # POST /stop without any token is taken, as the service does
     # tokens POST /stop no longer accepts (as a token revoked between two status polls)
     stop_refuses: set[str] = field(default_factory=set)
@@ -282,6 +283,8 @@ def recording_app(rec: RecordingApi) -> FastAPI:
         "/api/v1/locate": "locate", "/api/v1/approach": "approach",
         "/api/v1/gripper": "gripper", "/api/v1/arm/home": "operator",
         "/api/v1/arm/unlock": "operator", "/api/v1/pick": "pick",
+        "/api/v1/calibration/check": "check_calibration",
+        "/api/v1/calibration/reference": "calibrate",
     }
     schemas: dict[str, TypeAdapter[Any]] = {
         "/api/v1/jog": TypeAdapter(JogRequest),
@@ -426,6 +429,20 @@ def recording_app(rec: RecordingApi) -> FastAPI:
     def approach() -> dict[str, Any]:
         return {"id": "0123abcd", "kind": "approach", "state": "running",
                 "progress": {}, "result": None, "error": None}
+
+    @app.get("/api/v1/calibration/checks")
+    def calibration_checks() -> dict[str, Any]:
+        return {"jobs": rec.checks, "total": None, "offset": 0}
+
+    @app.post("/api/v1/calibration/check")
+    def check() -> dict[str, Any]:
+        return {"id": "c4ec0001", "kind": "calibration_check", "state": "running",
+                "params": {}, "progress": {}, "result": None, "error": None}
+
+    @app.post("/api/v1/calibration/reference")
+    def reference() -> dict[str, Any]:
+        return {"id": "4ef00001", "kind": "calibration_reference", "state": "running",
+                "params": {}, "progress": {}, "result": None, "error": None}
 
     @app.post("/api/v1/pick")
     def pick() -> dict[str, Any]:

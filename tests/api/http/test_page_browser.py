@@ -72,6 +72,7 @@ def rec(stub: tuple[str, RecordingApi]) -> RecordingApi:
     r.frame_headers.clear()
     r.recipes.clear()
     r.taught.clear()
+    r.checks.clear()
     r.anonymous_stop = True
     r.stop_refuses.clear()
     return r
@@ -93,6 +94,7 @@ NEEDS = {  # control -> the API permission it uses (api.auth); "operator": that 
     "cam-apply": "camera", "cam-iso": "camera", "home": "operator", "unlock": "operator",
     "teach": "operator", "teach-name": "operator", "calib-start": "operator",
     "pick": "pick", "place": "pick",
+    "check-start": "check_calibration", "reference-record": "operator",
 }
 
 
@@ -396,6 +398,73 @@ def test_pick_places_at_a_base_frame_pose_and_the_job_line_and_history_show_the_
     page.get_by_test_id("pick").click()
     wait_until(lambda: len(rec.of("/api/v1/pick")) == 2, what="second pick sent")
     assert rec.of("/api/v1/pick")[1].body == {"wait": False}
+
+
+def _stub_check(job_id: str, at_s: float, tcp_mm: float, views_mm: list[float]) -> dict[str, Any]:
+    verdict = "drifted" if tcp_mm > 0.25 else "ok"
+    return {"id": job_id, "kind": "calibration_check", "state": "succeeded", "caller": "plc",
+            "created_at": at_s, "ended_at": at_s + 4.7, "params": {}, "error": None,
+            "result": {"verdict": verdict, "cause": "camera", "tcp_error_mm": tcp_mm,
+                       "tcp_error_deg": tcp_mm / 10, "tolerance_mm": 0.25, "tolerance_deg": 0.1,
+                       "views": [{"view": k, "distance_mm": d, "rotation_deg": 0.01,
+                                  "shift_mm": [d, 0.0, 0.0], "rms_px": 0.01}
+                                 for k, d in enumerate(views_mm)]}}
+
+
+def test_calibration_check_chart_and_buttons(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    """Every check is a point of its error at the tool over time against the tolerance line,
+    drifted ones marked; the last check's views are bars; the buttons start the jobs."""
+    url, r = stub
+    now = time.time()
+    r.checks[:] = [_stub_check("c3", now - 60, 0.52, [0.61, 0.48, 0.55, 0.7]),  # newest first
+                   _stub_check("c2", now - 3600, 0.04, [0.05, 0.03, 0.04, 0.06]),
+                   _stub_check("c1", now - 7200, 0.01, [0.01, 0.02, 0.01, 0.01])]
+    login(page, url, "tok-operator")
+    chart = page.get_by_test_id("check-chart")
+    wait_until(lambda: chart.get_attribute("data-points") == "3", what="the check chart")
+    dots = chart.locator("circle")
+    assert dots.count() == 3
+    order = [dots.nth(i).get_attribute("data-job-id") for i in range(3)]
+    assert order == ["c1", "c2", "c3"]  # oldest on the left
+    xs = [float(dots.nth(i).get_attribute("cx")) for i in range(3)]
+    ys = [float(dots.nth(i).get_attribute("cy")) for i in range(3)]
+    assert xs[0] < xs[1] < xs[2]
+    assert [dots.nth(i).get_attribute("data-verdict") for i in range(3)] == ["ok", "ok",
+                                                                             "drifted"]
+    tolerance = page.get_by_test_id("check-tolerance")
+    y_tol = float(tolerance.get_attribute("y1"))
+    assert ys[2] < y_tol < ys[1] < ys[0]  # SVG's y grows downwards: higher is more
+    status = page.get_by_test_id("check-status").inner_text()
+    assert "drifted, 0.520 mm / 0.052 deg at the tool" in status and "cause camera" in status
+    bars = page.get_by_test_id("check-views").locator("rect")
+    assert bars.count() == 4
+    heights = [float(bars.nth(i).get_attribute("height")) for i in range(4)]
+    assert heights.index(max(heights)) == 3 and heights.index(min(heights)) == 1
+    assert [bars.nth(i).get_attribute("data-verdict") for i in range(4)] == ["drifted"] * 4
+    chart.scroll_into_view_if_needed()
+    screenshot(page, "calibration-check")
+
+    r.jobs[:] = [{**_stub_check("c4ec0001", now, 0.03, [0.03] * 4), "caller": "operator"}]
+    page.get_by_test_id("check-start").click()
+    wait_until(lambda: rec.of("/api/v1/calibration/check"), what="check sent")
+    assert rec.of("/api/v1/calibration/check")[0].body == {"wait": False}
+    wait_until(lambda: "c4ec0001" in page.get_by_test_id("job").inner_text()
+               and page.get_by_test_id("reference-record").is_enabled(),
+               what="the check's end shown")
+    page.get_by_test_id("reference-record").click()
+    wait_until(lambda: rec.of("/api/v1/calibration/reference"), what="reference sent")
+
+
+def test_a_plc_may_check_but_not_record_the_reference(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    url, _ = stub
+    login(page, url, "tok-plc")
+    assert page.get_by_test_id("check-start").is_enabled()
+    assert page.get_by_test_id("reference-record").is_disabled()
+    assert page.get_by_test_id("check-chart").get_attribute("data-points") in (None, "0")
 
 
 def test_a_viewer_cannot_pick(page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi

@@ -161,7 +161,9 @@ def test_refusals_have_error_numbers_and_change_nothing(served: Served, plc: Plc
     assert not r.isError()
     time.sleep(0.2)
     assert plc.inputs()[Ir.STATE] == State.FAILED
-    assert plc.client.read_input_registers(20, count=10, device_id=1).isError()
+    assert plc.client.read_input_registers(25, count=10, device_id=1).isError()
+    assert plc.client.read_input_registers(28, count=2, device_id=1).isError()
+    assert not plc.client.read_input_registers(0, count=29, device_id=1).isError()
     assert plc.client.read_holding_registers(0, count=7, device_id=1).isError()
 
 
