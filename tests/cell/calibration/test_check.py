@@ -69,14 +69,14 @@ def test_check_ok_then_a_moved_plate_drifts_raises_the_alarm_and_refuses_jobs(
     assert len(ok["views"]) == cell.config.check.views and ok["took_s"] < 15.0
     # the arm is back where the check started
     assert abs(world(cell).true_T_base_tcp() - T_start).max() < 0.05
-    # the reference plate moves 0.5 mm: the tool would miss by that much
+    # the reference plate moves 2 mm: the tool would miss by that much
     T = world(cell).true_T_base_target().copy()
-    T[0, 3] += 0.5
+    T[0, 3] += 2.0
     world(cell).set_target(T)
     time.sleep(0.3)
     drifted = _check(client)
     assert drifted["verdict"] == "drifted" and drifted["cause"] == "reference"
-    assert drifted["tcp_error_mm"] == pytest.approx(0.5, abs=0.1)
+    assert drifted["tcp_error_mm"] == pytest.approx(2.0, abs=0.1)
     r = client.post("/api/v1/approach", json={"wait": True}, headers=PLC)
     assert r.status_code == 409 and r.json()["error"]["code"] == "calibration_drift"
     r = client.post("/api/v1/pick", json={"wait": True}, headers=PLC)
