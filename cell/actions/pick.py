@@ -156,11 +156,12 @@ class Phases:
     message). While the pick approaches, the job's progress shows the approach's own steps
     (``observe``, ``locate``, ``final`` or the servo's figures), as an approach job's does."""
 
-    def __init__(self, core: CellCore, job_id: str, part: dict[str, Any]) -> None:
+    def __init__(self, core: CellCore, job_id: str, part: dict[str, Any],
+                 began_s: float) -> None:
         self.core, self.job_id, self.part = core, job_id, part
         self.seconds: dict[PickPhase, float] = {}
         self.current: PickPhase | None = None
-        self.began_s = time.monotonic()
+        self.began_s = began_s  # the first locate's start: the cycle counts it
 
     @contextmanager
     def phase(self, name: PickPhase) -> Iterator[None]:
@@ -192,7 +193,7 @@ def start_pick(core: CellCore, gripper: GripperCommands | None, caller: str, pla
         params["recipe"] = recipe
     chosen: list[Chosen] = []
     lent = JobLayout(core, layout)
-    first_locate_s: list[float] = []
+    first_locate_s: list[tuple[float, float]] = []  # (start, seconds)
 
     def checks(motion: Motion) -> None:
         if gripper is None or gripper.status() is None:
@@ -209,7 +210,7 @@ def start_pick(core: CellCore, gripper: GripperCommands | None, caller: str, pla
         n_frames = 1 if plan.mode == ApproachMode.servo else core.config.approach.frames_per_locate
         try:
             part = choose_part(core, n_frames)
-            first_locate_s.append(time.monotonic() - t0)
+            first_locate_s.append((t0, time.monotonic() - t0))
             check_legs(core, legs_for(plan, part.located.T_base_target), plan)
         except BaseException:
             core.locator.follow(None)
@@ -219,7 +220,7 @@ def start_pick(core: CellCore, gripper: GripperCommands | None, caller: str, pla
     def work(job_id: str, motion: Motion) -> PickResult:
         try:
             return run_pick(core, gripper, caller, job_id, motion, plan, chosen[0],
-                            first_locate_s[0])
+                            *first_locate_s[0])
         finally:
             core.locator.follow(None)
             lent.ended()
@@ -246,11 +247,15 @@ def check_legs(core: CellCore, legs: Legs, plan: PickPlan,
 
 
 def run_pick(core: CellCore, gripper: GripperCommands | None, caller: str, job_id: str,
-             motion: Motion, plan: PickPlan, part: Chosen, locate_s: float) -> PickResult:
+             motion: Motion, plan: PickPlan, part: Chosen, located_at_s: float,
+             locate_s: float) -> PickResult:
+    """The cycle from the part chosen; ``located_at_s``: when the first locate began (the
+    cycle's start), ``locate_s`` how long it took."""
     assert gripper is not None
     phases = Phases(core, job_id, {
         "id": part.part_id, "layout": part.layout,
-        "T_base_target": pose_dict(part.located.T_base_target), "parts_seen": part.parts_seen})
+        "T_base_target": pose_dict(part.located.T_base_target), "parts_seen": part.parts_seen},
+        located_at_s)
     phases.seconds["locate"] = round(locate_s, 4)
     try:
         return _cycle(core, gripper, caller, job_id, motion, plan, part, phases)
