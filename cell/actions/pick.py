@@ -8,8 +8,10 @@ leg named, and nothing moves.
 
 The phases:
 
-- ``locate``: every part of the layout in view; the configured order (``[locate] order``)
-  picks the next one, which the pick's own locates then follow among the others.
+- ``locate``: every part in view, of the layout and of the recipe's other targets (a second
+  product in the same view is told apart, not taken for parts with dots missing); the
+  configured order (``[locate] order``) picks the next part of the layout, which the pick's
+  own locates then follow among the others. The cycle's time starts here.
 - ``approach``: to the pre-pick pose (the standoff back along the tool axis), closing on the
   part as an approach does (look-and-move or the servo); its refined pose sets the grasp.
 - ``grasp``: blind along the tool axis to the grasp pose at the grasp speed.
@@ -27,7 +29,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -52,12 +54,13 @@ from cell.results.modes import ApproachMode
 from cell.results.pick import Grip, GripVerdict, PickedPart, PickPhase, PickResult, Place
 from cell.results.pose import Pose
 from cell.vision.frames import approach_tcp
-from cell.vision.locate import Located
+from cell.vision.locate import IN_USE, Located
 from estimator import Target
 from estimator.transforms import invert_T, pose_dict, translation_T
 
 log = logging.getLogger(__name__)
 Matrix4 = NDArray[np.float64]
+Layouts = Mapping[str, Target]
 
 
 class GripperCommands(Protocol):
@@ -134,20 +137,27 @@ class Chosen:
     parts_seen: int
 
 
-def choose_part(core: CellCore, n_frames: int) -> Chosen:
-    """The first pickable part in the configured order (``[locate] order``) of one locate of
-    every part of the layout in view; from then on the locator follows that part
-    (:meth:`cell.vision.locate.Locator.follow`), so the pick's own locates see it and not its
-    neighbours. The caller ends the following."""
-    parts = core.locator.locate_all()
-    pickable = [p for p in parts.instances if p.pickable]
+def choose_part(core: CellCore, n_frames: int, beside: Layouts | None = None,
+                name: str = IN_USE) -> Chosen:
+    """The first pickable part of the layout in use (called ``name``) in the configured order
+    (``[locate] order``) of one locate of every part in view, of that layout and of the
+    ``beside`` ones (a recipe's other targets: a product that shares the view is explained
+    as its own parts, never taken for one of this layout's with dots missing); from then on
+    the locator follows that part (:meth:`cell.vision.locate.Locator.follow`), so the pick's
+    own locates see it and not its neighbours. The caller ends the following."""
+    others = {k: v for k, v in (beside or {}).items() if k != name}
+    parts = core.locator.locate_all({**others, name: core.locator.target})
+    mine = [p for p in parts.instances if p.layout == name]
+    pickable = [p for p in mine if p.pickable]
     if not pickable:
-        why = "; ".join(f"part {p.id}: {' '.join(p.reasons)}" for p in parts.instances)
+        why = "; ".join(f"part {p.id}: {' '.join(p.reasons)}" for p in mine)
+        n_other = len(parts.instances) - len(mine)
         raise RefusedError(ErrorCode.target_not_visible,
-                           f"no part to pick in view: {len(parts.instances)} part(s) seen"
-                           + (f" ({why})" if why else ""))
+                           f"no part to pick in view: {len(mine)} part(s) of the layout seen"
+                           + (f" ({why})" if why else "")
+                           + (f", {n_other} of the recipe's other targets" if n_other else ""))
     part = pickable[0]
-    core.locator.follow(np.asarray(part.centre_base_mm, dtype=float))
+    core.locator.follow(np.asarray(part.centre_base_mm, dtype=float), others)
     return Chosen(part.id, part.layout, locate(core, n_frames), len(parts.instances))
 
 
@@ -185,9 +195,12 @@ def grip_verdict(status: dict[str, Any], window_mm: tuple[float, float]) -> Grip
 
 def start_pick(core: CellCore, gripper: GripperCommands | None, caller: str, plan: PickPlan, *,
                recipe: dict[str, Any] | None = None, layout: Target | None = None,
+               layout_name: str = IN_USE, beside: Layouts | None = None,
                wait: bool = False, wait_timeout_s: float = 180.0) -> Job:
-    """Start a pick job (see the module doc); refusals (no gripper, the arm or camera not
-    ready, no part, a leg the guard refuses) move nothing and create no job."""
+    """Start a pick job (see the module doc) of a part of ``layout`` (None: the cell's
+    target), called ``layout_name`` in the result, among parts of ``beside`` layouts that
+    may share the view; refusals (no gripper, the arm or camera not ready, no part, a leg the
+    guard refuses) move nothing and create no job."""
     params = plan.params()
     if recipe is not None:
         params["recipe"] = recipe
@@ -209,7 +222,7 @@ def start_pick(core: CellCore, gripper: GripperCommands | None, caller: str, pla
         t0 = time.monotonic()
         n_frames = 1 if plan.mode == ApproachMode.servo else core.config.approach.frames_per_locate
         try:
-            part = choose_part(core, n_frames)
+            part = choose_part(core, n_frames, beside, layout_name)
             first_locate_s.append((t0, time.monotonic() - t0))
             check_legs(core, legs_for(plan, part.located.T_base_target), plan)
         except BaseException:
