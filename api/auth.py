@@ -47,7 +47,8 @@ from cell.errors import AuthError, ForbiddenError
 # A PLC runs production cycles (locate, approach, track, home, gripper, pick); what wants a
 # person at the cell (jogging, unlocking, power) or changes what later jobs do (teaching,
 # calibration, recipes, camera settings) stays the operator's.
-PRODUCTION = frozenset({"read", "locate", "approach", "track", "home", "gripper", "pick"})
+PRODUCTION = frozenset({"read", "locate", "approach", "track", "home", "gripper", "pick",
+                        "check_calibration"})
 PERMISSIONS: dict[str, frozenset[str]] = {
     "viewer": frozenset({"read"}),
     "operator": PRODUCTION | frozenset({"jog", "recover", "teach", "calibrate", "edit_recipes",

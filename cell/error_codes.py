@@ -44,6 +44,9 @@ class ErrorCode(StrEnum):
     servo_timeout = "servo_timeout"
     duration_limit = "duration_limit"
     target_not_visible = "target_not_visible"
+    # the calibration check
+    calibration_drift = "calibration_drift"
+    no_reference = "no_reference"
     # picking
     grasp_missed = "grasp_missed"
     grip_out_of_window = "grip_out_of_window"
@@ -79,6 +82,7 @@ class ErrorCode(StrEnum):
     invalid_standoff = "invalid_standoff"
     invalid_name = "invalid_name"
     invalid_camera_setting = "invalid_camera_setting"
+    invalid_sim_fault = "invalid_sim_fault"  # a fault the simulated world cannot take
     ibvs_needs_taught = "ibvs_needs_taught"
     taught_without_view = "taught_without_view"
     taught_wrong_frame = "taught_wrong_frame"

@@ -13,7 +13,7 @@ wires together, each with one responsibility:
 
 The stores live here, built once with the cell and closed with it, so every interface (HTTP,
 OPC UA, Modbus, XML-RPC) reads and writes the same ones: ``taught``, ``recipes``,
-``alarms``, ``calibration``.
+``alarms``, ``calibration``, the calibration ``reference`` and its ``checks``.
 
 docs/architecture.md draws the whole house.
 
@@ -37,12 +37,14 @@ from cell.actions import pick as pick_mod
 from cell.actions import recovery, track
 from cell.actions.jog import Jogger
 from cell.actions.stop import StopLine
+from cell.calibration.check import CalibrationCheck, ReferenceStore
+from cell.calibration.schedule import CheckSchedule
 from cell.calibration.service import CalibrationService
 from cell.config.schema import CellConfig, HandEyeConfig, PoseConfig
 from cell.core import CellCore
 from cell.devices.hardware import Hardware, SimWorld
 from cell.error_codes import ErrorCode
-from cell.errors import CellError, LimitError, NotFoundError
+from cell.errors import CellError, LimitError, NotFoundError, RefusedError
 from cell.features.alarms import AlarmLog
 from cell.features.camera_control import apply_camera_settings, camera_settings
 from cell.features.recipes import RecipeStore
@@ -117,6 +119,9 @@ class Cell:
         self.recipes = RecipeStore.beside_job_db(config.api.job_db, config.limits)
         self.alarms = AlarmLog(jobs, self.events, self.status)
         self.calibration = CalibrationService(self.core, self.set_hand_eye, config_path)
+        self.reference = ReferenceStore.beside_job_db(config.api.job_db)
+        self.checks = CalibrationCheck(self.core, self.reference)
+        self.check_schedule = CheckSchedule(self.checks)
         self.started_at = time.time()
 
     # -- what other modules read ---------------------------------------------------------------
@@ -153,6 +158,7 @@ class Cell:
         self.storage.start()
         self.snapshot.start()
         self.alarms.start()
+        self.check_schedule.start()
 
     def close(self) -> None:
         """Stop the arm first, then everything else."""
@@ -160,6 +166,7 @@ class Cell:
             self.stop("service", reason="shutdown")
         except Exception:
             log.exception("stop at shutdown failed")
+        self.check_schedule.close()
         self.alarms.close()
         self.links.close()
         self.core.runner.join(timeout_s=5.0)
@@ -236,6 +243,7 @@ class Cell:
         """Approach job; ``mode`` None: ``[approach] mode`` (see cell.actions.approach); ``recipe``:
         the recipe record the job keeps; ``view``: the taught view (mode ``ibvs``); ``layout``:
         the dot layout looked for during this job only (a recipe's target)."""
+        self._drift_gate(caller, "approach")
         return approach_mod.start_approach(
             self.core, caller, standoff_mm=standoff_mm, speed_mm_s=speed_mm_s,
             T_target_tcp=T_target_tcp, use_last_locate=use_last_locate, wait=wait,
@@ -249,6 +257,7 @@ class Cell:
         or the taught view (mode ``ibvs``); look-and-move cannot follow a moving target;
         ``recipe``: the recipe record the job keeps; ``layout``: the dot layout looked for
         during this job only."""
+        self._drift_gate(caller, "track")
         if mode == ApproachMode.ibvs:
             return track.start_ibvs_track(self.core, caller, standoff_mm=standoff_mm,
                                           duration_s=duration_s, T_target_tcp=T_target_tcp,
@@ -271,6 +280,7 @@ class Cell:
         params = {"recipe": recipe, "target": target, "place": place, "standoff_mm": standoff_mm,
                   "mode": mode}
         try:
+            self._drift_gate(caller, "pick", audited=False)
             record, layout, plan = self._pick_plan(recipe, target, place, standoff_mm, mode)
         except CellError:
             with self.core.audit.command(caller, "pick", params):
@@ -302,6 +312,33 @@ class Cell:
             mode=chosen.mode if mode is None else mode, place=placed,
             grasp_speed_mm_s=chosen.grasp_speed_mm_s, retract_mm=chosen.retract_mm,
             grip_window_mm=(chosen.grip_min_mm, chosen.grip_max_mm))
+
+    def _drift_gate(self, caller: str, command: str, audited: bool = True) -> None:
+        """With ``[check] on_drift = "refuse"``, a job that relies on the calibration is
+        refused while a ``calibration_drift`` alarm is unacknowledged (a check that just
+        ended counts at once); nothing moves."""
+        if self.config.check.on_drift != "refuse":
+            return
+        self.alarms.check_drift()
+        alarm = self.alarms.active_drift()
+        if alarm is None:
+            return
+        err = RefusedError(ErrorCode.calibration_drift,
+                           f"the calibration drifted (alarm {alarm.id}: {alarm.message}); "
+                           f"{command} is refused until the alarm is acknowledged or a "
+                           "calibration is applied ([check] on_drift = \"refuse\")")
+        if not audited:
+            raise err
+        with self.core.audit.command(caller, command, {"refused_by": "calibration_drift"}):
+            raise err
+
+    def record_reference(self, caller: str, wait: bool = False) -> Job:
+        """Record the calibration reference around the arm's pose (cell.calibration.check)."""
+        return self.checks.record(caller, wait=wait)
+
+    def check_calibration(self, caller: str, wait: bool = False) -> Job:
+        """Check the calibration against the reference (cell.calibration.check)."""
+        return self.checks.check(caller, wait=wait)
 
     def jog_step(self, caller: str, *, frame: JogFrame, translation_mm: Any,
                  rotation_deg: Any, speed_mm_s: float | None = None) -> Matrix4:
@@ -379,3 +416,5 @@ class Cell:
             self.config = self.config.model_copy(update={"hand_eye": hand_eye})
             self.core.config = self.config
             self.core.locator.set_frames(frames)
+        while (alarm := self.alarms.active_drift()) is not None:
+            self.alarms.acknowledge(alarm.id, "calibration applied")

@@ -27,6 +27,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector
 
 from cell.service import Cell
+from cell.stats import CalibrationEvidence
 
 LATENCY_BUCKETS_S = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0,
                      10.0, 30.0, 60.0)
@@ -77,6 +78,29 @@ class _CellCollector(Collector):
             pass
         yield GaugeMetricFamily("cell_started_time_seconds", "UNIX time the cell started",
                                 value=cell.started_at)
+        yield from _calibration_metrics(st.calibration)
+
+
+def _calibration_metrics(c: CalibrationEvidence) -> Iterator[Metric]:
+    """What the jobs said about the calibration (cell.stats): a gauge appears once a job
+    has said it."""
+    yield CounterMetricFamily(
+        "cell_calibration_inconsistent_jobs", "succeeded jobs whose views of a target at rest "
+        "disagreed past the consistency limits", value=c.inconsistent)
+    gauges = [
+        ("cell_calibration_disagreement_mm", "the newest judged approach: how far the target "
+         "at rest seemed to move while the arm moved (mm; 0 with a true calibration)",
+         c.disagreement_mm),
+        ("cell_calibration_disagreement_deg", "the same in degrees", c.disagreement_deg),
+        ("cell_calibration_check_tcp_error_mm", "the newest calibration check's change at "
+         "the tool (mm)", c.check_tcp_error_mm),
+        ("cell_calibration_check_tcp_error_deg", "the same in degrees", c.check_tcp_error_deg),
+        ("cell_calibration_check_drifted", "1 when the newest check said drifted",
+         None if c.check_drifted is None else float(c.check_drifted)),
+    ]
+    for name, doc, value in gauges:
+        if value is not None:
+            yield GaugeMetricFamily(name, doc, value=value)
 
 
 class Metrics:

@@ -479,8 +479,12 @@ class ModbusServer(LoopThread):
             return self._job_outcome(remote.home(self.cell, self.caller))
         if command == Command.PICK:
             place = holding[Hr.PLACE]
-            job = remote.pick(self.cell, self.caller, recipe or "", "",
-                              f"place-{place}" if place else "")
+            try:
+                job = remote.pick(self.cell, self.caller, recipe or "", "",
+                                  f"place-{place}" if place else "")
+            except CellError as err:  # refused before a part was chosen: no part, no grip
+                return _Outcome(False, error_number(err.code, err.kind),
+                                pick=(0, 0, GripVerdict.NONE, math.nan))
             return self._pick_outcome(self._job_outcome(job), job.id)
         if command in (Command.GRIPPER_OPEN, Command.GRIPPER_CLOSE):
             action = "open" if command == Command.GRIPPER_OPEN else "close"
@@ -504,7 +508,8 @@ class ModbusServer(LoopThread):
 
     def _pick_outcome(self, outcome: _Outcome, job_id: str) -> _Outcome:
         """A pick's registers: the part and the grip from its result; a pick that failed on
-        its grip says which way."""
+        its grip says which way, and names the part it had chosen (from its progress; 0 and
+        0 when it ended before choosing one)."""
         job = self.cell.job(job_id)
         result = job.result
         if isinstance(result, PickResult):
@@ -516,7 +521,9 @@ class ModbusServer(LoopThread):
             verdict = {"grasp_missed": GripVerdict.MISSED,
                        "grip_out_of_window": GripVerdict.OUT_OF_WINDOW}.get(
                            job.error_code or "", GripVerdict.NONE)
-            outcome.pick = (0, 0, verdict, math.nan)
+            part = (job.progress or {}).get("part") or {}
+            outcome.pick = (int(part.get("id", 0)), int(part.get("parts_seen", 0)), verdict,
+                            math.nan)
         return outcome
 
     @staticmethod

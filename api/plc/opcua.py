@@ -2,20 +2,22 @@
 
 One object ``Cell`` under Objects holds the variables (``State``, ``RobotMode``,
 ``SafetyStatus``, ``TcpPose``/``TcpPoseUR``, ``LastLocatePose``/``LastLocatePoseUR``,
-``LastLocateQuality``, ``JobId``, ``JobKind``, ``JobState``, ``JobPhase``, ``JobProgress``,
-``CameraConnected``, ``Alarms``, ``JobResult``, ``JobErrorCode``) and the methods ``Locate()``,
-``Approach(standoff_mm, mode, taught)``, ``ApproachRecipe(recipe, target, standoff_mm)``,
-``Track(standoff_mm, duration_s)``, ``Pick(recipe, target, place)``, ``Stop()``, ``Home()``,
-``Gripper(action, width_mm)``. Every method answers ``Code`` ("ok" or the HTTP API's error
-code) and ``Message`` first; a refusal is an answer, not an OPC UA fault, so a PLC reads one
-place. Poses are the structure ``Pose``
+``LastLocateQuality``, ``PartsSeen``, ``PartIds``, ``JobId``, ``JobKind``, ``JobState``,
+``JobPhase``, ``JobProgress``, ``CameraConnected``, ``Alarms``, ``JobResult``, ``JobErrorCode``)
+and the methods ``Locate()``, ``LocateAll(recipe)``, ``Approach(standoff_mm, mode, taught)``,
+``ApproachRecipe(recipe, target, standoff_mm)``, ``Track(standoff_mm, duration_s)``,
+``Pick(recipe, target, place)``, ``Stop()``, ``Home()``, ``Gripper(action, width_mm)``. Every
+method answers ``Code`` ("ok" or the HTTP API's error code) and ``Message`` first; a refusal is
+an answer, not an OPC UA fault, so a PLC reads one place. Poses are the structure ``Pose``
 (``position_mm``, ``rotvec_rad``) and, as ``...UR``, a UR pose (m, rotation vector).
 
 Jobs are consistent at a method's return: before the answer of a method that starts a job is
 sent, ``JobId``, ``JobKind`` and ``JobState`` (``running``) hold that job. A job's end is
 written in one service call with its result (``JobResult``, JSON carrying the ``job_id``) and
 ``JobErrorCode``, and raised as a ``JobEndedEventType`` event (``JobId``, ``JobState``,
-``ErrorCode``) from the ``Cell`` object. The OPC UA Machine Vision subset (``VisionSystem``)
+``ErrorCode``) from the ``Cell`` object. ``PartsSeen`` and ``PartIds`` follow the last locate of
+every part, from any door (the cell's ``parts`` event); ``LocateAll`` writes them before it
+answers. The OPC UA Machine Vision subset (``VisionSystem``)
 is built by :mod:`api.plc.opcua_machine_vision`.
 
 The server runs its own asyncio loop in its own thread, so the HTTP server's load does not
@@ -189,6 +191,7 @@ class OpcUaServer(LoopThread):
         self._job_created_at = 0.0  # of the job _last_job_id names
         self._ended_sent: str = ""  # the last job whose JobEnded event was raised
         self._event_gen: Any = None
+        self._parts: list[int] | None = None  # the ids of the last locate of every part
         self.machine_vision: Any = None
         self.calls = ThreadPoolExecutor(4, thread_name_prefix="opcua-call")
         self._stops = ThreadPoolExecutor(2, thread_name_prefix="opcua-stop")
@@ -248,8 +251,10 @@ class OpcUaServer(LoopThread):
         with self.cell.events.subscribe() as sub:
             while self._stop is not None and not self._stop.is_set():
                 event = sub.get(timeout_s=0.5)
-                if event is None or event.get("type") != "job":
+                if event is None or event.get("type") not in ("job", "parts"):
                     continue
+                if event["type"] == "parts":
+                    self._parts = [int(p["id"]) for p in event.get("parts", [])]
                 loop, wake = self._loop, self._wake
                 if loop is not None and wake is not None and not loop.is_closed():
                     with contextlib.suppress(RuntimeError):
@@ -347,6 +352,8 @@ class OpcUaServer(LoopThread):
             ("JobPhase", "", S, None), ("JobProgress", "{}", S, None),
             ("CameraConnected", False, B, None), ("Alarms", [], S, None),
             ("JobResult", "{}", S, None), ("JobErrorCode", "", S, None),
+            ("PartsSeen", 0, ua.VariantType.Int32, None),
+            ("PartIds", [], ua.VariantType.Int32, None),
         ]
         self._written = {}
         for name, value, vtype, datatype in variables:
@@ -366,6 +373,14 @@ class OpcUaServer(LoopThread):
                 *code, _arg("Pose", S, "T_base_target", datatype=pose_arg),
                 _arg("PoseUR", D, "T_base_target as a UR pose (m, rotation vector)", array=True),
                 _arg("RmsPx", D, "reprojection error")]),
+            ("LocateAll", self._locate_all, [
+                _arg("recipe", S, "the recipe whose targets' layouts are looked for (empty: "
+                     "the layout in use)")], [
+                *code, _arg("Count", ua.VariantType.Int32, "the parts in view"),
+                _arg("PartIds", ua.VariantType.Int32, "their ids, in the pick order",
+                     array=True),
+                _arg("Instances", S, "the parts as JSON: id, layout, T_base_target, quality, "
+                     "flags, pickable, ... (as POST /locate {\"all\": true})")]),
             ("Approach", self._approach, [
                 _arg("standoff_mm", D, "distance back from the taught tool pose"),
                 _arg("mode", S, f"{', '.join(ApproachMode)} (empty: the cell's [approach] "
@@ -484,11 +499,18 @@ class OpcUaServer(LoopThread):
         values["LastLocateQuality"] = ua.Variant(
             self._quality(None if last is None else last.quality),
             ua.VariantType.ExtensionObject)
+        if self._parts is not None:
+            values.update(self._parts_values(self._parts))
         await self._write(values)
         if job is not None and job.get("ended_at") and job["id"] != self._ended_sent:
             await self._job_ended(job)
         if self.machine_vision is not None:
             await self.machine_vision.update(st, job)
+
+    @staticmethod
+    def _parts_values(ids: list[int]) -> dict[str, ua.Variant]:
+        I32 = ua.VariantType.Int32
+        return {"PartsSeen": ua.Variant(len(ids), I32), "PartIds": ua.Variant(ids, I32)}
 
     def ended_job(self, job_id: str) -> Job | None:
         """The record of a job that has ended, read from the job store once: what the result
@@ -629,6 +651,27 @@ class OpcUaServer(LoopThread):
         blank = [ua.Variant(self._pose([0.0] * 3, [0.0] * 3), ua.VariantType.ExtensionObject),
                  ua.Variant([0.0] * 6, D), ua.Variant(0.0, D)]
         return await self._answer(work, blank)
+
+    async def _locate_all(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
+        (recipe,) = self.method_args(args, 1)
+        S, I32 = ua.VariantType.String, ua.VariantType.Int32
+
+        def work(caller: RemoteCaller) -> list[ua.Variant]:
+            found = remote.locate_all(self.cell, caller, recipe or "")
+            parts = found.answer(time.monotonic())
+            ids = [p.id for p in parts.instances]
+            self._parts = ids
+            pickable = sum(p.pickable for p in parts.instances)
+            return self._ok(
+                f"{len(ids)} part(s) in view, {pickable} pickable",
+                ua.Variant(len(ids), I32), ua.Variant(ids, I32),
+                ua.Variant(json.dumps([p.json_dict() for p in parts.instances]), S))
+
+        out = await self._answer(work, [ua.Variant(0, I32), ua.Variant([], I32),
+                                        ua.Variant("[]", S)])
+        if out[0].Value == "ok":  # the variables agree with the answer when it leaves
+            await self._write(self._parts_values(list(out[3].Value or [])))
+        return out
 
     async def _approach(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
         standoff_mm, mode, taught = self.method_args(args, 3)

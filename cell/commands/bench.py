@@ -30,7 +30,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="exit with status 1 when a target is missed")
     p.set_defaults(func=_bench)
     what = p.add_subparsers(dest="bench_command", required=False,
-                            metavar="{approach,pick,service,soak,freeze,modbus,fixed,commissioning,controller,live-view}")
+                            metavar="{approach,pick,drift,service,soak,freeze,modbus,fixed,"
+                                    "commissioning,controller,live-view}")
     a = what.add_parser(
         "approach", help="servo vs look-and-move approach, conveyor tracking, lost target",
         description="On the simulated cell through the UR adapter and ur_rtde (see "
@@ -80,6 +81,28 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     pk.add_argument("--check", action="store_true",
                     help="exit with status 1 when a target is missed")
     pk.set_defaults(func=_bench_pick)
+    dr = what.add_parser(
+        "drift", help="the calibration check against a knocked camera: detection, false alarms",
+        description="On the simulated cell, commissioned, the reference recorded at home (see "
+                    "cell/bench/drift.py): checks with nothing changed (false alarms), then the "
+                    "camera mount knocked by 0.2/0.5/1/2 mm and 0.1/0.2/0.3/1 deg in random "
+                    "directions: each check's verdict and figure at the tool against the true "
+                    "error of an approach made after the knock.")
+    dr.add_argument("--repeats", type=int, default=3, help="knocks of each size (default 3)")
+    dr.add_argument("--clean-checks", type=int, default=10,
+                    help="checks with nothing changed (default 10)")
+    dr.add_argument("--burners", type=int, default=0,
+                    help="CPU-burning processes beside the clean checks (default 0)")
+    dr.add_argument("--translations", type=float, nargs="*", default=None, metavar="MM",
+                    help="knock sizes in mm (default 0.2 0.5 1 2)")
+    dr.add_argument("--rotations", type=float, nargs="*", default=None, metavar="DEG",
+                    help="knock sizes in deg (default 0.1 0.2 0.3 1)")
+    dr.add_argument("--seed", type=int, default=0, help="random seed")
+    dr.add_argument("--world", choices=("realistic", "ideal"), default="realistic")
+    dr.add_argument("--no-commission", action="store_true",
+                    help="skip commissioning (the configured lens and mount)")
+    dr.add_argument("--check", action="store_true", help="exit 1 when a target is missed")
+    dr.set_defaults(func=_bench_drift)
     svc = what.add_parser(
         "service", help="the simulated cell service under load: STOP, status, SSE, idle CPU",
         description="Serves the simulated cell, measures idle CPU by process, then runs 50 "
@@ -229,6 +252,23 @@ def _bench_pick(args: argparse.Namespace) -> int:
         report = run_bench_pick(parts=args.parts, seed=args.seed, world=args.world,
                                 commissioned=args.commissioned, missed_runs=args.missed_runs,
                                 progress=progress)
+    return _report(args, report, format_report(report))
+
+
+def _bench_drift(args: argparse.Namespace) -> int:
+    from cell.bench.drift import format_report, run_bench_drift
+    from cell.commands.common import fail, progress_bars
+
+    if args.repeats < 1 or args.clean_checks < 0 or args.burners < 0:
+        return fail("invalid_argument", "--repeats must be at least 1, --clean-checks and "
+                    "--burners at least 0", args.json)
+    sizes = {k: tuple(v) for k, v in (("translations_mm", args.translations),
+                                      ("rotations_deg", args.rotations)) if v is not None}
+    with progress_bars(not args.json) as progress:
+        report = run_bench_drift(repeats=args.repeats, clean_checks=args.clean_checks,
+                                 seed=args.seed, world=args.world,
+                                 commissioned=not args.no_commission, burners=args.burners,
+                                 progress=progress, **sizes)
     return _report(args, report, format_report(report))
 
 

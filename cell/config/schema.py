@@ -576,6 +576,26 @@ class ModbusConfig(Strict):
         return v
 
 
+class CheckConfig(Strict):
+    """The calibration check against the fixed reference (``[check]``).
+
+    A check whose tool-level error exceeds either tolerance says ``drifted`` and raises the
+    ``calibration_drift`` alarm; ``on_drift = "refuse"`` then refuses approaches, tracks and
+    picks until the alarm is acknowledged or a calibration is applied. ``every_jobs`` /
+    ``every_minutes`` (0: never) schedule checks, run between jobs, never during one. The
+    reference is recorded from ``views`` poses tilted up to ``tilt_deg`` about the plate."""
+
+    tolerance_mm: float = Field(default=0.25, gt=0)
+    tolerance_deg: float = Field(default=0.1, gt=0)
+    on_drift: Literal["alarm", "refuse"] = "alarm"
+    every_jobs: int = Field(default=0, ge=0)
+    every_minutes: float = Field(default=0.0, ge=0)
+    views: int = Field(default=4, ge=2, le=8)
+    tilt_deg: float = Field(default=12.0, gt=0, le=30)
+    speed_mm_s: float = Field(default=250.0, gt=0)
+    frames_per_view: int = Field(default=3, ge=1, le=10)
+
+
 class CommissioningConfig(Strict):
     """Keys whose unusual value is intended: the commissioning checks let them pass."""
 
@@ -606,6 +626,7 @@ class CellConfig(BaseModel):
     opcua: OpcUaConfig = OpcUaConfig()
     urscript: UrscriptConfig = UrscriptConfig()
     modbus: ModbusConfig = ModbusConfig()
+    check: CheckConfig = CheckConfig()
     commissioning: CommissioningConfig = CommissioningConfig()
 
     @model_validator(mode="after")

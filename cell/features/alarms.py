@@ -31,6 +31,7 @@ from cell.errors import NotFoundError
 from cell.jobs.events import EventBus
 from cell.jobs.store import JobStore
 from cell.results.approach import ApproachBase
+from cell.results.check import CheckResult
 from cell.results.jobs import result_from_json
 
 log = logging.getLogger(__name__)
@@ -62,7 +63,7 @@ CREATE TABLE IF NOT EXISTS alarm_meta (key TEXT PRIMARY KEY, value REAL NOT NULL
 @dataclass(frozen=True)
 class Alarm:
     id: int
-    source: str  # job, arm, camera, gripper
+    source: str  # job, arm, camera, gripper, calibration
     code: str
     message: str
     job_id: str | None
@@ -165,6 +166,7 @@ class AlarmLog:
                                 f"{words or state}", job_id, ended)
             if alarm is not None:
                 raised.append(alarm)
+        raised += self.check_drift()
         for job_id, kind, code, words, ended in self._inconsistent_jobs():
             alarm = self._raise(f"consistency:{job_id}", "job", code,
                                 f"{kind.replace('_', ' ')} job {job_id} succeeded, but its "
@@ -179,6 +181,50 @@ class AlarmLog:
                     raised.append(alarm)
         self._present = set(faults)
         return raised
+
+    def check_drift(self) -> list[Alarm]:
+        """Raise ``calibration_drift`` for each calibration check that said ``drifted`` and has
+        no alarm yet (also called before a job the drift policy may refuse, so a check that
+        just ended counts at once)."""
+        raised = []
+        for job_id, result, ended in self._drifted_checks():
+            alarm = self._raise(
+                f"drift:{job_id}", "calibration", ErrorCode.calibration_drift,
+                f"calibration check {job_id}: drifted by {result.tcp_error_mm:.3f} mm / "
+                f"{result.tcp_error_deg:.3f} deg at the tool (tolerance "
+                f"{result.tolerance_mm:g} mm / {result.tolerance_deg:g} deg); re-calibrate, or "
+                "acknowledge if the cell is fine", job_id, ended)
+            if alarm is not None:
+                raised.append(alarm)
+        return raised
+
+    def active_drift(self) -> Alarm | None:
+        """The newest unacknowledged ``calibration_drift`` alarm, if any."""
+        with self._lock:
+            row = self._db.execute(
+                f"{_SELECT} WHERE acked_at IS NULL AND code = ? ORDER BY id DESC LIMIT 1",
+                (ErrorCode.calibration_drift.value,)).fetchone()
+        return None if row is None else _alarm(row)
+
+    def _drifted_checks(self) -> list[tuple[str, CheckResult, float]]:
+        if str(self.jobs.path) == ":memory:":
+            rows = [(j.id, j.result, j.ended_at) for j in self.jobs.list_jobs(50)
+                    if j.kind == "calibration_check" and j.state == "succeeded"
+                    and (j.ended_at or 0) >= self._jobs_since]
+            jobs = [(i, r, e) for i, r, e in rows if isinstance(r, CheckResult)]
+        else:
+            with self._lock:
+                found = self._db.execute(
+                    "SELECT id, result, ended_at FROM jobs WHERE kind = 'calibration_check' "
+                    "AND state = 'succeeded' AND ended_at >= ? "
+                    "AND 'drift:' || id NOT IN (SELECT key FROM alarms WHERE "
+                    "source = 'calibration') ORDER BY ended_at", (self._jobs_since,)).fetchall()
+            jobs = []
+            for i, r, e in found:
+                result = result_from_json("calibration_check", r) if r else None
+                if isinstance(result, CheckResult):
+                    jobs.append((i, result, e))
+        return [(i, r, float(e or 0)) for i, r, e in jobs if r.verdict == "drifted"]
 
     def _ended_jobs(self) -> list[tuple[Any, ...]]:
         """Jobs that ended badly since the log began and have no alarm yet (the job table is

@@ -117,6 +117,7 @@ class JobRunner:
         finally:
             self.slot.release(motion)
         self.stats.count_job_end(ended.state)
+        self.stats.observe_result(ended.result)
         self.audit.record(ended.caller, f"{ended.kind}_end", {"job_id": ended.id}, ended.state,
                           ended.error_message or "", ended.id, ended.created_at)
         self.publish(ended)

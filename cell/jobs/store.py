@@ -45,6 +45,7 @@ CREATE TABLE IF NOT EXISTS jobs (
     pid INTEGER NOT NULL
 );
 CREATE INDEX IF NOT EXISTS jobs_created ON jobs (created_at);
+CREATE INDEX IF NOT EXISTS jobs_kind ON jobs (kind, created_at);
 CREATE TABLE IF NOT EXISTS audit (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
     caller TEXT NOT NULL,
@@ -216,13 +217,23 @@ class JobStore:
             row = self._db.execute(f"{_SELECT_JOBS} WHERE id = ?", (job_id,)).fetchone()
         return None if row is None else _job(row)
 
-    def list_jobs(self, limit: int = 50, offset: int = 0) -> list[Job]:
-        """The newest ``limit`` jobs after skipping ``offset``, newest first."""
+    def list_jobs(self, limit: int = 50, offset: int = 0, kind: str | None = None) -> list[Job]:
+        """The newest ``limit`` jobs (of ``kind``; None: any) after skipping ``offset``,
+        newest first."""
+        where, args = ("WHERE kind = ? ", (kind,)) if kind is not None else ("", ())
         with self._lock:
             rows = self._db.execute(
-                f"{_SELECT_JOBS} ORDER BY created_at DESC, rowid DESC LIMIT ? OFFSET ?",
-                (limit, offset)).fetchall()
+                f"{_SELECT_JOBS} {where}ORDER BY created_at DESC, rowid DESC LIMIT ? OFFSET ?",
+                (*args, limit, offset)).fetchall()
         return [_job(r) for r in rows]
+
+    def count_since(self, created_after: float, kinds: tuple[str, ...]) -> int:
+        """Jobs of ``kinds`` created after UNIX time ``created_after``."""
+        marks = ", ".join("?" * len(kinds))
+        with self._lock:
+            return int(self._db.execute(
+                f"SELECT COUNT(*) FROM jobs WHERE kind IN ({marks}) AND created_at > ?",
+                (*kinds, created_after)).fetchone()[0])
 
     def count_jobs(self) -> int:
         with self._lock:

@@ -2,7 +2,8 @@
 
 A job's kind names its result's model: an approach returns an :data:`ApproachResult` (by its
 mode), a track a :data:`TrackResult`, home a :class:`HomeResult`, the hand-eye routine a
-:class:`HandEyeRoutineResult`, a pick a :class:`PickResult`. The job store keeps a result as
+:class:`HandEyeRoutineResult`, a pick a :class:`PickResult`, the calibration reference and
+its check a :class:`ReferenceResult` and a :class:`CheckResult`. The job store keeps a result as
 its JSON and reads it back through :func:`result_of` with the job's kind.
 """
 
@@ -19,17 +20,19 @@ from cell.results.approach import (
     LookAndMoveApproach,
     ServoApproach,
 )
+from cell.results.check import CheckResult, ReferenceResult
 from cell.results.home import HomeResult
 from cell.results.pick import PickResult
 from cell.results.pose import Pose
 from cell.results.routine import HandEyeRoutineResult
 from cell.results.track import IbvsTrack, ServoTrack, TrackResult
 
-JobKind = Literal["approach", "track", "home", "hand_eye_calibration", "pick"]
+JobKind = Literal["approach", "track", "home", "hand_eye_calibration", "pick",
+                  "calibration_reference", "calibration_check"]
 JOB_KINDS: tuple[JobKind, ...] = get_args(JobKind)
 
 JobResult = (LookAndMoveApproach | ServoApproach | IbvsApproach | ServoTrack | IbvsTrack
-             | HomeResult | HandEyeRoutineResult | PickResult)
+             | HomeResult | HandEyeRoutineResult | PickResult | ReferenceResult | CheckResult)
 
 _ADAPTERS: dict[str, TypeAdapter[Any]] = {
     "approach": TypeAdapter(ApproachResult),
@@ -37,6 +40,8 @@ _ADAPTERS: dict[str, TypeAdapter[Any]] = {
     "home": TypeAdapter(HomeResult),
     "hand_eye_calibration": TypeAdapter(HandEyeRoutineResult),
     "pick": TypeAdapter(PickResult),
+    "calibration_reference": TypeAdapter(ReferenceResult),
+    "calibration_check": TypeAdapter(CheckResult),
 }
 
 

@@ -23,6 +23,7 @@ from api.http.schemas import (
     Flag,
     Int,
     Job,
+    JobList,
     Num,
     PoseIn,
     TaughtDeleted,
@@ -89,6 +90,10 @@ class TeachRequest(_Body):
         "(approach to it); base: the resting TCP in the base frame, no camera (a place pose)")
 
 
+class WaitRequest(_Body):
+    wait: Flag = Field(default=False, description="true: answer when the job has ended")
+
+
 def _cell(request: Request) -> Cell:
     cell: Cell = request.app.state.cell
     return cell
@@ -140,6 +145,40 @@ def apply_hand_eye(request: Request, caller: Calibrator, job_id: str,
     b = body or ApplyRequest()
     return _cell(request).calibration.apply(caller.label, job_id, b.method, b.running,
                                             b.write_config, b.force).json_dict()
+
+
+# -- the reference and its check -------------------------------------------------------------
+@router.post("/calibration/reference", response_model=Job, tags=["calibration"],
+             responses=DEVICE_ERRORS)
+def record_reference(request: Request, caller: Calibrator,
+                     body: Annotated[WaitRequest | None, Body()] = None) -> dict[str, Any]:
+    """Record the calibration reference around the arm's current pose: the plate fixed in the
+    cell (the target in use) in view, the arm visits ``[check] views`` poses tilted about it
+    and keeps each view's joints and the plate's pose. Do it right after a calibration; the
+    check compares against it. ``wait`` as for ``/approach``."""
+    return _cell(request).record_reference(caller.label, (body or WaitRequest()).wait).as_dict()
+
+
+@router.post("/calibration/check", response_model=Job, tags=["calibration"],
+             responses=DEVICE_ERRORS)
+def check_calibration(request: Request,
+                      caller: Annotated[Caller, Depends(require("check_calibration"))],
+                      body: Annotated[WaitRequest | None, Body()] = None) -> dict[str, Any]:
+    """Check the calibration against the reference: the arm revisits the reference's views
+    (joint moves, seconds) and sees the plate again. The result: ``verdict`` (``ok`` /
+    ``drifted``), ``tcp_error_mm`` / ``tcp_error_deg`` (the change at the tool), the per-view
+    figures. A ``drifted`` check raises the ``calibration_drift`` alarm. 409 ``no_reference``
+    before a reference is recorded. ``wait`` as for ``/approach``."""
+    return _cell(request).check_calibration(caller.label,
+                                            (body or WaitRequest()).wait).as_dict()
+
+
+@router.get("/calibration/checks", response_model=JobList, tags=["calibration"])
+def calibration_checks(request: Request, caller: Read,
+                       limit: Annotated[int, Query(ge=1, le=500)] = 100) -> dict[str, Any]:
+    """The calibration checks, newest first: how the calibration held over time."""
+    jobs = _cell(request).jobs.list_jobs(limit, kind="calibration_check")
+    return {"jobs": [j.as_dict() for j in jobs], "total": None, "offset": 0}
 
 
 @router.get("/calibration/events", tags=["calibration"], responses=SSE_RESPONSES,

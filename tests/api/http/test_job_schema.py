@@ -35,9 +35,14 @@ def test_the_job_schema_is_a_union_by_kind_with_each_kind_s_typed_result(
     job = body["application/json"]["schema"]
     assert job["discriminator"]["propertyName"] == "kind"
     jobs = _members(job, components)
-    assert set(jobs) == {"approach", "track", "home", "hand_eye_calibration"}
+    assert set(jobs) == {"approach", "track", "home", "hand_eye_calibration", "pick",
+                         "calibration_reference", "calibration_check"}
     for kind, member in jobs.items():
         assert member["properties"]["kind"]["const"] == kind
+    pick = _resolve(jobs["pick"]["properties"]["result"]["anyOf"][0], components)
+    assert {"part", "grip", "phases_s", "place", "cycle_s"} <= set(pick["required"])
+    check = _resolve(jobs["calibration_check"]["properties"]["result"]["anyOf"][0], components)
+    assert {"verdict", "tcp_error_mm", "tcp_error_deg", "views"} <= set(check["required"])
 
     approach = _members(jobs["approach"]["properties"]["result"], components)
     assert set(approach) == {"look_and_move", "servo", "ibvs"}
