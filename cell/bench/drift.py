@@ -34,8 +34,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from cell.bench.approach import HOME_FAILURES, STANDOFF_MM, _home, _sim
-from cell.bench.cells import CALLER, bench_config
+from cell.bench.approach import STANDOFF_MM, _sim
+from cell.bench.cells import CALLER, HOME_FAILURES, bench_config, home
 from cell.bench.commission import hand_eye, measure_intrinsics, with_intrinsics
 from cell.devices.hardware import SimFaults
 from cell.errors import CellError
@@ -87,7 +87,7 @@ def _bump(rng: np.random.Generator, kind: str, size: float) -> Matrix4:
 
 def _approach_truth(cell: Cell) -> dict[str, Any]:
     """An approach from home and its true error against the true goal."""
-    _home(cell)
+    home(cell)
     time.sleep(0.15)
     try:
         job = cell.approach(CALLER, standoff_mm=STANDOFF_MM, mode="look_and_move",  # type: ignore[arg-type]
@@ -139,14 +139,14 @@ def run_bench_drift(*, repeats: int = 3, clean_checks: int = 10, seed: int = 0,
         try:
             sim = _sim(cell)
             T_home_target = sim.true_T_base_target()
-            _home(cell)
+            home(cell)
             if commissioning is not None:
                 try:
                     commissioning["hand_eye"] = hand_eye(cell)
                 except Exception as err:  # recorded; the mount stays the configured one
                     cell.stop(CALLER, reason="bench: commissioning failed")
                     commissioning["hand_eye"] = {"failed": f"{type(err).__name__}: {err}"}
-                _home(cell)
+                home(cell)
             reference = cell.record_reference(CALLER, wait=True)
             if reference.state != "succeeded":
                 raise RuntimeError(f"the reference was not recorded: {reference.error_code} "
@@ -171,7 +171,7 @@ def run_bench_drift(*, repeats: int = 3, clean_checks: int = 10, seed: int = 0,
                     delta = _bump(rng, kind, size)
                     row: dict[str, Any] = {"kind": kind, "size": size}
                     try:
-                        _home(cell)
+                        home(cell)
                         sim.set_faults(SimFaults(T_mount_delta=delta))
                         time.sleep(0.2)
                         state, result, error = _check(cell)

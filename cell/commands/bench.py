@@ -30,8 +30,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="exit with status 1 when a target is missed")
     p.set_defaults(func=_bench)
     what = p.add_subparsers(dest="bench_command", required=False,
-                            metavar="{approach,drift,service,soak,freeze,modbus,fixed,commissioning,"
-                                    "controller,live-view}")
+                            metavar="{approach,pick,drift,service,soak,freeze,modbus,fixed,"
+                                    "commissioning,controller,live-view}")
     a = what.add_parser(
         "approach", help="servo vs look-and-move approach, conveyor tracking, lost target",
         description="On the simulated cell through the UR adapter and ur_rtde (see "
@@ -61,6 +61,26 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     a.add_argument("--tracking-runs", type=int, default=None,
                    help="with --tracking: this many runs at each speed instead")
     a.set_defaults(func=_bench_approach)
+    pk = what.add_parser(
+        "pick", help="pick and place of parts of two layouts, missed grasps, a stop per phase",
+        description="On the simulated cell through the UR adapter and ur_rtde with the "
+                    "simulated gripper (see cell/bench/pick.py): parts of two layouts on "
+                    "blocks in view, each picked and placed at its own taught place pose and "
+                    "scored against the simulator's truth; a part moved after the last look; "
+                    "a stop in each phase of the pick.")
+    pk.add_argument("--parts", type=int, default=10,
+                    help="parts in view, half of each layout (default 10, at most 10)")
+    pk.add_argument("--seed", type=int, default=0, help="random seed")
+    pk.add_argument("--missed-runs", type=int, default=None,
+                    help="picks with the part moved after the last look (default: --parts)")
+    pk.add_argument("--world", choices=("realistic", "ideal"), default="realistic",
+                    help="the simulated truth (see cell bench approach --help)")
+    pk.add_argument("--commissioned", action="store_true",
+                    help="commission the simulated cell first (lens, then hand-eye and Apply), "
+                         "as cell bench approach --commissioned does")
+    pk.add_argument("--check", action="store_true",
+                    help="exit with status 1 when a target is missed")
+    pk.set_defaults(func=_bench_pick)
     dr = what.add_parser(
         "drift", help="the calibration check against a knocked camera: detection, false alarms",
         description="On the simulated cell, commissioned, the reference recorded at home (see "
@@ -217,6 +237,21 @@ def _bench_approach(args: argparse.Namespace) -> int:
                                     progress=progress, lost_after_s=args.lost_after_s,
                                     world=args.world, ibvs=not args.no_ibvs,
                                     commissioned=args.commissioned)
+    return _report(args, report, format_report(report))
+
+
+def _bench_pick(args: argparse.Namespace) -> int:
+    from cell.bench.pick import MAX_PARTS, format_report, run_bench_pick
+    from cell.commands.common import fail, progress_bars
+
+    if not 1 <= args.parts <= MAX_PARTS:
+        return fail("invalid_argument", f"--parts must be 1 to {MAX_PARTS}", args.json)
+    if args.missed_runs is not None and args.missed_runs < 0:
+        return fail("invalid_argument", "--missed-runs must not be negative", args.json)
+    with progress_bars(not args.json) as progress:
+        report = run_bench_pick(parts=args.parts, seed=args.seed, world=args.world,
+                                commissioned=args.commissioned, missed_runs=args.missed_runs,
+                                progress=progress)
     return _report(args, report, format_report(report))
 
 

@@ -247,6 +247,36 @@ def test_a_place_pose_out_of_the_arms_reach_is_refused_before_anything_moves(
     assert _truth(client) == before
 
 
+def test_parts_of_a_recipes_other_target_are_not_taken_for_parts_with_dots_missing(
+        client: TestClient) -> None:
+    """Ten parts of a recipe's two layouts side by side in one view (the pick bench's scene):
+    every choice of a pick of either target is a part of that layout, located where the
+    truth has one, and the following finds it again in every frame."""
+    from cell.actions.approach import JobLayout
+    from cell.actions.pick import choose_part
+    from cell.bench.pick import FIVE, SIX, layouts, save_recipe, scene
+
+    cell = cell_of(client)
+    save_recipe(cell)
+    plates = layouts(cell)
+    parts = scene(np.random.default_rng(0), 10, world(cell).true_T_base_target(), plates)
+    world(cell).place_parts(parts)
+    time.sleep(0.3)
+    for name in (SIX, FIVE):
+        lent = JobLayout(cell.core, plates[name])
+        lent.apply()
+        try:
+            for _ in range(4):
+                chosen = choose_part(cell.core, 3, plates, name)
+                cell.core.locator.follow(None)
+                assert chosen.layout == name and chosen.parts_seen == 10
+                d_mm = min(pose_distance(chosen.located.T_base_target, p.T_base_part)[0]
+                           for p in parts if p.layout_name == name)
+                assert d_mm < 1.0
+        finally:
+            lent.ended()
+
+
 def test_a_gripper_that_stops_answering_fails_the_pick_with_the_arm_still(
         client: TestClient) -> None:
     """The serial line goes quiet as the pick closes: ``gripper_fault``, the arm stopped at the
