@@ -39,7 +39,8 @@ from cell.errors import AuthError, ForbiddenError
 #   jog           jog the arm
 #   recover       unlock a protective stop, power on / off, reset the Machine Vision state
 #   teach         teach or delete a taught pose
-#   calibrate     run the hand-eye routine and apply its result
+#   calibrate     run the hand-eye routine and apply its result; record the calibration reference
+#   check_calibration  check the calibration against the recorded reference
 #   edit_recipes  save or delete a recipe
 #   camera        change the camera's settings
 #   alarm_ack     acknowledge alarms

@@ -21,11 +21,13 @@ from api.auth import ALWAYS, PERMISSIONS
 from api.status import STATUS
 from cell.actions.approach import JobLayout
 from cell.actions.approach_rules import check_speed, check_standoff
+from cell.calibration.check import CHECK_KIND
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, ForbiddenError, LimitError
 from cell.features.recipes import Recipe, RecipeTarget
 from cell.jobs.audit import AuditNote
 from cell.jobs.store import Job
+from cell.results.check import CheckResult
 from cell.results.modes import ApproachMode
 from cell.service import Cell
 from cell.vision.frames import approach_tcp
@@ -160,6 +162,28 @@ def pick(cell: Cell, caller: RemoteCaller, recipe: Any = "", target: Any = "",
         with audited(cell, caller, "pick", params):
             raise
     return cell.pick(caller.label, recipe=ref, target=chosen_target, place=place_name)
+
+
+def check_calibration(cell: Cell, caller: RemoteCaller) -> Job:
+    """A calibration check job (not waited for): the arm revisits the reference's views."""
+    require(cell, caller, "check_calibration", "calibration_check", {})
+    return cell.check_calibration(caller.label)
+
+
+def record_reference(cell: Cell, caller: RemoteCaller) -> Job:
+    """Record the calibration reference around the arm's pose (a job, not waited for): the
+    operator's, as the hand-eye calibration it belongs to."""
+    require(cell, caller, "calibrate", "calibration_reference", {})
+    return cell.record_reference(caller.label)
+
+
+def last_check(cell: Cell, scan: int = 20) -> tuple[Job, CheckResult] | None:
+    """The newest calibration check that ended with a verdict, among the newest ``scan``
+    checks (a PLC door shows it from its start, so a restart keeps the last verdict)."""
+    for job in cell.jobs.list_jobs(scan, kind=CHECK_KIND):
+        if isinstance(job.result, CheckResult):
+            return job, job.result
+    return None
 
 
 def approach_mode(cell: Cell, name: str) -> ApproachMode:

@@ -82,6 +82,7 @@ class ErrorCode(StrEnum):
     invalid_standoff = "invalid_standoff"
     invalid_name = "invalid_name"
     invalid_camera_setting = "invalid_camera_setting"
+    invalid_sim_fault = "invalid_sim_fault"  # a fault the simulated world cannot take
     ibvs_needs_taught = "ibvs_needs_taught"
     taught_without_view = "taught_without_view"
     taught_wrong_frame = "taught_wrong_frame"

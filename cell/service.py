@@ -71,7 +71,7 @@ from cell.supervision.snapshot import CellSnapshot
 from cell.supervision.storage import StorageWatch, state_dirs, stop_unrecordable_jobs
 from cell.vision.frames import CellFrames, cell_frames
 from cell.vision.imagelog import ImageLog
-from cell.vision.locate import Located, Locator
+from cell.vision.locate import IN_USE, Located, Locator
 from cell.vision.parts import LocatedParts
 from drivers.arm import ArmState, JogFrame
 from drivers.camera import FocusSetting, Frame
@@ -292,8 +292,13 @@ class Cell:
         except CellError:
             with self.core.audit.command(caller, "pick", params):
                 raise
+        # the recipe's other targets may share the view: the pick tells their parts apart
+        beside = None if recipe is None else {
+            t.name: t.model() for t in self.recipes.get(recipe).targets}
         return pick_mod.start_pick(self.core, self.gripper_ops if self.hw.gripper else None,
-                                   caller, plan, recipe=record, layout=layout, wait=wait,
+                                   caller, plan, recipe=record, layout=layout,
+                                   layout_name=IN_USE if record is None
+                                   else record["target"], beside=beside, wait=wait,
                                    wait_timeout_s=wait_timeout_s)
 
     def _pick_plan(self, recipe: str | int | None, target: str, place: str | None,

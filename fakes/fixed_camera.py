@@ -60,6 +60,12 @@ class FixedSimCamera(SimCamera):
         with self._cond:
             self._T_flange_board = T
 
+    def _mount_locked(self) -> Matrix4:
+        return self.T_base_camera
+
+    def _set_mount_locked(self, T_mount: Matrix4) -> None:
+        self.T_base_camera = self.T_flange_camera = T_mount
+
     @property
     def T_flange_board(self) -> Matrix4 | None:
         with self._cond:
@@ -80,8 +86,9 @@ class FixedSimCamera(SimCamera):
         image = super()._render(exp)
         # The plate on the tool faces the camera and covers the tool's end; a covered lens
         # shows nothing.
-        if not (exp.blocked or board or exp.T_base_flange is None or self.tool_radius_mm <= 0):
-            outline = self.tool_outline_px(exp.T_base_flange)
+        if not (exp.blocked or board or exp.T_base_flange is None or exp.T_base_camera is None
+                or self.tool_radius_mm <= 0):
+            outline = self.tool_outline_px(exp.T_base_flange, exp.T_base_camera, exp.lens)
             if outline is not None:
                 image = draw_tool(image, outline)
         # the frame with the tool, so that asking again for it (live view and loop alike)
@@ -89,8 +96,10 @@ class FixedSimCamera(SimCamera):
         self._tooled = (exp.sequence, board, image)
         return image
 
-    def tool_outline_px(self, T_base_flange: Matrix4) -> NDArray[np.float64] | None:
-        """The tool body's image (convex hull of its end rings), None when not in front."""
+    def tool_outline_px(self, T_base_flange: Matrix4, T_base_camera: Matrix4, lens: CameraModel
+                        ) -> NDArray[np.float64] | None:
+        """The tool body's image through ``lens`` from ``T_base_camera`` (convex hull of its
+        end rings), None when not in front."""
         T_f = np.asarray(T_base_flange, dtype=float)
         axis = T_f[:3, :3]
         ang = np.linspace(0.0, 2.0 * np.pi, _RING_POINTS, endpoint=False)
@@ -99,11 +108,11 @@ class FixedSimCamera(SimCamera):
         ends = [np.array([0.0, 0.0, -WRIST_MM]), self.T_flange_tcp[:3, 3]]
         pts_flange = np.vstack([ring + e for e in ends])
         pts_base = pts_flange @ axis.T + T_f[:3, 3]
-        T_cb = invert_T(self.T_base_camera)
+        T_cb = invert_T(T_base_camera)
         cam = pts_base @ T_cb[:3, :3].T + T_cb[:3, 3]
         if np.any(cam[:, 2] <= 1.0):
             return None
-        px = self.camera.project(cam)
+        px = lens.project(cam)
         hull = cv2.convexHull(px.astype(np.float32))
         return np.asarray(hull, dtype=np.float64).reshape(-1, 2)
 

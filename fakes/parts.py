@@ -17,6 +17,13 @@ does not fit between them, one narrower than where they are asked to stop is not
 A held part rides on the flange (``T_flange_part`` fixed when the fingers closed), so its truth
 follows the arm wherever the arm really is; opening the fingers leaves it at its last true pose,
 standing still.
+
+A part may be a fixed reference: a dot plate clamped in the cell (a calibration check's
+reference), which never drifts and which the fingers never take. Two faults move parts without
+the cell knowing, each undone by clearing it: a knock of every fixed reference
+(:meth:`SimParts.set_reference_delta`, ``T_base_part @ delta``) and a slip of one part
+(:meth:`SimParts.set_slip`, the same composition), which lasts until it is cleared or the part
+is placed again or picked (its slipped pose is then simply where it lies).
 """
 
 from __future__ import annotations
@@ -67,6 +74,9 @@ class PartPlacement(Protocol):
     @property
     def width_mm(self) -> float | None: ...
 
+    @property
+    def fixed_reference(self) -> bool: ...
+
 
 @dataclass(frozen=True, eq=False)
 class Placement:
@@ -78,6 +88,7 @@ class Placement:
     velocity_mm_s: Vector3 | None = None
     angular_velocity_rad_s: Vector3 | None = None
     width_mm: float | None = None
+    fixed_reference: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -93,6 +104,8 @@ class PartTruth:
     width_mm: float
     velocity_mm_s: Vector3
     T_tcp_part: Matrix4 | None = None
+    fixed_reference: bool = False
+    T_slip: Matrix4 | None = None  # the slip it carries (T_base_part = placed @ T_slip)
 
 
 @dataclass
@@ -104,11 +117,13 @@ class _Part:
     velocity_mm_s: Vector3
     angular_velocity_rad_s: Vector3
     width_mm: float
+    fixed_reference: bool = False
     T_flange_part: Matrix4 | None = field(default=None)  # held: where it sits on the flange
+    T_slip: Matrix4 | None = field(default=None)  # slipped without the cell knowing
 
-    def at(self, t_s: float) -> Matrix4:
-        """Where the part lies at ``t_s`` when not held: placed, moved on at its velocity
-        (translation of its origin, rotation about it, base frame)."""
+    def placed_at(self, t_s: float) -> Matrix4:
+        """Where the part was put, at ``t_s``: placed, moved on at its velocity (translation
+        of its origin, rotation about it, base frame)."""
         dt = t_s - self.t0_s
         T = self.T_base_part0.copy()
         if np.any(self.angular_velocity_rad_s):
@@ -147,6 +162,7 @@ class SimParts:
         self._clock = clock
         self._lock = threading.Lock()
         self._parts: list[_Part] = self._parse(parts)
+        self._T_reference_delta: Matrix4 | None = None
 
     @staticmethod
     def one(layout: Target, T_base_part: Matrix4, width_mm: float = 40.0) -> SimParts:
@@ -174,8 +190,10 @@ class SimParts:
         w = _vector(angular_velocity_rad_s, "angular_velocity_rad_s")
         with self._lock:
             first = self._parts[0]
+            if first.fixed_reference and (np.any(v) or np.any(w)):
+                raise ValueError("part 0 is a fixed reference: it does not drift")
             self._parts[0] = _Part(first.layout_name, first.layout, T, self._clock(), v, w,
-                                   first.width_mm)
+                                   first.width_mm, first.fixed_reference)
 
     def _parse(self, parts: Sequence[PartPlacement]) -> list[_Part]:
         if not 1 <= len(parts) <= MAX_PARTS:
@@ -185,20 +203,66 @@ class SimParts:
         for i, p in enumerate(parts):
             try:
                 width = self.default_width_mm if p.width_mm is None else self._width(p.width_mm)
-                out.append(_Part(p.layout_name, p.layout, self._pose(p.T_base_part), t0,
-                                 _vector(p.velocity_mm_s, "velocity_mm_s"),
-                                 _vector(p.angular_velocity_rad_s, "angular_velocity_rad_s"),
-                                 width))
+                v = _vector(p.velocity_mm_s, "velocity_mm_s")
+                w = _vector(p.angular_velocity_rad_s, "angular_velocity_rad_s")
+                if p.fixed_reference and (np.any(v) or np.any(w)):
+                    raise ValueError("a fixed reference does not drift")
+                out.append(_Part(p.layout_name, p.layout, self._pose(p.T_base_part), t0, v, w,
+                                 width, bool(p.fixed_reference)))
             except ValueError as err:
                 raise ValueError(f"part {i}: {err}") from err
         return out
 
     @staticmethod
-    def _pose(T: Matrix4) -> Matrix4:
+    def _pose(T: Matrix4, name: str = "T_base_part") -> Matrix4:
         out = np.array(T, dtype=float)
         if out.shape != (4, 4) or not np.all(np.isfinite(out)):
-            raise ValueError("T_base_part must be a finite 4x4 transform")
+            raise ValueError(f"{name} must be a finite 4x4 transform")
         return out
+
+    # -- faults --------------------------------------------------------------------------------
+    def has_fixed_reference(self) -> bool:
+        with self._lock:
+            return any(p.fixed_reference for p in self._parts)
+
+    def set_reference_delta(self, T_delta: Matrix4 | None) -> None:
+        """Knock every fixed reference, now and any placed later, to ``T_base_part @
+        T_delta`` from where it was placed (None: back where it was placed)."""
+        T = None if T_delta is None else self._pose(T_delta, "the reference's delta")
+        with self._lock:
+            self._T_reference_delta = T
+
+    def reference_delta(self) -> Matrix4 | None:
+        with self._lock:
+            return None if self._T_reference_delta is None else self._T_reference_delta.copy()
+
+    def set_slip(self, part_id: int, T_slip: Matrix4) -> None:
+        """Slip part ``part_id`` to ``T_base_part @ T_slip`` from where it was placed, in
+        place of any slip it had. ValueError, nothing changed, for a part that does not exist,
+        is a fixed reference or is in the fingers."""
+        T = self._pose(T_slip, "the slip")
+        with self._lock:
+            if not 0 <= part_id < len(self._parts):
+                raise ValueError(f"no part {part_id}: the world holds {len(self._parts)}")
+            part = self._parts[part_id]
+            if part.fixed_reference:
+                raise ValueError(f"part {part_id} is a fixed reference: knock it with the "
+                                 f"reference's delta")
+            if part.T_flange_part is not None:
+                raise ValueError(f"part {part_id} is in the gripper")
+            part.T_slip = T
+
+    def clear_slips(self) -> None:
+        """Every slipped part back where it was placed."""
+        with self._lock:
+            for p in self._parts:
+                p.T_slip = None
+
+    def slips(self) -> dict[int, Matrix4]:
+        """The parts that lie slipped, by id, and their slips."""
+        with self._lock:
+            return {i: p.T_slip.copy() for i, p in enumerate(self._parts)
+                    if p.T_slip is not None}
 
     @staticmethod
     def _width(width_mm: float) -> float:
@@ -218,7 +282,7 @@ class SimParts:
         with self._lock:
             first = self._parts[0]
             if first.T_flange_part is None:
-                return first.at(t_s)
+                return self._lying_at(first, t_s)
             T_flange_part = first.T_flange_part
         return np.asarray(flange() @ T_flange_part, dtype=float)
 
@@ -238,14 +302,24 @@ class SimParts:
                 out.append(PartTruth(
                     i, p.layout_name, p.layout, T, held, p.width_mm,
                     np.zeros(3) if held else p.velocity_mm_s.copy(),
-                    invert_T(T_base_tcp) @ T if held else None))
+                    invert_T(T_base_tcp) @ T if held else None, p.fixed_reference,
+                    None if p.T_slip is None else p.T_slip.copy()))
             return out
 
-    @staticmethod
-    def _pose_at(p: _Part, t_s: float, T_base_flange: Matrix4) -> Matrix4:
+    def _pose_at(self, p: _Part, t_s: float, T_base_flange: Matrix4) -> Matrix4:
         if p.T_flange_part is not None:
             return np.asarray(T_base_flange @ p.T_flange_part, dtype=float)
-        return p.at(t_s)
+        return self._lying_at(p, t_s)
+
+    def _lying_at(self, p: _Part, t_s: float) -> Matrix4:
+        """Where a part not held truly lies at ``t_s``: where it was put, slipped or knocked
+        (call with the lock held)."""
+        T = p.placed_at(t_s)
+        if p.T_slip is not None:
+            T = T @ p.T_slip
+        if p.fixed_reference and self._T_reference_delta is not None:
+            T = T @ self._T_reference_delta
+        return T
 
     # -- the fingers ---------------------------------------------------------------------------
     def grip(self, t_s: float, T_base_flange: Matrix4, T_base_tcp: Matrix4, opening_mm: float,
@@ -259,9 +333,9 @@ class SimParts:
                     return p.width_mm if closing_to_mm < p.width_mm else None
             best: tuple[float, _Part] | None = None
             for p in self._parts:
-                if not closing_to_mm < p.width_mm <= opening_mm + 1e-9:
+                if p.fixed_reference or not closing_to_mm < p.width_mm <= opening_mm + 1e-9:
                     continue
-                T = p.at(t_s)
+                T = self._lying_at(p, t_s)
                 if not in_grasp(T, T_base_tcp):
                     continue
                 lateral, axial, _ = grasp_error(T, T_base_tcp)
@@ -270,7 +344,8 @@ class SimParts:
             if best is None:
                 return None
             part = best[1]
-            part.T_flange_part = invert_T(T_base_flange) @ part.at(t_s)
+            part.T_flange_part = invert_T(T_base_flange) @ self._lying_at(part, t_s)
+            part.T_slip = None  # picked where it lay: the slip is now its pose in the fingers
             return part.width_mm
 
     def release(self, t_s: float, T_base_flange: Matrix4) -> None:

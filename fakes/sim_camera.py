@@ -69,10 +69,12 @@ class _Exposure:
     gain: float  # exposure x ISO relative to nominal, times the frame's jitter
     blocked: bool
     blur_sigma_px: float  # the lens blur plus any defocus
+    lens: CameraModel  # the true lens then: the image is rendered with it, whatever came later
     T_base_flange: Matrix4 | None = None  # the arm's flange then (what a fixed camera may see)
     true_time_s: float = 0.0  # the true mid-exposure time (timestamp_s is what the cell sees)
     available_s: float = 0.0  # when the frame reaches the host
     smear_px: tuple[float, float] = (0.0, 0.0)  # image motion of part 0 over the exposure
+    T_base_camera: Matrix4 | None = None  # where the camera truly was
 
 
 @dataclass(frozen=True)
@@ -165,6 +167,37 @@ class SimCamera:
     def set_blocked(self, blocked: bool) -> None:
         with self._cond:
             self._blocked = blocked
+
+    # -- the true optics ---------------------------------------------------------------------
+    def optics(self) -> tuple[CameraModel, Matrix4]:
+        """The lens the images are rendered with and where the camera truly sits: on the
+        flange (``T_flange_camera``), for a fixed camera in the base frame."""
+        with self._cond:
+            return self.camera, self._mount_locked().copy()
+
+    def set_optics(self, lens: CameraModel, T_mount: Matrix4) -> None:
+        """Knock the camera or refocus its lens: render with ``lens`` from ``T_mount`` (as
+        :meth:`optics`) from the next exposure on. An exposure already taken keeps the optics
+        it was taken with, so every frame is wholly the old truth or the new one. The frame's
+        reported intrinsics stay the device's calibration. ValueError, nothing changed, for a
+        lens of another image size or a mount that is not a rigid transform."""
+        T = np.array(T_mount, dtype=float)
+        if (T.shape != (4, 4) or not np.all(np.isfinite(T))
+                or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6)
+                or not np.allclose(T[3], (0.0, 0.0, 0.0, 1.0))):
+            raise ValueError("the camera's mount must be a finite rigid 4x4 transform")
+        with self._cond:
+            if (lens.width, lens.height) != (self.camera.width, self.camera.height):
+                raise ValueError(f"the lens must keep the sensor's {self.camera.width}x"
+                                 f"{self.camera.height} image, got {lens.width}x{lens.height}")
+            self.camera = lens
+            self._set_mount_locked(T)
+
+    def _mount_locked(self) -> Matrix4:
+        return self.T_flange_camera
+
+    def _set_mount_locked(self, T_mount: Matrix4) -> None:
+        self.T_flange_camera = T_mount
 
     # -- Camera interface --------------------------------------------------------------------
     def get_settings(self) -> CameraSettings:
@@ -290,7 +323,7 @@ class SimCamera:
             return cached[1]
         with self._cond:  # the generator is shared with the exposure thread
             rng = np.random.default_rng(self._rng.integers(0, 2**63 - 1))
-        h, w = self.camera.height, self.camera.width
+        h, w = exp.lens.height, exp.lens.width
         if exp.blocked:
             # the sensor's noise about a dark level, drawn as render_target draws it (cv2.randn,
             # float32): a real camera costs the host nothing for a dark frame, and a float64
@@ -301,7 +334,7 @@ class SimCamera:
         else:  # a part whose origin is behind the camera is not drawn
             front = [(t, T) for t, T in exp.scene if T[2, 3] > 0]
             image = render_scene(
-                self.camera, front, blur_sigma_px=exp.blur_sigma_px, noise_std=self.noise_std,
+                exp.lens, front, blur_sigma_px=exp.blur_sigma_px, noise_std=self.noise_std,
                 lighting_gradient=self.lighting_gradient if front else 0.0, rng=rng,
             )
         if self.motion_blur and not exp.blocked:
@@ -340,7 +373,7 @@ class SimCamera:
                 stamp += float(self._rng.normal(0.0, self.timestamp_jitter_s))
             exp = _Exposure(
                 self._sequence, stamp, scene, gain, self._blocked, self._blur_px(),
-                T_base_flange, t_true, t_true, smear)
+                self.camera, T_base_flange, t_true, t_true, smear, T_base_camera)
             if self.latency_s > 0 or self.latency_jitter_s > 0:
                 jitter = abs(float(self._rng.normal(0.0, self.latency_jitter_s))) \
                     if self.latency_jitter_s > 0 else 0.0

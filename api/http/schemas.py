@@ -159,6 +159,18 @@ class SimPartIn(SimTargetRequest):
         "\"<recipe>/<target>\": the recipe's named target")
     width_mm: Num | None = Field(default=None, gt=0, le=85,
                                  description="default: [sim] part_width_mm")
+    fixed_reference: Flag = Field(
+        default=False, description="a plate clamped in the cell (a calibration check's "
+        "reference): it does not drift, the gripper never takes it, PUT /sim/faults "
+        "reference_delta knocks it")
+
+    @model_validator(mode="after")
+    def _reference_stands_still(self) -> SimPartIn:
+        moving = any(self.velocity_mm_s or ()) or any(self.angular_velocity_deg_s or ())
+        if self.fixed_reference and moving:
+            raise ValueError("a fixed_reference does not drift: no velocity_mm_s or "
+                             "angular_velocity_deg_s")
+        return self
 
 
 class SimPartsRequest(_Body):
@@ -169,6 +181,55 @@ class SimPartsRequest(_Body):
              "layout": "plate-a/main", "velocity_mm_s": [0.0, 10.0, 0.0]}]}]})
     parts: list[SimPartIn] = Field(min_length=1, max_length=MAX_SIM_PARTS,
                                    description="every part of the world, ids 0, 1, ... in order")
+
+
+_FaultMm = Annotated[Num, Field(ge=-100, le=100)]
+_FaultRad = Annotated[Num, Field(ge=-0.5, le=0.5)]
+_FaultPx = Annotated[Num, Field(ge=-100, le=100)]
+
+
+class SimDeltaIn(_Body):
+    """A small rigid delta composed on a pose (``T @ delta``): in that pose's own frame."""
+
+    position_mm: tuple[_FaultMm, _FaultMm, _FaultMm] = Field(
+        description="each within +-100 mm")
+    rotvec_rad: tuple[_FaultRad, _FaultRad, _FaultRad] = Field(
+        default=(0.0, 0.0, 0.0), description="each within +-0.5 rad")
+
+
+class SimLensFaultIn(_Body):
+    """The lens's focal length scaled and its principal point moved (a refocus, a shifted
+    optic); the distortion stays."""
+
+    focal_scale: Num = Field(default=1.0, ge=0.8, le=1.2,
+                             description="true fx and fy over the commissioned ones")
+    principal_point_delta_px: tuple[_FaultPx, _FaultPx] = Field(
+        default=(0.0, 0.0), description="added to the true cx, cy (px)")
+
+
+class SimSlipIn(SimDeltaIn):
+    """A part slipped where it lies, without the cell knowing."""
+
+    part: Int = Field(default=0, ge=0, lt=MAX_SIM_PARTS,
+                      description="its id (0: the target)")
+
+
+class SimFaultsRequest(_Body):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={
+        "examples": [{"camera_mount_delta": {"position_mm": [1.0, 0.0, 0.0],
+                                             "rotvec_rad": [0.0, 0.0, 0.0]}},
+                     {"lens": {"focal_scale": 1.003, "principal_point_delta_px": [2.0, -1.0]},
+                      "target_slip": {"part": 0, "position_mm": [0.0, 2.0, 0.0]}}]})
+    camera_mount_delta: SimDeltaIn | None = Field(
+        default=None, description="the camera knocked: its true mount becomes the "
+        "commissioned one @ this delta (T_flange_camera, a fixed camera's T_base_camera)")
+    lens: SimLensFaultIn | None = None
+    reference_delta: SimDeltaIn | None = Field(
+        default=None, description="every fixed reference (PUT /sim/parts fixed_reference) "
+        "knocked: its placed pose @ this delta")
+    target_slip: SimSlipIn | None = Field(
+        default=None, description="a part slipped: its placed pose @ this delta, until the "
+        "faults are cleared or the part is picked or placed again")
 
 
 _Lin = Annotated[Num, Field(ge=-1000, le=1000)]
@@ -603,6 +664,7 @@ class SimPartOut(_Out):
     width_mm: float
     velocity_mm_s: list[float] = Field(description="its drift (base frame; 0 while held)")
     T_tcp_part: PoseOut | None = Field(description="where it sits in the fingers (held only)")
+    fixed_reference: bool = Field(False, description="a plate clamped in the cell")
 
 
 class SimParts(_Out):
@@ -610,13 +672,51 @@ class SimParts(_Out):
     parts: list[SimPartOut]
 
 
+class SimLensFaultOut(_Out):
+    focal_scale: float
+    principal_point_delta_px: list[float]
+
+
+class SimSlipOut(PoseOut):
+    part: int
+
+
+SIM_FAULTS_EXAMPLE = {"camera_mount_delta": {"position_mm": [1.0, 0.0, 0.0],
+                                              "rotvec_rad": [0.0, 0.0, 0.0]},
+                       "lens": None, "reference_delta": None, "target_slip": None}
+SIM_CAMERA_EXAMPLE = {"fx": 1008.0, "fy": 1007.0, "cx": 643.5, "cy": 397.5,
+                      "dist": [-0.045, 0.012, 0.0004, -0.0003, 0.0], "width": 1280,
+                      "height": 800}
+
+
+class SimFaultsOut(_Out):
+    """The faults in effect (null: none of that kind)."""
+
+    model_config = _examples(SIM_FAULTS_EXAMPLE)
+    camera_mount_delta: PoseOut | None
+    lens: SimLensFaultOut | None
+    reference_delta: PoseOut | None
+    target_slip: SimSlipOut | None = Field(
+        description="null also once the slipped part was picked or placed again")
+
+
+class SimFaultsResult(_Out):
+    """The faults in effect and the simulated camera's true mount and lens with them."""
+
+    model_config = _examples({"faults": SIM_FAULTS_EXAMPLE, "T_flange_camera": POSE_EXAMPLE,
+                              "T_base_camera": None, "camera": SIM_CAMERA_EXAMPLE})
+    faults: SimFaultsOut
+    T_flange_camera: PoseOut = Field(description="the true mount now (a fixed camera: its "
+                                     "T_base_camera)")
+    T_base_camera: PoseOut | None = Field(None, description="a fixed camera's true pose now")
+    camera: SimCameraTruthOut = Field(description="the true lens now")
+
+
 class SimTruth(_Out):
     model_config = _examples({
         "T_base_target": POSE_EXAMPLE, "T_base_tcp": POSE_EXAMPLE, "world": "realistic",
-        "T_flange_camera": POSE_EXAMPLE,
-        "camera": {"fx": 1008.0, "fy": 1007.0, "cx": 643.5, "cy": 397.5,
-                   "dist": [-0.045, 0.012, 0.0004, -0.0003, 0.0], "width": 1280, "height": 800},
-        "parts": [SIM_PART_EXAMPLE]})
+        "T_flange_camera": POSE_EXAMPLE, "camera": SIM_CAMERA_EXAMPLE,
+        "parts": [SIM_PART_EXAMPLE], "faults": SIM_FAULTS_EXAMPLE})
     T_base_target: PoseOut = Field(description="part 0's true pose")
     T_base_tcp: PoseOut
     world: str
@@ -625,6 +725,8 @@ class SimTruth(_Out):
     camera: SimCameraTruthOut
     effects: SimEffectsOut
     parts: list[SimPartOut] = Field(description="every part, by id")
+    faults: SimFaultsOut = Field(description="PUT /sim/faults in effect: T_flange_camera, "
+                                 "camera and the parts above include them")
 
 
 class SimTarget(_Out):

@@ -5,9 +5,10 @@ number (0: none), 3-4 standoff_mm (float32, big-endian word order; 0.0: the reci
 configured standoff), 5 place number (a pick places at the base-frame pose taught as
 ``place-<n>``; 0: keeps the part). Input registers (the PLC reads): 0 accepted sequence,
 1 state, 2 error number, 3 finished sequence, 4-15 the last pose x, y, z (mm), rx, ry, rz (rad)
-as float32, 16 heartbeat (+1 every 100 ms), 17 alarm bits, and a pick's 18 part id, 19 parts
-seen, 20 grip verdict, 21-22 finger width (float32). The full map, the error table and the
-handshake's timing are in docs/plc.md.
+as float32, 16 heartbeat (+1 every 100 ms), 17 alarm bits, a pick's 18 part id, 19 parts
+seen, 20 grip verdict, 21-22 finger width (float32), and the newest calibration check's 23
+verdict, 24-25 and 26-27 its error at the tool (mm, deg; float32), 28 cause. The full map, the
+error table and the handshake's timing are in docs/plc.md.
 
 The handshake cannot race: the cell acts only when the sequence register changes, and it acts
 inside the write's own request, so when the write's response reaches the PLC the accepted
@@ -53,9 +54,11 @@ from pymodbus.server.requesthandler import ServerRequestHandler
 from api import remote
 from api.plc.loop_thread import LoopThread
 from api.remote import RemoteCaller
+from cell.calibration.check import CHECK_KIND
 from cell.config.schema import ModbusConfig
 from cell.errors import CellError
 from cell.jobs.store import Job
+from cell.results.check import CheckResult
 from cell.results.jobs import located_pose
 from cell.results.pick import PickResult
 from cell.service import Cell
@@ -65,9 +68,10 @@ log = logging.getLogger(__name__)
 
 UNIT_ID = 1
 HEARTBEAT_PERIOD_S = 0.1
+DRIFT_EVERY = 10  # heartbeats between reads of the drift alarm (a database query)
 JOB_POLL_S = 0.01
 N_HOLDING = 6
-N_INPUT = 23
+N_INPUT = 29
 FC_READ_HOLDING, FC_READ_INPUT = 3, 4
 FC_WRITES = (6, 16, 23)
 MAX_REFUSALS_REMEMBERED = 256  # distinct refusals logged; then the memory starts again
@@ -82,6 +86,7 @@ class Command(IntEnum):
     GRIPPER_OPEN = 5
     GRIPPER_CLOSE = 6
     PICK = 7
+    CHECK_CALIBRATION = 9
 
 
 class State(IntEnum):
@@ -115,6 +120,10 @@ class Ir(IntEnum):
     PARTS_SEEN = 19  # parts of the layout its locate saw
     GRIP = 20  # GripVerdict
     GRIP_WIDTH_MM = 21  # and 22: float32, where the fingers stopped
+    CHECK_VERDICT = 23  # the newest calibration check's CheckVerdict
+    CHECK_TCP_ERROR_MM = 24  # and 25: float32, its change at the tool
+    CHECK_TCP_ERROR_DEG = 26  # and 27: float32
+    CHECK_CAUSE = 28  # CheckCause
 
 
 class GripVerdict(IntEnum):
@@ -126,6 +135,22 @@ class GripVerdict(IntEnum):
     OUT_OF_WINDOW = 3
 
 
+class CheckVerdict(IntEnum):
+    """Input register 23."""
+
+    NONE = 0  # no check yet, or the last one ended (or was refused) without a verdict
+    OK = 1
+    DRIFTED = 2
+
+
+class CheckCause(IntEnum):
+    """Input register 28: what explains a check's figures better."""
+
+    NONE = 0
+    CAMERA = 1  # the camera's mount or lens changed
+    REFERENCE = 2  # the reference plate moved
+
+
 class Alarm(IntEnum):
     """Bits of input register 17."""
 
@@ -135,6 +160,7 @@ class Alarm(IntEnum):
     ARM_DISCONNECTED = 3
     GRIPPER_FAULT = 4
     JOB_FAILED = 5  # the last command failed (cleared by the next accepted one)
+    CALIBRATION_DRIFT = 6  # a calibration_drift alarm is not acknowledged
 
 
 # The error numbers of input register 2, one per cell error code a PLC can meet; codes not
@@ -157,6 +183,8 @@ ERROR_NUMBERS: dict[str, int] = {
     "recipe_number_taken": 23, "invalid_recipe": 24, "unauthorized": 17,
     "result_not_found": 25, "grasp_missed": 26, "grip_out_of_window": 27, "gripper_fault": 28,
     "taught_wrong_frame": 30,
+    "no_reference": 31, "calibration_drift": 32, "too_few_views": 33,
+    "dataset_unwritable": 34,
     "internal_error": 99,
 }
 ERROR_BY_KIND: dict[str, int] = {"invalid": 90, "conflict": 91, "unavailable": 92,
@@ -182,11 +210,32 @@ class _Outcome:
     """What one command ended with, for the input registers."""
 
     def __init__(self, ok: bool, error: int = 0, pose: list[float] | None = None,
-                 pick: tuple[int, int, int, float] | None = None) -> None:
+                 pick: tuple[int, int, int, float] | None = None,
+                 check: _Check | None = None) -> None:
         self.ok = ok
         self.error = error
         self.pose = pose
         self.pick = pick  # part id, parts seen, grip verdict, finger width (mm)
+        self.check = check
+
+
+class _Check:
+    """A calibration check for registers 23-28; ``at_s``: when it ended (UNIX time), so an
+    older check never overwrites a newer one."""
+
+    def __init__(self, at_s: float, result: CheckResult | None = None) -> None:
+        self.at_s = at_s
+        self.verdict = CheckVerdict.NONE if result is None else \
+            CheckVerdict.DRIFTED if result.verdict == "drifted" else CheckVerdict.OK
+        self.cause = CheckCause.NONE if result is None else \
+            CheckCause.REFERENCE if result.cause == "reference" else CheckCause.CAMERA
+        self.tcp_error_mm = math.nan if result is None else result.tcp_error_mm
+        self.tcp_error_deg = math.nan if result is None else result.tcp_error_deg
+
+    @staticmethod
+    def of(job: Job) -> _Check:
+        result = job.result if isinstance(job.result, CheckResult) else None
+        return _Check(job.ended_at or time.time(), result)
 
 
 class _Registers(ModbusServerContext):
@@ -301,6 +350,8 @@ class ModbusServer(LoopThread):
         self._commands = ThreadPoolExecutor(2, thread_name_prefix="modbus-cmd")
         self._stops = ThreadPoolExecutor(1, thread_name_prefix="modbus-stop")
         self._refusals: set[tuple[str, str]] = set()  # (client, request) already logged
+        self._check_at_s = -math.inf  # when the check registers 23-28 show ended
+        self._drift_alarm = False  # refreshed every DRIFT_EVERY heartbeats
 
     @property
     def port(self) -> int:
@@ -348,18 +399,53 @@ class ModbusServer(LoopThread):
         self._registers = _Registers(self)
         self._server = _Server(self._registers, address=(self.config.host, self.config.port))
         await self._server.listen()
+        found = remote.last_check(self.cell)
+        if found is not None:
+            self._show_check(_Check.of(found[0]))
         self._ready.set()
+        threading.Thread(target=self._watch_checks, name="modbus-checks", daemon=True).start()
         ticker = asyncio.create_task(self._heartbeat())
         try:
             await self._server.serving
         finally:
             ticker.cancel()
 
+    def _watch_checks(self) -> None:
+        """Registers 23-28 follow every check that ends, whoever ran it (the schedule, HTTP,
+        OPC UA): read back from the job store, shown on the server's loop."""
+        with self.cell.events.subscribe() as sub:
+            while not self._closing.is_set():
+                event = sub.get(timeout_s=0.5)
+                job = (event or {}).get("job") or {}
+                if (event or {}).get("type") != "job" or job.get("kind") != CHECK_KIND \
+                        or not job.get("ended_at"):
+                    continue
+                record = self.cell.jobs.get(str(job.get("id", "")))
+                loop = self._loop
+                if record is not None and loop is not None and not loop.is_closed():
+                    with contextlib.suppress(RuntimeError):
+                        loop.call_soon_threadsafe(self._show_check, _Check.of(record))
+
+    def _show_check(self, check: _Check) -> None:
+        """Registers 23-28 (on the server's loop): a check newer than the one shown."""
+        if check.at_s < self._check_at_s:
+            return
+        self._check_at_s = check.at_s
+        regs = self.registers
+        regs.input[Ir.CHECK_VERDICT] = check.verdict
+        regs.input[Ir.CHECK_TCP_ERROR_MM:Ir.CHECK_TCP_ERROR_MM + 2] = float_words(
+            check.tcp_error_mm)
+        regs.input[Ir.CHECK_TCP_ERROR_DEG:Ir.CHECK_TCP_ERROR_DEG + 2] = float_words(
+            check.tcp_error_deg)
+        regs.input[Ir.CHECK_CAUSE] = check.cause
+
     async def _heartbeat(self) -> None:
         """Input register 16 counts every 100 ms; the alarm bits follow the cell."""
         while True:
             regs = self.registers
             regs.input[Ir.HEARTBEAT] = (regs.input[Ir.HEARTBEAT] + 1) & 0xFFFF
+            if regs.input[Ir.HEARTBEAT] % DRIFT_EVERY == 0:
+                self._drift_alarm = self.cell.alarms.active_drift() is not None
             try:
                 regs.input[Ir.ALARMS] = self._alarm_bits(regs.input[Ir.ALARMS])
             except Exception:
@@ -383,6 +469,8 @@ class ModbusServer(LoopThread):
         gripper = st.get("gripper") or {}
         if isinstance(gripper, dict) and gripper.get("error"):
             bits |= 1 << Alarm.GRIPPER_FAULT
+        if self._drift_alarm:
+            bits |= 1 << Alarm.CALIBRATION_DRIFT
         return bits
 
     # -- the handshake (on the server's loop) ---------------------------------------------------
@@ -429,6 +517,8 @@ class ModbusServer(LoopThread):
             regs.input[Ir.PARTS_SEEN] = seen & 0xFFFF
             regs.input[Ir.GRIP] = verdict
             regs.input[Ir.GRIP_WIDTH_MM:Ir.GRIP_WIDTH_MM + 2] = float_words(width_mm)
+        if outcome.check is not None:
+            self._show_check(outcome.check)
         regs.input[Ir.STATE] = State.DONE_OK if outcome.ok else State.FAILED
         regs.input[Ir.ERROR] = outcome.error
         if not outcome.ok:
@@ -479,9 +569,22 @@ class ModbusServer(LoopThread):
             return self._job_outcome(remote.home(self.cell, self.caller))
         if command == Command.PICK:
             place = holding[Hr.PLACE]
-            job = remote.pick(self.cell, self.caller, recipe or "", "",
-                              f"place-{place}" if place else "")
+            try:
+                job = remote.pick(self.cell, self.caller, recipe or "", "",
+                                  f"place-{place}" if place else "")
+            except CellError as err:  # refused before a part was chosen: no part, no grip
+                return _Outcome(False, error_number(err.code, err.kind),
+                                pick=(0, 0, GripVerdict.NONE, math.nan))
             return self._pick_outcome(self._job_outcome(job), job.id)
+        if command == Command.CHECK_CALIBRATION:
+            try:
+                job = remote.check_calibration(self.cell, self.caller)
+            except CellError as err:  # refused (no reference, busy): no verdict
+                return _Outcome(False, error_number(err.code, err.kind),
+                                check=_Check(time.time()))
+            outcome = self._job_outcome(job)
+            outcome.check = _Check.of(self.cell.job(job.id))
+            return outcome
         if command in (Command.GRIPPER_OPEN, Command.GRIPPER_CLOSE):
             action = "open" if command == Command.GRIPPER_OPEN else "close"
             remote.gripper(self.cell, self.caller, action, None)
@@ -504,7 +607,8 @@ class ModbusServer(LoopThread):
 
     def _pick_outcome(self, outcome: _Outcome, job_id: str) -> _Outcome:
         """A pick's registers: the part and the grip from its result; a pick that failed on
-        its grip says which way."""
+        its grip says which way, and names the part it had chosen (from its progress; 0 and
+        0 when it ended before choosing one)."""
         job = self.cell.job(job_id)
         result = job.result
         if isinstance(result, PickResult):
@@ -516,7 +620,9 @@ class ModbusServer(LoopThread):
             verdict = {"grasp_missed": GripVerdict.MISSED,
                        "grip_out_of_window": GripVerdict.OUT_OF_WINDOW}.get(
                            job.error_code or "", GripVerdict.NONE)
-            outcome.pick = (0, 0, verdict, math.nan)
+            part = (job.progress or {}).get("part") or {}
+            outcome.pick = (int(part.get("id", 0)), int(part.get("parts_seen", 0)), verdict,
+                            math.nan)
         return outcome
 
     @staticmethod

@@ -2,20 +2,26 @@
 
 One object ``Cell`` under Objects holds the variables (``State``, ``RobotMode``,
 ``SafetyStatus``, ``TcpPose``/``TcpPoseUR``, ``LastLocatePose``/``LastLocatePoseUR``,
-``LastLocateQuality``, ``JobId``, ``JobKind``, ``JobState``, ``JobPhase``, ``JobProgress``,
-``CameraConnected``, ``Alarms``, ``JobResult``, ``JobErrorCode``) and the methods ``Locate()``,
-``Approach(standoff_mm, mode, taught)``, ``ApproachRecipe(recipe, target, standoff_mm)``,
-``Track(standoff_mm, duration_s)``, ``Pick(recipe, target, place)``, ``Stop()``, ``Home()``,
-``Gripper(action, width_mm)``. Every method answers ``Code`` ("ok" or the HTTP API's error
-code) and ``Message`` first; a refusal is an answer, not an OPC UA fault, so a PLC reads one
-place. Poses are the structure ``Pose``
+``LastLocateQuality``, ``PartsSeen``, ``PartIds``, ``JobId``, ``JobKind``, ``JobState``,
+``JobPhase``, ``JobProgress``, ``CameraConnected``, ``Alarms``, ``JobResult``, ``JobErrorCode``)
+and the methods ``Locate()``, ``LocateAll(recipe)``, ``Approach(standoff_mm, mode, taught)``,
+``ApproachRecipe(recipe, target, standoff_mm)``, ``Track(standoff_mm, duration_s)``,
+``Pick(recipe, target, place)``, ``CheckCalibration()``, ``RecordReference()`` (the
+operator's), ``Stop()``, ``Home()``, ``Gripper(action, width_mm)``. Every
+method answers ``Code`` ("ok" or the HTTP API's error code) and ``Message`` first; a refusal is
+an answer, not an OPC UA fault, so a PLC reads one place. Poses are the structure ``Pose``
 (``position_mm``, ``rotvec_rad``) and, as ``...UR``, a UR pose (m, rotation vector).
 
 Jobs are consistent at a method's return: before the answer of a method that starts a job is
 sent, ``JobId``, ``JobKind`` and ``JobState`` (``running``) hold that job. A job's end is
 written in one service call with its result (``JobResult``, JSON carrying the ``job_id``) and
 ``JobErrorCode``, and raised as a ``JobEndedEventType`` event (``JobId``, ``JobState``,
-``ErrorCode``) from the ``Cell`` object. The OPC UA Machine Vision subset (``VisionSystem``)
+``ErrorCode``) from the ``Cell`` object. ``PartsSeen`` and ``PartIds`` follow the last locate of
+every part, from any door (the cell's ``parts`` event); ``LocateAll`` writes them before it
+answers. The object ``Cell/LastCheck`` holds the newest calibration check that ended with a
+verdict, from any door or the schedule (``Verdict``, ``Cause``, ``TcpErrorMm``,
+``TcpErrorDeg``, ``Time``, ``JobId``); a check's end changes them in the same write as its
+``JobResult``. The OPC UA Machine Vision subset (``VisionSystem``)
 is built by :mod:`api.plc.opcua_machine_vision`.
 
 The server runs its own asyncio loop in its own thread, so the HTTP server's load does not
@@ -42,6 +48,7 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
@@ -60,9 +67,11 @@ from api import remote
 from api.plc.loop_thread import LoopThread
 from api.plc.opcua_machine_vision import MachineVision
 from api.remote import RemoteCaller
+from cell.calibration.check import CHECK_KIND
 from cell.config.schema import OpcUaConfig
 from cell.errors import CellError
 from cell.jobs.store import Job
+from cell.results.check import CheckResult
 from cell.results.locate import LocateQuality
 from cell.results.modes import ApproachMode
 from cell.results.pose import Pose
@@ -72,6 +81,7 @@ from cell.supervision.logs import drop_library_records, quiet_library_loggers
 log = logging.getLogger(__name__)
 
 IDLE_CHECK_S = 1.0  # with nobody subscribed, the variables are updated this often
+NO_TIME = datetime(1601, 1, 1, tzinfo=UTC)  # OPC UA's null DateTime: no check yet
 _CURRENT_USER: contextvars.ContextVar[User | None] = contextvars.ContextVar(
     "opcua_user", default=None)
 # Read, browse, subscribe, call: what an authenticated user may send. Writes are not allowed
@@ -189,6 +199,8 @@ class OpcUaServer(LoopThread):
         self._job_created_at = 0.0  # of the job _last_job_id names
         self._ended_sent: str = ""  # the last job whose JobEnded event was raised
         self._event_gen: Any = None
+        self._parts: list[int] | None = None  # the ids of the last locate of every part
+        self._last_check: tuple[Job, CheckResult] | None = None  # LastCheck's check
         self.machine_vision: Any = None
         self.calls = ThreadPoolExecutor(4, thread_name_prefix="opcua-call")
         self._stops = ThreadPoolExecutor(2, thread_name_prefix="opcua-stop")
@@ -220,6 +232,7 @@ class OpcUaServer(LoopThread):
         self._stop = asyncio.Event()
         server = await self._build()
         self._server = server
+        self._last_check = remote.last_check(self.cell)
         self._wake = wake = asyncio.Event()  # set by close(), a new subscription, a job event
         threading.Thread(target=self._watch_jobs, name="opcua-jobs", daemon=True).start()
         server.subscribe_server_callback(CallbackType.PreRead, self._before_read)
@@ -248,12 +261,31 @@ class OpcUaServer(LoopThread):
         with self.cell.events.subscribe() as sub:
             while self._stop is not None and not self._stop.is_set():
                 event = sub.get(timeout_s=0.5)
-                if event is None or event.get("type") != "job":
+                if event is None or event.get("type") not in ("job", "parts"):
                     continue
+                if event["type"] == "parts":
+                    self._parts = [int(p["id"]) for p in event.get("parts", [])]
+                else:
+                    self._saw_job(event.get("job") or {})
                 loop, wake = self._loop, self._wake
                 if loop is not None and wake is not None and not loop.is_closed():
                     with contextlib.suppress(RuntimeError):
                         loop.call_soon_threadsafe(wake.set)
+
+    def _saw_job(self, job: dict[str, Any]) -> None:
+        """A check that ended with a verdict becomes ``LastCheck`` (read back from the job
+        store, the record every door publishes)."""
+        if job.get("kind") == CHECK_KIND and job.get("ended_at"):
+            record = self.cell.jobs.get(str(job.get("id", "")))
+            if record is not None:
+                self._show_check(record)
+
+    def _show_check(self, record: Job) -> None:
+        if not isinstance(record.result, CheckResult):
+            return
+        shown = self._last_check
+        if shown is None or (record.ended_at or 0.0) >= (shown[0].ended_at or 0.0):
+            self._last_check = (record, record.result)
 
     async def _refresh(self) -> None:
         self._updated_s = time.monotonic()
@@ -347,11 +379,16 @@ class OpcUaServer(LoopThread):
             ("JobPhase", "", S, None), ("JobProgress", "{}", S, None),
             ("CameraConnected", False, B, None), ("Alarms", [], S, None),
             ("JobResult", "{}", S, None), ("JobErrorCode", "", S, None),
+            ("PartsSeen", 0, ua.VariantType.Int32, None),
+            ("PartIds", [], ua.VariantType.Int32, None),
         ]
         self._written = {}
         for name, value, vtype, datatype in variables:
             node = await obj.add_variable(idx, name, ua.Variant(value, vtype), datatype=datatype)
             self._nodes[name] = node
+        last_check = await obj.add_object(idx, "LastCheck")
+        for name, variant in self._check_values(None).items():
+            self._nodes[name] = await last_check.add_variable(idx, name.split(".")[1], variant)
         event_type = await server.create_custom_event_type(
             idx, "JobEndedEventType", ua.ObjectIds.BaseEventType,
             [("JobId", ua.VariantType.String), ("JobState", ua.VariantType.String),
@@ -366,6 +403,14 @@ class OpcUaServer(LoopThread):
                 *code, _arg("Pose", S, "T_base_target", datatype=pose_arg),
                 _arg("PoseUR", D, "T_base_target as a UR pose (m, rotation vector)", array=True),
                 _arg("RmsPx", D, "reprojection error")]),
+            ("LocateAll", self._locate_all, [
+                _arg("recipe", S, "the recipe whose targets' layouts are looked for (empty: "
+                     "the layout in use)")], [
+                *code, _arg("Count", ua.VariantType.Int32, "the parts in view"),
+                _arg("PartIds", ua.VariantType.Int32, "their ids, in the pick order",
+                     array=True),
+                _arg("Instances", S, "the parts as JSON: id, layout, T_base_target, quality, "
+                     "flags, pickable, ... (as POST /locate {\"all\": true})")]),
             ("Approach", self._approach, [
                 _arg("standoff_mm", D, "distance back from the taught tool pose"),
                 _arg("mode", S, f"{', '.join(ApproachMode)} (empty: the cell's [approach] "
@@ -385,6 +430,8 @@ class OpcUaServer(LoopThread):
                 _arg("target", S, "the recipe's target (empty: its first)"),
                 _arg("place", S, "a pose taught in the base frame to place the part at "
                      "(empty: keep it in the gripper)")], job),
+            ("CheckCalibration", self._check_calibration, [], job),
+            ("RecordReference", self._record_reference, [], job),
             ("Stop", self._stop_call, [], job),
             ("Home", self._home, [], job),
             ("Gripper", self._gripper, [
@@ -471,6 +518,7 @@ class OpcUaServer(LoopThread):
                                       json.dumps(job.get("progress") or {}, default=str), S),
             **self._job_end_values(job),
         }
+        values.update(self._check_values(self._last_check))
         if "T_base_tcp" in robot:
             tcp = Pose.model_validate(robot["T_base_tcp"])
             values["TcpPose"] = ua.Variant(self._pose_of(tcp), ua.VariantType.ExtensionObject)
@@ -484,11 +532,37 @@ class OpcUaServer(LoopThread):
         values["LastLocateQuality"] = ua.Variant(
             self._quality(None if last is None else last.quality),
             ua.VariantType.ExtensionObject)
+        if self._parts is not None:
+            values.update(self._parts_values(self._parts))
         await self._write(values)
         if job is not None and job.get("ended_at") and job["id"] != self._ended_sent:
             await self._job_ended(job)
         if self.machine_vision is not None:
             await self.machine_vision.update(st, job)
+
+    @staticmethod
+    def _parts_values(ids: list[int]) -> dict[str, ua.Variant]:
+        I32 = ua.VariantType.Int32
+        return {"PartsSeen": ua.Variant(len(ids), I32), "PartIds": ua.Variant(ids, I32)}
+
+    @staticmethod
+    def _check_values(last: tuple[Job, CheckResult] | None) -> dict[str, ua.Variant]:
+        """``LastCheck``'s variables: the check's verdict and its figures at the tool (empty
+        and zero before any check)."""
+        S, D = ua.VariantType.String, ua.VariantType.Double
+        job, result = last if last is not None else (None, None)
+        ended = NO_TIME if job is None or not job.ended_at \
+            else datetime.fromtimestamp(job.ended_at, tz=UTC)
+        return {
+            "LastCheck.Verdict": ua.Variant("" if result is None else result.verdict, S),
+            "LastCheck.Cause": ua.Variant("" if result is None else result.cause, S),
+            "LastCheck.TcpErrorMm": ua.Variant(0.0 if result is None else result.tcp_error_mm,
+                                               D),
+            "LastCheck.TcpErrorDeg": ua.Variant(
+                0.0 if result is None else result.tcp_error_deg, D),
+            "LastCheck.Time": ua.Variant(ended, ua.VariantType.DateTime),
+            "LastCheck.JobId": ua.Variant("" if job is None else job.id, S),
+        }
 
     def ended_job(self, job_id: str) -> Job | None:
         """The record of a job that has ended, read from the job store once: what the result
@@ -505,6 +579,7 @@ class OpcUaServer(LoopThread):
         record = None if job is None or not job.get("ended_at") else self.ended_job(job["id"])
         if record is None:
             return {"JobResult": ua.Variant("{}", S), "JobErrorCode": ua.Variant("", S)}
+        self._show_check(record)  # a check's end shows in LastCheck in this same write
         return {"JobResult": ua.Variant(json.dumps(job_result(record), default=str), S),
                 "JobErrorCode": ua.Variant(record.error_code or "", S)}
 
@@ -630,6 +705,27 @@ class OpcUaServer(LoopThread):
                  ua.Variant([0.0] * 6, D), ua.Variant(0.0, D)]
         return await self._answer(work, blank)
 
+    async def _locate_all(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
+        (recipe,) = self.method_args(args, 1)
+        S, I32 = ua.VariantType.String, ua.VariantType.Int32
+
+        def work(caller: RemoteCaller) -> list[ua.Variant]:
+            found = remote.locate_all(self.cell, caller, recipe or "")
+            parts = found.answer(time.monotonic())
+            ids = [p.id for p in parts.instances]
+            self._parts = ids
+            pickable = sum(p.pickable for p in parts.instances)
+            return self._ok(
+                f"{len(ids)} part(s) in view, {pickable} pickable",
+                ua.Variant(len(ids), I32), ua.Variant(ids, I32),
+                ua.Variant(json.dumps([p.json_dict() for p in parts.instances]), S))
+
+        out = await self._answer(work, [ua.Variant(0, I32), ua.Variant([], I32),
+                                        ua.Variant("[]", S)])
+        if out[0].Value == "ok":  # the variables agree with the answer when it leaves
+            await self._write(self._parts_values(list(out[3].Value or [])))
+        return out
+
     async def _approach(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
         standoff_mm, mode, taught = self.method_args(args, 3)
 
@@ -664,6 +760,20 @@ class OpcUaServer(LoopThread):
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             job = remote.pick(self.cell, caller, recipe, target, place)
+            return self._job_answer(job.id, job.state)
+
+        return await self._job_call(work)
+
+    async def _check_calibration(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
+        def work(caller: RemoteCaller) -> list[ua.Variant]:
+            job = remote.check_calibration(self.cell, caller)
+            return self._job_answer(job.id, job.state)
+
+        return await self._job_call(work)
+
+    async def _record_reference(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
+        def work(caller: RemoteCaller) -> list[ua.Variant]:
+            job = remote.record_reference(self.cell, caller)
             return self._job_answer(job.id, job.state)
 
         return await self._job_call(work)

@@ -9,21 +9,23 @@ strings, and every method answers the standard's ``Error`` (Int32, 0: done) last
   Operational), the methods ``SelectModeAutomatic``, ``Halt`` (stops the arm), ``Reset``, and
   the sub-machine ``VisionAutomaticModeStateMachine`` with ``CurrentState`` (Initialized,
   Ready, SingleExecution, ContinuousExecution), ``StartSingleJob(MeasId, PartId, RecipeId,
-  ProductId)`` -> ``JobId`` (an approach), ``StartContinuousJob`` (same arguments; tracking
-  until stopped), ``Stop``, ``Abort``;
+  ProductId)`` -> ``JobId`` (an approach, or a pick), ``StartContinuousJob`` (same arguments;
+  tracking until stopped), ``Stop``, ``Abort``;
 - ``VisionSystem/RecipeManagement``: ``AddRecipe(ExternalId, ProductId, Content)`` ->
   ``InternalId``, ``PrepareRecipe(ExternalId)`` -> ``InternalId``, ``UnprepareRecipe``,
   ``RemoveRecipe``, ``GetRecipeListFiltered`` -> ``RecipeIds``, and ``PreparedRecipe``;
 - ``VisionSystem/ResultManagement``: ``GetResultById(ResultId)`` -> ``Result`` (JSON), and the
   last result's ``ResultId``, ``JobId``, ``RecipeId``, ``Result``.
 
-A single job is an approach with the prepared recipe (its target, taught pose, standoff, mode);
-its result (``ResultId`` = ``r-<JobId>``) carries the JobId, the recipe and its version, the
-located pose and the job's error. A continuous job is tracking with the prepared recipe
-(its target, taught pose, standoff) for up to ``[servo] max_track_s``: ContinuousExecution while
-it runs, Ready again when it ends (Stop, Abort, a lost target, the time cap). The error numbers
-are those of the Modbus table (:data:`api.plc.modbus.ERROR_NUMBERS`), so both PLC doors speak the
-same numbers.
+A single job is an approach with the prepared recipe (its target, taught pose, standoff, mode),
+or a pick when the recipe's target says ``job: "pick"`` (placed at its ``place``, a pose taught
+in the base frame; none: kept in the gripper); its result (``ResultId`` = ``r-<JobId>``) carries
+the JobId, the job's kind, the recipe and its version, the located pose, the job's error and,
+for a pick, the part taken, the grip, where the part should end and each phase's seconds. A
+continuous job is tracking with the prepared recipe (its target, taught pose, standoff) for up
+to ``[servo] max_track_s``: ContinuousExecution while it runs, Ready again when it ends (Stop,
+Abort, a lost target, the time cap). The error numbers are those of the Modbus table
+(:data:`api.plc.modbus.ERROR_NUMBERS`), so both PLC doors speak the same numbers.
 
 The selected mode and the prepared recipe survive a restart
 (:mod:`api.plc.machine_vision_memory`): the system starts Preoperational with the remembered recipe
@@ -51,6 +53,7 @@ from cell.errors import CellError, NotFoundError, RefusedError
 from cell.features.recipes import parse_spec
 from cell.jobs.store import Job
 from cell.results.jobs import located_pose
+from cell.results.pick import PickResult
 from cell.service import Cell
 
 
@@ -97,6 +100,15 @@ def _arg(name: str, vtype: ua.VariantType, description: str, array: bool = False
 
 S, I32 = ua.VariantType.String, ua.VariantType.Int32
 ERROR_OUT = _arg("Error", I32, "0: done; else the cell's error number (docs/plc.md)")
+
+
+def _pick_summary(result: object) -> dict[str, Any] | None:
+    """What a PLC reads of a pick in its Machine Vision result: the part taken, the grip,
+    where the part should end, each phase's seconds; None for any other job."""
+    if not isinstance(result, PickResult):
+        return None
+    out = result.json_dict()
+    return {k: out[k] for k in ("part", "grip", "place", "phases_s", "cycle_s")}
 
 
 class MachineVision:
@@ -220,12 +232,13 @@ class MachineVision:
         record = self.opc.ended_job(job["id"])
         located = None if record is None else located_pose(record.result)
         recipe = params.get("recipe") or {}
-        body = {"result_id": result_id, "job_id": job["id"], "state": job["state"],
-                "recipe": recipe, "meas_id": params.get("meas_id", ""),
+        body = {"result_id": result_id, "job_id": job["id"], "kind": job["kind"],
+                "state": job["state"], "recipe": recipe, "meas_id": params.get("meas_id", ""),
                 "located": None if located is None else located.json_dict(),
                 "error": error.get("code") or "", "error_number":
                     error_number(error["code"]) if error.get("code") else 0,
-                "message": error.get("message") or ""}
+                "message": error.get("message") or "",
+                "pick": None if record is None else _pick_summary(record.result)}
         self.results[result_id] = body
         while len(self.results) > MAX_RESULTS:
             self.results.pop(next(iter(self.results)))
@@ -331,8 +344,8 @@ class MachineVision:
             if not self.prepared:
                 raise RefusedError(ErrorCode.not_ready,
                                    "no recipe is prepared: PrepareRecipe first")
-            start = remote.approach_recipe if kind == SINGLE else remote.track_recipe
-            job = start(self.opc.cell, caller, self.prepared)
+            job = self._single_job(caller) if kind == SINGLE \
+                else remote.track_recipe(self.opc.cell, caller, self.prepared)
             self.running_job, self.sub_state = job.id, kind
             log.info("%s job %s (meas %s, part %s, product %s)", kind, job.id, meas_id,
                      part_id, product_id)
@@ -343,6 +356,14 @@ class MachineVision:
             await self.opc.show_started(str(out[0].Value))
         await self._show()
         return out
+
+    def _single_job(self, caller: RemoteCaller) -> Job:
+        """The prepared recipe's single job: an approach of its target, or a pick of it when
+        the target's ``job`` is ``pick`` (placed at the target's ``place``)."""
+        _, chosen = remote.find_recipe(self.opc.cell, self.prepared)
+        if chosen.job == "pick":
+            return remote.pick(self.opc.cell, caller, self.prepared, chosen.name, chosen.place)
+        return remote.approach_recipe(self.opc.cell, caller, self.prepared)
 
     async def _add_recipe(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
         external_id, product_id, content = self.opc.method_args(args, 3)

@@ -8,8 +8,10 @@ leg named, and nothing moves.
 
 The phases:
 
-- ``locate``: every part of the layout in view; the configured order (``[locate] order``)
-  picks the next one, which the pick's own locates then follow among the others.
+- ``locate``: every part in view, of the layout and of the recipe's other targets (a second
+  product in the same view is told apart, not taken for parts with dots missing); the
+  configured order (``[locate] order``) picks the next part of the layout, which the pick's
+  own locates then follow among the others. The cycle's time starts here.
 - ``approach``: to the pre-pick pose (the standoff back along the tool axis), closing on the
   part as an approach does (look-and-move or the servo); its refined pose sets the grasp.
 - ``grasp``: blind along the tool axis to the grasp pose at the grasp speed.
@@ -27,7 +29,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -52,12 +54,13 @@ from cell.results.modes import ApproachMode
 from cell.results.pick import Grip, GripVerdict, PickedPart, PickPhase, PickResult, Place
 from cell.results.pose import Pose
 from cell.vision.frames import approach_tcp
-from cell.vision.locate import Located
+from cell.vision.locate import IN_USE, Located
 from estimator import Target
 from estimator.transforms import invert_T, pose_dict, translation_T
 
 log = logging.getLogger(__name__)
 Matrix4 = NDArray[np.float64]
+Layouts = Mapping[str, Target]
 
 
 class GripperCommands(Protocol):
@@ -134,20 +137,27 @@ class Chosen:
     parts_seen: int
 
 
-def choose_part(core: CellCore, n_frames: int) -> Chosen:
-    """The first pickable part in the configured order (``[locate] order``) of one locate of
-    every part of the layout in view; from then on the locator follows that part
-    (:meth:`cell.vision.locate.Locator.follow`), so the pick's own locates see it and not its
-    neighbours. The caller ends the following."""
-    parts = core.locator.locate_all()
-    pickable = [p for p in parts.instances if p.pickable]
+def choose_part(core: CellCore, n_frames: int, beside: Layouts | None = None,
+                name: str = IN_USE) -> Chosen:
+    """The first pickable part of the layout in use (called ``name``) in the configured order
+    (``[locate] order``) of one locate of every part in view, of that layout and of the
+    ``beside`` ones (a recipe's other targets: a product that shares the view is explained
+    as its own parts, never taken for one of this layout's with dots missing); from then on
+    the locator follows that part (:meth:`cell.vision.locate.Locator.follow`), so the pick's
+    own locates see it and not its neighbours. The caller ends the following."""
+    others = {k: v for k, v in (beside or {}).items() if k != name}
+    parts = core.locator.locate_all({**others, name: core.locator.target})
+    mine = [p for p in parts.instances if p.layout == name]
+    pickable = [p for p in mine if p.pickable]
     if not pickable:
-        why = "; ".join(f"part {p.id}: {' '.join(p.reasons)}" for p in parts.instances)
+        why = "; ".join(f"part {p.id}: {' '.join(p.reasons)}" for p in mine)
+        n_other = len(parts.instances) - len(mine)
         raise RefusedError(ErrorCode.target_not_visible,
-                           f"no part to pick in view: {len(parts.instances)} part(s) seen"
-                           + (f" ({why})" if why else ""))
+                           f"no part to pick in view: {len(mine)} part(s) of the layout seen"
+                           + (f" ({why})" if why else "")
+                           + (f", {n_other} of the recipe's other targets" if n_other else ""))
     part = pickable[0]
-    core.locator.follow(np.asarray(part.centre_base_mm, dtype=float))
+    core.locator.follow(np.asarray(part.centre_base_mm, dtype=float), others)
     return Chosen(part.id, part.layout, locate(core, n_frames), len(parts.instances))
 
 
@@ -156,11 +166,12 @@ class Phases:
     message). While the pick approaches, the job's progress shows the approach's own steps
     (``observe``, ``locate``, ``final`` or the servo's figures), as an approach job's does."""
 
-    def __init__(self, core: CellCore, job_id: str, part: dict[str, Any]) -> None:
+    def __init__(self, core: CellCore, job_id: str, part: dict[str, Any],
+                 began_s: float) -> None:
         self.core, self.job_id, self.part = core, job_id, part
         self.seconds: dict[PickPhase, float] = {}
         self.current: PickPhase | None = None
-        self.began_s = time.monotonic()
+        self.began_s = began_s  # the first locate's start: the cycle counts it
 
     @contextmanager
     def phase(self, name: PickPhase) -> Iterator[None]:
@@ -184,15 +195,18 @@ def grip_verdict(status: dict[str, Any], window_mm: tuple[float, float]) -> Grip
 
 def start_pick(core: CellCore, gripper: GripperCommands | None, caller: str, plan: PickPlan, *,
                recipe: dict[str, Any] | None = None, layout: Target | None = None,
+               layout_name: str = IN_USE, beside: Layouts | None = None,
                wait: bool = False, wait_timeout_s: float = 180.0) -> Job:
-    """Start a pick job (see the module doc); refusals (no gripper, the arm or camera not
-    ready, no part, a leg the guard refuses) move nothing and create no job."""
+    """Start a pick job (see the module doc) of a part of ``layout`` (None: the cell's
+    target), called ``layout_name`` in the result, among parts of ``beside`` layouts that
+    may share the view; refusals (no gripper, the arm or camera not ready, no part, a leg the
+    guard refuses) move nothing and create no job."""
     params = plan.params()
     if recipe is not None:
         params["recipe"] = recipe
     chosen: list[Chosen] = []
     lent = JobLayout(core, layout)
-    first_locate_s: list[float] = []
+    first_locate_s: list[tuple[float, float]] = []  # (start, seconds)
 
     def checks(motion: Motion) -> None:
         if gripper is None or gripper.status() is None:
@@ -208,8 +222,8 @@ def start_pick(core: CellCore, gripper: GripperCommands | None, caller: str, pla
         t0 = time.monotonic()
         n_frames = 1 if plan.mode == ApproachMode.servo else core.config.approach.frames_per_locate
         try:
-            part = choose_part(core, n_frames)
-            first_locate_s.append(time.monotonic() - t0)
+            part = choose_part(core, n_frames, beside, layout_name)
+            first_locate_s.append((t0, time.monotonic() - t0))
             check_legs(core, legs_for(plan, part.located.T_base_target), plan)
         except BaseException:
             core.locator.follow(None)
@@ -219,7 +233,7 @@ def start_pick(core: CellCore, gripper: GripperCommands | None, caller: str, pla
     def work(job_id: str, motion: Motion) -> PickResult:
         try:
             return run_pick(core, gripper, caller, job_id, motion, plan, chosen[0],
-                            first_locate_s[0])
+                            *first_locate_s[0])
         finally:
             core.locator.follow(None)
             lent.ended()
@@ -246,11 +260,15 @@ def check_legs(core: CellCore, legs: Legs, plan: PickPlan,
 
 
 def run_pick(core: CellCore, gripper: GripperCommands | None, caller: str, job_id: str,
-             motion: Motion, plan: PickPlan, part: Chosen, locate_s: float) -> PickResult:
+             motion: Motion, plan: PickPlan, part: Chosen, located_at_s: float,
+             locate_s: float) -> PickResult:
+    """The cycle from the part chosen; ``located_at_s``: when the first locate began (the
+    cycle's start), ``locate_s`` how long it took."""
     assert gripper is not None
     phases = Phases(core, job_id, {
         "id": part.part_id, "layout": part.layout,
-        "T_base_target": pose_dict(part.located.T_base_target), "parts_seen": part.parts_seen})
+        "T_base_target": pose_dict(part.located.T_base_target), "parts_seen": part.parts_seen},
+        located_at_s)
     phases.seconds["locate"] = round(locate_s, 4)
     try:
         return _cycle(core, gripper, caller, job_id, motion, plan, part, phases)

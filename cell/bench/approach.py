@@ -46,8 +46,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from cell.bench.cells import CALLER, bench_config
-from cell.bench.commission import hand_eye, measure_intrinsics, with_intrinsics
+from cell.bench.cells import CALLER, HOME_FAILURES, bench_config, home
+from cell.bench.commission import commission_lens, commission_mount
 from cell.bench.ibvs import format_ibvs, run_bench_ibvs
 from cell.config.schema import parse_config
 from cell.devices.hardware import SimWorld
@@ -80,29 +80,6 @@ def _sim(cell: Cell) -> SimWorld:
     return cell.sim
 
 
-HOME_RETRY_S = 30.0
-HOME_FAILURES: list[str] = []  # every failed homing of this run, with its reason
-
-
-def _home(cell: Cell) -> None:
-    """Home; a failure (e.g. the client stalled past the controller's watchdog on a loaded
-    host, and the adapter reconnects) is recorded in HOME_FAILURES and retried for
-    ``HOME_RETRY_S`` before the section fails."""
-    deadline = time.monotonic() + HOME_RETRY_S
-    while True:
-        try:
-            job = cell.home(CALLER, wait=True)
-            if job.state == "succeeded":
-                return
-            reason = f"{job.error_code}: {job.error_message}"
-        except CellError as err:
-            reason = f"{err.code}: {err.message}"
-        HOME_FAILURES.append(reason)
-        if time.monotonic() > deadline:
-            raise RuntimeError(f"home failed: {reason}")
-        time.sleep(1.0)
-
-
 def _true_error(cell: Cell, T_target_tcp: Matrix4) -> tuple[float, float]:
     T_tcp, t = _sim(cell).true_tcp_sample()
     return pose_distance(T_tcp, approach_tcp(_sim(cell).true_T_base_target(t), T_target_tcp,
@@ -118,7 +95,7 @@ def _true_offset_mm(cell: Cell, T_target_tcp: Matrix4) -> NDArray[np.float64]:
 
 def _approach(cell: Cell, mode: str, T_target: Matrix4, T_target_tcp: Matrix4
               ) -> dict[str, Any]:
-    _home(cell)
+    home(cell)
     _sim(cell).set_target(T_target)
     time.sleep(0.15)  # frames exposed before the placement are not this run's
     t0 = time.monotonic()
@@ -175,7 +152,7 @@ def _hold(cell: Cell, T_target_tcp: Matrix4, duration_s: float) -> str:
 
 def _track(cell: Cell, speed_mm_s: float, T_target_tcp: Matrix4, T_home_target: Matrix4,
            follow_s: float) -> dict[str, Any]:
-    _home(cell)
+    home(cell)
     sim = _sim(cell)
     sim.set_target(T_home_target)  # in view from home; it then drifts along -x
     time.sleep(0.15)
@@ -229,7 +206,7 @@ def _still_at(cell: Cell, since_s: float, timeout_s: float = 3.0) -> float:
 
 
 def _lost_target(cell: Cell, T_target_tcp: Matrix4, T_home_target: Matrix4) -> dict[str, Any]:
-    _home(cell)
+    home(cell)
     sim = _sim(cell)
     speed = 50.0
     sim.set_target(T_home_target)
@@ -304,12 +281,8 @@ def run_bench_approach(*, placements: int = 10, seed: int = 0,
             config = parse_config(data)
         commissioning: dict[str, Any] | None = None
         if commissioned:
-            commissioning = {}
-            try:
-                commissioning["intrinsics"] = measure_intrinsics(config)
-                config = with_intrinsics(config, commissioning["intrinsics"]["camera"])
-            except Exception as err:  # recorded; the lens stays the configured one
-                commissioning["intrinsics"] = {"failed": f"{type(err).__name__}: {err}"}
+            config, lens = commission_lens(config)
+            commissioning = {"intrinsics": lens}
         cell = start_cell(config)
         freeze_startup_objects()  # as cell serve does: no full collection stalls the loop
         lost_after_s = cell.config.servo.lost_after_s
@@ -317,14 +290,7 @@ def run_bench_approach(*, placements: int = 10, seed: int = 0,
             T_tt = cell.config.approach.T_target_tcp.T()
             T_home_target = _sim(cell).true_T_base_target()
             if commissioning is not None:
-                try:
-                    _home(cell)
-                    _sim(cell).set_target(T_home_target)
-                    time.sleep(0.15)
-                    commissioning["hand_eye"] = hand_eye(cell)
-                except Exception as err:  # recorded; the mount stays the configured one
-                    cell.stop(CALLER, reason="bench: commissioning failed")
-                    commissioning["hand_eye"] = {"failed": f"{type(err).__name__}: {err}"}
+                commissioning["hand_eye"] = commission_mount(cell, T_home_target, home)
             rows: list[dict[str, Any]] = []
             steps = 2 * placements + len(speeds) + 1
             for i in range(placements):
@@ -580,7 +546,7 @@ def _cover_run(cell: Cell, speed_mm_s: float, T_target_tcp: Matrix4, T_home_targ
                ) -> dict[str, Any]:
     """Tracking at ``speed_mm_s``, then the lens is covered: from the cover to the simulated
     arm standing still (the simulator's own state), and the job's end code."""
-    _home(cell)
+    home(cell)
     sim = _sim(cell)
     sim.set_target(T_home_target)
     time.sleep(0.15)

@@ -16,6 +16,7 @@ here only to score the result afterwards):
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -140,3 +141,29 @@ def hand_eye(cell: Cell, views: int = HAND_EYE_VIEWS) -> dict[str, Any]:
     after = pose_distance(cell.core.frames.T_flange_camera, truth.T_flange_camera)
     out.update(mount_error_after_mm=after[0], mount_error_after_deg=after[1])
     return out
+
+
+def commission_lens(config: CellConfig) -> tuple[CellConfig, dict[str, Any]]:
+    """Step 1 as a bench runs it: ``config`` with the measured lens and the step's record; a
+    failure is recorded and the lens stays the configured one."""
+    try:
+        measured = measure_intrinsics(config)
+    except Exception as err:  # recorded; the bench goes on with the configured lens
+        return config, {"failed": f"{type(err).__name__}: {err}"}
+    return with_intrinsics(config, measured["camera"]), measured
+
+
+def commission_mount(cell: Cell, T_base_target: Matrix4, go_home: Callable[[Cell], None]
+                     ) -> dict[str, Any]:
+    """Step 2 as a bench runs it: home (``go_home``), the plate alone at ``T_base_target``,
+    the routine and Apply; a failure stops the arm and is recorded, and the mount stays the
+    configured one."""
+    assert cell.sim is not None, "commissioning is scored on the simulated cell"
+    try:
+        go_home(cell)
+        cell.sim.set_target(T_base_target)
+        time.sleep(0.15)  # frames exposed before the placement are not of this scene
+        return hand_eye(cell)
+    except Exception as err:  # recorded; the mount stays the configured one
+        cell.stop(CALLER, reason="bench: commissioning failed")
+        return {"failed": f"{type(err).__name__}: {err}"}

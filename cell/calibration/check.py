@@ -34,6 +34,7 @@ from cell.files import replace_text
 from cell.jobs.store import Job
 from cell.motion.guard import Motion
 from cell.results.check import (
+    CheckCause,
     CheckedView,
     CheckResult,
     CheckVerdict,
@@ -54,6 +55,8 @@ CHECK_KIND = "calibration_check"
 SETTLE_S = 0.15  # after the arm stops, before a frame counts
 JOINT_SPEED_RAD_S = 0.8
 JOINT_ACCEL_RAD_S2 = 1.5
+REFERENCE_MARGIN = 3.0  # the plate model must miss this many times less than the camera's
+VIEW_NOISE_MM = 0.15  # a check's views disagree by this much with nothing changed (measured)
 
 
 class ReferenceStoreError(CellError):
@@ -116,6 +119,11 @@ class ReferenceStore:
                         ErrorCode.dataset_unwritable,
                         f"cannot write the calibration reference {self.path}: {err}") from err
             self._reference = reference
+
+
+def _miss(predicted: list[Matrix4], seen: list[Matrix4]) -> tuple[float, float]:
+    d = [pose_distance(p, s) for p, s in zip(predicted, seen, strict=True)]
+    return max(x[0] for x in d), max(x[1] for x in d)
 
 
 @dataclass(frozen=True)
@@ -218,6 +226,8 @@ class CalibrationCheck:
         start_joints = np.asarray(core.arm.state().joints_rad, dtype=float)
         views: list[CheckedView] = []
         deltas: list[Matrix4] = []
+        T_cameras: list[Matrix4] = []  # where the camera was for each view (the same joints)
+        T_now: list[Matrix4] = []  # the plate seen from each view now
         n = len(reference.joints_rad)
         for k, (q, T_then) in enumerate(zip(reference.joints_rad, reference.T_base_reference,
                                             strict=True)):
@@ -225,8 +235,9 @@ class CalibrationCheck:
             core.arm.move_joint(np.asarray(q), JOINT_SPEED_RAD_S, JOINT_ACCEL_RAD_S2,
                                 what=f"reference view {k}")
             now = self._look()
-            delta = now.T_base_reference @ invert_T(T_then)  # base frame: then -> now
-            deltas.append(delta)
+            deltas.append(now.T_base_reference @ invert_T(T_then))  # base frame: then -> now
+            T_now.append(now.T_base_reference)
+            T_cameras.append(core.frames.T_base_camera(now.T_base_tcp))
             d_mm, d_deg = pose_distance(now.T_base_reference, T_then)
             shift = now.T_base_reference[:3, 3] - T_then[:3, 3]
             views.append(CheckedView(view=k, shift_mm=(float(shift[0]), float(shift[1]),
@@ -235,22 +246,56 @@ class CalibrationCheck:
         motion.raise_if_cancelled("before returning to the start pose")
         core.arm.move_joint(start_joints, JOINT_SPEED_RAD_S, JOINT_ACCEL_RAD_S2,
                             what="back to the check's start pose")
-        D = mean_pose(deltas)
-        spread = [pose_distance(d, D) for d in deltas]
         T_ref = mean_pose(list(reference.T_base_reference))
-        standoff = core.config.approach.standoff_mm
-        goal = approach_tcp(T_ref, core.config.approach.T_target_tcp.T(), standoff)
-        tcp_mm, tcp_deg = pose_distance(D @ goal, goal)
+        goal = approach_tcp(T_ref, core.config.approach.T_target_tcp.T(),
+                            core.config.approach.standoff_mm)
+        cause, D_goal, spread = self._explain(list(reference.T_base_reference), T_now,
+                                              T_cameras, goal)
+        tcp_mm, tcp_deg = pose_distance(D_goal @ goal, goal)
+        D = mean_pose(deltas)
         pos_mm, rot_deg = pose_distance(D @ T_ref, T_ref)
         drifted = tcp_mm > cc.tolerance_mm or tcp_deg > cc.tolerance_deg
         verdict: CheckVerdict = "drifted" if drifted else "ok"
         return CheckResult(
-            verdict=verdict, tcp_error_mm=tcp_mm, tcp_error_deg=tcp_deg,
+            verdict=verdict, cause=cause, tcp_error_mm=tcp_mm, tcp_error_deg=tcp_deg,
             position_error_mm=pos_mm, rotation_error_deg=rot_deg,
-            spread_mm=max(s[0] for s in spread), spread_deg=max(s[1] for s in spread),
-            tolerance_mm=cc.tolerance_mm, tolerance_deg=cc.tolerance_deg, standoff_mm=standoff,
+            spread_mm=spread[0], spread_deg=spread[1],
+            tolerance_mm=cc.tolerance_mm, tolerance_deg=cc.tolerance_deg,
+            standoff_mm=core.config.approach.standoff_mm,
             views=views, reference_recorded_at=reference.recorded_at,
             took_s=time.monotonic() - t0)
+
+    def _explain(self, T_then: list[Matrix4], T_now: list[Matrix4], T_cameras: list[Matrix4],
+                 goal: Matrix4) -> tuple[CheckCause, Matrix4, tuple[float, float]]:
+        """Which change explains the views better, and the base-frame shift it makes in what
+        the camera sees from the approach goal on the plate.
+
+        A change in the camera (its mount or lens) changes the plate's pose alike in the
+        camera frame of every view (``now = T_c E inv(T_c) then``, one ``E``), and from the
+        goal it shifts what the camera sees by that same camera-frame change seen from there
+        (closer to the plate than the views: a turned camera moves less there). A plate that
+        moved shifts alike in the base frame (``now = D then``, one ``D``), and anything seen
+        from anywhere by that. Each model is fitted to the views and judged by how far its
+        prediction of each view's plate pose misses (mm at the plate, deg); a fixed camera
+        sees from one pose, so its change is the base-frame shift. A camera that moved along
+        its own axes shifts the plate almost alike in both frames (the views differ by
+        ``tilt_deg``): the plate is blamed only when it explains the views clearly better
+        (``REFERENCE_MARGIN``) and the camera model misses by more than the views' own noise
+        (``VIEW_NOISE_MM``); otherwise the camera, whose model also gives the right figure
+        at the tool for a moved plate seen nearly alike. Returns the cause, the shift at the
+        goal and the chosen model's largest miss."""
+        D = mean_pose([n @ invert_T(t) for t, n in zip(T_then, T_now, strict=True)])
+        base_miss = _miss([D @ t for t in T_then], T_now)
+        if self.core.frames.is_fixed:
+            return "camera", D, base_miss
+        E = mean_pose([invert_T(c) @ n @ invert_T(t) @ c
+                       for t, n, c in zip(T_then, T_now, T_cameras, strict=True)])
+        camera_miss = _miss([c @ E @ invert_T(c) @ t for t, c in zip(T_then, T_cameras,
+                                                                     strict=True)], T_now)
+        if camera_miss[0] > max(REFERENCE_MARGIN * base_miss[0], VIEW_NOISE_MM):
+            return "reference", D, base_miss
+        T_camera_goal = self.core.frames.T_base_camera(goal)
+        return "camera", T_camera_goal @ E @ invert_T(T_camera_goal), camera_miss
 
     # -- shared ------------------------------------------------------------------------------
     def _ready(self) -> None:

@@ -30,7 +30,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="exit with status 1 when a target is missed")
     p.set_defaults(func=_bench)
     what = p.add_subparsers(dest="bench_command", required=False,
-                            metavar="{approach,service,soak,freeze,modbus,fixed,commissioning,controller,live-view}")
+                            metavar="{approach,pick,drift,service,soak,freeze,modbus,fixed,"
+                                    "commissioning,controller,live-view}")
     a = what.add_parser(
         "approach", help="servo vs look-and-move approach, conveyor tracking, lost target",
         description="On the simulated cell through the UR adapter and ur_rtde (see "
@@ -60,6 +61,48 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     a.add_argument("--tracking-runs", type=int, default=None,
                    help="with --tracking: this many runs at each speed instead")
     a.set_defaults(func=_bench_approach)
+    pk = what.add_parser(
+        "pick", help="pick and place of parts of two layouts, missed grasps, a stop per phase",
+        description="On the simulated cell through the UR adapter and ur_rtde with the "
+                    "simulated gripper (see cell/bench/pick.py): parts of two layouts on "
+                    "blocks in view, each picked and placed at its own taught place pose and "
+                    "scored against the simulator's truth; a part moved after the last look; "
+                    "a stop in each phase of the pick.")
+    pk.add_argument("--parts", type=int, default=10,
+                    help="parts in view, half of each layout (default 10, at most 10)")
+    pk.add_argument("--seed", type=int, default=0, help="random seed")
+    pk.add_argument("--missed-runs", type=int, default=None,
+                    help="picks with the part moved after the last look (default: --parts)")
+    pk.add_argument("--world", choices=("realistic", "ideal"), default="realistic",
+                    help="the simulated truth (see cell bench approach --help)")
+    pk.add_argument("--commissioned", action="store_true",
+                    help="commission the simulated cell first (lens, then hand-eye and Apply), "
+                         "as cell bench approach --commissioned does")
+    pk.add_argument("--check", action="store_true",
+                    help="exit with status 1 when a target is missed")
+    pk.set_defaults(func=_bench_pick)
+    dr = what.add_parser(
+        "drift", help="the calibration check against a knocked camera: detection, false alarms",
+        description="On the simulated cell, commissioned, the reference recorded at home (see "
+                    "cell/bench/drift.py): checks with nothing changed (false alarms), then the "
+                    "camera mount knocked by 0.2/0.5/1/2 mm and 0.1/0.2/0.3/1 deg in random "
+                    "directions: each check's verdict and figure at the tool against the true "
+                    "error of an approach made after the knock.")
+    dr.add_argument("--repeats", type=int, default=3, help="knocks of each size (default 3)")
+    dr.add_argument("--clean-checks", type=int, default=10,
+                    help="checks with nothing changed (default 10)")
+    dr.add_argument("--burners", type=int, default=0,
+                    help="CPU-burning processes beside the clean checks (default 0)")
+    dr.add_argument("--translations", type=float, nargs="*", default=None, metavar="MM",
+                    help="knock sizes in mm (default 0.2 0.5 1 2)")
+    dr.add_argument("--rotations", type=float, nargs="*", default=None, metavar="DEG",
+                    help="knock sizes in deg (default 0.1 0.2 0.3 1)")
+    dr.add_argument("--seed", type=int, default=0, help="random seed")
+    dr.add_argument("--world", choices=("realistic", "ideal"), default="realistic")
+    dr.add_argument("--no-commission", action="store_true",
+                    help="skip commissioning (the configured lens and mount)")
+    dr.add_argument("--check", action="store_true", help="exit 1 when a target is missed")
+    dr.set_defaults(func=_bench_drift)
     svc = what.add_parser(
         "service", help="the simulated cell service under load: STOP, status, SSE, idle CPU",
         description="Serves the simulated cell, measures idle CPU by process, then runs 50 "
@@ -194,6 +237,38 @@ def _bench_approach(args: argparse.Namespace) -> int:
                                     progress=progress, lost_after_s=args.lost_after_s,
                                     world=args.world, ibvs=not args.no_ibvs,
                                     commissioned=args.commissioned)
+    return _report(args, report, format_report(report))
+
+
+def _bench_pick(args: argparse.Namespace) -> int:
+    from cell.bench.pick import MAX_PARTS, format_report, run_bench_pick
+    from cell.commands.common import fail, progress_bars
+
+    if not 1 <= args.parts <= MAX_PARTS:
+        return fail("invalid_argument", f"--parts must be 1 to {MAX_PARTS}", args.json)
+    if args.missed_runs is not None and args.missed_runs < 0:
+        return fail("invalid_argument", "--missed-runs must not be negative", args.json)
+    with progress_bars(not args.json) as progress:
+        report = run_bench_pick(parts=args.parts, seed=args.seed, world=args.world,
+                                commissioned=args.commissioned, missed_runs=args.missed_runs,
+                                progress=progress)
+    return _report(args, report, format_report(report))
+
+
+def _bench_drift(args: argparse.Namespace) -> int:
+    from cell.bench.drift import format_report, run_bench_drift
+    from cell.commands.common import fail, progress_bars
+
+    if args.repeats < 1 or args.clean_checks < 0 or args.burners < 0:
+        return fail("invalid_argument", "--repeats must be at least 1, --clean-checks and "
+                    "--burners at least 0", args.json)
+    sizes = {k: tuple(v) for k, v in (("translations_mm", args.translations),
+                                      ("rotations_deg", args.rotations)) if v is not None}
+    with progress_bars(not args.json) as progress:
+        report = run_bench_drift(repeats=args.repeats, clean_checks=args.clean_checks,
+                                 seed=args.seed, world=args.world,
+                                 commissioned=not args.no_commission, burners=args.burners,
+                                 progress=progress, **sizes)
     return _report(args, report, format_report(report))
 
 

@@ -1,4 +1,5 @@
-"""``cell calibrate {hand-eye,intrinsics,routine}``: calibrate from images or on the arm.
+"""``cell calibrate {hand-eye,intrinsics,routine}``: calibrate from images or on the arm
+(``check`` and ``reference``, on a running service: :mod:`cell.commands.calibration_check`).
 
 ``hand-eye`` reads ViSP's eye-in-hand folder as it is or the project's dataset.json format,
 prints every method's ``T_flange_camera`` with the residuals and a verdict, and can write the
@@ -19,6 +20,7 @@ import argparse
 from typing import TYPE_CHECKING, Any
 
 from cell.calibration.defaults import DEFAULT_VIEWS
+from cell.commands import calibration_check
 from cell.commands.common import EXIT_NO, EXIT_OK, fail, print_json, progress_bars
 
 if TYPE_CHECKING:
@@ -100,6 +102,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                     help="write the views (images and flange poses) as a dataset to DIR, for "
                          "`cell calibrate hand-eye DIR` to re-solve")
     rt.set_defaults(func=run_routine)
+    calibration_check.register(what)
 
 
 def _write(args: argparse.Namespace, report: HandEyeReport, note: str

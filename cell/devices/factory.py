@@ -334,7 +334,7 @@ D = TypeVar("D", bound=_Device | None)
 
 def _one_device(build: Callable[[Any, Sim], D], device: CameraConfig | GripperConfig,
                 spec: SimCellSpec) -> tuple[D, Callable[[], None]]:
-    sim = build_sim_cell(spec, None)
+    sim: Sim = build_sim_cell(spec, None)
     try:
         built = build(device, sim)
     except BaseException:

@@ -31,7 +31,8 @@ class SimPart:
     """A part to place in the simulated world: its dot layout (``layout_name`` as the caller
     named it, None for the cell's ``[target]``), its true pose, an optional drift in the base
     frame from the moment it is placed (a conveyor) and the width the fingers close on (None:
-    ``[sim] part_width_mm``)."""
+    ``[sim] part_width_mm``). A ``fixed_reference`` is a plate clamped in the cell: it does
+    not drift, the fingers never take it, and a knock of the reference moves it."""
 
     layout_name: str | None
     layout: Target
@@ -39,6 +40,45 @@ class SimPart:
     velocity_mm_s: Vector3 | None = None
     angular_velocity_rad_s: Vector3 | None = None
     width_mm: float | None = None
+    fixed_reference: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class SimFaults:
+    """Faults of a simulated cell at run time, each a delta on its commissioned truth and
+    neutral when absent: the camera knocked (``T_mount_delta``: the true mount becomes
+    ``T_mount0 @ T_mount_delta``; a fixed camera's T_base_camera likewise), the lens's focal
+    length scaled and its principal point moved (px), every fixed reference knocked (its
+    placed pose ``@ T_reference_delta``) and part ``slip_part`` slipped (``@ T_slip``)."""
+
+    T_mount_delta: Matrix4 | None = None
+    focal_scale: float = 1.0
+    principal_point_delta_px: tuple[float, float] = (0.0, 0.0)
+    T_reference_delta: Matrix4 | None = None
+    slip_part: int = 0
+    T_slip: Matrix4 | None = None
+
+
+class SimFaultsInEffect(Protocol):
+    """The faults a simulated world has now (as :class:`SimFaults`)."""
+
+    @property
+    def T_mount_delta(self) -> Matrix4 | None: ...
+
+    @property
+    def focal_scale(self) -> float: ...
+
+    @property
+    def principal_point_delta_px(self) -> tuple[float, float]: ...
+
+    @property
+    def T_reference_delta(self) -> Matrix4 | None: ...
+
+    @property
+    def slip_part(self) -> int: ...
+
+    @property
+    def T_slip(self) -> Matrix4 | None: ...
 
 
 class SimPartTruth(Protocol):
@@ -66,6 +106,13 @@ class SimPartTruth(Protocol):
     @property
     def T_tcp_part(self) -> Matrix4 | None: ...
 
+    @property
+    def fixed_reference(self) -> bool: ...
+
+    @property
+    def T_slip(self) -> Matrix4 | None:
+        """The slip it lies with (T_base_part = where it was placed @ T_slip), None: none."""
+
 
 class SimWorld(Protocol):
     """Ground truth and fault switches of a simulated cell."""
@@ -77,7 +124,8 @@ class SimWorld(Protocol):
     def true_T_base_tcp(self) -> NDArray[np.float64]: ...
 
     def truth_values(self) -> SimTruthValues:
-        """The simulated camera's true lens and mount (apart from the cell's config)."""
+        """The simulated camera's true lens and mount now (apart from the cell's config; with
+        the faults of :meth:`set_faults`)."""
 
     def true_tcp_sample(self) -> tuple[NDArray[np.float64], float]:
         """The true TCP pose and the monotonic time the simulator had it."""
@@ -94,6 +142,15 @@ class SimWorld(Protocol):
 
     def parts_truth(self) -> Sequence[SimPartTruth]:
         """Every part's true pose now and whether the gripper holds it, by id."""
+
+    def set_faults(self, faults: SimFaults) -> None:
+        """Make ``faults`` the world's faults in place of any set before; ValueError, nothing
+        changed, for one it cannot take (no such part to slip, no fixed reference, ...)."""
+
+    def clear_faults(self) -> None:
+        """Back to the commissioned truth: lens, mount, references and parts."""
+
+    def faults(self) -> SimFaultsInEffect: ...
 
     def set_tool_board(self, T_flange_board: NDArray[np.float64] | None) -> None:
         """Clamp the calibration plate to the tool (None: take it off); fixed cameras only."""

@@ -23,9 +23,11 @@ that may see the truth: the benchmarks, which score against it, and the ``/sim``
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
+from typing import Self
 
 import numpy as np
 from numpy.typing import NDArray
@@ -114,6 +116,11 @@ class SimTruthValues:
     camera: CameraModel
     T_flange_camera: Matrix4
     effects: SimEffects = IDEAL_EFFECTS
+
+    def with_optics(self, camera: CameraModel, T_mount: Matrix4) -> Self:
+        """The same world with the camera's lens and mount (a fixed camera's in the base
+        frame) replaced: its truth after a fault at run time."""
+        return dataclasses.replace(self, camera=camera, T_flange_camera=np.array(T_mount))
 
 
 BUILT_IN = {"hand": "sim.toml", "fixed": "sim-fixed.toml"}

@@ -4,9 +4,11 @@ A recipe has a number (what a Modbus PLC writes into its recipe register), a nam
 more targets. Each target is a dot layout (centres in mm, dot diameter, dark or light dots) with
 the taught tool pose to approach it with (a name in the taught-pose store; empty: the
 configured ``[approach] T_target_tcp``), the standoff, the approach mode and its limits (speed,
-largest reprojection error accepted). Saving a recipe again makes a new version; every version
-is kept, so a job's record (recipe name, number, version, target) says exactly what it ran
-with, even after the recipe was changed. One JSON file beside the job database, replaced
+largest reprojection error accepted), and what a Machine Vision single job does with it
+(``job``: approach it, or pick it and put it at the base-frame pose taught as ``place``).
+Saving a recipe again makes a new version; every version is kept, so a job's record (recipe
+name, number, version, target) says exactly what it ran with, even after the recipe was
+changed. One JSON file beside the job database, replaced
 atomically; an unreadable file refuses recipe jobs and is never overwritten.
 
 Numbers are numbers (an integer is fine for a float; a string or a boolean is refused) and a
@@ -22,9 +24,17 @@ import json
 import threading
 import time
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    Strict,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from cell.actions.approach_rules import check_speed, check_standoff
 from cell.config.schema import DotLayout, LimitsConfig
@@ -70,6 +80,17 @@ class RecipeTarget(DotLayout):
     retract_mm: Num | None = Field(default=None, ge=0, le=500)
     grip_min_mm: Num | None = Field(default=None, ge=0)
     grip_max_mm: Num | None = Field(default=None, gt=0)
+    # what a Machine Vision StartSingleJob runs with this target; a pick's place pose is one
+    # taught in the base frame ("": the part stays in the gripper)
+    job: Literal["approach", "pick"] = "approach"
+    place: str = Field(default="", max_length=64)
+
+    @model_validator(mode="after")
+    def _place_is_a_picks(self) -> RecipeTarget:
+        if self.place and self.job != "pick":
+            raise ValueError(f"place {self.place!r} is where a pick puts the part: set job "
+                             "to \"pick\"")
+        return self
 
 
 class RecipeSpec(BaseModel):

@@ -6,9 +6,12 @@ the arm's own kinematic error repeats and cancels; what is left is what changed 
 from the flange to the plate's image: the camera's mount (a knock), the lens (a refocus), the
 plate itself (moved).
 
-``tcp_error_mm`` / ``tcp_error_deg`` say what the change means at the tool: the shift the
-reference appears to have made, applied to the tool's approach goal on it (at the configured
-standoff), which is how far an approach would now miss. The verdict compares those with
+``tcp_error_mm`` / ``tcp_error_deg`` say what the change means at the tool: how far an approach
+to the reference at the configured standoff would now miss. A camera that changed (``cause``
+``camera``) shifts the plate's image alike in every view's camera frame, and the approach
+closes on views from its goal, so the change is carried there; a plate that moved shifts alike
+in the base frame (``cause`` ``reference``: record the reference again if it was moved on
+purpose). The verdict compares those with
 ``[check] tolerance_mm`` and ``tolerance_deg``.
 """
 
@@ -20,6 +23,8 @@ from cell.results.base import Result
 from cell.results.pose import Pose
 
 CheckVerdict = Literal["ok", "drifted"]
+# what explains the views better: the camera changed (mount, lens), or the reference plate moved
+CheckCause = Literal["camera", "reference"]
 
 
 class ReferenceView(Result):
@@ -55,11 +60,12 @@ class CheckedView(Result):
 
 class CheckResult(Result):
     verdict: CheckVerdict
+    cause: CheckCause
     tcp_error_mm: float
     tcp_error_deg: float
     position_error_mm: float  # the reference's mean apparent shift
     rotation_error_deg: float
-    spread_mm: float  # how far one view's shift lies from the mean shift
+    spread_mm: float  # the cause's model: its largest miss of one view's plate pose
     spread_deg: float
     tolerance_mm: float
     tolerance_deg: float

@@ -128,6 +128,7 @@ class Locator:
         self.part_ids = InstanceIds(same_part_mm)
         self.last_parts: LocatedParts | None = None
         self._followed_mm: NDArray[np.float64] | None = None  # see follow()
+        self._beside: dict[str, Target] = {}  # see follow()
 
     def set_frames(self, frames: CellFrames) -> None:
         """New calibrated mounts; the last locate was mapped with the old ones, so drop it."""
@@ -154,15 +155,21 @@ class Locator:
         self.last = None
         return True
 
-    def follow(self, centre_base_mm: NDArray[np.float64] | None) -> None:
+    def follow(self, centre_base_mm: NDArray[np.float64] | None,
+               beside: Mapping[str, Target] | None = None) -> None:
         """Locate one part among several (a pick's): from now on every estimate searches the
         frame for every part of the layout and takes the one whose dots' centre lies within
         ``FOLLOW_MM`` of where it was seen last, starting at ``centre_base_mm`` (None: back to
         the single-target search). Identical parts side by side would otherwise be one
-        ambiguous target to the single search, which may lock onto the neighbour."""
+        ambiguous target to the single search, which may lock onto the neighbour. ``beside``:
+        the other layouts that may share the view (a recipe's other targets), searched for
+        too, so their dots are explained as their parts and not taken for a part of this
+        layout's with dots missing."""
         with self._lock:
             self._followed_mm = (None if centre_base_mm is None
                                  else np.asarray(centre_base_mm, dtype=float).reshape(3).copy())
+            self._beside = {} if centre_base_mm is None or beside is None else {
+                name: t for name, t in beside.items() if name != IN_USE}
         with self._estimator_lock:
             self._windows.forget()
 
@@ -348,11 +355,12 @@ class Locator:
     def _estimate_followed(self, frame: Frame, T_base_tcp: Matrix4,
                            followed_mm: NDArray[np.float64]) -> PoseResult:
         t0 = time.perf_counter()
+        with self._lock:
+            wanted = {**self._beside, IN_USE: self.target}
         try:
             with self._estimator_lock:
                 self._use_intrinsics(frame.camera)
-                search = InstanceFinder(self.camera_model, {IN_USE: self.target}).find(
-                    frame.image)
+                search = InstanceFinder(self.camera_model, wanted).find(frame.image)
         except Exception as err:  # an estimator bug must not take the service down
             log.exception("the search for the followed part failed on frame %d", frame.sequence)
             raise self._failed(frame, "error", RefusedError(
@@ -361,7 +369,8 @@ class Locator:
         T_base_camera = self.frames.T_base_camera(T_base_tcp)
         centre_target = self.target.points_mm.mean(axis=0)
         best: tuple[float, PoseResult, NDArray[np.float64]] | None = None
-        for inst in search.instances:
+        ours = [inst for inst in search.instances if inst.layout == IN_USE]
+        for inst in ours:
             T = T_base_camera @ inst.pose.T_camera_target
             centre = T[:3, :3] @ centre_target + T[:3, 3]
             d = float(np.linalg.norm(centre - followed_mm))
@@ -373,7 +382,7 @@ class Locator:
             raise self._failed(frame, "failed", RefusedError(
                 ErrorCode.target_not_visible,
                 f"the part being followed (dots' centre at [{where}] mm) is not in this frame: "
-                f"{len(search.instances)} part(s) seen{nearest}"))
+                f"{len(ours)} part(s) of its layout seen{nearest}"))
         with self._lock:
             if self._followed_mm is not None:
                 self._followed_mm = best[2]

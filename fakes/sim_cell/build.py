@@ -47,10 +47,11 @@ class SimulatedCell(Generic[TruthT]):
         self.closers.clear()
 
 
-def build_sim_cell(spec: SimCellSpec, truth: TruthT) -> SimulatedCell[TruthT]:
-    """The simulated devices ``spec`` names, and the world over them described by ``truth``.
-    A camera needs an arm to hang on and parts to see (ValueError without them); the gripper
-    closes on the parts where the arm is (on nothing without either)."""
+def build_sim_cell(spec: SimCellSpec, truth: TruthT | None) -> SimulatedCell[TruthT]:
+    """The simulated devices ``spec`` names, and the world over them described by ``truth``
+    (None: no world, the devices alone). A camera needs an arm to hang on and parts to see
+    (ValueError without them); the gripper closes on the parts where the arm is (on nothing
+    without either)."""
     built = SimulatedCell[TruthT]()
     try:
         arm_truth = _arm(spec.arm, built) if spec.arm is not None else None
@@ -67,7 +68,8 @@ def build_sim_cell(spec: SimCellSpec, truth: TruthT) -> SimulatedCell[TruthT]:
                      if built.parts is not None and arm_truth is not None else None)
             built.gripper = _gripper(spec.gripper, grasp)
             built.closers.append(built.gripper.stop)
-        if arm_truth is not None and built.camera is not None and built.parts is not None:
+        if (truth is not None and arm_truth is not None and built.camera is not None
+                and built.parts is not None):
             built.world = SimulatedWorld(arm_truth, built.camera, built.parts, built.gripper,
                                          truth)
         return built

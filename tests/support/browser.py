@@ -228,6 +228,8 @@ class RecordingApi:
     jobs: list[dict[str, Any]] = field(default_factory=list)  # GET /jobs
     frame_headers: dict[str, str] = field(default_factory=dict)  # added to frame.jpg
     recipes: list[dict[str, Any]] = field(default_factory=list)  # GET /recipes
+    taught: list[dict[str, Any]] = field(default_factory=list)  # GET /teach
+    checks: list[dict[str, Any]] = field(default_factory=list)  # GET /calibration/checks
     anonymous_stop: bool = True  # POST /stop without any token is taken, as the service does
     # tokens POST /stop no longer accepts (as a token revoked between two status polls)
     stop_refuses: set[str] = field(default_factory=set)
@@ -266,7 +268,13 @@ def recording_app(rec: RecordingApi) -> FastAPI:
 
     from api.http.page import mount_page
     from api.http.routes.recipes import RecipeApproachRequest
-    from api.http.schemas import ApproachRequest, GripperRequest, JogRequest, StopRequest
+    from api.http.schemas import (
+        ApproachRequest,
+        GripperRequest,
+        JogRequest,
+        PickRequest,
+        StopRequest,
+    )
 
     app = FastAPI()
     frames = [0]
@@ -274,13 +282,16 @@ def recording_app(rec: RecordingApi) -> FastAPI:
         "/api/v1/jog": "jog", "/api/v1/jog/heartbeat": "jog", "/api/v1/stop": "stop",
         "/api/v1/locate": "locate", "/api/v1/approach": "approach",
         "/api/v1/gripper": "gripper", "/api/v1/arm/home": "operator",
-        "/api/v1/arm/unlock": "operator",
+        "/api/v1/arm/unlock": "operator", "/api/v1/pick": "pick",
+        "/api/v1/calibration/check": "check_calibration",
+        "/api/v1/calibration/reference": "calibrate",
     }
     schemas: dict[str, TypeAdapter[Any]] = {
         "/api/v1/jog": TypeAdapter(JogRequest),
         "/api/v1/approach": TypeAdapter(ApproachRequest),
         "/api/v1/gripper": TypeAdapter(GripperRequest),
         "/api/v1/stop": TypeAdapter(StopRequest),
+        "/api/v1/pick": TypeAdapter(PickRequest),
     }
     recipe_schema: TypeAdapter[Any] = TypeAdapter(RecipeApproachRequest)
 
@@ -373,7 +384,7 @@ def recording_app(rec: RecordingApi) -> FastAPI:
 
     @app.get("/api/v1/teach")
     def taught() -> dict[str, Any]:
-        return {"taught": []}
+        return {"taught": rec.taught}
 
     @app.get("/api/v1/recipes")
     def recipes() -> dict[str, Any]:
@@ -417,6 +428,25 @@ def recording_app(rec: RecordingApi) -> FastAPI:
     @app.post("/api/v1/approach")
     def approach() -> dict[str, Any]:
         return {"id": "0123abcd", "kind": "approach", "state": "running",
+                "progress": {}, "result": None, "error": None}
+
+    @app.get("/api/v1/calibration/checks")
+    def calibration_checks() -> dict[str, Any]:
+        return {"jobs": rec.checks, "total": None, "offset": 0}
+
+    @app.post("/api/v1/calibration/check")
+    def check() -> dict[str, Any]:
+        return {"id": "c4ec0001", "kind": "calibration_check", "state": "running",
+                "params": {}, "progress": {}, "result": None, "error": None}
+
+    @app.post("/api/v1/calibration/reference")
+    def reference() -> dict[str, Any]:
+        return {"id": "4ef00001", "kind": "calibration_reference", "state": "running",
+                "params": {}, "progress": {}, "result": None, "error": None}
+
+    @app.post("/api/v1/pick")
+    def pick() -> dict[str, Any]:
+        return {"id": "91c4ab00", "kind": "pick", "state": "running",
                 "progress": {}, "result": None, "error": None}
 
     mount_page(app)

@@ -15,6 +15,7 @@ from typing import Annotated, Any
 import numpy as np
 from fastapi import APIRouter, Body, Depends, Query, Request, Response
 from fastapi.responses import StreamingResponse
+from numpy.typing import NDArray
 
 from api.auth import Caller, Read, Stream, require
 from api.http import overlay
@@ -38,6 +39,9 @@ from api.http.schemas import (
     LocatedAll,
     LocateRequest,
     Me,
+    SimDeltaIn,
+    SimFaultsRequest,
+    SimFaultsResult,
     SimPartIn,
     SimParts,
     SimPartsRequest,
@@ -51,9 +55,9 @@ from api.http.schemas import (
 from api.http.sse import SSE_RESPONSES, sse_response
 from api.http.stop import ReadNow, StopCaller, StreamNow, snapshot_now, stop_now
 from api.remote import recipe_ref
-from cell.devices.hardware import SimPart, SimPartTruth, SimWorld
+from cell.devices.hardware import SimFaults, SimFaultsInEffect, SimPart, SimPartTruth, SimWorld
 from cell.error_codes import ErrorCode
-from cell.errors import CellError, NotFoundError
+from cell.errors import CellError, LimitError, NotFoundError
 from cell.service import Cell
 from cell.supervision.snapshot import with_age
 from estimator.transforms import T_from_pose, pose_dict
@@ -317,24 +321,86 @@ def sim_truth(request: Request, caller: Read) -> dict[str, Any]:
     (commissioning must recover them; the config may differ)."""
     sim = sim_of(request)
     true = sim.truth_values()
+    return {"T_base_target": pose_dict(sim.true_T_base_target()),
+            "T_base_tcp": pose_dict(sim.true_T_base_tcp()),
+            "world": true.world, **_optics_out(request, sim),
+            "effects": dataclasses.asdict(true.effects),
+            "parts": [_part_out(p) for p in sim.parts_truth()],
+            "faults": _faults_out(sim.faults())}
+
+
+def _optics_out(request: Request, sim: SimWorld) -> dict[str, Any]:
+    """The simulated camera's true mount and lens now."""
+    true = sim.truth_values()
     cam = true.camera
     # a simulated fixed camera's mount is its pose in the base frame
     fixed = cell_of(request).config.fixed_camera
-    return {"T_base_target": pose_dict(sim.true_T_base_target()),
-            "T_base_tcp": pose_dict(sim.true_T_base_tcp()),
-            "world": true.world, "T_flange_camera": pose_dict(true.T_flange_camera),
+    return {"T_flange_camera": pose_dict(true.T_flange_camera),
             "T_base_camera": pose_dict(true.T_flange_camera) if fixed else None,
             "camera": {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
-                       "dist": list(cam.dist), "width": cam.width, "height": cam.height},
-            "effects": dataclasses.asdict(true.effects),
-            "parts": [_part_out(p) for p in sim.parts_truth()]}
+                       "dist": list(cam.dist), "width": cam.width, "height": cam.height}}
 
 
 def _part_out(part: SimPartTruth) -> dict[str, Any]:
     return {"id": part.id, "layout": part.layout_name, "T_base_part": pose_dict(part.T_base_part),
             "held": part.held, "width_mm": part.width_mm,
             "velocity_mm_s": [float(v) for v in part.velocity_mm_s],
-            "T_tcp_part": None if part.T_tcp_part is None else pose_dict(part.T_tcp_part)}
+            "T_tcp_part": None if part.T_tcp_part is None else pose_dict(part.T_tcp_part),
+            "fixed_reference": part.fixed_reference}
+
+
+def _faults_out(faults: SimFaultsInEffect) -> dict[str, Any]:
+    lens_changed = faults.focal_scale != 1.0 or any(faults.principal_point_delta_px)
+    return {
+        "camera_mount_delta": (None if faults.T_mount_delta is None
+                               else pose_dict(faults.T_mount_delta)),
+        "lens": ({"focal_scale": faults.focal_scale,
+                  "principal_point_delta_px": list(faults.principal_point_delta_px)}
+                 if lens_changed else None),
+        "reference_delta": (None if faults.T_reference_delta is None
+                            else pose_dict(faults.T_reference_delta)),
+        "target_slip": (None if faults.T_slip is None
+                        else {"part": faults.slip_part, **pose_dict(faults.T_slip)})}
+
+
+def _delta(d: SimDeltaIn | None) -> NDArray[np.float64] | None:
+    return None if d is None else T_from_pose(d.position_mm, d.rotvec_rad)
+
+
+@sim_router.put("/faults", response_model=SimFaultsResult)
+def sim_faults(request: Request, caller: Annotated[Caller, Depends(require("sim_write"))],
+               body: SimFaultsRequest) -> dict[str, Any]:
+    """Hurt the simulated cell while it runs, without the cell knowing: knock the camera on
+    its mount, shift the lens, knock the fixed reference plates, slip a part. Each is a delta
+    on the commissioned truth and replaces whatever faults were set before (a fault not in the
+    body is cleared): the body is the whole set. Frames exposed from now on show it; a frame is
+    rendered wholly before or after. A fault the world cannot take (no such part, a part in
+    the gripper, no fixed reference) is 422 ``invalid_sim_fault`` and changes nothing.
+    Answers the faults in effect and the camera's true mount and lens with them
+    (docs/simulator.md)."""
+    sim = sim_of(request)
+    lens, slip = body.lens, body.target_slip
+    faults = SimFaults(
+        T_mount_delta=_delta(body.camera_mount_delta),
+        focal_scale=1.0 if lens is None else lens.focal_scale,
+        principal_point_delta_px=(0.0, 0.0) if lens is None else lens.principal_point_delta_px,
+        T_reference_delta=_delta(body.reference_delta),
+        slip_part=0 if slip is None else slip.part, T_slip=_delta(slip))
+    try:
+        sim.set_faults(faults)
+    except ValueError as err:
+        raise LimitError(ErrorCode.invalid_sim_fault, str(err)) from err
+    return {"faults": _faults_out(sim.faults()), **_optics_out(request, sim)}
+
+
+@sim_router.delete("/faults", response_model=SimFaultsResult)
+def sim_faults_clear(request: Request,
+                     caller: Annotated[Caller, Depends(require("sim_write"))]) -> dict[str, Any]:
+    """Clear every fault: the commissioned truth again, exactly (the camera's mount and lens,
+    the fixed references and a slipped part where they were)."""
+    sim = sim_of(request)
+    sim.clear_faults()
+    return {"faults": _faults_out(sim.faults()), **_optics_out(request, sim)}
 
 
 @sim_router.put("/target", response_model=SimTarget)
@@ -348,7 +414,10 @@ def sim_target(request: Request, caller: Annotated[Caller, Depends(require("sim_
     v = None if body.velocity_mm_s is None else np.asarray(body.velocity_mm_s, dtype=float)
     w = (None if body.angular_velocity_deg_s is None
          else np.radians(np.asarray(body.angular_velocity_deg_s, dtype=float)))
-    sim_of(request).set_target(T, v, w)
+    try:
+        sim_of(request).set_target(T, v, w)
+    except ValueError as err:  # a fixed reference asked to drift
+        raise LimitError(ErrorCode.invalid_request, str(err)) from err
     return {"T_base_target": pose_dict(T),
             "velocity_mm_s": list(body.velocity_mm_s or (0.0, 0.0, 0.0)),
             "angular_velocity_deg_s": list(body.angular_velocity_deg_s or (0.0, 0.0, 0.0))}
@@ -382,4 +451,4 @@ def _sim_part(cell: Cell, part: SimPartIn) -> SimPart:
     return SimPart(part.layout, layout, T_from_pose(part.position_mm, part.rotvec_rad),
                    None if part.velocity_mm_s is None else np.asarray(part.velocity_mm_s,
                                                                        dtype=float),
-                   w, part.width_mm)
+                   w, part.width_mm, part.fixed_reference)

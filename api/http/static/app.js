@@ -22,8 +22,9 @@ const OFFLINE_AFTER_MS = 1500;
 // answer comes from GET /me. STOP is not listed: every valid token may stop.
 const ROLE_ACTIONS = {
   viewer: [],
-  operator: ["jog", "locate", "approach", "track", "gripper", "pick", "camera", "alarm_ack"],
-  plc: ["locate", "approach", "track", "pick"],
+  operator: ["jog", "locate", "approach", "track", "gripper", "pick", "check_calibration", "camera",
+    "alarm_ack"],
+  plc: ["locate", "approach", "track", "pick", "check_calibration"],
 };
 // Controls marked data-needs="operator" (home, unlock, teach, calibration) need that role.
 const OPERATOR_ONLY = "operator";
@@ -830,7 +831,8 @@ async function refreshHistory() {
 async function refreshLogs() {
   if (!state.token) return;
   try {
-    await Promise.all([refreshAlarmLog(), refreshHistory(), refreshImages(), loadRecipes()]);
+    await Promise.all([refreshAlarmLog(), refreshHistory(), refreshImages(), loadRecipes(),
+      refreshChecks()]);
   } catch (e) { /* retried on the next round */ }
 }
 
@@ -1027,6 +1029,22 @@ function wireExtras() {
     return "calibration applied";
   }));
 
+  $("check-start").addEventListener("click", () => command("Calibration check", async () => {
+    const job = await api("POST", "/calibration/check", { wait: false });
+    state.lastJob = job;
+    state.resultJobId = job.id;
+    renderJob(job);
+    return `calibration check started (job ${job.id})`;
+  }));
+
+  $("reference-record").addEventListener("click", () => command("Record reference", async () => {
+    const job = await api("POST", "/calibration/reference", { wait: false });
+    state.lastJob = job;
+    state.resultJobId = job.id;
+    renderJob(job);
+    return `recording the calibration reference (job ${job.id})`;
+  }));
+
   $("cam-apply").addEventListener("click", () => command("Camera settings", async () => {
     const body = {};
     const num = (id, key) => {
@@ -1044,6 +1062,98 @@ function wireExtras() {
     showCameraSettings(s);
     return "camera settings applied";
   }));
+}
+
+// ---------------------------------------------------------------------------------------------
+// Calibration check: every check's error at the tool over time against the tolerance (drifted
+// checks in red), and the last check's views, drawn as inline SVG from GET /calibration/checks.
+
+const SVG_NS = "http://www.w3.org/2000/svg";
+const checks = { key: "" };
+
+function svg(tag, attrs = {}, text = "") {
+  const node = document.createElementNS(SVG_NS, tag);
+  for (const [k, v] of Object.entries(attrs)) node.setAttribute(k, String(v));
+  if (text) node.textContent = text;
+  return node;
+}
+
+async function refreshChecks() {
+  const r = await api("GET", "/calibration/checks?limit=50", undefined, { timeoutMs: 3000 });
+  const done = (r.jobs || []).filter((j) => j.state === "succeeded" && j.result).reverse();
+  const key = done.map((j) => j.id).join(",");
+  if (key === checks.key) return;
+  checks.key = key;
+  drawChecks(done);
+  drawViews(done.length ? done[done.length - 1] : null);
+}
+
+function drawChecks(done) {
+  const chart = $("check-chart");
+  const W = 320, H = 130, L = 34, R = 8, T = 8, B = 18;
+  chart.replaceChildren();
+  chart.dataset.points = String(done.length);
+  if (!done.length) {
+    $("check-status").textContent = "no check yet";
+    chart.append(svg("text", { x: L, y: H / 2 }, "no checks yet"));
+    return;
+  }
+  const last = done[done.length - 1];
+  const res = last.result;
+  $("check-status").textContent = `last check ${when(last.ended_at || last.created_at)}: `
+    + `${res.verdict}, ${fmt(res.tcp_error_mm, 3)} mm / ${fmt(res.tcp_error_deg, 3)} deg at the tool `
+    + `(tolerance ${res.tolerance_mm} mm / ${res.tolerance_deg} deg${res.verdict === "drifted" ? `, cause ${res.cause}` : ""})`;
+  $("check-status").dataset.verdict = res.verdict;
+  const tol = res.tolerance_mm;
+  const top = Math.max(tol * 1.5, ...done.map((j) => j.result.tcp_error_mm)) * 1.1;
+  const t0 = done[0].created_at, t1 = done[done.length - 1].created_at;
+  const x = (t) => (done.length < 2 ? (L + W - R) / 2 : L + ((t - t0) / Math.max(t1 - t0, 1e-6)) * (W - L - R));
+  const y = (mm) => H - B - (mm / top) * (H - T - B);
+  chart.dataset.top = String(top);
+  chart.append(svg("line", { x1: L, y1: H - B, x2: W - R, y2: H - B, stroke: "#999" }));
+  chart.append(svg("line", { x1: L, y1: T, x2: L, y2: H - B, stroke: "#999" }));
+  chart.append(svg("text", { x: 2, y: T + 8 }, `${fmt(top, 2)}`));
+  chart.append(svg("text", { x: 2, y: H - B }, "0 mm"));
+  chart.append(svg("line", { class: "tolerance", "data-testid": "check-tolerance", "data-mm": tol,
+    x1: L, y1: y(tol), x2: W - R, y2: y(tol) }));
+  chart.append(svg("text", { x: W - R - 2, y: y(tol) - 3, "text-anchor": "end" }, `tolerance ${tol} mm`));
+  chart.append(svg("polyline", { class: "trend",
+    points: done.map((j) => `${x(j.created_at)},${y(j.result.tcp_error_mm)}`).join(" ") }));
+  chart.append(svg("text", { x: L, y: H - 4 }, when(t0)));
+  if (done.length > 1) chart.append(svg("text", { x: W - R - 50, y: H - 4 }, when(t1)));
+  for (const j of done) {
+    const dot = svg("circle", { cx: x(j.created_at), cy: y(j.result.tcp_error_mm),
+      r: j.result.verdict === "drifted" ? 4.5 : 3, "data-verdict": j.result.verdict,
+      "data-job-id": j.id, "data-mm": j.result.tcp_error_mm });
+    dot.append(svg("title", {}, `${when(j.created_at)}: ${j.result.verdict}, `
+      + `${fmt(j.result.tcp_error_mm, 3)} mm / ${fmt(j.result.tcp_error_deg, 3)} deg`));
+    chart.append(dot);
+  }
+}
+
+// The last check's views: one bar per view, how far the plate seemed to move seen from there.
+function drawViews(job) {
+  const chart = $("check-views");
+  chart.replaceChildren();
+  const views = job ? job.result.views || [] : [];
+  chart.dataset.views = String(views.length);
+  if (!views.length) return;
+  const W = 320, H = 70, L = 34, B = 14, T = 6;
+  const tol = job.result.tolerance_mm;
+  const top = Math.max(tol, ...views.map((v) => v.distance_mm)) * 1.1;
+  const w = (W - L - 8) / views.length;
+  chart.append(svg("text", { x: 2, y: T + 8 }, `${fmt(top, 2)}`));
+  chart.append(svg("text", { x: 2, y: H - B }, "0 mm"));
+  views.forEach((v, i) => {
+    const h = (v.distance_mm / top) * (H - T - B);
+    const bar = svg("rect", { x: L + i * w + 2, y: H - B - h, width: Math.max(w - 4, 1), height: h,
+      "data-verdict": v.distance_mm > tol ? "drifted" : "ok", "data-mm": v.distance_mm });
+    bar.append(svg("title", {}, `view ${v.view}: ${fmt(v.distance_mm, 3)} mm, ${fmt(v.rotation_deg, 3)} deg`));
+    chart.append(bar);
+    chart.append(svg("text", { x: L + i * w + 2, y: H - 2 }, `view ${v.view} ${fmt(v.distance_mm, 2)}`));
+  });
+  chart.append(svg("line", { class: "tolerance", x1: L, y1: H - B - (tol / top) * (H - T - B),
+    x2: W - 8, y2: H - B - (tol / top) * (H - T - B) }));
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -71,6 +71,8 @@ def rec(stub: tuple[str, RecordingApi]) -> RecordingApi:
     r.jobs.clear()
     r.frame_headers.clear()
     r.recipes.clear()
+    r.taught.clear()
+    r.checks.clear()
     r.anonymous_stop = True
     r.stop_refuses.clear()
     return r
@@ -91,6 +93,8 @@ NEEDS = {  # control -> the API permission it uses (api.auth); "operator": that 
     "gripper-open": "gripper", "gripper-close": "gripper", **dict.fromkeys(JOG_BUTTONS, "jog"),
     "cam-apply": "camera", "cam-iso": "camera", "home": "operator", "unlock": "operator",
     "teach": "operator", "teach-name": "operator", "calib-start": "operator",
+    "pick": "pick", "place": "pick",
+    "check-start": "check_calibration", "reference-record": "operator",
 }
 
 
@@ -337,6 +341,141 @@ def test_recipe_choice_approaches_with_the_recipe_and_no_recipe_is_the_plain_app
     del r.recipes[0]
     wait_until(lambda: choice.input_value() == "", timeout_s=10, what="removed recipe unchosen")
     assert "plate-a was removed" in page.get_by_test_id("message").inner_text()
+
+
+def _stub_taught(name: str, frame: str) -> dict[str, Any]:
+    pose = {"position_mm": [-480.0, -100.0, 300.0], "rotvec_rad": [3.14159, 0.0, 0.0]}
+    return {"name": name, "frame": frame, "T_base_tcp": pose, "taught_by": "operator",
+            "spread_mm": 0.01, "T_target_tcp": None if frame == "base" else pose}
+
+
+PICK_RESULT = {
+    "part": {"id": 7, "layout": "plate", "parts_seen": 3,
+             "T_base_target": {"position_mm": [-480.0, -100.0, 60.0],
+                               "rotvec_rad": [3.14159, 0.0, 0.0]}},
+    "grip": {"verdict": "held", "object_detected": True, "width_mm": 40.02,
+             "window_mm": [1.0, 84.0]},
+    "place": {"taught": "tray-1"},
+    "phases_s": {"locate": 0.31, "approach": 2.42, "grasp": 0.77, "verify": 0.52,
+                 "retract": 0.61, "place": 2.9},
+    "cycle_s": 7.53,
+}
+PICK_WORDS = ("part 7 of 3, grip held at 40.0 mm, placed at tray-1; 7.5 s (locate 0.3 s, "
+              "approach 2.4 s, grasp 0.8 s, verify 0.5 s, retract 0.6 s, place 2.9 s)")
+
+
+def test_pick_places_at_a_base_frame_pose_and_the_job_line_and_history_show_the_part(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    """The place choice offers base-frame poses only; Pick sends the choice (with the recipe
+    and target when one is chosen); the ended pick's job line and its history row show the
+    part, the grip, where it went and each phase's seconds."""
+    url, r = stub
+    r.taught[:] = [_stub_taught("grasp-a", "target"), _stub_taught("tray-1", "base")]
+    r.recipes[:] = [_stub_recipe("plate-a", 3, 2, {"standoff_mm": 45.0})]
+    login(page, url, "tok-plc")
+    place = page.get_by_test_id("place")
+    wait_until(lambda: place.locator("option").count() == 2, what="place poses")
+    assert place.locator("option").all_inner_texts() == ["keep in the gripper", "tray-1"]
+    assert place.input_value() == ""
+    r.jobs[:] = [{"id": "91c4ab00", "kind": "pick", "state": "succeeded", "caller": "plc",
+                  "created_at": time.time(), "params": {"place": "tray-1"},
+                  "result": PICK_RESULT, "error": None}]  # how the pick ends
+    place.select_option("tray-1")
+    page.get_by_test_id("recipe").select_option("plate-a")
+    page.get_by_test_id("pick").click()
+    wait_until(lambda: rec.of("/api/v1/pick"), what="pick sent")
+    assert rec.of("/api/v1/pick")[0].body == {"wait": False, "recipe": "plate-a",
+                                              "target": "main", "place": "tray-1"}
+    job = page.get_by_test_id("job")
+    wait_until(lambda: PICK_WORDS in job.inner_text(), what="the pick's end")
+    assert f"pick 91c4ab00: succeeded — {PICK_WORDS}" in job.inner_text()
+    wait_until(lambda: PICK_WORDS in page.get_by_test_id("history").inner_text(),
+               timeout_s=10, what="the pick in the history")
+    # no recipe, no place: the cell's own target, the part kept in the gripper
+    place.select_option("")
+    page.get_by_test_id("recipe").select_option("")
+    page.get_by_test_id("pick").click()
+    wait_until(lambda: len(rec.of("/api/v1/pick")) == 2, what="second pick sent")
+    assert rec.of("/api/v1/pick")[1].body == {"wait": False}
+
+
+def _stub_check(job_id: str, at_s: float, tcp_mm: float, views_mm: list[float]) -> dict[str, Any]:
+    verdict = "drifted" if tcp_mm > 0.25 else "ok"
+    return {"id": job_id, "kind": "calibration_check", "state": "succeeded", "caller": "plc",
+            "created_at": at_s, "ended_at": at_s + 4.7, "params": {}, "error": None,
+            "result": {"verdict": verdict, "cause": "camera", "tcp_error_mm": tcp_mm,
+                       "tcp_error_deg": tcp_mm / 10, "tolerance_mm": 0.25, "tolerance_deg": 0.1,
+                       "views": [{"view": k, "distance_mm": d, "rotation_deg": 0.01,
+                                  "shift_mm": [d, 0.0, 0.0], "rms_px": 0.01}
+                                 for k, d in enumerate(views_mm)]}}
+
+
+def test_calibration_check_chart_and_buttons(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    """Every check is a point of its error at the tool over time against the tolerance line,
+    drifted ones marked; the last check's views are bars; the buttons start the jobs."""
+    url, r = stub
+    now = time.time()
+    r.checks[:] = [_stub_check("c3", now - 60, 0.52, [0.61, 0.48, 0.55, 0.7]),  # newest first
+                   _stub_check("c2", now - 3600, 0.04, [0.05, 0.03, 0.04, 0.06]),
+                   _stub_check("c1", now - 7200, 0.01, [0.01, 0.02, 0.01, 0.01])]
+    login(page, url, "tok-operator")
+    chart = page.get_by_test_id("check-chart")
+    wait_until(lambda: chart.get_attribute("data-points") == "3", what="the check chart")
+    dots = chart.locator("circle")
+    assert dots.count() == 3
+    order = [dots.nth(i).get_attribute("data-job-id") for i in range(3)]
+    assert order == ["c1", "c2", "c3"]  # oldest on the left
+    xs = [float(dots.nth(i).get_attribute("cx")) for i in range(3)]
+    ys = [float(dots.nth(i).get_attribute("cy")) for i in range(3)]
+    assert xs[0] < xs[1] < xs[2]
+    assert [dots.nth(i).get_attribute("data-verdict") for i in range(3)] == ["ok", "ok",
+                                                                             "drifted"]
+    tolerance = page.get_by_test_id("check-tolerance")
+    y_tol = float(tolerance.get_attribute("y1"))
+    assert ys[2] < y_tol < ys[1] < ys[0]  # SVG's y grows downwards: higher is more
+    status = page.get_by_test_id("check-status").inner_text()
+    assert "drifted, 0.520 mm / 0.052 deg at the tool" in status and "cause camera" in status
+    bars = page.get_by_test_id("check-views").locator("rect")
+    assert bars.count() == 4
+    heights = [float(bars.nth(i).get_attribute("height")) for i in range(4)]
+    assert heights.index(max(heights)) == 3 and heights.index(min(heights)) == 1
+    assert [bars.nth(i).get_attribute("data-verdict") for i in range(4)] == ["drifted"] * 4
+    chart.scroll_into_view_if_needed()
+    screenshot(page, "calibration-check")
+
+    r.jobs[:] = [{**_stub_check("c4ec0001", now, 0.03, [0.03] * 4), "caller": "operator"}]
+    page.get_by_test_id("check-start").click()
+    wait_until(lambda: rec.of("/api/v1/calibration/check"), what="check sent")
+    assert rec.of("/api/v1/calibration/check")[0].body == {"wait": False}
+    wait_until(lambda: "c4ec0001" in page.get_by_test_id("job").inner_text()
+               and page.get_by_test_id("reference-record").is_enabled(),
+               what="the check's end shown")
+    page.get_by_test_id("reference-record").click()
+    wait_until(lambda: rec.of("/api/v1/calibration/reference"), what="reference sent")
+
+
+def test_a_plc_may_check_but_not_record_the_reference(
+    page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+) -> None:
+    url, _ = stub
+    login(page, url, "tok-plc")
+    assert page.get_by_test_id("check-start").is_enabled()
+    assert page.get_by_test_id("reference-record").is_disabled()
+    assert page.get_by_test_id("check-chart").get_attribute("data-points") in (None, "0")
+
+
+def test_a_viewer_cannot_pick(page: Any, stub: tuple[str, RecordingApi], rec: RecordingApi
+                             ) -> None:
+    url, _ = stub
+    login(page, url, "tok-viewer")
+    assert page.get_by_test_id("pick").is_disabled()
+    assert page.get_by_test_id("place").is_disabled()
+    # the service refuses it too: the page's gate is not the only one
+    r = httpx.post(f"{url}/api/v1/pick", json={}, headers={"Authorization": "Bearer tok-viewer"})
+    assert r.status_code == 403 and r.json()["error"]["code"] == "forbidden"
 
 
 def test_a_running_recipe_job_names_its_recipe_and_blocks_only_motion(
@@ -807,3 +946,53 @@ def test_sim_cell_approach_with_a_recipe_chosen_on_the_page(page: Any, sim_cell:
     print(f"page recipe approach: TCP {d_mm:.2f} mm from the recipe's standoff goal (truth)")
     assert d_mm < 2.0
     screenshot(page, "operator-page-sim-recipe")
+
+
+def test_sim_cell_pick_and_place_from_the_page(page: Any, sim_cell: str) -> None:
+    """A part on a block under the home view and a place pose taught in the base frame; the
+    operator chooses the place on the page and presses Pick: the job line names the part, the
+    grip and the phases, and the part lies at its goal (simulator truth)."""
+    from estimator.transforms import T_from_pose_dict, pose_dict, pose_distance
+
+    url = sim_cell
+    auth = {"Authorization": f"Bearer {SIM_OPERATOR}"}
+
+    def call(method: str, path: str, **kw: Any) -> Any:
+        r = httpx.request(method, f"{url}/api/v1{path}", headers=auth, timeout=30.0, **kw)
+        assert r.status_code == 200, r.text
+        return r.json()
+
+    login(page, url, SIM_OPERATOR)
+    page.get_by_test_id("stop").click()  # nothing left running from an earlier test
+    home = call("POST", "/arm/home")
+    wait_until(lambda: call("GET", f"/jobs/{home['id']}")["state"] != "running", 60, "home")
+    call("POST", "/teach", json={"name": "tray-page", "frame": "base"})  # at the home pose
+    T_part = T_from_pose_dict(_truth(url)["T_base_target"])
+    T_part[:3, 3] += [0.0, 0.0, 60.0]  # on a 60 mm block
+    call("PUT", "/sim/parts", json={"parts": [pose_dict(T_part)]})
+    time.sleep(0.3)  # frames of the scene before the part was placed are not this one's
+
+    page.reload()
+    place = page.get_by_test_id("place")
+    wait_until(lambda: "tray-page" in place.locator("option").all_inner_texts(), 10,
+               "the place pose on the page")
+    place.select_option("tray-page")
+    wait_until(lambda: page.get_by_test_id("pick").is_enabled(), 15, "pick enabled")
+    page.get_by_test_id("pick").click()
+    job_line = page.get_by_test_id("job")
+    wait_until(lambda: "succeeded" in job_line.inner_text()
+               or "failed" in job_line.inner_text(), 120, "the pick's end")
+    text = job_line.inner_text()
+    assert "succeeded" in text and "part " in text and "of 1, grip held at" in text, text
+    assert "placed at tray-page" in text and "place " in text.split("(")[-1], text
+    job = call("GET", f"/jobs/{text.split()[1].rstrip(':')}")
+    assert job["kind"] == "pick" and job["params"]["place"] == "tray-page"
+    goal = T_from_pose_dict(job["result"]["place"]["T_base_part_goal"])
+    (part,) = call("GET", "/sim/truth")["parts"]
+    assert not part["held"]
+    d_mm, d_deg = pose_distance(T_from_pose_dict(part["T_base_part"]), goal)
+    print(f"page pick: part {d_mm:.3f} mm / {d_deg:.3f} deg from its goal (truth)")
+    assert d_mm <= 0.3 and d_deg <= 0.1
+    wait_until(lambda: "placed at tray-page" in page.get_by_test_id("history").inner_text(),
+               15, "the pick in the history")
+    screenshot(page, "operator-page-sim-pick")

@@ -31,48 +31,10 @@ from cell.features.recipes import parse_spec
 from cell.service import Cell
 from estimator.transforms import pose_distance, pose_from_T
 from tests.support.cell import running_cell, settled_tcp, sim_config
-from tests.support.modbus import modbus_client
+from tests.support.modbus import Plc, modbus_client, pose_of
 from tests.support.net import free_port
 
 TIMEOUT_S = 60.0
-
-
-@dataclass
-class Plc:
-    """A PLC's side of the handshake, on a pymodbus client."""
-
-    client: ModbusTcpClient
-    seq: int = 0
-
-    def inputs(self) -> list[int]:
-        r = self.client.read_input_registers(0, count=23, device_id=1)
-        assert not r.isError(), r
-        return list(r.registers)
-
-    def command(self, command: int, recipe: int = 0, standoff_mm: float = 0.0) -> int:
-        """One write of registers 0-4 (command, sequence, recipe, standoff): the sequence
-        changes in the same request as the command, so the cell never sees half of it."""
-        self.seq = (self.seq + 1) & 0xFFFF or 1
-        r = self.client.write_registers(
-            0, [command, self.seq, recipe, *float_words(standoff_mm)], device_id=1)
-        assert not r.isError(), r
-        return self.seq
-
-    def wait(self, seq: int, poll_s: float = 0.01) -> list[int]:
-        deadline = time.monotonic() + TIMEOUT_S
-        while time.monotonic() < deadline:
-            regs = self.inputs()
-            if regs[Ir.FINISHED_SEQUENCE] == seq:
-                return regs
-            time.sleep(poll_s)
-        raise AssertionError(f"sequence {seq} did not finish: {self.inputs()}")
-
-
-def pose_of(regs: list[int]) -> np.ndarray:
-    from estimator.transforms import T_from_pose
-
-    vals = [words_float(regs[Ir.POSE + 2 * i], regs[Ir.POSE + 2 * i + 1]) for i in range(6)]
-    return T_from_pose(vals[:3], vals[3:])
 
 
 @dataclass
@@ -199,7 +161,9 @@ def test_refusals_have_error_numbers_and_change_nothing(served: Served, plc: Plc
     assert not r.isError()
     time.sleep(0.2)
     assert plc.inputs()[Ir.STATE] == State.FAILED
-    assert plc.client.read_input_registers(20, count=10, device_id=1).isError()
+    assert plc.client.read_input_registers(25, count=10, device_id=1).isError()
+    assert plc.client.read_input_registers(28, count=2, device_id=1).isError()
+    assert not plc.client.read_input_registers(0, count=29, device_id=1).isError()
     assert plc.client.read_holding_registers(0, count=7, device_id=1).isError()
 
 

@@ -31,14 +31,14 @@ def test_a_modbus_read_past_the_map_is_one_warning_and_no_library_output(
     caplog.set_level(logging.DEBUG)
     with running_cell(config) as cell, modbus_client(cell, config.modbus) as client:
         for _ in range(3):  # a PLC polling a wrong address: logged the first time only
-            r = client.read_input_registers(20, count=10, device_id=1)
+            r = client.read_input_registers(25, count=10, device_id=1)
             assert r.isError() and r.exception_code == 2
         assert client.read_input_registers(0, count=1, device_id=5).isError()
-        assert not client.read_input_registers(0, count=23, device_id=1).isError()
+        assert not client.read_input_registers(0, count=29, device_id=1).isError()
     assert not _server_records(caplog, "pymodbus")
     assert not [r for r in caplog.records if ">>>>>" in r.getMessage()]
     ours = _server_records(caplog, "api.plc.modbus")
-    past = [r for r in ours if "input registers 20-29" in r.getMessage()]
+    past = [r for r in ours if "input registers 25-34" in r.getMessage()]
     assert len(past) == 1, [r.getMessage() for r in ours]
     assert past[0].levelno == logging.WARNING
     message = past[0].getMessage()

@@ -245,3 +245,64 @@ def test_a_place_pose_out_of_the_arms_reach_is_refused_before_anything_moves(
     assert error["code"] == "unreachable" and "place pose" in error["message"], error
     assert not cell.commanded() and cell.jobs.count_jobs() == jobs
     assert _truth(client) == before
+
+
+def test_parts_of_a_recipes_other_target_are_not_taken_for_parts_with_dots_missing(
+        client: TestClient) -> None:
+    """Ten parts of a recipe's two layouts side by side in one view (the pick bench's scene):
+    every choice of a pick of either target is a part of that layout, located where the
+    truth has one, and the following finds it again in every frame."""
+    from cell.actions.approach import JobLayout
+    from cell.actions.pick import choose_part
+    from cell.bench.pick import FIVE, SIX, layouts, save_recipe, scene
+
+    cell = cell_of(client)
+    save_recipe(cell)
+    plates = layouts(cell)
+    parts = scene(np.random.default_rng(0), 10, world(cell).true_T_base_target(), plates)
+    world(cell).place_parts(parts)
+    time.sleep(0.3)
+    for name in (SIX, FIVE):
+        lent = JobLayout(cell.core, plates[name])
+        lent.apply()
+        try:
+            for _ in range(4):
+                chosen = choose_part(cell.core, 3, plates, name)
+                cell.core.locator.follow(None)
+                assert chosen.layout == name and chosen.parts_seen == 10
+                d_mm = min(pose_distance(chosen.located.T_base_target, p.T_base_part)[0]
+                           for p in parts if p.layout_name == name)
+                assert d_mm < 1.0
+        finally:
+            lent.ended()
+
+
+def test_a_gripper_that_stops_answering_fails_the_pick_with_the_arm_still(
+        client: TestClient) -> None:
+    """The serial line goes quiet as the pick closes: ``gripper_fault``, the arm stopped at the
+    grasp pose, nothing held; the gripper answers again and the next pick succeeds."""
+    cell = cell_of(client)
+    _place_parts(client, [(0.0, 0.0), (0.0, 140.0)])
+    job = client.post("/api/v1/pick", json={}, headers=PLC).json()
+    deadline = time.monotonic() + 60
+    while cell.job(job["id"]).progress.get("phase") != "grasp":
+        assert cell.job(job["id"]).state == "running", cell.job(job["id"]).as_dict()
+        assert time.monotonic() < deadline
+        time.sleep(0.005)
+    world(cell).inject_gripper_fault("no_answer", 20)
+    ended = wait_job(client, job["id"], headers=OP)
+    assert ended["state"] == "failed" and ended["error"]["code"] == "gripper_fault", ended
+    still = settled_tcp(cell)
+    time.sleep(0.3)
+    assert pose_distance(world(cell).true_T_base_tcp(), still)[0] < 0.01
+    deadline = time.monotonic() + 30
+    while True:  # the faults run out; the gripper answers again
+        r = client.post("/api/v1/gripper", json={"action": "open"}, headers=OP)
+        if r.status_code == 200:
+            break
+        assert time.monotonic() < deadline, r.text
+        time.sleep(0.5)
+    r = client.post("/api/v1/arm/home", json={"wait": True}, headers=OP)
+    assert r.json()["state"] == "succeeded", r.json()
+    job = client.post("/api/v1/pick", json={"wait": True}, headers=PLC).json()
+    assert job["state"] == "succeeded" and job["result"]["grip"]["verdict"] == "held", job

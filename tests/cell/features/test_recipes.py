@@ -220,3 +220,22 @@ def test_recipes_are_checked_when_saved_by_the_approachs_rules(tmp_path: Path) -
         assert r.status_code == 422 and r.json()["error"]["code"] == "speed_limit", r.text
         assert "speed_mm_s" in r.json()["error"]["message"]
         assert not cell.commanded()
+
+
+def test_a_pick_recipe_names_its_place_and_a_place_without_a_pick_is_refused(
+        tmp_path: Path) -> None:
+    config = sim_config(tmp_path)
+    store = RecipeStore(tmp_path / "recipes.json")
+    data = spec(config)
+    assert parse_spec(data).targets[0].job == "approach"  # what recipes did before
+    data["targets"][0].update(job="pick", place="tray-1")
+    saved = store.save(parse_spec(data), "test")
+    again = RecipeStore(tmp_path / "recipes.json").get(saved.name).target()
+    assert (again.job, again.place) == ("pick", "tray-1")
+    del data["targets"][0]["job"]
+    with pytest.raises(CellError) as refused:
+        parse_spec(data)
+    assert refused.value.code == "invalid_recipe" and "targets.0" in refused.value.message
+    data["targets"][0].update(job="weld", place="")
+    with pytest.raises(CellError):
+        parse_spec(data)
