@@ -158,11 +158,13 @@ def test_a_disk_that_fails_mid_job_ends_it_for_http_opcua_and_the_event_stream(
             health = s.http.get("/api/v1/health").json()
             assert health["status"] == "degraded"
             assert "storage" in [r["code"] for r in health["reasons"]], health
-            alarms = s.http.get("/api/v1/alarms", params={"active": "true"},
-                                headers=VIEW).json()["alarms"]
-            codes = [a["code"] for a in alarms]
-            of_job = next(a for a in alarms if a["job_id"] == job["id"])
-            assert "storage_failed" in codes and of_job["code"] == "storage_failed", alarms
+            def active_alarms() -> list[tuple[str, str | None]]:
+                r = s.http.get("/api/v1/alarms", params={"active": "true"}, headers=VIEW)
+                return [(a["code"], a["job_id"]) for a in r.json()["alarms"]]
+
+            wait_until(lambda: set(active_alarms()) == {("storage_failed", None),
+                                                         ("storage_failed", job["id"])},
+                       2, "the storage alarm and the job's")
             r = s.http.post("/api/v1/arm/home", json={}, headers=OP)
             assert r.status_code == 503 and r.json()["error"]["code"] == "storage_failed", r.text
             assert s.http.post("/api/v1/stop", json={}, headers=OP).json()["stopped"]
