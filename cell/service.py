@@ -278,17 +278,18 @@ class Cell:
 
     def pick(self, caller: str, *, recipe: str | int | None = None, target: str = "",
              place: str | None = None, standoff_mm: float | None = None,
-             mode: ApproachMode | None = None, wait: bool = False,
+             mode: ApproachMode | None = None, retract: str | None = None, wait: bool = False,
              wait_timeout_s: float = 180.0) -> Job:
         """Pick job (cell.actions.pick): the next part of the recipe's target (None: the
         cell's ``[target]`` with ``[approach]`` and ``[pick]``'s values), placed at the
         base-frame pose taught as ``place`` (None: kept in the gripper after the retract). A
         refusal (unknown recipe or pose, a pose the arm cannot reach) moves nothing."""
         params = {"recipe": recipe, "target": target, "place": place, "standoff_mm": standoff_mm,
-                  "mode": mode}
+                  "mode": mode, "retract": retract}
         try:
             self._drift_gate(caller, "pick", audited=False)
-            record, layout, plan = self._pick_plan(recipe, target, place, standoff_mm, mode)
+            record, layout, plan = self._pick_plan(recipe, target, place, standoff_mm, mode,
+                                                   retract)
         except CellError:
             with self.core.audit.command(caller, "pick", params):
                 raise
@@ -302,23 +303,29 @@ class Cell:
                                    wait_timeout_s=wait_timeout_s)
 
     def _pick_plan(self, recipe: str | int | None, target: str, place: str | None,
-                   standoff_mm: float | None, mode: ApproachMode | None
+                   standoff_mm: float | None, mode: ApproachMode | None,
+                   retract: str | None = None
                    ) -> tuple[dict[str, Any] | None, Target | None, pick_mod.PickPlan]:
         placed = None if place is None else (place, self.taught.get(place).place_pose())
         if recipe is None:
             T_target_tcp, _ = self.taught.for_job(None, mode)
+            retract_to = None if retract is None else (
+                retract, self.taught.get(retract).place_pose())
             return None, None, pick_mod.resolve_plan(
                 self.core, standoff_mm=standoff_mm, speed_mm_s=None, T_target_tcp=T_target_tcp,
-                mode=mode, place=placed)
+                mode=mode, place=placed, retract_to=retract_to)
         found = self.recipes.get(recipe)
         chosen = found.target(target)
+        retract = retract or chosen.retract_taught or None
+        retract_to = None if retract is None else (retract,
+                                                   self.taught.get(retract).place_pose())
         T_target_tcp, _ = self.taught.for_job(chosen.taught or None, chosen.mode)
         return found.record(chosen), chosen.model(), pick_mod.resolve_plan(
             self.core, standoff_mm=chosen.standoff_mm if standoff_mm is None else standoff_mm,
             speed_mm_s=chosen.speed_mm_s, T_target_tcp=T_target_tcp,
             mode=chosen.mode if mode is None else mode, place=placed,
             grasp_speed_mm_s=chosen.grasp_speed_mm_s, retract_mm=chosen.retract_mm,
-            grip_window_mm=(chosen.grip_min_mm, chosen.grip_max_mm))
+            grip_window_mm=(chosen.grip_min_mm, chosen.grip_max_mm), retract_to=retract_to)
 
     def _drift_gate(self, caller: str, command: str, audited: bool = True) -> None:
         """With ``[check] on_drift = "refuse"``, a job that relies on the calibration is

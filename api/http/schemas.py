@@ -116,6 +116,10 @@ class PickRequest(_Body):
         "place the part at; null: keep it in the gripper after the retract")
     standoff_mm: Num | None = Field(default=None, ge=0, le=MAX_STANDOFF_MM,
                                     description="the pre-pick pose's distance from the grasp")
+    retract: str | None = Field(
+        default=None, min_length=1, max_length=64,
+        description="a pose taught in the base frame the retract ends at, after the retract "
+        "distance along the tool axis; null: the recipe's (retract_taught), else none")
     mode: PoseMode | None = Field(default=None, description="how the pre-pick pose is "
                                   "approached: look_and_move or servo")
     wait: Flag = Field(default=False, description="as for /approach: true answers when the "

@@ -18,7 +18,8 @@ The phases:
 - ``verify``: close; the grip holds when the gripper stopped on an object with the fingers
   inside the window. No object: open, retract, fail ``grasp_missed``; an object outside the
   window: the same, ``grip_out_of_window``; a gripper fault: the arm stops, ``gripper_fault``.
-- ``retract``: back along the tool axis by the retract distance.
+- ``retract``: back along the tool axis by the retract distance, then, if one is named, to a
+  taught base-frame retract pose.
 - ``place`` (when asked): above the taught place pose, down to it, open, back up.
 
 A stop in any phase leaves the arm still and the fingers as they are; the job ends
@@ -87,13 +88,16 @@ class PickPlan:
     T_base_tcp_place: Matrix4 | None
     place_clearance_mm: float
     place_speed_mm_s: float
+    retract_name: str | None = None  # a base-frame pose the retract ends at
+    T_base_tcp_retract: Matrix4 | None = None
 
     def params(self) -> dict[str, Any]:
         a = self.approach
         return {"standoff_mm": a.standoff_mm, "speed_mm_s": a.speed_mm_s,
                 "T_target_tcp": pose_dict(a.T_target_tcp), "mode": self.mode,
                 "grasp_speed_mm_s": self.grasp_speed_mm_s, "retract_mm": self.retract_mm,
-                "grip_window_mm": list(self.grip_window_mm), "place": self.place_name}
+                "grip_window_mm": list(self.grip_window_mm), "place": self.place_name,
+                "retract": self.retract_name}
 
 
 @dataclass(frozen=True)
@@ -106,9 +110,12 @@ class Legs:
     retract: Matrix4
     above_place: Matrix4 | None
     place: Matrix4 | None
+    retract_to: Matrix4 | None = None  # the taught pose the retract ends at
 
     def named(self) -> list[tuple[str, Matrix4]]:
         out = [("pre-pick", self.pre_pick), ("grasp", self.grasp), ("retract", self.retract)]
+        if self.retract_to is not None:
+            out.append(("taught retract pose", self.retract_to))
         if self.above_place is not None and self.place is not None:
             out += [("above the place pose", self.above_place), ("place", self.place),
                     ("retract from the place pose", self.above_place)]
@@ -123,7 +130,8 @@ def legs_for(plan: PickPlan, T_base_target: Matrix4) -> Legs:
     return Legs(T_base_target=T_base_target,
                 pre_pick=approach_tcp(T_base_target, a.T_target_tcp, a.standoff_mm),
                 grasp=grasp, retract=grasp @ translation_T(0.0, 0.0, -plan.retract_mm),
-                above_place=above, place=plan.T_base_tcp_place)
+                above_place=above, place=plan.T_base_tcp_place,
+                retract_to=plan.T_base_tcp_retract)
 
 
 @dataclass(frozen=True)
@@ -309,6 +317,9 @@ def _cycle(core: CellCore, gripper: GripperCommands, caller: str, job_id: str, m
                            "retracted")
     with phases.phase("retract"):
         core.arm.move_linear(legs.retract, a.speed_mm_s, a.accel_mm_s2, what="retract")
+        if legs.retract_to is not None:
+            core.arm.move_linear(legs.retract_to, a.speed_mm_s, a.accel_mm_s2,
+                                 what="the taught retract pose")
     place = None
     if legs.place is not None and legs.above_place is not None:
         assert plan.place_name is not None
@@ -328,7 +339,8 @@ def _cycle(core: CellCore, gripper: GripperCommands, caller: str, job_id: str, m
         part=PickedPart(id=part.part_id, layout=part.layout,
                         T_base_target=Pose.from_T(T_base_target), parts_seen=part.parts_seen),
         approach=approached, grasp_T_base_tcp=Pose.from_T(T_grasp_reached), grip=grip,
-        retracted_T_base_tcp=Pose.from_T(legs.retract), place=place,
+        retracted_T_base_tcp=Pose.from_T(legs.retract if legs.retract_to is None
+                                         else legs.retract_to), place=place,
         phases_s=dict(phases.seconds), cycle_s=phases.cycle_s())
 
 
@@ -372,7 +384,8 @@ def resolve_plan(core: CellCore, *, standoff_mm: float | None, speed_mm_s: float
                  T_target_tcp: Matrix4 | None, mode: ApproachMode | None,
                  place: tuple[str, Matrix4] | None, grasp_speed_mm_s: float | None = None,
                  retract_mm: float | None = None,
-                 grip_window_mm: tuple[float | None, float | None] = (None, None)) -> PickPlan:
+                 grip_window_mm: tuple[float | None, float | None] = (None, None),
+                 retract_to: tuple[str, Matrix4] | None = None) -> PickPlan:
     """A pick's plan: what was asked, the rest from ``[approach]`` and ``[pick]``."""
     ac, pc = core.config.approach, core.config.pick
     how = ac.mode if mode is None else mode
@@ -396,5 +409,7 @@ def resolve_plan(core: CellCore, *, standoff_mm: float | None, speed_mm_s: float
         retract_mm=pc.retract_mm if retract_mm is None else float(retract_mm),
         grip_window_mm=(lo, hi), place_name=None if place is None else place[0],
         T_base_tcp_place=None if place is None else place[1],
-        place_clearance_mm=pc.place_clearance_mm, place_speed_mm_s=pc.place_speed_mm_s)
+        place_clearance_mm=pc.place_clearance_mm, place_speed_mm_s=pc.place_speed_mm_s,
+        retract_name=None if retract_to is None else retract_to[0],
+        T_base_tcp_retract=None if retract_to is None else retract_to[1])
 

@@ -80,6 +80,7 @@ class RecipeTarget(DotLayout):
     retract_mm: Num | None = Field(default=None, ge=0, le=500)
     grip_min_mm: Num | None = Field(default=None, ge=0)
     grip_max_mm: Num | None = Field(default=None, gt=0)
+    retract_taught: str = ""  # a base-frame pose the pick's retract ends at ("": none)
     # what a Machine Vision StartSingleJob runs with this target; a pick's place pose is one
     # taught in the base frame ("": the part stays in the gripper)
     job: Literal["approach", "pick"] = "approach"

@@ -32,5 +32,5 @@ def pick(request: Request, caller: Annotated[Caller, Depends(require("pick"))],
     b = body or PickRequest()
     cell: Cell = request.app.state.cell
     job = cell.pick(caller.label, recipe=b.recipe, target=b.target, place=b.place,
-                    standoff_mm=b.standoff_mm, mode=b.mode, wait=b.wait)
+                    standoff_mm=b.standoff_mm, mode=b.mode, retract=b.retract, wait=b.wait)
     return job.as_dict()

@@ -306,3 +306,21 @@ def test_a_gripper_that_stops_answering_fails_the_pick_with_the_arm_still(
     assert r.json()["state"] == "succeeded", r.json()
     job = client.post("/api/v1/pick", json={"wait": True}, headers=PLC).json()
     assert job["state"] == "succeeded" and job["result"]["grip"]["verdict"] == "held", job
+
+
+def test_a_taught_retract_pose_ends_the_retract(client: TestClient) -> None:
+    """``retract`` names a base-frame pose: the pick backs off along the tool axis, then goes
+    there with the part, where the true TCP rests; the result says so."""
+    cell = cell_of(client)
+    _place_parts(client, [(0.0, 0.0)])
+    T_retract = world(cell).true_T_base_target() @ cell.config.approach.T_target_tcp.T()
+    T_retract[:3, 3] += [-120.0, 60.0, 180.0]
+    _teach_place(cell, "clear", T_retract)
+    job = client.post("/api/v1/pick", json={"retract": "clear", "wait": True},
+                      headers=PLC).json()
+    assert job["state"] == "succeeded", job
+    assert job["params"]["retract"] == "clear"
+    assert pose_distance(T_from_pose_dict(job["result"]["retracted_T_base_tcp"]),
+                         T_retract)[0] < 1e-6
+    assert pose_distance(settled_tcp(cell), T_retract)[0] < 0.5  # the arm's own accuracy
+    assert [p["held"] for p in _truth(client)] == [True]
