@@ -86,7 +86,8 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
     robot_host = str(tomllib.loads(text)["robot"]["host"])
     # a slow servo (the frozen arm's travel scales with its speed); loss of the target on a
     # loaded host is not what these tests are about, so the lost-target clock is generous
-    config.write_text(text + f"\n[servo]\nmax_speed_mm_s = {SPEED_MM_S}\nlost_after_s = 1.0\n")
+    config.write_text(text + f"\n[servo]\nmax_speed_mm_s = {SPEED_MM_S}\nlost_after_s = 1.0\n"
+                      "stall_after_s = 5.0\n")
     port = free_port()
     log = tmp / "serve.log"
     with log.open("w") as out:
