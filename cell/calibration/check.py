@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from cell.calibration.camera_change import camera_change
 from cell.calibration.routine import RoutineSettings, plan_poses
 from cell.core import CellCore
 from cell.error_codes import ErrorCode
@@ -282,20 +283,26 @@ class CalibrationCheck:
         ``tilt_deg``): the plate is blamed only when it explains the views clearly better
         (``REFERENCE_MARGIN``) and the camera model misses by more than the views' own noise
         (``VIEW_NOISE_MM``); otherwise the camera, whose model also gives the right figure
-        at the tool for a moved plate seen nearly alike. Returns the cause, the shift at the
-        goal and the chosen model's largest miss."""
+        at the tool for a moved plate seen nearly alike. The camera's change carried to the
+        goal keeps a turn only where the views resolve it (:func:`camera_change`). Returns
+        the cause, the shift at the goal and the chosen model's largest miss."""
         D = mean_pose([n @ invert_T(t) for t, n in zip(T_then, T_now, strict=True)])
         base_miss = _miss([D @ t for t in T_then], T_now)
         if self.core.frames.is_fixed:
             return "camera", D, base_miss
-        E = mean_pose([invert_T(c) @ n @ invert_T(t) @ c
-                       for t, n, c in zip(T_then, T_now, T_cameras, strict=True)])
+        changes = [invert_T(c) @ n @ invert_T(t) @ c
+                   for t, n, c in zip(T_then, T_now, T_cameras, strict=True)]
+        E = mean_pose(changes)
         camera_miss = _miss([c @ E @ invert_T(c) @ t for t, c in zip(T_then, T_cameras,
                                                                      strict=True)], T_now)
         if camera_miss[0] > max(REFERENCE_MARGIN * base_miss[0], VIEW_NOISE_MM):
             return "reference", D, base_miss
+        centre = self.core.locator.target.points_mm.mean(axis=0)
+        centres = [(invert_T(c) @ t)[:3, :3] @ centre + (invert_T(c) @ t)[:3, 3]
+                   for t, c in zip(T_then, T_cameras, strict=True)]
         T_camera_goal = self.core.frames.T_base_camera(goal)
-        return "camera", T_camera_goal @ E @ invert_T(T_camera_goal), camera_miss
+        return "camera", (T_camera_goal @ camera_change(changes, centres)
+                          @ invert_T(T_camera_goal)), camera_miss
 
     # -- shared ------------------------------------------------------------------------------
     def _ready(self) -> None:
