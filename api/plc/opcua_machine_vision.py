@@ -90,7 +90,7 @@ class Facet(Protocol):
 
     async def show(self) -> None: ...
 
-    async def result(self, job: dict[str, Any], record: Job | None) -> None: ...
+    async def result(self, job: dict[str, Any]) -> None: ...
 
 log = logging.getLogger(__name__)
 
@@ -235,12 +235,17 @@ class MachineVision:
             or "EMERGENCY_STOP" in str(robot.get("safety", ""))
         if fault and self.state == OPERATIONAL:
             self.state, self.sub_state = ERROR, ""
-        if job is not None and job["id"] == self.running_job and job.get("ended_at"):
-            await self._result(job)
+        ended = job if job is not None and job["id"] == self.running_job \
+            and job.get("ended_at") else None
+        if ended is not None:
+            await self._result(ended)
             self.running_job = ""
             if self.state == OPERATIONAL:
                 self.sub_state = READY if self.prepared else INITIALIZED
         await self._show()
+        if ended is not None:  # the other faces once this one shows the result and the state
+            for facet in self.facets:
+                await facet.result(ended)
 
     async def _result(self, job: dict[str, Any]) -> None:
         params = job.get("params") or {}
@@ -266,8 +271,6 @@ class MachineVision:
             self._nodes["result_job"]: ua.Variant(job["id"], S),
             self._nodes["result_recipe"]: ua.Variant(recipe_id, S),
             self._nodes["result"]: ua.Variant(json.dumps(body, default=str), S)})
-        for facet in self.facets:
-            await facet.result(job, record)
 
     # -- calls ----------------------------------------------------------------------------------
     async def _change_state(self, work: Callable[[RemoteCaller], list[ua.Variant]]

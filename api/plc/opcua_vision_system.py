@@ -28,12 +28,13 @@ seconds); ``ProcessingTimes`` from the job's start to its end, its acquisition t
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 from collections import OrderedDict
 from collections.abc import Awaitable, Callable
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, TypeVar
 
 from asyncua import Node, ua
 
@@ -51,6 +52,7 @@ log = logging.getLogger(__name__)
 I32 = ua.VariantType.Int32
 EXT = ua.VariantType.ExtensionObject
 STATE_SUCCEEDED, STATE_FAILED, STATE_CANCELLED = 1, -1, -2
+T = TypeVar("T")
 CONFIG_ID = "config"  # the calibration of the config file, none applied since
 
 
@@ -183,15 +185,15 @@ class VisionSystemFacet:
                 ua.VariantType.NodeId)
         await self.mv.opc.write_nodes(values)
 
-    async def result(self, job: dict[str, Any], record: Job | None) -> None:
+    async def result(self, job: dict[str, Any]) -> None:
         """A job's end: its ``ResultDataType`` kept for the result methods, the active
         configuration read again, and ``ResultReadyEventType`` raised."""
-        configuration = self._active_configuration()
+        configuration = await self._off_loop(self._active_configuration)
         if configuration.InternalId.Id != self._configuration.InternalId.Id:
             self._configuration = configuration
             await self.mv.opc.write_nodes({self._nodes["configuration"]:
                                            ua.Variant(configuration, EXT)})
-        result = self._result_of(job, record)
+        result = self._result_of(job, self.mv.opc.ended_job(job["id"]))
         self.results[result.ResultId.Id] = result
         while len(self.results) > MAX_RESULTS:
             self.results.popitem(last=False)
@@ -246,6 +248,10 @@ class VisionSystemFacet:
         return m.new("ConfigurationDataType",
                      InternalId=m.new("ConfigurationIdDataType", Id=cal_id),
                      LastModified=_when(None if applied is None else applied.ended_at))
+
+    async def _off_loop(self, work: Callable[[], T]) -> T:
+        """``work`` (a read of the cell's stores) in a worker thread, off the server's loop."""
+        return await asyncio.get_running_loop().run_in_executor(self.mv.opc.calls, work)
 
     # -- methods --------------------------------------------------------------------------------
     def _error(self, out: list[ua.Variant]) -> int:
@@ -317,7 +323,8 @@ class VisionSystemFacet:
         one comes through the cell's own doors, so an unknown one is refused."""
         external, _ = self.mv.opc.method_args(args, 2)
         name = self._id(external)
-        match = next((f"{r.name}@{r.version}" for r in self.mv.opc.cell.recipes.list()
+        match = next((f"{r.name}@{r.version}" for r in await self._off_loop(
+                          self.mv.opc.cell.recipes.list)
                       if name and name in (r.name, str(r.number))), None)
         if match is None:
             return self._refused(mvm.RECIPE_MANAGEMENT_TYPE, "AddRecipe",
@@ -330,7 +337,7 @@ class VisionSystemFacet:
     async def _list_recipes(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
         external, _, is_prepared, max_results, start, _ = self.mv.opc.method_args(args, 6)
         wanted = self._id(external)
-        recipes = [r for r in self.mv.opc.cell.recipes.list()
+        recipes = [r for r in await self._off_loop(self.mv.opc.cell.recipes.list)
                    if not wanted or wanted in (r.name, str(r.number))]
         if is_prepared in (0, 1):
             recipes = [r for r in recipes if (r.name == self.mv.prepared) == bool(is_prepared)]
