@@ -131,14 +131,14 @@ class VisionSystemFacet:
                                 mvm.VISION_STATE_MACHINE_TYPE)
         await self._current_state(sm, "VisionStateMachine", "state")
         await self._methods(sm, "VisionStateMachine", mvm.VISION_STATE_MACHINE_TYPE, {
-            "Halt": self.halt, "Reset": self.reset,
-            "SelectModeAutomatic": self.select_automatic})
+            "Halt": self._halt, "Reset": self._reset,
+            "SelectModeAutomatic": self._select_automatic})
         auto = await self._object(sm, "AutomaticModeStateMachine", "AutomaticModeStateMachine",
                                   mvm.AUTOMATIC_MODE_TYPE)
         await self._current_state(auto, "AutomaticModeStateMachine", "sub_state")
         await self._methods(auto, "AutomaticModeStateMachine", mvm.AUTOMATIC_MODE_TYPE, {
             "StartSingleJob": self._start_single, "StartContinuous": self._start_continuous,
-            "Stop": self.stop, "Abort": self.stop})
+            "Stop": self._stop, "Abort": self._stop})
         recipes = await self._object(vs, "RecipeManagement", "RecipeManagement",
                                      mvm.RECIPE_MANAGEMENT_TYPE)
         await self._methods(recipes, "RecipeManagement", mvm.RECIPE_MANAGEMENT_TYPE, {
@@ -238,16 +238,24 @@ class VisionSystemFacet:
             ProcessingTimes=times, ResultContent=content)
 
     def _active_configuration(self) -> Any:
-        """The hand-eye calibration in use: the newest applied calibration in the audit log,
-        else the config file's."""
+        """The hand-eye calibration in use: the newest applied calibration in the audit log
+        (when it was applied), else the config file's (when the file was written; none for a
+        built-in config)."""
         m = self.model
-        applied = next((e for e in self.mv.opc.cell.jobs.audit_log(1000)
+        cell = self.mv.opc.cell
+        applied = next((e for e in cell.jobs.audit_log(1000)
                         if e.command == "apply_calibration" and e.outcome == "ok"
                         and e.params.get("running")), None)
-        cal_id = CONFIG_ID if applied is None else str(applied.params.get("job_id"))
+        when_s: float | None
+        if applied is not None:
+            cal_id, when_s = str(applied.params.get("job_id")), applied.ended_at
+        else:
+            path = cell.calibration.config_path
+            cal_id = CONFIG_ID
+            when_s = path.stat().st_mtime if path is not None and path.exists() else None
         return m.new("ConfigurationDataType",
                      InternalId=m.new("ConfigurationIdDataType", Id=cal_id),
-                     LastModified=_when(None if applied is None else applied.ended_at))
+                     LastModified=_when(when_s))
 
     async def _off_loop(self, work: Callable[[], T]) -> T:
         """``work`` (a read of the cell's stores) in a worker thread, off the server's loop."""
@@ -286,16 +294,16 @@ class VisionSystemFacet:
         """The ``Id`` of one of the standard's id structures (empty when none was given)."""
         return str(getattr(value, "Id", "") or "")
 
-    async def halt(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
+    async def _halt(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
         return await self.mv.halt(parent)
 
-    async def reset(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
+    async def _reset(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
         return await self.mv.reset(parent)
 
-    async def select_automatic(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
+    async def _select_automatic(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
         return await self.mv.select_automatic(parent)
 
-    async def stop(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
+    async def _stop(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
         return await self.mv.stop(parent)
 
     async def _start_single(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:

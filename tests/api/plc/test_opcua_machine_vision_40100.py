@@ -206,9 +206,22 @@ def test_asyncua_client_finds_the_facet_by_the_standards_facts(served: Served) -
             nodes = await _check_instance(await _instance(c, mv), mv)
             text, state_id = await _state(nodes, "VisionStateMachine", mv)
             assert (text, state_id) == ("Preoperational", _node_id(("mv", 5028), mv))
-            config = await (await nodes["ConfigurationManagement"].get_child(
-                f"{mv}:ActiveConfiguration")).read_value()
+            configs = nodes["ConfigurationManagement"]
+            config = await (await configs.get_child(f"{mv}:ActiveConfiguration")).read_value()
             assert config.InternalId.Id == "config"  # no calibration applied: the file's
+            listed = await configs.call_method(
+                f"{mv}:GetConfigurationList", ua.Variant(0, ua.VariantType.UInt32),
+                ua.Variant(0, ua.VariantType.UInt32), ua.Variant(0, ua.VariantType.Int32))
+            assert listed[0] is True and listed[1] == 1 and listed[3] == [config] \
+                and listed[-1] == 0
+            _, by_id, error = await configs.call_method(
+                f"{mv}:GetConfigurationById", ua.ConfigurationIdDataType(Id="config"),
+                ua.Variant(0, ua.VariantType.Int32))
+            assert (by_id, error) == (config, 0)
+            assert await configs.call_method(f"{mv}:ActivateConfiguration",
+                                             ua.ConfigurationIdDataType(Id="config")) == 0
+            assert await configs.call_method(f"{mv}:ActivateConfiguration",
+                                             ua.ConfigurationIdDataType(Id="other")) != 0
 
     asyncio.run(go())
 
