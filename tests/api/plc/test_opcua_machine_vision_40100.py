@@ -3,7 +3,7 @@ of the published NodeSet (:mod:`tests.api.plc.machine_vision_facts`): asyncua's 
 every type, instance declaration, method argument and structure layout by the standard's
 NodeIds, finds the instance by its type, prepares a recipe, runs a single job and reads its
 result through the standard's methods and ``ResultReadyEventType``; node-opcua (another stack)
-does the same. One served cell for the module."""
+does the same with a recipe whose single job is a pick. One served cell for the module."""
 
 from __future__ import annotations
 
@@ -18,12 +18,15 @@ from typing import Any
 
 import pytest
 from asyncua import Client, Node, ua
+from fastapi.testclient import TestClient
 
+from api.app import create_app
 from api.plc.opcua import OpcUaServer
 from cell.config.endpoints import opcua_cert_dir
 from cell.features.recipes import parse_spec
+from cell.results.pick import PickResult
 from cell.service import Cell
-from estimator.transforms import T_from_pose, pose_distance
+from estimator.transforms import T_from_pose, T_from_pose_dict, pose_distance
 from tests.api.plc.machine_vision_facts import (
     ARGUMENTS,
     DECLARATIONS,
@@ -38,35 +41,48 @@ from tests.support.cell import running_cell, settled_tcp, sim_config
 from tests.support.net import free_port
 from tests.support.opcua import opc_client
 from tests.support.paths import REPO
+from tests.support.picking import part_at, place_parts, place_pose_for, teach_place, truth_parts
 
 SCRIPT = REPO / "tests" / "support" / "clients" / "node_opcua_machine_vision.js"
 RECIPE, RECIPE_NUMBER = "plate-mv", 21
+PICK_RECIPE, PICK_NUMBER = "tray-pick-mv", 22
 RULES = {"M": ua.ObjectIds.ModellingRule_Mandatory, "O": ua.ObjectIds.ModellingRule_Optional}
 
 
 @dataclass
 class Served:
     cell: Cell
+    http: TestClient
     url: str
+
+
+def _save_recipe(cell: Cell, name: str, number: int, **target: Any) -> None:
+    """The config's target as a recipe (set up as an operator would, over HTTP)."""
+    t = cell.config.target
+    cell.recipes.save(parse_spec({"name": name, "number": number, "targets": [{
+        "name": "plate", "points_mm": [list(p) for p in t.points_mm],
+        "dot_diameter_mm": t.dot_diameter_mm, "polarity": t.polarity, **target}]}), "test")
 
 
 @pytest.fixture(scope="module")
 def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
     tmp_path = tmp_path_factory.mktemp("mv40100")
     port = free_port()
-    config = sim_config(tmp_path, approach={"speed_mm_s": 250.0, "accel_mm_s2": 1200.0},
+    # brisk jobs: these tests are about what the clients read, not how the arm gets there
+    config = sim_config(tmp_path, gripper="sim",
+                        limits={"max_speed_mm_s": 500.0, "max_accel_mm_s2": 3000.0,
+                                "max_joint_speed_deg_s": 120.0,
+                                "max_joint_accel_deg_s2": 400.0},
+                        approach={"speed_mm_s": 500.0, "accel_mm_s2": 3000.0,
+                                  "frames_per_locate": 1, "max_cycles": 2},
+                        pick={"grasp_speed_mm_s": 150.0, "place_speed_mm_s": 400.0},
                         opcua={"endpoint": f"opc.tcp://127.0.0.1:{port}"})
-    with running_cell(config) as cell:
-        t = cell.config.target
-        cell.recipes.save(parse_spec({
-            "name": RECIPE, "number": RECIPE_NUMBER, "targets": [{
-                "name": "plate", "points_mm": [list(p) for p in t.points_mm],
-                "dot_diameter_mm": t.dot_diameter_mm, "polarity": t.polarity,
-                "standoff_mm": 45.0}]}), "test")
+    with running_cell(config) as cell, TestClient(create_app(cell)) as http:
+        _save_recipe(cell, RECIPE, RECIPE_NUMBER, standoff_mm=45.0)
         server = OpcUaServer(cell, config.opcua, opcua_cert_dir(config))
         server.start()
         try:
-            yield Served(cell, f"opc.tcp://127.0.0.1:{port}")
+            yield Served(cell, http, f"opc.tcp://127.0.0.1:{port}")
         finally:
             server.close()
 
@@ -327,25 +343,39 @@ def test_asyncua_client_runs_a_single_job_and_reads_its_result(served: Served) -
     settled_tcp(cell)
 
 
-def test_node_opcua_runs_a_single_job_through_the_standards_methods(served: Served) -> None:
-    """node-opcua finds VisionSystem by its type, prepares the recipe, runs a single job,
-    takes its ResultReadyEvent and decodes the ResultDataType GetResultById answers."""
+def test_node_opcua_runs_a_pick_through_the_standards_methods(served: Served) -> None:
+    """node-opcua finds VisionSystem by its type, prepares a recipe whose single job is a pick,
+    runs it, takes its ResultReadyEvent and decodes the ResultDataType GetResultById answers:
+    the picked part's pose; the part lies at its place (simulator truth)."""
     folder = node_opcua()
+    cell = served.cell
+    assert cell.home("test", speed_deg_s=120.0, wait=True).state == "succeeded"  # home sees parts
+    place_parts(served.http, [(0.0, 0.0)])
+    _, T_place_tcp = place_pose_for(cell, -200.0, 0.0, 40.0)
+    teach_place(cell, "tray", T_place_tcp)
+    _save_recipe(cell, PICK_RECIPE, PICK_NUMBER, standoff_mm=cell.config.approach.standoff_mm,
+                 job="pick", place="tray")
     env = {**os.environ, "NODE_PATH": str(folder / "node_modules")}
     done = subprocess.run(["node", str(SCRIPT), served.url, "plc", "sim-plc",
-                           str(RECIPE_NUMBER)], capture_output=True, text=True, timeout=300,
+                           str(PICK_NUMBER)], capture_output=True, text=True, timeout=300,
                           env=env, check=False)
     assert done.returncode == 0, done.stderr[-2000:]
     out = json.loads(done.stdout.strip().splitlines()[-1])
-    job = served.cell.job(out["jobId"])
-    assert job.kind == "approach" and job.state == "succeeded"
-    assert out["prepared"] == f"{RECIPE}@1"
+    job = cell.job(out["jobId"])
+    assert job.kind == "pick" and job.state == "succeeded", job.error_message
+    assert out["prepared"] == f"{PICK_RECIPE}@1"
     assert out["event"] == {"jobId": job.id, "resultId": f"r-{job.id}", "resultState": 1}
     assert out["result"]["jobId"] == job.id and out["result"]["resultState"] == 1
     assert out["result"]["measId"] == "node-meas"
-    assert served.cell.sim is not None
+    pick = job.result
+    assert isinstance(pick, PickResult)
     d_mm, _ = pose_distance(T_from_pose(out["result"]["position_mm"],
                                         out["result"]["rotvec_rad"]),
-                            served.cell.sim.true_T_base_target())
-    assert d_mm < 1.0
-    settled_tcp(served.cell)
+                            pick.part.T_base_target.T())
+    assert d_mm < 1e-6
+    assert pick.place is not None
+    placed = part_at(truth_parts(served.http), pick.place.T_base_part_goal.T())
+    assert len(placed) == 1 and not placed[0]["held"]
+    assert pose_distance(T_from_pose_dict(placed[0]["T_base_part"]),
+                         pick.place.T_base_part_goal.T())[0] <= 0.3
+    settled_tcp(cell)
