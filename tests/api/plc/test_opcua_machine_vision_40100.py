@@ -333,10 +333,11 @@ def test_asyncua_client_runs_a_single_job_and_reads_its_result(served: Served) -
                 ua.Variant(0, ua.VariantType.UInt32), ua.Variant(0, ua.VariantType.UInt32),
                 ua.Variant(0, ua.VariantType.Int32))
             assert [r.ResultId.Id for r in found[3]] == [f"r-{job.Id}"] and found[-1] == 0
-            _, _, error = await results.call_method(
-                f"{mv}:GetResultById", ua.ResultIdDataType(Id="r-nothing"),
-                ua.Variant(0, ua.VariantType.Int32))
-            assert error != 0
+            for method, n_out in (("GetResultById", 3), ("GetResultComponentsById", 17)):
+                refused = await results.call_method(
+                    f"{mv}:{method}", ua.ResultIdDataType(Id="r-nothing"),
+                    ua.Variant(0, ua.VariantType.Int32))
+                assert len(refused) == n_out and refused[-1] == 25  # result_not_found
             await sub.delete()
 
     asyncio.run(go())
