@@ -92,6 +92,7 @@ class Facet(Protocol):
 
     async def result(self, job: dict[str, Any]) -> None: ...
 
+
 log = logging.getLogger(__name__)
 
 PREOPERATIONAL, HALTED, ERROR, OPERATIONAL = "Preoperational", "Halted", "Error", "Operational"
