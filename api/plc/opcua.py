@@ -22,7 +22,9 @@ answers. The object ``Cell/LastCheck`` holds the newest calibration check that e
 verdict, from any door or the schedule (``Verdict``, ``Cause``, ``TcpErrorMm``,
 ``TcpErrorDeg``, ``Time``, ``JobId``); a check's end changes them in the same write as its
 ``JobResult``. The OPC UA Machine Vision subset (``VisionSystem``)
-is built by :mod:`api.plc.opcua_machine_vision`.
+is built by :mod:`api.plc.opcua_machine_vision`; the same behaviour in the standard's
+namespace and types (``VisionSystem`` of type ``VisionSystemType``) by
+:mod:`api.plc.opcua_vision_system`.
 
 The server runs its own asyncio loop in its own thread, so the HTTP server's load does not
 delay a PLC's Stop; cell calls run in worker threads. The calling user reaches the method
@@ -65,7 +67,9 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from api import remote
 from api.plc.loop_thread import LoopThread
+from api.plc.machine_vision_model import build_model
 from api.plc.opcua_machine_vision import MachineVision
+from api.plc.opcua_vision_system import VisionSystemFacet
 from api.remote import RemoteCaller
 from cell.calibration.check import CHECK_KIND
 from cell.config.schema import OpcUaConfig
@@ -332,6 +336,9 @@ class OpcUaServer(LoopThread):
         await self._model(server, idx)
         self.machine_vision = MachineVision(self, server, idx)
         await self.machine_vision.build()
+        facet = VisionSystemFacet(self.machine_vision, await build_model(server), idx)
+        await facet.build()
+        self.machine_vision.facets.append(facet)
         return server
 
     async def _key_pair(self) -> tuple[Path, Path]:
@@ -448,7 +455,7 @@ class OpcUaServer(LoopThread):
         pose.rotvec_rad = list(rotvec_rad)
         return pose
 
-    def _pose_of(self, pose: Pose) -> Any:
+    def pose_struct(self, pose: Pose) -> Any:
         return self._pose(list(pose.position_mm), list(pose.rotvec_rad))
 
     @staticmethod
@@ -521,12 +528,12 @@ class OpcUaServer(LoopThread):
         values.update(self._check_values(self._last_check))
         if "T_base_tcp" in robot:
             tcp = Pose.model_validate(robot["T_base_tcp"])
-            values["TcpPose"] = ua.Variant(self._pose_of(tcp), ua.VariantType.ExtensionObject)
+            values["TcpPose"] = ua.Variant(self.pose_struct(tcp), ua.VariantType.ExtensionObject)
             values["TcpPoseUR"] = ua.Variant(self._ur(tcp), D)
         located = self.cell.last_locate
         last = None if located is None else located.answer(time.monotonic())
         if last is not None:
-            values["LastLocatePose"] = ua.Variant(self._pose_of(last.T_base_target),
+            values["LastLocatePose"] = ua.Variant(self.pose_struct(last.T_base_target),
                                                   ua.VariantType.ExtensionObject)
             values["LastLocatePoseUR"] = ua.Variant(self._ur(last.T_base_target), D)
         values["LastLocateQuality"] = ua.Variant(

@@ -1,9 +1,11 @@
 """The OPC UA Machine Vision subset (OPC 40100-1) a guided-robot cell fits, next to ``Cell``.
 
-No package on PyPI ships the published ``Opc.Ua.MachineVision.NodeSet2.xml`` (asyncua does not),
-so the subset is built here in the cell's namespace with the standard's browse names; the id
-data types of the standard (``RecipeIdExternalDataType``, ``JobIdDataType``, ...) are carried as
-strings, and every method answers the standard's ``Error`` (Int32, 0: done) last:
+The behaviour of the vision system (its state machines, the prepared recipe, the results) and
+its first face: an object in the cell's namespace with the standard's browse names, the id data
+types of the standard carried as strings, every method answering the standard's ``Error``
+(Int32, 0: done) last. The same behaviour in the standard's namespace, NodeIds and structured
+data types, for a generic OPC 40100 client, is :mod:`api.plc.opcua_vision_system` (a
+:class:`Facet`, told of every state change and result):
 
 - ``VisionSystem/VisionStateMachine``: ``CurrentState`` (Preoperational, Halted, Error,
   Operational), the methods ``SelectModeAutomatic``, ``Halt`` (stops the arm), ``Reset``, and
@@ -54,6 +56,7 @@ from cell.features.recipes import parse_spec
 from cell.jobs.store import Job
 from cell.results.jobs import located_pose
 from cell.results.pick import PickResult
+from cell.results.pose import Pose
 from cell.service import Cell
 
 
@@ -77,6 +80,18 @@ class OpcHost(Protocol):
     def current_caller(self) -> RemoteCaller | None: ...
 
     def method_args(self, args: tuple[Any, ...], n: int) -> list[Any]: ...
+
+    def pose_struct(self, pose: Pose) -> Any: ...
+
+
+class Facet(Protocol):
+    """Another object that shows this behaviour (the standard's ``VisionSystem``): told of
+    every state change and of every job's end."""
+
+    async def show(self) -> None: ...
+
+    async def result(self, job: dict[str, Any]) -> None: ...
+
 
 log = logging.getLogger(__name__)
 
@@ -124,6 +139,7 @@ class MachineVision:
         self.running_job = ""
         self.results: dict[str, dict[str, Any]] = {}
         self._nodes: dict[str, Any] = {}
+        self.facets: list[Facet] = []
         self.automatic = False  # automatic mode was selected (and not halted or reset since)
         self.memory = MachineVisionMemory.beside_job_db(opc.cell.config.api.job_db)
         remembered = self.memory.load()
@@ -161,9 +177,9 @@ class MachineVision:
             self._nodes[key] = await parent.add_variable(idx, name, value)
         methods: list[tuple[Any, str, Callable[..., Any], list[ua.Argument],
                             list[ua.Argument]]] = [
-            (sm, "SelectModeAutomatic", self._select_automatic, [], [ERROR_OUT]),
-            (sm, "Halt", self._halt, [], [ERROR_OUT]),
-            (sm, "Reset", self._reset, [], [ERROR_OUT]),
+            (sm, "SelectModeAutomatic", self.select_automatic, [], [ERROR_OUT]),
+            (sm, "Halt", self.halt, [], [ERROR_OUT]),
+            (sm, "Reset", self.reset, [], [ERROR_OUT]),
             (auto, "StartSingleJob", self._start_single_job, [
                 _arg("MeasId", S, "the PLC's measurement id (kept in the result)"),
                 _arg("PartId", S, "the part's id (kept in the result)"),
@@ -176,19 +192,19 @@ class MachineVision:
                 _arg("RecipeId", S, "empty: the prepared recipe; else one to prepare first"),
                 _arg("ProductId", S, "the product's id (kept in the result)")],
              [_arg("JobId", S, "the tracking job started"), ERROR_OUT]),
-            (auto, "Stop", self._stop, [], [ERROR_OUT]),
-            (auto, "Abort", self._stop, [], [ERROR_OUT]),
+            (auto, "Stop", self.stop, [], [ERROR_OUT]),
+            (auto, "Abort", self.stop, [], [ERROR_OUT]),
             (recipes, "AddRecipe", self._add_recipe, [
                 _arg("ExternalId", S, "the recipe's name"),
                 _arg("ProductId", S, "the recipe number (1..65535)"),
                 _arg("Content", S, "the recipe as JSON (targets, ...; see docs/plc.md)")],
              [_arg("InternalId", S, "name@version"), ERROR_OUT]),
-            (recipes, "PrepareRecipe", self._prepare_recipe, [
+            (recipes, "PrepareRecipe", self.prepare_recipe, [
                 _arg("ExternalId", S, "the recipe's name or number")],
              [_arg("InternalId", S, "name@version"), ERROR_OUT]),
-            (recipes, "UnprepareRecipe", self._unprepare_recipe, [
+            (recipes, "UnprepareRecipe", self.unprepare_recipe, [
                 _arg("ExternalId", S, "the prepared recipe's name")], [ERROR_OUT]),
-            (recipes, "RemoveRecipe", self._remove_recipe, [
+            (recipes, "RemoveRecipe", self.remove_recipe, [
                 _arg("ExternalId", S, "the recipe's name")], [ERROR_OUT]),
             (recipes, "GetRecipeListFiltered", self._list_recipes, [],
              [_arg("RecipeIds", S, "name@version of every recipe", array=True), ERROR_OUT]),
@@ -203,6 +219,8 @@ class MachineVision:
         await self._nodes["state"].write_value(ua.LocalizedText(self.state))
         await self._nodes["sub_state"].write_value(ua.LocalizedText(self.sub_state))
         await self._nodes["prepared"].write_value(self.prepared)
+        for facet in self.facets:
+            await facet.show()
 
     async def update(self, status: dict[str, Any], job: dict[str, Any] | None) -> None:
         """Follows the cell: automatic mode resumes once the devices are up after a restart;
@@ -218,12 +236,17 @@ class MachineVision:
             or "EMERGENCY_STOP" in str(robot.get("safety", ""))
         if fault and self.state == OPERATIONAL:
             self.state, self.sub_state = ERROR, ""
-        if job is not None and job["id"] == self.running_job and job.get("ended_at"):
-            await self._result(job)
+        ended = job if job is not None and job["id"] == self.running_job \
+            and job.get("ended_at") else None
+        if ended is not None:
+            await self._result(ended)
             self.running_job = ""
             if self.state == OPERATIONAL:
                 self.sub_state = READY if self.prepared else INITIALIZED
         await self._show()
+        if ended is not None:  # the other faces once this one shows the result and the state
+            for facet in self.facets:
+                await facet.result(ended)
 
     async def _result(self, job: dict[str, Any]) -> None:
         params = job.get("params") or {}
@@ -281,7 +304,7 @@ class MachineVision:
                                f"the vision system is {self.state}; this needs "
                                f"{' or '.join(states)}")
 
-    async def _select_automatic(self, parent: ua.NodeId) -> list[ua.Variant]:
+    async def select_automatic(self, parent: ua.NodeId) -> list[ua.Variant]:
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             remote.require(self.opc.cell, caller, "approach", "select_mode_automatic", {})
             self._need(PREOPERATIONAL, OPERATIONAL)
@@ -293,7 +316,7 @@ class MachineVision:
 
         return await self._change_state(work)
 
-    async def _halt(self, parent: ua.NodeId) -> list[ua.Variant]:
+    async def halt(self, parent: ua.NodeId) -> list[ua.Variant]:
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             remote.stop(self.opc.cell, caller)
             self.state, self.sub_state = HALTED, ""
@@ -303,7 +326,7 @@ class MachineVision:
 
         return await self._change_state(work)
 
-    async def _reset(self, parent: ua.NodeId) -> list[ua.Variant]:
+    async def reset(self, parent: ua.NodeId) -> list[ua.Variant]:
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             remote.require(self.opc.cell, caller, "recover", "reset", {})
             self._need(HALTED, ERROR, PREOPERATIONAL)
@@ -314,7 +337,7 @@ class MachineVision:
 
         return await self._change_state(work)
 
-    async def _stop(self, parent: ua.NodeId) -> list[ua.Variant]:
+    async def stop(self, parent: ua.NodeId) -> list[ua.Variant]:
         def work(caller: RemoteCaller) -> list[ua.Variant]:
             remote.stop(self.opc.cell, caller)
             return []
@@ -322,12 +345,12 @@ class MachineVision:
         return await self._call(work, [])
 
     async def _start_single_job(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
-        return await self._start_job(SINGLE, args)
+        return await self.start_job(SINGLE, args)
 
     async def _start_continuous_job(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
-        return await self._start_job(CONTINUOUS, args)
+        return await self.start_job(CONTINUOUS, args)
 
-    async def _start_job(self, kind: str, args: tuple[Any, ...]) -> list[ua.Variant]:
+    async def start_job(self, kind: str, args: tuple[Any, ...]) -> list[ua.Variant]:
         """A single job (an approach) or a continuous one (tracking until stopped) with the
         prepared recipe, or with ``RecipeId`` prepared first."""
         meas_id, part_id, recipe_id, product_id = self.opc.method_args(args, 4)
@@ -387,7 +410,7 @@ class MachineVision:
 
         return await self._call(work, [ua.Variant("", S)])
 
-    async def _prepare_recipe(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
+    async def prepare_recipe(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
         (external_id,) = self.opc.method_args(args, 1)
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
@@ -404,7 +427,7 @@ class MachineVision:
         await self._show()
         return out
 
-    async def _unprepare_recipe(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
+    async def unprepare_recipe(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
         (external_id,) = self.opc.method_args(args, 1)
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:
@@ -419,7 +442,7 @@ class MachineVision:
 
         return await self._change_state(work)
 
-    async def _remove_recipe(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
+    async def remove_recipe(self, parent: ua.NodeId, *args: Any) -> list[ua.Variant]:
         (external_id,) = self.opc.method_args(args, 1)
 
         def work(caller: RemoteCaller) -> list[ua.Variant]:

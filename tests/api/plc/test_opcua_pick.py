@@ -1,7 +1,8 @@
 """The pick and the locate of every part through OPC UA, with asyncua as the PLC, on the
 simulated cell's parts: ``Cell.LocateAll`` and its ``PartsSeen``/``PartIds`` variables against
 the parts' true poses, ``Cell.Pick`` placing a part where its taught place pose says (simulator
-truth), and a Machine Vision recipe whose single job is a pick."""
+truth), and a Machine Vision recipe whose single job is a pick (its result also as the
+standard's ``ResultDataType``)."""
 
 from __future__ import annotations
 
@@ -15,13 +16,15 @@ from typing import Any
 
 import numpy as np
 import pytest
+from asyncua import ua
 from fastapi.testclient import TestClient
 
 from api.app import create_app
 from api.plc.opcua import OpcUaServer
 from cell.config.endpoints import opcua_cert_dir
 from cell.service import Cell
-from estimator.transforms import T_from_pose_dict, pose_distance
+from estimator.transforms import T_from_pose, T_from_pose_dict, pose_distance
+from tests.api.plc.machine_vision_facts import URI as MV_URI
 from tests.support.cell import AUTH, running_cell, sim_config
 from tests.support.net import free_port
 from tests.support.opcua import NS, Opc, opc_client
@@ -226,9 +229,27 @@ def test_machine_vision_single_job_of_a_pick_recipe_picks_and_places(served: Ser
             last = json.loads(await (await results.get_child(f"{ns}:Result")).read_value())
             r: dict[str, Any] = json.loads(body)
             assert last == r
+            # the same result through the standard's VisionSystem, as a ResultDataType
+            mv = await plc.client.get_namespace_index(MV_URI)
+            std = await (await plc.client.nodes.objects.get_child(f"{mv}:VisionSystem")
+                         ).get_child(f"{mv}:ResultManagement")
+            _, standard, error = await std.call_method(
+                f"{mv}:GetResultById", ua.ResultIdDataType(Id=f"r-{job_id}"),
+                ua.Variant(0, ua.VariantType.Int32))
+            assert error == 0
+            r["standard"] = standard
             return r
 
     r = asyncio.run(go())
+    standard = r.pop("standard")
+    assert standard.JobId.Id == r["job_id"] and standard.ResultState == 1
+    assert standard.InternalRecipeId.Id == f"{PICK_RECIPE}@1"
+    pose, body = [v.Value for v in standard.ResultContent]
+    assert pose_distance(T_from_pose(pose.position_mm, pose.rotvec_rad),
+                         T_from_pose_dict(r["pick"]["part"]["T_base_target"]))[0] < 1e-6
+    assert json.loads(body)["pick"] == r["pick"]
+    assert standard.ProcessingTimes.AcquisitionDuration == pytest.approx(
+        1000.0 * r["pick"]["phases_s"]["locate"])
     assert r["kind"] == "pick" and r["state"] == "succeeded" and r["error_number"] == 0, r
     assert r["recipe"] == {"name": PICK_RECIPE, "number": 11, "version": 1, "target": "plate"}
     pick = r["pick"]
