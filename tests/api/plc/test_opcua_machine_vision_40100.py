@@ -14,6 +14,7 @@ import subprocess
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -344,10 +345,17 @@ def test_asyncua_client_runs_a_single_job_and_reads_its_result(served: Served) -
     settled_tcp(cell)
 
 
-def test_node_opcua_runs_a_pick_through_the_standards_methods(served: Served) -> None:
-    """node-opcua finds VisionSystem by its type, prepares a recipe whose single job is a pick,
-    runs it, takes its ResultReadyEvent and decodes the ResultDataType GetResultById answers:
-    the picked part's pose; the part lies at its place (simulator truth)."""
+def test_node_opcua_runs_a_pick_through_the_standards_methods(served: Served,
+                                                              tmp_path: Path) -> None:
+    """node-opcua reads every type and declaration of the facts table by the standard's NodeId
+    (browse name and node class), finds VisionSystem by its type, prepares a recipe whose
+    single job is a pick, runs it, takes its ResultReadyEvent and decodes the ResultDataType
+    GetResultById answers: the picked part's pose; the part lies at its place (simulator
+    truth)."""
+    facts = [["mv", i, name, node_class] for i, name, node_class, _ in TYPES]
+    facts += [["mv", i, name, node_class] for _, i, name, node_class, *_ in DECLARATIONS]
+    facts_file = tmp_path / "facts.json"
+    facts_file.write_text(json.dumps(facts))
     folder = node_opcua()
     cell = served.cell
     assert cell.home("test", speed_deg_s=120.0, wait=True).state == "succeeded"  # home sees parts
@@ -358,10 +366,11 @@ def test_node_opcua_runs_a_pick_through_the_standards_methods(served: Served) ->
                  job="pick", place="tray")
     env = {**os.environ, "NODE_PATH": str(folder / "node_modules")}
     done = subprocess.run(["node", str(SCRIPT), served.url, "plc", "sim-plc",
-                           str(PICK_NUMBER)], capture_output=True, text=True, timeout=300,
-                          env=env, check=False)
+                           str(PICK_NUMBER), str(facts_file)], capture_output=True, text=True,
+                          timeout=300, env=env, check=False)
     assert done.returncode == 0, done.stderr[-2000:]
     out = json.loads(done.stdout.strip().splitlines()[-1])
+    assert out["facts"] == {"checked": len(facts), "mismatches": []}, out["facts"]
     job = cell.job(out["jobId"])
     assert job.kind == "pick" and job.state == "succeeded", job.error_message
     assert out["prepared"] == f"{PICK_RECIPE}@1"

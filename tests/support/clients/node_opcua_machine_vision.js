@@ -3,9 +3,11 @@
 // external id, starts a single job, waits for its ResultReadyEvent and reads the result with
 // GetResultById; every id goes as the standard's structure, built from the server's data type
 // definitions. Prints one JSON line:
-// {"jobId", "prepared", "event": {jobId, resultId, resultState},
+// {"facts": {checked, mismatches}, "jobId", "prepared", "event": {jobId, resultId, resultState},
 //  "result": {jobId, resultState, measId, position_mm, rotvec_rad}}.
-// Usage: node node_opcua_machine_vision.js ENDPOINT USER PASSWORD RECIPE
+// FACTS is a JSON file of [namespace ("mv" or "ua"), numeric id, browse name, node class] rows
+// from the published NodeSet; each node's BrowseName and NodeClass are read and compared.
+// Usage: node node_opcua_machine_vision.js ENDPOINT USER PASSWORD RECIPE FACTS
 const opcua = require("node-opcua");
 
 const MV = "http://opcfoundation.org/UA/MachineVision";
@@ -15,7 +17,7 @@ const field = (obj, name) =>
   obj[name] !== undefined ? obj[name] : obj[name[0].toLowerCase() + name.slice(1)];
 
 async function main() {
-  const [endpoint, user, password, recipe] = process.argv.slice(2);
+  const [endpoint, user, password, recipe, factsPath] = process.argv.slice(2);
   const client = opcua.OPCUAClient.create({
     endpointMustExist: false,
     securityMode: opcua.MessageSecurityMode.None,
@@ -30,6 +32,24 @@ async function main() {
   const mv = namespaces.indexOf(MV);
   if (mv < 0) throw new Error(`no namespace ${MV}`);
   const typeId = (i) => opcua.resolveNodeId(`ns=${mv};i=${i}`);
+
+  // every node of the facts table by its NodeId: its browse name and node class
+  const facts = JSON.parse(require("fs").readFileSync(factsPath, "utf8"));
+  const factIds = facts.map(([ns, i]) => opcua.resolveNodeId(`ns=${ns === "mv" ? mv : 0};i=${i}`));
+  const names = await session.read(factIds.map((nodeId) => ({
+    nodeId, attributeId: opcua.AttributeIds.BrowseName })));
+  const classes = await session.read(factIds.map((nodeId) => ({
+    nodeId, attributeId: opcua.AttributeIds.NodeClass })));
+  const mismatches = [];
+  facts.forEach(([ns, i, name, nodeClass], k) => {
+    const got = names[k].value.value;
+    const gotName = got ? got.name : null;
+    const gotNs = got ? got.namespaceIndex : null;
+    const gotClass = opcua.NodeClass[classes[k].value.value];
+    if (gotName !== name || gotClass !== nodeClass || gotNs !== (ns === "mv" ? mv : 0)) {
+      mismatches.push({ node: `${ns}:${i}`, want: [name, nodeClass], got: [gotName, gotClass] });
+    }
+  });
 
   const objects = await session.browse({
     nodeId: "ns=0;i=85", browseDirection: opcua.BrowseDirection.Forward,
@@ -93,6 +113,7 @@ async function main() {
     await struct(3021, { id: `r-${jobId}` }), { dataType: opcua.DataType.Int32, value: 0 }]);
   const pose = field(result, "ResultContent")[0].value;
   console.log(JSON.stringify({
+    facts: { checked: facts.length, mismatches },
     jobId, prepared: field(internal, "Id"),
     event: events.find((e) => e.jobId === jobId),
     result: { jobId: field(field(result, "JobId"), "Id"),
