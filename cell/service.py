@@ -125,8 +125,11 @@ class Cell:
         self.reference = ReferenceStore.beside_job_db(config.api.job_db)
         self.checks = CalibrationCheck(self.core, self.reference)
         self.check_schedule = CheckSchedule(self.checks)
-        self.retention = Retention(config.retention, jobs, self.alarms.prune, image_log,
-                                   idle=lambda: slot.current is None)
+        self.retention = Retention(
+            config.retention, jobs, self.alarms.prune, image_log,
+            idle=lambda: slot.current is None,
+            datasets=Path(config.api.calibration_dir) if config.api.calibration_dir else None,
+            datasets_in_use=self.calibration.datasets_in_use)
         self.started_at = time.time()
 
     # -- what other modules read ---------------------------------------------------------------

@@ -42,6 +42,7 @@ from cell.motion.guard import Motion
 from cell.results.calibration import CalibrationApplied
 from cell.results.pose import Pose
 from cell.results.routine import FailedView, HandEyeRoutineResult, MountChange, SavedViews
+from cell.supervision.dataset_retention import dataset_folder_name
 from estimator.kinematics import UR_DH
 from estimator.transforms import pose_distance
 
@@ -124,7 +125,7 @@ class CalibrationService:
         root = self.core.config.api.calibration_dir
         if not root:
             return None
-        folder = Path(root) / f"hand-eye-{job_id}"
+        folder = Path(root) / dataset_folder_name(job_id)
         try:
             dataset = save_views(folder, result, self.core.target,
                                  self.core.config.robot.model)
@@ -143,6 +144,16 @@ class CalibrationService:
         if job is None or job.kind != JOB_KIND:
             raise NotFoundError(ErrorCode.job_not_found, f"no hand-eye calibration job {job_id!r}")
         return job
+
+    def datasets_in_use(self, audit_rows: int = 1000) -> set[str]:
+        """The dataset folder of the calibration applied last (from the newest ``audit_rows``
+        rows of the audit log; none when the config file's calibration was never replaced)."""
+        applied = next((e for e in self.core.jobs.audit_log(audit_rows)
+                        if e.command == "apply_calibration" and e.outcome == "ok"
+                        and (e.params.get("running") or e.params.get("write_config"))), None)
+        if applied is None or not applied.params.get("job_id"):
+            return set()
+        return {dataset_folder_name(str(applied.params["job_id"]))}
 
     def wait(self, job_id: str, timeout_s: float) -> Job:
         deadline = time.monotonic() + timeout_s

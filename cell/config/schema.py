@@ -604,7 +604,9 @@ class RetentionConfig(Strict):
     bounds the job database's used pages: beyond it the oldest jobs go first, then the oldest
     audit rows, then the oldest acknowledged alarms, whatever their age. Active alarms and
     running jobs are never deleted; hand-eye calibration jobs (the evidence of a calibration)
-    only by size. ``images_*`` bound the image log of failed locates."""
+    only by size. ``images_*`` bound the image log of failed locates.
+    ``calibration_datasets_keep`` bounds the hand-eye routines' saved views under ``[api]
+    calibration_dir`` to the newest N folders and the calibration in use (0: every one)."""
 
     jobs_days: float = Field(default=180.0, ge=0)
     audit_days: float = Field(default=730.0, ge=0)
@@ -612,6 +614,7 @@ class RetentionConfig(Strict):
     database_max_mb: float = Field(default=4096.0, gt=0)
     images_days: float = Field(default=90.0, ge=0)
     images_max_mb: float = Field(default=1024.0, gt=0)
+    calibration_datasets_keep: int = Field(default=20, ge=0)
     period_s: float = Field(default=300.0, gt=0)
     batch_rows: int = Field(default=500, ge=1, le=100_000)
 

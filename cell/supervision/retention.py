@@ -10,7 +10,9 @@ between them (a job's writes never wait long for the store's lock):
 2. by size: while the database's used pages exceed ``database_max_mb``, the oldest jobs,
    then the oldest audit rows, then the oldest acknowledged alarms; the image log down to
    ``images_max_mb``;
-3. the freed pages are handed back to the file system (incremental vacuum) and the WAL is
+3. the hand-eye routines' saved datasets beyond the newest ``calibration_datasets_keep``,
+   never the calibration in use (:mod:`cell.supervision.dataset_retention`);
+4. the freed pages are handed back to the file system (incremental vacuum) and the WAL is
    checkpointed, so the file shrinks. A database made before incremental vacuum is rewritten
    once for it, only while no motion holds the arm and only when small
    (``CONVERT_MAX_BYTES``): a larger one reuses its free pages (it stops growing) but shrinks
@@ -28,9 +30,11 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from cell.config.schema import RetentionConfig
 from cell.jobs.store import JobStore, Pruning
+from cell.supervision.dataset_retention import prune_datasets
 from cell.vision.imagelog import ImageLog
 
 log = logging.getLogger(__name__)
@@ -53,6 +57,7 @@ class Pass:
     audit: int = 0
     alarms: int = 0
     images: int = 0
+    datasets: int = 0
     released_pages: int = 0
     used_bytes: int = 0
     errors: list[str] = field(default_factory=list)
@@ -61,13 +66,16 @@ class Pass:
 class Retention:
     def __init__(self, config: RetentionConfig, jobs: JobStore, prune_alarms: PruneAlarms,
                  images: ImageLog | None = None,
-                 idle: Callable[[], bool] = lambda: True) -> None:
+                 idle: Callable[[], bool] = lambda: True,
+                 datasets: Path | None = None,
+                 datasets_in_use: Callable[[], set[str]] = set) -> None:
         self.config = config
         self.pruning = Pruning(jobs)
         self.in_memory = str(jobs.path) == ":memory:"
         self.prune_alarms = prune_alarms
         self.images = images
         self.idle = idle
+        self.datasets, self.datasets_in_use = datasets, datasets_in_use
         self.last: Pass | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -110,11 +118,17 @@ class Retention:
         if self.images is not None:
             out.images = self.images.prune(now - c.images_days * DAY_S if c.images_days
                                            else float("-inf"), int(c.images_max_mb * MB))
+        if self.datasets is not None:
+            try:
+                out.datasets = prune_datasets(self.datasets, c.calibration_datasets_keep,
+                                              self.datasets_in_use())
+            except (OSError, sqlite3.Error) as err:
+                out.errors.append(f"{type(err).__name__}: {err}")
         out.used_bytes = 0 if self.in_memory else self.pruning.used_bytes()
-        if out.jobs or out.audit or out.alarms or out.images:
-            log.info("retention: deleted %d jobs, %d audit rows, %d alarms, %d images; "
-                     "database %.0f MB in use", out.jobs, out.audit, out.alarms, out.images,
-                     out.used_bytes / MB)
+        if out.jobs or out.audit or out.alarms or out.images or out.datasets:
+            log.info("retention: deleted %d jobs, %d audit rows, %d alarms, %d images, "
+                     "%d calibration datasets; database %.0f MB in use", out.jobs, out.audit,
+                     out.alarms, out.images, out.datasets, out.used_bytes / MB)
         self.last = out
         return out
 
