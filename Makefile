@@ -30,14 +30,13 @@ lint: $(STAMP)
 	$(BIN)/mypy
 	$(BIN)/lint-imports
 
-# Three xdist workers, one test file per worker at a time (its module fixtures, CPU burners and
+# Two xdist workers, one test file per worker at a time (its module fixtures, CPU burners and
 # servers stay in one process), the real-time UR files one after another, longest work first
 # (the groups and the order are in tests/conftest.py). Most tests wait on simulated motion in
-# real time (a worker uses about a quarter of a core), so three workers on 2 cores take about a
-# third of the time of one, and leave the real-time group one core's worth of room.
+# real time, so two workers nearly halve the time on 2 cores.
 # `make test TEST_WORKERS=0` runs the suite in one process. The slowest tests are listed at
 # the end of every run, to keep the suite within its time budget.
-TEST_WORKERS ?= 3
+TEST_WORKERS ?= 2
 
 # lint, the kernels' compile and the browser check run side by side before the suite
 checks: $(STAMP)
