@@ -175,8 +175,8 @@ def _moving(svc: Service, r: Any, motion: str) -> str:
             _wait_moving(r, job, svc)
             return job
         except AssertionError as err:
-            if attempt == attempts - 1 or not any(
-                    code in str(err) for code in ("arm_disconnected", "motion_failed", "target_lost")):
+            retried = ("arm_disconnected", "motion_failed", "target_lost")
+            if attempt == attempts - 1 or not any(code in str(err) for code in retried):
                 raise
             print(f"start failed before the freeze, started again: {str(err)[:300]}")
             deadline = time.monotonic() + 2.0  # the controller's watchdog stops the arm
