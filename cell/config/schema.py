@@ -590,7 +590,7 @@ class CheckConfig(Strict):
     on_drift: Literal["alarm", "refuse"] = "alarm"
     every_jobs: int = Field(default=0, ge=0)
     every_minutes: float = Field(default=0.0, ge=0)
-    views: int = Field(default=4, ge=2, le=8)
+    views: int = Field(default=4, ge=3, le=8)
     tilt_deg: float = Field(default=12.0, gt=0, le=30)
     speed_mm_s: float = Field(default=250.0, gt=0)
     frames_per_view: int = Field(default=3, ge=1, le=10)

@@ -54,16 +54,23 @@ def _disc_centroid_raster(
     half = 16.0
     step = 0.01
     g = np.arange(-half, half, step) + step / 2
-    uu, vv = np.meshgrid(c_px[0] + g, c_px[1] + g)
-    rays = np.stack(((uu - cam.cx) / cam.fx, (vv - cam.cy) / cam.fy, np.ones_like(uu)), axis=-1)
     R, t = T[:3, :3], T[:3, 3]
     n_cam = R[:, 2]  # target z axis in the camera frame
-    depth = (n_cam @ (R @ centre + t)) / (rays @ n_cam)
-    hit = rays * depth[..., None]
-    local = (hit - t) @ R  # back into the target frame
-    inside = np.sum((local - centre) ** 2, axis=-1) <= radius**2
-    assert not inside[0].any() and not inside[-1].any(), "raster window too small"
-    return np.array([uu[inside].mean(), vv[inside].mean()])
+    plane = n_cam @ (R @ centre + t)
+    total, count = np.zeros(2), 0
+    for rows in np.array_split(g, 32):  # a band of image rows at a time: bounded memory
+        uu, vv = np.meshgrid(c_px[0] + g, c_px[1] + rows)
+        rays = np.stack(((uu - cam.cx) / cam.fx, (vv - cam.cy) / cam.fy, np.ones_like(uu)),
+                        axis=-1)
+        hit = rays * (plane / (rays @ n_cam))[..., None]
+        local = (hit - t) @ R  # back into the target frame
+        inside = np.sum((local - centre) ** 2, axis=-1) <= radius**2
+        edges = (inside[:, 0], inside[:, -1], inside[0] if rows[0] == g[0] else False,
+                 inside[-1] if rows[-1] == g[-1] else False)
+        assert not any(np.any(e) for e in edges), "raster window too small"
+        total += (uu[inside].sum(), vv[inside].sum())
+        count += int(inside.sum())
+    return total / count
 
 
 def _tilted_pose() -> np.ndarray:

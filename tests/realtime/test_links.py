@@ -165,9 +165,12 @@ def _burn(stop: Any) -> None:
         x = (x * 31 + 7) % 1000003
 
 
-def test_ten_approaches_succeed_with_the_host_loaded(tmp_path: Path) -> None:
+APPROACHES_LOADED = 6
+
+
+def test_six_approaches_succeed_with_the_host_loaded(tmp_path: Path) -> None:
     """Motion end comes from the controller, not from a pose that stood still for 50 ms: two
-    CPU burners and the live view polled at 10 Hz, 10 of 10 approaches must succeed (the burners
+    CPU burners and the live view polled at 10 Hz, 6 of 6 approaches must succeed (the burners
     load the whole host, so the run is kept short)."""
     stop_burn = multiprocessing.Event()
     burners = [multiprocessing.Process(target=_burn, args=(stop_burn,), daemon=True)
@@ -185,16 +188,16 @@ def test_ten_approaches_succeed_with_the_host_loaded(tmp_path: Path) -> None:
             poller.start()
             outcomes = []
             t0 = time.monotonic()
-            for k in range(10):
+            for k in range(APPROACHES_LOADED):
                 standoff = 40.0 + 20.0 * (k % 2)  # alternate, so every approach really moves
                 r = client.post("/api/v1/approach", json={"standoff_mm": standoff,
                                                           "wait": True}, headers=PLC)
                 assert r.status_code == 200, r.text
                 outcomes.append((r.json()["state"], r.json()["error"]))
-            print(f"10 approaches under load in {time.monotonic() - t0:.1f} s")
+            print(f"{APPROACHES_LOADED} approaches under load in {time.monotonic() - t0:.1f} s")
             stop_poll.set()
             poller.join(2.0)
-            assert [s for s, _ in outcomes] == ["succeeded"] * 10, outcomes
+            assert [s for s, _ in outcomes] == ["succeeded"] * APPROACHES_LOADED, outcomes
     finally:
         stop_burn.set()
         for p in burners:

@@ -289,7 +289,7 @@ def test_a_gripper_that_stops_answering_fails_the_pick_with_the_arm_still(
         assert cell.job(job["id"]).state == "running", cell.job(job["id"]).as_dict()
         assert time.monotonic() < deadline
         time.sleep(0.005)
-    world(cell).inject_gripper_fault("no_answer", 20)
+    world(cell).inject_gripper_fault("no_answer", 4)
     ended = wait_job(client, job["id"], headers=OP)
     assert ended["state"] == "failed" and ended["error"]["code"] == "gripper_fault", ended
     still = settled_tcp(cell)

@@ -133,8 +133,9 @@ def test_a_knocked_camera_is_seen_and_blamed_on_the_camera(client: TestClient,
 
 def test_a_check_is_scheduled_every_n_jobs_between_jobs(tmp_path: Path) -> None:
     """``every_jobs = 2``: after two approaches the cell checks by itself once the arm is
-    idle; a job never overlaps it."""
-    config = sim_config(tmp_path, check={"every_jobs": 2})
+    idle; a job never overlaps it. The smallest check (3 views, 1 frame each): the schedule is
+    judged here, not the figure."""
+    config = sim_config(tmp_path, check={"every_jobs": 2, "views": 3, "frames_per_view": 1})
     with running_cell(config) as cell, TestClient(create_app(cell)) as client:
         r = client.post("/api/v1/calibration/reference", json={"wait": True}, headers=OP)
         assert r.json()["state"] == "succeeded"

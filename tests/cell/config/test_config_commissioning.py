@@ -327,3 +327,10 @@ def test_sim_config_helper_still_builds_a_valid_config(tmp_path: Path) -> None:
     for robot in ("sim", "ur"):
         cfg = sim_config(tmp_path, robot=robot, gripper="sim")
         assert all_simulated(cfg) and cfg.api.job_db == str(tmp_path / "jobs.db")
+
+
+def test_a_check_reference_needs_three_views(tmp_path: Path) -> None:
+    """The reference is recorded by the hand-eye routine, which needs three views: fewer is a
+    config error at load, not a recording job that fails later."""
+    problems = _problems(_write(tmp_path, SIM + "\n[check]\nviews = 2\n"))
+    assert len(problems) == 1 and problems[0].startswith("check.views: "), problems
