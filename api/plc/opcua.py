@@ -204,6 +204,7 @@ class OpcUaServer(LoopThread):
         self._ended_sent: str = ""  # the last job whose JobEnded event was raised
         self._event_gen: Any = None
         self._parts: list[int] | None = None  # the ids of the last locate of every part
+        self._calibration_applied = False  # the next update shows the configuration anew
         self._last_check: tuple[Job, CheckResult] | None = None  # LastCheck's check
         self.machine_vision: Any = None
         self.calls = ThreadPoolExecutor(4, thread_name_prefix="opcua-call")
@@ -260,15 +261,20 @@ class OpcUaServer(LoopThread):
             await server.stop()
 
     def _watch_jobs(self) -> None:
-        """Wakes the update at every job start and end, so an end (and its event) is shown
-        at once rather than at the next period."""
+        """Wakes the update at every job start and end and every applied calibration, so an
+        end (and its event) or the new configuration is shown at once rather than at the
+        next period."""
         with self.cell.events.subscribe() as sub:
             while self._stop is not None and not self._stop.is_set():
                 event = sub.get(timeout_s=0.5)
-                if event is None or event.get("type") not in ("job", "parts"):
+                if event is None or event.get("type") not in ("job", "parts", "calibration"):
                     continue
                 if event["type"] == "parts":
                     self._parts = [int(p["id"]) for p in event.get("parts", [])]
+                elif event["type"] == "calibration":
+                    if event.get("state") != "applied":
+                        continue
+                    self._calibration_applied = True
                 else:
                     self._saw_job(event.get("job") or {})
                 loop, wake = self._loop, self._wake
@@ -545,6 +551,9 @@ class OpcUaServer(LoopThread):
         if job is not None and job.get("ended_at") and job["id"] != self._ended_sent:
             await self._job_ended(job)
         if self.machine_vision is not None:
+            if self._calibration_applied:
+                self._calibration_applied = False
+                await self.machine_vision.calibration_applied()
             await self.machine_vision.update(st, job)
 
     @staticmethod

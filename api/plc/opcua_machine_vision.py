@@ -86,11 +86,13 @@ class OpcHost(Protocol):
 
 class Facet(Protocol):
     """Another object that shows this behaviour (the standard's ``VisionSystem``): told of
-    every state change and of every job's end."""
+    every state change, of every job's end and of every calibration applied."""
 
     async def show(self) -> None: ...
 
     async def result(self, job: dict[str, Any]) -> None: ...
+
+    async def configuration_changed(self) -> None: ...
 
 
 log = logging.getLogger(__name__)
@@ -221,6 +223,11 @@ class MachineVision:
         await self._nodes["prepared"].write_value(self.prepared)
         for facet in self.facets:
             await facet.show()
+
+    async def calibration_applied(self) -> None:
+        """A hand-eye calibration was applied: the faces that show it as a configuration."""
+        for facet in self.facets:
+            await facet.configuration_changed()
 
     async def update(self, status: dict[str, Any], job: dict[str, Any] | None) -> None:
         """Follows the cell: automatic mode resumes once the devices are up after a restart;

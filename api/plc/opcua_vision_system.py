@@ -185,14 +185,19 @@ class VisionSystemFacet:
                 ua.VariantType.NodeId)
         await self.mv.opc.write_nodes(values)
 
-    async def result(self, job: dict[str, Any]) -> None:
-        """A job's end: its ``ResultDataType`` kept for the result methods, the active
-        configuration read again, and ``ResultReadyEventType`` raised."""
+    async def configuration_changed(self) -> None:
+        """The active configuration read again (a calibration was applied) and shown."""
         configuration = await self._off_loop(self._active_configuration)
-        if configuration.InternalId.Id != self._configuration.InternalId.Id:
+        if (configuration.InternalId.Id, configuration.LastModified) != \
+                (self._configuration.InternalId.Id, self._configuration.LastModified):
             self._configuration = configuration
             await self.mv.opc.write_nodes({self._nodes["configuration"]:
                                            ua.Variant(configuration, EXT)})
+
+    async def result(self, job: dict[str, Any]) -> None:
+        """A job's end: its ``ResultDataType`` kept for the result methods, the active
+        configuration read again, and ``ResultReadyEventType`` raised."""
+        await self.configuration_changed()
         result = self._result_of(job, self.mv.opc.ended_job(job["id"]))
         self.results[result.ResultId.Id] = result
         while len(self.results) > MAX_RESULTS:

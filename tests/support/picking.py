@@ -20,11 +20,14 @@ BLOCK_MM = 60.0  # the blocks the parts lie on
 
 
 def place_parts(http: TestClient, offsets_mm: list[tuple[float, float]],
-                height_mm: float = BLOCK_MM) -> list[NDArray[np.float64]]:
+                height_mm: float = BLOCK_MM, *, T_base_origin: NDArray[np.float64] | None = None
+                ) -> list[NDArray[np.float64]]:
     """Parts like the config's target on blocks ``height_mm`` high, moved in the base frame
-    from where home sees the target (``PUT /sim/parts``); their true poses."""
+    from where home sees the target (``PUT /sim/parts``); their true poses. Once parts lie
+    in the scene the simulator's target is the first of them, so a test that places parts
+    again passes the pose home saw before (``T_base_origin``)."""
     cell: Cell = http.app.state.cell  # type: ignore[attr-defined]
-    T0 = world(cell).true_T_base_target()
+    T0 = world(cell).true_T_base_target() if T_base_origin is None else T_base_origin
     poses = []
     for dx, dy in offsets_mm:
         T = T0.copy()

@@ -3,7 +3,8 @@ of the published NodeSet (:mod:`tests.api.plc.machine_vision_facts`): asyncua's 
 every type, instance declaration, method argument and structure layout by the standard's
 NodeIds, finds the instance by its type, prepares a recipe, runs a single job and reads its
 result through the standard's methods and ``ResultReadyEventType``; node-opcua (another stack)
-does the same with a recipe whose single job is a pick. One served cell for the module."""
+checks the same facts and runs an approach's and a pick's single job. One served cell for the
+module."""
 
 from __future__ import annotations
 
@@ -38,7 +39,8 @@ from tests.api.plc.machine_vision_facts import (
     NodeRef,
 )
 from tests.api.plc.test_opcua_independent import node_opcua
-from tests.support.cell import running_cell, settled_tcp, sim_config
+from tests.support.cell import AUTH, running_cell, settled_tcp, sim_config, world
+from tests.support.jobs import wait_job
 from tests.support.net import free_port
 from tests.support.opcua import opc_client
 from tests.support.paths import REPO
@@ -47,6 +49,7 @@ from tests.support.picking import part_at, place_parts, place_pose_for, teach_pl
 SCRIPT = REPO / "tests" / "support" / "clients" / "node_opcua_machine_vision.js"
 RECIPE, RECIPE_NUMBER = "plate-mv", 21
 PICK_RECIPE, PICK_NUMBER = "tray-pick-mv", 22
+HAND_EYE = "/api/v1/calibration/hand-eye"
 RULES = {"M": ua.ObjectIds.ModellingRule_Mandatory, "O": ua.ObjectIds.ModellingRule_Optional}
 
 
@@ -55,6 +58,7 @@ class Served:
     cell: Cell
     http: TestClient
     url: str
+    T_base_home_target: Any  # where home sees the target before any part is placed
 
 
 def _save_recipe(cell: Cell, name: str, number: int, **target: Any) -> None:
@@ -80,10 +84,15 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
                         opcua={"endpoint": f"opc.tcp://127.0.0.1:{port}"})
     with running_cell(config) as cell, TestClient(create_app(cell)) as http:
         _save_recipe(cell, RECIPE, RECIPE_NUMBER, standoff_mm=45.0)
+        T_home_target = world(cell).true_T_base_target()
+        _, T_place_tcp = place_pose_for(cell, -200.0, 0.0, 40.0)
+        teach_place(cell, "tray", T_place_tcp)
+        _save_recipe(cell, PICK_RECIPE, PICK_NUMBER,
+                     standoff_mm=cell.config.approach.standoff_mm, job="pick", place="tray")
         server = OpcUaServer(cell, config.opcua, opcua_cert_dir(config))
         server.start()
         try:
-            yield Served(cell, http, f"opc.tcp://127.0.0.1:{port}")
+            yield Served(cell, http, f"opc.tcp://127.0.0.1:{port}", T_home_target)
         finally:
             server.close()
 
@@ -345,38 +354,56 @@ def test_asyncua_client_runs_a_single_job_and_reads_its_result(served: Served) -
     settled_tcp(cell)
 
 
-def test_node_opcua_runs_a_pick_through_the_standards_methods(served: Served,
-                                                              tmp_path: Path) -> None:
-    """node-opcua reads every type and declaration of the facts table by the standard's NodeId
-    (browse name and node class), finds VisionSystem by its type, prepares a recipe whose
-    single job is a pick, runs it, takes its ResultReadyEvent and decodes the ResultDataType
-    GetResultById answers: the picked part's pose; the part lies at its place (simulator
-    truth)."""
-    facts = [["mv", i, name, node_class] for i, name, node_class, _ in TYPES]
-    facts += [["mv", i, name, node_class] for _, i, name, node_class, *_ in DECLARATIONS]
+def test_node_opcua_checks_the_facts_and_runs_an_approach_then_a_pick(served: Served,
+                                                                     tmp_path: Path) -> None:
+    """node-opcua reads every fact of the table by the standard's NodeIds (browse names, node
+    classes, method arguments, state numbers, structure layouts), finds VisionSystem by its
+    type, and runs two single jobs through the standard's methods: a recipe whose job is an
+    approach, then one whose job is a pick. It takes each ResultReadyEvent and decodes the
+    ResultDataType GetResultById answers: the located pose (simulator truth), then the picked
+    part's pose; the part lies at its place (simulator truth)."""
+    facts = {
+        "nodes": [["mv", i, name, node_class] for i, name, node_class, _ in TYPES]
+        + [["mv", i, name, node_class] for _, i, name, node_class, *_ in DECLARATIONS],
+        "arguments": [[i, [[[n, list(t), r] for n, t, r in args] for args in lists]]
+                      for i, lists in ARGUMENTS.items()],
+        "states": [[name, i, number] for name, (i, number) in STATES.items()],
+        "structures": [[i, ["mv", encoding], [[n, list(t), r, o] for n, t, r, o in fields]]
+                       for i, (encoding, fields) in STRUCTURES.items()]}
+    n_facts = sum(len(rows) for rows in facts.values())
     facts_file = tmp_path / "facts.json"
     facts_file.write_text(json.dumps(facts))
     folder = node_opcua()
     cell = served.cell
     assert cell.home("test", speed_deg_s=120.0, wait=True).state == "succeeded"  # home sees parts
-    place_parts(served.http, [(0.0, 0.0)])
-    _, T_place_tcp = place_pose_for(cell, -200.0, 0.0, 40.0)
-    teach_place(cell, "tray", T_place_tcp)
-    _save_recipe(cell, PICK_RECIPE, PICK_NUMBER, standoff_mm=cell.config.approach.standoff_mm,
-                 job="pick", place="tray")
+    (T_base_part,) = place_parts(served.http, [(0.0, 0.0)],
+                                 T_base_origin=served.T_base_home_target)
     env = {**os.environ, "NODE_PATH": str(folder / "node_modules")}
     done = subprocess.run(["node", str(SCRIPT), served.url, "plc", "sim-plc",
-                           str(PICK_NUMBER), str(facts_file)], capture_output=True, text=True,
-                          timeout=300, env=env, check=False)
+                           f"{RECIPE_NUMBER},{PICK_NUMBER}", str(facts_file)],
+                          capture_output=True, text=True, timeout=300, env=env, check=False)
     assert done.returncode == 0, done.stderr[-2000:]
     out = json.loads(done.stdout.strip().splitlines()[-1])
-    assert out["facts"] == {"checked": len(facts), "mismatches": []}, out["facts"]
+    assert out["facts"] == {"checked": n_facts, "mismatches": []}, out["facts"]
+    approached, picked = out["jobs"]
+
+    job = cell.job(approached["jobId"])
+    assert job.kind == "approach" and job.state == "succeeded", job.error_message
+    assert approached["prepared"] == f"{RECIPE}@1"
+    assert approached["event"] == {"jobId": job.id, "resultId": f"r-{job.id}",
+                                   "resultState": 1}
+    assert approached["result"]["measId"] == "node-meas-0"
+    d_mm, _ = pose_distance(T_from_pose(approached["result"]["position_mm"],
+                                        approached["result"]["rotvec_rad"]), T_base_part)
+    assert d_mm < 1.0
+
+    out = picked
     job = cell.job(out["jobId"])
     assert job.kind == "pick" and job.state == "succeeded", job.error_message
     assert out["prepared"] == f"{PICK_RECIPE}@1"
     assert out["event"] == {"jobId": job.id, "resultId": f"r-{job.id}", "resultState": 1}
     assert out["result"]["jobId"] == job.id and out["result"]["resultState"] == 1
-    assert out["result"]["measId"] == "node-meas"
+    assert out["result"]["measId"] == "node-meas-1"
     pick = job.result
     assert isinstance(pick, PickResult)
     d_mm, _ = pose_distance(T_from_pose(out["result"]["position_mm"],
@@ -388,4 +415,105 @@ def test_node_opcua_runs_a_pick_through_the_standards_methods(served: Served,
     assert len(placed) == 1 and not placed[0]["held"]
     assert pose_distance(T_from_pose_dict(placed[0]["T_base_part"]),
                          pick.place.T_base_part_goal.T())[0] <= 0.3
+    settled_tcp(cell)
+
+
+def test_asyncua_client_runs_a_pick_recipes_single_job(served: Served) -> None:
+    """A recipe whose single job is a pick, through the standard's methods: the job is a pick,
+    its ResultDataType carries the picked part's pose and the job's processing times, and the
+    part lies at its place (simulator truth)."""
+    cell = served.cell
+    assert cell.home("test", speed_deg_s=120.0, wait=True).state == "succeeded"  # home sees parts
+    (T_base_part,) = place_parts(served.http, [(0.0, 0.0)],
+                                 T_base_origin=served.T_base_home_target)
+
+    async def go() -> str:
+        async with opc_client(served.url, "plc") as c:
+            await c.load_data_type_definitions()
+            mv = await c.get_namespace_index(URI)
+            nodes = await _check_instance(await _instance(c, mv), mv)
+            events = _Events()
+            sub = await c.create_subscription(20, events)
+            await sub.subscribe_events(nodes["VisionSystem"], c.get_node(
+                _node_id(("mv", 1024), mv)))
+            assert await nodes["VisionStateMachine"].call_method(
+                f"{mv}:SelectModeAutomatic") == 0
+            internal, completed, error = await nodes["RecipeManagement"].call_method(
+                f"{mv}:PrepareRecipe", ua.RecipeIdExternalDataType(Id=PICK_RECIPE),
+                ua.RecipeIdInternalDataType(Id=""))
+            assert (internal.Id, completed, error) == (f"{PICK_RECIPE}@1", True, 0)
+            job, error = await nodes["AutomaticModeStateMachine"].call_method(
+                f"{mv}:StartSingleJob", ua.MeasIdDataType(Id="meas-pick"),
+                ua.PartIdDataType(Id="part-7"), ua.RecipeIdExternalDataType(Id=""),
+                ua.ProductIdDataType(Id=""), ua.Variant([], ua.VariantType.Variant))
+            assert error == 0 and cell.job(job.Id).kind == "pick"
+            deadline = time.monotonic() + 120
+            while not any(e.JobId.Id == job.Id for e in events.events):
+                assert time.monotonic() < deadline, "no ResultReadyEvent"
+                await asyncio.sleep(0.05)
+            event = next(e for e in events.events if e.JobId.Id == job.Id)
+            assert event.ResultState == 1 and event.InternalRecipeId.Id == f"{PICK_RECIPE}@1"
+            _, result, error = await nodes["ResultManagement"].call_method(
+                f"{mv}:GetResultById", ua.ResultIdDataType(Id=f"r-{job.Id}"),
+                ua.Variant(0, ua.VariantType.Int32))
+            assert error == 0 and result.ResultState == 1 and result.PartId.Id == "part-7"
+            pose, body = [v.Value for v in result.ResultContent]
+            d_mm, _ = pose_distance(T_from_pose(pose.position_mm, pose.rotvec_rad), T_base_part)
+            assert d_mm < 1.0
+            assert json.loads(body)["kind"] == "pick"
+            record = cell.job(job.Id)
+            assert record.ended_at is not None
+            assert result.ProcessingTimes.ProcessingDuration == pytest.approx(
+                1000.0 * (record.ended_at - record.created_at), abs=1.0)
+            await sub.delete()
+            return str(job.Id)
+
+    job = cell.job(asyncio.run(go()))
+    assert job.state == "succeeded", job.error_message
+    pick = job.result
+    assert isinstance(pick, PickResult) and pick.place is not None
+    placed = part_at(truth_parts(served.http), pick.place.T_base_part_goal.T())
+    assert len(placed) == 1 and not placed[0]["held"]
+    settled_tcp(cell)
+
+
+def test_an_applied_calibration_becomes_the_active_configuration(served: Served) -> None:
+    """A hand-eye routine applied to the running cell is the configuration a client reads at
+    once (no job needed to refresh it): its job id and when it was applied;
+    ``GetConfigurationById`` answers it and the file's ``config`` is no longer there."""
+    cell, http = served.cell, served.http
+    assert cell.home("test", speed_deg_s=120.0, wait=True).state == "succeeded"
+    place_parts(http, [(0.0, 0.0)], 0.0, T_base_origin=served.T_base_home_target)
+    r = http.post(HAND_EYE, json={"views": 6, "speed_mm_s": 400}, headers=AUTH["operator"])
+    assert r.status_code == 200, r.text
+    job_id = r.json()["id"]
+    job = wait_job(http, job_id, 120.0, url=HAND_EYE)
+    assert job["state"] == "succeeded", job["error"]
+    r = http.post(f"{HAND_EYE}/{job_id}/apply", json={},
+                  headers=AUTH["operator"])
+    assert r.status_code == 200, r.text
+    applied_s = time.time()
+
+    async def go() -> None:
+        async with opc_client(served.url, "plc") as c:
+            await c.load_data_type_definitions()
+            mv = await c.get_namespace_index(URI)
+            configs = (await _check_instance(await _instance(c, mv), mv))[
+                "ConfigurationManagement"]
+            active = await configs.get_child(f"{mv}:ActiveConfiguration")
+            deadline = time.monotonic() + 10.0
+            while (config := await active.read_value()).InternalId.Id != job_id:
+                assert time.monotonic() < deadline, config
+                await asyncio.sleep(0.1)
+            assert config.LastModified.timestamp() == pytest.approx(applied_s, abs=5.0)
+            _, by_id, error = await configs.call_method(
+                f"{mv}:GetConfigurationById", ua.ConfigurationIdDataType(Id=job_id),
+                ua.Variant(0, ua.VariantType.Int32))
+            assert error == 0 and by_id.InternalId.Id == job_id
+            *_, error = await configs.call_method(
+                f"{mv}:GetConfigurationById", ua.ConfigurationIdDataType(Id="config"),
+                ua.Variant(0, ua.VariantType.Int32))
+            assert error != 0
+
+    asyncio.run(go())
     settled_tcp(cell)
