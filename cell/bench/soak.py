@@ -295,8 +295,22 @@ def _sample(service: int, db: Path | None) -> dict[str, float | None]:
 
 
 def run_soak(minutes: float, max_cycles: int | None = None, interfaces: bool = False,
-             progress: Progress | None = None) -> dict[str, Any]:
+             progress: Progress | None = None, burners: int = 0) -> dict[str, Any]:
+    """The soak; ``burners`` CPU-burning processes beside it for the whole run (a host as
+    loaded as a busy cell PC), started before the service."""
     loadavg_before = [round(x, 2) for x in os.getloadavg()]
+    with contextlib.ExitStack() as stack:
+        if burners > 0:
+            from fakes.ur_controller.load import cpu_burners
+
+            stack.enter_context(cpu_burners(burners, max_s=60.0 * minutes + 900.0))
+        report = _run(minutes, max_cycles, interfaces, progress, loadavg_before)
+    report["load"]["burners"] = burners
+    return report
+
+
+def _run(minutes: float, max_cycles: int | None, interfaces: bool,
+         progress: Progress | None, loadavg_before: list[float]) -> dict[str, Any]:
     soak = _Soak()
     samples: list[tuple[float, dict[str, float | None]]] = []
     extra = [] if interfaces else ["--opcua-port", "0", "--xmlrpc-port", "0",
@@ -357,6 +371,9 @@ def _report(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]], s
     report: dict[str, Any] = {
         # the least kind figure first: the service's native growth, per hour
         "service_rss_mb_per_h": slope_per_h(t, series["service_rss_mb"], skip=0.1),
+        "service_rss_mb_per_h_after_10_min": (
+            slope_per_h(t, series["service_rss_mb"], skip=600.0 / t[-1])
+            if t[-1] > 900.0 else None),
         "service_rss_mb_first": _round(first["service_rss_mb"]),
         "service_rss_mb_last": _round(final["service_rss_mb"]),
         "failed_cycles": len(failed),
@@ -407,6 +424,7 @@ def format_report(r: dict[str, Any]) -> str:
     lines = [
         f"service RSS {r['service_rss_mb_first']} -> {r['service_rss_mb_last']} MB, "
         f"{r['service_rss_mb_per_h']} MB/h after the first 10 % "
+        f"({r['service_rss_mb_per_h_after_10_min']} MB/h after 10 min) "
         f"(ur_rtde child {r['ur_client_rss_mb_per_h']} MB/h); fds {r['fds_per_h']}/h, "
         f"threads {r['threads_per_h']}/h, job DB {r['job_db_kb_per_h']} KB/h",
         f"cycles {r['cycles']}, failed {r['failed_cycles']} {r['failed_codes'] or ''}",
@@ -417,7 +435,8 @@ def format_report(r: dict[str, Any]) -> str:
         "jobs (ms): " + ", ".join(f"{k} p50 {v['p50']} p95 {v['p95']} (n {v['n']})"
                                   for k, v in r["job_ms"].items()),
         f"{lo['seconds']} s on {lo['cores']} cores, host load average "
-        f"{lo['host_loadavg_before']} before, {lo['host_loadavg_after']} after",
+        f"{lo['host_loadavg_before']} before, {lo['host_loadavg_after']} after, "
+        f"{lo.get('burners', 0)} CPU burners beside it",
         "min  svc MB  ur MB  fds thr  urthr  db KB  status p95  frame p95  cycles failed",
     ]
     for m in r["per_minute"]:

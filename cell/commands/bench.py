@@ -135,6 +135,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                     help="stop after this many cycles (default: when the minutes are up)")
     sk.add_argument("--interfaces", action="store_true",
                     help="serve OPC UA, XML-RPC and Modbus too (on sim.toml's fixed ports)")
+    sk.add_argument("--burners", type=int, default=0,
+                    help="CPU-burning processes beside the soak for the whole run (default 0)")
     sk.add_argument("--out", metavar="FILE.json", default=None,
                     help="also write the JSON report here")
     sk.set_defaults(func=_bench_soak)
@@ -346,13 +348,14 @@ def _bench_soak(args: argparse.Namespace) -> int:
     from cell.bench.soak import format_report, run_soak
     from cell.commands.common import EXIT_OK, fail, print_json, progress_bars
 
-    if args.minutes <= 0 or (args.cycles is not None and args.cycles < 1):
-        return fail("invalid_argument", "--minutes must be positive and --cycles at least 1",
-                    args.json)
+    if args.minutes <= 0 or (args.cycles is not None and args.cycles < 1) or args.burners < 0:
+        return fail("invalid_argument", "--minutes must be positive, --cycles at least 1 and "
+                    "--burners not negative", args.json)
     try:
         with progress_bars(not args.json) as progress:
             report = run_soak(args.minutes, max_cycles=args.cycles,
-                              interfaces=args.interfaces, progress=progress)
+                              interfaces=args.interfaces, progress=progress,
+                              burners=args.burners)
     except RuntimeError as err:
         return fail("bench_failed", str(err), args.json)
     if args.out:
