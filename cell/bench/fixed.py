@@ -349,7 +349,7 @@ def ibvs(n: int, seed: int, displace_mm: float = 30.0, displace_deg: float = 6.0
     import time
     from pathlib import Path
 
-    from cell.bench.ibvs import jog_to, _recover, displacements
+    from cell.bench.ibvs import _recover, displacements, jog_to
     from cell.config.schema import parse_config
     from cell.errors import CellError
     from cell.results import IbvsApproach
