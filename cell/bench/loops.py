@@ -12,7 +12,9 @@ against the true TCP at teaching) and the error the job claims (``estimated_erro
 
 from __future__ import annotations
 
+import argparse
 import contextlib
+import json
 import os
 import tempfile
 import time
@@ -59,9 +61,14 @@ def _config(tmp: Path) -> Any:
 
 
 def run_bench_loops(*, repeats: int = 3, modes: tuple[str, ...] = MODES,
-                    teach_samples: int = 5) -> dict[str, Any]:
+                    teach_samples: int = 5, burners: int = 0) -> dict[str, Any]:
     rows: list[dict[str, Any]] = []
-    with tempfile.TemporaryDirectory() as tmp:
+    with contextlib.ExitStack() as stack:
+        if burners > 0:
+            from fakes.ur_controller.load import cpu_burners
+
+            stack.enter_context(cpu_burners(burners, max_s=3600.0))
+        tmp = stack.enter_context(tempfile.TemporaryDirectory())
         cell = start_cell(_config(Path(tmp)))
         try:
             assert cell.sim is not None
@@ -77,7 +84,7 @@ def run_bench_loops(*, repeats: int = 3, modes: tuple[str, ...] = MODES,
     return {"teach_samples": teach_samples, "jogs": [list(map(list, j)) for j in JOGS],
             "runs": rows, "summary": {m: _summary([r for r in rows if r["mode"] == m])
                                       for m in modes},
-            "load_average": list(os.getloadavg())}
+            "burners": burners, "load_average": list(os.getloadavg())}
 
 
 def _run(cell: Any, taught: Any, T_taught: Any, mode: str, jog_i: int,
@@ -142,3 +149,15 @@ def format_report(r: dict[str, Any]) -> list[str]:
                      f"truth in {s['bound_held']}; median true {s['median_true_mm']} mm, "
                      f"claimed {s['median_claimed_mm']} mm, {s['median_time_s']} s")
     return lines
+
+
+def main(args: argparse.Namespace) -> int:
+    if args.repeats < 1 or args.burners < 0:
+        print("--repeats must be at least 1 and --burners not negative")
+        return 2
+    report = run_bench_loops(repeats=args.repeats, burners=args.burners)
+    if args.json:
+        print(json.dumps(report, indent=1, default=float))
+    else:
+        print("\n".join(format_report(report)))
+    return 0
