@@ -46,7 +46,7 @@ from cell.results.consistency import Consistency
 from cell.servoing.ibvs import Features
 from cell.servoing.ibvs_mount import IbvsMount
 from cell.servoing.image import ImageLaw
-from cell.servoing.position import PositionLaw, ServoGoal
+from cell.servoing.position import PositionLaw, ServoGoal, located_resolution
 from cell.servoing.runner import ClosedLoop
 from cell.vision.consistency import consistency
 from cell.vision.frames import approach_tcp, observation_camera
@@ -486,12 +486,17 @@ def servo_approach(core: CellCore, job_id: str, motion: Motion, loc: Located,
     if not core.frames.is_fixed and _at_rest(out):
         steps, goal = _close_at_goal(core, motion, plan, core.arm.state().T_base_tcp)
         out["closing"] = steps
-        if steps and isinstance(steps[-1], ClosingCorrection):
+        last = core.locator.last
+        if steps and isinstance(steps[-1], ClosingCorrection) and last is not None:
             basis = "servo_closed"
+            res = located_resolution(core, last, core.config.approach.frames_per_locate)
+            res_mm, res_deg = (0.0, 0.0) if res is None else (res.mm, res.deg)
             out.update(goal_T_base_tcp=Pose.from_T(goal),
                        reached_T_base_tcp=Pose.from_T(core.arm.state().T_base_tcp),
-                       estimated_error_mm=steps[-1].correction_mm,
-                       estimated_error_deg=steps[-1].correction_deg)
+                       estimated_error_mm=steps[-1].correction_mm + res_mm,
+                       estimated_error_deg=steps[-1].correction_deg + res_deg,
+                       resolution_mm=None if res is None else res.mm,
+                       resolution_deg=None if res is None else res.deg)
     if seen.get("pose_source") == "last_seen":  # a fixed camera, hidden at the start
         out.update(start_pose_source="last_seen", occluded=True,
                    occlusion_reason=out.get("occlusion_reason") or seen.get("reason"))
@@ -515,16 +520,23 @@ ERROR_BASIS: dict[str, ErrorBasis] = {
     "servo_closed": ErrorBasis(
         frame="base",
         text="the last correction of the goal in the base frame, seen from still views at "
-             "the goal after the servo stopped (the target at rest); it goes through the "
-             "hand-eye calibration and the intrinsics, so their error is invisible here"),
+             "the goal after the servo stopped (the target at rest), plus what those views "
+             "resolve at the TCP (the dots' centre bias through the pose's sensitivity); it "
+             "goes through the hand-eye calibration and the intrinsics, so their error is "
+             "invisible here"),
     "servo": ErrorBasis(
         frame="camera",
-        text="the TCP against the goal the camera sees from where it stands, i.e. the "
-             "target in the camera frame; a hand-eye or intrinsics error is invisible here"),
+        text="the TCP against the goal the camera sees from where it stands (a target at "
+             "rest: the mean of its poses from this viewpoint, plus twice the mean's standard "
+             "error), plus what the view resolves at the TCP; a hand-eye or intrinsics error "
+             "is invisible here"),
     "ibvs": ErrorBasis(
         frame="image",
-        text="the dots' image features against the taught view's; the pose figures are the "
-             "camera frame's; a mount error between teaching and now is invisible here"),
+        text="the TCP motion the converged window's mean view still asks for (the dots' "
+             "image features against the taught view's) plus what the two views resolve at "
+             "the TCP: their noise over the frames each averages and the dots' centre bias, "
+             "through the interaction matrix; a mount error between teaching and now is "
+             "invisible here"),
 }
 
 

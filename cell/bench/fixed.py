@@ -349,7 +349,7 @@ def ibvs(n: int, seed: int, displace_mm: float = 30.0, displace_deg: float = 6.0
     import time
     from pathlib import Path
 
-    from cell.bench.ibvs import _jog_to, _recover, displacements
+    from cell.bench.ibvs import _recover, displacements, jog_to
     from cell.config.schema import parse_config
     from cell.errors import CellError
     from cell.results import IbvsApproach
@@ -380,7 +380,7 @@ def ibvs(n: int, seed: int, displace_mm: float = 30.0, displace_deg: float = 6.0
                 T_disp[:3, :3] = Rotation.from_rotvec(np.radians(dr)).as_matrix() \
                     @ T_taught[:3, :3]
                 try:
-                    _jog_to(cell, T_disp)
+                    jog_to(cell, T_disp)
                 except CellError as err:
                     failures.append(f"jog {err.code}")
                     _recover(cell)

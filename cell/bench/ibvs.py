@@ -83,7 +83,7 @@ def _to_view_distance(cell: Cell, distance_mm: float) -> None:
     shift = T_base_cam[:3, 2] * (float(c_cam[2]) - distance_mm)
     for attempt in range(5):  # the controller restarts its program now and then
         try:
-            _jog_to(cell, T_from_pose(shift, np.zeros(3)) @ T_tcp)
+            jog_to(cell, T_from_pose(shift, np.zeros(3)) @ T_tcp)
             break
         except CellError:
             if attempt == 4:
@@ -138,7 +138,7 @@ class DotSampler:
             time.sleep(0.01)
 
 
-def _jog_to(cell: Cell, T_goal: Matrix4) -> None:
+def jog_to(cell: Cell, T_goal: Matrix4) -> None:
     """Jog there in steps of at most 100 mm (a jog step is capped by ``[limits]``)."""
     T_now = cell.arm_state().T_base_tcp
     rot = Rotation.from_matrix(T_goal[:3, :3] @ T_now[:3, :3].T).as_rotvec()
@@ -224,7 +224,7 @@ def run_world(world: str, placements: int, seed: int, displace_mm: float, displa
                     @ T_taught_true[:3, :3]
                 for mode in modes:
                     try:
-                        _jog_to(cell, T_disp)
+                        jog_to(cell, T_disp)
                     except CellError as err:  # recorded; the arm is recovered and homed
                         rows.append({"placement": i, "mode": mode, "state": "not_started",
                                      "time_s": None, "error_mm": None, "error_deg": None,

@@ -31,7 +31,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.set_defaults(func=_bench)
     what = p.add_subparsers(dest="bench_command", required=False,
                             metavar="{approach,pick,drift,service,soak,freeze,modbus,fixed,"
-                                    "commissioning,controller,live-view}")
+                                    "commissioning,controller,live-view,loops}")
     a = what.add_parser(
         "approach", help="servo vs look-and-move approach, conveyor tracking, lost target",
         description="On the simulated cell through the UR adapter and ur_rtde (see "
@@ -211,6 +211,15 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                     "cell/bench/live_view.py).")
     lv.add_argument("--seconds", type=float, default=15.0, help="seconds per step (default 15)")
     lv.set_defaults(func=_lazy("live_view"))
+    lp = what.add_parser(
+        "loops", help="servo and IBVS to a view taught with the camera's mount off",
+        description="Teaches a view at home on a simulated cell whose camera mount is off the "
+                    "hand-eye calibration, jogs away and approaches it in each mode; each run's "
+                    "true error beside the error the job claims (see cell/bench/loops.py).")
+    lp.add_argument("--repeats", type=int, default=3, help="runs per jog and mode (default 3)")
+    lp.add_argument("--burners", type=int, default=0,
+                    help="CPU-burning processes beside the runs (default 0)")
+    lp.set_defaults(func=_lazy("loops"))
 
 
 def _bench_approach(args: argparse.Namespace) -> int:

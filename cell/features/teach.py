@@ -103,7 +103,8 @@ class TaughtPose:
             samples=int(d["samples"]), spread_mm=float(d["spread_mm"]),
             spread_deg=float(d["spread_deg"]), T_base_target=_T_or_none(d.get("T_base_target")),
             T_base_tcp=T_from_pose_dict(d["T_base_tcp"]), taught_by=str(d["taught_by"]),
-            taught_at=float(d["taught_at"]), view=view_from_dict(d.get("view")), frame=frame)
+            taught_at=float(d["taught_at"]),
+            view=view_from_dict(d.get("view"), int(d["samples"])), frame=frame)
 
     def tool_pose(self) -> Matrix4:
         """``T_target_tcp``; a base-frame pose is refused (``taught_wrong_frame``)."""
@@ -139,7 +140,8 @@ def view_dict(view: Features | None) -> dict[str, Any] | None:
     return {"ids": list(view.ids), "xy": view.xy.tolist(), "depth_mm": view.depth_mm.tolist()}
 
 
-def view_from_dict(d: dict[str, Any] | None) -> Features | None:
+def view_from_dict(d: dict[str, Any] | None, frames: int = 1) -> Features | None:
+    """``frames``: how many frames the view averages (a taught pose's samples)."""
     if d is None:
         return None
     xy = np.asarray(d["xy"], dtype=float).reshape(-1, 2)
@@ -147,7 +149,7 @@ def view_from_dict(d: dict[str, Any] | None) -> Features | None:
     ids = tuple(int(i) for i in d["ids"])
     if len(ids) != len(xy) or len(ids) != len(depth):
         raise ValueError("a taught view needs one point and one depth per dot id")
-    return Features(ids, xy, depth)
+    return Features(ids, xy, depth, max(1, int(frames)))
 
 
 def mean_view(views: list[Features]) -> Features | None:
@@ -159,7 +161,7 @@ def mean_view(views: list[Features]) -> Features | None:
         return None
     subs = [v.subset(tuple(common)) for v in views]
     return Features(tuple(common), np.mean([v.xy for v in subs], axis=0),
-                    np.mean([v.depth_mm for v in subs], axis=0))
+                    np.mean([v.depth_mm for v in subs], axis=0), len(subs))
 
 
 def check_name(name: str) -> str:

@@ -58,6 +58,13 @@ class ServoLoop(FixedCameraView):
     pose_latency_ms: LatencyStats | None
     target_velocity_mm_s: Vec3
     occlusions: int | None = None  # a fixed camera: times the last pose seen was held
+    # an approach's target at rest: the goal came from the mean of this many poses, and the
+    # estimated error adds twice the mean's standard error (cell.servoing.rest_mean)
+    goal_frames_averaged: int | None = None
+    # what the pose estimate resolves at the TCP (a hand camera; cell.servoing.view_bound),
+    # included in the estimated error
+    resolution_mm: float | None = None
+    resolution_deg: float | None = None
 
 
 class IbvsPhases(Result):
@@ -99,5 +106,9 @@ class IbvsLoop(Result):
     goal_T_base_tcp: Pose | None = None
     view_error_mm: float  # the TCP motion the converged window's mean view still asks for
     view_error_deg: float
+    # what the window and the taught view resolve at the TCP (cell.servoing.view_bound): the
+    # estimated error is the view error plus this
+    resolution_mm: float | None = None
+    resolution_deg: float | None = None
     phases_s: IbvsPhases
     gain_cap_per_s: Percentiles | None

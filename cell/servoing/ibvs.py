@@ -91,11 +91,12 @@ class Features:
     ids: tuple[int, ...]
     xy: Matrix  # (N, 2) normalised image coordinates
     depth_mm: Vec  # (N,) depth of each dot in the camera frame
+    frames: int = 1  # averaged over this many frames: their random noise is that much smaller
 
     def subset(self, ids: tuple[int, ...]) -> Features:
         index = {d: k for k, d in enumerate(self.ids)}
         rows = [index[d] for d in ids]
-        return Features(tuple(ids), self.xy[rows], self.depth_mm[rows])
+        return Features(tuple(ids), self.xy[rows], self.depth_mm[rows], self.frames)
 
 
 def normalised_points(camera: CameraModel, points_px: ArrayLike) -> Matrix:

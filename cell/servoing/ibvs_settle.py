@@ -30,7 +30,7 @@ def mean_features(views: list[Features]) -> Features:
     common = tuple(i for i in views[0].ids if all(i in v.ids for v in views[1:]))
     subs = [v.subset(common) for v in views]
     return Features(common, np.mean([s.xy for s in subs], axis=0),
-                    np.mean([s.depth_mm for s in subs], axis=0))
+                    np.mean([s.depth_mm for s in subs], axis=0), sum(s.frames for s in subs))
 
 
 def settle_step(current: Features, desired: Features) -> Vec:

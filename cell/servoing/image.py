@@ -55,6 +55,7 @@ from cell.servoing.ibvs_mount import IbvsMount
 from cell.servoing.ibvs_settle import mean_features, settle_step, step_size
 from cell.servoing.law import Law, Loop, LoopMode, Reading, StreamCaps, Tick, Unusable
 from cell.servoing.record import FrameStats
+from cell.servoing.view_bound import Resolution, frame_noise_px, resolution
 from cell.vision.locate import Located
 from drivers.arm import ArmState
 from estimator import CameraModel
@@ -140,6 +141,7 @@ class ImageLaw(Law[View, View]):
         self.last_px = (float("nan"), float("nan"))
         self.last_pose = (float("nan"), float("nan"))
         self.last_step = (float("nan"), float("nan"))
+        self.resolution: Resolution | None = None  # what the converged window resolves
         self.phases: dict[str, float] = {}  # when each phase began (s from the loop's start)
         self.delay_s: float | None = None  # the loop's delay, averaged: the view's age + a tick
         self.t_tick: float | None = None
@@ -215,6 +217,10 @@ class ImageLaw(Law[View, View]):
         # and the arm nearly still: a window's mean is also small while the arm swings through
         # the view; within the loop's delay (what the newest view is behind the arm) it may
         # move half the tolerance
+        self.resolution = resolution(
+            mean_view, desired, ic.interaction, self.mount.camera_tcp(view.T_base_tcp),
+            self.camera.fx, max(frame_noise_px(list(window), self.camera.fx),
+                                ic.centroid_bias_px), ic.centroid_bias_px, len(window))
         lag_s = 0.0 if self.delay_s is None else self.delay_s
         image = self.last_px[0] < ic.tolerance_px_rms and self.last_px[1] < ic.tolerance_px_max
         pose = self.last_step[0] < ic.tolerance_mm and self.last_step[1] < ic.tolerance_deg
@@ -277,8 +283,16 @@ class ImageLaw(Law[View, View]):
             else self.min_border_px,
             "interaction": self.ic.interaction,
             "image_error_px_rms": self.last_px[0], "image_error_px_max": self.last_px[1],
-            "estimated_error_mm": self.last_pose[0], "estimated_error_deg": self.last_pose[1],
         }
+        res = self.resolution
+        if res is not None and np.isfinite(self.last_step[0]):
+            # the view's claim: the motion it still asks for and what it cannot resolve
+            out.update(estimated_error_mm=self.last_step[0] + res.mm,
+                       estimated_error_deg=self.last_step[1] + res.deg,
+                       resolution_mm=res.mm, resolution_deg=res.deg)
+        else:  # no window judged: the newest frame's pose-based figure
+            out.update(estimated_error_mm=self.last_pose[0],
+                       estimated_error_deg=self.last_pose[1])
         if view is not None:
             out["T_base_target"] = Pose.from_T(view.T_base_target)
             out["goal_T_base_tcp"] = Pose.from_T(view.T_base_target @ self.T_target_tcp)

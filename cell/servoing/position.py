@@ -34,12 +34,14 @@ from cell.results import Pose
 from cell.servoing.clock import TwistClock
 from cell.servoing.law import Law, Loop, LoopMode, Reading, StreamCaps, Tick, Unusable
 from cell.servoing.record import FrameStats, ms_stats
+from cell.servoing.rest_mean import RestMean
 from cell.servoing.servo_law import LawParams, goal_velocity, integrate, pbvs_twist, pose_error
 from cell.servoing.target_filter import ConstantVelocityFilter, TargetEstimate
+from cell.servoing.view_bound import Resolution, pose_resolution
 from cell.vision.frames import approach_tcp
 from cell.vision.locate import Located
 from drivers.arm import ArmState
-from estimator.transforms import pose_distance
+from estimator.transforms import invert_T, pose_distance
 
 Matrix4 = NDArray[np.float64]
 Vec = NDArray[np.float64]
@@ -47,6 +49,10 @@ GATE_GROWTH_MM_S = 250.0  # the validation gate widens this fast while poses are
 GATE_GROWTH_DEG_S = 90.0
 INTEGRATE_WITHIN_MM = 5.0  # tracking's integral term runs only this close to the goal
 INTEGRATE_WITHIN_DEG = 2.0
+REST_FRAMES = 30  # an approach's target at rest: the goal from the mean of this many poses
+REST_MM_S = 1.0  # at rest: the filtered speed under this
+REST_DEG_S = 0.2
+BOUND_SIGMAS = 2.0  # the estimated error adds this many standard errors of the goal
 
 
 @dataclass(frozen=True)
@@ -94,6 +100,9 @@ class PositionLaw(Law[Located, Aim]):
         self.held_frames = -1
         self.occlusions = 0  # times it held the last pose seen
         self.occlusion_reason: str | None = None
+        self.rest = RestMean(REST_FRAMES) if mode == "approach" else None
+        self.rest_cache: tuple[int, TargetEstimate] | None = None  # (frames, the mean's)
+        self.rest_used = False  # the last aim was the mean of the poses at rest
 
     # -- per frame -----------------------------------------------------------------------------
     def seed(self, first: Located) -> None:
@@ -116,6 +125,8 @@ class PositionLaw(Law[Located, Aim]):
                                         f"{d_deg:.1f} deg from the prediction was not used"),
                            failed=False)
         self.filter.update(t, T_bt)
+        if self.rest is not None:
+            self.rest.add(T_bt, located.T_base_tcp)
 
     # -- per tick ------------------------------------------------------------------------------
     def aim(self, now: Tick[Located]) -> Aim | None:
@@ -131,6 +142,7 @@ class PositionLaw(Law[Located, Aim]):
             self.occlusions += 1
             if self.occlusion_reason is None and now.why_unseen is not None:
                 self.occlusion_reason = now.why_unseen.message
+        self.rest_used = False
         if self.held is not None:
             est = self.held
         elif now.silence.lost:
@@ -138,7 +150,23 @@ class PositionLaw(Law[Located, Aim]):
         elif now.t - est.measured_at_s > self.max_age_s:
             raise RefusedError(ErrorCode.stale_pose, f"the newest target pose is "
                                f"{now.t - est.measured_at_s:.2f} s old (limit {self.max_age_s} s)")
+        else:
+            est = self._at_rest(est, now.frames)
         return Aim(est, self.goal.tcp(est.T_base_target))
+
+    def _at_rest(self, est: TargetEstimate, frames: int) -> TargetEstimate:
+        """An approach's target at rest: the mean of its poses from this viewpoint
+        (:mod:`cell.servoing.rest_mean`) instead of the filter's, which follows each frame."""
+        rest = self.rest
+        if rest is None or len(rest) < 3 \
+                or float(np.linalg.norm(est.velocity_mm_s)) > REST_MM_S \
+                or float(np.degrees(np.linalg.norm(est.angular_velocity_rad_s))) > REST_DEG_S:
+            return est
+        if self.rest_cache is None or self.rest_cache[0] != frames:
+            self.rest_cache = (frames, TargetEstimate(rest.mean(), np.zeros(3), np.zeros(3),
+                                                      est.measured_at_s))
+        self.rest_used = True
+        return self.rest_cache[1]
 
     def judge(self, aim: Aim, T_tcp: Matrix4, new: bool, t_s: float, prev: Vec
               ) -> Reading | None:
@@ -182,12 +210,30 @@ class PositionLaw(Law[Located, Aim]):
     def result(self, loop: Loop[Located], reached: Matrix4) -> dict[str, Any]:
         with loop.lock:
             est = self.held or self.filter.predict(time.monotonic())
+            mean = None
+            if self.rest_used and self.rest is not None and self.held is None:
+                T_bt = self.rest.mean()
+                mean = self.rest.at(invert_T(T_bt) @ self.goal.tcp(T_bt))
+                est = TargetEstimate(mean.T_base_target, est.velocity_mm_s,
+                                     est.angular_velocity_rad_s, est.measured_at_s)
         goal = self.goal.tcp(est.T_base_target)
         reach_mm, reach_deg = pose_distance(reached, goal)
+        # the claim: the TCP against the goal, and the goal's own uncertainty (one frame's
+        # when it was not averaged: the error is then only as good as the last frame)
+        sem_mm, sem_deg = (mean.sem_mm, mean.sem_deg) if mean is not None \
+            and np.isfinite(mean.sem_mm) else (0.0, 0.0)
+        seen = loop.newest()
+        res = None if seen is None else located_resolution(self.core, seen,
+                                                           1 if mean is None else mean.frames)
+        res_mm, res_deg = (0.0, 0.0) if res is None else (res.mm, res.deg)
         out: dict[str, Any] = {
             "gated_frames": self.gated,
             "T_base_target": Pose.from_T(est.T_base_target), "goal_T_base_tcp": Pose.from_T(goal),
-            "estimated_error_mm": self.last_error[0], "estimated_error_deg": self.last_error[1],
+            "estimated_error_mm": self.last_error[0] + BOUND_SIGMAS * sem_mm + res_mm,
+            "estimated_error_deg": self.last_error[1] + BOUND_SIGMAS * sem_deg + res_deg,
+            "resolution_mm": None if res is None else res.mm,
+            "resolution_deg": None if res is None else res.deg,
+            "goal_frames_averaged": None if mean is None else mean.frames,
             "reach_error_mm": reach_mm, "reach_error_deg": reach_deg,
             "pose_interval_ms": ms_stats(loop.stats.gaps[1:]),
             "target_velocity_mm_s": est.velocity_mm_s.tolist(),
@@ -205,3 +251,15 @@ class PositionLaw(Law[Located, Aim]):
             out["rms_error_mm"] = float(np.sqrt(np.mean([r["error_mm"] ** 2 for r in tail]))) \
                 if tail else None
         return out
+
+
+def located_resolution(core: CellCore, located: Located, frames: int) -> Resolution | None:
+    """What a hand camera's pose estimate resolves at the TCP (:mod:`cell.servoing.
+    view_bound`), the dots' centres through ``[ibvs] centroid_bias_px``; None with a fixed
+    camera (its error at the tool is not the hand's lever)."""
+    if core.frames.is_fixed:
+        return None
+    locator = core.locator
+    return pose_resolution(locator.camera_model, located.result, locator.target.points_mm,
+                           invert_T(core.frames.T_tcp_camera),
+                           core.config.ibvs.centroid_bias_px, frames)

@@ -144,7 +144,10 @@ def test_a_servo_approach_to_a_target_at_rest_closes_on_still_views_and_judges_n
     closing = result["closing"]
     assert closing and "correction_mm" in closing[-1], closing
     assert result["estimated_error_basis"]["frame"] == "base"
-    assert result["estimated_error_mm"] == closing[-1]["correction_mm"]
+    # the last correction plus what the still views resolve at the TCP
+    assert result["resolution_mm"] > 0.0
+    assert result["estimated_error_mm"] == pytest.approx(
+        closing[-1]["correction_mm"] + result["resolution_mm"])
     c = result["consistency"]
     assert c["verdict"] == "unchecked" and c["motion"]["target_at_rest"] is False
     assert c["reprojection"]["max_rms_px"] < 1.0
