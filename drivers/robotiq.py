@@ -213,14 +213,19 @@ class RobotiqGripper:
             return self._exchange(what, call, *args, **kwargs)
 
     def _exchange(self, what: str, call: str, *args: object, **kwargs: object) -> list[int]:
-        if self._client is None:
+        client = self._client
+        if client is None:
             raise NotReadyError("gripper is not connected: call connect() first")
         self._rx = b""
         try:
-            response = getattr(self._client, call)(*args, device_id=self.slave_id, **kwargs)
+            response = getattr(client, call)(*args, device_id=self.slave_id, **kwargs)
         except ConnectionException as err:
-            self._client = None
-            raise ConnectionLostError(f"serial port {self.port} failed during {what}") from err
+            # Close the port (its descriptor and lock go with it); the client stays, and the
+            # next request opens the port again, so a link that comes back is used at once.
+            client.close()
+            raise ConnectionLostError(
+                f"serial port {self.port} failed during {what}; the next request reopens it"
+            ) from err
         except ModbusException as err:
             raise self._diagnose(what) from err
         if response.isError():

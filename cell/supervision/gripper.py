@@ -41,6 +41,7 @@ class GripperService:
         self.slot = slot if slot is not None else MotionSlot()
         self.gate = gate if gate is not None else CommandGate()
         self._commanding = False  # a command of the cell may be moving the fingers
+        self._connected = False  # connect() has succeeded once; the driver reopens a lost link
         self._bus_lock = threading.Lock()  # one Modbus transaction at a time
         self._lock = threading.Lock()
         self._last: dict[str, Any] | None = None
@@ -52,12 +53,9 @@ class GripperService:
     def start(self) -> None:
         if self.gripper is None:
             return
-        try:
-            self.gripper.connect()
-            self._set(self.gripper.activate(), None)
-        except DriverError as err:
-            log.warning("gripper not available at start: %s", err)
-            self._set(None, str(err))
+        with self._bus_lock:
+            if not self._connect():
+                log.warning("gripper not available at start: %s", self._error)
         self._thread = threading.Thread(target=self._poll, name="cell-gripper", daemon=True)
         self._thread.start()
 
@@ -147,12 +145,31 @@ class GripperService:
         self._set(st, None)
         return None
 
+    def _connect(self) -> bool:
+        """Open the link and activate the gripper (an activated one is left as it is); the
+        caller holds the bus. A gripper that was off or unplugged at start is connected by the
+        poll as soon as it answers, as it would have been at start."""
+        assert self.gripper is not None
+        try:
+            self.gripper.connect()
+            st = self.gripper.activate()
+        except DriverError as err:
+            self._set(None, str(err))
+            return False
+        self._connected = True
+        self._set(st, None)
+        return True
+
     def _poll(self) -> None:
         assert self.gripper is not None
         while not self._stop.wait(POLL_PERIOD_S):
             if not self._bus_lock.acquire(timeout=0.05):
                 continue  # a command holds the line and refreshes the status itself
             try:
+                if not self._connected:
+                    if self._connect():
+                        log.info("gripper connected")
+                    continue
                 st = self.gripper.status()
             except DriverError as err:
                 self._set(None, str(err))

@@ -13,6 +13,7 @@ from collections.abc import Iterator
 import pytest
 
 from drivers.errors import (
+    ConnectionLostError,
     DeviceTimeoutError,
     MotionError,
     NotReadyError,
@@ -27,7 +28,7 @@ from fakes.gripper import (
     GripperModel,
     speed_units_per_s,
 )
-from tests.support.protocol import ScriptedSerial, expected_serial
+from tests.support.protocol import Script, ScriptedSerial, expected_serial
 
 H = bytes.fromhex
 
@@ -53,7 +54,7 @@ def scripted(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[ScriptedSerial]]:
         yield made
 
 
-def make(made: list[ScriptedSerial], script: list[tuple[bytes, bytes | None]],
+def make(made: list[ScriptedSerial], script: Script,
          timeout_s: float = 0.1) -> tuple[RobotiqGripper, ScriptedSerial]:
     port = ScriptedSerial(script)
     made.append(port)
@@ -155,6 +156,23 @@ def test_modbus_exception_reply(scripted: list[ScriptedSerial]) -> None:
     g.connect()
     with pytest.raises(ProtocolError, match="exception code 2"):
         g.status()
+
+
+def test_a_failed_port_is_closed_and_reopened_by_the_next_request(
+        scripted: list[ScriptedSerial]) -> None:
+    """A port that fails under a request (an adapter pulled, a driver error) is closed, not
+    dropped: its descriptor and exclusive lock go, and the next request opens the device again,
+    so a link that comes back is used without a restart."""
+    g, first = make(scripted, [(STATUS_REQUEST, ACTIVATED_OPEN),
+                               (STATUS_REQUEST, OSError(5, "Input/output error"))])
+    g.connect()
+    with pytest.raises(ConnectionLostError, match="reopens"):
+        g.status()
+    assert not first.is_open
+    second = ScriptedSerial([(STATUS_REQUEST, CLOSED_ON_OBJECT)])
+    scripted.append(second)
+    assert g.status().object_detected
+    assert second.written == [STATUS_REQUEST]
 
 
 def test_move_refused_before_activation_writes_nothing(scripted: list[ScriptedSerial]) -> None:

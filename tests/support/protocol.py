@@ -14,7 +14,9 @@ from contextlib import contextmanager
 import pytest
 import serial
 
-Script = list[tuple[bytes, bytes | None]]
+Script = list[tuple[bytes, bytes | OSError | None]]
+"""Each request the driver must write, and the reply: bytes, None (silence), or an OSError the
+write raises (the port failed under it: a USB adapter pulled, a driver error)."""
 
 
 class ScriptedSerial:
@@ -36,6 +38,8 @@ class ScriptedSerial:
         assert self.script, f"unexpected request {data.hex(' ')}"
         expected, reply = self.script.pop(0)
         assert data == expected, f"wrote {data.hex(' ')}, expected {expected.hex(' ')}"
+        if isinstance(reply, OSError):
+            raise reply
         self.rx += reply or b""
         return len(data)
 
