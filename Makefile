@@ -20,10 +20,12 @@ $(STAMP): pyproject.toml | $(BIN)/python
 
 install: $(STAMP) kernels
 
-# The estimator's numba kernels, compiled once and cached (a fresh checkout takes ~15 s);
-# the suite's workers and the service then load them.
+# The estimator's numba kernels, compiled once and cached (a fresh checkout takes ~15 s), and
+# the OPC UA standard address space written once as a shelf; the suite's workers and the
+# service then load them.
 kernels: $(STAMP)
 	$(BIN)/python -m estimator.kernels
+	$(BIN)/python -m api.plc.opcua_address_space
 
 lint: $(STAMP)
 	$(BIN)/ruff check $(PACKAGES) tests

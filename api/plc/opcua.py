@@ -68,6 +68,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 from api import remote
 from api.plc.loop_thread import LoopThread
 from api.plc.machine_vision_model import build_model
+from api.plc.opcua_address_space import cached_shelf
 from api.plc.opcua_machine_vision import MachineVision
 from api.plc.opcua_vision_system import VisionSystemFacet
 from api.remote import RemoteCaller
@@ -321,7 +322,7 @@ class OpcUaServer(LoopThread):
     async def _build(self) -> Server:
         cfg = self.config
         server = Server(user_manager=_Users(cfg))
-        await server.init()
+        await server.init(cached_shelf())  # namespace 0 read from its shelf when prepared
         server.set_endpoint(cfg.endpoint)
         server.set_server_name("ur-vision-cell")
         await server.set_application_uri(f"{cfg.namespace}:server")
