@@ -1,4 +1,5 @@
-"""Shared fixtures and the opt-in hardware switches (--ur-host, --oak)."""
+"""Shared fixtures, the opt-in hardware switches (--ur-host, --oak) and the size of the API's
+fuzzing run (--schema-examples)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,9 @@ from tests.support.paths import SHARED
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--ur-host", default=None, help="IP of a real UR controller (opt-in)")
     parser.addoption("--oak", action="store_true", default=False, help="run real OAK tests")
+    parser.addoption("--schema-examples", type=int, default=5, metavar="N",
+                     help="schemathesis examples per API operation (default 5; ~70 per "
+                          "operation make 20,000 cases: docs/performance.md)")
 
 
 # ``make test`` runs the suite on two xdist workers (``--dist loadgroup``): each file is one

@@ -1,18 +1,21 @@
 """Schemathesis over the OpenAPI schema of the simulated cell: whatever the request, no 5xx,
 no bare 400, and every 422 the cell's error model.
 
-Bounded (a few examples per operation) so it stays well under a minute, and derandomized so
-every run (and CI) tries the same requests. The event and MJPEG streams are left out because
-they are endless by design. Hypothesis runs per operation inside one test because
+Bounded (a few examples per operation, ``--schema-examples N`` for more) so it stays well
+under a minute, and derandomized so every run (and CI) tries the same requests; the number of
+requests sent and their statuses are printed (``-s``). The event and MJPEG streams are left
+out because they are endless by design. Hypothesis runs per operation inside one test because
 schemathesis' pytest fixture loader does not work with this pytest version.
 """
 
 from __future__ import annotations
 
 import re
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
+import pytest
 import schemathesis
 from hypothesis import HealthCheck, given, settings
 from schemathesis.checks import not_a_server_error
@@ -30,13 +33,15 @@ def malformed_is_422(ctx: Any, response: Any, case: schemathesis.Case) -> bool:
     return True
 
 
-def test_no_server_errors(tmp_path: Path) -> None:
+def test_no_server_errors(tmp_path: Path, pytestconfig: pytest.Config) -> None:
+    examples = int(pytestconfig.getoption("--schema-examples"))
     config = sim_config(tmp_path, gripper="sim",
                         approach={"speed_mm_s": 250.0, "accel_mm_s2": 1500.0, "max_cycles": 1})
     with running_cell(config) as cell:
         app = create_app(cell)
         schema = schemathesis.openapi.from_asgi("/openapi.json", app)
         seen = []
+        statuses: Counter[int] = Counter()
         for result in schema.get_all_operations():
             operation = result.ok()  # type: ignore[union-attr]
             if operation.path.endswith(("/events", "/stream.mjpg")):  # endless streams
@@ -44,15 +49,18 @@ def test_no_server_errors(tmp_path: Path) -> None:
             seen.append(f"{operation.method.upper()} {operation.path}")
 
             @given(case=operation.as_strategy())
-            @settings(max_examples=5, deadline=None, suppress_health_check=list(HealthCheck),
-                      database=None, derandomize=True)
+            @settings(max_examples=examples, deadline=None,
+                      suppress_health_check=list(HealthCheck), database=None, derandomize=True)
             def run(case: schemathesis.Case) -> None:
-                case.call_and_validate(headers=AUTH["operator"],
-                                       checks=[not_a_server_error, malformed_is_422])
+                response = case.call_and_validate(
+                    headers=AUTH["operator"], checks=[not_a_server_error, malformed_is_422])
+                statuses[response.status_code] += 1
 
             run()
             cell.stop("test")
         assert "POST /api/v1/approach" in seen and "PUT /api/v1/sim/target" in seen
+        print(f"\n{sum(statuses.values())} requests over {len(seen)} operations, "
+              f"{examples} examples each; statuses {dict(sorted(statuses.items()))}")
         text = app.state.metrics.render().decode()
-        statuses = re.findall(r'cell_http_request_duration_seconds_count\{.*status="(\d+)"', text)
-        assert statuses and all(int(s) < 500 for s in statuses), statuses
+        served = re.findall(r'cell_http_request_duration_seconds_count\{.*status="(\d+)"', text)
+        assert served and all(int(s) < 500 for s in served), served
