@@ -60,6 +60,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                         "and 150), false target_lost counted first, then covered-lens stops")
     a.add_argument("--tracking-runs", type=int, default=None,
                    help="with --tracking: this many runs at each speed instead")
+    a.add_argument("--track-speeds", type=_speeds, default=None, metavar="MM_S[,MM_S...]",
+                   help="with --tracking: these conveyor speeds instead (10 runs each unless "
+                        "--tracking-runs), e.g. 30")
     a.set_defaults(func=_bench_approach)
     pk = what.add_parser(
         "pick", help="pick and place of parts of two layouts, missed grasps, a stop per phase",
@@ -222,6 +225,17 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     lp.set_defaults(func=_lazy("loops"))
 
 
+def _speeds(text: str) -> list[float]:
+    """``--track-speeds``: conveyor speeds in mm/s, comma-separated, each 1..300."""
+    try:
+        speeds = [float(part) for part in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a list of numbers: {text!r}") from None
+    if not speeds or not all(1.0 <= v <= 300.0 for v in speeds):
+        raise argparse.ArgumentTypeError(f"speeds are 1..300 mm/s: {text!r}")
+    return speeds
+
+
 def _bench_approach(args: argparse.Namespace) -> int:
 
     from cell.bench.approach import format_report, run_bench_approach
@@ -239,7 +253,11 @@ def _bench_approach(args: argparse.Namespace) -> int:
         n = args.tracking_runs
         if n is not None and n < 1:
             return fail("invalid_argument", "--tracking-runs must be at least 1", args.json)
-        runs = None if n is None else dict.fromkeys(TRACK_RUNS, n)
+        speeds = args.track_speeds
+        if speeds is not None:
+            runs: dict[float, int] | None = dict.fromkeys(speeds, n or 10)
+        else:
+            runs = None if n is None else dict.fromkeys(TRACK_RUNS, n)
         with progress_bars(not args.json) as progress:
             report = run_bench_tracking(runs=runs, progress=progress)
         return _report(args, report, format_tracking_report(report))
