@@ -43,6 +43,7 @@ class ErrorCode(StrEnum):
     no_new_frame = "no_new_frame"
     servo_timeout = "servo_timeout"
     duration_limit = "duration_limit"
+    tracking_lag = "tracking_lag"  # a track fell behind its target: the cell cannot keep up
     target_not_visible = "target_not_visible"
     # the calibration check
     calibration_drift = "calibration_drift"

@@ -184,7 +184,7 @@ ERROR_NUMBERS: dict[str, int] = {
     "result_not_found": 25, "grasp_missed": 26, "grip_out_of_window": 27, "gripper_fault": 28,
     "taught_wrong_frame": 30,
     "no_reference": 31, "calibration_drift": 32, "too_few_views": 33,
-    "dataset_unwritable": 34, "storage_failed": 35,
+    "dataset_unwritable": 34, "storage_failed": 35, "tracking_lag": 36,
     "internal_error": 99,
 }
 ERROR_BY_KIND: dict[str, int] = {"invalid": 90, "conflict": 91, "unavailable": 92,

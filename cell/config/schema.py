@@ -198,6 +198,10 @@ class ServoConfig(Strict):
     gate_deg: float = Field(default=10.0, gt=0)
     approach_timeout_s: float = Field(default=30.0, gt=0)
     max_track_s: float = Field(default=600.0, gt=0)  # the cap on a track job's duration_s
+    # a track whose estimated error, once under this, stays over it for track_lag_s ends
+    # tracking_lag with the arm stopped: the cell cannot keep up (cell/servoing/lag.py); 0: off
+    track_lag_mm: float = Field(default=25.0, ge=0)
+    track_lag_s: float = Field(default=0.25, gt=0, le=5)
 
 
 class IbvsConfig(Strict):

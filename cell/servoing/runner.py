@@ -11,7 +11,8 @@ the loop is as fast as the arm's state, not the camera, and a frame's age costs 
 
 Safety: no measurement older than ``limits.max_pose_age_s`` is used; frames exposed ``[servo]
 lost_after_s`` after the last measurement that gave none stop the arm (still before the job
-fails ``target_lost``; judged on camera time, :mod:`cell.servoing.target_loss`); a stop cancels
+fails ``target_lost``; judged on camera time, :mod:`cell.servoing.target_loss`); a track that
+falls behind its target stops too (``tracking_lag``, :mod:`cell.servoing.lag`); a stop cancels
 the slot's holder, which the next tick sees, and the arm's own watchdog brakes if ticks stop
 coming. The loop stops the arm one way (:meth:`~cell.motion.guard.GuardedArm.settle`, at
 ``[servo] stop_decel_mm_s2``) before it reports a lost target, a timeout or its result.
@@ -30,6 +31,7 @@ from cell.errors import CellError, RefusedError, UnavailableError
 from cell.motion.guard import Motion
 from cell.results import Pose
 from cell.servoing.clock import TwistClock
+from cell.servoing.lag import LagWatch
 from cell.servoing.law import A, Law, M, Reading, Tick, Unusable
 from cell.servoing.record import FrameStats, History, ms_stats
 from cell.servoing.target_loss import LossClock, Silence
@@ -164,6 +166,8 @@ class ClosedLoop(Generic[M, A]):
         self.t0 = t0 = time.monotonic()
         seen = -1
         converged_s: float | None = None
+        lag = LagWatch(sc.track_lag_mm, sc.track_lag_s) \
+            if law.mode == "track" and sc.track_lag_mm > 0 else None
         while True:
             tick = time.monotonic()
             self.motion.raise_if_cancelled(law.doing)
@@ -186,6 +190,10 @@ class ClosedLoop(Generic[M, A]):
             reading = law.judge(aim, T_tcp, frames != seen, tick - t0, clock.prev)
             if reading is not None and frames != seen:
                 self._show(reading, tick)
+                if lag is not None:
+                    over_s = lag.over_for_s(tick, reading.errors["error_mm"])
+                    if over_s is not None:
+                        self._fell_behind(reading.errors["error_mm"], over_s)
             seen = frames
             if reading is not None and reading.converged:
                 converged_s = tick - t0
@@ -248,6 +256,16 @@ class ClosedLoop(Generic[M, A]):
                            + f"; {self.stats.failed} frames without the target, "
                            + self.law.lost_detail(self.stats)
                            + f"; the arm stopped in {took * 1000:.0f} ms")
+
+    def _fell_behind(self, error_mm: float, over_s: float) -> None:
+        took = self.stop()
+        self.core.runner.progress(self.job_id, {"phase": "tracking_lag",
+                                                "stopped_in_ms": round(took * 1000.0, 1)})
+        raise RefusedError(ErrorCode.tracking_lag,
+                           f"the arm fell behind the tracked target: {error_mm:.1f} mm from "
+                           f"its goal, over {self.sc.track_lag_mm:g} mm for {over_s:.2f} s "
+                           f"([servo] track_lag_mm, track_lag_s): the cell cannot keep up; "
+                           f"the arm stopped in {took * 1000:.0f} ms")
 
     def _result(self, converged_s: float | None) -> dict[str, Any]:
         reached = self.core.arm.state().T_base_tcp

@@ -78,3 +78,35 @@ def test_servo_approach_on_the_in_process_arm(client: TestClient) -> None:
     goal = approach_tcp(world(cell).true_T_base_target(), np.eye(4), 60)
     d_mm, d_deg = pose_distance(tcp(cell), goal)
     assert d_mm <= 0.3 and d_deg <= 0.1
+
+
+def test_a_track_the_arm_cannot_keep_up_with_stops_tracking_lag(tmp_path: Path) -> None:
+    """A conveyor four times the servo's speed cap: once on its goal the track falls behind by
+    more than ``track_lag_mm`` and ends ``tracking_lag`` with the arm still, not chasing the
+    target out of view."""
+    config = sim_config(tmp_path, servo={"max_track_s": 60.0, "lost_after_s": 1.0,
+                                         "max_speed_mm_s": 20.0, "track_lag_mm": 10.0})
+    with running_cell(config) as cell, TestClient(create_app(cell)) as client:
+        r = client.post("/api/v1/track", json={"standoff_mm": 60, "duration_s": 30},
+                        headers=AUTH["plc"])
+        assert r.status_code == 200, r.text
+        job_id = r.json()["id"]
+        deadline = time.monotonic() + 20.0
+        while (cell.job(job_id).progress.get("error_mm") or 99.0) > 5.0:  # on its goal
+            assert cell.job(job_id).state == "running", cell.job(job_id).error_message
+            assert time.monotonic() < deadline, cell.job(job_id).progress
+            time.sleep(0.05)
+        truth = client.get("/api/v1/sim/truth", headers=AUTH["viewer"]).json()["T_base_target"]
+        r = client.put("/api/v1/sim/target", json={**truth, "velocity_mm_s": [80.0, 0.0, 0.0]},
+                       headers=AUTH["operator"])
+        assert r.status_code == 200, r.text
+        deadline = time.monotonic() + 20.0
+        while cell.job(job_id).state == "running":
+            assert time.monotonic() < deadline, cell.job(job_id).progress
+            time.sleep(0.05)
+        job = client.get(f"/api/v1/jobs/{job_id}", headers=AUTH["viewer"]).json()
+        assert job["state"] == "failed" and job["error"]["code"] == "tracking_lag", job
+        assert "cannot keep up" in job["error"]["message"]
+        first = tcp(cell)
+        time.sleep(0.2)
+        assert pose_distance(first, tcp(cell))[0] < 0.05  # still
