@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from pymodbus.client import ModbusSerialClient
 from pymodbus.exceptions import ConnectionException, ModbusException
 from pymodbus.framer import FramerRTU
+from pymodbus.pdu import ModbusPDU
 
 from drivers.errors import (
     ConnectionLostError,
@@ -43,6 +44,8 @@ from drivers.gripper import GripperStatus
 ACTION_REQUEST_ADDR = 0x03E8
 GRIPPER_STATUS_ADDR = 0x07D0
 N_REGISTERS = 3
+FUNCTION_CODES = {"read_input_registers": 0x04, "write_registers": 0x10}
+STALE_ANSWERS = 2  # late answers to earlier requests skipped before an exchange gives up
 DEFAULT_SLAVE_ID = 9
 DEFAULT_BAUDRATE = 115200
 
@@ -209,16 +212,42 @@ class RobotiqGripper:
 
     # -- register access -------------------------------------------------------------------
     def _execute(self, what: str, call: str, *args: object, **kwargs: object) -> list[int]:
+        """One request and its answer. An answer of another function code is a late answer
+        to an earlier request (one that timed out, or whose retry was answered first): RTU
+        frames carry no transaction id, and pymodbus matches only the slave id. The request
+        is sent again (pymodbus empties the receive buffer first; every request here is
+        idempotent) until its own answer comes, up to ``STALE_ANSWERS`` times."""
+        fc = FUNCTION_CODES[call]
+        got, stale = fc, b""
         with self._lock:
-            return self._exchange(what, call, *args, **kwargs)
+            for _ in range(STALE_ANSWERS + 1):
+                response = self._exchange(what, call, *args, **kwargs)
+                got = response.function_code & 0x7F
+                if got == fc:
+                    break
+                stale = self._rx
+            else:
+                raise ProtocolError(
+                    f"the gripper (slave {self.slave_id}) on {self.port} answered {what} "
+                    f"{STALE_ANSWERS + 1} times with answers to other requests (function "
+                    f"0x{got:02X}, expected 0x{fc:02X}; last {stale[:16].hex(' ')}): answers "
+                    "arrive later than timeout_s; raise it, or check the bus for another "
+                    "master")
+        if response.isError():
+            raise ProtocolError(
+                f"gripper rejected {what} with Modbus exception code "
+                f"{getattr(response, 'exception_code', '?')}"
+            )
+        return list(response.registers)
 
-    def _exchange(self, what: str, call: str, *args: object, **kwargs: object) -> list[int]:
+    def _exchange(self, what: str, call: str, *args: object, **kwargs: object) -> ModbusPDU:
         client = self._client
         if client is None:
             raise NotReadyError("gripper is not connected: call connect() first")
         self._rx = b""
         try:
-            response = getattr(client, call)(*args, device_id=self.slave_id, **kwargs)
+            response: ModbusPDU = getattr(client, call)(*args, device_id=self.slave_id,
+                                                        **kwargs)
         except ConnectionException as err:
             # Close the port (its descriptor and lock go with it); the client stays, and the
             # next request opens the port again, so a link that comes back is used at once.
@@ -228,12 +257,7 @@ class RobotiqGripper:
             ) from err
         except ModbusException as err:
             raise self._diagnose(what) from err
-        if response.isError():
-            raise ProtocolError(
-                f"gripper rejected {what} with Modbus exception code "
-                f"{getattr(response, 'exception_code', '?')}"
-            )
-        return list(response.registers)
+        return response
 
     def _diagnose(self, what: str) -> DriverError:
         """Name the failure from the bytes that did (or did not) come back."""

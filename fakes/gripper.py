@@ -7,7 +7,7 @@ activation takes time, the fingers move at the speed ``rSP`` asks for in real ti
 close on (:class:`Grasp`: the simulated world's parts, or a bench piece of a fixed width) stops
 them and sets ``gOBJ`` (2: stopped on an object while closing; 3: at the requested position,
 nothing touched), and faults can be injected (garbage or a wrong CRC instead of an answer,
-silence, a device fault code).
+silence, an answer later than the client waits for, a device fault code).
 
 ``python -m fakes.gripper --link PATH`` serves until killed.
 """
@@ -55,7 +55,8 @@ from drivers.robotiq import (
     mm_to_position,
 )
 
-LineFault = Literal["garbage", "bad_crc", "no_answer"]
+LineFault = Literal["garbage", "bad_crc", "no_answer", "late"]
+LATE_ANSWER_S = 0.6  # how long a "late" answer keeps the gripper (and the requests after it)
 
 MIN_SPEED_MM_S = 20.0  # 2F-85 datasheet: 20..150 mm/s finger speed
 MAX_SPEED_MM_S = 150.0
@@ -381,6 +382,8 @@ class FakeGripper:
         fault = self._line_faults.pop(0) if self._line_faults else None
         if fault == "no_answer":
             return
+        if fault == "late":  # a busy device: it answers in order, this one late, then the rest
+            time.sleep(LATE_ANSWER_S)
         if fault == "bad_crc":
             frame = frame[:-1] + bytes([frame[-1] ^ 0x5A])
         elif fault == "garbage":

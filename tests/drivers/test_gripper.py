@@ -151,6 +151,29 @@ def test_silence_is_a_timeout(scripted: list[ScriptedSerial]) -> None:
     assert 0.15 < time.monotonic() - t0 < 2.0
 
 
+def test_a_late_answer_to_an_earlier_request_is_skipped(scripted: list[ScriptedSerial]) -> None:
+    """RTU frames carry no transaction id: the answer to a write that timed out, arriving
+    while the next request waits, must not be taken for that request's answer (a status with
+    no registers). The request goes out again and its own answer is used."""
+    g, port = make(scripted, [(STATUS_REQUEST, ACTIVATED_OPEN), (ACTIVATE_REQUEST, None),
+                              (STATUS_REQUEST, WRITE_REPLY + CLOSED_ON_OBJECT),
+                              (STATUS_REQUEST, CLOSED_ON_OBJECT)])
+    g.connect()
+    with pytest.raises(DeviceTimeoutError):
+        g.write_action(0x01)
+    assert g.status().object_detected
+    assert port.written[-2:] == [STATUS_REQUEST, STATUS_REQUEST]
+
+
+def test_only_late_answers_is_a_protocol_error_naming_the_timeout(
+        scripted: list[ScriptedSerial]) -> None:
+    g, _ = make(scripted, [(STATUS_REQUEST, ACTIVATED_OPEN)]
+                + [(STATUS_REQUEST, WRITE_REPLY)] * 3)
+    g.connect()
+    with pytest.raises(ProtocolError, match=r"answers to other requests.*timeout_s"):
+        g.status()
+
+
 def test_modbus_exception_reply(scripted: list[ScriptedSerial]) -> None:
     g, _ = make(scripted, [(STATUS_REQUEST, ACTIVATED_OPEN), (STATUS_REQUEST, H("09 84 02 43 03"))])
     g.connect()
@@ -335,6 +358,22 @@ def test_pty_retry_hides_one_lost_answer(fake: FakeGripper) -> None:
     g.connect()
     fake.inject_line_fault("bad_crc")
     assert not g.status().activated
+    g.disconnect()
+
+
+def test_pty_a_late_answer_does_not_become_the_next_ones(fake: FakeGripper) -> None:
+    """A gripper that answers one request later than the client waits (a busy bus, a loaded
+    host) answers the next request only after it: the client skips the stale answer. The
+    late answer comes between the write's timeout and the end of the next request's wait."""
+    g = RobotiqGripper(fake.port, timeout_s=0.4, retries=0)
+    g.connect()
+    g.activate()
+    fake.inject_line_fault("late")
+    with pytest.raises(DeviceTimeoutError):
+        g.write_action(0x01)
+    for _ in range(3):
+        assert g.status().activated
+    assert g.close().position_mm == 0.0
     g.disconnect()
 
 
