@@ -51,10 +51,13 @@ jog, stop, grip, calibrate; alarms, job history and camera settings for the oper
 
 
 def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False,
-               interfaces: bool = False) -> FastAPI:
+               interfaces: bool = False, start_cell: bool = False) -> FastAPI:
     """Build the API for ``cell``. Raises ConfigError when a sample token is configured on
     hardware other than the fakes. ``interfaces``: also serve the configured OPC UA server and
-    URScript XML-RPC endpoint (api.plc.interfaces) while the app runs."""
+    URScript XML-RPC endpoint (api.plc.interfaces) while the app runs. ``start_cell``: the
+    cell is built but not started; the app's start-up starts it beside those servers (the
+    arm's connect and power-on and the servers' start overlap), and HTTP serves once both
+    are done."""
     tokens = TokenTable(list(cell.config.api.tokens), simulated=cell.hw.simulated)
     logs.install()
     doors = Interfaces(cell)
@@ -62,8 +65,18 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False,
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         logs.install()  # uvicorn's handlers exist by now
+        starts = [asyncio.to_thread(cell.start)] if start_cell else []
         if interfaces:
-            await asyncio.to_thread(doors.start)
+            starts.append(asyncio.to_thread(doors.start))
+        try:
+            await asyncio.gather(*starts)
+        except BaseException:
+            doors.close()
+            if close_cell_on_shutdown:
+                cell.close()
+            raise
+        if start_cell:
+            freeze_startup_objects()
         yield
         doors.close()
         app.state.metrics.close()
@@ -120,20 +133,21 @@ def app_from_environment() -> FastAPI:
     import sys
 
     from cell.config.schema import load_config
-    from cell.runtime import SHUTDOWN_HOOKS, start_cell
+    from cell.runtime import SHUTDOWN_HOOKS, build_cell
 
     try:
         config = with_ports(load_config(os.environ.get("CELL_CONFIG") or None),
                             _port_from_environment("CELL_OPCUA_PORT"),
                             _port_from_environment("CELL_XMLRPC_PORT"),
                             _port_from_environment("CELL_MODBUS_PORT"))
-        cell = start_cell(config, config_path=os.environ.get("CELL_CONFIG") or None)
+        Interfaces.prefetch(config)  # their libraries load while the devices start
+        cell = build_cell(config, config_path=os.environ.get("CELL_CONFIG") or None)
     except Exception as err:  # a clear line instead of a traceback from inside uvicorn
         code = getattr(err, "code", "startup_failed")
         print(f"error ({code}): the cell could not start: {err}", file=sys.stderr)
         raise SystemExit(2) from err
     try:
-        app = create_app(cell, close_cell_on_shutdown=True, interfaces=True)
+        app = create_app(cell, close_cell_on_shutdown=True, interfaces=True, start_cell=True)
     except BaseException:
         cell.close()
         raise
@@ -143,7 +157,6 @@ def app_from_environment() -> FastAPI:
         cell.stop("service", reason="shutdown: the service is stopping")
 
     SHUTDOWN_HOOKS.append(on_signal)  # cell serve runs it on SIGTERM, before the HTTP drain
-    freeze_startup_objects()
     return app
 
 

@@ -58,6 +58,21 @@ def start_cell(config: CellConfig | str | Path | None = None,
 
     A device that cannot be reached does not stop the start: the cell serves, reports it
     (``/health``: degraded) and reconnects it in the background."""
+    cell = build_cell(config, config_path)
+    try:
+        cell.start()
+    except BaseException:
+        cell.close()
+        raise
+    return cell
+
+
+def build_cell(config: CellConfig | str | Path | None = None,
+               config_path: str | Path | None = None) -> Cell:
+    """Validate and build the cell (its hardware, job store and image log), not started: the
+    caller runs :meth:`Cell.start`, and :meth:`Cell.close` on any failure after this one.
+    ``cell serve`` starts it beside its OPC UA and Modbus servers, so neither waits for the
+    other."""
     cfg = config if isinstance(config, CellConfig) else load_config(config)
     check_startable(cfg)
     sys.setswitchinterval(min(sys.getswitchinterval(), GIL_SWITCH_INTERVAL_S))
@@ -69,13 +84,12 @@ def start_cell(config: CellConfig | str | Path | None = None,
         raise
     image_log = ImageLog(cfg.api.image_log_dir, cfg.api.image_log_max) \
         if cfg.api.image_log_dir else None
-    cell = Cell(cfg, hw, jobs, image_log, config_path)
     try:
-        cell.start()
+        return Cell(cfg, hw, jobs, image_log, config_path)
     except BaseException:
-        cell.close()
+        jobs.close()
+        hw.close()
         raise
-    return cell
 
 
 def freeze_startup_objects() -> None:

@@ -9,10 +9,13 @@ HTTP API and the other still serve, because a PLC port in use must not keep the 
 
 from __future__ import annotations
 
+import importlib
 import logging
+import threading
 from typing import Protocol
 
 from cell.config.endpoints import opcua_cert_dir
+from cell.config.schema import CellConfig
 from cell.service import Cell
 
 log = logging.getLogger(__name__)
@@ -29,6 +32,27 @@ class Interfaces:
     def __init__(self, cell: Cell) -> None:
         self.cell = cell
         self.running: dict[str, _Server] = {}
+
+    @staticmethod
+    def prefetch(config: CellConfig) -> threading.Thread:
+        """Import the configured servers' modules in a thread of their own (asyncua and
+        pymodbus take about a second), while the caller builds the cell, whose start mostly
+        waits on devices; :meth:`start` then finds them loaded. A failed import is left for
+        :meth:`start` to report."""
+        names = [name for name, on in (("api.plc.opcua", config.opcua.enabled),
+                                       ("api.plc.xmlrpc", bool(config.urscript.xmlrpc_port)),
+                                       ("api.plc.modbus", bool(config.modbus.port))) if on]
+
+        def load() -> None:
+            for name in names:
+                try:
+                    importlib.import_module(name)
+                except Exception:  # start() imports it again and says why
+                    return
+
+        thread = threading.Thread(target=load, name="doors-prefetch", daemon=True)
+        thread.start()
+        return thread
 
     def start(self) -> None:
         config = self.cell.config
