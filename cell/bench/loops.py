@@ -152,10 +152,12 @@ def format_report(r: dict[str, Any]) -> list[str]:
 
 
 def main(args: argparse.Namespace) -> int:
-    if args.repeats < 1 or args.burners < 0:
-        print("--repeats must be at least 1 and --burners not negative")
+    if args.repeats < 1 or args.burners < 0 or not 1 <= args.teach_samples <= 20:
+        print("--repeats must be at least 1, --burners not negative and --teach-samples "
+              "1..20")
         return 2
-    report = run_bench_loops(repeats=args.repeats, burners=args.burners)
+    report = run_bench_loops(repeats=args.repeats, burners=args.burners,
+                             teach_samples=args.teach_samples)
     if args.json:
         print(json.dumps(report, indent=1, default=float))
     else:

@@ -222,6 +222,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     lp.add_argument("--repeats", type=int, default=3, help="runs per jog and mode (default 3)")
     lp.add_argument("--burners", type=int, default=0,
                     help="CPU-burning processes beside the runs (default 0)")
+    lp.add_argument("--teach-samples", type=int, default=5, metavar="N",
+                    help="frames the taught view averages, 1..20 as POST /teach takes "
+                         "(default 5)")
     lp.set_defaults(func=_lazy("loops"))
 
 
