@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Iterator, Sequence
-from importlib import metadata
 
 from cell.commands import COMMANDS
 
@@ -20,6 +19,8 @@ NO_JSON = frozenset({"serve"})  # the service logs; --log-format json is its swi
 
 
 def version() -> str:
+    from importlib import metadata  # ~0.1 s of imports every command would pay at start
+
     try:
         return metadata.version("ur-vision-cell")
     except metadata.PackageNotFoundError:  # running from a source tree that is not installed
