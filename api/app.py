@@ -7,6 +7,7 @@ can build a cell, serve it, and inspect it directly.
 from __future__ import annotations
 
 import asyncio
+import sys
 import threading
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -68,13 +69,16 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False,
         starts = [asyncio.to_thread(cell.start)] if start_cell else []
         if interfaces:
             starts.append(asyncio.to_thread(doors.start))
-        try:
-            await asyncio.gather(*starts)
-        except BaseException:
+        failed = [r for r in await asyncio.gather(*starts, return_exceptions=True)
+                  if isinstance(r, BaseException)]
+        if failed:  # both starts have ended: nothing half-started is left running
             doors.close()
             if close_cell_on_shutdown:
                 cell.close()
-            raise
+            err = failed[0]
+            print(f"error ({getattr(err, 'code', 'startup_failed')}): the cell could not "
+                  f"start: {err}", file=sys.stderr)
+            raise err
         if start_cell:
             freeze_startup_objects()
         yield
@@ -128,9 +132,9 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False,
 
 def app_from_environment() -> FastAPI:
     """uvicorn factory for ``cell serve``: the config named by $CELL_CONFIG (default: the
-    built-in simulated cell), its hardware, job store and image log, started and served."""
+    built-in simulated cell), its hardware, job store and image log, served; the cell
+    starts with the app, beside the PLC servers (``create_app(start_cell=True)``)."""
     import os
-    import sys
 
     from cell.config.schema import load_config
     from cell.runtime import SHUTDOWN_HOOKS, build_cell
