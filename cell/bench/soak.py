@@ -4,7 +4,8 @@ end, and how its memory, file descriptors, threads and job database grow.
     cell bench soak [--minutes 15] [--json]
 
 What runs: ``cell serve`` on the built-in simulated cell (as ``cell bench service`` serves it:
-its own loopback address, port and job database; the OPC UA, XML-RPC and Modbus servers off
+at the systemd unit's nice value, -5, where the host allows it; its own loopback address, port
+and job database; the OPC UA, XML-RPC and Modbus servers off
 unless ``--interfaces``, their fixed ports would collide with another service on the host),
 then, until the time is up:
 
@@ -39,7 +40,7 @@ from urllib.parse import urlparse
 import httpx
 import numpy as np
 
-from cell.bench.service import service_processes, serving
+from cell.bench.service import SERVICE_NICE, service_processes, serving
 
 OPERATOR = {"Authorization": "Bearer sim-operator"}
 VIEWER = {"Authorization": "Bearer sim-viewer"}
@@ -295,7 +296,8 @@ def _sample(service: int, db: Path | None) -> dict[str, float | None]:
 
 
 def run_soak(minutes: float, max_cycles: int | None = None, interfaces: bool = False,
-             progress: Progress | None = None, burners: int = 0) -> dict[str, Any]:
+             progress: Progress | None = None, burners: int = 0,
+             service_nice: int | None = SERVICE_NICE) -> dict[str, Any]:
     """The soak; ``burners`` CPU-burning processes beside it for the whole run (a host as
     loaded as a busy cell PC), started before the service."""
     loadavg_before = [round(x, 2) for x in os.getloadavg()]
@@ -304,18 +306,20 @@ def run_soak(minutes: float, max_cycles: int | None = None, interfaces: bool = F
             from fakes.ur_controller.load import cpu_burners
 
             stack.enter_context(cpu_burners(burners, max_s=60.0 * minutes + 900.0))
-        report = _run(minutes, max_cycles, interfaces, progress, loadavg_before)
+        report = _run(minutes, max_cycles, interfaces, progress, loadavg_before, service_nice)
     report["load"]["burners"] = burners
     return report
 
 
 def _run(minutes: float, max_cycles: int | None, interfaces: bool,
-         progress: Progress | None, loadavg_before: list[float]) -> dict[str, Any]:
+         progress: Progress | None, loadavg_before: list[float],
+         service_nice: int | None) -> dict[str, Any]:
     soak = _Soak()
     samples: list[tuple[float, dict[str, float | None]]] = []
     extra = [] if interfaces else ["--opcua-port", "0", "--xmlrpc-port", "0",
                                    "--modbus-port", "0"]
-    with serving(extra_args=extra) as (base, proc):
+    with serving(extra_args=extra, nice=service_nice) as (base, proc):
+        nice_served = os.getpriority(os.PRIO_PROCESS, proc.pid)
         time.sleep(3.0)  # let the start settle (kernels, first frames, gripper activation)
         db = _job_db(proc.pid)
         host = urlparse(base).hostname or "127.0.0.1"
@@ -340,8 +344,10 @@ def _run(minutes: float, max_cycles: int | None, interfaces: bool,
         for w in workers:  # the last cycle ends before the service does (a track: ~40 s)
             w.join(timeout=180.0)
         health = httpx.get(f"{base}/api/v1/health", timeout=5.0).json().get("status")
-    return _report(soak, samples, start, minutes, max_cycles, interfaces, loadavg_before,
-                   health)
+    report = _report(soak, samples, start, minutes, max_cycles, interfaces, loadavg_before,
+                     health)
+    report["load"]["service_nice"] = nice_served
+    return report
 
 
 def _report(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]], start: float,

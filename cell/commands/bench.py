@@ -142,6 +142,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                     help="CPU-burning processes beside the soak for the whole run (default 0)")
     sk.add_argument("--out", metavar="FILE.json", default=None,
                     help="also write the JSON report here")
+    sk.add_argument("--service-nice", type=int, default=-5,
+                    help="the service's nice value, as the systemd unit sets it (default -5; "
+                         "applied when the host allows it, see the report's load)")
+    sk.add_argument("--inherit-nice", action="store_true",
+                    help="serve at this process's own nice value instead")
     sk.set_defaults(func=_bench_soak)
     frz = what.add_parser(
         "freeze", help="freeze the service or its ur_rtde child while the arm moves",
@@ -385,7 +390,8 @@ def _bench_soak(args: argparse.Namespace) -> int:
         with progress_bars(not args.json) as progress:
             report = run_soak(args.minutes, max_cycles=args.cycles,
                               interfaces=args.interfaces, progress=progress,
-                              burners=args.burners)
+                              burners=args.burners,
+                              service_nice=None if args.inherit_nice else args.service_nice)
     except RuntimeError as err:
         return fail("bench_failed", str(err), args.json)
     if args.out:
