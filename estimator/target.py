@@ -10,6 +10,7 @@ from numpy.typing import ArrayLike, NDArray
 
 Polarity = Literal["dark", "light"]
 MIN_DOTS, MAX_DOTS = 4, 100
+MAX_COORDINATE_MM = 10_000.0  # a dot 10 m from the target's origin is a typo, not a target
 _DISTINCT_FRACTION = 1e-6  # dots closer than this fraction of the layout's size coincide
 
 
@@ -26,6 +27,10 @@ def layout_problem(points_mm: ArrayLike) -> str | None:
         return f"points_mm must be a list of [x, y, z], got shape {pts.shape}"
     if not np.all(np.isfinite(pts)):
         return "points_mm must be finite numbers"
+    if pts.size and float(np.abs(pts).max()) > MAX_COORDINATE_MM:
+        # also keeps the spans and the SVD below finite (1e308 - -1e308 overflows)
+        return (f"points_mm must be within +-{MAX_COORDINATE_MM:g} mm of the target's origin, "
+                f"got {float(np.abs(pts).max()):g}")
     if not MIN_DOTS <= len(pts) <= MAX_DOTS:
         return f"a target has {MIN_DOTS} to {MAX_DOTS} dots, got {len(pts)}"
     extent = float(np.ptp(pts, axis=0).max())

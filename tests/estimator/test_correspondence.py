@@ -201,6 +201,11 @@ def test_layouts_that_cannot_fix_a_pose_are_refused() -> None:
         Target([[0, 0, 0]] * 3 + [[10, 0, 0], [0, 10, 0]], 5.0)
     with pytest.raises(ValueError, match="4 to 100"):
         Target(np.zeros((101, 3)), 5.0)
+    far = [[0.0, 0.0, 0.0], [1e308, 0.0, 0.0], [0.0, -1e308, 0.0], [1.0, 1.0, 0.0]]
+    with np.errstate(all="raise"), pytest.raises(ValueError, match="within"):
+        Target(far, 5.0)  # refused before any arithmetic overflows
+    with pytest.raises(ValueError, match="within"):
+        TargetConfig(points_mm=far, dot_diameter_mm=5.0)  # type: ignore[arg-type]
 
 
 def _asymmetric_grid(rows: int = 4, cols: int = 11, pitch_mm: float = 40.0) -> Target:
