@@ -32,7 +32,7 @@ import os
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
@@ -45,6 +45,7 @@ from cell.bench.service import SERVICE_NICE, service_processes, serving
 OPERATOR = {"Authorization": "Bearer sim-operator"}
 VIEWER = {"Authorization": "Bearer sim-viewer"}
 POLL_PERIOD_S = 1.0 / 7.0  # status and the live frame, each
+FOLLOW_S = 120.0  # a job still running when its wait answered is followed this long
 SAMPLE_S = 5.0  # /proc samples
 SERVO_EVERY = 5  # every 5th cycle: a servo approach and a track
 TRACK_S = 5.0
@@ -107,7 +108,7 @@ def _pct(values: list[float], q: float) -> float | None:
     return None if not values else round(float(np.percentile(values, q)), 1)
 
 
-def slope_per_h(t_s: list[float], values: list[float | None], skip: float = 0.0
+def slope_per_h(t_s: Sequence[float], values: Sequence[float | None], skip: float = 0.0
                 ) -> float | None:
     """Least-squares slope of ``values`` over time, per hour, after the first ``skip`` of the
     run (a fraction); None with fewer than 3 samples."""
@@ -173,10 +174,29 @@ def _step(soak: _Soak, client: httpx.Client, kind: str, path: str, body: dict[st
     job = r.json()
     if "state" in job and "kind" in job and job["state"] != "succeeded":
         error = job.get("error") or {}
+        message = str(error.get("message", ""))[:200]
+        if job["state"] == "running":  # the wait ran out: how and when did the job end?
+            message = _followed(client, job, time.monotonic() - t0)
         if len(soak.error_messages) < 10:
-            soak.error_messages.append(str(error.get("message", ""))[:200])
+            soak.error_messages.append(message)
         raise StepFailed(f"{kind}:{error.get('code') or job['state']}")
     soak.note(soak.jobs, kind, t0)
+
+
+def _followed(client: httpx.Client, job: dict[str, Any], waited_s: float) -> str:
+    """A job still running when its ``wait`` answered, followed until it ends (at most
+    ``FOLLOW_S``): its end state, error and last progress, for the report."""
+    t0 = time.monotonic()
+    now = job
+    while now.get("state") == "running" and time.monotonic() - t0 < FOLLOW_S:
+        time.sleep(0.5)
+        with contextlib.suppress(httpx.HTTPError, ValueError):
+            now = client.get(f"/api/v1/jobs/{job['id']}", headers=OPERATOR).json()
+    error = now.get("error") or {}
+    progress = {k: v for k, v in (now.get("progress") or {}).items() if k != "recent"}
+    return (f"{job.get('kind')} {job.get('id')} still running after a {waited_s:.1f} s wait; "
+            f"{now.get('state')} {time.monotonic() - t0:.1f} s later "
+            f"({error.get('code')}: {error.get('message')}); progress {progress}")[:600]
 
 
 def _cycle(soak: _Soak, client: httpx.Client, n: int) -> None:
