@@ -107,7 +107,9 @@ def _run(cell: Any, taught: Any, T_taught: Any, mode: str, jog_i: int,
     if job.state == "succeeded":
         r = job.result
         row.update(claimed_mm=r.estimated_error_mm, claimed_deg=r.estimated_error_deg,
-                   resolution_mm=getattr(r, "resolution_mm", None))
+                   resolution_mm=getattr(r, "resolution_mm", None),
+                   reach_error_mm=getattr(r, "reach_error_mm", None),
+                   goal_frames_averaged=getattr(r, "goal_frames_averaged", None))
         row["bound_held"] = d_mm <= r.estimated_error_mm and d_deg <= r.estimated_error_deg
     else:
         row["error"] = f"{job.error_code}: {job.error_message}"
