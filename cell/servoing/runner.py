@@ -78,11 +78,13 @@ class ClosedLoop(Generic[M, A]):
             self._seed(first)
         thread.start()
         try:
-            out = self._control()
+            converged_s = self._control()
         finally:
             self._done.set()
             joined_s = time.monotonic()
             thread.join(timeout=2.0)
+        # after the frame thread's end: the result's counts are of the same frames
+        out = self._result(converged_s)
         if "phases_s" in out:  # a result that times its phases times the frame thread's end
             out["phases_s"]["frame_thread_join"] = round(time.monotonic() - joined_s, 4)
         return out
@@ -160,7 +162,9 @@ class ClosedLoop(Generic[M, A]):
                 self._loss.examined(exposure_s)
 
     # -- the control loop ----------------------------------------------------------------------
-    def _control(self) -> dict[str, Any]:
+    def _control(self) -> float | None:
+        """The loop until it converges (an approach), its duration ends (a track) or it
+        fails; the arm stopped and the law's settle made. Returns the time to converge."""
         law, arm, sc = self.law, self.core.arm, self.sc
         clock = TwistClock(arm, sc.tick_s, sc.watchdog_s)
         self.t0 = t0 = time.monotonic()
@@ -212,7 +216,7 @@ class ClosedLoop(Generic[M, A]):
             if rest > 0:
                 time.sleep(rest)
         self.stop()
-        return self._result(law.settle(self, converged_s))
+        return law.settle(self, converged_s)
 
     def _aim(self, tick: float) -> tuple[Silence, int, A | None]:
         try:
