@@ -147,9 +147,11 @@ def _sample_coverage(r_mm: NDArray[np.float64], radius_mm: float) -> NDArray[np.
     crosses: a pattern that depends on the pose alone (up to ~0.01 px at 4 x 4 samples), which
     no averaging of frames removes and which a sensor integrating light continuously does not
     have. The ramp makes the coverage, and so the centre, continuous in the pose."""
-    gy, gx = np.gradient(r_mm)
-    spacing_mm = np.maximum(np.hypot(gx, gy), 1e-12)  # r's change per sample spacing
-    return np.asarray(np.clip(0.5 - (r_mm - radius_mm) / spacing_mm, 0.0, 1.0))
+    with np.errstate(invalid="ignore"):  # rays that miss the plane: r is inf, and so a gradient
+        gy, gx = np.gradient(r_mm)
+        spacing_mm = np.maximum(np.hypot(gx, gy), 1e-12)  # r's change per sample spacing
+        share = np.clip(0.5 - (r_mm - radius_mm) / spacing_mm, 0.0, 1.0)
+    return np.asarray(np.where(np.isfinite(share), share, r_mm < radius_mm), dtype=float)
 
 
 def default_levels(polarity: str) -> tuple[float, float]:

@@ -9,6 +9,8 @@ from scipy.spatial.transform import Rotation
 from estimator import CameraModel, Target
 from estimator.transforms import make_T
 from fakes.render import (
+    _Disc,
+    _Scene,
     ellipse_centre_px,
     random_pose,
     random_scene,
@@ -128,3 +130,22 @@ def test_fast_render_is_the_full_frame_computation(case: dict[str, object]) -> N
     assert diff.max() <= 1
     assert diff.mean() < 2e-3
     assert full.std() > 0.5 or kw.get("noise_std") == 0.0  # a real image, not an empty one
+
+
+def test_a_dots_centre_follows_the_pose_continuously() -> None:
+    """Moved by a thousandth of a pixel at a time, a dot's imaged centre moves with it: a
+    sample's coverage ramps across the rim, so the centre does not stand still between the
+    samples the rim crosses (as a 4 x 4 grid of in-or-out samples made it, a pattern fixed
+    to the pose that no averaging of frames removes)."""
+    step_px = 0.001
+    centres = []
+    for k in range(40):
+        T = make_T(np.eye(3), [k * step_px * 450.0 / CAM.fx, 0.0, 450.0])
+        got = _Scene(CAM, T, distort=False).disc_coverage(_Disc(np.zeros(3), 4.0), 4)
+        assert got is not None
+        x0, _, cov = got
+        cols = x0 + np.arange(cov.shape[1])
+        centres.append(float((cov.sum(axis=0) * cols).sum() / cov.sum()))
+    moved = np.diff(centres)
+    assert np.all(moved > 0.2 * step_px)  # it moves at every step
+    assert abs(float(np.mean(moved)) - step_px) < 0.1 * step_px
