@@ -31,7 +31,7 @@ from cell.errors import CellError, RefusedError, UnavailableError
 from cell.motion.guard import Motion
 from cell.results import Pose
 from cell.servoing.clock import TwistClock
-from cell.servoing.lag import LagWatch
+from cell.servoing.lag import Lag, LagWatch
 from cell.servoing.law import A, Law, M, Reading, Tick, Unusable
 from cell.servoing.record import FrameStats, History, ms_stats
 from cell.servoing.target_loss import LossClock, Silence
@@ -195,9 +195,9 @@ class ClosedLoop(Generic[M, A]):
             if reading is not None and frames != seen:
                 self._show(reading, tick)
                 if lag is not None:
-                    over_s = lag.over_for_s(tick, reading.errors["error_mm"])
-                    if over_s is not None:
-                        self._fell_behind(reading.errors["error_mm"], over_s)
+                    behind = lag.over_for_s(tick, reading.errors["error_mm"])
+                    if behind is not None:
+                        self._fell_behind(reading.errors["error_mm"], behind)
             seen = frames
             if reading is not None and reading.converged:
                 converged_s = tick - t0
@@ -261,15 +261,16 @@ class ClosedLoop(Generic[M, A]):
                            + self.law.lost_detail(self.stats)
                            + f"; the arm stopped in {took * 1000:.0f} ms")
 
-    def _fell_behind(self, error_mm: float, over_s: float) -> None:
+    def _fell_behind(self, error_mm: float, lag: Lag) -> None:
         took = self.stop()
         self.core.runner.progress(self.job_id, {"phase": "tracking_lag",
                                                 "stopped_in_ms": round(took * 1000.0, 1)})
         raise RefusedError(ErrorCode.tracking_lag,
                            f"the arm fell behind the tracked target: {error_mm:.1f} mm from "
-                           f"its goal, over {self.sc.track_lag_mm:g} mm for {over_s:.2f} s "
-                           f"([servo] track_lag_mm, track_lag_s): the cell cannot keep up; "
-                           f"the arm stopped in {took * 1000:.0f} ms")
+                           f"its goal, {lag.rms_mm:.1f} mm RMS over the last "
+                           f"{lag.window_s:.2f} s (limit {self.sc.track_lag_mm:g} mm: [servo] "
+                           f"track_lag_mm, track_lag_s): the cell cannot keep up; the arm "
+                           f"stopped in {took * 1000:.0f} ms")
 
     def _result(self, converged_s: float | None) -> dict[str, Any]:
         reached = self.core.arm.state().T_base_tcp
