@@ -149,11 +149,12 @@ def _config_text(host: str, state_dir: Path) -> str:
 
 @contextlib.contextmanager
 def serving(timeout_s: float = 90.0, nice: int | None = None, stop_log: Path | None = None,
-            extra_args: list[str] | None = None
+            extra_args: list[str] | None = None, log_path: Path | None = None
             ) -> Iterator[tuple[str, subprocess.Popen[bytes]]]:
     """``cell serve`` on a free loopback address; yields (base URL, process). With
     ``stop_log`` the simulated controller appends each stop command's receive time there;
-    ``extra_args`` go to ``cell serve`` (e.g. ``--modbus-port N``)."""
+    ``extra_args`` go to ``cell serve`` (e.g. ``--modbus-port N``); ``log_path``: its
+    warnings and errors go there and are kept (else to the temporary state directory)."""
     from fakes.ur_controller.process import free_loopback_host
     from fakes.ur_controller.script import STOP_LOG_ENV
 
@@ -165,10 +166,13 @@ def serving(timeout_s: float = 90.0, nice: int | None = None, stop_log: Path | N
         env = dict(os.environ)
         if stop_log is not None:  # the simulated controller notes each stop's arrival here
             env[STOP_LOG_ENV] = str(stop_log)
+        log = log_path if log_path is not None else Path(tmp) / "serve.log"
         proc = subprocess.Popen(
             [sys.executable, "-m", "cell", "serve", "--config", str(cfg), "--host", host,
-             "--port", str(port), "--log-level", "warning", *(extra_args or [])], env=env,
-            stdout=subprocess.DEVNULL, stderr=open(Path(tmp) / "serve.log", "wb"))  # noqa: SIM115
+             "--port", str(port), "--log-level", "warning",
+             *(["--log-format", "json"] if log_path is not None else []),  # timed lines
+             *(extra_args or [])], env=env,
+            stdout=subprocess.DEVNULL, stderr=open(log, "wb"))  # noqa: SIM115
         if nice is not None:  # before it starts its own processes, which inherit it
             with contextlib.suppress(PermissionError):
                 os.setpriority(os.PRIO_PROCESS, proc.pid, nice)
@@ -177,8 +181,7 @@ def serving(timeout_s: float = 90.0, nice: int | None = None, stop_log: Path | N
             deadline = time.monotonic() + timeout_s
             while True:
                 if proc.poll() is not None:
-                    raise RuntimeError("cell serve exited: "
-                                       + (Path(tmp) / "serve.log").read_text()[-2000:])
+                    raise RuntimeError("cell serve exited: " + log.read_text()[-2000:])
                 with contextlib.suppress(httpx.HTTPError):
                     r = httpx.get(f"{base}/api/v1/health", timeout=2.0)
                     if r.status_code == 200 and r.json().get("status") == "ok":

@@ -48,6 +48,7 @@ POLL_PERIOD_S = 1.0 / 7.0  # status and the live frame, each
 FOLLOW_S = 120.0  # a job still running when its wait answered is followed this long
 SAMPLE_S = 5.0  # /proc samples
 SERVO_EVERY = 5  # every 5th cycle: a servo approach and a track
+STREAM_GAP_S = 0.5  # the controller's RTDE timestamp standing still this long is a gap
 TRACK_S = 5.0
 JOB_KINDS = ("home", "locate", "approach_look_and_move", "gripper_close", "gripper_open",
              "approach_servo", "track")
@@ -138,11 +139,23 @@ class _Soak:
         self.rtde_reads = 0
         self.rtde_errors: Counter[str] = Counter()
         self.error_messages: list[str] = []
+        self.failures: list[tuple[float, str, str]] = []  # (when, code, message)
+        # (when the stream moved again, how long its timestamp stood, how late the reader
+        # itself woke at worst meanwhile): a gap the reader was awake for is the controller's
+        self.stream_gaps: list[tuple[float, float, float]] = []
+        self.poll_timeouts: list[tuple[float, str]] = []
 
     def note(self, series: dict[str, list[tuple[float, float]]], key: str, t0: float) -> None:
         now = time.monotonic()
         with self.lock:
             series[key].append((now, 1000.0 * (now - t0)))
+
+
+    def failed(self, kind: str, code: str, message: str) -> None:
+        with self.lock:
+            self.failures.append((time.monotonic(), f"{kind}:{code}", message[:300]))
+            if len(self.error_messages) < 10:
+                self.error_messages.append(message[:200])
 
 
 class StepFailed(Exception):
@@ -168,18 +181,22 @@ def _step(soak: _Soak, client: httpx.Client, kind: str, path: str, body: dict[st
     try:
         r = client.post(path, json=body, headers=OPERATOR)
     except httpx.HTTPError as err:
+        soak.failed(kind, type(err).__name__, str(err))
         raise StepFailed(f"{kind}:{type(err).__name__}") from err
     if r.status_code != 200:
-        raise StepFailed(f"{kind}:{_code(r, soak.error_messages)}")
+        messages: list[str] = []
+        code = _code(r, messages)
+        soak.failed(kind, code, messages[0] if messages else "")
+        raise StepFailed(f"{kind}:{code}")
     job = r.json()
     if "state" in job and "kind" in job and job["state"] != "succeeded":
         error = job.get("error") or {}
         message = str(error.get("message", ""))[:200]
         if job["state"] == "running":  # the wait ran out: how and when did the job end?
             message = _followed(client, job, time.monotonic() - t0)
-        if len(soak.error_messages) < 10:
-            soak.error_messages.append(message)
-        raise StepFailed(f"{kind}:{error.get('code') or job['state']}")
+        code = str(error.get("code") or job["state"])
+        soak.failed(kind, code, message)
+        raise StepFailed(f"{kind}:{code}")
     soak.note(soak.jobs, kind, t0)
 
 
@@ -255,6 +272,7 @@ def _poller(soak: _Soak, base: str, kind: str, path: str) -> None:
             except httpx.HTTPError as err:
                 with soak.lock:
                     soak.poll_errors[f"{kind}:{type(err).__name__}"] += 1
+                    soak.poll_timeouts.append((t0, f"{kind}:{type(err).__name__}"))
             soak.stop.wait(max(0.0, POLL_PERIOD_S - (time.monotonic() - t0)))
 
 
@@ -284,17 +302,26 @@ def _rtde_reader(soak: _Soak, host: str) -> None:
     except RuntimeError as err:
         soak.rtde_errors[f"connect:{err}"[:80]] += 1
         return
+    period_s = 0.02
     try:
+        last_ts, moved_s, woke_s, late_s = None, time.monotonic(), time.monotonic(), 0.0
         while not soak.stop.is_set():
+            now = time.monotonic()
+            late_s, woke_s = max(late_s, now - woke_s - period_s), now
             try:
                 r.getActualTCPPose()
                 r.getActualQ()
+                ts = r.getTimestamp()
                 with soak.lock:
                     soak.rtde_reads += 1
+                    if ts != last_ts:
+                        if last_ts is not None and now - moved_s > STREAM_GAP_S:
+                            soak.stream_gaps.append((now, now - moved_s, late_s))
+                        last_ts, moved_s, late_s = ts, now, 0.0
             except RuntimeError as err:
                 with soak.lock:
                     soak.rtde_errors[str(err)[:80]] += 1
-            soak.stop.wait(0.02)
+            soak.stop.wait(period_s)
     finally:
         with contextlib.suppress(RuntimeError):
             r.disconnect()
@@ -317,28 +344,31 @@ def _sample(service: int, db: Path | None) -> dict[str, float | None]:
 
 def run_soak(minutes: float, max_cycles: int | None = None, interfaces: bool = False,
              progress: Progress | None = None, burners: int = 0,
-             service_nice: int | None = SERVICE_NICE) -> dict[str, Any]:
+             service_nice: int | None = SERVICE_NICE, service_log: Path | None = None
+             ) -> dict[str, Any]:
     """The soak; ``burners`` CPU-burning processes beside it for the whole run (a host as
-    loaded as a busy cell PC), started before the service."""
+    loaded as a busy cell PC), started before the service; ``service_log``: keep the
+    service's warnings and errors there (to read beside the report's failures)."""
     loadavg_before = [round(x, 2) for x in os.getloadavg()]
     with contextlib.ExitStack() as stack:
         if burners > 0:
             from fakes.ur_controller.load import cpu_burners
 
             stack.enter_context(cpu_burners(burners, max_s=60.0 * minutes + 900.0))
-        report = _run(minutes, max_cycles, interfaces, progress, loadavg_before, service_nice)
+        report = _run(minutes, max_cycles, interfaces, progress, loadavg_before, service_nice,
+                      service_log)
     report["load"]["burners"] = burners
     return report
 
 
 def _run(minutes: float, max_cycles: int | None, interfaces: bool,
          progress: Progress | None, loadavg_before: list[float],
-         service_nice: int | None) -> dict[str, Any]:
+         service_nice: int | None, service_log: Path | None) -> dict[str, Any]:
     soak = _Soak()
     samples: list[tuple[float, dict[str, float | None]]] = []
     extra = [] if interfaces else ["--opcua-port", "0", "--xmlrpc-port", "0",
                                    "--modbus-port", "0"]
-    with serving(extra_args=extra, nice=service_nice) as (base, proc):
+    with serving(extra_args=extra, nice=service_nice, log_path=service_log) as (base, proc):
         nice_served = os.getpriority(os.PRIO_PROCESS, proc.pid)
         time.sleep(3.0)  # let the start settle (kernels, first frames, gripper activation)
         db = _job_db(proc.pid)
@@ -429,6 +459,17 @@ def _report(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]], s
         "rtde_reads": soak.rtde_reads,
         "rtde_errors": dict(soak.rtde_errors),
         "error_messages": soak.error_messages,
+        # each failed step: when (s into the run), which, and what the cell said
+        "failures": [{"at_s": round(ts - start, 1), "code": code, "message": msg}
+                     for ts, code, msg in soak.failures],
+        # the controller's RTDE timestamp seen standing still by the soak's own reader; a gap
+        # with reader_late_s near zero was the controller's (or the link's), not the reader's
+        "rtde_stream_max_gap_s": round(max((g for _, g, _ in soak.stream_gaps), default=0.0), 2),
+        "rtde_stream_gaps": [{"at_s": round(ts - start, 1), "gap_s": round(g, 2),
+                              "reader_late_s": round(late, 2)}
+                             for ts, g, late in soak.stream_gaps[:50]],
+        "poll_timeouts": [{"at_s": round(ts - start, 1), "what": what}
+                          for ts, what in soak.poll_timeouts[:50]],
         "health_after": health,
         "per_minute": per_minute,
         "load": {"minutes": minutes, "max_cycles": max_cycles, "interfaces": interfaces,

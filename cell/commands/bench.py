@@ -142,6 +142,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                     help="CPU-burning processes beside the soak for the whole run (default 0)")
     sk.add_argument("--out", metavar="FILE.json", default=None,
                     help="also write the JSON report here")
+    sk.add_argument("--service-log", metavar="FILE", default=None,
+                    help="keep the service's warnings and errors in this file")
     sk.add_argument("--service-nice", type=int, default=-5,
                     help="the service's nice value, as the systemd unit sets it (default -5; "
                          "applied when the host allows it, see the report's load)")
@@ -391,7 +393,8 @@ def _bench_soak(args: argparse.Namespace) -> int:
             report = run_soak(args.minutes, max_cycles=args.cycles,
                               interfaces=args.interfaces, progress=progress,
                               burners=args.burners,
-                              service_nice=None if args.inherit_nice else args.service_nice)
+                              service_nice=None if args.inherit_nice else args.service_nice,
+                              service_log=Path(args.service_log) if args.service_log else None)
     except RuntimeError as err:
         return fail("bench_failed", str(err), args.json)
     if args.out:
