@@ -56,9 +56,9 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False,
     """Build the API for ``cell``. Raises ConfigError when a sample token is configured on
     hardware other than the fakes. ``interfaces``: also serve the configured OPC UA server and
     URScript XML-RPC endpoint (api.plc.interfaces) while the app runs. ``start_cell``: the
-    cell is built but not started; the app's start-up starts it beside those servers (the
-    arm's connect and power-on and the servers' start overlap), and HTTP serves once both
-    are done."""
+    cell is built but not started; the app's start-up starts it beside those servers, and
+    HTTP serves once they listen, without waiting for the arm's connect and power-on
+    (``/health`` says ``starting`` until they have ended)."""
     tokens = TokenTable(list(cell.config.api.tokens), simulated=cell.hw.simulated)
     logs.install()
     doors = Interfaces(cell)
@@ -66,7 +66,7 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False,
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         logs.install()  # uvicorn's handlers exist by now
-        starts = [asyncio.to_thread(cell.start)] if start_cell else []
+        starts = [asyncio.to_thread(cell.start, True)] if start_cell else []
         if interfaces:
             starts.append(asyncio.to_thread(doors.start))
         failed = [r for r in await asyncio.gather(*starts, return_exceptions=True)

@@ -155,14 +155,17 @@ class Cell:
         return self.core.target
 
     # -- lifecycle ------------------------------------------------------------------------
-    def start(self) -> None:
+    def start(self, connect_in_background: bool = False) -> None:
         """Connect what is reachable and serve; the rest is retried in the background.
-        The arm does not move (it is told to stop, and powered on only if configured)."""
+        The arm does not move (it is told to stop, and powered on only if configured).
+        ``connect_in_background``: return before the first connect (and power-on) has ended;
+        ``/health`` says ``starting`` until it has (``cell serve``: the API answers at once)."""
         for job_id in self.jobs.recovered:
             log.warning("job %s was interrupted by the previous run; marked interrupted", job_id)
-        self.links.connect_all()
+        if not connect_in_background:
+            self.links.connect_all()
         self.gripper_ops.start()
-        self.links.start()
+        self.links.start(first_tries=connect_in_background)
         self.storage.start()
         self.snapshot.start()
         self.alarms.start()

@@ -437,16 +437,17 @@ class Me(_Out):
     permissions: list[str]
 
 
-HealthCode = Literal["arm_disconnected", "camera_lost", "protective_stop", "emergency_stop",
-                     "storage", "disk_space"]
+HealthCode = Literal["starting", "arm_disconnected", "camera_lost", "protective_stop",
+                     "emergency_stop", "storage", "disk_space"]
 
 
 class HealthReason(BaseModel):
     code: HealthCode = Field(
-        description="arm_disconnected / camera_lost: a device is not connected (also in "
-        "`missing`); protective_stop / emergency_stop: the arm is safety-stopped; storage: the "
-        "job database cannot be written; disk_space: a file system the service writes to is "
-        "nearly full")
+        description="starting: the service's first connect to the devices (and the arm's "
+        "power-on) is still running; arm_disconnected / camera_lost: a device is not "
+        "connected (also in `missing`); protective_stop / emergency_stop: the arm is "
+        "safety-stopped; storage: the job database cannot be written; disk_space: a file "
+        "system the service writes to is nearly full")
     message: str = Field(description="the reason in words, for people")
 
 

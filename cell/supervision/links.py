@@ -1,7 +1,10 @@
 """Links that come back: watch the arm and camera, fail what depends on a lost one, reconnect.
 
 The service starts whatever is reachable and serves anyway (``/health`` says ``degraded`` and
-names what is missing). A background thread checks each link every ``CHECK_PERIOD_S``:
+names what is missing). ``cell serve`` does not even wait for the first try: the HTTP API
+answers while the arm connects and powers on (a real arm's power-on and brake release take
+seconds), and ``/health`` says ``starting`` until that first try has ended. A background
+thread checks each link every ``CHECK_PERIOD_S``:
 
 - a link that drops fails the running job that needs it (``arm_disconnected``,
   ``camera_lost``) and is logged and published once;
@@ -58,6 +61,7 @@ class LinkSupervisor:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
+        self._starting = threading.Event()  # set while the first tries run in the background
 
     # -- start --------------------------------------------------------------------------------
     def connect_all(self) -> None:
@@ -65,9 +69,20 @@ class LinkSupervisor:
         self._try_arm(first=True)
         self._try_camera(first=True)
 
-    def start(self) -> None:
-        self._thread = threading.Thread(target=self._loop, name="cell-links", daemon=True)
+    def start(self, first_tries: bool = False) -> None:
+        """Supervise in the background; ``first_tries``: make the start's one try at each
+        device there too (instead of :meth:`connect_all` before this), so the caller serves
+        at once and :attr:`starting` is true until those tries have ended."""
+        if first_tries:
+            self._starting.set()
+        self._thread = threading.Thread(target=self._loop, args=(first_tries,),
+                                        name="cell-links", daemon=True)
         self._thread.start()
+
+    @property
+    def starting(self) -> bool:
+        """The start's first tries at the devices are still running."""
+        return self._starting.is_set()
 
     def close(self) -> None:
         self._stop.set()
@@ -92,7 +107,14 @@ class LinkSupervisor:
             return {"arm": self.arm.as_dict(now), "camera": self.camera.as_dict(now)}
 
     # -- the loop ----------------------------------------------------------------------------
-    def _loop(self) -> None:
+    def _loop(self, first_tries: bool) -> None:
+        if first_tries:
+            try:
+                self.connect_all()
+            except Exception:  # a failed try is retried below like any lost link
+                log.exception("the first connect at start failed")
+            finally:
+                self._starting.clear()
         while not self._stop.wait(CHECK_PERIOD_S):
             try:
                 self._check_arm()

@@ -153,7 +153,8 @@ class CellSnapshot:
         if not st["camera"]["connected"] and "camera" not in missing:
             missing.append("camera")
         health = status_mod.health_from(
-            missing, st["robot"], [] if self.storage is None else self.storage.reasons())
+            missing, st["robot"], [] if self.storage is None else self.storage.reasons(),
+            starting=self.links.starting)
         robot = st["robot"]
         motion = core.slot.current
         state = None if "T_base_tcp" not in robot else {

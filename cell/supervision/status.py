@@ -73,15 +73,29 @@ MISSING_REASONS = {
                "itself"),
 }
 
+STARTING_REASON = {"code": "starting", "message": "the service is starting: it connects the arm "
+                   "and the camera (and powers the arm on where configured); commands that need "
+                   "them are refused until then"}
+
+
+def still_starting(health: dict[str, Any]) -> bool:
+    """A ``/health`` body that says the service's first connect is still running: what a
+    client that waits for the service to come up waits out (``ok`` or another reason ends
+    it: a start may well leave a device missing)."""
+    return any(r.get("code") == "starting" for r in health.get("reasons", []))
+
 
 def health_from(missing: list[str], robot: dict[str, Any] | None = None,
-                storage: list[dict[str, str]] | None = None) -> dict[str, Any]:
+                storage: list[dict[str, str]] | None = None, starting: bool = False
+                ) -> dict[str, Any]:
     """``ok`` when every device is connected, the arm is not safety-stopped and the job
     database and the disk under it can be written, else ``degraded``; ``reasons`` says why
-    (``{code, message}`` each) and ``missing`` names the devices that are not connected. The
-    process answers either way (a liveness probe must not fail because a device did)."""
-    reasons = [{"code": MISSING_REASONS[name][0], "message": MISSING_REASONS[name][1]}
-               for name in missing]
+    (``{code, message}`` each) and ``missing`` names the devices that are not connected.
+    ``starting``: the service's first connect (and power-on) is still running. The process
+    answers either way (a liveness probe must not fail because a device did)."""
+    reasons = [STARTING_REASON] if starting else []
+    reasons += [{"code": MISSING_REASONS[name][0], "message": MISSING_REASONS[name][1]}
+                for name in missing]
     robot = robot or {}
     if robot.get("connected", False):
         safety = str(robot.get("safety", ""))
@@ -99,4 +113,4 @@ def health_from(missing: list[str], robot: dict[str, Any] | None = None,
 
 def health(core: CellCore, links: LinkSupervisor) -> dict[str, Any]:
     """Devices only (the snapshot adds the arm's safety state and the storage)."""
-    return health_from(links.missing())
+    return health_from(links.missing(), starting=links.starting)

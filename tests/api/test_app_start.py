@@ -1,10 +1,13 @@
 """``create_app(start_cell=True)``: the path ``cell serve`` takes. The cell is built, not
-started, when the app is made; the app's start-up starts it beside the PLC servers, and the
-first request already finds it connected. A start that fails closes what it built."""
+started, when the app is made; the app's start-up starts it beside the PLC servers and serves
+without waiting for the arm's connect and power-on: ``/health`` says ``starting`` until they
+have ended, then ``ok``. A start that fails closes what it built."""
 
 from __future__ import annotations
 
 import socket
+import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -12,6 +15,7 @@ from fastapi.testclient import TestClient
 
 from api.app import create_app
 from cell.runtime import build_cell
+from cell.supervision.status import still_starting
 from tests.support.cell import AUTH, sim_config
 from tests.support.net import free_port
 
@@ -27,6 +31,12 @@ def test_the_app_starts_the_cell_beside_its_servers(tmp_path: Path,
     assert not cell.links.snapshot()["arm"]["up"]  # built, nothing connected yet
     with TestClient(app) as client:
         h = client.get("/api/v1/health").json()
+        deadline = time.monotonic() + 60.0
+        while still_starting(h):
+            assert h["status"] == "degraded", h
+            assert time.monotonic() < deadline, "the start did not end in 60 s"
+            time.sleep(0.05)
+            h = client.get("/api/v1/health").json()
         assert h["status"] == "ok" and h["arm_connected"] and h["camera_connected"], h
         r = client.post("/api/v1/locate", json={}, headers=AUTH["operator"])
         assert r.status_code == 200, r.text
@@ -40,9 +50,46 @@ def test_a_start_that_fails_closes_the_cell(tmp_path: Path,
     cell = build_cell(sim_config(tmp_path))
     closed: list[bool] = []
     real_close = cell.close
-    monkeypatch.setattr(cell, "start", lambda: (_ for _ in ()).throw(RuntimeError("boom")))
+    monkeypatch.setattr(cell, "start",
+                        lambda *_: (_ for _ in ()).throw(RuntimeError("boom")))
     monkeypatch.setattr(cell, "close", lambda: (closed.append(True), real_close()))
     app = create_app(cell, close_cell_on_shutdown=True, start_cell=True)
     with pytest.raises(RuntimeError, match="boom"), TestClient(app):
         pass
     assert closed == [True]
+
+
+def test_commands_while_the_arm_powers_on_at_start_are_refused_and_move_nothing(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    cell = build_cell(sim_config(tmp_path))
+    raw = cell.core.arm.raw
+    powered, release = threading.Event(), threading.Event()
+    real_power_on = raw.power_on
+
+    def held_power_on() -> None:  # the power-on a real arm takes seconds for, held open
+        powered.set()
+        assert release.wait(30.0)
+        real_power_on()
+
+    monkeypatch.setattr(raw, "power_on", held_power_on)
+    app = create_app(cell, close_cell_on_shutdown=True, start_cell=True)
+    with TestClient(app) as client:
+        assert powered.wait(30.0)
+        h = client.get("/api/v1/health").json()
+        assert h["status"] == "degraded" and still_starting(h), h
+        before = list(cell.commanded())
+        for path, body in (("/api/v1/arm/home", {"wait": True}),
+                           ("/api/v1/jog", {"mode": "continuous", "linear_mm_s": [5.0, 0.0, 0.0]})):
+            r = client.post(path, json=body, headers=AUTH["operator"])
+            assert r.status_code in (409, 503), r.text
+            assert r.json()["error"]["code"] in ("busy", "arm_not_ready", "arm_disconnected")
+        assert list(cell.commanded()) == before
+        assert client.post("/api/v1/stop", json={}, headers=AUTH["operator"]).json()["stopped"]
+        release.set()
+        deadline = time.monotonic() + 60.0
+        while still_starting(h := client.get("/api/v1/health").json()):
+            assert time.monotonic() < deadline, "the start did not end in 60 s"
+            time.sleep(0.05)
+        assert h["status"] == "ok", h
+        r = client.post("/api/v1/arm/home", json={"wait": True}, headers=AUTH["operator"])
+        assert r.status_code == 200 and r.json()["state"] == "succeeded", r.text

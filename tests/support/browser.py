@@ -32,6 +32,7 @@ import uvicorn
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse, Response
 
+from cell.supervision.status import still_starting
 from tests.support.cell import without_interfaces
 from tests.support.net import free_port
 from tests.support.paths import REPO
@@ -169,7 +170,8 @@ def serve_sim_cell(workdir: Path, startup_s: float = 90.0) -> Iterator[str]:
                     f"cell serve exited with {proc.returncode}:\n"
                     + (workdir / "cell-serve.log").read_text()[-3000:])
             try:
-                if httpx.get(f"{url}/api/v1/health", timeout=1.0).status_code == 200:
+                r = httpx.get(f"{url}/api/v1/health", timeout=1.0)
+                if r.status_code == 200 and not still_starting(r.json()):
                     break
             except httpx.HTTPError:
                 pass

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import httpx
 
+from cell.supervision.status import still_starting
 from tests.support.cell import AUTH, without_interfaces
 from tests.support.net import free_port
 
@@ -43,7 +44,8 @@ def serving(config: Path, port: int) -> Iterator[tuple[subprocess.Popen[str], st
         while True:
             assert proc.poll() is None, proc.stdout.read() if proc.stdout else ""
             try:
-                if httpx.get(f"{url}/api/v1/health", timeout=1).status_code == 200:
+                r = httpx.get(f"{url}/api/v1/health", timeout=1)
+                if r.status_code == 200 and not still_starting(r.json()):
                     break
             except httpx.TransportError:
                 pass
