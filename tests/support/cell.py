@@ -91,3 +91,16 @@ def without_interfaces(text: str) -> str:
     assert n_opcua == 1 and n_rpc == 1 and n_modbus == 1, \
         "sim.toml no longer has [opcua] enabled / xmlrpc_port / [modbus] port"
     return text
+
+
+def mount_off(tmp_path: Path) -> dict[str, object]:
+    """``[sim]`` values that put the camera's true mount off the hand-eye calibration by
+    the loops bench's error (the simulator's truth, which the cell does not share)."""
+    from cell.bench.loops import MOUNT_ERROR_AXIS, MOUNT_ERROR_DEG, MOUNT_ERROR_MM
+
+    config = sim_config(tmp_path)
+    he = config.hand_eye.T_flange_camera
+    axis = np.asarray(MOUNT_ERROR_AXIS) / np.linalg.norm(MOUNT_ERROR_AXIS)
+    return {"T_flange_camera": {
+        "position_mm": (np.asarray(he.position_mm) + MOUNT_ERROR_MM).tolist(),
+        "rotvec_rad": (axis * np.radians(MOUNT_ERROR_DEG)).tolist()}}

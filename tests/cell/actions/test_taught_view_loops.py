@@ -6,27 +6,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-from cell.bench.loops import MOUNT_ERROR_AXIS, MOUNT_ERROR_DEG, MOUNT_ERROR_MM
 from estimator.transforms import pose_distance
-from tests.support.cell import running_cell, settled_tcp, sim_config
-
-
-def _mount_off(tmp_path: Path) -> dict[str, object]:
-    config = sim_config(tmp_path)
-    he = config.hand_eye.T_flange_camera
-    axis = np.asarray(MOUNT_ERROR_AXIS) / np.linalg.norm(MOUNT_ERROR_AXIS)
-    return {"T_flange_camera": {
-        "position_mm": (np.asarray(he.position_mm) + MOUNT_ERROR_MM).tolist(),
-        "rotvec_rad": (axis * np.radians(MOUNT_ERROR_DEG)).tolist()}}
+from tests.support.cell import mount_off, running_cell, settled_tcp, sim_config
 
 
 @pytest.mark.parametrize("mode", ["servo", "ibvs"])
 def test_an_approach_to_a_taught_view_ends_near_it_and_its_claim_holds(
         tmp_path: Path, mode: str) -> None:
-    with running_cell(sim_config(tmp_path, sim=_mount_off(tmp_path))) as cell:
+    with running_cell(sim_config(tmp_path, sim=mount_off(tmp_path))) as cell:
         taught = cell.teach("test", "view", samples=5)
         T_taught = settled_tcp(cell)
         cell.jog_step("test", frame="base", translation_mm=[25.0, -15.0, 10.0],
