@@ -181,7 +181,7 @@ class LinkSupervisor:
         (a TCP not yet set would make every pose wrong by the tool's length)."""
         slot = self.core.slot
         try:
-            motion = slot.claim("reconnect")
+            motion = slot.claim("start" if first else "reconnect")
         except CellError:
             return  # a job still ends on the old link; try on the next check
         try:
