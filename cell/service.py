@@ -120,7 +120,8 @@ class Cell:
         self.snapshot = CellSnapshot(self.core, self.links, self.gripper_ops, self.storage)
         self.taught = TaughtStore.beside_job_db(config.api.job_db)
         self.recipes = RecipeStore.beside_job_db(config.api.job_db, config.limits)
-        self.alarms = AlarmLog(jobs, self.events, self.status)
+        self.alarms = AlarmLog(jobs, self.events, self.status,
+                               starting=lambda: self.links.starting)
         self.calibration = CalibrationService(self.core, self.set_hand_eye, config_path)
         self.reference = ReferenceStore.beside_job_db(config.api.job_db)
         self.checks = CalibrationCheck(self.core, self.reference)

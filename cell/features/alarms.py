@@ -93,6 +93,9 @@ class Alarm:
                 "acknowledged_by": self.acknowledged_by}
 
 
+LINK_FAULTS = ("arm_disconnected", "camera_lost")  # a device's link down (not at start)
+
+
 def faults_in(status: dict[str, Any]) -> dict[str, tuple[str, str]]:
     """The faults a ``Cell.status()`` answer shows: code -> (source, message in words)."""
     out: dict[str, tuple[str, str]] = {}
@@ -131,10 +134,13 @@ class AlarmLog:
     faults are read from ``status`` (``Cell.status``). ``start()`` begins watching."""
 
     def __init__(self, jobs: JobStore, events: EventBus, status: Callable[[], dict[str, Any]],
-                 poll_s: float = 0.5) -> None:
+                 poll_s: float = 0.5, starting: Callable[[], bool] = lambda: False) -> None:
+        """``starting``: true while the service's first connect runs; a device not yet
+        connected then is not lost (its alarm is raised if it is still missing after)."""
         self.jobs = jobs
         self.events = events
         self.status = status
+        self.starting = starting
         self.poll_s = poll_s
         path = str(jobs.path)
         self._db = sqlite3.connect(path, check_same_thread=False, isolation_level=None,
@@ -208,6 +214,8 @@ class AlarmLog:
                                    f"result is inconsistent: {words}", job_id, at)
         self._mark_seen(ended)
         faults = {**faults_in(self.status()), **storage_fault(self.jobs.write_error)}
+        if self.starting():
+            faults = {c: f for c, f in faults.items() if c not in LINK_FAULTS}
         for code, (source, message) in faults.items():
             if code not in self._present:
                 raised += self._raised(f"fault:{code}:{time.time_ns()}", source, code, message)

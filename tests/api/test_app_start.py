@@ -93,3 +93,6 @@ def test_commands_while_the_arm_powers_on_at_start_are_refused_and_move_nothing(
         assert h["status"] == "ok", h
         r = client.post("/api/v1/arm/home", json={"wait": True}, headers=AUTH["operator"])
         assert r.status_code == 200 and r.json()["state"] == "succeeded", r.text
+        time.sleep(1.5)  # the alarm watch has looked at least twice since the start ended
+        raised = [a.code for a in cell.alarms.list()[0]]
+        assert not {"arm_disconnected", "camera_lost"} & set(raised), raised
