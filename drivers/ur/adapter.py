@@ -376,7 +376,11 @@ class URArm:
                 continue
             now = time.monotonic()
             if now - self._last_ts_change_s > self.stale_after_s:
-                self._mark_lost(f"no RTDE data for {now - self._last_ts_change_s:.2f} s")
+                # which side stood still: the controller's data as the ur_rtde child saw
+                # it, or the pipe from the child (a stalled child or a starved reader here)
+                self._mark_lost(f"no RTDE data for {now - self._last_ts_change_s:.2f} s "
+                                f"(the last sample from the ur_rtde child came "
+                                f"{now - self._latest_rx_s:.2f} s ago)")
                 continue
             if self._jog_deadline_s is not None and now > self._jog_deadline_s:
                 try:
