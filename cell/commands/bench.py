@@ -30,7 +30,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="exit with status 1 when a target is missed")
     p.set_defaults(func=_bench)
     what = p.add_subparsers(dest="bench_command", required=False,
-                            metavar="{approach,pick,drift,service,soak,freeze,modbus,fixed,"
+                            metavar="{approach,pick,drift,service,soak,bias,freeze,modbus,fixed,"
                                     "commissioning,controller,live-view,loops}")
     a = what.add_parser(
         "approach", help="servo vs look-and-move approach, conveyor tracking, lost target",
@@ -150,6 +150,16 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     sk.add_argument("--inherit-nice", action="store_true",
                     help="serve at this process's own nice value instead")
     sk.set_defaults(func=_bench_soak)
+    bias = what.add_parser(
+        "bias", help="the simulated camera's dot centre bias ([ibvs] centroid_bias_px)",
+        description="Moves the simulated cell's target over two pixels in small steps and "
+                    "measures the part of each dot's centre that averaging frames does not "
+                    "remove (see cell/bench/centroid_bias.py).")
+    bias.add_argument("--frames", type=int, default=30,
+                      help="rendered frames averaged at each step (default 30)")
+    bias.add_argument("--steps", type=int, default=41,
+                      help="steps over the two pixels of each sweep (default 41)")
+    bias.set_defaults(func=_bench_bias)
     frz = what.add_parser(
         "freeze", help="freeze the service or its ur_rtde child while the arm moves",
         description="Streams 50 mm/s twists to the simulated controller, freezes the host "
@@ -309,6 +319,22 @@ def _bench_drift(args: argparse.Namespace) -> int:
                                  commissioned=not args.no_commission, burners=args.burners,
                                  progress=progress, **sizes)
     return _report(args, report, format_report(report))
+
+
+def _bench_bias(args: argparse.Namespace) -> int:
+    from cell.bench.centroid_bias import format_report, run_bench_bias
+    from cell.commands.common import EXIT_OK, fail, print_json, progress_bars
+
+    if args.frames < 1 or args.steps < 3:
+        return fail("invalid_argument", "--frames must be at least 1 and --steps at least 3",
+                    args.json)
+    with progress_bars(not args.json) as progress:
+        report = run_bench_bias(args.frames, args.steps, progress=progress)
+    if args.json:
+        print_json(report)
+    else:
+        print(format_report(report))
+    return EXIT_OK
 
 
 def _bench_freeze(args: argparse.Namespace) -> int:
