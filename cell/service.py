@@ -65,6 +65,7 @@ from cell.results.modes import ApproachMode
 from cell.servoing.ibvs import Features
 from cell.stats import CellStats
 from cell.supervision.gripper import GripperService
+from cell.supervision.host_watch import HostWatch
 from cell.supervision.links import LinkSupervisor
 from cell.supervision.retention import Retention
 from cell.supervision.snapshot import CellSnapshot
@@ -106,7 +107,9 @@ class Cell:
                           config.camera.fps, image_log, config.camera.intrinsics,
                           config.locate.order, config.locate.same_part_mm)
         audit = Auditor(jobs, self.stats)
-        runner = JobRunner(jobs, slot, arm, self.events, audit, self.stats)
+        self.host_watch = HostWatch()
+        runner = JobRunner(jobs, slot, arm, self.events, audit, self.stats,
+                           host_note=self.host_watch.note)
         self.core = CellCore(config, hardware, arm, slot, jobs, self.events, audit, runner,
                              locator, self.stats, frames, target)
         self.links = LinkSupervisor(self.core)
@@ -163,6 +166,7 @@ class Cell:
         ``/health`` says ``starting`` until it has (``cell serve``: the API answers at once)."""
         for job_id in self.jobs.recovered:
             log.warning("job %s was interrupted by the previous run; marked interrupted", job_id)
+        self.host_watch.start()
         if not connect_in_background:
             self.links.connect_all()
         self.gripper_ops.start()
@@ -190,6 +194,7 @@ class Cell:
         self.stopper.close()
         self.hw.close()
         self.jobs.close()
+        self.host_watch.close()
 
     # -- reads ----------------------------------------------------------------------------
     def arm_state(self) -> ArmState:

@@ -47,6 +47,7 @@ import httpx
 import numpy as np
 
 from cell.bench.service import SERVICE_NICE, service_processes, serving
+from cell.supervision.host_watch import HOST_STALL_MARK
 
 OPERATOR = {"Authorization": "Bearer sim-operator"}
 VIEWER = {"Authorization": "Bearer sim-viewer"}
@@ -464,6 +465,10 @@ def _report(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]], s
         "service_rss_mb_first": _round(first["service_rss_mb"]),
         "service_rss_mb_last": _round(final["service_rss_mb"]),
         "failed_cycles": len(failed),
+        # failures whose message names the host (the service held still before them,
+        # cell.supervision.host_watch); the rest are the cell's own
+        "failed_cycles_not_host": sum(1 for _, _, m in soak.failures
+                                      if HOST_STALL_MARK not in m),
         "failed_codes": dict(Counter(failed)),
         "cycles": len(soak.cycles),
         "ur_client_rss_mb_per_h": slope_per_h(t, series["ur_client_rss_mb"], skip=0.1),
@@ -525,7 +530,8 @@ def format_report(r: dict[str, Any]) -> str:
         f"({r['service_rss_mb_per_h_after_10_min']} MB/h after 10 min) "
         f"(ur_rtde child {r['ur_client_rss_mb_per_h']} MB/h); fds {r['fds_per_h']}/h, "
         f"threads {r['threads_per_h']}/h, job DB {r['job_db_kb_per_h']} KB/h",
-        f"cycles {r['cycles']}, failed {r['failed_cycles']} {r['failed_codes'] or ''}",
+        f"cycles {r['cycles']}, failed {r['failed_cycles']} ({r['failed_cycles_not_host']} "
+        f"not the host's) {r['failed_codes'] or ''}",
         f"status p50 {r['status_ms_p50']} ms p95 {r['status_ms_p95']} ms ({r['status_polls']}); "
         f"frame p50 {r['frame_ms_p50']} ms p95 {r['frame_ms_p95']} ms ({r['frames']}); "
         f"SSE events {r['sse_events']}; RTDE reads {r['rtde_reads']} "

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -33,8 +34,12 @@ OnEnd = Callable[[Job], None]  # told of the started and the ended job, after th
 
 class JobRunner:
     def __init__(self, jobs: JobStore, slot: MotionSlot, arm: GuardedArm, events: EventBus,
-                 audit: Auditor, stats: CellStats) -> None:
+                 audit: Auditor, stats: CellStats,
+                 host_note: Callable[[float], str | None] | None = None) -> None:
+        """``host_note(since_s)``: a sentence when the host held the service still since
+        then (cell.supervision.host_watch), added to a failed job's message."""
         self.jobs = jobs
+        self.host_note = host_note
         self.slot = slot
         self.arm = arm
         self.events = events
@@ -76,6 +81,11 @@ class JobRunner:
             return ended
         return job
 
+    def _with_host(self, message: str, started_s: float) -> str:
+        """``message``, and what the host did to the service meanwhile when it matters."""
+        note = None if self.host_note is None else self.host_note(started_s)
+        return message if note is None else f"{message} ({note})"
+
     def progress(self, job_id: str, info: dict[str, Any]) -> None:
         self.jobs.set_progress(job_id, info)
 
@@ -89,6 +99,7 @@ class JobRunner:
             t.join(timeout=timeout_s)
 
     def _run(self, job: Job, motion: Motion, work: Work, on_change: OnEnd | None) -> None:
+        started_s = time.monotonic()
         try:
             # a result that is not a model of the job's kind fails the job (internal_error)
             # rather than publish a shape the job's schema does not show
@@ -105,11 +116,13 @@ class JobRunner:
             ended = self.jobs.finish(job.id, "cancelled", None, err.code, err.message)
         except CellError as err:
             self.arm.settle()
-            ended = self.jobs.finish(job.id, "failed", None, err.code, err.message)
+            ended = self.jobs.finish(job.id, "failed", None, err.code,
+                                     self._with_host(err.message, started_s))
         except DriverError as err:
             self.arm.settle()
             e = driver_error(err, f"{job.kind}")
-            ended = self.jobs.finish(job.id, "failed", None, e.code, e.message)
+            ended = self.jobs.finish(job.id, "failed", None, e.code,
+                                     self._with_host(e.message, started_s))
         except Exception as err:
             log.exception("%s job %s crashed", job.kind, job.id)
             self.arm.settle()

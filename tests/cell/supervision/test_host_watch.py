@@ -1,0 +1,61 @@
+"""The host watch: a failed job's message names the host when the service was held still
+before it failed, and only then."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+from cell.supervision.host_watch import HOST_STALL_MARK, STALL_S, WINDOW_S, HostWatch
+from estimator.transforms import pose_distance, translation_T
+from tests.support.cell import running_cell, sim_config, tcp, world
+
+
+def test_a_stall_before_a_failure_is_named_and_a_short_or_old_one_is_not() -> None:
+    watch = HostWatch()
+    now = 1000.0
+    watch.woke(now - 3.0, 0.2)  # a short one
+    assert watch.note(now - 20.0, now) is None
+    watch.woke(now - WINDOW_S - 2.0, 1.5)  # long, but long before the failure
+    assert watch.note(now - 20.0, now) is None
+    watch.woke(now - 2.0, STALL_S + 0.3)
+    note = watch.note(now - 20.0, now)
+    assert note is not None and HOST_STALL_MARK in note and "0.80 s" in note, note
+    assert watch.note(now - 1.0, now) is None  # it ended before the job began
+
+
+def _hold_the_interpreter(seconds: float) -> None:
+    """Keep every other thread of this process from running for ``seconds``: a busy loop
+    that does not hand the interpreter over (what a starved host does to the service)."""
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(seconds + 1.0)
+    try:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            pass
+    finally:
+        sys.setswitchinterval(interval)
+
+
+def test_an_approach_that_fails_after_the_service_was_held_still_names_the_host(
+        tmp_path: Path) -> None:
+    with running_cell(sim_config(tmp_path)) as cell:
+        world(cell).set_target(translation_T(60.0, 40.0, 0.0) @ world(cell).true_T_base_target())
+        job = cell.approach("test", speed_mm_s=30.0)
+        start = tcp(cell)
+        deadline = time.monotonic() + 5.0
+        while pose_distance(tcp(cell), start)[0] < 2.0:
+            assert time.monotonic() < deadline, "the approach never started moving"
+            time.sleep(0.01)
+        _hold_the_interpreter(0.8)
+        world(cell).set_camera_lost(True)
+        deadline = time.monotonic() + 5.0
+        while not cell.job(job.id).finished:
+            assert time.monotonic() < deadline, "the approach did not end"
+            time.sleep(0.01)
+        ended = cell.job(job.id)
+        assert ended.state == "failed" and ended.error_code == "camera_lost", ended
+        assert ended.error_message is not None and HOST_STALL_MARK in ended.error_message, \
+            ended.error_message
+        world(cell).set_camera_lost(False)
