@@ -9,7 +9,8 @@ the grey levels' quantisation), the same in every frame of one pose, which avera
 remove. The bench shows the simulated cell's target to its camera (``[camera]``, ``[target]``
 of the built-in config, 456 mm away, tilted 8 and 5 deg), moves it by ``1 / (steps - 1)``
 ... 2 px along the image's x, then its y, and at each step takes the mean centre of every dot
-over ``frames`` rendered frames (``fakes.render``, with its sensor noise) found by the
+over ``frames`` rendered frames (``fakes.render``, with the simulated camera's noise and blur
+from ``[sim]``) found by the
 estimator's blob detector. Each dot's mean centre minus its ideal image point, less that
 difference's mean over the steps (a per-dot constant: the perspective bias, the blur), is the
 bias at that step; the report gives its RMS per image coordinate and its worst, for both
@@ -57,7 +58,9 @@ def run_bench_bias(frames: int = 30, steps: int = 41, seed: int = 1,
             ideal = camera.project(points @ R.T + T_camera_target[:3, 3])
             total_px, n = np.zeros_like(ideal), 0
             for _ in range(frames):
-                image = render_target(camera, target, T_camera_target, rng=rng)
+                image = render_target(camera, target, T_camera_target, rng=rng,
+                                      noise_std=config.sim.noise_std,
+                                      blur_sigma_px=config.sim.blur_sigma_px)
                 found = detect_dots(image, target.polarity)[0].centres_px
                 if len(found) != len(points):
                     missed += 1
@@ -84,6 +87,7 @@ def run_bench_bias(frames: int = 30, steps: int = 41, seed: int = 1,
                    for name, r in sweeps.items()},
         "frames_per_step": frames, "steps": steps, "sweep_px": SWEEP_PX,
         "frames_missing_a_dot": missed, "distance_mm": DISTANCE_MM,
+        "noise_std": config.sim.noise_std, "blur_sigma_px": config.sim.blur_sigma_px,
         "tilt_deg": list(TILT_DEG), "dots": len(points), "seed": seed,
     }
 
