@@ -244,8 +244,8 @@ class IbvsConfig(Strict):
     # the error of a dot's centre that averaging frames does not remove (px per image
     # coordinate: the pull towards the pixel grid), in the taught view and the view now; the
     # converged result's estimated error includes what it allows at the TCP
-    # (cell.servoing.view_bound). Measured 0.009 px RMS on the simulator's dots while they were
-    # quantised to 4 x 4 in-or-out samples (fakes/render.py), less since.
+    # (cell.servoing.view_bound). The default is for a camera not measured yet; the simulated
+    # camera's is 0.0012 px (`cell bench bias`), and cell/configs/sim.toml takes 0.002.
     centroid_bias_px: float = Field(default=0.01, ge=0)
     # move the measured features on by the arm's motion since their exposure (latency
     # compensation; the latency cap then counts the arm state's age only); off by default:
