@@ -26,6 +26,7 @@ import itertools
 import logging
 import os
 import pickle
+import select
 import signal
 import struct
 import subprocess
@@ -76,6 +77,8 @@ PLANNED_WATCHDOG_HZ = 1.0
 KICK_PERIOD_S = 0.02
 PARENT_LEASE_S = 0.06
 HEARTBEAT_S = 0.02
+# a child that takes no request (a heartbeat) for this long has stopped reading: it is killed
+HEARTBEAT_WRITE_S = 3.0
 QUIET_AFTER_CALL_S = 0.02
 # ur_rtde's control commands that return without the script's answer (streamed ones)
 STREAMED_METHODS = frozenset({"speedL", "speedJ", "servoL", "servoJ", "servoC", "forceMode",
@@ -229,6 +232,23 @@ def _write(stream: IO[bytes], obj: object, lock: threading.Lock) -> None:
     with lock:
         stream.write(_LEN.pack(len(data)) + data)
         stream.flush()
+
+
+def _write_within(fd: int, data: bytes, deadline_s: float) -> None:
+    """All of ``data`` into the non-blocking ``fd`` by ``deadline_s`` (monotonic); TimeoutError
+    when its reader does not take it in time (a child that stopped reading: its pipe is full,
+    and a blocking write would hold every later request, a stop's too, for as long)."""
+    view = memoryview(data)
+    while view:
+        try:
+            view = view[os.write(fd, view):]
+            continue
+        except BlockingIOError:
+            pass
+        remaining_s = deadline_s - time.monotonic()
+        if remaining_s <= 0.0:
+            raise TimeoutError(f"{len(view)} of {len(data)} bytes not taken")
+        select.select([], [fd], [], remaining_s)
 
 
 def _read(stream: IO[bytes]) -> Any:
@@ -720,7 +740,11 @@ class ClientProcess:
         self._ids = itertools.count(1)
         self._pending: dict[int, Future[Any]] = {}
         self._lock = threading.Lock()
-        self._write_lock = threading.Lock()
+        self._write_lock = threading.Lock()  # one frame at a time into the request pipe
+        assert self._proc.stdin is not None
+        self._stdin_fd = self._proc.stdin.fileno()
+        os.set_blocking(self._stdin_fd, False)  # every write has a deadline (_send)
+        self._stdin_closed = False
         self.dead_reason: str | None = None
         # told of every pushed sample (see Subscribe), from the reader thread
         self.on_push: Callable[[StateSample], None] | None = None
@@ -729,12 +753,30 @@ class ClientProcess:
         threading.Thread(target=self._heartbeat, daemon=True,
                          name=f"ur-heartbeat-{host}").start()
 
+    def _send(self, obj: object, timeout_s: float) -> None:
+        """One frame to the child within ``timeout_s`` (TimeoutError when it does not take
+        it: the caller kills it); OSError when the pipe is closed."""
+        data = pickle.dumps(obj)
+        frame = _LEN.pack(len(data)) + data
+        deadline_s = time.monotonic() + timeout_s
+        if not self._write_lock.acquire(timeout=timeout_s):
+            raise TimeoutError("another request is still being written")
+        try:
+            if self._stdin_closed:
+                raise OSError("the request pipe is closed")
+            _write_within(self._stdin_fd, frame, deadline_s)
+        finally:
+            self._write_lock.release()
+
     def _heartbeat(self) -> None:
         """Tell the child this process lives (it kicks the controller's watchdog only then)."""
         while self.dead_reason is None:
             try:
-                assert self._proc.stdin is not None
-                _write(self._proc.stdin, (0, Heartbeat()), self._write_lock)
+                self._send((0, Heartbeat()), HEARTBEAT_WRITE_S)
+            except TimeoutError:
+                self.kill(f"the ur_rtde client process took no request for "
+                          f"{HEARTBEAT_WRITE_S:g} s")
+                return
             except (OSError, ValueError):
                 return
             time.sleep(HEARTBEAT_S)
@@ -784,8 +826,11 @@ class ClientProcess:
             req_id = next(self._ids)
             self._pending[req_id] = fut
         try:
-            assert self._proc.stdin is not None
-            _write(self._proc.stdin, (req_id, req), self._write_lock)
+            self._send((req_id, req), timeout_s)
+        except TimeoutError:
+            self.kill(f"{describe(req)}: the ur_rtde client process did not take the request "
+                      f"within {timeout_s:g} s")
+            raise ClientDied(self.dead_reason or "timeout") from None
         except (OSError, ValueError) as exc:
             self._die(f"cannot reach the ur_rtde client process: {exc}")
         try:
@@ -806,9 +851,17 @@ class ClientProcess:
         self._close_stdin()
 
     def _close_stdin(self) -> None:
-        if self._proc.stdin is not None:
-            with contextlib.suppress(OSError):
-                self._proc.stdin.close()
+        """Close the request pipe once no frame is being written into it (a writer ends by
+        its deadline, or at once when the child is gone)."""
+        locked = self._write_lock.acquire(timeout=HEARTBEAT_WRITE_S + 1.0)
+        try:
+            self._stdin_closed = True
+            if self._proc.stdin is not None:
+                with contextlib.suppress(OSError):
+                    self._proc.stdin.close()
+        finally:
+            if locked:
+                self._write_lock.release()
 
     def close(self, timeout_s: float = 2.0) -> None:
         """Let the child exit (stdin closed); kill it if it does not."""
