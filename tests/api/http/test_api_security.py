@@ -27,6 +27,7 @@ from api.app import create_app
 from api.auth import TokenTable, token_digest
 from cell.config.schema import TokenConfig
 from cell.service import Cell
+from cell.supervision.status import still_starting
 from tests.support.cell import AUTH, running_cell, sim_config, tcp
 from tests.support.paths import REPO
 
@@ -212,10 +213,12 @@ def test_cell_serve_https(tmp_path: Path) -> None:
             try:
                 r = httpx.get(f"https://127.0.0.1:{port}/api/v1/health", verify=trust,
                               timeout=2)
-                break
+                if not still_starting(r.json()):
+                    break
             except httpx.HTTPError:
-                assert time.monotonic() < deadline, (tmp_path / "serve.log").read_text()
-                time.sleep(0.3)
+                pass
+            assert time.monotonic() < deadline, (tmp_path / "serve.log").read_text()
+            time.sleep(0.3)
         assert r.status_code == 200 and r.json()["status"] == "ok"
         with pytest.raises(httpx.HTTPError):
             httpx.get(f"http://127.0.0.1:{port}/api/v1/health", timeout=2)

@@ -31,11 +31,13 @@ from api.plc.xmlrpc import XmlRpcServer
 from cell.config.endpoints import opcua_cert_dir
 from cell.features.teach import TaughtPose
 from cell.service import Cell
+from cell.supervision.status import still_starting
 from cell.vision.frames import approach_tcp
 from estimator.transforms import T_from_pose, T_from_pose_dict, T_from_ur_pose, pose_distance
 from tests.support.cell import AUTH, running_cell, settled_tcp, sim_config, tcp
 from tests.support.net import free_port
 from tests.support.opcua import Opc, opc_client
+from tests.support.waiting import wait_until
 
 METHODS = ("Locate", "Approach", "Track", "Stop", "Home", "Gripper")
 VARIABLES = ("State", "RobotMode", "SafetyStatus", "TcpPose", "TcpPoseUR", "LastLocatePose",
@@ -475,6 +477,9 @@ def test_cell_serve_prints_and_serves_every_endpoint(tmp_path: Path) -> None:
                 pass
             assert time.monotonic() < deadline, "XML-RPC did not come up within 90 s"
             time.sleep(0.3)
+        wait_until(lambda: not still_starting(httpx.get(
+            f"http://127.0.0.1:{http_port}/api/v1/health", timeout=10).json()), 60.0,
+            "the start to end (the arm connected and powered on)")
 
         async def opc_state() -> str:
             opc = await Opc(opc_client(f"opc.tcp://127.0.0.1:{opcua_port}", "viewer")).open()
