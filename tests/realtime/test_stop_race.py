@@ -28,7 +28,7 @@ from cell.service import Cell
 from estimator.transforms import pose_distance
 from fakes.ur_controller.load import cpu_burners
 from fakes.ur_controller.process import free_loopback_host
-from tests.support.cell import running_cell, sim_config, tcp
+from tests.support.cell import running_cell, sim_config, standing_tcp, tcp
 from tests.support.waiting import wait_until
 
 MAX_DELAY_S = 0.15  # past the first controller cycle even when the host delays the command
@@ -57,19 +57,6 @@ class Race:
     T_still: np.ndarray
 
 
-def _still(cell: Cell, timeout_s: float = 3.0) -> np.ndarray:
-    """The true TCP once two reads 0.1 s apart agree (AssertionError if it never stands)."""
-    prev = tcp(cell)
-    deadline = time.monotonic() + timeout_s
-    while True:
-        time.sleep(0.1)
-        now = tcp(cell)
-        if pose_distance(prev, now)[0] < STILL_MM:
-            return now
-        assert time.monotonic() < deadline, "the arm still moves after the stop answered"
-        prev = now
-
-
 def _race(cell: Cell, name: str, command: Callable[[], None], delay_s: float) -> Race:
     """``command`` run holding the slot in a thread; STOP ``delay_s`` after the claim."""
     claimed = threading.Event()
@@ -94,7 +81,7 @@ def _race(cell: Cell, name: str, command: Callable[[], None], delay_s: float) ->
     T_at_answer = tcp(cell)
     t.join(30.0)
     assert not t.is_alive(), f"the {name} did not end after the stop"
-    return Race(answer, ended[0], T_at_answer, _still(cell))
+    return Race(answer, ended[0], T_at_answer, standing_tcp(cell, STILL_MM))
 
 
 def _check(cell: Cell, race: Race, name: str, T_goal: np.ndarray, brake_mm: float) -> None:
@@ -217,7 +204,7 @@ def test_stop_cancels_the_home_job_whatever_the_timing(cell: Cell) -> None:
         answer = cell.stop("race", reason=f"race home at {delay * 1000:.0f} ms")
         T_at_answer = tcp(cell)
         ended = wait_until(lambda j=job.id: _ended(cell, j), 30.0, f"job {job.id} to end")
-        T_still = _still(cell)
+        T_still = standing_tcp(cell, STILL_MM)
         where = f"race {k} at {delay * 1000:.0f} ms"
         assert answer["stopped"] is True and answer["cancelled"] == "home", (where, answer)
         assert ended.state == "cancelled", (where, ended.state, ended.error_message)

@@ -26,7 +26,7 @@ import cell.servoing.image as image_law
 from cell.service import Cell
 from estimator.transforms import pose_distance
 from fakes.ur_controller.load import cpu_burners
-from tests.support.cell import mount_off, running_cell, settled_tcp, sim_config, tcp
+from tests.support.cell import mount_off, running_cell, settled_tcp, sim_config, standing_tcp, tcp
 from tests.support.waiting import wait_until
 
 RACES = 8
@@ -55,18 +55,6 @@ def _settle_started(monkeypatch: pytest.MonkeyPatch) -> threading.Event:
 
     monkeypatch.setattr(image_law, "settle_on_views", watched)
     return started
-
-
-def _still(cell: Cell, timeout_s: float = 3.0) -> np.ndarray:
-    prev = tcp(cell)
-    deadline = time.monotonic() + timeout_s
-    while True:
-        time.sleep(0.1)
-        now = tcp(cell)
-        if pose_distance(prev, now)[0] < STILL_MM:
-            return now
-        assert time.monotonic() < deadline, "the arm still moves after the stop answered"
-        prev = now
 
 
 def test_stop_during_the_ibvs_settle_cancels_it_and_nothing_moves_after(
@@ -100,7 +88,7 @@ def test_stop_during_the_ibvs_settle_cancels_it_and_nothing_moves_after(
             continue
         landed += 1
         assert ended.state == "cancelled", (where, ended.state, ended.error_message)
-        T_still = _still(cell)
+        T_still = standing_tcp(cell, STILL_MM)
         assert pose_distance(T_at_answer, T_still)[0] < 1.0, \
             f"{where}: the arm went on after STOP answered"
         time.sleep(0.3)

@@ -104,3 +104,19 @@ def mount_off(tmp_path: Path) -> dict[str, object]:
     return {"T_flange_camera": {
         "position_mm": (np.asarray(he.position_mm) + MOUNT_ERROR_MM).tolist(),
         "rotvec_rad": (axis * np.radians(MOUNT_ERROR_DEG)).tolist()}}
+
+
+def standing_tcp(cell: Cell, still_mm: float, timeout_s: float = 3.0) -> NDArray[np.float64]:
+    """The true TCP once two reads 0.1 s apart are within ``still_mm`` (AssertionError if the
+    arm never stands within ``timeout_s``: what a STOP race checks after the answer)."""
+    from estimator.transforms import pose_distance
+
+    prev = tcp(cell)
+    deadline = time.monotonic() + timeout_s
+    while True:
+        time.sleep(0.1)
+        now = tcp(cell)
+        if pose_distance(prev, now)[0] < still_mm:
+            return now
+        assert time.monotonic() < deadline, "the arm still moves after the stop answered"
+        prev = now
