@@ -56,9 +56,9 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False,
     """Build the API for ``cell``. Raises ConfigError when a sample token is configured on
     hardware other than the fakes. ``interfaces``: also serve the configured OPC UA server and
     URScript XML-RPC endpoint (api.plc.interfaces) while the app runs. ``start_cell``: the
-    cell is built but not started; the app's start-up starts it beside those servers, and
-    HTTP serves once they listen, without waiting for the arm's connect and power-on
-    (``/health`` says ``starting`` until they have ended)."""
+    cell is built but not started; the app's start-up starts it, and HTTP serves without
+    waiting for the arm's connect and power-on, the gripper's activation or those servers'
+    sockets (``/health`` says ``starting`` until they have ended)."""
     tokens = TokenTable(list(cell.config.api.tokens), simulated=cell.hw.simulated)
     logs.install()
     doors = Interfaces(cell)
@@ -66,20 +66,18 @@ def create_app(cell: Cell, *, close_cell_on_shutdown: bool = False,
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         logs.install()  # uvicorn's handlers exist by now
-        starts = [asyncio.to_thread(cell.start, True)] if start_cell else []
         if interfaces:
-            starts.append(asyncio.to_thread(doors.start))
-        failed = [r for r in await asyncio.gather(*starts, return_exceptions=True)
-                  if isinstance(r, BaseException)]
-        if failed:  # both starts have ended: nothing half-started is left running
-            doors.close()
-            if close_cell_on_shutdown:
-                cell.close()
-            err = failed[0]
-            print(f"error ({getattr(err, 'code', 'startup_failed')}): the cell could not "
-                  f"start: {err}", file=sys.stderr)
-            raise err
+            doors.start_in_background(cell.startup, then=freeze_startup_objects)
         if start_cell:
+            try:
+                await asyncio.to_thread(cell.start, True)
+            except BaseException as err:
+                doors.close()  # after their start has ended: nothing is left listening
+                if close_cell_on_shutdown:
+                    cell.close()
+                print(f"error ({getattr(err, 'code', 'startup_failed')}): the cell could not "
+                      f"start: {err}", file=sys.stderr)
+                raise
             freeze_startup_objects()
         yield
         doors.close()
@@ -145,7 +143,8 @@ def app_from_environment() -> FastAPI:
                             _port_from_environment("CELL_XMLRPC_PORT"),
                             _port_from_environment("CELL_MODBUS_PORT"))
         Interfaces.prefetch(config)  # their libraries load while the devices start
-        cell = build_cell(config, config_path=os.environ.get("CELL_CONFIG") or None)
+        cell = build_cell(config, config_path=os.environ.get("CELL_CONFIG") or None,
+                          wait_ready=False)
     except Exception as err:  # a clear line instead of a traceback from inside uvicorn
         code = getattr(err, "code", "startup_failed")
         print(f"error ({code}): the cell could not start: {err}", file=sys.stderr)

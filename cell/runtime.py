@@ -68,15 +68,15 @@ def start_cell(config: CellConfig | str | Path | None = None,
 
 
 def build_cell(config: CellConfig | str | Path | None = None,
-               config_path: str | Path | None = None) -> Cell:
+               config_path: str | Path | None = None, wait_ready: bool = True) -> Cell:
     """Validate and build the cell (its hardware, job store and image log), not started: the
     caller runs :meth:`Cell.start`, and :meth:`Cell.close` on any failure after this one.
-    ``cell serve`` starts it beside its OPC UA and Modbus servers, so neither waits for the
-    other."""
+    ``wait_ready=False`` (``cell serve``): a simulated controller boots while the service
+    starts, and the cell's first connect waits for it."""
     cfg = config if isinstance(config, CellConfig) else load_config(config)
     check_startable(cfg)
     sys.setswitchinterval(min(sys.getswitchinterval(), GIL_SWITCH_INTERVAL_S))
-    hw = build_hardware(cfg)
+    hw = build_hardware(cfg, wait_ready)
     try:
         jobs = JobStore(cfg.api.job_db)
     except BaseException:

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -69,6 +70,7 @@ from cell.supervision.host_watch import HostWatch
 from cell.supervision.links import LinkSupervisor
 from cell.supervision.retention import Retention
 from cell.supervision.snapshot import CellSnapshot
+from cell.supervision.startup import Startup
 from cell.supervision.storage import StorageWatch, state_dirs, stop_unrecordable_jobs
 from cell.vision.frames import CellFrames, cell_frames
 from cell.vision.imagelog import ImageLog
@@ -112,19 +114,25 @@ class Cell:
                            host_note=self.host_watch.note)
         self.core = CellCore(config, hardware, arm, slot, jobs, self.events, audit, runner,
                              locator, self.stats, frames, target)
-        self.links = LinkSupervisor(self.core)
-        self.gripper_ops = GripperService(hardware.gripper, audit, self.events, slot, arm.gate)
+        self.startup = Startup()  # what of the start still runs behind a serving API
+        self.links = LinkSupervisor(self.core, self.startup)
+        self.gripper_ops = GripperService(hardware.gripper, audit, self.events, slot, arm.gate,
+                                          self.startup)
         self.stopper = StopLine(self.core, self.gripper_ops.halt)
         self.jogger = Jogger(self.core, self.stopper.stop)
         self.storage = StorageWatch(jobs, state_dirs(jobs, config.api.calibration_dir,
                                                      config.api.image_log_dir),
                                     busy=lambda: slot.current is not None)
         stop_unrecordable_jobs(jobs, slot, self.stopper.submit)
-        self.snapshot = CellSnapshot(self.core, self.links, self.gripper_ops, self.storage)
+        # more /health reasons from outside the cell (the PLC servers that cannot listen)
+        self.health_reasons: list[Callable[[], list[dict[str, str]]]] = []
+        self.snapshot = CellSnapshot(self.core, self.links, self.gripper_ops, self.storage,
+                                     starting=lambda: self.startup.active,
+                                     reason_sources=self.health_reasons)
         self.taught = TaughtStore.beside_job_db(config.api.job_db)
         self.recipes = RecipeStore.beside_job_db(config.api.job_db, config.limits)
         self.alarms = AlarmLog(jobs, self.events, self.status,
-                               starting=lambda: self.links.starting)
+                               starting=lambda: self.startup.active)
         self.calibration = CalibrationService(self.core, self.set_hand_eye, config_path)
         self.reference = ReferenceStore.beside_job_db(config.api.job_db)
         self.checks = CalibrationCheck(self.core, self.reference)
@@ -169,7 +177,7 @@ class Cell:
         self.host_watch.start()
         if not connect_in_background:
             self.links.connect_all()
-        self.gripper_ops.start()
+        self.gripper_ops.start(connect_in_background)
         self.links.start(first_tries=connect_in_background)
         self.storage.start()
         self.snapshot.start()

@@ -438,16 +438,18 @@ class Me(_Out):
 
 
 HealthCode = Literal["starting", "arm_disconnected", "camera_lost", "protective_stop",
-                     "emergency_stop", "storage", "disk_space"]
+                     "emergency_stop", "storage", "disk_space", "plc_server_down"]
 
 
 class HealthReason(BaseModel):
     code: HealthCode = Field(
         description="starting: the service's first connect to the devices (and the arm's "
-        "power-on) is still running; arm_disconnected / camera_lost: a device is not "
+        "power-on, the gripper's activation) or its PLC servers' start is still running; "
+        "arm_disconnected / camera_lost: a device is not "
         "connected (also in `missing`); protective_stop / emergency_stop: the arm is "
         "safety-stopped; storage: the job database cannot be written; disk_space: a file "
-        "system the service writes to is nearly full")
+        "system the service writes to is nearly full; plc_server_down: a configured PLC server "
+        "(OPC UA, XML-RPC, Modbus) could not start (its port taken, a bad certificate)")
     message: str = Field(description="the reason in words, for people")
 
 

@@ -280,8 +280,10 @@ def all_simulated(config: CellConfig) -> bool:
 
 
 # -- building -----------------------------------------------------------------------------------
-def build_hardware(config: CellConfig) -> Hardware:
-    """Create (not connect) the devices the config names; Cell.start connects them."""
+def build_hardware(config: CellConfig, wait_ready: bool = True) -> Hardware:
+    """Create (not connect) the devices the config names; Cell.start connects them.
+    ``wait_ready=False``: return while a simulated controller still boots in its own process
+    (``Hardware.wait_ready`` waits for it; the service's first connect calls it)."""
     problems = hardware_problems(config)
     if problems:
         raise ConfigError("cannot build the hardware:\n  "
@@ -296,12 +298,15 @@ def build_hardware(config: CellConfig) -> Hardware:
         gripper = _build_gripper(config.gripper, sim)
         if gripper is not None:
             closers.append(gripper.disconnect)
+        if wait_ready:
+            sim.wait_ready()
     except BaseException:
         _release(closers)
         raise
     simulated = all_simulated(config)
     return Hardware(arm=arm, camera=camera, gripper=gripper, simulated=simulated,
-                    sim=sim.world if simulated else None, closers=closers)
+                    sim=sim.world if simulated else None, closers=closers,
+                    wait_ready=sim.wait_ready)
 
 
 def build_camera(config: CellConfig) -> tuple[Camera, Callable[[], None]]:

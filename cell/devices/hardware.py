@@ -185,6 +185,10 @@ class Hardware:
     simulated: bool  # every device is a fake (sample API tokens are allowed)
     sim: SimWorld | None = None
     closers: list[Callable[[], None]] = field(default_factory=list)
+    # Blocks until devices the service started itself (a simulated controller, which boots
+    # in its own process while the service starts) can be connected to; the first connect
+    # calls it. Real devices boot on their own: nothing to wait for.
+    wait_ready: Callable[[], None] = field(default=lambda: None)
 
     def close(self) -> None:
         """Release devices in reverse order of creation; never raises."""

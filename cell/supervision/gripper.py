@@ -24,18 +24,22 @@ from cell.errors import LimitError, UnavailableError
 from cell.jobs.audit import Auditor
 from cell.jobs.events import EventBus
 from cell.motion.guard import CommandGate, Motion, MotionSlot, driver_error
+from cell.supervision.startup import Startup
 from drivers.errors import DriverError
 from drivers.gripper import Gripper, GripperStatus
 
 log = logging.getLogger(__name__)
 POLL_PERIOD_S = 0.5
+STARTUP_PART = "gripper"
 ACTIONS = ("open", "close", "move", "activate")
 
 
 class GripperService:
     def __init__(self, gripper: Gripper | None, audit: Auditor, events: EventBus,
-                 slot: MotionSlot | None = None, gate: CommandGate | None = None) -> None:
+                 slot: MotionSlot | None = None, gate: CommandGate | None = None,
+                 startup: Startup | None = None) -> None:
         self.gripper = gripper
+        self.startup = startup if startup is not None else Startup()
         self.audit = audit
         self.events = events
         self.slot = slot if slot is not None else MotionSlot()
@@ -50,14 +54,24 @@ class GripperService:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
-    def start(self) -> None:
+    def start(self, connect_in_background: bool = False) -> None:
+        """Connect and activate the gripper, then poll it; ``connect_in_background``: the
+        poll thread makes that first try (a part of the start, :mod:`cell.supervision.startup`)
+        and this returns at once."""
         if self.gripper is None:
             return
+        if connect_in_background:
+            self.startup.begin(STARTUP_PART)
+        else:
+            self._first_connect()
+        self._thread = threading.Thread(target=self._poll, args=(connect_in_background,),
+                                        name="cell-gripper", daemon=True)
+        self._thread.start()
+
+    def _first_connect(self) -> None:
         with self._bus_lock:
             if not self._connect():
                 log.warning("gripper not available at start: %s", self._error)
-        self._thread = threading.Thread(target=self._poll, name="cell-gripper", daemon=True)
-        self._thread.start()
 
     def close(self) -> None:
         self._stop.set()
@@ -160,8 +174,13 @@ class GripperService:
         self._set(st, None)
         return True
 
-    def _poll(self) -> None:
+    def _poll(self, first_connect: bool) -> None:
         assert self.gripper is not None
+        if first_connect:
+            try:
+                self._first_connect()
+            finally:
+                self.startup.end(STARTUP_PART)
         while not self._stop.wait(POLL_PERIOD_S):
             if not self._bus_lock.acquire(timeout=0.05):
                 continue  # a command holds the line and refreshes the status itself

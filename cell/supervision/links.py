@@ -25,10 +25,12 @@ from dataclasses import dataclass
 from cell.core import CellCore
 from cell.error_codes import ErrorCode
 from cell.errors import CellError, UnavailableError
+from cell.supervision.startup import Startup
 from drivers.errors import DriverError
 
 log = logging.getLogger(__name__)
 CHECK_PERIOD_S = 0.1
+STARTUP_PART = "arm and camera"
 
 
 @dataclass
@@ -50,8 +52,9 @@ class LinkState:
 
 
 class LinkSupervisor:
-    def __init__(self, core: CellCore) -> None:
+    def __init__(self, core: CellCore, startup: Startup | None = None) -> None:
         self.core = core
+        self.startup = startup if startup is not None else Startup()
         rc = core.config.robot
         self.initial_s, self.max_s = rc.reconnect_initial_s, max(rc.reconnect_max_s,
                                                                  rc.reconnect_initial_s)
@@ -61,11 +64,14 @@ class LinkSupervisor:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
-        self._starting = threading.Event()  # set while the first tries run in the background
 
     # -- start --------------------------------------------------------------------------------
     def connect_all(self) -> None:
         """One try at each device, at start; what fails is retried in the background."""
+        try:
+            self.core.hw.wait_ready()
+        except Exception as err:  # the tries below fail and say how; the retries go on
+            log.error("a simulated device did not start: %s", err)
         self._try_arm(first=True)
         self._try_camera(first=True)
 
@@ -74,7 +80,7 @@ class LinkSupervisor:
         device there too (instead of :meth:`connect_all` before this), so the caller serves
         at once and :attr:`starting` is true until those tries have ended."""
         if first_tries:
-            self._starting.set()
+            self.startup.begin(STARTUP_PART)
         self._thread = threading.Thread(target=self._loop, args=(first_tries,),
                                         name="cell-links", daemon=True)
         self._thread.start()
@@ -82,7 +88,7 @@ class LinkSupervisor:
     @property
     def starting(self) -> bool:
         """The start's first tries at the devices are still running."""
-        return self._starting.is_set()
+        return STARTUP_PART in self.startup.running
 
     def close(self) -> None:
         self._stop.set()
@@ -114,7 +120,7 @@ class LinkSupervisor:
             except Exception:  # a failed try is retried below like any lost link
                 log.exception("the first connect at start failed")
             finally:
-                self._starting.clear()
+                self.startup.end(STARTUP_PART)
         while not self._stop.wait(CHECK_PERIOD_S):
             try:
                 self._check_arm()

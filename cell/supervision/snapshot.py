@@ -22,6 +22,7 @@ import json
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -80,8 +81,16 @@ def with_age(body: bytes, age_s: float) -> bytes:
 
 class CellSnapshot:
     def __init__(self, core: CellCore, links: LinkSupervisor, gripper: GripperService,
-                 storage: StorageWatch | None = None) -> None:
+                 storage: StorageWatch | None = None,
+                 starting: Callable[[], bool] | None = None,
+                 reason_sources: list[Callable[[], list[dict[str, str]]]] | None = None
+                 ) -> None:
+        """``starting``: a part of the start still runs (default: the links' first tries);
+        ``reason_sources``: more reasons for ``/health`` (the PLC servers'), read at each
+        snapshot, so the list may grow after this."""
         self.core = core
+        self.reason_sources = reason_sources if reason_sources is not None else []
+        self.starting = starting if starting is not None else (lambda: links.starting)
         self.links = links
         self.gripper = gripper
         self.storage = storage
@@ -126,6 +135,15 @@ class CellSnapshot:
     def health(self) -> dict[str, Any]:
         return dict(self.current().health)
 
+    def _other_reasons(self) -> list[dict[str, str]]:
+        out = [] if self.storage is None else self.storage.reasons()
+        for source in list(self.reason_sources):
+            try:
+                out += source()
+            except Exception:  # one broken source must not take /health down with it
+                log.exception("a health reason source failed")
+        return out
+
     def _stale(self, snap: Snap) -> bool:
         return (time.monotonic() - snap.taken_s > READ_TOLERANCE_PERIODS * self.period_s
                 or snap.slot_generation != self.core.slot.generation)
@@ -153,8 +171,8 @@ class CellSnapshot:
         if not st["camera"]["connected"] and "camera" not in missing:
             missing.append("camera")
         health = status_mod.health_from(
-            missing, st["robot"], [] if self.storage is None else self.storage.reasons(),
-            starting=self.links.starting)
+            missing, st["robot"], self._other_reasons(),
+            starting=self.starting())
         robot = st["robot"]
         motion = core.slot.current
         state = None if "T_base_tcp" not in robot else {

@@ -73,9 +73,9 @@ MISSING_REASONS = {
                "itself"),
 }
 
-STARTING_REASON = {"code": "starting", "message": "the service is starting: it connects the arm "
-                   "and the camera (and powers the arm on where configured); commands that need "
-                   "them are refused until then"}
+STARTING_REASON = {"code": "starting", "message": "the service is starting: it connects the arm, "
+                   "the camera and the gripper (and powers the arm on where configured) and "
+                   "opens its PLC servers; commands that need a device are refused until then"}
 
 
 def still_starting(health: dict[str, Any]) -> bool:

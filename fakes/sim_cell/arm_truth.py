@@ -70,8 +70,14 @@ class ProcessTruth:
     def __init__(self, host: str, start: bool, kin: UR5eKinematics | None = None) -> None:
         self.host = host
         self.kin = kin
-        self.ctl: ControllerProcess | None = ControllerProcess(host) if start else None
+        self.ctl: ControllerProcess | None = (ControllerProcess(host, wait=False) if start
+                                              else None)
         self._last: tuple[Matrix4, Matrix4] | None = None
+
+    def wait_ready(self) -> None:
+        """Block until the controller started with this truth listens (it boots meanwhile)."""
+        if self.ctl is not None:
+            self.ctl.wait_ready()
 
     def flange_and_tcp(self) -> tuple[Matrix4, Matrix4, float]:
         ctl = self.ctl

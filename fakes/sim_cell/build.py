@@ -38,6 +38,13 @@ class SimulatedCell(Generic[TruthT]):
     gripper: FakeGripper | None = None
     world: SimulatedWorld[TruthT] | None = None
     closers: list[Callable[[], None]] = field(default_factory=list)
+    readiness: list[Callable[[], None]] = field(default_factory=list)
+
+    def wait_ready(self) -> None:
+        """Block until the simulated devices in processes of their own (the controller)
+        listen: they boot while the service starts, and its first connect waits here."""
+        for wait in self.readiness:
+            wait()
 
     def close(self) -> None:
         """Release in reverse order of creation; never raises."""
@@ -84,6 +91,7 @@ def _arm(spec: ArmSpec, built: SimulatedCell[TruthT]) -> ArmTruth:
         truth = ProcessTruth(spec.controller_host, start=spec.controller_running_at_start,
                              kin=kin)
         built.closers.append(truth.close)
+        built.readiness.append(truth.wait_ready)
         return truth
     engine = MotionEngine(q_rad=list(spec.home_joints_rad))
     built.closers.append(engine.close)

@@ -38,7 +38,9 @@ class ControllerProcess:
     """``python -m fakes.ur_controller --control --host HOST`` with a typed control API."""
 
     def __init__(self, host: str | None = None, *, powered: bool = False,
-                 remote_control: bool = True) -> None:
+                 remote_control: bool = True, wait: bool = True) -> None:
+        """Start the controller; ``wait``: return once it listens (else :meth:`wait_ready`,
+        or the first command, waits for that: a controller boots while its client starts)."""
         host = host or free_loopback_host()
         self.host = host
         argv = [sys.executable, "-m", "fakes.ur_controller", "--host", host, "--control"]
@@ -49,10 +51,23 @@ class ControllerProcess:
         self._proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                       text=True, bufsize=1)
         self._lock = threading.Lock()
-        ready = self._readline(READY_TIMEOUT_S)
+        self._ready = False
+        if wait:
+            self.wait_ready()
+
+    def wait_ready(self, timeout_s: float = READY_TIMEOUT_S) -> None:
+        """Block until the controller listens on its ports (at once when it already does)."""
+        with self._lock:
+            self._await_ready(timeout_s)
+
+    def _await_ready(self, timeout_s: float) -> None:
+        if self._ready:
+            return
+        ready = self._readline(timeout_s)
         if "ready" not in ready:
             self.close()
-            raise RuntimeError(f"controller on {host} did not start: {ready!r}")
+            raise RuntimeError(f"controller on {self.host} did not start: {ready!r}")
+        self._ready = True
 
     def _readline(self, timeout_s: float) -> str:
         box: list[str] = []
@@ -70,6 +85,7 @@ class ControllerProcess:
 
     def command(self, line: str, timeout_s: float = 5.0) -> dict[str, Any]:
         with self._lock:
+            self._await_ready(READY_TIMEOUT_S)
             assert self._proc.stdin is not None
             self._proc.stdin.write(line + "\n")
             self._proc.stdin.flush()

@@ -1,10 +1,12 @@
 """``create_app(start_cell=True)``: the path ``cell serve`` takes. The cell is built, not
-started, when the app is made; the app's start-up starts it beside the PLC servers and serves
-without waiting for the arm's connect and power-on: ``/health`` says ``starting`` until they
-have ended, then ``ok``. A start that fails closes what it built."""
+started, when the app is made (its simulated controller may still be booting); the app's
+start-up starts it and serves without waiting for the arm's connect and power-on, the
+gripper's activation or the PLC servers' sockets: ``/health`` says ``starting`` until all of
+them have ended, then ``ok``. A start that fails closes what it built."""
 
 from __future__ import annotations
 
+import logging
 import socket
 import threading
 import time
@@ -14,6 +16,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from api.app import create_app
+from api.plc.interfaces import Interfaces
 from cell.runtime import build_cell
 from cell.supervision.status import still_starting
 from tests.support.cell import AUTH, sim_config
@@ -43,6 +46,43 @@ def test_the_app_starts_the_cell_beside_its_servers(tmp_path: Path,
         with socket.create_connection(("127.0.0.1", port), timeout=2.0):
             pass  # the Modbus server listens
     assert closed == [True]
+
+
+def test_health_says_starting_until_the_plc_servers_listen(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    port = free_port()
+    # as cell serve builds it: the simulated controller boots while the service starts
+    cell = build_cell(sim_config(tmp_path, modbus={"port": port, "host": "127.0.0.1"}),
+                      wait_ready=False)
+    release = threading.Event()
+    real_start = Interfaces.start
+
+    def held_start(self: Interfaces) -> None:  # the servers' imports and sockets, held open
+        assert release.wait(30.0)
+        real_start(self)
+
+    monkeypatch.setattr(Interfaces, "start", held_start)
+    caplog.set_level(logging.WARNING)
+    app = create_app(cell, close_cell_on_shutdown=True, interfaces=True, start_cell=True)
+    with TestClient(app) as client:
+        deadline = time.monotonic() + 60.0
+        while not (cell.links.snapshot()["arm"]["up"] and cell.links.snapshot()["camera"]["up"]):
+            assert time.monotonic() < deadline, "the arm and camera did not connect in 60 s"
+            time.sleep(0.05)
+        h = client.get("/api/v1/health").json()
+        assert h["status"] == "degraded" and still_starting(h), h  # the servers still start
+        with pytest.raises(OSError):
+            socket.create_connection(("127.0.0.1", port), timeout=1.0).close()
+        release.set()
+        while still_starting(h := client.get("/api/v1/health").json()):
+            assert time.monotonic() < deadline, "the start did not end in 60 s"
+            time.sleep(0.05)
+        assert h["status"] == "ok", h
+        with socket.create_connection(("127.0.0.1", port), timeout=2.0):
+            pass  # the Modbus server listens
+        assert not {"arm_disconnected", "camera_lost"} & {a.code for a in cell.alarms.list()[0]}
+    # the controller's boot was waited for, not mistaken for an unreachable arm
+    assert not [r for r in caplog.records if "connect try" in r.getMessage()], caplog.text
 
 
 def test_a_start_that_fails_closes_the_cell(tmp_path: Path,

@@ -523,5 +523,14 @@ def test_an_interface_whose_port_is_taken_is_left_out(tmp_path: Path,
                 assert "opcua: cannot serve on" in caplog.text
                 assert xmlrpc.client.ServerProxy(
                     f"http://127.0.0.1:{rpc_port}/RPC2").status() == "idle"
+                # and /health says which server is missing, for as long as it is
+                deadline = time.monotonic() + 10.0
+                while not (h := cell.health())["reasons"]:
+                    assert time.monotonic() < deadline, h
+                    time.sleep(0.05)
+                assert h["status"] == "degraded", h
+                assert [r["code"] for r in h["reasons"]] == ["plc_server_down"], h
+                assert f"OPC UA server cannot serve on opc.tcp://127.0.0.1:{busy}" in (
+                    h["reasons"][0]["message"]), h
             finally:
                 doors.close()
