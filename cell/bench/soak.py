@@ -47,7 +47,7 @@ import httpx
 import numpy as np
 
 from cell.bench.service import SERVICE_NICE, service_processes, serving
-from cell.supervision.host_watch import HOST_STALL_MARK
+from cell.supervision.host_watch import HOST_STALL_MARK, OWN_STALL_MARK
 
 OPERATOR = {"Authorization": "Bearer sim-operator"}
 VIEWER = {"Authorization": "Bearer sim-viewer"}
@@ -469,6 +469,9 @@ def _report(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]], s
         # cell.supervision.host_watch); the rest are the cell's own
         "failed_cycles_not_host": sum(1 for _, _, m in soak.failures
                                       if HOST_STALL_MARK not in m),
+        # of those, failures after a stall of the service's own making (a thread that
+        # held the interpreter): its defects, not the devices'
+        "failed_cycles_own_stall": sum(1 for _, _, m in soak.failures if OWN_STALL_MARK in m),
         "failed_codes": dict(Counter(failed)),
         "cycles": len(soak.cycles),
         "ur_client_rss_mb_per_h": slope_per_h(t, series["ur_client_rss_mb"], skip=0.1),
@@ -531,7 +534,8 @@ def format_report(r: dict[str, Any]) -> str:
         f"(ur_rtde child {r['ur_client_rss_mb_per_h']} MB/h); fds {r['fds_per_h']}/h, "
         f"threads {r['threads_per_h']}/h, job DB {r['job_db_kb_per_h']} KB/h",
         f"cycles {r['cycles']}, failed {r['failed_cycles']} ({r['failed_cycles_not_host']} "
-        f"not the host's) {r['failed_codes'] or ''}",
+        f"not the host's, {r['failed_cycles_own_stall']} after a stall of the service's own) "
+        f"{r['failed_codes'] or ''}",
         f"status p50 {r['status_ms_p50']} ms p95 {r['status_ms_p95']} ms ({r['status_polls']}); "
         f"frame p50 {r['frame_ms_p50']} ms p95 {r['frame_ms_p95']} ms ({r['frames']}); "
         f"SSE events {r['sse_events']}; RTDE reads {r['rtde_reads']} "

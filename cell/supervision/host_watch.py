@@ -11,7 +11,11 @@ message says when the host held the service still for ``STALL_S`` or more in the
 ``WINDOW_S`` before it failed (:meth:`HostWatch.note`), so the cause names the host.
 
 A late wake measures what every Python thread here waits for: the CPU and the interpreter's
-lock. It costs a wake every 20 ms (well under 1 % of a core).
+lock. The service's own CPU time over the late interval tells the two apart: a process the
+host did not schedule used little of it (the host's doing: the message names the host); one
+that ran all along kept its own threads waiting (a long computation holding the interpreter:
+the service's doing, and the message says so, for the service's makers). It costs a wake every
+20 ms (well under 1 % of a core).
 """
 
 from __future__ import annotations
@@ -19,19 +23,38 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
+from dataclasses import dataclass
 
 PERIOD_S = 0.02
 NOTE_S = 0.1  # a wake this late is kept
-STALL_S = 0.5  # a failure with a stall this long before it names the host
+STALL_S = 0.5  # a failure with a stall this long before it is explained by it
 WINDOW_S = 10.0  # how far before a failure a stall is looked for
 KEEP_S = 600.0
+OWN_CPU_SHARE = 0.5  # the service ran for at least this share of a stall: its own doing
 HOST_STALL_MARK = "the host did not let this service run"  # in a failed job's message
+OWN_STALL_MARK = "this service kept its own threads from running"
+
+
+@dataclass(frozen=True)
+class Stall:
+    """A late wake: when it ended (monotonic s), how late it was, and the CPU time the
+    service's process used over the interval it spans."""
+
+    at_s: float
+    late_s: float
+    cpu_s: float
+
+    @property
+    def own(self) -> bool:
+        """The service ran through it (it held its own threads), rather than the host
+        holding all of it."""
+        return self.cpu_s >= OWN_CPU_SHARE * self.late_s
 
 
 class HostWatch:
     def __init__(self, period_s: float = PERIOD_S) -> None:
         self.period_s = period_s
-        self._late: deque[tuple[float, float]] = deque()  # (woke at, how late), oldest first
+        self._late: deque[Stall] = deque()  # oldest first
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -47,36 +70,43 @@ class HostWatch:
 
     def _run(self) -> None:
         due = time.monotonic() + self.period_s
+        cpu_before = time.process_time()
         while not self._stop.wait(max(0.0, due - time.monotonic())):
-            now = time.monotonic()
-            self.woke(now, now - due)
-            due = now + self.period_s
+            now, cpu = time.monotonic(), time.process_time()
+            self.woke(now, now - due, cpu - cpu_before)
+            due, cpu_before = now + self.period_s, cpu
 
-    def woke(self, now_s: float, late_s: float) -> None:
-        """One wake, ``late_s`` after it was due (the watch's thread; tests feed it)."""
+    def woke(self, now_s: float, late_s: float, cpu_s: float = 0.0) -> None:
+        """One wake, ``late_s`` after it was due, the process having used ``cpu_s`` of CPU
+        since the last one (the watch's thread; tests feed it)."""
         if late_s < NOTE_S:
             return
         with self._lock:
-            self._late.append((now_s, late_s))
-            while self._late and self._late[0][0] < now_s - KEEP_S:
+            self._late.append(Stall(now_s, late_s, cpu_s))
+            while self._late and self._late[0].at_s < now_s - KEEP_S:
                 self._late.popleft()
 
-    def worst_s(self, since_s: float, until_s: float | None = None) -> tuple[float, float]:
-        """The longest stall that overlapped ``[since_s, until_s]`` (monotonic s) and when
-        it ended, ``(0, 0)`` when none was noted."""
+    def worst(self, since_s: float, until_s: float | None = None) -> Stall | None:
+        """The longest stall that overlapped ``[since_s, until_s]`` (monotonic s), None when
+        none was noted."""
         until = time.monotonic() if until_s is None else until_s
         with self._lock:
-            overlapping = [(late, at) for at, late in self._late
-                           if at >= since_s and at - late <= until]
-        return max(overlapping, default=(0.0, 0.0))
+            overlapping = [s for s in self._late
+                           if s.at_s >= since_s and s.at_s - s.late_s <= until]
+        return max(overlapping, key=lambda s: s.late_s, default=None)
 
     def note(self, since_s: float, now_s: float | None = None) -> str | None:
-        """A sentence for a failure at ``now_s`` when the host held the service still for
-        ``STALL_S`` or more since ``since_s`` (at most ``WINDOW_S`` back), else None."""
+        """A sentence for a failure at ``now_s`` when the service was held still for
+        ``STALL_S`` or more since ``since_s`` (at most ``WINDOW_S`` back), else None: by the
+        host, or by one of its own threads."""
         now = time.monotonic() if now_s is None else now_s
-        late, at = self.worst_s(max(since_s, now - WINDOW_S), now)
-        if late < STALL_S:
+        stall = self.worst(max(since_s, now - WINDOW_S), now)
+        if stall is None or stall.late_s < STALL_S:
             return None
-        return (f"{HOST_STALL_MARK} for {late:.2f} s, {now - at:.1f} s before this failure: "
-                "the host is overloaded (CPU-bound neighbours, or a virtual machine's CPUs "
-                "taken away)")
+        when = (f"for {stall.late_s:.2f} s, {now - stall.at_s:.1f} s before this failure "
+                f"(the service used {stall.cpu_s:.2f} s of CPU meanwhile)")
+        if stall.own:
+            return (f"{OWN_STALL_MARK} {when}: a computation held the interpreter; a defect "
+                    "of the service, not of the device or the host")
+        return (f"{HOST_STALL_MARK} {when}: the host is overloaded (CPU-bound neighbours, or "
+                "a virtual machine's CPUs taken away)")

@@ -1,13 +1,25 @@
-"""The host watch: a failed job's message names the host when the service was held still
-before it failed, and only then."""
+"""The host watch: a failed job's message names the host when the host held the service still
+before it failed, names the service itself when one of its own threads did, and says nothing
+otherwise."""
 
 from __future__ import annotations
 
+import os
+import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
-from cell.supervision.host_watch import HOST_STALL_MARK, STALL_S, WINDOW_S, HostWatch
+import pytest
+
+from cell.supervision.host_watch import (
+    HOST_STALL_MARK,
+    OWN_STALL_MARK,
+    STALL_S,
+    WINDOW_S,
+    HostWatch,
+)
 from estimator.transforms import pose_distance, translation_T
 from tests.support.cell import running_cell, sim_config, tcp, world
 
@@ -19,10 +31,18 @@ def test_a_stall_before_a_failure_is_named_and_a_short_or_old_one_is_not() -> No
     assert watch.note(now - 20.0, now) is None
     watch.woke(now - WINDOW_S - 2.0, 1.5)  # long, but long before the failure
     assert watch.note(now - 20.0, now) is None
-    watch.woke(now - 2.0, STALL_S + 0.3)
+    watch.woke(now - 2.0, STALL_S + 0.3, cpu_s=0.05)  # the process hardly ran: the host
     note = watch.note(now - 20.0, now)
     assert note is not None and HOST_STALL_MARK in note and "0.80 s" in note, note
     assert watch.note(now - 1.0, now) is None  # it ended before the job began
+
+
+def test_a_stall_the_service_ran_through_is_its_own() -> None:
+    watch = HostWatch()
+    now = 1000.0
+    watch.woke(now - 2.0, STALL_S + 0.3, cpu_s=0.78)  # a thread of its own kept the others
+    note = watch.note(now - 20.0, now)
+    assert note is not None and OWN_STALL_MARK in note and HOST_STALL_MARK not in note, note
 
 
 def _hold_the_interpreter(seconds: float) -> None:
@@ -38,8 +58,20 @@ def _hold_the_interpreter(seconds: float) -> None:
         sys.setswitchinterval(interval)
 
 
-def test_an_approach_that_fails_after_the_service_was_held_still_names_the_host(
-        tmp_path: Path) -> None:
+def _stop_this_process(seconds: float) -> None:
+    """SIGSTOP this whole process for ``seconds`` from outside, as a host that does not
+    schedule it does (a shell sends the STOP and, later, the CONT)."""
+    subprocess.Popen(["sh", "-c", f"kill -STOP {os.getpid()}; sleep {seconds}; "
+                      f"kill -CONT {os.getpid()}"]).wait()
+    time.sleep(0.05)  # the CONT has come: this line runs after it
+
+
+@pytest.mark.parametrize(("hold", "mark", "not_mark"), [
+    (_stop_this_process, HOST_STALL_MARK, OWN_STALL_MARK),
+    (_hold_the_interpreter, OWN_STALL_MARK, HOST_STALL_MARK),
+], ids=["host", "own"])
+def test_an_approach_that_fails_after_the_service_was_held_still_names_who_held_it(
+        tmp_path: Path, hold: Callable[[float], None], mark: str, not_mark: str) -> None:
     with running_cell(sim_config(tmp_path)) as cell:
         world(cell).set_target(translation_T(60.0, 40.0, 0.0) @ world(cell).true_T_base_target())
         job = cell.approach("test", speed_mm_s=30.0)
@@ -48,7 +80,7 @@ def test_an_approach_that_fails_after_the_service_was_held_still_names_the_host(
         while pose_distance(tcp(cell), start)[0] < 2.0:
             assert time.monotonic() < deadline, "the approach never started moving"
             time.sleep(0.01)
-        _hold_the_interpreter(0.8)
+        hold(0.8)
         world(cell).set_camera_lost(True)
         deadline = time.monotonic() + 5.0
         while not cell.job(job.id).finished:
@@ -56,6 +88,6 @@ def test_an_approach_that_fails_after_the_service_was_held_still_names_the_host(
             time.sleep(0.01)
         ended = cell.job(job.id)
         assert ended.state == "failed" and ended.error_code == "camera_lost", ended
-        assert ended.error_message is not None and HOST_STALL_MARK in ended.error_message, \
-            ended.error_message
+        message = ended.error_message or ""
+        assert mark in message and not_mark not in message, message
         world(cell).set_camera_lost(False)
