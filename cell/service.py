@@ -117,7 +117,7 @@ class Cell:
         self.startup = Startup()  # what of the start still runs behind a serving API
         self.links = LinkSupervisor(self.core, self.startup)
         self.gripper_ops = GripperService(hardware.gripper, audit, self.events, slot, arm.gate,
-                                          self.startup)
+                                          self.startup, host_note=self.host_watch.note)
         self.stopper = StopLine(self.core, self.gripper_ops.halt)
         self.jogger = Jogger(self.core, self.stopper.stop)
         self.storage = StorageWatch(jobs, state_dirs(jobs, config.api.calibration_dir,

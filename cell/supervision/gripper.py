@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from contextlib import AbstractContextManager, nullcontext
 from typing import Any
 
@@ -31,14 +32,20 @@ from drivers.gripper import Gripper, GripperStatus
 log = logging.getLogger(__name__)
 POLL_PERIOD_S = 0.5
 STARTUP_PART = "gripper"
+NOTE_WINDOW_S = 3.0  # a failed read looks this far back for a stall (its timeouts and retry)
 ACTIONS = ("open", "close", "move", "activate")
 
 
 class GripperService:
     def __init__(self, gripper: Gripper | None, audit: Auditor, events: EventBus,
                  slot: MotionSlot | None = None, gate: CommandGate | None = None,
-                 startup: Startup | None = None) -> None:
+                 startup: Startup | None = None,
+                 host_note: Callable[[float], str | None] | None = None) -> None:
+        """``host_note(since_s)``: why the service was held still since then, if it was
+        (cell.supervision.host_watch); a read that failed meanwhile says so, and so does the
+        alarm raised from it."""
         self.gripper = gripper
+        self.host_note = host_note
         self.startup = startup if startup is not None else Startup()
         self.audit = audit
         self.events = events
@@ -191,11 +198,17 @@ class GripperService:
                     continue
                 st = self.gripper.status()
             except DriverError as err:
-                self._set(None, str(err))
+                self._set(None, self._explained(str(err)))
                 continue
             finally:
                 self._bus_lock.release()
             self._set(st, None)
+
+    def _explained(self, error: str) -> str:
+        """The error, and the stall of the service that came before it, if one did."""
+        note = None if self.host_note is None else self.host_note(
+            time.monotonic() - NOTE_WINDOW_S)
+        return error if note is None else f"{error} ({note})"
 
     def _set(self, st: GripperStatus | None, error: str | None) -> None:
         fault = error if error is not None else (st.fault if st is not None else None)

@@ -76,3 +76,30 @@ def test_a_device_that_goes_away_and_returns_is_used_again(
         assert not service.status()["activated"]  # type: ignore[index]
         service.command("test", "activate")
         assert service.command("test", "close")["position_mm"] == 0.0
+
+
+def test_a_read_that_failed_after_the_service_was_held_still_says_so(
+        tmp_path: Path, link: Path) -> None:
+    # the gripper goes quiet right after a stall the host watch saw: the fault names both
+    store = JobStore(tmp_path / "jobs2.db")
+    seen: list[float] = []
+
+    def host_note(since_s: float) -> str | None:
+        seen.append(since_s)
+        return "the host did not let this service run for 0.80 s"
+
+    svc = GripperService(RobotiqGripper(str(link), timeout_s=0.3, retries=0),
+                         Auditor(store, CellStats()), EventBus(), host_note=host_note)
+    try:
+        with FakeGripper(link, activation_time_s=0.2) as fake:
+            svc.start()
+            wait_for("connected", lambda s: s["error"] is None and s.get("activated"), svc)
+            fake.inject_line_fault("no_answer", count=1000)
+            st = wait_for("the silence seen", lambda s: s["error"] is not None, svc)
+        assert "no answer from gripper" in st["error"], st
+        assert "(the host did not let this service run for 0.80 s)" in st["error"], st
+        assert seen and time.monotonic() - 10.0 < seen[-1] < time.monotonic(), seen
+    finally:
+        svc.close()
+        assert svc.gripper is not None
+        svc.gripper.disconnect()
