@@ -6,6 +6,8 @@
   ``cell_locate_total{outcome}`` / ``cell_locate_seconds`` every estimate the cell made;
 - ``cell_job_duration_seconds{kind,outcome}``: from start to end of every job;
 - ``cell_stop_seconds``: POST /stop until the arm was told to stop;
+- ``cell_stalls_total{by}`` / ``cell_stall_seconds_total{by}``: the service held still for
+  0.1 s or more, by the host or by one of its own threads (cell.supervision.host_watch);
 - the cell's counters (jobs, refusals, dead-man stops, stops) and gauges (arm, camera);
 - ``process_*`` (CPU, memory, file descriptors) and ``python_info``.
 """
@@ -78,6 +80,18 @@ class _CellCollector(Collector):
             pass
         yield GaugeMetricFamily("cell_started_time_seconds", "UNIX time the cell started",
                                 value=cell.started_at)
+        watch = cell.host_watch
+        stalls = CounterMetricFamily(
+            "cell_stalls", "times the service's threads stood still for 0.1 s or more, by "
+            "who held them: host (the process was not scheduled) or own (a thread of the "
+            "service held the interpreter)", labels=["by"])
+        stall_s = CounterMetricFamily("cell_stall_seconds", "seconds the service's threads "
+                                      "stood still in those stalls", labels=["by"])
+        for by in ("host", "own"):
+            stalls.add_metric([by], watch.counts[by])
+            stall_s.add_metric([by], watch.seconds[by])
+        yield stalls
+        yield stall_s
         yield from _calibration_metrics(st.calibration)
 
 

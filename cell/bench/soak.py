@@ -426,10 +426,30 @@ def _served(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]],
         for w in workers:  # the last cycle ends before the service does (a track: ~40 s)
             w.join(timeout=180.0)
         health = httpx.get(f"{base}/api/v1/health", timeout=5.0).json().get("status")
+        stalls = _stalls(base)
     report = _report(soak, samples, start, minutes, max_cycles, interfaces, loadavg_before,
                      health)
+    # the service held still for 0.1 s or more over the whole run: by the host (not
+    # scheduled) or by a thread of its own (cell.supervision.host_watch)
+    report["service_stalls"] = stalls
     report["load"]["service_nice"] = nice_served
     return report
+
+
+def _stalls(base: str) -> dict[str, dict[str, float]]:
+    """The service's own count of its stalls, from ``/metrics``."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    text = httpx.get(f"{base}/api/v1/metrics", headers=VIEWER, timeout=10.0).text
+    out: dict[str, dict[str, float]] = {"host": {}, "own": {}}
+    for family in text_string_to_metric_families(text):
+        for sample in family.samples:
+            by = sample.labels.get("by")
+            if by in out and sample.name == "cell_stalls_total":
+                out[by]["count"] = sample.value
+            elif by in out and sample.name == "cell_stall_seconds_total":
+                out[by]["seconds"] = round(sample.value, 2)
+    return out
 
 
 def _report(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]], start: float,
@@ -536,6 +556,9 @@ def format_report(r: dict[str, Any]) -> str:
         f"cycles {r['cycles']}, failed {r['failed_cycles']} ({r['failed_cycles_not_host']} "
         f"not the host's, {r['failed_cycles_own_stall']} after a stall of the service's own) "
         f"{r['failed_codes'] or ''}",
+        "service stalls >= 0.1 s: " + ", ".join(
+            f"{by} {v.get('count', '?')} ({v.get('seconds', '?')} s)"
+            for by, v in r.get("service_stalls", {}).items()),
         f"status p50 {r['status_ms_p50']} ms p95 {r['status_ms_p95']} ms ({r['status_polls']}); "
         f"frame p50 {r['frame_ms_p50']} ms p95 {r['frame_ms_p95']} ms ({r['frames']}); "
         f"SSE events {r['sse_events']}; RTDE reads {r['rtde_reads']} "

@@ -305,6 +305,7 @@ def test_events_frame_metrics_health_and_roles(client: TestClient) -> None:
     assert 'cell_http_request_duration_seconds_count{method="GET",route="/api/v1/sim/truth",' \
         'status="200"} 1.0' in metrics
     assert "cell_arm_connected 1.0" in metrics
+    assert 'cell_stalls_total{by="host"}' in metrics and 'cell_stalls_total{by="own"}' in metrics
     assert client.get("/metrics").status_code == 401
 
 

@@ -43,6 +43,10 @@ def test_a_stall_the_service_ran_through_is_its_own() -> None:
     watch.woke(now - 2.0, STALL_S + 0.3, cpu_s=0.78)  # a thread of its own kept the others
     note = watch.note(now - 20.0, now)
     assert note is not None and OWN_STALL_MARK in note and HOST_STALL_MARK not in note, note
+    watch.woke(now - 1.0, 0.3, cpu_s=0.0)
+    watch.woke(now - 0.5, 0.05, cpu_s=0.0)  # on time enough: not a stall
+    assert watch.counts == {"host": 1, "own": 1}  # what /metrics exports
+    assert watch.seconds["own"] == STALL_S + 0.3 and watch.seconds["host"] == 0.3
 
 
 def _hold_the_interpreter(seconds: float) -> None:
