@@ -62,6 +62,10 @@ class HostWatch:
         # every late wake since the start, by who held the service: "host" or "own"
         self.counts = {"host": 0, "own": 0}
         self.seconds = {"host": 0.0, "own": 0.0}
+        # when the watch's next wake is due, and the process's CPU time at its last one: a
+        # failure seen right after a stall may be seen before the watch has woken from it
+        self._due_s: float | None = None
+        self._cpu_at_wake_s = 0.0
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -78,11 +82,24 @@ class HostWatch:
     def _run(self) -> None:
         due = time.monotonic() + self.period_s
         cpu_before = time.process_time()
+        self._expect(due, cpu_before)
         while not self._stop.wait(max(0.0, due - time.monotonic())):
             now, cpu = time.monotonic(), time.process_time()
             self.woke(now, now - due, cpu - cpu_before)
             due, cpu_before = now + self.period_s, cpu
+            self._expect(due, cpu)
 
+    def _expect(self, due_s: float, cpu_s: float) -> None:
+        with self._lock:
+            self._due_s, self._cpu_at_wake_s = due_s, cpu_s
+
+    def _ongoing(self, now_s: float) -> Stall | None:
+        """The stall the watch has not woken from yet (None: its wake is not overdue)."""
+        with self._lock:
+            due, cpu_before = self._due_s, self._cpu_at_wake_s
+        if due is None or now_s - due < NOTE_S:
+            return None
+        return Stall(now_s, now_s - due, time.process_time() - cpu_before)
     def woke(self, now_s: float, late_s: float, cpu_s: float = 0.0) -> None:
         """One wake, ``late_s`` after it was due, the process having used ``cpu_s`` of CPU
         since the last one (the watch's thread; tests feed it)."""
@@ -104,6 +121,9 @@ class HostWatch:
         with self._lock:
             overlapping = [s for s in self._late
                            if s.at_s >= since_s and s.at_s - s.late_s <= until]
+        ongoing = self._ongoing(until)
+        if ongoing is not None:
+            overlapping.append(ongoing)
         return max(overlapping, key=lambda s: s.late_s, default=None)
 
     def note(self, since_s: float, now_s: float | None = None) -> str | None:

@@ -37,6 +37,15 @@ def test_a_stall_before_a_failure_is_named_and_a_short_or_old_one_is_not() -> No
     assert watch.note(now - 1.0, now) is None  # it ended before the job began
 
 
+def test_a_failure_seen_before_the_watch_woke_from_the_stall_still_names_it() -> None:
+    # after a stall every thread wakes at once; the failing one may run before the watch
+    watch = HostWatch()
+    now = time.monotonic()
+    watch._expect(now - 0.9, time.process_time())  # the watch's wake is 0.9 s overdue
+    note = watch.note(now - 20.0, now)
+    assert note is not None and HOST_STALL_MARK in note and "0.90 s" in note, note
+
+
 def test_a_stall_the_service_ran_through_is_its_own() -> None:
     watch = HostWatch()
     now = 1000.0
@@ -91,7 +100,9 @@ def test_an_approach_that_fails_after_the_service_was_held_still_names_who_held_
             assert time.monotonic() < deadline, "the approach did not end"
             time.sleep(0.01)
         ended = cell.job(job.id)
-        assert ended.state == "failed" and ended.error_code == "camera_lost", ended
+        # the stall itself may fail it first (the arm's stream seen stale on waking)
+        assert ended.state == "failed" and ended.error_code in (
+            "camera_lost", "arm_disconnected", "target_lost"), ended
         message = ended.error_message or ""
         assert mark in message and not_mark not in message, message
         world(cell).set_camera_lost(False)
