@@ -8,6 +8,7 @@
 - ``cell_stop_seconds``: POST /stop until the arm was told to stop;
 - ``cell_stalls_total{by}`` / ``cell_stall_seconds_total{by}``: the service held still for
   0.1 s or more, by the host or by one of its own threads (cell.supervision.host_watch);
+- ``cell_gripper_missed_reads_total``: background gripper status reads that failed;
 - the cell's counters (jobs, refusals, dead-man stops, stops) and gauges (arm, camera);
 - ``process_*`` (CPU, memory, file descriptors) and ``python_info``.
 """
@@ -92,6 +93,9 @@ class _CellCollector(Collector):
             stall_s.add_metric([by], watch.seconds[by])
         yield stalls
         yield stall_s
+        yield CounterMetricFamily("cell_gripper_missed_reads", "background gripper status "
+                                  "reads that failed (two in a row make a gripper fault)",
+                                  value=cell.gripper_ops.missed_reads)
         yield from _calibration_metrics(st.calibration)
 
 

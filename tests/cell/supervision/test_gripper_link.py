@@ -103,3 +103,23 @@ def test_a_read_that_failed_after_the_service_was_held_still_says_so(
         svc.close()
         assert svc.gripper is not None
         svc.gripper.disconnect()
+
+
+def test_one_missed_background_read_is_counted_two_in_a_row_are_a_fault(
+        link: Path, service: GripperService) -> None:
+    with FakeGripper(link, activation_time_s=0.2) as fake:
+        service.start()
+        wait_for("connected", lambda s: s["error"] is None and s.get("activated"), service)
+        events = service.events.subscribe()
+        fake.inject_line_fault("no_answer", count=1)
+        deadline = time.monotonic() + WAIT_S
+        while service.missed_reads < 1:
+            assert time.monotonic() < deadline, "the missed read was not counted"
+            time.sleep(0.05)
+        wait_for("a read after it", lambda s: s["age_s"] is not None and s["age_s"] < 0.4,
+                 service)
+        assert service.status()["error"] is None  # type: ignore[index]
+        assert events.get(0.0) is None  # no gripper event: nothing was published
+        fake.inject_line_fault("no_answer", count=1000)
+        st = wait_for("the silence seen", lambda s: s["error"] is not None, service)
+        assert "no answer from gripper" in st["error"] and service.missed_reads >= 3, st
