@@ -144,7 +144,7 @@ def app_from_environment() -> FastAPI:
                             _port_from_environment("CELL_MODBUS_PORT"))
         Interfaces.prefetch(config)  # their libraries load while the devices start
         cell = build_cell(config, config_path=os.environ.get("CELL_CONFIG") or None,
-                          wait_ready=False)
+                          wait_ready=False, stall_traces=True)
     except Exception as err:  # a clear line instead of a traceback from inside uvicorn
         code = getattr(err, "code", "startup_failed")
         print(f"error ({code}): the cell could not start: {err}", file=sys.stderr)

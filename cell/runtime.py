@@ -67,12 +67,18 @@ def start_cell(config: CellConfig | str | Path | None = None,
     return cell
 
 
+STALL_TRACES_FILE = "stall-traces.txt"
+
+
 def build_cell(config: CellConfig | str | Path | None = None,
-               config_path: str | Path | None = None, wait_ready: bool = True) -> Cell:
+               config_path: str | Path | None = None, wait_ready: bool = True,
+               stall_traces: bool = False) -> Cell:
     """Validate and build the cell (its hardware, job store and image log), not started: the
     caller runs :meth:`Cell.start`, and :meth:`Cell.close` on any failure after this one.
     ``wait_ready=False`` (``cell serve``): a simulated controller boots while the service
-    starts, and the cell's first connect waits for it."""
+    starts, and the cell's first connect waits for it. ``stall_traces``: write every
+    thread's stack to ``stall-traces.txt`` beside the job database when the service stands
+    still for seconds (``cell serve``)."""
     cfg = config if isinstance(config, CellConfig) else load_config(config)
     check_startable(cfg)
     sys.setswitchinterval(min(sys.getswitchinterval(), GIL_SWITCH_INTERVAL_S))
@@ -85,7 +91,8 @@ def build_cell(config: CellConfig | str | Path | None = None,
     image_log = ImageLog(cfg.api.image_log_dir, cfg.api.image_log_max) \
         if cfg.api.image_log_dir else None
     try:
-        return Cell(cfg, hw, jobs, image_log, config_path)
+        traces = Path(cfg.api.job_db).parent / STALL_TRACES_FILE if stall_traces else None
+        return Cell(cfg, hw, jobs, image_log, config_path, stall_traces=traces)
     except BaseException:
         jobs.close()
         hw.close()

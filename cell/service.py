@@ -70,6 +70,7 @@ from cell.supervision.host_watch import HostWatch
 from cell.supervision.links import LinkSupervisor
 from cell.supervision.retention import Retention
 from cell.supervision.snapshot import CellSnapshot
+from cell.supervision.stall_traces import StallTraces
 from cell.supervision.startup import Startup
 from cell.supervision.storage import StorageWatch, state_dirs, stop_unrecordable_jobs
 from cell.vision.frames import CellFrames, cell_frames
@@ -94,7 +95,11 @@ class Cell:
 
     def __init__(self, config: CellConfig, hardware: Hardware, jobs: JobStore,
                  image_log: ImageLog | None = None,
-                 config_path: str | Path | None = None) -> None:
+                 config_path: str | Path | None = None,
+                 stall_traces: Path | None = None) -> None:
+        """``stall_traces``: the file where the host watch writes every thread's stack when
+        the service stands still for seconds (``cell serve``: ``stall-traces.txt`` beside the
+        job database; cell.supervision.stall_traces)."""
         self.config = config
         self.hw = hardware
         self.jobs = jobs
@@ -109,7 +114,8 @@ class Cell:
                           config.camera.fps, image_log, config.camera.intrinsics,
                           config.locate.order, config.locate.same_part_mm)
         audit = Auditor(jobs, self.stats)
-        self.host_watch = HostWatch()
+        self.host_watch = HostWatch(
+            traces=None if stall_traces is None else StallTraces(stall_traces))
         runner = JobRunner(jobs, slot, arm, self.events, audit, self.stats,
                            host_note=self.host_watch.note)
         self.core = CellCore(config, hardware, arm, slot, jobs, self.events, audit, runner,

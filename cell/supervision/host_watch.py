@@ -11,11 +11,19 @@ message says when the host held the service still for ``STALL_S`` or more in the
 ``WINDOW_S`` before it failed (:meth:`HostWatch.note`), so the cause names the host.
 
 A late wake measures what every Python thread here waits for: the CPU and the interpreter's
-lock. The service's own CPU time over the late interval tells the two apart: a process the
-host did not schedule used little of it (the host's doing: the message names the host); one
-that ran all along kept its own threads waiting (a long computation holding the interpreter:
-the service's doing, and the message says so, for the service's makers). It costs a wake every
-20 ms (well under 1 % of a core).
+lock. Two counts over the late interval tell them apart:
+
+- the service's CPU time: one that ran all along kept its own threads waiting (a long
+  computation holding the interpreter);
+- the watch thread's voluntary context switches (Linux, ``/proc/thread-self/status``): a
+  thread waiting for the interpreter's lock wakes every switch interval (5 ms) to ask for it,
+  hundreds of times a second; a thread the host does not run (its CPUs busy, the process
+  stopped, the virtual machine paused) switches not at all. So a thread that blocks while
+  holding the lock (a call that does not hand it over while it waits) is told from a host
+  that did not schedule the process, though neither uses CPU.
+
+Either of the first two is the service's doing, and the message says so, for its makers; the
+rest names the host. It costs a wake and a small read every 20 ms (well under 1 % of a core).
 """
 
 from __future__ import annotations
@@ -24,6 +32,8 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
+
+from cell.supervision.stall_traces import StallTraces
 
 PERIOD_S = 0.02
 NOTE_S = 0.1  # a wake this late is kept
@@ -35,6 +45,10 @@ KEEP_S = 600.0
 # interpreter uses what the host gives it, 40 % of a core beside two CPU burners at equal
 # priority and more at the unit's nice -5.
 OWN_CPU_SHARE = 0.2
+# A watch that asked for the interpreter's lock at least this often (one switch per this many
+# seconds of the stall) was waiting for it, not for the host: it asks every 5 ms.
+GIL_ASK_PERIOD_S = 0.05
+_STATUS = "/proc/thread-self/status"
 HOST_STALL_MARK = "the host did not let this service run"  # in a failed job's message
 OWN_STALL_MARK = "this service kept its own threads from running"
 
@@ -47,17 +61,36 @@ class Stall:
     at_s: float
     late_s: float
     cpu_s: float
+    switches: int = 0  # the watch thread's voluntary context switches meanwhile
 
     @property
     def own(self) -> bool:
-        """The service ran through it (it held its own threads), rather than the host
-        holding all of it."""
-        return self.cpu_s >= OWN_CPU_SHARE * self.late_s
+        """The service ran through it, or the watch waited all along for the interpreter's
+        lock that one of the service's threads held: its own doing, not the host's."""
+        return (self.cpu_s >= OWN_CPU_SHARE * self.late_s
+                or self.switches >= self.late_s / GIL_ASK_PERIOD_S)
+
+
+def voluntary_switches(tid: int | None = None) -> int:
+    """A thread's voluntary context switches so far (this one's when ``tid`` is None; 0 where
+    the kernel does not say)."""
+    path = _STATUS if tid is None else f"/proc/self/task/{tid}/status"
+    try:
+        with open(path, encoding="ascii") as f:
+            for line in f:
+                if line.startswith("voluntary_ctxt_switches:"):
+                    return int(line.split()[1])
+    except (OSError, ValueError):
+        pass
+    return 0
 
 
 class HostWatch:
-    def __init__(self, period_s: float = PERIOD_S) -> None:
+    def __init__(self, period_s: float = PERIOD_S, traces: StallTraces | None = None) -> None:
+        """``traces``: write every thread's stack when the service stands still for seconds
+        (:mod:`cell.supervision.stall_traces`; ``cell serve`` does)."""
         self.period_s = period_s
+        self.traces = traces
         self._late: deque[Stall] = deque()  # oldest first
         # every late wake since the start, by who held the service: "host" or "own"
         self.counts = {"host": 0, "own": 0}
@@ -66,6 +99,8 @@ class HostWatch:
         # failure seen right after a stall may be seen before the watch has woken from it
         self._due_s: float | None = None
         self._cpu_at_wake_s = 0.0
+        self._switches_at_wake = 0
+        self._tid: int | None = None  # the watch thread's, for reading its switches
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -78,34 +113,46 @@ class HostWatch:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
+        if self.traces is not None:
+            self.traces.close()
 
     def _run(self) -> None:
+        traces = self.traces
+        self._tid = threading.get_native_id()
         due = time.monotonic() + self.period_s
-        cpu_before = time.process_time()
-        self._expect(due, cpu_before)
+        cpu_before, switches_before = time.process_time(), voluntary_switches()
+        self._expect(due, cpu_before, switches_before)
         while not self._stop.wait(max(0.0, due - time.monotonic())):
-            now, cpu = time.monotonic(), time.process_time()
-            self.woke(now, now - due, cpu - cpu_before)
-            due, cpu_before = now + self.period_s, cpu
-            self._expect(due, cpu)
+            now, cpu, switches = time.monotonic(), time.process_time(), voluntary_switches()
+            self.woke(now, now - due, cpu - cpu_before, switches - switches_before)
+            if traces is not None:
+                traces.ended(now - due, cpu - cpu_before)
+                traces.arm(now)
+            due, cpu_before, switches_before = now + self.period_s, cpu, switches
+            self._expect(due, cpu, switches)
 
-    def _expect(self, due_s: float, cpu_s: float) -> None:
+    def _expect(self, due_s: float, cpu_s: float, switches: int) -> None:
         with self._lock:
             self._due_s, self._cpu_at_wake_s = due_s, cpu_s
+            self._switches_at_wake = switches
 
     def _ongoing(self, now_s: float) -> Stall | None:
         """The stall the watch has not woken from yet (None: its wake is not overdue)."""
         with self._lock:
             due, cpu_before = self._due_s, self._cpu_at_wake_s
+            tid, switches_before = self._tid, self._switches_at_wake
         if due is None or now_s - due < NOTE_S:
             return None
-        return Stall(now_s, now_s - due, time.process_time() - cpu_before)
-    def woke(self, now_s: float, late_s: float, cpu_s: float = 0.0) -> None:
+        switches = 0 if tid is None else voluntary_switches(tid) - switches_before
+        return Stall(now_s, now_s - due, time.process_time() - cpu_before, max(0, switches))
+    def woke(self, now_s: float, late_s: float, cpu_s: float = 0.0,
+             switches: int = 0) -> None:
         """One wake, ``late_s`` after it was due, the process having used ``cpu_s`` of CPU
-        since the last one (the watch's thread; tests feed it)."""
+        and the watch thread switched out ``switches`` times since the last one (the watch's
+        thread; tests feed it)."""
         if late_s < NOTE_S:
             return
-        stall = Stall(now_s, late_s, cpu_s)
+        stall = Stall(now_s, late_s, cpu_s, switches)
         by = "own" if stall.own else "host"
         with self._lock:
             self.counts[by] += 1

@@ -4,6 +4,7 @@ otherwise."""
 
 from __future__ import annotations
 
+import ctypes
 import os
 import subprocess
 import sys
@@ -41,7 +42,7 @@ def test_a_failure_seen_before_the_watch_woke_from_the_stall_still_names_it() ->
     # after a stall every thread wakes at once; the failing one may run before the watch
     watch = HostWatch()
     now = time.monotonic()
-    watch._expect(now - 0.9, time.process_time())  # the watch's wake is 0.9 s overdue
+    watch._expect(now - 0.9, time.process_time(), 0)  # the watch's wake is 0.9 s overdue
     note = watch.note(now - 20.0, now)
     assert note is not None and HOST_STALL_MARK in note and "0.90 s" in note, note
 
@@ -79,10 +80,17 @@ def _stop_this_process(seconds: float) -> None:
     time.sleep(0.05)  # the CONT has come: this line runs after it
 
 
+def _block_holding_the_interpreter(seconds: float) -> None:
+    """Block in a C call that keeps the interpreter's lock (libc's usleep through
+    ``ctypes.PyDLL``): every other thread stands still, and no CPU is used."""
+    ctypes.PyDLL(None).usleep(int(seconds * 1e6))
+
+
 @pytest.mark.parametrize(("hold", "mark", "not_mark"), [
     (_stop_this_process, HOST_STALL_MARK, OWN_STALL_MARK),
     (_hold_the_interpreter, OWN_STALL_MARK, HOST_STALL_MARK),
-], ids=["host", "own"])
+    (_block_holding_the_interpreter, OWN_STALL_MARK, HOST_STALL_MARK),
+], ids=["host", "own-busy", "own-blocked"])
 def test_an_approach_that_fails_after_the_service_was_held_still_names_who_held_it(
         tmp_path: Path, hold: Callable[[float], None], mark: str, not_mark: str) -> None:
     with running_cell(sim_config(tmp_path)) as cell:
@@ -106,3 +114,31 @@ def test_an_approach_that_fails_after_the_service_was_held_still_names_who_held_
         message = ended.error_message or ""
         assert mark in message and not_mark not in message, message
         world(cell).set_camera_lost(False)
+
+
+def test_a_stall_of_seconds_leaves_every_threads_stack(tmp_path: Path) -> None:
+    # in a process of its own: one armed dump per process, and pytest's is left alone
+    path = tmp_path / "stall-traces.txt"
+    script = f"""
+import ctypes, time
+from pathlib import Path
+from cell.supervision.host_watch import HostWatch
+from cell.supervision.stall_traces import StallTraces
+
+def block_while_holding_the_interpreter():
+    ctypes.PyDLL(None).usleep(4_500_000)
+
+watch = HostWatch(traces=StallTraces(Path({str(path)!r})))
+watch.start()
+time.sleep(1.5)  # armed
+block_while_holding_the_interpreter()
+time.sleep(0.3)  # the watch wakes and says how long it was
+watch.close()
+print(watch.counts)
+"""
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         timeout=60, check=True).stdout
+    assert "'own': 1" in out, out  # blocked, not computing, and still its own
+    text = path.read_text()
+    assert "Timeout" in text and "block_while_holding_the_interpreter" in text, text
+    assert "-- stall of 4." in text or "-- stall of 5." in text, text
