@@ -31,6 +31,7 @@ log = logging.getLogger(__name__)
 M_ARENA_MAX = -8  # mallopt parameter (malloc.h)
 ARENA_MAX = 2
 TRIM_PERIOD_S = 30.0
+SLOW_TRIM_S = 0.2  # a trim this long is logged as a warning
 
 
 def _libc() -> ctypes.CDLL | None:
@@ -99,5 +100,9 @@ class Trimmer:
             t0 = time.perf_counter()
             released = libc.malloc_trim(ctypes.c_size_t(0))
             self.trims += 1
-            log.debug("malloc_trim: %s in %.1f ms", "released" if released else "nothing",
-                      1000.0 * (time.perf_counter() - t0))
+            took_s = time.perf_counter() - t0
+            # a trim holds each arena's lock while it walks it; a thread that allocates
+            # meanwhile waits, and one holding the interpreter's lock holds the service
+            (log.warning if took_s >= SLOW_TRIM_S else log.debug)(
+                "malloc_trim: %s in %.1f ms", "released" if released else "nothing",
+                1000.0 * took_s)
