@@ -94,14 +94,22 @@ def _serve(args: argparse.Namespace) -> int:
     # Before any thread starts (numba, the devices, uvicorn's pool): a bounded number of
     # malloc arenas, and their freed pages handed back every TRIM_PERIOD_S (~15 arenas kept
     # freed frame buffers resident; cell/supervision/memory.py, docs/performance.md)
-    from cell.supervision.memory import Trimmer, limit_arenas, trim_period_s
+    from cell.supervision.memory import Trimmer, limit_arenas, lock_file_pages, trim_period_s
 
     limit_arenas()
     period = trim_period_s()
     if period > 0:
-        Trimmer(period).start()
+        Trimmer(period, lock_pages=True).start()
     # Compiled once per checkout (make install does it); loading takes a fraction of a second.
     say(f"estimator kernels ready in {warm_up():.1f} s")
+    # what has run stays in RAM: a library page read back from disk while a thread holds
+    # the interpreter's lock holds the whole service (cell/supervision/memory.py)
+    locked, why = lock_file_pages()
+    if why is None:
+        log.info("library pages kept in RAM once used (%.0f MB mapped)", locked / 1e6)
+    else:
+        say(f"warning: library pages are not kept in RAM ({why}); under memory pressure the "
+            "service may stand still while they are read back (LimitMEMLOCK=infinity)")
     scheme = "https" if args.ssl_certfile else "http"
     say(f"serving the cell on {scheme}://{args.host}:{args.port} (docs at /docs); state in "
         f"{os.path.dirname(os.path.abspath(config.api.job_db))}")

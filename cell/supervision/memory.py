@@ -15,6 +15,15 @@ Two measures, both in the ``cell serve`` process:
   (``CELL_MALLOC_TRIM_S`` in the environment: another period, 0: off).
 
 Neither changes what Python or numpy allocate; without glibc (musl, macOS) both do nothing.
+
+And one against the opposite: pages taken away. A kernel that reclaims cold page cache
+proactively (DAMON's ``pageout``, or plain memory pressure) drops the service's library code
+(OpenCV, numpy, numba's LLVM, ur_rtde's bindings) once it has not run for a while; the next
+call reads it back from disk, and a thread that faults holding the interpreter's lock holds
+the whole service for as long as that read takes. :func:`lock_file_pages` locks every
+file-backed mapping once it is touched (``mlock2(MLOCK_ONFAULT)``): nothing is read in ahead,
+and what the service has run stays in RAM. Anonymous memory (the heap) is left alone, so
+``malloc_trim`` still hands its holes back; without swap it is never paged out anyway.
 """
 
 from __future__ import annotations
@@ -73,10 +82,14 @@ def trim() -> bool:
 
 
 class Trimmer:
-    """``malloc_trim(0)`` every ``period_s`` on a daemon thread (a few ms each time)."""
+    """``malloc_trim(0)`` every ``period_s`` on a daemon thread (a few ms each time), and
+    with ``lock_pages`` :func:`lock_file_pages` again (libraries loaded since are locked
+    too)."""
 
-    def __init__(self, period_s: float = TRIM_PERIOD_S) -> None:
+    def __init__(self, period_s: float = TRIM_PERIOD_S, lock_pages: bool = False) -> None:
         self.period_s = period_s
+        self.lock_pages = lock_pages
+        self._lock_failed = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.trims = 0
@@ -97,6 +110,11 @@ class Trimmer:
 
     def _run(self, libc: ctypes.CDLL) -> None:
         while not self._stop.wait(self.period_s):
+            if self.lock_pages and not self._lock_failed:
+                _, why = lock_file_pages()
+                if why is not None:
+                    self._lock_failed = True
+                    log.warning("library pages are not kept in RAM: %s", why)
             t0 = time.perf_counter()
             released = libc.malloc_trim(ctypes.c_size_t(0))
             self.trims += 1
@@ -106,3 +124,42 @@ class Trimmer:
             (log.warning if took_s >= SLOW_TRIM_S else log.debug)(
                 "malloc_trim: %s in %.1f ms", "released" if released else "nothing",
                 1000.0 * took_s)
+
+
+MLOCK_ONFAULT = 1  # mlock2 flag (linux/mman.h)
+
+
+def lock_file_pages(maps: str = "/proc/self/maps") -> tuple[int, str | None]:
+    """``mlock2(MLOCK_ONFAULT)`` each readable file-backed mapping of this process (the
+    interpreter, the libraries, their data): returns the bytes covered and, when the lock
+    stopped short, why (``RLIMIT_MEMLOCK`` too low: the systemd unit sets
+    ``LimitMEMLOCK=infinity``; ``CELL_LOCK_FILE_PAGES=0`` in the environment: off)."""
+    if os.environ.get("CELL_LOCK_FILE_PAGES", "1") == "0":
+        return 0, "off (CELL_LOCK_FILE_PAGES=0)"
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name, use_errno=True) if name else None
+        mlock2 = None if libc is None else libc.mlock2
+    except (OSError, AttributeError):
+        mlock2 = None
+    if mlock2 is None:
+        return 0, "no mlock2 in this C library"
+    mlock2.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int)
+    covered = 0
+    try:
+        with open(maps, encoding="utf-8", errors="replace") as f:
+            lines = f.readlines()
+    except OSError as err:
+        return 0, f"cannot read {maps}: {err}"
+    for line in lines:
+        fields = line.split(maxsplit=5)
+        if len(fields) < 6 or not fields[5].startswith("/") or fields[1][0] != "r":
+            continue  # anonymous, [heap], [stack], [vdso], or not readable
+        path = fields[5].strip()
+        if path.startswith("/dev/") or path.endswith("(deleted)"):
+            continue
+        start, end = (int(x, 16) for x in fields[0].split("-"))
+        if mlock2(start, end - start, MLOCK_ONFAULT) != 0:
+            return covered, os.strerror(ctypes.get_errno())
+        covered += end - start
+    return covered, None

@@ -56,6 +56,7 @@ def test_unit_sets_the_limits_a_long_run_needs() -> None:
     tighter than the service's own threads need."""
     s = _unit_settings()
     assert s.get("LimitNOFILE") == ["65536"], s.get("LimitNOFILE")
+    assert s.get("LimitMEMLOCK") == ["infinity"], s.get("LimitMEMLOCK")
     assert len(s.get("TasksMax", [])) == 1 and int(s["TasksMax"][0]) >= 1024, s.get("TasksMax")
 
 

@@ -1,6 +1,12 @@
-"""The native heap's housekeeping: bounded malloc arenas and a periodic malloc_trim."""
+"""The native heap's housekeeping: bounded malloc arenas and a periodic malloc_trim; and the
+library pages kept in RAM once used."""
 
 from __future__ import annotations
+
+import os
+import resource
+import subprocess
+import sys
 
 import pytest
 
@@ -33,3 +39,35 @@ def test_the_trimmer_trims_until_stopped() -> None:
     n = trimmer.trims
     assert trimmer._thread is None and memory.trim() in (True, False)
     assert trimmer.trims == n
+
+
+_LOCK_SCRIPT = """
+import numpy
+from cell.supervision.memory import lock_file_pages
+covered, why = lock_file_pages()
+status = dict(line.split(":", 1) for line in open("/proc/self/status"))
+print(covered, int(status["VmLck"].split()[0]) * 1024, int(status["VmRSS"].split()[0]) * 1024,
+      why)
+"""
+
+
+def _locked(env: dict[str, str]) -> tuple[int, int, int, str]:
+    out = subprocess.run([sys.executable, "-c", _LOCK_SCRIPT], capture_output=True, text=True,
+                         timeout=60, check=True, env={**os.environ, **env}).stdout.split()
+    return int(out[0]), int(out[1]), int(out[2]), " ".join(out[3:])
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="mlock2 and /proc are Linux's")
+def test_library_pages_are_locked_once_touched_without_reading_them_all_in() -> None:
+    soft, _ = resource.getrlimit(resource.RLIMIT_MEMLOCK)
+    if os.geteuid() != 0 and soft != resource.RLIM_INFINITY:
+        pytest.skip("RLIMIT_MEMLOCK is bounded here (the systemd unit lifts it)")
+    covered, locked, rss, why = _locked({})
+    assert why == "None" and covered > 50e6, (covered, why)  # numpy and the interpreter
+    assert locked >= covered  # the kernel counts the whole ranges...
+    assert rss < covered  # ...but only what was touched is in RAM (MLOCK_ONFAULT)
+
+
+def test_the_lock_can_be_turned_off() -> None:
+    covered, locked, _, why = _locked({"CELL_LOCK_FILE_PAGES": "0"})
+    assert (covered, locked) == (0, 0) and "off" in why, why
