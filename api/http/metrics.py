@@ -7,7 +7,8 @@
 - ``cell_job_duration_seconds{kind,outcome}``: from start to end of every job;
 - ``cell_stop_seconds``: POST /stop until the arm was told to stop;
 - ``cell_stalls_total{by}`` / ``cell_stall_seconds_total{by}``: the service held still for
-  0.1 s or more, by the host or by one of its own threads (cell.supervision.host_watch);
+  0.1 s or more, by the host, a thread of its own computing or one blocked
+  (cell.supervision.host_watch);
 - ``cell_gripper_missed_reads_total``: background gripper status reads that failed;
 - the cell's counters (jobs, refusals, dead-man stops, stops) and gauges (arm, camera);
 - ``process_*`` (CPU, memory, file descriptors) and ``python_info``.
@@ -31,6 +32,7 @@ from prometheus_client.registry import Collector
 
 from cell.service import Cell
 from cell.stats import CalibrationEvidence
+from cell.supervision.host_watch import KINDS
 
 LATENCY_BUCKETS_S = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0,
                      10.0, 30.0, 60.0)
@@ -84,11 +86,12 @@ class _CellCollector(Collector):
         watch = cell.host_watch
         stalls = CounterMetricFamily(
             "cell_stalls", "times the service's threads stood still for 0.1 s or more, by "
-            "who held them: host (the process was not scheduled) or own (a thread of the "
-            "service held the interpreter)", labels=["by"])
+            "who held them: host (the process was not scheduled), own (a thread of the "
+            "service computed holding the interpreter), blocked (a thread blocked holding "
+            "it: in the kernel or a call that does not release it)", labels=["by"])
         stall_s = CounterMetricFamily("cell_stall_seconds", "seconds the service's threads "
                                       "stood still in those stalls", labels=["by"])
-        for by in ("host", "own"):
+        for by in KINDS:
             stalls.add_metric([by], watch.counts[by])
             stall_s.add_metric([by], watch.seconds[by])
         yield stalls

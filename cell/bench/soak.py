@@ -47,7 +47,12 @@ import httpx
 import numpy as np
 
 from cell.bench.service import SERVICE_NICE, service_processes, serving
-from cell.supervision.host_watch import HOST_STALL_MARK, OWN_STALL_MARK
+from cell.supervision.host_watch import (
+    BLOCKED_STALL_MARK,
+    HOST_STALL_MARK,
+    KINDS,
+    OWN_STALL_MARK,
+)
 
 OPERATOR = {"Authorization": "Bearer sim-operator"}
 VIEWER = {"Authorization": "Bearer sim-viewer"}
@@ -441,7 +446,7 @@ def _stalls(base: str) -> dict[str, dict[str, float]]:
     from prometheus_client.parser import text_string_to_metric_families
 
     text = httpx.get(f"{base}/api/v1/metrics", headers=VIEWER, timeout=10.0).text
-    out: dict[str, dict[str, float]] = {"host": {}, "own": {}}
+    out: dict[str, dict[str, float]] = {kind: {} for kind in KINDS}
     for family in text_string_to_metric_families(text):
         for sample in family.samples:
             by = sample.labels.get("by")
@@ -492,6 +497,10 @@ def _report(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]], s
         # of those, failures after a stall of the service's own making (a thread that
         # held the interpreter): its defects, not the devices'
         "failed_cycles_own_stall": sum(1 for _, _, m in soak.failures if OWN_STALL_MARK in m),
+        # ... and after a thread blocked holding the interpreter (the kernel's or its own:
+        # the service's stall-traces.txt says which)
+        "failed_cycles_blocked_stall": sum(1 for _, _, m in soak.failures
+                                           if BLOCKED_STALL_MARK in m),
         "failed_codes": dict(Counter(failed)),
         "cycles": len(soak.cycles),
         "ur_client_rss_mb_per_h": slope_per_h(t, series["ur_client_rss_mb"], skip=0.1),
@@ -554,7 +563,8 @@ def format_report(r: dict[str, Any]) -> str:
         f"(ur_rtde child {r['ur_client_rss_mb_per_h']} MB/h); fds {r['fds_per_h']}/h, "
         f"threads {r['threads_per_h']}/h, job DB {r['job_db_kb_per_h']} KB/h",
         f"cycles {r['cycles']}, failed {r['failed_cycles']} ({r['failed_cycles_not_host']} "
-        f"not the host's, {r['failed_cycles_own_stall']} after a stall of the service's own) "
+        f"not the host's: {r['failed_cycles_own_stall']} after a stall of the service's own, "
+        f"{r['failed_cycles_blocked_stall']} after one blocked holding the interpreter) "
         f"{r['failed_codes'] or ''}",
         "service stalls >= 0.1 s: " + ", ".join(
             f"{by} {v.get('count', '?')} ({v.get('seconds', '?')} s)"

@@ -13,17 +13,19 @@ message says when the host held the service still for ``STALL_S`` or more in the
 A late wake measures what every Python thread here waits for: the CPU and the interpreter's
 lock. Two counts over the late interval tell them apart:
 
-- the service's CPU time: one that ran all along kept its own threads waiting (a long
-  computation holding the interpreter);
+- the service's CPU time: one that ran all along kept its own threads waiting (``own``: a
+  long computation holding the interpreter, the service's defect);
 - the watch thread's voluntary context switches (Linux, ``/proc/thread-self/status``): a
   thread waiting for the interpreter's lock wakes every switch interval (5 ms) to ask for it,
   hundreds of times a second; a thread the host does not run (its CPUs busy, the process
-  stopped, the virtual machine paused) switches not at all. So a thread that blocks while
-  holding the lock (a call that does not hand it over while it waits) is told from a host
-  that did not schedule the process, though neither uses CPU.
+  stopped, the virtual machine paused) switches not at all (``host``). Many switches and
+  little CPU (``blocked``): one of the service's threads was blocked while it held the lock,
+  either in a call that does not hand it over (the service's defect) or in the kernel, on a
+  page read back from disk or kernel work the host starved (the host's). The stacks in
+  ``stall-traces.txt`` (:mod:`cell.supervision.stall_traces`) say which.
 
-Either of the first two is the service's doing, and the message says so, for its makers; the
-rest names the host. It costs a wake and a small read every 20 ms (well under 1 % of a core).
+The failed job's message says which of the three. It costs a wake and a small read every
+20 ms (well under 1 % of a core).
 """
 
 from __future__ import annotations
@@ -51,6 +53,8 @@ GIL_ASK_PERIOD_S = 0.05
 _STATUS = "/proc/thread-self/status"
 HOST_STALL_MARK = "the host did not let this service run"  # in a failed job's message
 OWN_STALL_MARK = "this service kept its own threads from running"
+BLOCKED_STALL_MARK = "a thread of this service was blocked while it held the interpreter"
+KINDS = ("host", "own", "blocked")
 
 
 @dataclass(frozen=True)
@@ -64,11 +68,15 @@ class Stall:
     switches: int = 0  # the watch thread's voluntary context switches meanwhile
 
     @property
-    def own(self) -> bool:
-        """The service ran through it, or the watch waited all along for the interpreter's
-        lock that one of the service's threads held: its own doing, not the host's."""
-        return (self.cpu_s >= OWN_CPU_SHARE * self.late_s
-                or self.switches >= self.late_s / GIL_ASK_PERIOD_S)
+    def kind(self) -> str:
+        """``own``: the service ran through it; ``blocked``: the watch waited all along for
+        the interpreter's lock, held by a thread that used no CPU; ``host``: the watch was
+        not run at all."""
+        if self.cpu_s >= OWN_CPU_SHARE * self.late_s:
+            return "own"
+        if self.switches >= self.late_s / GIL_ASK_PERIOD_S:
+            return "blocked"
+        return "host"
 
 
 def voluntary_switches(tid: int | None = None) -> int:
@@ -92,9 +100,9 @@ class HostWatch:
         self.period_s = period_s
         self.traces = traces
         self._late: deque[Stall] = deque()  # oldest first
-        # every late wake since the start, by who held the service: "host" or "own"
-        self.counts = {"host": 0, "own": 0}
-        self.seconds = {"host": 0.0, "own": 0.0}
+        # every late wake since the start, by its kind (KINDS)
+        self.counts = dict.fromkeys(KINDS, 0)
+        self.seconds = dict.fromkeys(KINDS, 0.0)
         # when the watch's next wake is due, and the process's CPU time at its last one: a
         # failure seen right after a stall may be seen before the watch has woken from it
         self._due_s: float | None = None
@@ -153,7 +161,7 @@ class HostWatch:
         if late_s < NOTE_S:
             return
         stall = Stall(now_s, late_s, cpu_s, switches)
-        by = "own" if stall.own else "host"
+        by = stall.kind
         with self._lock:
             self.counts[by] += 1
             self.seconds[by] += late_s
@@ -183,8 +191,12 @@ class HostWatch:
             return None
         when = (f"for {stall.late_s:.2f} s, {now - stall.at_s:.1f} s before this failure "
                 f"(the service used {stall.cpu_s:.2f} s of CPU meanwhile)")
-        if stall.own:
+        if stall.kind == "own":
             return (f"{OWN_STALL_MARK} {when}: a computation held the interpreter; a defect "
                     "of the service, not of the device or the host")
+        if stall.kind == "blocked":
+            return (f"{BLOCKED_STALL_MARK} {when}: in the kernel (a page read back from disk, "
+                    "kernel work the host starved) or in a call that does not release it; "
+                    "the stacks are in stall-traces.txt beside the job database")
         return (f"{HOST_STALL_MARK} {when}: the host is overloaded (CPU-bound neighbours, or "
                 "a virtual machine's CPUs taken away)")

@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from cell.supervision.host_watch import (
+    BLOCKED_STALL_MARK,
     HOST_STALL_MARK,
     OWN_STALL_MARK,
     STALL_S,
@@ -54,8 +55,9 @@ def test_a_stall_the_service_ran_through_is_its_own() -> None:
     note = watch.note(now - 20.0, now)
     assert note is not None and OWN_STALL_MARK in note and HOST_STALL_MARK not in note, note
     watch.woke(now - 1.0, 0.3, cpu_s=0.0)
+    watch.woke(now - 0.8, 0.2, cpu_s=0.0, switches=40)  # waited for the lock all along
     watch.woke(now - 0.5, 0.05, cpu_s=0.0)  # on time enough: not a stall
-    assert watch.counts == {"host": 1, "own": 1}  # what /metrics exports
+    assert watch.counts == {"host": 1, "own": 1, "blocked": 1}  # what /metrics exports
     assert watch.seconds["own"] == STALL_S + 0.3 and watch.seconds["host"] == 0.3
 
 
@@ -89,8 +91,8 @@ def _block_holding_the_interpreter(seconds: float) -> None:
 @pytest.mark.parametrize(("hold", "mark", "not_mark"), [
     (_stop_this_process, HOST_STALL_MARK, OWN_STALL_MARK),
     (_hold_the_interpreter, OWN_STALL_MARK, HOST_STALL_MARK),
-    (_block_holding_the_interpreter, OWN_STALL_MARK, HOST_STALL_MARK),
-], ids=["host", "own-busy", "own-blocked"])
+    (_block_holding_the_interpreter, BLOCKED_STALL_MARK, HOST_STALL_MARK),
+], ids=["host", "own", "blocked"])
 def test_an_approach_that_fails_after_the_service_was_held_still_names_who_held_it(
         tmp_path: Path, hold: Callable[[float], None], mark: str, not_mark: str) -> None:
     with running_cell(sim_config(tmp_path)) as cell:
@@ -138,7 +140,7 @@ print(watch.counts)
 """
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                          timeout=60, check=True).stdout
-    assert "'own': 1" in out, out  # blocked, not computing, and still its own
+    assert "'blocked': 1" in out, out  # blocked holding the lock, not computing
     text = path.read_text()
     assert "Timeout" in text and "block_while_holding_the_interpreter" in text, text
     assert "-- stall of 4." in text or "-- stall of 5." in text, text
