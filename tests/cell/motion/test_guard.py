@@ -151,14 +151,16 @@ def test_gripper_timeouts_do_not_slow_status_and_stops_are_not_moving(tmp_path: 
     with running_cell(sim_config(tmp_path, gripper="sim")) as cell:
         world(cell).inject_gripper_fault("no_answer", 1000)
         worst = 0.0
-        deadline = time.monotonic() + 2.0
-        while time.monotonic() < deadline:
+        start = time.monotonic()
+        while True:  # two failed reads in a row make the fault: ~3 s of timeouts
             t0 = time.perf_counter()
             st = cell.status()
             worst = max(worst, time.perf_counter() - t0)
+            if st["gripper"]["error"] and time.monotonic() - start > 2.0:
+                break
+            assert time.monotonic() - start < 15.0, st["gripper"]
             time.sleep(0.05)
         assert worst < 0.25, f"status took {worst:.3f} s"
-        assert st["gripper"]["error"], st["gripper"]
         # a protective stop mid-jog: not "moving" once the arm has braked
         cell.jog_start("test", frame="base", linear_mm_s=[30.0, 0, 0], angular_deg_s=[0, 0, 0])
         time.sleep(0.2)
