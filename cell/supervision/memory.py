@@ -48,7 +48,7 @@ def _libc() -> ctypes.CDLL | None:
     if name is None:
         return None
     try:
-        libc = ctypes.CDLL(name)
+        libc = ctypes.CDLL(name, use_errno=True)
         libc.mallopt  # noqa: B018 - glibc's, absent from other C libraries
         libc.malloc_trim  # noqa: B018
     except (OSError, AttributeError):
@@ -136,11 +136,10 @@ def lock_file_pages(maps: str = "/proc/self/maps") -> tuple[int, str | None]:
     ``LimitMEMLOCK=infinity``; ``CELL_LOCK_FILE_PAGES=0`` in the environment: off)."""
     if os.environ.get("CELL_LOCK_FILE_PAGES", "1") == "0":
         return 0, "off (CELL_LOCK_FILE_PAGES=0)"
-    name = ctypes.util.find_library("c")
+    libc = _libc()
     try:
-        libc = ctypes.CDLL(name, use_errno=True) if name else None
         mlock2 = None if libc is None else libc.mlock2
-    except (OSError, AttributeError):
+    except AttributeError:
         mlock2 = None
     if mlock2 is None:
         return 0, "no mlock2 in this C library"
