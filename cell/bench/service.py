@@ -31,6 +31,7 @@ import json
 import multiprocessing as mp
 import os
 import re
+import shutil
 import signal
 import socket
 import subprocess
@@ -154,7 +155,10 @@ def serving(timeout_s: float = 90.0, nice: int | None = None, stop_log: Path | N
     """``cell serve`` on a free loopback address; yields (base URL, process). With
     ``stop_log`` the simulated controller appends each stop command's receive time there;
     ``extra_args`` go to ``cell serve`` (e.g. ``--modbus-port N``); ``log_path``: its
-    warnings and errors go there and are kept (else to the temporary state directory)."""
+    warnings and errors go there and are kept (else to the temporary state directory), and
+    the stacks it wrote when it stood still (``stall-traces.txt``) are kept beside it as
+    ``<log_path>.stall-traces.txt``: the state directory goes when the bench ends."""
+    from cell.runtime import STALL_TRACES_FILE
     from fakes.ur_controller.process import free_loopback_host
     from fakes.ur_controller.script import STOP_LOG_ENV
 
@@ -197,6 +201,9 @@ def serving(timeout_s: float = 90.0, nice: int | None = None, stop_log: Path | N
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
+            traces = Path(tmp) / STALL_TRACES_FILE
+            if log_path is not None and traces.exists():
+                shutil.copyfile(traces, log_path.with_name(log_path.name + ".stall-traces.txt"))
 
 
 # -- the load (in its own process) ----------------------------------------------------------------
