@@ -9,7 +9,13 @@ them and sets ``gOBJ`` (2: stopped on an object while closing; 3: at the request
 nothing touched), and faults can be injected (garbage or a wrong CRC instead of an answer,
 silence, an answer later than the client waits for, a device fault code).
 
-``python -m fakes.gripper --link PATH`` serves until killed.
+Two links, as a cell has them: a pseudo-terminal (a USB-RS-485 adapter's serial device), or
+a raw TCP stream (``socket://HOST:PORT``), as a UR e-Series controller relays the RS-485 of a
+gripper on its tool flange (the rs485 URCap serves it on port 54321). A pty's bytes pass
+through the kernel's tty work items, which a host whose cores are busy at the same nice
+value can hold back for a second; a TCP stream on loopback does not wait on them.
+
+``python -m fakes.gripper --link PATH`` (or ``--tcp [HOST:]PORT``) serves until killed.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import contextlib
 import os
 import select
 import signal
+import socket
 import sys
 import threading
 import time
@@ -56,6 +63,7 @@ from drivers.robotiq import (
 )
 
 LineFault = Literal["garbage", "bad_crc", "no_answer", "late"]
+Transport = Literal["pty", "tcp"]
 LATE_ANSWER_S = 0.6  # how long a "late" answer keeps the gripper (and the requests after it)
 
 MIN_SPEED_MM_S = 20.0  # 2F-85 datasheet: 20..150 mm/s finger speed
@@ -265,38 +273,55 @@ class GripperModel:
 
 
 class FakeGripper:
-    """Serves a :class:`GripperModel` as Modbus RTU slave ``slave_id`` on a pseudo-terminal.
+    """Serves a :class:`GripperModel` as Modbus RTU slave ``slave_id`` on a pseudo-terminal
+    (``transport="pty"``) or on a TCP relay at ``tcp_host`` (``"tcp"``: one client at a
+    time, a new connection replaces the old one, as the controller's relay does).
 
-    ``port`` is the path a client opens (``link`` when given, else the pty's own name).
+    ``port`` is what a client opens: ``link`` when given, else the pty's own name; for TCP a
+    pyserial URL, ``socket://HOST:PORT``.
     """
 
     def __init__(
         self, link: str | Path | None = None, slave_id: int = DEFAULT_SLAVE_ID,
         activation_time_s: float = 0.5, grasp: Grasp | None = None,
+        transport: Transport = "pty", tcp_host: str = "127.0.0.1", tcp_port: int = 0,
     ) -> None:
+        if transport == "tcp" and link is not None:
+            raise ValueError("a link (symlink to a serial device) needs transport='pty'")
         self.link = Path(link) if link is not None else None
         self.slave_id = slave_id
+        self.transport = transport
+        self._tcp_address = (tcp_host, tcp_port)
         self.model = GripperModel(activation_time_s, grasp)
         self._framer = FramerRTU(DecodePDU(is_server=True))
         self._line_faults: list[LineFault] = []
         self._master = self._slave = -1
         self._slave_name = ""
+        self._listener: socket.socket | None = None
+        self._client: socket.socket | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self.requests_seen = 0
 
     @property
     def port(self) -> str:
+        if self.transport == "tcp":
+            host, port = self._tcp_address
+            return f"socket://{host}:{port}"
         return str(self.link) if self.link is not None else self._slave_name
 
     def start(self) -> FakeGripper:
-        self._master, self._slave = os.openpty()
-        tty.setraw(self._slave)  # no echo, no line discipline: a plain 8-bit line
-        self._slave_name = os.ttyname(self._slave)
-        if self.link is not None:
-            with contextlib.suppress(FileNotFoundError):
-                self.link.unlink()
-            self.link.symlink_to(self._slave_name)
+        if self.transport == "tcp":
+            self._listener = socket.create_server(self._tcp_address)
+            self._tcp_address = self._listener.getsockname()[:2]  # the port 0 chose
+        else:
+            self._master, self._slave = os.openpty()
+            tty.setraw(self._slave)  # no echo, no line discipline: a plain 8-bit line
+            self._slave_name = os.ttyname(self._slave)
+            if self.link is not None:
+                with contextlib.suppress(FileNotFoundError):
+                    self.link.unlink()
+                self.link.symlink_to(self._slave_name)
         self._stop.clear()
         self._thread = threading.Thread(target=self._serve, name="fake-gripper", daemon=True)
         self._thread.start()
@@ -311,6 +336,10 @@ class FakeGripper:
             if fd >= 0:
                 os.close(fd)
         self._master = self._slave = -1
+        for sock in (self._client, self._listener):
+            if sock is not None:
+                sock.close()
+        self._client = self._listener = None
         if self.link is not None and self.link.is_symlink():
             self.link.unlink()
 
@@ -325,19 +354,46 @@ class FakeGripper:
         self._line_faults.extend([fault] * count)
 
     # -- serving ---------------------------------------------------------------------------
+    def _line(self) -> int:
+        """The descriptor requests come in on and answers go out on (-1: no client yet)."""
+        if self._listener is None:
+            return self._master
+        return self._client.fileno() if self._client is not None else -1
+
+    def _accept(self) -> None:
+        assert self._listener is not None
+        conn, _ = self._listener.accept()
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # a relay sends at once
+        if self._client is not None:
+            self._client.close()
+        self._client = conn
+
     def _serve(self) -> None:
         buf = b""
         last_rx = time.monotonic()
         while not self._stop.is_set():
-            ready, _, _ = select.select([self._master], [], [], 0.05)
+            line = self._line()
+            watched = [fd for fd in (line,) if fd >= 0]
+            if self._listener is not None:
+                watched.append(self._listener.fileno())
+            ready, _, _ = select.select(watched, [], [], 0.05)
             if not ready:
                 if buf and time.monotonic() - last_rx > FRAME_GAP_S:
                     buf = b""
                 continue
+            if self._listener is not None and self._listener.fileno() in ready:
+                self._accept()
+                buf = b""
+                continue
             try:
-                buf += os.read(self._master, 512)
+                data = os.read(line, 512)
             except OSError:
                 continue
+            if not data and self._client is not None:  # the client closed its connection
+                self._client.close()
+                self._client, buf = None, b""
+                continue
+            buf += data
             last_rx = time.monotonic()
             while buf:
                 used, pdu = self._framer.handleFrame(buf, self.slave_id, 0)
@@ -388,15 +444,21 @@ class FakeGripper:
             frame = frame[:-1] + bytes([frame[-1] ^ 0x5A])
         elif fault == "garbage":
             frame = bytes((0xA5 ^ (7 * i)) & 0xFF for i in range(len(frame) + 3))
-        with contextlib.suppress(OSError):
-            os.write(self._master, frame)
+        line = self._line()
+        if line >= 0:
+            with contextlib.suppress(OSError):
+                os.write(line, frame)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m fakes.gripper", description="Fake Robotiq 2F-85 on a pseudo-terminal."
-    )
-    parser.add_argument("--link", required=True, help="symlink to create for the serial device")
+        prog="python -m fakes.gripper",
+        description="Fake Robotiq 2F-85 on a pseudo-terminal or a TCP relay.")
+    where = parser.add_mutually_exclusive_group(required=True)
+    where.add_argument("--link", help="symlink to create for the serial device")
+    where.add_argument("--tcp", metavar="[HOST:]PORT",
+                       help="serve a raw TCP stream instead, as a UR controller relays a tool "
+                       "flange's RS-485 (clients open socket://HOST:PORT)")
     parser.add_argument("--slave-id", type=int, default=DEFAULT_SLAVE_ID)
     parser.add_argument("--object-mm", type=float, default=None,
                         help="width of a test piece clamped between the fingers (none by "
@@ -404,11 +466,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--activation-s", type=float, default=0.5)
     args = parser.parse_args(argv)
     piece = None if args.object_mm is None else BenchPiece(args.object_mm)
-    fake = FakeGripper(args.link, args.slave_id, args.activation_s, piece).start()
+    if args.tcp is not None:
+        host, _, port = args.tcp.rpartition(":")
+        fake = FakeGripper(None, args.slave_id, args.activation_s, piece, transport="tcp",
+                           tcp_host=host or "127.0.0.1", tcp_port=int(port)).start()
+        where_text = fake.port
+    else:
+        fake = FakeGripper(args.link, args.slave_id, args.activation_s, piece).start()
+        where_text = f"{fake.port} -> {fake._slave_name}"
     stopped = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stopped.set())
-    print(f"fake gripper ready on {fake.port} -> {fake._slave_name} (slave {fake.slave_id})",
-          flush=True)
+    print(f"fake gripper ready on {where_text} (slave {fake.slave_id})", flush=True)
     try:
         stopped.wait()
     except KeyboardInterrupt:

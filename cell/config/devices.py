@@ -201,11 +201,13 @@ class RobotiqGripperConfig(RobotiqLink):
 
 
 class SimGripperConfig(RobotiqLink):
-    """The simulated gripper on a pseudo-terminal, driven through the real Modbus RTU adapter
-    (it closes on the simulated world's parts: ``PUT /api/v1/sim/parts``, ``[sim]
-    part_width_mm``)."""
+    """The simulated gripper, driven through the real Modbus RTU adapter (it closes on the
+    simulated world's parts: ``PUT /api/v1/sim/parts``, ``[sim] part_width_mm``). ``link``:
+    ``"tcp"``, on the tool flange, its RS-485 relayed as a TCP stream as a UR e-Series
+    controller relays it; ``"pty"``, a pseudo-terminal as a USB-RS-485 adapter's device."""
 
     kind: Literal["sim"] = "sim"
+    link: Literal["tcp", "pty"] = "tcp"
 
     @classmethod
     def is_hardware(cls, sim: SimStandIns) -> bool:

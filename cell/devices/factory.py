@@ -122,7 +122,7 @@ def _camera_spec(config: CellConfig) -> CameraSpec:
 def _gripper_spec(gripper: GripperConfig) -> GripperSpec | None:
     if not isinstance(gripper, SimGripperConfig):
         return None
-    return GripperSpec(gripper.slave_id)
+    return GripperSpec(gripper.slave_id, transport=gripper.link)
 
 
 # -- one builder per kind -----------------------------------------------------------------------

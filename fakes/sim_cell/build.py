@@ -132,6 +132,6 @@ def _camera(spec: CameraSpec, parts: SimParts, arm: ArmTruth) -> SimCamera:
 
 def _gripper(spec: GripperSpec, grasp: PartsGrasp | None) -> FakeGripper:
     gripper = FakeGripper(slave_id=spec.slave_id, grasp=grasp,
-                          activation_time_s=spec.activation_time_s)
+                          activation_time_s=spec.activation_time_s, transport=spec.transport)
     gripper.start()
     return gripper

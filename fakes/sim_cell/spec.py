@@ -7,6 +7,7 @@ truth (cell.devices.sim_truth); nothing here knows the config.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -87,10 +88,12 @@ class CameraSpec:
 
 @dataclass(frozen=True)
 class GripperSpec:
-    """The simulated gripper: its Modbus slave id; it closes on the world's parts."""
+    """The simulated gripper: its Modbus slave id and link (:class:`fakes.gripper.FakeGripper`'s
+    transport); it closes on the world's parts."""
 
     slave_id: int
     activation_time_s: float = 0.2
+    transport: Literal["pty", "tcp"] = "tcp"
 
 
 @dataclass(frozen=True, eq=False)

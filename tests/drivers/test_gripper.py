@@ -1,4 +1,6 @@
-"""Robotiq gripper adapter: exact bytes on the wire, then end to end over a pty against the fake.
+"""Robotiq gripper adapter: exact bytes on the wire, then end to end against the fake over both
+links a cell has (a pseudo-terminal as a USB-RS-485 adapter's device, and a TCP relay as a UR
+controller's tool flange gives).
 
 The byte-level half follows the idea of pymeasure's expected_protocol: a scripted serial port
 asserts every request the adapter writes and feeds back exact reply bytes. Request frames are
@@ -7,6 +9,7 @@ the examples printed in Robotiq's 2F-85 manual (activation, close at full speed 
 
 from __future__ import annotations
 
+import socket
 import time
 from collections.abc import Iterator
 
@@ -273,11 +276,11 @@ def test_model_with_the_manual_examples_software_limit() -> None:
     assert m.status_bytes() == [0xF9, 0x00, 0x00, 0x00, 0x0D, 0x00]
 
 
-# -- end to end over a real pseudo-terminal --------------------------------------------------
+# -- end to end over a real pseudo-terminal and a TCP relay -----------------------------------
 
-@pytest.fixture
-def fake() -> Iterator[FakeGripper]:
-    with FakeGripper(activation_time_s=0.3) as f:
+@pytest.fixture(params=["pty", "tcp"])
+def fake(request: pytest.FixtureRequest) -> Iterator[FakeGripper]:
+    with FakeGripper(activation_time_s=0.3, transport=request.param) as f:
         yield f
 
 
@@ -289,7 +292,7 @@ def gripper(fake: FakeGripper) -> Iterator[RobotiqGripper]:
     g.disconnect()
 
 
-def test_pty_activate_open_close_move(gripper: RobotiqGripper) -> None:
+def test_link_activate_open_close_move(gripper: RobotiqGripper) -> None:
     assert not gripper.status().activated
     t0 = time.monotonic()
     assert gripper.activate().activated
@@ -306,7 +309,7 @@ def test_pty_activate_open_close_move(gripper: RobotiqGripper) -> None:
     assert 0.8 < time.monotonic() - slow_t0 < 1.0 + 1.0
 
 
-def test_pty_object_stops_the_fingers(fake: FakeGripper, gripper: RobotiqGripper) -> None:
+def test_link_object_stops_the_fingers(fake: FakeGripper, gripper: RobotiqGripper) -> None:
     gripper.activate()
     fake.model.set_grasp(BenchPiece(30.0))
     s = gripper.close()
@@ -315,7 +318,7 @@ def test_pty_object_stops_the_fingers(fake: FakeGripper, gripper: RobotiqGripper
     assert not opened.object_detected and opened.position_mm == 85.0
 
 
-def test_pty_no_wait_reports_motion(gripper: RobotiqGripper) -> None:
+def test_link_no_wait_reports_motion(gripper: RobotiqGripper) -> None:
     gripper.activate()
     assert gripper.move(0.0, speed_pct=0.0, wait=False).moving
     time.sleep(0.3)
@@ -324,7 +327,7 @@ def test_pty_no_wait_reports_motion(gripper: RobotiqGripper) -> None:
     gripper.open()
 
 
-def test_pty_stop_halts_the_fingers_where_they_are(gripper: RobotiqGripper) -> None:
+def test_link_stop_halts_the_fingers_where_they_are(gripper: RobotiqGripper) -> None:
     gripper.activate()
     gripper.open()
     assert gripper.move(0.0, speed_pct=0.0, wait=False).moving  # 20 mm/s: 4 s to close
@@ -340,7 +343,7 @@ def test_pty_stop_halts_the_fingers_where_they_are(gripper: RobotiqGripper) -> N
     assert gripper.open().position_mm == 85.0  # and it moves again on the next request
 
 
-def test_pty_line_faults_then_recovery(fake: FakeGripper, gripper: RobotiqGripper) -> None:
+def test_link_line_faults_then_recovery(fake: FakeGripper, gripper: RobotiqGripper) -> None:
     fake.inject_line_fault("bad_crc")
     with pytest.raises(ProtocolError, match="CRC"):
         gripper.status()
@@ -353,7 +356,7 @@ def test_pty_line_faults_then_recovery(fake: FakeGripper, gripper: RobotiqGrippe
     assert gripper.status().fault is None  # the line works again
 
 
-def test_pty_retry_hides_one_lost_answer(fake: FakeGripper) -> None:
+def test_link_retry_hides_one_lost_answer(fake: FakeGripper) -> None:
     g = RobotiqGripper(fake.port, timeout_s=0.3, retries=1)
     g.connect()
     fake.inject_line_fault("bad_crc")
@@ -361,7 +364,7 @@ def test_pty_retry_hides_one_lost_answer(fake: FakeGripper) -> None:
     g.disconnect()
 
 
-def test_pty_a_late_answer_does_not_become_the_next_ones(fake: FakeGripper) -> None:
+def test_link_a_late_answer_does_not_become_the_next_ones(fake: FakeGripper) -> None:
     """A gripper that answers one request later than the client waits (a busy bus, a loaded
     host) answers the next request only after it: the client skips the stale answer. The
     late answer comes between the write's timeout and the end of the next request's wait."""
@@ -377,7 +380,7 @@ def test_pty_a_late_answer_does_not_become_the_next_ones(fake: FakeGripper) -> N
     g.disconnect()
 
 
-def test_pty_device_fault_and_reset(fake: FakeGripper, gripper: RobotiqGripper) -> None:
+def test_link_device_fault_and_reset(fake: FakeGripper, gripper: RobotiqGripper) -> None:
     gripper.activate()
     fake.model.inject_fault(0x0E)
     assert "overcurrent" in str(gripper.status().fault)
@@ -386,8 +389,37 @@ def test_pty_device_fault_and_reset(fake: FakeGripper, gripper: RobotiqGripper) 
     assert gripper.activate().fault is None  # a reset + activation clears it
 
 
-def test_pty_wrong_slave_id_times_out(fake: FakeGripper) -> None:
+def test_link_wrong_slave_id_times_out(fake: FakeGripper) -> None:
     g = RobotiqGripper(fake.port, slave_id=10, timeout_s=0.2, retries=0)
     with pytest.raises(DeviceTimeoutError, match="slave 10"):
         g.connect()
     assert fake.requests_seen == 0
+
+
+def test_tcp_link_is_a_pyserial_url_and_a_dropped_relay_is_reopened() -> None:
+    """The controller's relay drops its client (a controller reboot): the request that finds
+    the connection closed fails as a lost link, the next one connects again."""
+    with FakeGripper(activation_time_s=0.1, transport="tcp") as fake:
+        assert fake.port.startswith("socket://127.0.0.1:")
+        g = RobotiqGripper(fake.port, timeout_s=0.3, retries=0)
+        g.connect()
+        g.activate()
+        assert fake._client is not None
+        fake._client.shutdown(socket.SHUT_RDWR)  # the relay's side closes
+        with pytest.raises((ConnectionLostError, DeviceTimeoutError)):
+            g.status()
+        assert g.status().activated  # reopened: the gripper kept its state
+        g.disconnect()
+
+
+def test_tcp_link_refuses_a_symlink() -> None:
+    with pytest.raises(ValueError, match="pty"):
+        FakeGripper(link="/tmp/gripper-link", transport="tcp")
+
+
+def test_tcp_link_with_no_relay_listening_is_a_lost_link() -> None:
+    with socket.create_server(("127.0.0.1", 0)) as s:
+        port = s.getsockname()[1]
+    g = RobotiqGripper(f"socket://127.0.0.1:{port}", timeout_s=0.2, retries=0)
+    with pytest.raises(ConnectionLostError, match="cannot open"):
+        g.connect()
