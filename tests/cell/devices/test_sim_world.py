@@ -19,6 +19,7 @@ from cell.devices.sim_truth import (
     factory_calibration,
     resolve,
 )
+from drivers.robotiq import RobotiqGripper
 from estimator.transforms import T_from_pose_dict, invert_T, pose_distance
 from fakes.fixed_camera import FixedSimCamera
 from fakes.ur_sim.kinematics import UR5eKinematics
@@ -173,5 +174,25 @@ def test_fixed_camera_takes_the_realistic_camera_effects(tmp_path: Path) -> None
         fx = REALISTIC_EFFECTS
         assert (cam.latency_s, cam.timestamp_offset_s, cam.motion_blur, cam.flicker_depth) == (
             fx.camera_latency_s, fx.timestamp_offset_s, True, fx.flicker_depth)
+    finally:
+        hw.close()
+
+
+@pytest.mark.parametrize(("link", "port_prefix"), [("tcp", "socket://127.0.0.1:"),
+                                                   ("pty", "/dev/pts/")])
+def test_simulated_gripper_on_a_tool_flange_relay_or_a_pty(tmp_path: Path, link: str,
+                                                         port_prefix: str) -> None:
+    # the simulated cell reaches its gripper as a UR tool flange's RS-485 relay is reached by
+    # default (no tty in the way); a pseudo-terminal stands for a USB-RS-485 adapter
+    config = sim_config(tmp_path, gripper="sim")
+    data = config.model_dump(mode="python")
+    data["gripper"]["link"] = link
+    hw = build_hardware(parse_config(data))
+    try:
+        assert isinstance(hw.gripper, RobotiqGripper)
+        assert hw.gripper.port.startswith(port_prefix)
+        hw.gripper.connect()
+        assert hw.gripper.activate().activated
+        assert hw.gripper.close().position_mm == 0.0  # nothing between the fingers at home
     finally:
         hw.close()
