@@ -29,12 +29,19 @@ minute and in total, with a least-squares line through each series (``numpy.poly
 and the first frames' buffers fill then). A cycle fails when a step answers an error or its
 job does not succeed; failures are counted per minute with their error codes. Every number
 depends on what else the host runs: the report carries the host's load average.
+
+A failure is the host's when its message says the host held the whole service still, or when
+it came after a *blocked* stall (a thread held the interpreter and did not run) during which
+the service's threads were found waiting in the kernel (state D) in at least
+``KERNEL_WAIT_SHARE`` of the samples :mod:`cell.bench.kernel_waits` took from outside; each
+such failure lists the kernel functions they waited in.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import re
 import threading
 import time
 from collections import Counter
@@ -46,6 +53,7 @@ from urllib.parse import urlparse
 import httpx
 import numpy as np
 
+from cell.bench.kernel_waits import KernelWaits, WaitShare
 from cell.bench.service import SERVICE_NICE, service_processes, serving
 from cell.supervision.host_watch import (
     BLOCKED_STALL_MARK,
@@ -165,7 +173,7 @@ class _Soak:
 
     def failed(self, kind: str, code: str, message: str) -> None:
         with self.lock:
-            self.failures.append((time.monotonic(), f"{kind}:{code}", message[:300]))
+            self.failures.append((time.monotonic(), f"{kind}:{code}", message))
             if len(self.error_messages) < 10:
                 self.error_messages.append(message[:200])
 
@@ -407,6 +415,7 @@ def _served(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]],
             service_nice: int | None, service_log: Path | None) -> dict[str, Any]:
     with serving(extra_args=extra, nice=service_nice, log_path=service_log) as (base, proc):
         nice_served = os.getpriority(os.PRIO_PROCESS, proc.pid)
+        waits = KernelWaits(proc.pid).start()
         time.sleep(3.0)  # let the start settle (kernels, first frames, gripper activation)
         db = _job_db(proc.pid)
         host = urlparse(base).hostname or "127.0.0.1"
@@ -432,8 +441,9 @@ def _served(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]],
             w.join(timeout=180.0)
         health = httpx.get(f"{base}/api/v1/health", timeout=5.0).json().get("status")
         stalls = _stalls(base)
+        waits.stop()
     report = _report(soak, samples, start, minutes, max_cycles, interfaces, loadavg_before,
-                     health)
+                     health, waits)
     # the service held still for 0.1 s or more over the whole run: by the host (not
     # scheduled) or by a thread of its own (cell.supervision.host_watch)
     report["service_stalls"] = stalls
@@ -457,9 +467,27 @@ def _stalls(base: str) -> dict[str, dict[str, float]]:
     return out
 
 
+_STALL_NOTE = re.compile(r"for (\d+(?:\.\d+)?) s, (\d+(?:\.\d+)?) s before this failure")
+KERNEL_WAIT_SHARE = 0.8  # of the stall's samples with a thread of the service in D
+
+
+def kernel_wait(failed_at_s: float, message: str, waits: KernelWaits) -> WaitShare | None:
+    """For a failure after a *blocked* stall: how the service's threads waited meanwhile (the
+    stall's window taken from the failure's own note, its first and last tenth left out)."""
+    if BLOCKED_STALL_MARK not in message:
+        return None
+    note = _STALL_NOTE.search(message, message.index(BLOCKED_STALL_MARK))
+    if note is None:
+        return None
+    late_s, ago_s = float(note[1]), float(note[2])
+    end_s = failed_at_s - ago_s
+    return waits.share(end_s - 0.9 * late_s, end_s - 0.1 * late_s)
+
+
 def _report(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]], start: float,
             minutes: float, max_cycles: int | None, interfaces: bool,
-            loadavg_before: list[float], health: str | None) -> dict[str, Any]:
+            loadavg_before: list[float], health: str | None,
+            waits: KernelWaits) -> dict[str, Any]:
     t = [s[0] - start for s in samples]
     keys = list(samples[0][1])
     series = {k: [s[1][k] for s in samples] for k in keys}
@@ -481,6 +509,8 @@ def _report(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]], s
         per_minute.append(row)
     failed = [c for _, c in soak.cycles if c is not None]
     first, final = samples[0][1], samples[-1][1]
+    in_kernel = [kernel_wait(ts, m, waits) for ts, _, m in soak.failures]
+    by_kernel = [w is not None and w.share >= KERNEL_WAIT_SHARE for w in in_kernel]
     report: dict[str, Any] = {
         # the least kind figure first: the service's native growth, per hour
         "service_rss_mb_per_h": slope_per_h(t, series["service_rss_mb"], skip=0.1),
@@ -491,9 +521,11 @@ def _report(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]], s
         "service_rss_mb_last": _round(final["service_rss_mb"]),
         "failed_cycles": len(failed),
         # failures whose message names the host (the service held still before them,
-        # cell.supervision.host_watch); the rest are the cell's own
-        "failed_cycles_not_host": sum(1 for _, _, m in soak.failures
-                                      if HOST_STALL_MARK not in m),
+        # cell.supervision.host_watch), or after a blocked stall its threads spent waiting
+        # in the kernel (cell.bench.kernel_waits); the rest are the cell's own
+        "failed_cycles_not_host": sum(
+            1 for (_, _, m), kernel in zip(soak.failures, by_kernel, strict=True)
+            if HOST_STALL_MARK not in m and not kernel),
         # of those, failures after a stall of the service's own making (a thread that
         # held the interpreter): its defects, not the devices'
         "failed_cycles_own_stall": sum(1 for _, _, m in soak.failures if OWN_STALL_MARK in m),
@@ -501,6 +533,8 @@ def _report(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]], s
         # the service's stall-traces.txt says which)
         "failed_cycles_blocked_stall": sum(1 for _, _, m in soak.failures
                                            if BLOCKED_STALL_MARK in m),
+        # ... of which the service's threads waited in the kernel for most of the stall
+        "failed_cycles_kernel_wait": sum(by_kernel),
         "failed_codes": dict(Counter(failed)),
         "cycles": len(soak.cycles),
         "ur_client_rss_mb_per_h": slope_per_h(t, series["ur_client_rss_mb"], skip=0.1),
@@ -528,8 +562,13 @@ def _report(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]], s
         "rtde_errors": dict(soak.rtde_errors),
         "error_messages": soak.error_messages,
         # each failed step: when (s into the run), which, and what the cell said
-        "failures": [{"at_s": round(ts - start, 1), "code": code, "message": msg}
-                     for ts, code, msg in soak.failures],
+        "failures": [{"at_s": round(ts - start, 1), "code": code, "message": msg[:300],
+                      **({} if msg.find(BLOCKED_STALL_MARK) < 0 else
+                         {"stall": msg[msg.index(BLOCKED_STALL_MARK):][:200]}),
+                      **({} if w is None else
+                         {"kernel_wait_share": round(w.share, 2),
+                          "kernel_wait_samples": w.samples, "kernel_waits": w.wchans})}
+                     for (ts, code, msg), w in zip(soak.failures, in_kernel, strict=True)],
         # the controller's RTDE timestamp seen standing still by the soak's own reader; a gap
         # with reader_late_s near zero was the controller's (or the link's), not the reader's
         "rtde_stream_max_gap_s": round(max((g for _, g, _ in soak.stream_gaps), default=0.0), 2),
@@ -563,8 +602,9 @@ def format_report(r: dict[str, Any]) -> str:
         f"(ur_rtde child {r['ur_client_rss_mb_per_h']} MB/h); fds {r['fds_per_h']}/h, "
         f"threads {r['threads_per_h']}/h, job DB {r['job_db_kb_per_h']} KB/h",
         f"cycles {r['cycles']}, failed {r['failed_cycles']} ({r['failed_cycles_not_host']} "
-        f"not the host's: {r['failed_cycles_own_stall']} after a stall of the service's own, "
-        f"{r['failed_cycles_blocked_stall']} after one blocked holding the interpreter) "
+        f"not the host's: {r['failed_cycles_own_stall']} after a stall of the service's own; "
+        f"{r['failed_cycles_blocked_stall']} after one blocked holding the interpreter, "
+        f"{r['failed_cycles_kernel_wait']} of them waiting in the kernel) "
         f"{r['failed_codes'] or ''}",
         "service stalls >= 0.1 s: " + ", ".join(
             f"{by} {v.get('count', '?')} ({v.get('seconds', '?')} s)"
