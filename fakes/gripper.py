@@ -305,9 +305,10 @@ class FakeGripper:
 
     @property
     def port(self) -> str:
+        """What a client opens ("" before the first start picked a pty or a TCP port)."""
         if self.transport == "tcp":
             host, port = self._tcp_address
-            return f"socket://{host}:{port}"
+            return f"socket://{host}:{port}" if port else ""
         return str(self.link) if self.link is not None else self._slave_name
 
     def start(self) -> FakeGripper:
@@ -328,10 +329,18 @@ class FakeGripper:
         return self
 
     def stop(self) -> None:
+        """Stop serving; the serving thread closes the line as it ends (a late answer it is
+        sending finishes first), so no descriptor is closed under it."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
             self._thread = None
+        else:
+            self._close_line()
+        if self.link is not None and self.link.is_symlink():
+            self.link.unlink()
+
+    def _close_line(self) -> None:
         for fd in (self._master, self._slave):
             if fd >= 0:
                 os.close(fd)
@@ -340,8 +349,6 @@ class FakeGripper:
             if sock is not None:
                 sock.close()
         self._client = self._listener = None
-        if self.link is not None and self.link.is_symlink():
-            self.link.unlink()
 
     def __enter__(self) -> FakeGripper:
         return self.start()
@@ -360,29 +367,38 @@ class FakeGripper:
             return self._master
         return self._client.fileno() if self._client is not None else -1
 
-    def _accept(self) -> None:
-        assert self._listener is not None
-        conn, _ = self._listener.accept()
-        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # a relay sends at once
+    def _accept(self, listener: socket.socket) -> None:
+        try:
+            conn, _ = listener.accept()
+            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # a relay sends at once
+        except OSError:  # the client gave up before it was accepted
+            return
         if self._client is not None:
             self._client.close()
         self._client = conn
 
     def _serve(self) -> None:
+        try:
+            self._serve_line()
+        finally:
+            self._close_line()
+
+    def _serve_line(self) -> None:
         buf = b""
         last_rx = time.monotonic()
+        listener = self._listener
         while not self._stop.is_set():
             line = self._line()
             watched = [fd for fd in (line,) if fd >= 0]
-            if self._listener is not None:
-                watched.append(self._listener.fileno())
+            if listener is not None:
+                watched.append(listener.fileno())
             ready, _, _ = select.select(watched, [], [], 0.05)
             if not ready:
                 if buf and time.monotonic() - last_rx > FRAME_GAP_S:
                     buf = b""
                 continue
-            if self._listener is not None and self._listener.fileno() in ready:
-                self._accept()
+            if listener is not None and listener.fileno() in ready:
+                self._accept(listener)
                 buf = b""
                 continue
             try:
@@ -444,10 +460,11 @@ class FakeGripper:
             frame = frame[:-1] + bytes([frame[-1] ^ 0x5A])
         elif fault == "garbage":
             frame = bytes((0xA5 ^ (7 * i)) & 0xFF for i in range(len(frame) + 3))
-        line = self._line()
-        if line >= 0:
-            with contextlib.suppress(OSError):
-                os.write(line, frame)
+        with contextlib.suppress(OSError):
+            if self._client is not None:
+                self._client.sendall(frame)
+            elif self._listener is None and self._master >= 0:
+                os.write(self._master, frame)
 
 
 def main(argv: list[str] | None = None) -> int:

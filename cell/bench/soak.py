@@ -31,10 +31,11 @@ job does not succeed; failures are counted per minute with their error codes. Ev
 depends on what else the host runs: the report carries the host's load average.
 
 A failure is the host's when its message says the host held the whole service still, or when
-it came after a *blocked* stall (a thread held the interpreter and did not run) during which
-the service's threads were found waiting in the kernel (state D) in at least
-``KERNEL_WAIT_SHARE`` of the samples :mod:`cell.bench.kernel_waits` took from outside; each
-such failure lists the kernel functions they waited in.
+it came after a *blocked* stall (a thread held the interpreter and did not run) and, between
+the step's start and the failure, :mod:`cell.bench.kernel_waits` found a thread of the service
+waiting in the kernel (state D) in every 0.1 s sample of a stretch at least
+``KERNEL_WAIT_SHARE`` of that stall long; each such failure lists the kernel functions waited
+in. Judged when the failure is seen, from the full message.
 """
 
 from __future__ import annotations
@@ -53,7 +54,7 @@ from urllib.parse import urlparse
 import httpx
 import numpy as np
 
-from cell.bench.kernel_waits import KernelWaits, WaitShare
+from cell.bench.kernel_waits import KernelWaits, WaitRun
 from cell.bench.service import SERVICE_NICE, service_processes, serving
 from cell.supervision.host_watch import (
     BLOCKED_STALL_MARK,
@@ -159,7 +160,9 @@ class _Soak:
         self.rtde_reads = 0
         self.rtde_errors: Counter[str] = Counter()
         self.error_messages: list[str] = []
-        self.failures: list[tuple[float, str, str]] = []  # (when, code, message)
+        # (when, code, message, the kernel-wait stretch of a failure after a blocked stall)
+        self.failures: list[tuple[float, str, str, WaitRun | None]] = []
+        self.waits: KernelWaits | None = None
         # (when the stream moved again, how long its timestamp stood, how late the reader
         # itself woke at worst meanwhile): a gap the reader was awake for is the controller's
         self.stream_gaps: list[tuple[float, float, float]] = []
@@ -171,9 +174,13 @@ class _Soak:
             series[key].append((now, 1000.0 * (now - t0)))
 
 
-    def failed(self, kind: str, code: str, message: str) -> None:
+    def failed(self, kind: str, code: str, message: str, since_s: float) -> None:
+        """A step begun at ``since_s`` (monotonic) failed with ``message`` (whole: the host
+        watch's note comes last)."""
+        now = time.monotonic()
+        run = None if self.waits is None else kernel_wait(since_s, now, message, self.waits)
         with self.lock:
-            self.failures.append((time.monotonic(), f"{kind}:{code}", message))
+            self.failures.append((now, f"{kind}:{code}", message, run))
             if len(self.error_messages) < 10:
                 self.error_messages.append(message[:200])
 
@@ -190,7 +197,7 @@ def _code(r: httpx.Response, messages: list[str] | None = None) -> str:
     with contextlib.suppress(ValueError, AttributeError, KeyError, TypeError):
         error = r.json()["error"]
         if messages is not None and len(messages) < 10:
-            messages.append(str(error.get("message", ""))[:200])
+            messages.append(str(error.get("message", "")))
         return str(error["code"])
     return f"http_{r.status_code}"
 
@@ -201,21 +208,21 @@ def _step(soak: _Soak, client: httpx.Client, kind: str, path: str, body: dict[st
     try:
         r = client.post(path, json=body, headers=OPERATOR)
     except httpx.HTTPError as err:
-        soak.failed(kind, type(err).__name__, str(err))
+        soak.failed(kind, type(err).__name__, str(err), t0)
         raise StepFailed(f"{kind}:{type(err).__name__}") from err
     if r.status_code != 200:
         messages: list[str] = []
         code = _code(r, messages)
-        soak.failed(kind, code, messages[0] if messages else "")
+        soak.failed(kind, code, messages[0] if messages else "", t0)
         raise StepFailed(f"{kind}:{code}")
     job = r.json()
     if "state" in job and "kind" in job and job["state"] != "succeeded":
         error = job.get("error") or {}
-        message = str(error.get("message", ""))[:200]
+        message = str(error.get("message", ""))
         if job["state"] == "running":  # the wait ran out: how and when did the job end?
             message = _followed(client, job, time.monotonic() - t0)
         code = str(error.get("code") or job["state"])
-        soak.failed(kind, code, message)
+        soak.failed(kind, code, message, t0)
         raise StepFailed(f"{kind}:{code}")
     soak.note(soak.jobs, kind, t0)
 
@@ -413,9 +420,9 @@ def _served(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]],
             extra: list[str], minutes: float, max_cycles: int | None, interfaces: bool,
             progress: Progress | None, loadavg_before: list[float],
             service_nice: int | None, service_log: Path | None) -> dict[str, Any]:
-    with serving(extra_args=extra, nice=service_nice, log_path=service_log) as (base, proc):
+    with (serving(extra_args=extra, nice=service_nice, log_path=service_log) as (base, proc),
+          KernelWaits(proc.pid) as soak.waits):
         nice_served = os.getpriority(os.PRIO_PROCESS, proc.pid)
-        waits = KernelWaits(proc.pid).start()
         time.sleep(3.0)  # let the start settle (kernels, first frames, gripper activation)
         db = _job_db(proc.pid)
         host = urlparse(base).hostname or "127.0.0.1"
@@ -441,9 +448,8 @@ def _served(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]],
             w.join(timeout=180.0)
         health = httpx.get(f"{base}/api/v1/health", timeout=5.0).json().get("status")
         stalls = _stalls(base)
-        waits.stop()
     report = _report(soak, samples, start, minutes, max_cycles, interfaces, loadavg_before,
-                     health, waits)
+                     health)
     # the service held still for 0.1 s or more over the whole run: by the host (not
     # scheduled) or by a thread of its own (cell.supervision.host_watch)
     report["service_stalls"] = stalls
@@ -468,26 +474,34 @@ def _stalls(base: str) -> dict[str, dict[str, float]]:
 
 
 _STALL_NOTE = re.compile(r"for (\d+(?:\.\d+)?) s, (\d+(?:\.\d+)?) s before this failure")
-KERNEL_WAIT_SHARE = 0.8  # of the stall's samples with a thread of the service in D
+KERNEL_WAIT_SHARE = 0.8  # of the blocked stall's length, spent with a thread in D
+KERNEL_WAIT_MIN_SAMPLES = 3
 
 
-def kernel_wait(failed_at_s: float, message: str, waits: KernelWaits) -> WaitShare | None:
-    """For a failure after a *blocked* stall: how the service's threads waited meanwhile (the
-    stall's window taken from the failure's own note, its first and last tenth left out)."""
+def kernel_wait(since_s: float, now_s: float, message: str, waits: KernelWaits
+                ) -> WaitRun | None:
+    """For a failure after a *blocked* stall: the longest stretch between the step's start
+    and the failure in which a thread of the service waited in the kernel (not placed by the
+    note's "s before this failure", which the HTTP round trip would shift)."""
     if BLOCKED_STALL_MARK not in message:
         return None
-    note = _STALL_NOTE.search(message, message.index(BLOCKED_STALL_MARK))
-    if note is None:
+    if _STALL_NOTE.search(message, message.index(BLOCKED_STALL_MARK)) is None:
         return None
-    late_s, ago_s = float(note[1]), float(note[2])
-    end_s = failed_at_s - ago_s
-    return waits.share(end_s - 0.9 * late_s, end_s - 0.1 * late_s)
+    return waits.longest_run(since_s, now_s)
+
+
+def in_kernel(message: str, run: WaitRun | None) -> bool:
+    """Whether a failure's blocked stall was spent waiting in the kernel: a stretch of
+    samples with a thread in D at least ``KERNEL_WAIT_SHARE`` of the stall's length."""
+    if run is None or run.samples < KERNEL_WAIT_MIN_SAMPLES:
+        return False
+    note = _STALL_NOTE.search(message, message.index(BLOCKED_STALL_MARK))
+    return note is not None and run.duration_s >= KERNEL_WAIT_SHARE * float(note[1])
 
 
 def _report(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]], start: float,
             minutes: float, max_cycles: int | None, interfaces: bool,
-            loadavg_before: list[float], health: str | None,
-            waits: KernelWaits) -> dict[str, Any]:
+            loadavg_before: list[float], health: str | None) -> dict[str, Any]:
     t = [s[0] - start for s in samples]
     keys = list(samples[0][1])
     series = {k: [s[1][k] for s in samples] for k in keys}
@@ -509,8 +523,7 @@ def _report(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]], s
         per_minute.append(row)
     failed = [c for _, c in soak.cycles if c is not None]
     first, final = samples[0][1], samples[-1][1]
-    in_kernel = [kernel_wait(ts, m, waits) for ts, _, m in soak.failures]
-    by_kernel = [w is not None and w.share >= KERNEL_WAIT_SHARE for w in in_kernel]
+    by_kernel = [in_kernel(m, run) for _, _, m, run in soak.failures]
     report: dict[str, Any] = {
         # the least kind figure first: the service's native growth, per hour
         "service_rss_mb_per_h": slope_per_h(t, series["service_rss_mb"], skip=0.1),
@@ -524,14 +537,15 @@ def _report(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]], s
         # cell.supervision.host_watch), or after a blocked stall its threads spent waiting
         # in the kernel (cell.bench.kernel_waits); the rest are the cell's own
         "failed_cycles_not_host": sum(
-            1 for (_, _, m), kernel in zip(soak.failures, by_kernel, strict=True)
+            1 for (_, _, m, _), kernel in zip(soak.failures, by_kernel, strict=True)
             if HOST_STALL_MARK not in m and not kernel),
         # of those, failures after a stall of the service's own making (a thread that
         # held the interpreter): its defects, not the devices'
-        "failed_cycles_own_stall": sum(1 for _, _, m in soak.failures if OWN_STALL_MARK in m),
+        "failed_cycles_own_stall": sum(1 for _, _, m, _ in soak.failures
+                                       if OWN_STALL_MARK in m),
         # ... and after a thread blocked holding the interpreter (the kernel's or its own:
         # the service's stall-traces.txt says which)
-        "failed_cycles_blocked_stall": sum(1 for _, _, m in soak.failures
+        "failed_cycles_blocked_stall": sum(1 for _, _, m, _ in soak.failures
                                            if BLOCKED_STALL_MARK in m),
         # ... of which the service's threads waited in the kernel for most of the stall
         "failed_cycles_kernel_wait": sum(by_kernel),
@@ -565,10 +579,10 @@ def _report(soak: _Soak, samples: list[tuple[float, dict[str, float | None]]], s
         "failures": [{"at_s": round(ts - start, 1), "code": code, "message": msg[:300],
                       **({} if msg.find(BLOCKED_STALL_MARK) < 0 else
                          {"stall": msg[msg.index(BLOCKED_STALL_MARK):][:200]}),
-                      **({} if w is None else
-                         {"kernel_wait_share": round(w.share, 2),
-                          "kernel_wait_samples": w.samples, "kernel_waits": w.wchans})}
-                     for (ts, code, msg), w in zip(soak.failures, in_kernel, strict=True)],
+                      **({} if run is None else
+                         {"kernel_wait_s": round(run.duration_s, 2),
+                          "kernel_wait_samples": run.samples, "kernel_waits": run.wchans})}
+                     for ts, code, msg, run in soak.failures],
         # the controller's RTDE timestamp seen standing still by the soak's own reader; a gap
         # with reader_late_s near zero was the controller's (or the link's), not the reader's
         "rtde_stream_max_gap_s": round(max((g for _, g, _ in soak.stream_gaps), default=0.0), 2),
@@ -601,10 +615,10 @@ def format_report(r: dict[str, Any]) -> str:
         f"({r['service_rss_mb_per_h_after_10_min']} MB/h after 10 min) "
         f"(ur_rtde child {r['ur_client_rss_mb_per_h']} MB/h); fds {r['fds_per_h']}/h, "
         f"threads {r['threads_per_h']}/h, job DB {r['job_db_kb_per_h']} KB/h",
-        f"cycles {r['cycles']}, failed {r['failed_cycles']} ({r['failed_cycles_not_host']} "
-        f"not the host's: {r['failed_cycles_own_stall']} after a stall of the service's own; "
-        f"{r['failed_cycles_blocked_stall']} after one blocked holding the interpreter, "
-        f"{r['failed_cycles_kernel_wait']} of them waiting in the kernel) "
+        f"cycles {r['cycles']}, failed {r['failed_cycles']}: {r['failed_cycles_not_host']} "
+        f"not the host's ({r['failed_cycles_own_stall']} after a stall of the service's own); "
+        f"{r['failed_cycles_blocked_stall']} after a stall blocked holding the interpreter, "
+        f"{r['failed_cycles_kernel_wait']} of them spent waiting in the kernel (the host's) "
         f"{r['failed_codes'] or ''}",
         "service stalls >= 0.1 s: " + ", ".join(
             f"{by} {v.get('count', '?')} ({v.get('seconds', '?')} s)"

@@ -4,8 +4,9 @@ when given a certificate and key), and the OPC UA server, URScript XML-RPC endpo
 TCP server it configures.
 
 Without ``--config`` it serves the built-in simulated cell (simulated UR controller driven
-through ur_rtde, simulated camera, fake gripper on a pty). uvicorn imports the app factory by
-name (``api.app:app_from_environment``) so the cell package does not depend on the API package.
+through ur_rtde, simulated camera, fake gripper on its tool-flange relay). uvicorn imports the
+app factory by name (``api.app:app_from_environment``) so the cell package does not depend on
+the API package.
 """
 
 from __future__ import annotations

@@ -11,8 +11,9 @@ and, where a kind has rules of its own, the problems that refuse it (``device_pr
   wire. ``kind="sim"``: the simulated arm in-process (fast tests).
 - ``[camera] kind="sim"``: the simulated camera, which renders what the simulated arm's camera
   sees; ``"oak"``: a Luxonis OAK.
-- ``[gripper] kind="sim"``: the simulated gripper on a pseudo-terminal, driven through the real
-  Modbus RTU adapter; ``"robotiq"``: the adapter on ``gripper.port``; ``"none"``.
+- ``[gripper] kind="sim"``: the simulated gripper on a TCP relay or a pseudo-terminal
+  (``link``), driven through the real Modbus RTU adapter; ``"robotiq"``: the adapter on
+  ``gripper.port``; ``"none"``.
 
 The simulated parts come from one call, :func:`fakes.sim_cell.build_sim_cell`, given what to
 simulate (:func:`simulated_cell_spec`) and the simulated world's truth
@@ -71,7 +72,8 @@ Sim = SimulatedCell[Any]
 
 SIM_CAMERA_NEEDS_SIM_ARM = ("camera.kind = \"sim\" needs a simulated robot (robot.kind = "
                             "\"sim\" or sim.ur_controller = true)")
-ROBOTIQ_NEEDS_PORT = "gripper.port: a serial device is needed for kind = \"robotiq\""
+ROBOTIQ_NEEDS_PORT = ("gripper.port: a serial device (or a socket://HOST:PORT relay) is needed "
+                      "for kind = \"robotiq\"")
 
 
 # -- what to simulate ---------------------------------------------------------------------------

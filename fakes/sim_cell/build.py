@@ -1,7 +1,7 @@
 """Build the simulated devices of one cell from a :class:`~fakes.sim_cell.spec.SimCellSpec`:
 the arm (its engine here, or the simulated controller in its own process), the world's parts,
-the camera that sees them from where that arm really is, the gripper on a pseudo-terminal that
-closes on them where the arm really is, and the world over them.
+the camera that sees them from where that arm really is, the gripper (on a TCP relay or a
+pseudo-terminal) that closes on them where the arm really is, and the world over them.
 """
 
 from __future__ import annotations

@@ -81,7 +81,7 @@ def test_gripper_link_settings_from_the_config(fake_gripper_link: Path, tmp_path
 
 def test_gripper_of_each_kind_from_the_config(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """The simulated cell's gripper (kind = "sim") is driven on its own pseudo-terminal; a cell
+    """The simulated cell's gripper (kind = "sim") is driven on its own link; a cell
     without a gripper, or an option its kind does not take, is refused."""
     sim_toml = REPO / "cell" / "configs" / "sim.toml"
 
