@@ -95,9 +95,17 @@ def _serve(args: argparse.Namespace) -> int:
     # Before any thread starts (numba, the devices, uvicorn's pool): a bounded number of
     # malloc arenas, and their freed pages handed back every TRIM_PERIOD_S (~15 arenas kept
     # freed frame buffers resident; cell/supervision/memory.py, docs/performance.md)
-    from cell.supervision.memory import Trimmer, limit_arenas, lock_file_pages, trim_period_s
+    from cell.supervision.memory import (
+        Trimmer,
+        keep_heap,
+        limit_arenas,
+        lock_file_pages,
+        trim_period_s,
+    )
 
     limit_arenas()
+    if trim_period_s() > 0:  # the trimmer hands back what glibc now keeps
+        keep_heap()
     period = trim_period_s()
     if period > 0:
         Trimmer(period, lock_pages=True).start()

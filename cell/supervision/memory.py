@@ -14,6 +14,16 @@ Two measures, both in the ``cell serve`` process:
   free pages inside every arena back to the kernel (``madvise``), every ``TRIM_PERIOD_S``
   (``CELL_MALLOC_TRIM_S`` in the environment: another period, 0: off).
 
+And :func:`keep_heap`, since the trimmer hands memory back: glibc's own give-and-take turned
+down. By default a buffer above a (moving) threshold is its own ``mmap``, and a heap whose top
+is free shrinks at once (``brk``, ``madvise``): a soak's service made ~100 such memory-map
+changes a second, each from the thread that allocated or freed a frame, holding the
+interpreter's lock. A change that grows a mapping waits for the lock of the process's
+anonymous memory, which the kernel's page-reclaim monitor (DAMON) holds while it walks that
+memory; beside CPU-bound processes the service stood still behind it for 3-53 s. With buffers
+up to 32 MB taken from the heap, and the heap kept until the trimmer's next pass, the jobs'
+threads seldom change the map.
+
 Neither changes what Python or numpy allocate; without glibc (musl, macOS) both do nothing.
 
 And one against the opposite: pages taken away. A kernel that reclaims cold page cache
@@ -37,8 +47,15 @@ import time
 
 log = logging.getLogger(__name__)
 
-M_ARENA_MAX = -8  # mallopt parameter (malloc.h)
+M_TRIM_THRESHOLD = -1  # mallopt parameters (malloc.h)
+M_TOP_PAD = -2
+M_MMAP_THRESHOLD = -3
+M_ARENA_MAX = -8
 ARENA_MAX = 2
+MMAP_THRESHOLD_BYTES = 32 << 20  # glibc's upper bound for a 64-bit process
+TRIM_THRESHOLD_BYTES = 256 << 20  # the heap shrinks by itself only past this much free top
+TOP_PAD_BYTES = 16 << 20  # a heap grows by this much more than asked
+_MALLOC_ENV = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_")
 TRIM_PERIOD_S = 30.0
 SLOW_TRIM_S = 0.2  # a trim this long is logged as a warning
 
@@ -73,6 +90,20 @@ def limit_arenas(arenas: int = ARENA_MAX) -> bool:
     if libc is None:
         return False
     return bool(libc.mallopt(ctypes.c_int(M_ARENA_MAX), ctypes.c_int(arenas)))
+
+
+def keep_heap() -> bool:
+    """Buffers up to ``MMAP_THRESHOLD_BYTES`` from the heap, and a heap that neither shrinks
+    nor grows a little at a time (call before threads start); False when not applied:
+    ``CELL_MALLOC_KEEP=0``, a glibc tunable in the environment, or no glibc."""
+    if os.environ.get("CELL_MALLOC_KEEP", "1") == "0" or any(k in os.environ for k in _MALLOC_ENV):
+        return False
+    libc = _libc()
+    if libc is None:
+        return False
+    return all(bool(libc.mallopt(ctypes.c_int(param), ctypes.c_int(value))) for param, value in (
+        (M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES), (M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES),
+        (M_TOP_PAD, TOP_PAD_BYTES)))
 
 
 def trim() -> bool:
