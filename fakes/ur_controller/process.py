@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import queue
 import random
 import socket
 import subprocess
@@ -50,6 +52,11 @@ class ControllerProcess:
             argv.append("--local-control")
         self._proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                       text=True, bufsize=1)
+        # One reader for the controller's whole life: the simulated camera asks for the true
+        # pose every frame, and a thread per answer made ~30 threads a second (each one's
+        # stack mapped and unmapped) in the process that runs the cell.
+        self._lines: queue.Queue[str] = queue.Queue()
+        threading.Thread(target=self._read_lines, name="controller-replies", daemon=True).start()
         self._lock = threading.Lock()
         self._ready = False
         if wait:
@@ -69,15 +76,17 @@ class ControllerProcess:
             raise RuntimeError(f"controller on {self.host} did not start: {ready!r}")
         self._ready = True
 
+    def _read_lines(self) -> None:
+        with contextlib.suppress(OSError, ValueError):  # closed under it
+            for line in self._stdout:
+                self._lines.put(line)
+        self._lines.put("")  # end of file: the controller is gone
+
     def _readline(self, timeout_s: float) -> str:
-        box: list[str] = []
-        reader = threading.Thread(target=lambda: box.append(self._stdout.readline()),
-                                  daemon=True)
-        reader.start()
-        reader.join(timeout_s)
-        if not box:
-            raise TimeoutError(f"controller on {self.host} did not answer")
-        return box[0]
+        try:
+            return self._lines.get(timeout=timeout_s)
+        except queue.Empty:
+            raise TimeoutError(f"controller on {self.host} did not answer") from None
 
     @property
     def _stdout(self) -> Any:
@@ -87,6 +96,13 @@ class ControllerProcess:
         with self._lock:
             self._await_ready(READY_TIMEOUT_S)
             assert self._proc.stdin is not None
+            while True:  # an answer that came after its command timed out is not this one's
+                try:
+                    if self._lines.get_nowait() == "":
+                        self._lines.put("")  # the end stays for every later read
+                        break
+                except queue.Empty:
+                    break
             self._proc.stdin.write(line + "\n")
             self._proc.stdin.flush()
             reply: dict[str, Any] = json.loads(self._readline(timeout_s))
