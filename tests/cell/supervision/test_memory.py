@@ -19,6 +19,19 @@ def test_an_explicit_malloc_arena_max_is_left_to_glibc(monkeypatch: pytest.Monke
     assert memory.limit_arenas() is False
 
 
+def test_the_heap_is_kept_unless_the_environment_says_otherwise(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "131072")  # a glibc tunable: glibc decides
+    assert memory.keep_heap() is False
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_")
+    monkeypatch.setenv("CELL_MALLOC_KEEP", "0")
+    assert memory.keep_heap() is False
+    monkeypatch.delenv("CELL_MALLOC_KEEP")
+    # in a child, so this test process keeps glibc's defaults: the thresholds are accepted
+    code = "from cell.supervision import memory; raise SystemExit(0 if memory.keep_heap() else 1)"
+    assert subprocess.run([sys.executable, "-c", code], env=os.environ.copy()).returncode == 0
+
+
 def test_the_trim_period_comes_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("CELL_MALLOC_TRIM_S", raising=False)
     assert memory.trim_period_s() == memory.TRIM_PERIOD_S
