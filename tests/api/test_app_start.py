@@ -25,8 +25,11 @@ from tests.support.net import free_port
 
 def test_the_app_starts_the_cell_beside_its_servers(tmp_path: Path,
                                                     monkeypatch: pytest.MonkeyPatch) -> None:
-    port = free_port()
-    cell = build_cell(sim_config(tmp_path, modbus={"port": port, "host": "127.0.0.1"}))
+    port = free_port()  # every server on a free port: sim.toml's fixed ones are fought over
+    cell = build_cell(sim_config(
+        tmp_path, modbus={"port": port, "host": "127.0.0.1"},
+        urscript={"xmlrpc_port": free_port()},
+        opcua={"endpoint": f"opc.tcp://127.0.0.1:{free_port()}"}))
     closed: list[bool] = []
     real_close = cell.close
     monkeypatch.setattr(cell, "close", lambda: (closed.append(True), real_close()))
