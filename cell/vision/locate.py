@@ -193,9 +193,13 @@ class Locator:
             return frame, None, err.message
 
     def locate(self, n_frames: int = 1, after_s: float | None = None) -> Located:
-        """Estimate from ``n_frames`` successive frames captured no earlier than ``after_s``,
-        each paired with the arm pose at its capture time, and average the base-frame results
-        (noise drops as 1/sqrt(n))."""
+        """Estimate from ``n_frames`` successive frames captured no earlier than ``after_s``
+        (None: the call), each paired with the arm pose at its capture time, and average the
+        base-frame results (noise drops as 1/sqrt(n)). A frame from before the call may show a
+        part that has since been put down or taken away: a PLC that places a part and asks at
+        once must get the part where it is now, not the mean of its old and new place."""
+        if after_s is None:
+            after_s = time.monotonic()
         if not self.camera.is_connected:
             raise UnavailableError(ErrorCode.camera_lost, "the camera is not connected")
         self._require_arm()

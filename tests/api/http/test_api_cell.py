@@ -87,6 +87,18 @@ def test_locate_random_placements_within_tolerance(client: TestClient) -> None:
     assert worst[0] <= 0.5 and worst[1] <= 0.1
 
 
+def test_locate_right_after_the_part_moved_sees_it_where_it_lies(client: TestClient) -> None:
+    """A PLC that puts a part down and asks at once: no frame from before the request."""
+    rng = np.random.default_rng(3)
+    for _ in range(8):
+        T_true = random_placement(rng)
+        place(client, T_true)
+        r = client.post("/api/v1/locate", json={"n_frames": 2}, headers=PLC)
+        assert r.status_code == 200, r.text
+        d_mm, d_deg = pose_distance(T_from_pose_dict(r.json()["T_base_target"]), T_true)
+        assert d_mm <= 0.5 and d_deg <= 0.1, f"{d_mm:.2f} mm / {d_deg:.3f} deg from the truth"
+
+
 def test_approach_random_placements_reach_the_true_goal(client: TestClient) -> None:
     rng = np.random.default_rng(11)
     cell = cell_of(client)
