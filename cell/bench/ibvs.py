@@ -5,7 +5,7 @@ For each world a simulated cell runs through the real UR adapter and ur_rtde (th
 controller in its own process, as the rest of the approach benchmark). The arm is homed, moved
 along the camera's axis until the target is ``view_distance_mm`` ahead (250 mm: from home, 456
 mm, the image does not resolve 0.05 mm, docs/ibvs.md) and a view taught there (``teach``, the
-same averaging an operator's teach does, ``teach_samples`` frames). Then, for each of
+same averaging an operator's teach does, ``teach_samples`` samples). Then, for each of
 ``placements`` seeded displacements (translation ``displace_mm`` in a random direction,
 rotation ``displace_deg`` about a random axis, about the TCP), the arm is jogged to the
 displaced pose and each mode approaches the taught pose from it: ``ibvs`` to the taught view,

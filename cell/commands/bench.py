@@ -240,8 +240,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     lp.add_argument("--burners", type=int, default=0,
                     help="CPU-burning processes beside the runs (default 0)")
     lp.add_argument("--teach-samples", type=int, default=5, metavar="N",
-                    help="frames the taught view averages, 1..20 as POST /teach takes "
-                         "(default 5)")
+                    help="samples a teach takes, each [teach] frames_per_sample frames "
+                         "(default 5); the view is taught again for every repeat")
     lp.set_defaults(func=_lazy("loops"))
 
 

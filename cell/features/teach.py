@@ -137,11 +137,13 @@ def _T_or_none(d: dict[str, Any] | None) -> Matrix4 | None:
 def view_dict(view: Features | None) -> dict[str, Any] | None:
     if view is None:
         return None
-    return {"ids": list(view.ids), "xy": view.xy.tolist(), "depth_mm": view.depth_mm.tolist()}
+    return {"ids": list(view.ids), "xy": view.xy.tolist(), "depth_mm": view.depth_mm.tolist(),
+            "frames": view.frames}
 
 
 def view_from_dict(d: dict[str, Any] | None, frames: int = 1) -> Features | None:
-    """``frames``: how many frames the view averages (a taught pose's samples)."""
+    """``frames``: how many frames the view averages when the record does not say (a pose
+    taught before the record kept it: one frame a sample)."""
     if d is None:
         return None
     xy = np.asarray(d["xy"], dtype=float).reshape(-1, 2)
@@ -149,11 +151,12 @@ def view_from_dict(d: dict[str, Any] | None, frames: int = 1) -> Features | None
     ids = tuple(int(i) for i in d["ids"])
     if len(ids) != len(xy) or len(ids) != len(depth):
         raise ValueError("a taught view needs one point and one depth per dot id")
-    return Features(ids, xy, depth, max(1, int(frames)))
+    return Features(ids, xy, depth, max(1, int(d.get("frames", frames))))
 
 
 def mean_view(views: list[Features]) -> Features | None:
-    """The dots seen in every sample, their normalised points and depths averaged."""
+    """The dots seen in every view, their normalised points and depths averaged (views of
+    one frame each, or means of equally many frames)."""
     if not views:
         return None
     common = [i for i in views[0].ids if all(i in v.ids for v in views[1:])]
@@ -161,7 +164,7 @@ def mean_view(views: list[Features]) -> Features | None:
         return None
     subs = [v.subset(tuple(common)) for v in views]
     return Features(tuple(common), np.mean([v.xy for v in subs], axis=0),
-                    np.mean([v.depth_mm for v in subs], axis=0), len(subs))
+                    np.mean([v.depth_mm for v in subs], axis=0), sum(v.frames for v in subs))
 
 
 def check_name(name: str) -> str:
@@ -291,7 +294,8 @@ class TaughtStore:
 
 @dataclass(frozen=True)
 class Sample:
-    """One locate: the target and the resting TCP, both at the frame's capture time."""
+    """One locate (or the mean of several): the target and the resting TCP, at the frames'
+    capture times."""
 
     T_base_target: Matrix4
     T_base_tcp: Matrix4
@@ -368,10 +372,12 @@ def teach(cell: TeachingCell, store: TaughtStore, caller: str, name: str, sample
             if frame == "base":
                 taught = combine_base(name, _tcp_samples(cell, samples), caller)
             else:
-                taught = combine(name, _samples(cell, caller, samples), caller, max_spread_mm,
-                                 max_spread_deg)
+                per_sample = cell.core.config.teach.frames_per_sample
+                taught = combine(name, _samples(cell, caller, samples, per_sample), caller,
+                                 max_spread_mm, max_spread_deg)
         store.put(taught, replace=replace)
-        note.detail = (f"spread {taught.spread_mm:.3f} mm / {taught.spread_deg:.3f} deg")
+        frames = f", {taught.view.frames} frames" if taught.view is not None else ""
+        note.detail = f"spread {taught.spread_mm:.3f} mm / {taught.spread_deg:.3f} deg{frames}"
     return taught
 
 
@@ -408,8 +414,31 @@ def located_view(locator: Locator, loc: Located) -> Features | None:
                               r.T_camera_target, locator.target.points_mm)
 
 
-def _samples(cell: TeachingCell, caller: str, n: int) -> list[Sample]:
-    """``n`` locates, each from a frame not used before (the camera runs at its own rate)."""
+def _samples(cell: TeachingCell, caller: str, n: int, per_sample: int = 1) -> list[Sample]:
+    """``n`` samples, each the mean of ``per_sample`` locates from frames not used before (the
+    camera runs at its own rate). The spread is judged between samples, so a mean of several
+    frames is held to the same limit as one frame was."""
+    frames = _frames(cell, caller, n * per_sample)
+    return [_mean_sample(frames[k:k + per_sample]) for k in range(0, len(frames), per_sample)]
+
+
+def _mean_sample(frames: list[Sample]) -> Sample:
+    if len(frames) == 1:
+        return frames[0]
+    for s in frames[1:]:
+        d_mm, d_deg = pose_distance(frames[0].T_base_tcp, s.T_base_tcp)
+        if d_mm > STILL_MM or d_deg > STILL_DEG:
+            raise RefusedError(ErrorCode.arm_moving,
+                               f"the arm moved {d_mm:.3f} mm / {d_deg:.3f} deg "
+                               "while teaching; let it rest and teach again")
+    views = [s.view for s in frames if s.view is not None]
+    return Sample(mean_pose([s.T_base_target for s in frames]),
+                  mean_pose([s.T_base_tcp for s in frames]), frames[-1].frame_sequence,
+                  mean_view(views) if len(views) == len(frames) else None)
+
+
+def _frames(cell: TeachingCell, caller: str, n: int) -> list[Sample]:
+    """``n`` locates, each from a frame not used before."""
     period_s = 1.0 / cell.core.config.camera.fps
     deadline = time.monotonic() + 5.0 + 3.0 * n * period_s
     out: list[Sample] = []

@@ -109,6 +109,9 @@ class PositionLaw(Law[Located, Aim]):
             if mode == "approach" else None
         self.rest_cache: tuple[int, TargetEstimate] | None = None  # (frames, the mean's)
         self.rest_used = False  # the last aim was the mean of the poses at rest
+        # once converged the mean stays the one it converged on: the frames seen while the arm
+        # stops must not change (or restart) the goal the result reports and claims by
+        self.rest_frozen = False
 
     # -- per frame -----------------------------------------------------------------------------
     def seed(self, first: Located) -> None:
@@ -131,7 +134,7 @@ class PositionLaw(Law[Located, Aim]):
                                         f"{d_deg:.1f} deg from the prediction was not used"),
                            failed=False)
         self.filter.update(t, T_bt)
-        if self.rest is not None:
+        if self.rest is not None and not self.rest_frozen:
             self.rest.add(T_bt, located.T_base_tcp)
 
     # -- per tick ------------------------------------------------------------------------------
@@ -189,8 +192,10 @@ class PositionLaw(Law[Located, Aim]):
                 and len(self.rest) >= self.sc.rest_frames)
             ok = e_mm < self.sc.tolerance_mm and e_deg < self.sc.tolerance_deg
             self.consecutive = self.consecutive + 1 if ok else 0
-            return Reading({"error_mm": e_mm, "error_deg": e_deg},
-                           converged=averaged and self.consecutive >= self.sc.converge_frames)
+            converged = averaged and self.consecutive >= self.sc.converge_frames
+            if converged and self.held is None:
+                self.rest_frozen = True
+            return Reading({"error_mm": e_mm, "error_deg": e_deg}, converged=converged)
         return Reading({"error_mm": e_mm, "error_deg": e_deg}, converged=False)
 
     def twist(self, aim: Aim, T_tcp: Matrix4, state: ArmState, t: float, clock: TwistClock

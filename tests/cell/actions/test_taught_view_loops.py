@@ -31,3 +31,8 @@ def test_an_approach_to_a_taught_view_ends_near_it_and_its_claim_holds(
         result = job.result
         assert result is not None
         assert d_mm <= result.estimated_error_mm and d_deg <= result.estimated_error_deg
+        if mode == "servo":  # the goal it converged on, not one the stopping frames restarted
+            assert getattr(result, "goal_frames_averaged", 0) >= cell.config.servo.rest_frames
+        else:  # the view taught from every frame of every sample
+            assert taught.view is not None
+            assert taught.view.frames == 5 * cell.config.teach.frames_per_sample

@@ -178,7 +178,12 @@ def test_teach_then_approach_by_name_arrives_at_the_taught_pose(
     print(f"taught T_target_tcp error {d_mm:.3f} mm / {d_deg:.3f} deg, spread "
           f"{taught['spread_mm']:.3f} mm / {taught['spread_deg']:.3f} deg")
     assert d_mm < 0.3 and d_deg < 0.1
-    assert json.loads((tmp_path / STORE_NAME).read_text())["poses"][0]["name"] == "grasp-1"
+    stored = json.loads((tmp_path / STORE_NAME).read_text())["poses"][0]
+    assert stored["name"] == "grasp-1"
+    # each sample the mean of [teach] frames_per_sample frames; the view says how many it holds
+    assert stored["view"]["frames"] == 5 * cell.config.teach.frames_per_sample
+    view = cell.taught.get("grasp-1").view
+    assert view is not None and view.frames == stored["view"]["frames"]
     listed = client.get("/api/v1/teach", headers=VIEW).json()["taught"]
     assert [p["name"] for p in listed] == ["grasp-1"]
     assert client.get("/api/v1/teach/grasp-1", headers=PLC).json()["T_target_tcp"] == \
