@@ -308,13 +308,7 @@ def combine(name: str, samples: list[Sample], caller: str, max_spread_mm: float,
     """Average the samples into a taught pose; refuse a moving arm or a spread over the limit."""
     if not samples:
         raise LimitError(ErrorCode.invalid_request, "teaching needs at least one sample")
-    T0 = samples[0].T_base_tcp
-    for s in samples[1:]:
-        d_mm, d_deg = pose_distance(T0, s.T_base_tcp)
-        if d_mm > STILL_MM or d_deg > STILL_DEG:
-            raise RefusedError(ErrorCode.arm_moving,
-                               f"the arm moved {d_mm:.3f} mm / {d_deg:.3f} deg "
-                               "while teaching; let it rest and teach again")
+    require_still([s.T_base_tcp for s in samples])
     each = [invert_T(s.T_base_target) @ s.T_base_tcp for s in samples]
     T_mean = mean_pose(each)
     dists = [pose_distance(T_mean, T) for T in each]
@@ -381,14 +375,20 @@ def teach(cell: TeachingCell, store: TaughtStore, caller: str, name: str, sample
     return taught
 
 
-def combine_base(name: str, tcps: list[Matrix4], caller: str) -> TaughtPose:
-    """A base-frame pose from resting TCP readings; an arm that moved between them is refused."""
+def require_still(tcps: list[Matrix4]) -> None:
+    """Refuse (``arm_moving``) TCP readings that moved from the first by more than the rest
+    allows: a teach averages a resting arm's views, not a path."""
     for T in tcps[1:]:
         d_mm, d_deg = pose_distance(tcps[0], T)
         if d_mm > STILL_MM or d_deg > STILL_DEG:
             raise RefusedError(ErrorCode.arm_moving,
                                f"the arm moved {d_mm:.3f} mm / {d_deg:.3f} deg "
                                "while teaching; let it rest and teach again")
+
+
+def combine_base(name: str, tcps: list[Matrix4], caller: str) -> TaughtPose:
+    """A base-frame pose from resting TCP readings; an arm that moved between them is refused."""
+    require_still(tcps)
     T_mean = mean_pose(tcps)
     dists = [pose_distance(T_mean, T) for T in tcps]
     return TaughtPose(check_name(name), None, len(tcps), max(d[0] for d in dists),
@@ -425,12 +425,7 @@ def _samples(cell: TeachingCell, caller: str, n: int, per_sample: int = 1) -> li
 def _mean_sample(frames: list[Sample]) -> Sample:
     if len(frames) == 1:
         return frames[0]
-    for s in frames[1:]:
-        d_mm, d_deg = pose_distance(frames[0].T_base_tcp, s.T_base_tcp)
-        if d_mm > STILL_MM or d_deg > STILL_DEG:
-            raise RefusedError(ErrorCode.arm_moving,
-                               f"the arm moved {d_mm:.3f} mm / {d_deg:.3f} deg "
-                               "while teaching; let it rest and teach again")
+    require_still([s.T_base_tcp for s in frames])
     views = [s.view for s in frames if s.view is not None]
     return Sample(mean_pose([s.T_base_target for s in frames]),
                   mean_pose([s.T_base_tcp for s in frames]), frames[-1].frame_sequence,
