@@ -44,6 +44,7 @@ from cell.errors import CellError, LimitError, NotFoundError, RefusedError
 from cell.files import replace_text
 from cell.results.modes import ApproachMode
 from cell.servoing.ibvs import Features, features_from_view
+from cell.servoing.ibvs_settle import mean_features
 from cell.vision.frames import mean_pose
 from cell.vision.locate import Located, Locator
 from drivers.arm import ArmState
@@ -156,15 +157,10 @@ def view_from_dict(d: dict[str, Any] | None, frames: int = 1) -> Features | None
 
 def mean_view(views: list[Features]) -> Features | None:
     """The dots seen in every view, their normalised points and depths averaged (views of
-    one frame each, or means of equally many frames)."""
-    if not views:
+    one frame each, or means of equally many frames); None when no dot is in all of them."""
+    if not views or not any(all(i in v.ids for v in views[1:]) for i in views[0].ids):
         return None
-    common = [i for i in views[0].ids if all(i in v.ids for v in views[1:])]
-    if not common:
-        return None
-    subs = [v.subset(tuple(common)) for v in views]
-    return Features(tuple(common), np.mean([v.xy for v in subs], axis=0),
-                    np.mean([v.depth_mm for v in subs], axis=0), sum(v.frames for v in subs))
+    return mean_features(views)
 
 
 def check_name(name: str) -> str:
