@@ -46,7 +46,7 @@ from cell.results.consistency import Consistency
 from cell.servoing.ibvs import Features
 from cell.servoing.ibvs_mount import IbvsMount
 from cell.servoing.image import ImageLaw
-from cell.servoing.position import PositionLaw, ServoGoal, located_resolution
+from cell.servoing.position import PositionLaw, ServoGoal
 from cell.servoing.runner import ClosedLoop
 from cell.vision.consistency import consistency
 from cell.vision.frames import approach_tcp, observation_camera
@@ -462,41 +462,17 @@ def _close_at_goal(core: CellCore, motion: Motion, plan: ApproachPlan, goal: Mat
     return steps, goal
 
 
-# A servo approach's target counts as at rest below this filtered speed: then the arm, stopped
-# at convergence, closes on still views as look-and-move does.
-AT_REST_MM_S = 1.0
-
-
-def _at_rest(servo_result: dict[str, Any]) -> bool:
-    velocity = servo_result.get("target_velocity_mm_s")
-    return velocity is not None and float(np.linalg.norm(velocity)) < AT_REST_MM_S
-
-
 def servo_approach(core: CellCore, job_id: str, motion: Motion, loc: Located,
                    plan: ApproachPlan, seen: dict[str, Any], start: dict[str, Any]
                    ) -> ServoApproach:
-    """The servo, and with the target at rest and a camera on the hand the closing views:
-    the servo stops on the filtered estimate of a moving view (blur, latency), which spreads
-    its end about the goal (0.03-0.14 mm measured in the realistic world), and the stopped arm
-    closes on still views (:func:`_close_at_goal`). The result's ``closing`` lists the steps
-    and its estimate becomes the last correction."""
+    """The servo until converged. An approach converges only on the mean of ``[servo]
+    rest_frames`` poses of the target at rest, seen from within 0.1 mm of where the arm
+    stops: a closing look of a few still frames after it (as look-and-move ends) would
+    replace that mean with a noisier one (3 frames: 0.065 mm RMS at the TCP from home,
+    against 0.02 mm for 30; docs/performance.md)."""
     out = ClosedLoop(core, job_id, motion, PositionLaw(core, ServoGoal(
         plan.T_target_tcp, plan.standoff_mm), "approach")).run(loc)
     basis = "fixed" if core.frames.is_fixed else "servo"
-    if not core.frames.is_fixed and _at_rest(out):
-        steps, goal = _close_at_goal(core, motion, plan, core.arm.state().T_base_tcp)
-        out["closing"] = steps
-        last = core.locator.last
-        if steps and isinstance(steps[-1], ClosingCorrection) and last is not None:
-            basis = "servo_closed"
-            res = located_resolution(core, last, core.config.approach.frames_per_locate)
-            res_mm, res_deg = (0.0, 0.0) if res is None else (res.mm, res.deg)
-            out.update(goal_T_base_tcp=Pose.from_T(goal),
-                       reached_T_base_tcp=Pose.from_T(core.arm.state().T_base_tcp),
-                       estimated_error_mm=steps[-1].correction_mm + res_mm,
-                       estimated_error_deg=steps[-1].correction_deg + res_deg,
-                       resolution_mm=None if res is None else res.mm,
-                       resolution_deg=None if res is None else res.deg)
     if seen.get("pose_source") == "last_seen":  # a fixed camera, hidden at the start
         out.update(start_pose_source="last_seen", occluded=True,
                    occlusion_reason=out.get("occlusion_reason") or seen.get("reason"))
@@ -517,13 +493,6 @@ ERROR_BASIS: dict[str, ErrorBasis] = {
         text="the last correction of the goal in the base frame (a fixed camera seeing the "
              "target at the goal) plus the reach error; both go through T_base_camera, so "
              "its error is invisible here"),
-    "servo_closed": ErrorBasis(
-        frame="base",
-        text="the last correction of the goal in the base frame, seen from still views at "
-             "the goal after the servo stopped (the target at rest), plus what those views "
-             "resolve at the TCP (the dots' centre bias through the pose's sensitivity); it "
-             "goes through the hand-eye calibration and the intrinsics, so their error is "
-             "invisible here"),
     "servo": ErrorBasis(
         frame="camera",
         text="the TCP against the goal the camera sees from where it stands (a target at "

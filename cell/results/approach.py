@@ -86,12 +86,11 @@ class LookAndMoveApproach(ApproachBase, FixedCameraView):
 
 
 class ServoApproach(ApproachBase, ServoLoop):
-    """Position-based servoing on every frame until converged; with the target at rest a
-    camera on the hand then closes on still views (``closing``)."""
+    """Position-based servoing on every frame until converged (an approach: on the mean of
+    the target's poses at rest)."""
 
     mode: Literal[ApproachMode.servo]
     time_to_converge_s: float | None
-    closing: list[ClosingStep] | None = None
     start_pose_source: Literal["last_seen"] | None = None  # a fixed camera hidden at the start
 
 
