@@ -5,7 +5,9 @@ The simulated cell runs in-process with the ideal world but for the camera's tru
 -1.0 / 2.0 mm and 0.5 deg about [1, 1, 0] from ``[hand_eye]``. A view is taught at home
 (``teach``, ``teach_samples`` samples of ``[teach] frames_per_sample`` frames, as an
 operator's ``POST /teach``), and taught again for every repeat: the taught view's own error is
-shared by every run from it, so one teach would make a set of runs one draw. Each run jogs the
+shared by every run from it, so one teach would make a set of runs one draw. The repeats take
+the teach poses in turn (``TEACH_POSES``: home, 456 mm from the plate and square to it, and a
+pose 150 mm nearer and tilted 8 deg). Each run jogs the
 arm by one of the jogs (base frame: translation mm, rotation deg) and approaches the taught view
 with no standoff. For every run: the job's state and time, the true error (the simulator's TCP
 against the true TCP at teaching) and the error the job claims (``estimated_error_mm`` /
@@ -30,6 +32,7 @@ from cell.bench.ibvs import jog_to
 from cell.config.schema import load_config, parse_config
 from cell.errors import CellError
 from cell.runtime import start_cell
+from cell.vision.frames import step_goal
 from estimator.transforms import pose_distance
 
 CALLER = "bench:loops"
@@ -42,6 +45,11 @@ JOGS: tuple[tuple[tuple[float, float, float], tuple[float, float, float]], ...] 
     ((10.0, 0.0, 0.0), (2.0, 0.0, 0.0)),
     ((0.0, 40.0, -20.0), (0.0, 8.0, 0.0)),
     ((-60.0, 20.0, 0.0), (0.0, 0.0, 15.0)),
+)
+# where the view is taught, from home (base frame: translation mm, rotation deg about the TCP)
+TEACH_POSES: tuple[tuple[tuple[float, float, float], tuple[float, float, float]], ...] = (
+    ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)),
+    ((20.0, -15.0, -150.0), (8.0, 0.0, 0.0)),
 )
 MODES = ("servo", "ibvs")
 # the true error each mode is to end within (mm, deg)
@@ -78,18 +86,22 @@ def run_bench_loops(*, repeats: int = 3, modes: tuple[str, ...] = MODES,
         try:
             assert cell.sim is not None
             time.sleep(1.0)
+            T_home = cell.arm_state().T_base_tcp
             teach_frames: int | None = None
             for repeat in range(repeats):
+                pose_i = repeat % len(TEACH_POSES)
+                jog_to(cell, step_goal(T_home, *TEACH_POSES[pose_i], frame="base"))
                 taught = cell.teach(CALLER, "view", samples=teach_samples)
                 T_taught = cell.sim.true_T_base_tcp()
                 teach_frames = taught.view.frames if taught.view is not None else None
                 for jog_i, (t_mm, r_deg) in enumerate(JOGS):
                     for mode in modes:
-                        rows.append({"teach": repeat} | _run(cell, taught, T_taught, mode,
-                                                             jog_i, t_mm, r_deg))
+                        rows.append({"teach": repeat, "teach_pose": pose_i}
+                                    | _run(cell, taught, T_taught, mode, jog_i, t_mm, r_deg))
         finally:
             cell.close()
     return {"teach_samples": teach_samples, "teach_frames": teach_frames,
+            "teach_poses": [list(map(list, p)) for p in TEACH_POSES],
             "jogs": [list(map(list, j)) for j in JOGS],
             "runs": rows, "summary": {m: _summary([r for r in rows if r["mode"] == m])
                                       for m in modes},
@@ -149,18 +161,20 @@ def _within(row: dict[str, Any]) -> bool:
 
 
 def format_report(r: dict[str, Any]) -> list[str]:
-    lines = [f"to a view taught at home ({r['teach_samples']} samples, {r['teach_frames']} "
-             "frames, taught again every repeat), mount off by "
+    lines = [f"to a view taught at {len(r['teach_poses'])} poses in turn ({r['teach_samples']} "
+             f"samples, {r['teach_frames']} frames, taught again every repeat), mount off by "
              f"{np.linalg.norm(MOUNT_ERROR_MM):.1f} mm / {MOUNT_ERROR_DEG} deg:"]
     for row in r["runs"]:
         if row["state"] == "succeeded":
-            lines.append(f"  {row['mode']:5s} jog {row['jog']} succeeded {row['time_s']:.2f} s "
+            lines.append(f"  teach pose {row['teach_pose']} {row['mode']:5s} jog {row['jog']} "
+                         f"succeeded {row['time_s']:.2f} s "
                          f"true {row['true_mm']:.3f} mm / {row['true_deg']:.3f} deg, claimed "
                          f"{row['claimed_mm']:.3f} mm / {row['claimed_deg']:.3f} deg "
                          f"{'held' if row['bound_held'] else 'NOT held'} "
                          f"(load {row['load_1min']:.1f})")
         else:
-            lines.append(f"  {row['mode']:5s} jog {row['jog']} {row['state']}: "
+            lines.append(f"  teach pose {row['teach_pose']} {row['mode']:5s} jog {row['jog']} "
+                         f"{row['state']}: "
                          f"{row.get('error')} (load {row['load_1min']:.1f})")
     for mode, s in r["summary"].items():
         lines.append(f"  {mode}: {s['succeeded']}/{s['runs']} succeeded, "

@@ -233,10 +233,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     lv.set_defaults(func=_lazy("live_view"))
     lp = what.add_parser(
         "loops", help="servo and IBVS to a view taught with the camera's mount off",
-        description="Teaches a view at home on a simulated cell whose camera mount is off the "
-                    "hand-eye calibration, jogs away and approaches it in each mode; each run's "
-                    "true error beside the error the job claims (see cell/bench/loops.py).")
-    lp.add_argument("--repeats", type=int, default=3, help="runs per jog and mode (default 3)")
+        description="Teaches a view (at home, then nearer and tilted, in turn) on a simulated "
+                    "cell whose camera mount is off the hand-eye calibration, jogs away and "
+                    "approaches it in each mode; each run's true error beside the error the "
+                    "job claims (see cell/bench/loops.py).")
+    lp.add_argument("--repeats", type=int, default=3,
+                    help="teaches, each followed by one run per jog and mode (default 3)")
     lp.add_argument("--burners", type=int, default=0,
                     help="CPU-burning processes beside the runs (default 0)")
     lp.add_argument("--teach-samples", type=int, default=5, metavar="N",
