@@ -184,10 +184,11 @@ class ServoConfig(Strict):
     converge_frames: int = Field(default=4, ge=1, le=100)
     # an approach converges only on a goal from the mean of at least this many poses of the
     # target at rest (cell/servoing/rest_mean.py): one frame's pose turns about the target by
-    # ~0.1 mm at the TCP from home, and a mean of a few frames by half that. To a view taught
-    # at home with the mount off: 30 frames ended 0.045 mm median from the truth (11 of 12
-    # within 0.1 mm) in 2.5 s, 15 frames 0.093 mm (9 of 12) in 1.8 s (cell bench loops)
-    rest_frames: int = Field(default=30, ge=3, le=30)
+    # ~0.11 mm at the TCP from home, a mean of N frames by that over sqrt(N). To a view taught
+    # at home with the mount off, 20 ended 0.032 mm median from the truth (worst 0.050 mm) in
+    # 1.35 s; in the realistic world (a frame every 54 ms) 20 took 2.93 s median, 30 3.95 s
+    # (docs/performance.md)
+    rest_frames: int = Field(default=20, ge=3, le=30)
     lost_after_s: float = Field(default=0.1, gt=0, le=5)  # of camera time (exposures)
     # loss is judged on camera time (cell/servoing/target_loss.py); a pipeline that examines
     # no frame for this long (host time since its newest examined exposure: a stalled camera

@@ -2,7 +2,7 @@
 
 A result lists every key a client may see. Keys a result always carries are required fields
 (``None`` where the value may be missing); a key that only some results carry (a fixed
-camera's occlusion fields, the closing steps of an approach at rest) has the default ``None``
+camera's occlusion fields, a hand camera's look-and-move closing steps) has the default ``None``
 and is published only when its producer set it: every dump of a result (``json_dict``, the job
 store's JSON, FastAPI's response) leaves out the fields its producer did not set, and an
 explicit ``None`` is ``null``. No other field has a default, since an unset default would

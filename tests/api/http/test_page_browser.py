@@ -856,11 +856,16 @@ def test_sim_cell_live_view_jog_approach_and_stop(page: Any, sim_cell: str) -> N
     assert page.get_by_test_id("quality-age").inner_text().endswith("ms")
     wait_until(lambda: "mm" in page.get_by_test_id("tcp-pose").inner_text(), 5, "TCP pose")
 
-    # Hold jog-z-plus for one second at 20 mm/s in the base frame.
+    # Hold jog-z-plus at 20 mm/s in the base frame: from when the arm is seen rising, one
+    # second more. The jog's start (the first POST /jog reaching the controller) was measured
+    # up to ~0.5 s late in the full suite on 2 cores; timed from the press, the held time
+    # could not see that delay.
     page.get_by_test_id("jog-frame").select_option("base")
     page.get_by_test_id("jog-speed").select_option("20")
     start = _settled_tcp_mm(url)
     _hold_start(page, "jog-z-plus")
+    pressed = time.monotonic()
+    wait_until(lambda: _tcp_mm(url)[2] - start[2] > 0.5, 5, "the arm rising while held")
     t0 = time.monotonic()
     time.sleep(1.0)
     page.mouse.up()
@@ -868,12 +873,13 @@ def test_sim_cell_live_view_jog_approach_and_stop(page: Any, sim_cell: str) -> N
     end = _settled_tcp_mm(url)
     rise = end - start
     expected = 20.0 * held_s
-    print(f"jog z+ held {held_s:.2f} s: rose {rise[2]:.1f} mm (expected about {expected:.1f}), "
+    print(f"jog z+ moving after {t0 - pressed:.2f} s, then held {held_s:.2f} s: rose "
+          f"{rise[2]:.1f} mm (expected about {expected:.1f} + the rise seen first), "
           f"sideways {np.linalg.norm(rise[:2]):.2f} mm")
-    # Never more than commanded; at least a third of it: the jog's start (the first POST /jog
-    # reaching the controller) was measured up to ~0.5 s late in the full suite on 2 cores
-    # (10 mm of 20), which the held time cannot see.
-    assert 0.35 * expected <= rise[2] <= 1.3 * expected + 3.0
+    # Never more than commanded (the press's whole time at the jog's speed, with the stop's
+    # run-out); at least most of the second held after the motion was seen (the polls, the
+    # release's own delay and the ramps take the rest).
+    assert 0.6 * expected <= rise[2] <= 20.0 * (time.monotonic() - pressed) + 3.0
     assert np.linalg.norm(rise[:2]) < 1.0
     screenshot(page, "operator-page-sim-after-jog")
 
