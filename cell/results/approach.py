@@ -100,6 +100,8 @@ class IbvsApproach(ApproachBase, IbvsLoop):
     mode: Literal[ApproachMode.ibvs]
     time_to_converge_s: float | None
     settle_steps_mm_deg: list[tuple[float, float]] | None = None  # each step's size
+    # each step's frames averaged: of the still arm, and the loop's last ones carried to it
+    settle_frames_still_carried: list[tuple[int, int]] | None = None
 
 
 AnyApproach = LookAndMoveApproach | ServoApproach | IbvsApproach
