@@ -377,6 +377,8 @@ def carried_views(views: list[View], T_base_tcp_rest: Matrix4, mount: IbvsMount,
     the arm's speed times the frame's timestamp error, both small against one frame's noise
     (~0.12 mm at the TCP from 456 mm), which the extra frames average down."""
     out: list[Features] = []
+    if within_mm <= 0 or within_deg <= 0:  # carrying switched off
+        return out
     for v in views:
         d_mm, d_deg = pose_distance(T_base_tcp_rest, v.T_base_tcp)
         if d_mm <= within_mm and d_deg <= within_deg:

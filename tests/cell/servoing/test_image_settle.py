@@ -50,6 +50,8 @@ def test_views_near_the_rest_pose_are_carried_to_it_and_far_ones_left_out() -> N
     assert len(carried) == 2
     for f in carried:
         assert np.abs(f.xy - at_rest.xy).max() * 800 < 1e-4  # px
+    # switched off, not even a view taken at the rest pose itself is carried
+    assert carried_views([_view(T_BASE_REST, 5)], T_BASE_REST, mount, 0.0, 0.05) == []
 
 
 def test_a_hand_eye_error_costs_microns_at_the_tcp() -> None:
