@@ -143,6 +143,11 @@ class Detection:
     def areas(self) -> NDArray[np.float64]:
         return self.rows[:, regions.AREA]
 
+    @property
+    def mid_levels(self) -> NDArray[np.float64]:
+        """(N,) grey level halfway between each dot's core and its local background."""
+        return self.rows[:, regions.MID_LEVEL]
+
     def blobs(self, indices: list[int] | None = None) -> list[Blob]:
         """Blobs of all rows, or of the rows at ``indices`` in that order."""
         fields = regions.ELLIPSE + 1  # columns U..ELLIPSE are Blob's fields, in order

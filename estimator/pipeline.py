@@ -228,7 +228,12 @@ class Estimator:
         # track keeps it. Different matchings that fit alike are no start at all.
         if self.tracking and threshold is not None and corr.pose.identity != "ambiguous":
             self._tracked_frames = 0
-            self._tracker.start(matched, corr.model_ids, threshold)
+            # The track thresholds at the dots' own mid level (see estimator.tracking); a
+            # grey level the caller fixed stays fixed.
+            fixed = isinstance(self._threshold, float)
+            level = threshold if fixed else float(
+                found.mid_levels[list(corr.blob_indices)].mean())
+            self._tracker.start(matched, corr.model_ids, level, follow_levels=not fixed)
             self._track_obj = np.ascontiguousarray(self.target.points_mm[list(corr.model_ids)])
             self._T_last = self._T_prev = corr.pose.T_camera_target
         self.last_mode = "full" if window is None else "window"

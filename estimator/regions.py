@@ -48,9 +48,11 @@ from numpy.typing import NDArray
 
 RIM_PX = 2  # the blurred rim beyond the thresholded region that still carries weight
 PAD_PX = RIM_PX + 1  # padding of a region's bounding box for its centre of gravity
-# Columns of the per-dot result rows (see find_dots).
-U, V, AREA, CIRCULARITY, INERTIA, FILL, MAJOR, MINOR, ANGLE, ELLIPSE, MASK_U, MASK_V = range(12)
-N_COLUMNS = 12
+# Columns of the per-dot result rows (see find_dots). MID_LEVEL is the grey level halfway
+# between the dot's core and its background: where its own edge is, whatever the threshold.
+(U, V, AREA, CIRCULARITY, INERTIA, FILL, MAJOR, MINOR, ANGLE, ELLIPSE, MASK_U, MASK_V,
+ MID_LEVEL) = range(13)
+N_COLUMNS = 13
 ELLIPSE_SLACK_PX = 2.0  # added to the mean semi-axis when normalising the ellipse error
 
 
@@ -163,8 +165,9 @@ def _hull_area_perimeter(px: NDArray[np.float64], py: NDArray[np.float64],
 def _weighted_centre(
     image: NDArray[np.uint8], row_min: NDArray[np.int64], row_max: NDArray[np.int64],
     rx0: int, ry0: int, by0: int, by1: int, dark: bool,
-) -> tuple[float, float, bool]:
-    """Contrast-weighted centre of a region (see the module docstring) -> (u, v, ok).
+) -> tuple[float, float, bool, float]:
+    """Contrast-weighted centre of a region (see the module docstring) -> (u, v, ok,
+    mid_level): mid_level is halfway between the region's core level and its background.
 
     The region is given by its extent on each of its rows (``row_min``/``row_max``, ROI
     coordinates, rows by0..by1, ROI at rx0, ry0), i.e. filled row by row like a filled
@@ -224,8 +227,9 @@ def _weighted_centre(
                 inner_n += row_max[k] - row_min[k] + 1
     full = (background - inner_sum / max(inner_n, 1) if dark
             else inner_sum / max(inner_n, 1) - background)
+    mid_level = background - 0.5 * full if dark else background + 0.5 * full
     if full <= 0.0:
-        return 0.0, 0.0, False
+        return 0.0, 0.0, False, mid_level
     s0 = sx = sy = 0.0
     for y in range(fy0, fy1 + 1):
         row = image[y]
@@ -237,8 +241,8 @@ def _weighted_centre(
                 sx += c * x
                 sy += c * y
     if s0 <= 0.0:
-        return 0.0, 0.0, False
-    return sx / s0, sy / s0, True
+        return 0.0, 0.0, False, mid_level
+    return sx / s0, sy / s0, True, mid_level
 
 
 @numba.njit(cache=True, nogil=True)
@@ -394,7 +398,8 @@ def find_dots(
                                              mu20, mu02, mu11, lam_major, lam_minor)
                 if ellipse_err > max_ellipse_error:
                     continue
-                u, v, ok = _weighted_centre(image, row_min, row_max, x0, y0, by0, by1, dark)
+                u, v, ok, mid = _weighted_centre(image, row_min, row_max, x0, y0, by0, by1,
+                                                 dark)
                 if not ok:
                     continue
                 first_px = (y0 + sy) * width + (x0 + sx)
@@ -418,5 +423,6 @@ def find_dots(
                 row[ANGLE] = 0.5 * math.atan2(2.0 * mu11, mu20 - mu02)
                 row[ELLIPSE] = ellipse_err
                 row[MASK_U], row[MASK_V] = (x0 + sx) + mx, (y0 + sy) + my
+                row[MID_LEVEL] = mid
                 n_out += 1
     return out[np.argsort(first[:n_out], kind="mergesort")]

@@ -6,6 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from numpy.typing import NDArray
 
 from estimator import CameraModel, Target, detect_blobs
 from estimator.blobs import MIN_SPREAD_GREY, BlobFilter, detect_blobs_thresholded, grey_spread
@@ -167,25 +168,63 @@ def test_rings_and_outlines_are_not_dots_but_a_filled_disc_is() -> None:
 
 
 def test_a_tracked_dot_gets_exactly_the_full_search_centre() -> None:
-    """The tracker labels only windows around the predictions, with the full search's
-    threshold: each dot's region, shape and centre are the full search's, bit for bit."""
+    """The tracker labels only windows around the predictions: at the threshold it cut them at,
+    each dot's region, shape and centre are the full search's, bit for bit -- a threshold held
+    fixed, or the dots' own mid level it follows by default."""
     from estimator.tracking import BlobTracker
 
     rng = np.random.default_rng(14)
-    for _ in range(5):
-        target = random_target(rng, 6)
-        img = render_target(CAM, target, random_pose(rng, CAM, target), rng=rng)
-        blobs, thr = detect_blobs_thresholded(img)
-        assert thr is not None and len(blobs) == 6
+    for follow in (False, True):
+        for _ in range(5):
+            target = random_target(rng, 6)
+            img = render_target(CAM, target, random_pose(rng, CAM, target), rng=rng)
+            blobs, thr = detect_blobs_thresholded(img)
+            assert thr is not None and len(blobs) == 6
+            tracker = BlobTracker("dark")
+            tracker.start(blobs, list(range(6)), thr, follow_levels=follow)
+            shift = rng.uniform(-3.0, 3.0, 2)
+            moved = np.roll(img, (int(shift[1]), int(shift[0])), axis=(0, 1))
+            cut = tracker.threshold
+            tracked = tracker.track(moved, np.array([[b.u, b.v] for b in blobs]) + shift.round())
+            assert tracked is not None
+            assert (tracker.threshold == thr) is not follow  # the next frame's: this one's level
+            again, _ = detect_blobs_thresholded(moved, threshold=cut)
+            key = sorted((b.u, b.v, b.area, b.inertia_ratio, b.fill_ratio) for b in tracked)
+            assert key == sorted((b.u, b.v, b.area, b.inertia_ratio, b.fill_ratio)
+                                 for b in again)
+
+
+def test_tracked_centres_follow_the_dots_not_the_threshold_the_track_began_at() -> None:
+    """A track begun at one frame's Otsu level -- several grey levels off from the next
+    track's -- would shift every centre of that track alike; following the dots' own mid level,
+    tracks begun anywhere near it measure the same centres from their third frame on, whatever
+    each frame's brightness."""
+    from estimator.tracking import BlobTracker
+
+    rng = np.random.default_rng(3)
+    target = random_target(rng, 6)
+    pose = random_pose(rng, CAM, target)
+    frames = [np.clip(render_target(CAM, target, pose, rng=rng).astype(float) * gain, 0, 255
+                      ).astype(np.uint8) for gain in (1.0, 0.95, 1.04, 0.97, 1.02, 0.98, 1.03)]
+    blobs, thr = detect_blobs_thresholded(frames[0])
+    assert thr is not None and len(blobs) == 6
+
+    def centres(start_level: float, follow: bool) -> NDArray[np.float64]:
         tracker = BlobTracker("dark")
-        tracker.start(blobs, list(range(6)), thr)
-        shift = rng.uniform(-3.0, 3.0, 2)
-        moved = np.roll(img, (int(shift[1]), int(shift[0])), axis=(0, 1))
-        again, _ = detect_blobs_thresholded(moved, threshold=thr)
-        tracked = tracker.track(moved, np.array([[b.u, b.v] for b in blobs]) + shift.round())
-        assert tracked is not None
-        key = sorted((b.u, b.v, b.area, b.inertia_ratio, b.fill_ratio) for b in tracked)
-        assert key == sorted((b.u, b.v, b.area, b.inertia_ratio, b.fill_ratio) for b in again)
+        tracker.start(blobs, list(range(6)), start_level, follow_levels=follow)
+        out = []
+        for frame in frames:
+            tracked = tracker.track(frame, np.array([[b.u, b.v] for b in blobs]))
+            assert tracked is not None
+            out.append([[b.u, b.v] for b in tracked])
+        return np.asarray(out)[2:]
+
+    held = [centres(thr + d, False) for d in (-10.0, 10.0)]
+    followed = [centres(thr + d, True) for d in (-10.0, 0.0, 10.0)]
+    spread_held = np.abs(held[1] - held[0]).max()
+    spread_followed = max(np.abs(c - followed[1]).max() for c in followed)
+    print(f"centre spread: held thresholds {spread_held:.2e} px, followed {spread_followed:.2e}")
+    assert spread_followed < 0.1 * spread_held
 
 
 def test_kernels_warm_up_runs_every_kernel() -> None:
