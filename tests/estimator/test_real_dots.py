@@ -101,3 +101,33 @@ def test_four_dot_photos_match_simple_blob_detector(name: str, polarity: str) ->
     # SimpleBlobDetector also reports a false blob on square.jpg: compare at our dots.
     d = np.linalg.norm(ours[:, None] - theirs[None], axis=2).min(axis=1)
     assert d.max() < CENTRE_TOL_PX, d
+
+
+@pytest.mark.parametrize("prefix", sorted(GRIDS))
+def test_a_real_grid_tracked_at_its_own_mid_level(prefix: str) -> None:
+    """Real photos, their brightness scaled frame to frame: tracks begun 10 grey levels either
+    side of the photo's Otsu level cut at the dots' own mid level after two frames, so they
+    measure the same centres, and those stay where OpenCV's findCirclesGrid puts the dots."""
+    from estimator.blobs import detect_blobs_thresholded
+    from estimator.tracking import BlobTracker
+
+    for name in _views(prefix):
+        img = _grey(name)
+        frames = [np.clip(img.astype(float) * g, 0, 255).astype(np.uint8)
+                  for g in (1.0, 0.94, 1.05, 0.97, 1.03)]
+        blobs, thr = detect_blobs_thresholded(img)
+        assert thr is not None and len(blobs) == 36, name
+        starts = _centres(blobs)
+        runs = []
+        for start in (thr - 10.0, thr + 10.0):
+            tracker = BlobTracker("dark")
+            tracker.start(blobs, list(range(36)), start)
+            run = []
+            for frame in frames:
+                tracked = tracker.track(frame, starts)
+                assert tracked is not None, name
+                run.append(_centres(tracked))
+            runs.append(np.asarray(run)[2:])
+        assert np.abs(runs[0] - runs[1]).max() < 1e-3, name
+        d = _nearest(runs[0][-1], _opencv_grid(img))
+        assert d.max() < CENTRE_TOL_PX, (name, d.max())
