@@ -227,6 +227,41 @@ def test_tracked_centres_follow_the_dots_not_the_threshold_the_track_began_at() 
     assert spread_followed < 0.1 * spread_held
 
 
+def test_noise_on_the_background_around_a_dot_does_not_move_its_centre() -> None:
+    """The rim a centre is weighted over reaches beyond the dot into the background, where
+    pixels carry only noise at the largest lever from the centre; the weight floor leaves them
+    out. Noise added only to the flat background moves no centre by more than a rounding's
+    worth, while the same noise over the whole image moves centres by thousandths of a pixel."""
+    rng = np.random.default_rng(12)
+    target = random_target(rng, 6)
+    pose = random_pose(rng, CAM, target, distance_mm=(450.0, 460.0))
+    clean = render_target(CAM, target, pose, rng=rng, noise_std=0.0, lighting_gradient=0.0)
+    dots = np.array([[b.u, b.v] for b in detect_blobs(clean)])
+    (x0, y0), (x1, y1) = dots.min(axis=0).astype(int), dots.max(axis=0).astype(int)
+    plate_level = np.bincount(clean[y0:y1, x0:x1].ravel()).argmax()
+    flat = np.abs(clean.astype(float) - plate_level) < 3.0  # the plate: < 2 % of a dot's contrast
+
+    def centres(image: NDArray[np.uint8]) -> NDArray[np.float64]:
+        found = np.array([[b.u, b.v] for b in detect_blobs(image)])
+        assert len(found) == 6
+        return found[np.lexsort(found.T[::-1])]
+
+    reference = centres(clean)
+    background_only, everywhere = [], []
+    for _ in range(20):
+        noise = rng.normal(0.0, 1.5, clean.shape)
+        background_only.append(centres(np.clip(np.rint(clean + noise * flat), 0, 255)
+                                       .astype(np.uint8)) - reference)
+        everywhere.append(centres(np.clip(np.rint(clean + noise), 0, 255).astype(np.uint8))
+                          - reference)
+    moved_background = float(np.sqrt(np.mean(np.square(background_only))))
+    moved_everywhere = float(np.sqrt(np.mean(np.square(everywhere))))
+    print(f"centres moved (RMS): background noise {moved_background:.2e} px, "
+          f"noise everywhere {moved_everywhere:.2e} px")
+    assert moved_background < 3e-4
+    assert moved_background < 0.2 * moved_everywhere
+
+
 def test_kernels_warm_up_runs_every_kernel() -> None:
     from estimator.kernels import warm_up
 
