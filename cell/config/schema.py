@@ -249,7 +249,7 @@ class IbvsConfig(Strict):
     # coordinate: the pull towards the pixel grid), in the taught view and the view now; the
     # converged result's estimated error includes what it allows at the TCP
     # (cell.servoing.view_bound). The default is for a camera not measured yet; the simulated
-    # camera's is 0.0012 px (`cell bench bias`), and cell/configs/sim.toml takes 0.002.
+    # camera's is 0.0013 px (`cell bench bias`), and cell/configs/sim.toml takes 0.002.
     centroid_bias_px: float = Field(default=0.01, ge=0)
     # move the measured features on by the arm's motion since their exposure (latency
     # compensation; the latency cap then counts the arm state's age only); off by default:
@@ -259,7 +259,7 @@ class IbvsConfig(Strict):
     # the final settle (cell.servoing.ibvs_settle): after the loop's test, the arm still,
     # ``settle_frames`` frames averaged, one step ``-L^+ e``; up to ``settle_steps`` times,
     # until the step is under ``settle_tolerance_mm`` / ``_deg``. 0 frames: no settle. One
-    # frame's view is ~0.12 mm RMS at the TCP from home, so the last window's mean decides the
+    # frame's view is ~0.10 mm RMS at the TCP from home, so the last window's mean decides the
     # end: 40 frames, once, ended 12 of 12 within 0.05 mm of a view taught at home (2 x 10
     # frames: 8-10 of 12) (docs/performance.md, cell bench loops)
     settle_frames: int = Field(default=40, ge=0, le=100)
@@ -267,18 +267,20 @@ class IbvsConfig(Strict):
     settle_tolerance_mm: float = Field(default=0.01, gt=0)
     settle_tolerance_deg: float = Field(default=0.002, gt=0)
     # the loop's last views taken within this of the rest pose count in the settle too, moved
-    # on to it by the arm's motion (0: still frames only): ~14 more frames from home, the
-    # window's noise down by a sixth at no cost in time (docs/ibvs.md)
-    settle_carry_mm: float = Field(default=0.2, ge=0, le=2.0)
-    settle_carry_deg: float = Field(default=0.05, ge=0, le=0.5)
+    # on to it by the arm's motion; off by default (0: still frames only). A view a fraction of
+    # a pixel away carries its own pull towards the pixel grid, which the weak direction makes
+    # ~0.03-0.08 mm at the TCP from home: measured no better than the still frames alone, the
+    # gain of ~14 more frames spent on that bias (docs/ibvs.md)
+    settle_carry_mm: float = Field(default=0.0, ge=0, le=2.0)
+    settle_carry_deg: float = Field(default=0.0, ge=0, le=0.5)
     approach_timeout_s: float = Field(default=30.0, gt=0)
 
 
 class TeachConfig(Strict):
     """Teaching a pose relative to the target (``POST /teach``): each of the samples a request
     asks for is the mean of ``frames_per_sample`` frames. An approach to a taught pose is no
-    better than the teach: one frame's view of the target at 456 mm is ~0.12 mm RMS at the
-    TCP, the mean of 150 frames (the default's 5 samples) ~0.009 mm, and the teach takes
+    better than the teach: one frame's view of the target at 456 mm is ~0.10 mm RMS at the
+    TCP, the mean of 150 frames (the default's 5 samples) ~0.008 mm, and the teach takes
     ~5 s at 30 fps (docs/performance.md). The teach costs no approach any time, so it averages
     more frames than the settle can."""
 

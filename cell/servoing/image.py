@@ -20,9 +20,9 @@ the TCP motion the window's mean view still asks for (:func:`cell.servoing.ibvs.
 remaining_motion`) under ``tolerance_mm`` / ``tolerance_deg``, since the pixels alone cannot
 see that direction; and the arm nearly still, since a window's mean is small too while the arm
 swings through the view. Then, with ``settle_frames``, the final settle
-(:func:`settle_on_views`), which also counts the loop's last views taken within
+(:func:`settle_on_views`), which can also count the loop's last views taken within
 ``settle_carry_mm`` / ``_deg`` of where the arm came to rest, carried there by the arm's own
-motion.
+motion (off by default: such a view brings its own pixel-grid bias, docs/ibvs.md).
 """
 
 from __future__ import annotations
