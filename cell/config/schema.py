@@ -238,8 +238,12 @@ class IbvsConfig(Strict):
     # stays damped whatever latency the camera and the host's load give it
     gain_latency_product: float = Field(default=0.4, gt=0, le=1.5)
     interaction: Literal["current", "desired", "mean"] = "mean"
-    tolerance_px_rms: float = Field(default=0.02, gt=0)
-    tolerance_px_max: float = Field(default=0.04, gt=0)
+    # the window's mean image error; the settle's step then crosses only this much of the
+    # image, where a dot's pull towards the pixel grid changes little: from 0.04 px away the
+    # step read 0.017-0.028 mm RMS wrong at the TCP from home, from 0.005 px 0.005-0.009 mm
+    # (docs/ibvs.md)
+    tolerance_px_rms: float = Field(default=0.01, gt=0)
+    tolerance_px_max: float = Field(default=0.02, gt=0)
     # the TCP motion the window's mean view still asks for (mm / deg); the loop also waits
     # until the arm moves less than half of these within the loop's delay
     tolerance_mm: float = Field(default=0.06, gt=0)
@@ -260,9 +264,10 @@ class IbvsConfig(Strict):
     # ``settle_frames`` frames averaged, one step ``-L^+ e``; up to ``settle_steps`` times,
     # until the step is under ``settle_tolerance_mm`` / ``_deg``. 0 frames: no settle. One
     # frame's view is ~0.10 mm RMS at the TCP from home, so the last window's mean decides the
-    # end: 40 frames, once, ended 12 of 12 within 0.05 mm of a view taught at home (2 x 10
-    # frames: 8-10 of 12) (docs/performance.md, cell bench loops)
-    settle_frames: int = Field(default=40, ge=0, le=100)
+    # end: a mean of N frames ~0.10 / sqrt(N) mm. 45 frames, once, with a 250-frame teach:
+    # the error ~0.018 mm RMS from home, 1.5 s of the approach (docs/performance.md, cell
+    # bench loops)
+    settle_frames: int = Field(default=45, ge=0, le=100)
     settle_steps: int = Field(default=1, ge=1, le=10)
     settle_tolerance_mm: float = Field(default=0.01, gt=0)
     settle_tolerance_deg: float = Field(default=0.002, gt=0)
@@ -280,11 +285,12 @@ class TeachConfig(Strict):
     """Teaching a pose relative to the target (``POST /teach``): each of the samples a request
     asks for is the mean of ``frames_per_sample`` frames. An approach to a taught pose is no
     better than the teach: one frame's view of the target at 456 mm is ~0.10 mm RMS at the
-    TCP, the mean of 150 frames (the default's 5 samples) ~0.008 mm, and the teach takes
-    ~5 s at 30 fps (docs/performance.md). The teach costs no approach any time, so it averages
-    more frames than the settle can."""
+    TCP, the mean of 250 frames (the default's 5 samples) ~0.006 mm, and the teach takes
+    ~8.5 s at 30 fps (docs/performance.md). Every later approach to the pose carries the
+    teach's error, and the teach costs no approach any time, so it averages more frames than
+    the settle can."""
 
-    frames_per_sample: int = Field(default=30, ge=1, le=50)
+    frames_per_sample: int = Field(default=50, ge=1, le=100)
 
 
 class PickConfig(Strict):
