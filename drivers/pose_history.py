@@ -43,6 +43,12 @@ class PoseHistory:
         with self._lock:
             return (self._times[0], self._times[-1]) if self._times else None
 
+    def covers(self, timestamp_s: float, wait_s: float = 0.0) -> bool:
+        """Is there a sample at or after ``timestamp_s``? Waits up to ``wait_s`` for one."""
+        with self._lock:
+            return self._lock.wait_for(
+                lambda: bool(self._times) and self._times[-1] >= timestamp_s, timeout=wait_s)
+
     def at(self, timestamp_s: float, wait_s: float = 0.0) -> NDArray[np.float64]:
         """Pose at ``timestamp_s``: linear in position, slerp in rotation between samples.
 

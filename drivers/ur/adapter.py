@@ -83,6 +83,10 @@ MOVING_QD_RAD_S = 5e-3  # below this the arm counts as standing (controllers rep
 UNLOCK_DELAY_S = 5.0  # a UR refuses to unlock a protective stop for this long after it
 PUSH_PERIOD_S = 0.008  # pushed samples at most at 125 Hz: plenty for the pose history
 PUSH_FRESH_S = 0.25  # a pushed sample older than this is not trusted: ask the child instead
+# pose_at: how long a frame's pose waits for a sample newer than its exposure, and how long
+# past the exposure it waits for a push before asking the child (two RTDE packages at 125 Hz)
+HISTORY_WAIT_S = 0.5
+ASK_AFTER_S = 0.02
 MONITOR_PERIOD_S = 0.02  # jog-watchdog checks while a jog or a servo twist runs
 IDLE_MONITOR_PERIOD_S = 0.25  # otherwise only the stale-stream check (woken when it is due)
 
@@ -207,14 +211,7 @@ class URArm:
         with self._samples:
             sample, rx_s, host_s = self._latest, self._latest_rx_s, self._latest_host_s
         if sample is None or not self._subscribed or time.monotonic() - rx_s > PUSH_FRESH_S:
-            client = self._client
-            try:
-                sample = self._request(Sample())
-            except RemoteError as exc:
-                self._mark_lost(f"state: {exc}")
-                raise ConnectionLostError(f"state of {self.host}: {exc}") from exc
-            assert sample is not None
-            self._accept(sample, client)
+            sample = self._ask_sample()
             with self._samples:  # the newest kept (a concurrent reply may have overtaken)
                 if self._latest is not None:
                     sample, host_s = self._latest, self._latest_host_s
@@ -225,6 +222,18 @@ class URArm:
             self._mark_lost("the RTDE stream was closed by the controller")
             self._check_link()
         return sample, host_s
+
+    def _ask_sample(self) -> StateSample:
+        """Ask the child for its newest state (not waiting for a push) and keep it."""
+        client = self._client
+        try:
+            sample = self._request(Sample())
+        except RemoteError as exc:
+            self._mark_lost(f"state: {exc}")
+            raise ConnectionLostError(f"state of {self.host}: {exc}") from exc
+        assert sample is not None
+        self._accept(sample, client)
+        return sample
 
     # -- connection ----------------------------------------------------------------------------
     def connect(self) -> None:
@@ -491,9 +500,29 @@ class URArm:
         return T_from_ur_pose(list(pose))
 
     def pose_at(self, timestamp_s: float) -> NDArray[np.float64]:
-        wait_s = 0.5 if self._lost_reason is None else 0.0
-        return self.history.at(timestamp_s, wait_s=min(wait_s, timestamp_s + 0.5
-                                                        - time.monotonic()))
+        """The pose at a frame's exposure, from the samples around it.
+
+        A moving arm's samples are pushed at the RTDE rate, so one newer than the exposure
+        comes within a package period or two. A still arm's are held back by the child (up to
+        ``QUIET_PUSH_S``) and a frame would wait for them; after ``ASK_AFTER_S`` the adapter
+        asks the child instead, which answers with its newest sample, the held one first, so
+        the pose is still read from samples on both sides of the exposure."""
+        now = time.monotonic()
+        if self._lost_reason is not None:
+            return self.history.at(timestamp_s)
+        deadline_s = min(now, timestamp_s) + HISTORY_WAIT_S
+        ask_s = timestamp_s + ASK_AFTER_S
+        while not self.history.covers(timestamp_s, min(ask_s, deadline_s) - now):
+            now = time.monotonic()
+            if now >= deadline_s:
+                break
+            if now >= ask_s:
+                try:
+                    self._ask_sample()
+                except DriverError:
+                    break  # the link is gone: the history answers with what it has
+                ask_s = now + ASK_AFTER_S
+        return self.history.at(timestamp_s)
 
     def is_moving(self) -> bool:
         return self._moving(self._sample())

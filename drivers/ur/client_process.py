@@ -15,7 +15,9 @@ After :class:`Subscribe` the child pushes samples (reply id 0) instead of being 
 pusher thread sleeps between looks at the receive client's package timestamp and sends a
 sample only when the RTDE data changed (at most the subscribed rate), and after every call it
 sends one before the call's reply, so a sample read after a command's reply reflects the
-command. Samples carry a sequence number in the order they were taken.
+command. A still arm's samples are held back (see :class:`_PushState`); the one held goes out
+before the answer to a :class:`Sample` request. Samples carry a sequence number in the order
+they were taken.
 """
 
 from __future__ import annotations
@@ -584,6 +586,15 @@ class _PushState:
         with self._lock:
             return period_s is not None and now_s - self._last_s >= period_s
 
+    def take_held(self, now_s: float) -> StateSample | None:
+        """The held sample, to go out now (before the answer to a :class:`Sample` request, so
+        the parent's pose history knows the arm still stood when that sample was taken)."""
+        with self._lock:
+            held, self._held = self._held, None
+            if held is not None:
+                self._last, self._last_s = held, now_s
+            return held
+
     def pushed(self, sample: StateSample, now_s: float) -> None:
         """``sample`` went to the parent outside the pusher (after a call)."""
         with self._lock:
@@ -648,6 +659,8 @@ def child_main(host: str, parent_pid: int | None = None) -> None:
 
     pusher_state = _PushState()
     wake_pusher = threading.Event()  # a call was made: look at the arm at full rate again
+    # a held sample and the pusher's next one go out in the order they were taken
+    push_order = threading.Lock()
 
     def send(sample: StateSample) -> None:
         with contextlib.suppress(OSError, ValueError):
@@ -661,8 +674,9 @@ def child_main(host: str, parent_pid: int | None = None) -> None:
             sample = clients.sample()
         except Exception:  # no receive client (yet, or any more): nothing to push
             return
-        pusher_state.pushed(sample, time.monotonic())
-        send(sample)
+        with push_order:
+            pusher_state.pushed(sample, time.monotonic())
+            send(sample)
 
     def serve(req_id: int, req: Request) -> None:
         try:
@@ -672,6 +686,11 @@ def child_main(host: str, parent_pid: int | None = None) -> None:
         if isinstance(req, Call):
             push()  # before the reply: what the parent reads next reflects the call
             wake_pusher.set()
+        elif isinstance(req, Sample) and clients.push_period_s is not None:
+            with push_order:  # the still arm's held sample first (see _PushState.take_held)
+                held = pusher_state.take_held(time.monotonic())
+                if held is not None:
+                    send(held)
         with contextlib.suppress(OSError, ValueError):
             _write(stdout, reply, lock)
         if isinstance(req, Subscribe):
@@ -699,8 +718,9 @@ def child_main(host: str, parent_pid: int | None = None) -> None:
                 sample = clients.sample()
             except Exception:
                 continue
-            for out in pusher_state.offer(sample, now):
-                send(out)
+            with push_order:
+                for out in pusher_state.offer(sample, now):
+                    send(out)
 
     def kicker() -> None:
         """Kick the controller's watchdog while the parent lives (see Guard)."""

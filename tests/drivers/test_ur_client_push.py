@@ -89,6 +89,19 @@ def test_a_call_push_resets_the_hold() -> None:
     assert [s.seq for s in ps.offer(moved, 0.024)] == [4]  # the held one is older than 3
 
 
+def test_a_sample_request_takes_the_held_sample_out_first() -> None:
+    ps = _PushState()
+    ps.offer(sample(1), 0.008)
+    assert ps.take_held(0.010) is None  # nothing held: nothing extra to send
+    assert ps.offer(sample(2), 0.016) == []
+    assert ps.offer(sample(3), 0.024) == []
+    held = ps.take_held(0.025)
+    assert held is not None and held.seq == 3  # the newest held, once
+    assert ps.take_held(0.026) is None
+    # it counts as sent: the next change goes out alone, the still one already did
+    assert [s.seq for s in ps.offer(sample(4, x_m=0.401), 0.032)] == [4]
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="Linux timer slack")
 def test_timer_slack_is_set_for_the_block_and_restored() -> None:
     before = timer_slack_s()

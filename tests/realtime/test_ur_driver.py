@@ -12,6 +12,15 @@ from drivers.arm import Arm
 from drivers.errors import ConnectionLostError, MotionError, NotReadyError
 from drivers.pose_history import PoseHistory
 from drivers.ur.adapter import URArm
+from drivers.ur.client_process import (
+    QUIET_PUSH_S,
+    RESTING_AFTER_S,
+    ClientProcess,
+    Create,
+    Sample,
+    StateSample,
+    Subscribe,
+)
 from estimator.transforms import make_T, pose_distance, translation_T
 from fakes.ur_controller.process import ControllerProcess, free_loopback_host
 from tests.support.ur import true_T_base_tcp
@@ -194,6 +203,60 @@ def test_reconnect_after_dropped_connections(ur_ctl: ControllerProcess, ur_arm: 
     target = translation_T(30.0, 0.0, 0.0) @ T0
     ur_arm.move_linear(target, 100, 500)
     assert pose_distance(true_T_base_tcp(ur_ctl), target)[0] < 0.01
+
+
+def test_a_still_arms_frames_get_poses_from_samples_after_them(
+        ur_ctl: ControllerProcess, ur_arm: URArm) -> None:
+    """The child holds a standing arm's samples back; a frame's pose must still come from a
+    sample taken after the frame (asked for, with the held one first), not the newest one
+    pushed, which may be a tenth of a second older."""
+    time.sleep(RESTING_AFTER_S + 2 * QUIET_PUSH_S)  # resting, samples held
+    asked: list[float] = []
+    ask = ur_arm._ask_sample
+
+    def counted() -> StateSample:
+        asked.append(time.monotonic())
+        return ask()
+
+    ur_arm._ask_sample = counted  # type: ignore[method-assign]
+    truth = true_T_base_tcp(ur_ctl)
+    for _ in range(10):
+        exposed_s = time.monotonic() - 0.05  # a frame read 50 ms after its exposure
+        T = ur_arm.pose_at(exposed_s)
+        assert ur_arm.history.covers(exposed_s), "answered from samples before the frame"
+        assert pose_distance(T, truth)[0] < 0.01
+        time.sleep(0.033)
+    assert asked, "a standing arm's frames waited for the quiet pushes"
+
+
+def test_the_held_sample_comes_before_the_answer(ur_ctl: ControllerProcess) -> None:
+    """What a Sample request makes the child send, in order: the still sample it held back,
+    then the answer. The parent keeps samples in the order they were taken, so a held one that
+    came after the answer would be dropped, and the history would not know the arm stood."""
+    child = ClientProcess(ur_ctl.host)
+    pushed: list[StateSample] = []
+    child.on_push = pushed.append  # called by the reader, in pipe order, before any answer
+    try:
+        child.request(Create("recv"), timeout_s=15.0)
+        child.request(Subscribe(0.008))
+        time.sleep(RESTING_AFTER_S + 2 * QUIET_PUSH_S)
+        answers: list[tuple[StateSample, int, int]] = []
+        for _ in range(20):
+            before = len(pushed)
+            answer = child.request(Sample())
+            answers.append((answer, before, len(pushed)))
+            time.sleep(0.02)
+        time.sleep(2 * QUIET_PUSH_S)
+        flushed = 0
+        for answer, before, after in answers:
+            assert all(s.seq > answer.seq for s in pushed[after:]), "a held sample came late"
+            flushed += any(s.seq < answer.seq for s in pushed[before:after])
+        # the pusher holds a standing arm's newest sample most of the time; without the
+        # flush a push lands in a request's millisecond only at the quiet period's tick
+        assert flushed >= 5, f"{flushed} of 20 answers came after their held sample"
+        assert [s.seq for s in pushed] == sorted(s.seq for s in pushed)
+    finally:
+        child.close()
 
 
 def test_pose_history_interpolates() -> None:
