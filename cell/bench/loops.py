@@ -1,18 +1,21 @@
 """``cell bench loops``: servo and IBVS to a view taught by showing, with the camera's mount off
 the hand-eye calibration, against the simulator's truth.
 
-The simulated cell runs in-process with the ideal world but for the camera's true mount: 1.5 /
--1.0 / 2.0 mm and 0.5 deg about [1, 1, 0] from ``[hand_eye]``. A view is taught at home
-(``teach``, ``teach_samples`` samples of ``[teach] frames_per_sample`` frames, as an
-operator's ``POST /teach``), and taught again for every repeat: the taught view's own error is
-shared by every run from it, so one teach would make a set of runs one draw. The repeats take
-the teach poses in turn (``TEACH_POSES``: home, 456 mm from the plate and square to it, and a
-pose 150 mm nearer and tilted 8 deg). Each run jogs the
-arm by one of the jogs (base frame: translation mm, rotation deg) and approaches the taught view
-with no standoff. For every run: the job's state and time, the true error (the simulator's TCP
-against the true TCP at teaching) and the error the job claims (``estimated_error_mm`` /
-``_deg``), and whether the claim bounds the truth; per mode, how often it did and how many runs
-ended within the mode's target (``TARGETS``).
+The simulated cell runs with the ideal world but for the camera's true mount: 1.5 / -1.0 / 2.0
+mm and 0.5 deg about [1, 1, 0] from ``[hand_eye]``. ``arm="ur"`` (the default) drives it as
+``make run`` serves it, through the UR adapter, ur_rtde and the simulated controller in their
+own processes; ``arm="sim"`` uses the in-process arm (no controller, no pose pushes).
+
+A view is taught at home (``teach``, ``teach_samples`` samples of ``[teach]
+frames_per_sample`` frames, as an operator's ``POST /teach``), and taught again for every
+repeat: the taught view's own error is shared by every run from it, so one teach would make a
+set of runs one draw. The repeats take the teach poses in turn (``TEACH_POSES``: home, 456 mm
+from the plate and square to it, and a pose 150 mm nearer and tilted 8 deg). Each run jogs the
+arm by one of the jogs (base frame: translation mm, rotation deg) and approaches the taught
+view with no standoff. For every run: the job's state and time, the true error (the
+simulator's TCP against the true TCP at teaching) and the error the job claims
+(``estimated_error_mm`` / ``_deg``), and whether the claim bounds the truth; per mode, how
+often it did and how many runs ended within the mode's target (``TARGETS``).
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from cell.errors import CellError
 from cell.runtime import start_cell
 from cell.vision.frames import step_goal
 from estimator.transforms import pose_distance
+from fakes.ur_controller.process import free_loopback_host
 
 CALLER = "bench:loops"
 MOUNT_ERROR_MM = (1.5, -1.0, 2.0)
@@ -52,14 +56,20 @@ TEACH_POSES: tuple[tuple[tuple[float, float, float], tuple[float, float, float]]
     ((20.0, -15.0, -150.0), (8.0, 0.0, 0.0)),
 )
 MODES = ("servo", "ibvs")
+ARMS = ("ur", "sim")
 # the true error each mode is to end within (mm, deg)
 TARGETS = {"servo": (0.1, 0.05), "ibvs": (0.05, 0.02)}
 
 
-def _config(tmp: Path) -> Any:
+def _config(tmp: Path, arm: str = "ur") -> Any:
     data = load_config().model_dump(mode="python")
-    data["robot"]["kind"] = "sim"
-    data["sim"]["ur_controller"] = False
+    if arm == "ur":
+        data["robot"]["kind"] = "ur"
+        data["robot"]["host"] = free_loopback_host()
+        data["sim"]["ur_controller"] = True
+    else:
+        data["robot"]["kind"] = "sim"
+        data["sim"]["ur_controller"] = False
     data["gripper"]["kind"] = "none"
     data["api"]["job_db"] = str(tmp / "jobs.db")
     data["api"]["calibration_dir"] = str(tmp / "calibration")
@@ -74,7 +84,10 @@ def _config(tmp: Path) -> Any:
 
 
 def run_bench_loops(*, repeats: int = 3, modes: tuple[str, ...] = MODES,
-                    teach_samples: int = 5, burners: int = 0) -> dict[str, Any]:
+                    teach_samples: int = 5, burners: int = 0,
+                    arm: str = "ur") -> dict[str, Any]:
+    if arm not in ARMS:
+        raise ValueError(f"arm must be one of {ARMS}, got {arm!r}")
     rows: list[dict[str, Any]] = []
     with contextlib.ExitStack() as stack:
         if burners > 0:
@@ -82,7 +95,7 @@ def run_bench_loops(*, repeats: int = 3, modes: tuple[str, ...] = MODES,
 
             stack.enter_context(cpu_burners(burners, max_s=3600.0))
         tmp = stack.enter_context(tempfile.TemporaryDirectory())
-        cell = start_cell(_config(Path(tmp)))
+        cell = start_cell(_config(Path(tmp), arm))
         try:
             assert cell.sim is not None
             time.sleep(1.0)
@@ -105,7 +118,7 @@ def run_bench_loops(*, repeats: int = 3, modes: tuple[str, ...] = MODES,
             "jogs": [list(map(list, j)) for j in JOGS],
             "runs": rows, "summary": {m: _summary([r for r in rows if r["mode"] == m])
                                       for m in modes},
-            "burners": burners, "load_average": list(os.getloadavg())}
+            "arm": arm, "burners": burners, "load_average": list(os.getloadavg())}
 
 
 def _run(cell: Any, taught: Any, T_taught: Any, mode: str, jog_i: int,
@@ -161,7 +174,9 @@ def _within(row: dict[str, Any]) -> bool:
 
 
 def format_report(r: dict[str, Any]) -> list[str]:
-    lines = [f"to a view taught at {len(r['teach_poses'])} poses in turn ({r['teach_samples']} "
+    arm = {"ur": "through the UR adapter", "sim": "in-process arm"}[r.get("arm", "ur")]
+    lines = [f"{arm}, to a view taught at {len(r['teach_poses'])} poses in turn "
+             f"({r['teach_samples']} "
              f"samples, {r['teach_frames']} frames, taught again every repeat), mount off by "
              f"{np.linalg.norm(MOUNT_ERROR_MM):.1f} mm / {MOUNT_ERROR_DEG} deg:"]
     for row in r["runs"]:
@@ -191,7 +206,7 @@ def main(args: argparse.Namespace) -> int:
               "1..20")
         return 2
     report = run_bench_loops(repeats=args.repeats, burners=args.burners,
-                             teach_samples=args.teach_samples)
+                             teach_samples=args.teach_samples, arm=args.arm)
     if args.json:
         print(json.dumps(report, indent=1, default=float))
     else:

@@ -244,6 +244,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     lp.add_argument("--teach-samples", type=int, default=5, metavar="N",
                     help="samples a teach takes, each [teach] frames_per_sample frames "
                          "(default 5); the view is taught again for every repeat")
+    lp.add_argument("--arm", choices=("ur", "sim"), default="ur",
+                    help="ur (default): through the UR adapter, ur_rtde and the simulated "
+                         "controller, as `make run` serves the cell; sim: the in-process arm")
     lp.set_defaults(func=_lazy("loops"))
 
 
